@@ -1,0 +1,52 @@
+"""Shared test configuration.
+
+* JAX's persistent compilation cache is on (``.jax_cache/`` in the repo, or
+  ``$JAX_COMPILATION_CACHE_DIR``), so a second test run skips most XLA compiles.
+* ``shared_dir``: the read-only reference folder (``$SWIFTJAX_SHARED`` or ``../shared``);
+  tests that need it skip with a clear reason when it is absent (CI always has it).
+* ``x64``: runs a test with ``jax_enable_x64`` on, for float64 reference checks only.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import jax
+import pytest
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+jax.config.update(
+    "jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR", str(REPO / ".jax_cache"))
+)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def find_shared() -> pathlib.Path | None:
+    """The shared reference folder, or None."""
+    env = os.environ.get("SWIFTJAX_SHARED")
+    candidates = [pathlib.Path(env)] if env else []
+    candidates.append(REPO.parent / "shared")
+    for c in candidates:
+        if (c / "data").is_dir() and (c / "golden").is_dir():
+            return c
+    return None
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> pathlib.Path:
+    path = find_shared()
+    if path is None:
+        pytest.skip(
+            "shared reference data not found: set SWIFTJAX_SHARED to the folder holding "
+            "data/ and golden/, or place it at ../shared beside the repository"
+        )
+    return path
+
+
+@pytest.fixture
+def x64():
+    """Enable float64 in JAX for the duration of one test."""
+    with jax.enable_x64(True):
+        yield
