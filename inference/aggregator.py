@@ -1,0 +1,110 @@
+"""VGGT's aggregator: DINO patch tokens, then alternating frame-wise and global attention."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .config import VGGTConfig
+from .dino import DinoVisionTransformer
+from .layers import Block, RopeTables, rope_tables_2d
+
+__all__ = ["Aggregator", "AggregatorOutput"]
+
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class AggregatorOutput(dict):  # type: ignore[type-arg]
+    """``tokens``: list of ``depth`` tensors ``[B, S, T, 2C]`` (``cat(frame_i, global_i)``);
+    ``patch_tokens``: ``[B, S, P, C]`` DINO ``x_norm_patchtokens``."""
+
+
+def _first_and_rest(token: Tensor, batch: int, frames: int) -> Tensor:
+    """``token [1, 2, X, C]`` -> ``[B*S, X, C]``: slot 0 for frame 0, slot 1 for the others."""
+    first = token[:, 0:1].expand(batch, 1, *token.shape[2:])
+    rest = token[:, 1:2].expand(batch, frames - 1, *token.shape[2:])
+    return torch.cat([first, rest], dim=1).reshape(batch * frames, *token.shape[2:])
+
+
+class Aggregator(nn.Module):
+    """Alternating-attention transformer over the frames of one scene.
+
+    Per frame the tokens are ``[camera (1), registers (R), patches (P)]``; frame blocks attend
+    within a frame (``[B*S, T, C]``), global blocks across all frames (``[B, S*T, C]``).
+    """
+
+    def __init__(self, cfg: VGGTConfig) -> None:
+        super().__init__()
+        c = cfg.embed_dim
+        self.cfg = cfg
+        self.camera_token = nn.Parameter(torch.zeros(1, 2, 1, c))
+        self.register_token = nn.Parameter(torch.zeros(1, 2, cfg.num_register_tokens, c))
+        self.patch_embed = DinoVisionTransformer(
+            img_size=cfg.img_size,
+            patch_size=cfg.patch_size,
+            embed_dim=c,
+            depth=cfg.dino_depth,
+            num_heads=cfg.dino_num_heads,
+            mlp_ratio=cfg.dino_mlp_ratio,
+            num_register_tokens=cfg.num_register_tokens,
+        )
+
+        def block() -> Block:
+            return Block(c, cfg.num_heads, cfg.mlp_ratio, init_values=cfg.init_values, qk_norm=cfg.qk_norm)
+
+        self.frame_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
+        self.global_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
+        self.register_buffer("_resnet_mean", torch.tensor(_IMAGENET_MEAN).view(1, 1, 3, 1, 1), persistent=False)
+        self.register_buffer("_resnet_std", torch.tensor(_IMAGENET_STD).view(1, 1, 3, 1, 1), persistent=False)
+
+    def rope_tables(self, patches_h: int, patches_w: int, device: torch.device) -> RopeTables | None:
+        """RoPE tables for one frame: special tokens at (0, 0), patch (r, c) at (r+1, c+1)."""
+        if self.cfg.rope_freq <= 0:
+            return None
+        rows = torch.arange(patches_h, device=device).repeat_interleave(patches_w)
+        cols = torch.arange(patches_w, device=device).repeat(patches_h)
+        patch_pos = torch.stack([rows, cols], dim=-1) + 1
+        special = torch.zeros(self.cfg.patch_start_idx, 2, dtype=patch_pos.dtype, device=device)
+        positions = torch.cat([special, patch_pos], dim=0)
+        return rope_tables_2d(positions, self.cfg.embed_dim // self.cfg.num_heads, self.cfg.rope_freq)
+
+    def forward(self, images: Tensor) -> AggregatorOutput:
+        """``images``: ``[B, S, 3, H, W]`` RGB in [0, 1]; see :class:`AggregatorOutput`."""
+        b, s, ch, height, width = images.shape
+        if ch != 3 or height % self.cfg.patch_size or width % self.cfg.patch_size:
+            raise ValueError(
+                f"images must be [B,S,3,H,W] with H, W multiples of {self.cfg.patch_size}; got {tuple(images.shape)}"
+            )
+        x = (images - self._resnet_mean) / self._resnet_std
+        patch_tokens = self.patch_embed(x.reshape(b * s, ch, height, width))["x_norm_patchtokens"]
+        _, p, c = patch_tokens.shape
+        tokens = torch.cat(
+            [_first_and_rest(self.camera_token, b, s), _first_and_rest(self.register_token, b, s), patch_tokens],
+            dim=1,
+        )  # [B*S, T, C]
+        t = tokens.shape[1]
+        rope = self.rope_tables(height // self.cfg.patch_size, width // self.cfg.patch_size, images.device)
+
+        outputs: list[Tensor] = []
+        frame_idx = global_idx = 0
+        block = self.cfg.aa_block_size
+        for _ in range(self.cfg.depth // block):
+            inter: dict[str, list[Tensor]] = {}
+            for kind in self.cfg.aa_order:
+                inter[kind] = []
+                if kind == "frame":
+                    tokens = tokens.reshape(b * s, t, c)
+                    for _ in range(block):
+                        tokens = self.frame_blocks[frame_idx](tokens, rope)
+                        frame_idx += 1
+                        inter[kind].append(tokens.reshape(b, s, t, c))
+                else:
+                    tokens = tokens.reshape(b, s * t, c)
+                    for _ in range(block):
+                        tokens = self.global_blocks[global_idx](tokens, rope)
+                        global_idx += 1
+                        inter[kind].append(tokens.reshape(b, s, t, c))
+            for f, g in zip(inter["frame"], inter["global"]):
+                outputs.append(torch.cat([f, g], dim=-1))
+        return AggregatorOutput(tokens=outputs, patch_tokens=patch_tokens.reshape(b, s, p, c))

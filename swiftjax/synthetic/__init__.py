@@ -1,0 +1,1 @@
+"""A synthetic driving world with a VGGT oracle, for development and benchmarks without weights."""
