@@ -1,0 +1,110 @@
+"""Atomic file writes: a temp file in the target's directory, fsync, then ``os.replace``.
+
+A reader (or a crashed run being resumed) sees either the old file or the complete new one,
+never a half-written file.  On any exception the temp file is removed and the old file is
+left untouched.
+
+    with atomic_write("poses.txt") as f:          # text, or mode="wb" for bytes
+        f.write("...")
+    with atomic_path("plot.png") as tmp:          # for tools that want a path (savefig, cv2)
+        fig.savefig(tmp)
+    atomic_save_npz("chunk_0003.npz", depth=d, conf=c)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import tempfile
+from collections.abc import Iterator
+from typing import IO, Any
+
+import numpy as np
+
+__all__ = ["atomic_path", "atomic_write", "atomic_save_npz"]
+
+_UMASK: int | None = None
+
+
+def _file_mode() -> int:
+    """``0o666 & ~umask``: the permissions ``open(path, "w")`` would give (mkstemp gives 0600)."""
+    global _UMASK
+    if _UMASK is None:
+        _UMASK = os.umask(0)
+        os.umask(_UMASK)
+    return 0o666 & ~_UMASK
+
+
+def _fsync_dir(directory: pathlib.Path) -> None:
+    """Persist the rename itself (POSIX); silently skipped where directories can't be opened."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
+    """Yield a temp path beside ``path``; on success it is fsynced and renamed onto ``path``.
+
+    The temp name keeps ``path``'s suffix (``.name.XXXX.tmp.png``) so that tools which pick
+    a format from the extension still work.  The parent directory must exist.  On an
+    exception inside the block the temp file is deleted and ``path`` is left as it was.
+    """
+    target = pathlib.Path(path)
+    parent = target.parent
+    if not parent.is_dir():
+        raise FileNotFoundError(f"cannot write {target}: directory {parent} does not exist")
+    fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{target.name}.", suffix=f".tmp{target.suffix}")
+    os.close(fd)
+    tmp = pathlib.Path(tmp_name)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, _file_mode())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+    _fsync_dir(parent)
+
+
+@contextlib.contextmanager
+def atomic_write(
+    path: str | os.PathLike[str], mode: str = "w", encoding: str | None = "utf-8", newline: str | None = None
+) -> Iterator[IO[Any]]:
+    """Open a temp file beside ``path`` for writing; atomically replace ``path`` on success.
+
+    Args:
+        path: the final file.
+        mode: ``"w"`` (text) or ``"wb"`` (bytes).
+        encoding, newline: as for :func:`open` (text mode only).
+    """
+    if mode not in ("w", "wb"):
+        raise ValueError(f"atomic_write mode must be 'w' or 'wb', got {mode!r}")
+    with atomic_path(path) as tmp:
+        if mode == "w":
+            f = open(tmp, "w", encoding=encoding, newline=newline)
+        else:
+            f = open(tmp, "wb")
+        with f:
+            yield f
+
+
+def atomic_save_npz(path: str | os.PathLike[str], compress: bool = False, **arrays: Any) -> None:
+    """Write ``arrays`` to the ``.npz`` file ``path`` atomically (exact name, no suffix added).
+
+    ``compress=True`` uses ``np.savez_compressed`` (zlib; slower, smaller).
+    """
+    save = np.savez_compressed if compress else np.savez
+    with atomic_write(path, "wb") as f:
+        save(f, **arrays)
