@@ -1,0 +1,267 @@
+"""Trajectory files: KITTI (3x4 per line) and TUM (``t tx ty tz qx qy qz qw``).
+
+Poses are camera-to-world ``[N, 4, 4]`` float64 matrices (DESIGN.md: the trajectories we
+write are camera-to-world).  Host-side NumPy code: files are small (KITTI 00 is 4,541
+lines) and this runs once per run.
+
+Parsing rules (a superset of what evo reads, so every file evo reads, we read too):
+
+* lines starting with ``#`` (after leading white space) and blank lines are skipped;
+* values are separated by white space or commas;
+* KITTI lines have exactly 12 numbers (the row-major top 3x4 of the pose), TUM lines 8;
+* every value must parse as a finite float.
+
+Anything else raises :class:`TrajectoryFormatError` naming the file and the 1-based line.
+
+Round trips are exact: writers print every float with Python's shortest round-trip
+``repr``, so ``read_kitti(write_kitti(P)) == P`` bit for bit (for the top 3x4 rows), and
+``read_tum_raw(write_tum(t, rows)) == (t, rows)`` bit for bit.  Going from a rotation
+matrix to a quaternion and back is not bit-exact in floating point (it agrees to ~1e-16):
+write TUM rows (``[N, 7]``) rather than matrices when bit-exactness matters.
+
+Quaternion -> matrix uses the same formula as evo (``transformations.quaternion_matrix``:
+normalise, ``q <- q sqrt(2/|q|^2)``, outer product), so poses read here are bit-identical to
+evo's ``PoseTrajectory3D.poses_se3``.  Matrix -> quaternion uses Shepperd's method
+(largest-diagonal branch) and returns ``qw >= 0``.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import tempfile
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "TrajectoryFormatError",
+    "read_kitti",
+    "write_kitti",
+    "read_tum",
+    "read_tum_raw",
+    "write_tum",
+    "quaternion_to_matrix",
+    "matrix_to_quaternion",
+]
+
+PathLike = str | os.PathLike
+
+
+class TrajectoryFormatError(ValueError):
+    """A malformed trajectory file; the message names the file and the line."""
+
+
+# ------------------------------------------------------------------------------- parsing
+
+
+def _parse_rows(path: PathLike, width: int, fmt: str) -> np.ndarray:
+    """``[N, width]`` float64 rows of a whitespace/comma separated numeric file."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{fmt} trajectory file not found: {path}")
+    rows: list[list[float]] = []
+    with open(path, encoding="utf-8-sig") as f:  # utf-8-sig: tolerate a BOM like evo
+        for lineno, line in enumerate(f, start=1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            fields = text.replace(",", " ").split()
+            if len(fields) != width:
+                raise TrajectoryFormatError(
+                    f"{path}:{lineno}: a {fmt} line must have {width} numbers, got "
+                    f"{len(fields)}: {text[:80]!r}"
+                )
+            try:
+                values = [float(v) for v in fields]
+            except ValueError:
+                raise TrajectoryFormatError(
+                    f"{path}:{lineno}: a {fmt} line must hold numbers only: {text[:80]!r}"
+                ) from None
+            if not all(np.isfinite(values)):
+                raise TrajectoryFormatError(
+                    f"{path}:{lineno}: non-finite value (nan/inf) in {fmt} line: {text[:80]!r}"
+                )
+            rows.append(values)
+    if not rows:
+        raise TrajectoryFormatError(f"{path}: no {fmt} poses in file (empty or only comments)")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _atomic_write_text(path: PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temp file in the same folder and a rename."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+# ------------------------------------------------------------------------------- rotations
+
+
+def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """``[..., 4]`` quaternions ``(qx, qy, qz, qw)`` (any norm > 0) -> ``[..., 3, 3]`` rotations.
+
+    The same arithmetic as evo's ``transformations.quaternion_matrix`` (bit-identical).
+    A zero quaternion gives the identity, as in evo.
+    """
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    w, x, y, z = q[..., 3], q[..., 0], q[..., 1], q[..., 2]
+    qw = np.stack([w, x, y, z], axis=-1)
+    flat = qw.reshape(-1, 4)
+    # np.dot per quaternion, as evo: BLAS's summation order decides the last bit of |q|^2.
+    n = np.fromiter((np.dot(v, v) for v in flat), dtype=np.float64, count=flat.shape[0])
+    n = n.reshape(qw.shape[:-1])
+    tiny = n < np.finfo(np.float64).eps * 4.0
+    qw = qw * np.sqrt(2.0 / np.where(tiny, 1.0, n))[..., None]
+    o = qw[..., :, None] * qw[..., None, :]
+    R = np.stack(
+        [
+            np.stack([1.0 - o[..., 2, 2] - o[..., 3, 3], o[..., 1, 2] - o[..., 3, 0], o[..., 1, 3] + o[..., 2, 0]], -1),
+            np.stack([o[..., 1, 2] + o[..., 3, 0], 1.0 - o[..., 1, 1] - o[..., 3, 3], o[..., 2, 3] - o[..., 1, 0]], -1),
+            np.stack([o[..., 1, 3] - o[..., 2, 0], o[..., 2, 3] + o[..., 1, 0], 1.0 - o[..., 1, 1] - o[..., 2, 2]], -1),
+        ],
+        axis=-2,
+    )
+    return np.where(tiny[..., None, None], np.eye(3), R)
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """``[..., 3, 3]`` rotations -> ``[..., 4]`` unit quaternions ``(qx, qy, qz, qw)``, ``qw >= 0``.
+
+    Shepperd's method: of the four candidate formulas, use the one whose divisor
+    (``4 max(qw^2, qx^2, qy^2, qz^2)``) is largest, so there is no cancellation.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = np.stack(
+        [
+            # qw largest
+            np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1),
+            # qx largest
+            np.stack([1.0 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
+            # qy largest
+            np.stack([R[..., 0, 1] + R[..., 1, 0], 1.0 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
+            # qz largest
+            np.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1.0 - m00 - m11 + m22, R[..., 1, 0] - R[..., 0, 1]], -1),
+        ],
+        axis=-2,
+    )  # [..., 4 candidates, 4]
+    pick = np.argmax(np.stack([tr, m00, m11, m22], -1), axis=-1)
+    q = np.take_along_axis(cands, pick[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def _poses_from_rows(xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    n = xyz.shape[0]
+    P = np.zeros((n, 4, 4), dtype=np.float64)
+    P[:, :3, :3] = quaternion_to_matrix(q_xyzw)
+    P[:, :3, 3] = xyz
+    P[:, 3, 3] = 1.0
+    return P
+
+
+def _check_poses(poses: np.ndarray, name: str) -> np.ndarray:
+    P = np.asarray(poses, dtype=np.float64)
+    if P.ndim != 3 or P.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"{name} must have shape [N, 4, 4] or [N, 3, 4], got {P.shape}")
+    if P.shape[0] == 0:
+        raise ValueError(f"{name} is empty (no poses)")
+    if not np.all(np.isfinite(P)):
+        raise ValueError(f"{name} holds non-finite values (nan/inf)")
+    return P
+
+
+# --------------------------------------------------------------------------------- KITTI
+
+
+def read_kitti(path: PathLike) -> np.ndarray:
+    """Read a KITTI pose file: ``N`` lines of 12 numbers -> ``[N, 4, 4]`` float64.
+
+    Raises:
+        FileNotFoundError: no such file.
+        TrajectoryFormatError: a line without exactly 12 finite numbers, or no poses at all.
+    """
+    rows = _parse_rows(path, 12, "KITTI")
+    P = np.zeros((rows.shape[0], 4, 4), dtype=np.float64)
+    P[:, :3, :] = rows.reshape(-1, 3, 4)
+    P[:, 3, 3] = 1.0
+    return P
+
+
+def write_kitti(path: PathLike, poses: np.ndarray) -> None:
+    """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI lines, atomically, exactly.
+
+    Raises:
+        ValueError: bad shape, no poses, or non-finite values.
+    """
+    P = _check_poses(poses, "poses")
+    lines = [" ".join(_fmt(v) for v in p[:3, :].reshape(12)) for p in P]
+    _atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+# ----------------------------------------------------------------------------------- TUM
+
+
+def read_tum_raw(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file as stored: ``(timestamps [N], rows [N, 7] = (tx, ty, tz, qx, qy, qz, qw))``.
+
+    Raises:
+        FileNotFoundError, TrajectoryFormatError: as :func:`read_kitti` (8 numbers per line).
+    """
+    rows = _parse_rows(path, 8, "TUM")
+    return rows[:, 0].copy(), rows[:, 1:].copy()
+
+
+def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM file: ``(timestamps [N] float64, poses [N, 4, 4] float64)``.
+
+    Quaternions are normalised on the way (evo's formula; a zero quaternion -> identity).
+    """
+    t, rows = read_tum_raw(path)
+    return t, _poses_from_rows(rows[:, :3], rows[:, 3:])
+
+
+def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], poses: np.ndarray) -> None:
+    """Write TUM lines ``t tx ty tz qx qy qz qw`` atomically.
+
+    Args:
+        path: output file.
+        timestamps: ``[N]`` seconds.
+        poses: ``[N, 4, 4]`` / ``[N, 3, 4]`` camera-to-world matrices (rotations converted
+            with :func:`matrix_to_quaternion`), or ``[N, 7]`` rows ``(t, q_xyzw)`` written as
+            given (bit-exact round trip with :func:`read_tum_raw`).
+
+    Raises:
+        ValueError: shape mismatch, no poses, or non-finite values.
+    """
+    t = np.asarray(timestamps, dtype=np.float64)
+    P = np.asarray(poses, dtype=np.float64)
+    if P.ndim == 2 and P.shape[1] == 7:
+        if not np.all(np.isfinite(P)):
+            raise ValueError("poses holds non-finite values (nan/inf)")
+        rows = P
+    else:
+        P = _check_poses(P, "poses")
+        rows = np.concatenate([P[:, :3, 3], matrix_to_quaternion(P[:, :3, :3])], axis=1)
+    if t.shape != (rows.shape[0],):
+        raise ValueError(f"timestamps must have shape ({rows.shape[0]},), got {t.shape}")
+    if rows.shape[0] == 0:
+        raise ValueError("poses is empty (no poses)")
+    if not np.all(np.isfinite(t)):
+        raise ValueError("timestamps holds non-finite values (nan/inf)")
+    lines = [" ".join([_fmt(ti), *(_fmt(v) for v in r)]) for ti, r in zip(t, rows)]
+    _atomic_write_text(path, "\n".join(lines) + "\n")
