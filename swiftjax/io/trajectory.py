@@ -29,10 +29,11 @@ from __future__ import annotations
 
 import os
 import pathlib
-import tempfile
 from collections.abc import Sequence
 
 import numpy as np
+
+from swiftjax.io.atomic import atomic_write
 
 __all__ = [
     "TrajectoryFormatError",
@@ -89,18 +90,10 @@ def _parse_rows(path: PathLike, width: int, fmt: str) -> np.ndarray:
 
 
 def _atomic_write_text(path: PathLike, text: str) -> None:
-    """Write ``text`` to ``path`` through a temp file in the same folder and a rename."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``text`` to ``path`` atomically (creating missing parent folders)."""
+    pathlib.Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as f:
+        f.write(text)
 
 
 def _fmt(x: float) -> str:
