@@ -1,0 +1,329 @@
+"""Synthetic DINO-like patch tokens that carry a place signal, for loop-detection benchmarks.
+
+No VGGT weights exist on the development machines, so the loop detector (``swiftjax.loops``)
+is measured on tokens with the properties the SwiftVGGT paper relies on and fights against:
+
+* a **place signal** that depends smoothly on the camera's position *and* heading, so a
+  revisit in the same direction matches and distant places (or the same street driven the
+  opposite way) do not;
+* a strong **shared direction** (the "dataset bias": sky, road, the car's bonnet) present
+  in every frame with a per-frame varying strength -- it makes every raw cosine similarity
+  high (hubness) and is the dominant principal component the whitening drops;
+* **bursts**: a few coordinates per frame with large values, repeated in all of that frame's
+  tokens (repeated structures such as fences or windows) -- heavy-tailed, which is what the
+  signed power normalisation compresses;
+* i.i.d. **per-token noise**.
+
+Token ``k`` of a frame with camera centre ``p`` (metres) and optical axis ``v`` (unit vector,
+world frame), global frame id ``f``::
+
+    x_k = a_place · phi_k(p, v)  +  (b + b_jit · eps_f) · u  +  burst_f  +  sigma · n_{f,k} / sqrt(d)
+
+    phi_k(p, v) = sqrt(2/d) · cos(Omega_k^p p + Omega_k^v v + c_k)            (random Fourier features)
+    Omega_k^p ~ N(0, I / l_p^2),  Omega_k^v ~ N(0, I / l_v^2),  c_k ~ U[0, 2 pi)
+
+so ``E[phi_k(x) · phi_k(y)] = exp(-|p_x - p_y|^2 / (2 l_p^2) - |v_x - v_y|^2 / (2 l_v^2))``
+(|v_x - v_y| ≈ the angle between the two optical axes, in radians, for small angles) and
+``|phi_k| ≈ 1``.  Each token index has its own frequencies (different image patches see
+different things).  ``u`` is a fixed random unit vector; ``eps_f ~ N(0, 1)``;
+``burst_f = s_burst · m_f ⊙ eta_f / sqrt(p_burst d)`` with ``m_f ~ Bernoulli(p_burst)^d`` and
+``eta_f ~ N(0, I)``; ``n_{f,k} ~ N(0, I)``.
+
+Everything random about a frame is keyed by its **global frame id** (``jax.random.fold_in``),
+so the same frame seen in a temporal chunk and in a loop-centric chunk gets bit-identical
+tokens: :func:`place_tokens` is stateless and deterministic per frame.
+
+The module also holds the host-level ground truth for the synthetic place-recognition
+benchmark: :func:`ground_truth_loops` (frame pairs close in position and heading, far apart
+in time), :func:`loop_regions` (distinct revisited stretches) and :func:`evaluate_loops`
+(precision and region recall of detected pairs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "PlaceTokenConfig",
+    "PlaceTokenParams",
+    "make_place_params",
+    "place_tokens",
+    "place_signal",
+    "camera_centres_and_axes",
+    "ground_truth_loops",
+    "loop_regions",
+    "LoopEvaluation",
+    "evaluate_loops",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class PlaceTokenConfig:
+    """Static description of the synthetic token distribution (see the module docstring).
+
+    Attributes:
+        dim: token dimension ``d`` (DINOv2-L / VGGT: 1024).
+        tokens_per_frame: ``K`` tokens per frame (VGGT on KITTI: 407; the oracle uses 8-16).
+        length_scale_m: ``l_p``, place-signal correlation length in metres.
+        length_scale_rad: ``l_v``, place-signal correlation length of the viewing direction,
+            in radians.
+        place_strength: ``a_place`` (the place signal has norm ≈ ``a_place`` per token).
+        bias_strength: ``b``, mean amplitude of the shared direction ``u``.
+        bias_jitter: ``b_jit``, per-frame standard deviation of that amplitude.
+        burst_strength: ``s_burst``, expected norm of the per-frame burst vector.
+        burst_fraction: ``p_burst``, fraction of coordinates that burst in a frame.
+        noise: ``sigma``, expected norm of the per-token i.i.d. noise.
+        seed: seed of the fixed random field, bias direction and noise stream.
+    """
+
+    dim: int = 1024
+    tokens_per_frame: int = 16
+    length_scale_m: float = 4.0
+    length_scale_rad: float = 0.35
+    place_strength: float = 1.0
+    bias_strength: float = 3.0
+    bias_jitter: float = 1.0
+    burst_strength: float = 1.5
+    burst_fraction: float = 0.01
+    noise: float = 1.0
+    seed: int = 0
+
+
+class PlaceTokenParams(NamedTuple):
+    """The arrays of one synthetic token distribution (a pytree; pass it through ``jit``).
+
+    Attributes:
+        position_freqs: ``[K, d, 3]`` ``Omega^p`` (1/metres).
+        direction_freqs: ``[K, d, 3]`` ``Omega^v`` (1/radians).
+        phases: ``[K, d]`` ``c``.
+        bias_direction: ``[d]`` unit vector ``u``.
+        noise_key: ``[2]`` uint32 raw PRNG key of the per-frame stream.
+        scalars: ``[6]`` float32 ``(a_place, b, b_jit, s_burst, p_burst, sigma)``.
+    """
+
+    position_freqs: jax.Array
+    direction_freqs: jax.Array
+    phases: jax.Array
+    bias_direction: jax.Array
+    noise_key: jax.Array
+    scalars: jax.Array
+
+
+def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTokenParams:
+    """Draw the fixed parts of the distribution (field frequencies, bias direction) from ``seed``.
+
+    Host-level; raises ``ValueError`` for non-positive dimensions or length scales, negative
+    strengths, or ``burst_fraction`` outside ``(0, 1]``.
+    """
+    c = config
+    if c.dim < 1 or c.tokens_per_frame < 1:
+        raise ValueError(f"dim and tokens_per_frame must be >= 1, got {c.dim}, {c.tokens_per_frame}")
+    if not (c.length_scale_m > 0 and c.length_scale_rad > 0):
+        raise ValueError(
+            f"length scales must be > 0, got length_scale_m={c.length_scale_m}, "
+            f"length_scale_rad={c.length_scale_rad}"
+        )
+    for name in ("place_strength", "bias_strength", "bias_jitter", "burst_strength", "noise"):
+        if getattr(c, name) < 0:
+            raise ValueError(f"{name} must be >= 0, got {getattr(c, name)}")
+    if not 0 < c.burst_fraction <= 1:
+        raise ValueError(f"burst_fraction must be in (0, 1], got {c.burst_fraction}")
+    k_pos, k_dir, k_phase, k_bias, k_noise = jax.random.split(jax.random.PRNGKey(c.seed), 5)
+    shape = (c.tokens_per_frame, c.dim, 3)
+    bias = jax.random.normal(k_bias, (c.dim,), jnp.float32)
+    return PlaceTokenParams(
+        position_freqs=jax.random.normal(k_pos, shape, jnp.float32) / c.length_scale_m,
+        direction_freqs=jax.random.normal(k_dir, shape, jnp.float32) / c.length_scale_rad,
+        phases=jax.random.uniform(k_phase, shape[:2], jnp.float32, 0.0, 2 * np.pi),
+        bias_direction=bias / jnp.linalg.norm(bias),
+        noise_key=jnp.asarray(jax.random.key_data(k_noise), jnp.uint32),
+        scalars=jnp.asarray(
+            [c.place_strength, c.bias_strength, c.bias_jitter, c.burst_strength,
+             c.burst_fraction, c.noise],
+            jnp.float32,
+        ),
+    )
+
+
+def camera_centres_and_axes(cam_to_world: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``[..., 3|4, 4]`` camera-to-world → centres ``[..., 3]`` and optical axes ``[..., 3]``.
+
+    The optical axis is the camera's +z (OpenCV) in world coordinates, ``R[:, 2]``.
+    """
+    m = jnp.asarray(cam_to_world)
+    return m[..., :3, 3], m[..., :3, 2]
+
+
+def place_signal(params: PlaceTokenParams, cam_to_world: jax.Array) -> jax.Array:
+    """The noise-free place component ``phi_k(p, v)``: ``[S, 3|4, 4]`` → ``[S, K, d]`` float32.
+
+    ``E[<phi_k(x), phi_k(y)>]`` is the squared-exponential kernel of the module docstring.
+    """
+    p, v = camera_centres_and_axes(jnp.asarray(cam_to_world, jnp.float32))
+    arg = (
+        jnp.einsum("kdc,sc->skd", params.position_freqs, p)
+        + jnp.einsum("kdc,sc->skd", params.direction_freqs, v)
+        + params.phases
+    )
+    d = params.phases.shape[-1]
+    return jnp.sqrt(2.0 / d) * jnp.cos(arg)
+
+
+def _frame_extras(params: PlaceTokenParams, frame_id: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Per-frame bias+burst vector ``[d]`` and per-token noise ``[K, d]`` for one frame id."""
+    _, b, b_jit, s_burst, p_burst, sigma = params.scalars
+    k_count, d = params.phases.shape
+    key = jax.random.fold_in(jax.random.wrap_key_data(params.noise_key), frame_id)
+    k_eps, k_mask, k_eta, k_noise = jax.random.split(key, 4)
+    eps = jax.random.normal(k_eps, (), jnp.float32)
+    mask = jax.random.uniform(k_mask, (d,), jnp.float32) < p_burst
+    eta = jax.random.normal(k_eta, (d,), jnp.float32)
+    burst = s_burst * jnp.where(mask, eta, 0.0) / jnp.sqrt(p_burst * d)
+    shared = (b + b_jit * eps) * params.bias_direction + burst
+    noise = sigma * jax.random.normal(k_noise, (k_count, d), jnp.float32) / jnp.sqrt(d)
+    return shared, noise
+
+
+@jax.jit
+def place_tokens(params: PlaceTokenParams, cam_to_world: jax.Array, frame_ids: jax.Array) -> jax.Array:
+    """Synthetic patch tokens ``[S, K, d]`` float32 for ``S`` cameras (module docstring formula).
+
+    Args:
+        params: :class:`PlaceTokenParams` from :func:`make_place_params`.
+        cam_to_world: ``[S, 4, 4]`` (or ``[S, 3, 4]``) camera-to-world poses in a fixed world
+            frame, metres.
+        frame_ids: ``[S]`` int global frame ids; they key all per-frame randomness, so a frame
+            gets the same tokens whichever chunk it is generated in.
+
+    Pure and jit-compiled; recompiles for each new ``S`` (and ``K``, ``d``).
+    """
+    a_place = params.scalars[0]
+    signal = place_signal(params, cam_to_world)
+    shared, noise = jax.vmap(_frame_extras, in_axes=(None, 0))(
+        params, jnp.asarray(frame_ids, jnp.int32)
+    )
+    return a_place * signal + shared[:, None, :] + noise
+
+
+# ----------------------------------------------------------------------------- ground truth
+
+
+def _np_centres_axes(cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    m = np.asarray(cam_to_world, np.float64)
+    if m.ndim != 3 or m.shape[1:] not in ((3, 4), (4, 4)):
+        raise ValueError(f"cam_to_world must have shape [N, 3|4, 4], got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError("cam_to_world contains NaN or Inf")
+    return m[:, :3, 3], m[:, :3, 2]
+
+
+def ground_truth_loops(
+    cam_to_world: np.ndarray,
+    max_distance: float = 5.0,
+    max_angle_deg: float = 30.0,
+    min_separation: int = 100,
+) -> np.ndarray:
+    """True loop pairs of a trajectory: ``[M, 2]`` int64 ``(i, j)``, ``i > j``, sorted.
+
+    A pair is a loop when the camera centres are closer than ``max_distance`` metres, the
+    optical axes differ by less than ``max_angle_deg`` degrees, and ``i - j > min_separation``
+    frames.  (A car parked for more than ``min_separation`` frames would also qualify; KITTI
+    00 has no such stop.)  Host-level (scipy KD-tree), O(N log N + M).
+    """
+    from scipy.spatial import cKDTree
+
+    p, v = _np_centres_axes(cam_to_world)
+    pairs = cKDTree(p).query_pairs(max_distance, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.zeros((0, 2), np.int64)
+    pairs = np.sort(pairs, axis=1)[:, ::-1].astype(np.int64)  # i > j
+    cos = np.einsum("nc,nc->n", v[pairs[:, 0]], v[pairs[:, 1]])
+    keep = (cos > np.cos(np.deg2rad(max_angle_deg))) & (pairs[:, 0] - pairs[:, 1] > min_separation)
+    pairs = pairs[keep]
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def loop_regions(pairs: np.ndarray, radius: int = 25) -> np.ndarray:
+    """Label each pair with its loop region: ``[M]`` int, ``0 .. R-1``.
+
+    Two pairs are in one region when they are connected by a chain of pairs each within
+    ``radius`` frames of the next at both ends (Chebyshev distance in ``(i, j)``).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = np.asarray(pairs).reshape(-1, 2)
+    m = len(pairs)
+    if m == 0:
+        return np.zeros((0,), np.int64)
+    edges = cKDTree(pairs.astype(np.float64)).query_pairs(radius, p=np.inf, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(m, m)) if len(
+        edges
+    ) else coo_matrix((m, m))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+class LoopEvaluation(NamedTuple):
+    """Scores of a detected loop list against ground truth (host-level NumPy).
+
+    Attributes:
+        precision: correct detections / detections (1.0 when nothing is detected).
+        region_recall: fraction of ground-truth loop regions with at least one correct
+            detection.
+        n_detected, n_correct: detection counts.
+        n_regions, n_regions_found: ground-truth region counts.
+        correct: ``[D]`` bool, per detection.
+    """
+
+    precision: float
+    region_recall: float
+    n_detected: int
+    n_correct: int
+    n_regions: int
+    n_regions_found: int
+    correct: np.ndarray
+
+
+def evaluate_loops(
+    detected: np.ndarray, gt_pairs: np.ndarray, tolerance: int = 25, regions: np.ndarray | None = None
+) -> LoopEvaluation:
+    """A detection ``(i, j)`` is correct when some true pair ``(a, b)`` has ``|i-a| <= tolerance``
+    and ``|j-b| <= tolerance`` (either orientation of the detected pair is accepted).
+
+    ``regions`` are :func:`loop_regions` labels of ``gt_pairs`` (computed when omitted).
+    """
+    from scipy.spatial import cKDTree
+
+    det = np.asarray(detected, np.int64).reshape(-1, 2)
+    det = np.stack([det.max(1), det.min(1)], 1)
+    gt = np.asarray(gt_pairs, np.int64).reshape(-1, 2)
+    if regions is None:
+        regions = loop_regions(gt, tolerance)
+    n_regions = int(regions.max()) + 1 if len(regions) else 0
+    if len(det) == 0 or len(gt) == 0:
+        return LoopEvaluation(
+            1.0 if len(det) == 0 else 0.0, 0.0 if n_regions else 1.0, len(det), 0, n_regions, 0,
+            np.zeros(len(det), bool),
+        )
+    tree = cKDTree(gt.astype(np.float64))
+    near = tree.query_ball_point(det.astype(np.float64), tolerance, p=np.inf)
+    correct = np.array([len(n) > 0 for n in near])
+    found = set()
+    for n in near:
+        found.update(int(r) for r in regions[n])
+    n_found = len(found)
+    return LoopEvaluation(
+        precision=float(correct.mean()),
+        region_recall=n_found / n_regions,
+        n_detected=len(det),
+        n_correct=int(correct.sum()),
+        n_regions=n_regions,
+        n_regions_found=n_found,
+        correct=correct,
+    )
