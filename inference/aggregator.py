@@ -55,8 +55,6 @@ class Aggregator(nn.Module):
 
         self.frame_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
         self.global_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
-        self.register_buffer("_resnet_mean", torch.tensor(_IMAGENET_MEAN).view(1, 1, 3, 1, 1), persistent=False)
-        self.register_buffer("_resnet_std", torch.tensor(_IMAGENET_STD).view(1, 1, 3, 1, 1), persistent=False)
 
     def rope_tables(self, patches_h: int, patches_w: int, device: torch.device) -> RopeTables | None:
         """RoPE tables for one frame: special tokens at (0, 0), patch (r, c) at (r+1, c+1)."""
@@ -76,7 +74,11 @@ class Aggregator(nn.Module):
             raise ValueError(
                 f"images must be [B,S,3,H,W] with H, W multiples of {self.cfg.patch_size}; got {tuple(images.shape)}"
             )
-        x = (images - self._resnet_mean) / self._resnet_std
+        # ImageNet normalisation (upstream keeps these as non-persistent buffers; constants here
+        # so that a model built on the meta device and loaded with assign=True is complete).
+        mean = torch.tensor(_IMAGENET_MEAN, dtype=images.dtype, device=images.device).view(1, 1, 3, 1, 1)
+        std = torch.tensor(_IMAGENET_STD, dtype=images.dtype, device=images.device).view(1, 1, 3, 1, 1)
+        x = (images - mean) / std
         patch_tokens = self.patch_embed(x.reshape(b * s, ch, height, width))["x_norm_patchtokens"]
         _, p, c = patch_tokens.shape
         tokens = torch.cat(

@@ -1,0 +1,129 @@
+"""Loading the official VGGT checkpoint (``model.pt``) or a safetensors copy into :class:`VGGT`.
+
+Loading is strict: every model parameter must be in the file with the same shape, and the file
+may hold nothing else except the point and track heads (``point_head.*``, ``track_head.*``),
+which SwiftVGGT does not use and which are skipped on purpose.  Pickled checkpoints are read
+with ``torch.load(weights_only=True)``, which refuses pickles that would run code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["CheckpointError", "LoadReport", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
+
+IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
+_PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
+_MAX_LISTED = 15
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint could not be read or does not fit the model."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadReport:
+    """What :func:`load_checkpoint` did."""
+
+    path: str
+    loaded: int
+    ignored: tuple[str, ...]
+
+
+def read_state_dict(path: str | os.PathLike[str]) -> dict[str, Tensor]:
+    """Reads a flat ``name -> tensor`` mapping from ``.safetensors`` or a torch pickle.
+
+    Torch files are opened with ``weights_only=True`` and memory-mapped when they are in the
+    zip format; a ``{"model": ...}`` or ``{"state_dict": ...}`` wrapper is unwrapped.
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointError: unreadable, truncated, unsafe, or not a mapping of tensors.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"VGGT checkpoint not found: {p}")
+    suffix = p.suffix.lower()
+    if suffix == ".safetensors":
+        from safetensors import SafetensorError
+        from safetensors.torch import load_file
+
+        try:
+            obj: object = load_file(str(p), device="cpu")
+        except (SafetensorError, OSError, ValueError) as e:
+            raise CheckpointError(f"cannot read safetensors file {p} (truncated or corrupt?): {e}") from e
+    elif suffix in _PICKLE_SUFFIXES:
+        obj = _torch_load(p)
+    else:
+        raise CheckpointError(f"unknown checkpoint format {p.suffix!r} for {p}: use .safetensors, .pt or .pth")
+
+    for wrapper in ("state_dict", "model"):
+        if isinstance(obj, Mapping) and wrapper in obj and isinstance(obj[wrapper], Mapping):
+            obj = obj[wrapper]
+    if not isinstance(obj, Mapping) or not all(isinstance(v, Tensor) for v in obj.values()):
+        raise CheckpointError(f"{p} does not hold a state_dict (a mapping of parameter names to tensors)")
+    return {str(k): v for k, v in obj.items()}
+
+
+def _torch_load(p: Path) -> object:
+    try:
+        return torch.load(p, map_location="cpu", weights_only=True, mmap=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(
+            f"refused to load {p}: torch.load(weights_only=True) found something other than tensors "
+            f"in the pickle (it may run code; only load checkpoints you trust). Details: {e}"
+        ) from e
+    except RuntimeError as e:
+        if "mmap" in str(e) and "zip" in str(e):  # legacy (non-zip) serialisation cannot be mmapped
+            try:
+                return torch.load(p, map_location="cpu", weights_only=True)
+            except pickle.UnpicklingError as e2:
+                raise CheckpointError(f"refused to load {p} (unsafe pickle): {e2}") from e2
+            except Exception as e2:  # noqa: BLE001 - report any reader failure uniformly
+                raise CheckpointError(f"cannot read torch checkpoint {p}: {e2}") from e2
+        raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
+    except (EOFError, OSError, ValueError) as e:
+        raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
+
+
+def load_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadReport:
+    """Loads official VGGT weights into ``model`` with strict name and shape checking.
+
+    Keys starting with ``point_head.`` or ``track_head.`` are ignored on purpose.  Any other
+    difference fails with one error that lists the missing, unexpected and shape-mismatched
+    keys.  Values are copied into the model's parameters (converted to their dtype); a model
+    built on the ``meta`` device gets the checkpoint's tensors assigned instead.
+
+    Returns:
+        a :class:`LoadReport` (number of loaded tensors, ignored keys).
+    """
+    state = read_state_dict(path)
+    ignored = tuple(k for k in state if k.startswith(IGNORED_PREFIXES))
+    state = {k: v for k, v in state.items() if not k.startswith(IGNORED_PREFIXES)}
+    expected = model.state_dict()
+    missing = [k for k in expected if k not in state]
+    unexpected = [k for k in state if k not in expected]
+    mismatched = [
+        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
+        for k in expected
+        if k in state and tuple(state[k].shape) != tuple(expected[k].shape)
+    ]
+    if missing or unexpected or mismatched:
+        parts = [f"checkpoint {os.fspath(path)} does not match the VGGT model:"]
+        for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", mismatched)):
+            if items:
+                shown = "\n    ".join(items[:_MAX_LISTED])
+                more = f"\n    ... and {len(items) - _MAX_LISTED} more" if len(items) > _MAX_LISTED else ""
+                parts.append(f"  {len(items)} {title} key(s):\n    {shown}{more}")
+        parts.append("  (is the model config the one the checkpoint was trained with?)")
+        raise CheckpointError("\n".join(parts))
+    on_meta = any(t.is_meta for t in expected.values())
+    model.load_state_dict(state, strict=True, assign=on_meta)
+    return LoadReport(path=os.fspath(path), loaded=len(state), ignored=ignored)

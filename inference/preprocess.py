@@ -1,0 +1,259 @@
+"""Image loading and resizing for VGGT, as upstream's ``load_and_preprocess_images``.
+
+Upstream (PIL): open, composite RGBA onto white, convert to RGB, resize with PIL's BICUBIC
+to width 518 and ``height = round(h * (518 / w) / 14) * 14`` ("crop" mode, centre-cropping
+rows when the result is taller than 518) or with the longer side 518 ("pad" mode, padding with
+white to 518 x 518), then ``[0, 1]`` float CHW.  Images of different sizes are padded white to
+the largest size.
+
+Here decoding uses OpenCV and the resize is, by default, an exact NumPy re-implementation of
+PIL's bicubic resampling (``resample="pil"``: the same fixed-point coefficients, the same
+kernel widening on downscale, horizontal then vertical pass with 8-bit rounding in between),
+so the model sees the same pixels it was trained with.  OpenCV's own resizers are available
+as ``resample="cv2-cubic"`` and ``"cv2-area"``; they are faster but differ from PIL (OpenCV's
+bicubic uses a = -0.75 and does not widen the kernel on downscale, so it aliases; INTER_AREA
+is a box filter).  ``tests/test_inference_preprocess.py`` measures these differences.
+
+Other deliberate differences from upstream (documented, tested):
+    * 16-bit images keep their high byte (``v >> 8``).  PIL does the same for 16-bit RGB but
+      clips 16-bit greyscale (mode ``I;16``) to 255, which turns most such images white.
+    * Any alpha channel (RGBA, grey+alpha, palette with transparency) is composited onto white
+      with PIL's integer ``alpha_composite`` arithmetic; PIL does that only for RGBA-mode images
+      and silently drops the alpha of the other modes.
+    * EXIF orientation is ignored, as in PIL's ``Image.open`` (``cv2.IMREAD_UNCHANGED``).
+    * JPEG decoding by OpenCV's libjpeg and PIL's may differ by one grey level in rare pixels.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Sequence
+from typing import Literal, Union
+
+import numpy as np
+
+__all__ = ["preprocess", "load_image", "target_size_hw", "resize_rgb", "to_uint8_images"]
+
+ImageSource = Union[str, "os.PathLike[str]", np.ndarray]
+Mode = Literal["crop", "pad"]
+Resample = Literal["pil", "cv2-cubic", "cv2-area"]
+
+_PRECISION_BITS = 32 - 8 - 2  # PIL Resample.c, 8 bits per channel
+
+
+def load_image(src: ImageSource) -> np.ndarray:
+    """Decodes one image to ``[H, W, 3]`` uint8 RGB.
+
+    Args:
+        src: a file path (any format OpenCV decodes), or an array ``[H, W]``, ``[H, W, 1]``
+            (grey), ``[H, W, 2]`` (grey + alpha), ``[H, W, 3]`` (RGB) or ``[H, W, 4]`` (RGBA) of
+            dtype uint8, uint16 or float in [0, 1].  Arrays are in RGB(A) order; files are
+            converted from OpenCV's BGR(A).
+    """
+    if isinstance(src, np.ndarray):
+        arr = src
+        bgr = False
+    else:
+        import cv2
+
+        path = os.fspath(src)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"image not found: {path}")
+        data = np.fromfile(path, dtype=np.uint8)  # works with non-ASCII paths, unlike cv2.imread
+        arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        if arr is None:
+            raise ValueError(f"cannot decode image {path}")
+        bgr = True
+    arr = _to_uint8(arr)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4) or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise ValueError(f"unsupported image shape {arr.shape}")
+    channels = arr.shape[2]
+    if channels in (3, 4) and bgr:
+        arr = arr[:, :, [2, 1, 0, 3][:channels]]
+    if channels in (2, 4):
+        return _composite_on_white(arr[:, :, :-1], arr[:, :, -1])
+    if channels == 1:
+        return np.ascontiguousarray(np.repeat(arr, 3, axis=2))
+    return np.ascontiguousarray(arr)
+
+
+def _to_uint8(arr: np.ndarray) -> np.ndarray:
+    if arr.dtype == np.uint8:
+        return arr
+    if arr.dtype == np.uint16:
+        return (arr >> 8).astype(np.uint8)
+    if np.issubdtype(arr.dtype, np.floating):
+        return np.clip(np.round(arr.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+    raise ValueError(f"unsupported image dtype {arr.dtype} (use uint8, uint16 or float in [0, 1])")
+
+
+def _composite_on_white(color: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """PIL ``alpha_composite(white, image)`` in its exact integer arithmetic -> RGB uint8."""
+    if color.shape[2] == 1:
+        color = np.repeat(color, 3, axis=2)
+    c = color.astype(np.int64)
+    a = alpha.astype(np.int64)[:, :, None]
+    tmp = 128 * (c * a + 255 * (255 - a)) + (0x80 << 7)
+    out = ((((tmp >> 8) + tmp) >> 8) >> 7).astype(np.uint8)
+    return np.where(a == 0, np.uint8(255), out)
+
+
+def target_size_hw(height: int, width: int, mode: Mode = "crop", target: int = 518, patch: int = 14) -> tuple[int, int]:
+    """Resized ``(H, W)`` before cropping/padding, with upstream's rounding (Python ``round``)."""
+    if mode == "crop":
+        new_w = target
+        new_h = round(height * (new_w / width) / patch) * patch
+    elif mode == "pad":
+        if width >= height:
+            new_w = target
+            new_h = round(height * (new_w / width) / patch) * patch
+        else:
+            new_h = target
+            new_w = round(width * (new_h / height) / patch) * patch
+    else:
+        raise ValueError(f"mode must be 'crop' or 'pad', got {mode!r}")
+    if new_h < patch or new_w < patch:
+        raise ValueError(f"a {width}x{height} image is too elongated: it would be resized to {new_w}x{new_h}")
+    return int(new_h), int(new_w)
+
+
+def _pil_bicubic(x: float) -> float:
+    a = -0.5
+    x = abs(x)
+    if x < 1.0:
+        return ((a + 2.0) * x - (a + 3.0)) * x * x + 1
+    if x < 2.0:
+        return (((x - 5) * x + 8) * x - 4) * a
+    return 0.0
+
+
+def _pil_coeffs(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """PIL's ``precompute_coeffs`` + ``normalize_coeffs_8bpc``: first index and int weights."""
+    scale = in_size / out_size
+    filterscale = max(scale, 1.0)
+    support = 2.0 * filterscale
+    ksize = int(np.ceil(support)) * 2 + 1
+    starts = np.zeros(out_size, dtype=np.int64)
+    weights = np.zeros((out_size, ksize), dtype=np.int64)
+    for xx in range(out_size):
+        center = (xx + 0.5) * scale
+        xmin = max(int(center - support + 0.5), 0)
+        xmax = min(int(center + support + 0.5), in_size) - xmin
+        w = np.array([_pil_bicubic((x + xmin - center + 0.5) / filterscale) for x in range(xmax)])
+        total = w.sum()
+        if total != 0.0:
+            w = w / total
+        fixed = np.where(w < 0, np.trunc(-0.5 + w * (1 << _PRECISION_BITS)), np.trunc(0.5 + w * (1 << _PRECISION_BITS)))
+        starts[xx] = xmin
+        weights[xx, :xmax] = fixed.astype(np.int64)
+    return starts, weights
+
+
+def _pil_resample_axis(img: np.ndarray, out_size: int, axis: int) -> np.ndarray:
+    """One PIL resampling pass along ``axis`` (0 rows, 1 columns) of ``[H, W, C]`` uint8."""
+    in_size = img.shape[axis]
+    starts, weights = _pil_coeffs(in_size, out_size)
+    src = np.moveaxis(img, axis, 0).astype(np.int64)  # [in, other, C]
+    acc = np.full((out_size,) + src.shape[1:], 1 << (_PRECISION_BITS - 1), dtype=np.int64)
+    for k in range(weights.shape[1]):
+        idx = np.minimum(starts + k, in_size - 1)
+        acc += src[idx] * weights[:, k].reshape((-1,) + (1,) * (src.ndim - 1))
+    out = np.clip(acc >> _PRECISION_BITS, 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(np.moveaxis(out, 0, axis))
+
+
+def resize_rgb(img: np.ndarray, height: int, width: int, resample: Resample = "pil") -> np.ndarray:
+    """Resizes ``[H, W, 3]`` uint8 to ``[height, width, 3]`` uint8.
+
+    ``"pil"`` reproduces ``PIL.Image.resize(..., BICUBIC)`` exactly; ``"cv2-cubic"`` is
+    ``cv2.INTER_CUBIC``; ``"cv2-area"`` is ``cv2.INTER_AREA`` when shrinking, INTER_CUBIC otherwise.
+    """
+    h0, w0 = img.shape[:2]
+    if (h0, w0) == (height, width):
+        return img.copy()
+    if resample == "pil":
+        # Pillow runs the horizontal pass first, except when the vertical pass shrinks the
+        # image by more than twice as many pixels as the horizontal one (an order that matters
+        # because of the 8-bit rounding in between; found and verified empirically against
+        # Pillow 13 on hundreds of random sizes, see the tests).
+        vertical_first = height < h0 and (h0 - height) > 2 * (w0 - width)
+        passes = [(height, 0), (width, 1)] if vertical_first else [(width, 1), (height, 0)]
+        out = img
+        for size, axis in passes:
+            if size != out.shape[axis]:
+                out = _pil_resample_axis(out, size, axis)
+        return out
+    import cv2
+
+    if resample == "cv2-cubic":
+        interp = cv2.INTER_CUBIC
+    elif resample == "cv2-area":
+        interp = cv2.INTER_AREA if (height <= h0 and width <= w0) else cv2.INTER_CUBIC
+    else:
+        raise ValueError(f"resample must be 'pil', 'cv2-cubic' or 'cv2-area', got {resample!r}")
+    return cv2.resize(img, (width, height), interpolation=interp)
+
+
+def _pad_white(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Centre-pads ``[3, h, w]`` float with 1.0 to ``[3, height, width]`` (extra pixel bottom/right)."""
+    _, h, w = img.shape
+    top, left = (height - h) // 2, (width - w) // 2
+    out = np.ones((img.shape[0], height, width), dtype=img.dtype)
+    out[:, top : top + h, left : left + w] = img
+    return out
+
+
+def preprocess(
+    images: ImageSource | Sequence[ImageSource],
+    mode: Mode = "crop",
+    target_size: int = 518,
+    resample: Resample = "pil",
+) -> np.ndarray:
+    """Loads and resizes images for VGGT.
+
+    Args:
+        images: one path/array or a sequence of them (see :func:`load_image`).
+        mode: ``"crop"``: width ``target_size``, height rounded to a multiple of 14 and
+            centre-cropped to ``target_size`` if taller; ``"pad"``: longer side
+            ``target_size``, padded with white to a square.
+        target_size: 518 for VGGT.
+        resample: see :func:`resize_rgb`.
+
+    Returns:
+        ``[N, 3, H, W]`` float32 RGB in [0, 1] (``H, W`` multiples of 14).  If the images end
+        up with different sizes, each is centre-padded with white to the largest ``H`` and ``W``
+        (with a warning), as upstream does.
+    """
+    if isinstance(images, (str, os.PathLike, np.ndarray)):
+        sources: Sequence[ImageSource] = [images]
+    else:
+        sources = list(images)
+    if not sources:
+        raise ValueError("no images given")
+    out: list[np.ndarray] = []
+    for src in sources:
+        rgb = load_image(src)
+        new_h, new_w = target_size_hw(rgb.shape[0], rgb.shape[1], mode, target_size)
+        chw = resize_rgb(rgb, new_h, new_w, resample).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
+        if mode == "crop" and new_h > target_size:
+            start = (new_h - target_size) // 2
+            chw = chw[:, start : start + target_size]
+        if mode == "pad":
+            chw = _pad_white(chw, target_size, target_size)
+        out.append(np.ascontiguousarray(chw))
+    shapes = {a.shape for a in out}
+    if len(shapes) > 1:
+        max_h = max(a.shape[1] for a in out)
+        max_w = max(a.shape[2] for a in out)
+        warnings.warn(f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}", stacklevel=2)
+        out = [_pad_white(a, max_h, max_w) for a in out]
+    return np.stack(out)
+
+
+def to_uint8_images(images: np.ndarray) -> np.ndarray:
+    """``[S, 3, H, W]`` float in [0, 1] -> ``[S, H, W, 3]`` uint8 (exact for ``preprocess`` output)."""
+    arr = np.asarray(images, dtype=np.float32)
+    return np.clip(np.round(arr * 255.0), 0, 255).astype(np.uint8).transpose(0, 2, 3, 1).copy()
