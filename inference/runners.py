@@ -1,0 +1,146 @@
+"""Runners: one VGGT forward pass over a chunk of frames -> :class:`ChunkPrediction` arrays.
+
+Both runners take ``[S, 3, H, W]`` float32 RGB in [0, 1] (what :func:`inference.preprocess`
+returns) and return NumPy arrays on the host, so the JAX core never sees torch or onnxruntime.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from swiftjax.prediction import ChunkPrediction
+
+from .pose_encoding import pose_encoding_to_extrinsics_intrinsics
+from .preprocess import to_uint8_images
+
+if TYPE_CHECKING:
+    import torch
+
+    from .model import VGGT
+
+__all__ = ["Runner", "TorchRunner", "OnnxRunner", "ONNX_INPUT", "ONNX_OUTPUTS"]
+
+ONNX_INPUT = "images"
+ONNX_OUTPUTS = ("pose_enc", "depth", "depth_conf", "patch_tokens")
+
+
+class Runner(Protocol):
+    """Anything that turns a chunk of preprocessed frames into a :class:`ChunkPrediction`."""
+
+    def predict(self, images: Any) -> ChunkPrediction:
+        """``images``: ``[S, 3, H, W]`` float32 in [0, 1]."""
+        ...
+
+
+def _check_images(images: Any) -> np.ndarray:
+    arr = np.asarray(images, dtype=np.float32)
+    if arr.ndim != 4 or arr.shape[1] != 3:
+        raise ValueError(f"images must be [S, 3, H, W], got shape {arr.shape}")
+    return arr
+
+
+def _to_prediction(images: np.ndarray, pose_enc: np.ndarray, depth: np.ndarray, conf: np.ndarray,
+                   patch_tokens: np.ndarray) -> ChunkPrediction:
+    """Model outputs for one scene (leading batch axis already removed) -> ChunkPrediction."""
+    height, width = images.shape[-2:]
+    extrinsic, intrinsic = pose_encoding_to_extrinsics_intrinsics(pose_enc.astype(np.float32), (height, width))
+    return ChunkPrediction(
+        depth=np.ascontiguousarray(depth.reshape(depth.shape[0], height, width), dtype=np.float32),
+        conf=np.ascontiguousarray(conf, dtype=np.float32),
+        extrinsic=np.ascontiguousarray(extrinsic, dtype=np.float32),
+        intrinsic=np.ascontiguousarray(intrinsic, dtype=np.float32),
+        patch_tokens=np.ascontiguousarray(patch_tokens, dtype=np.float32),
+        images=to_uint8_images(images),
+    )
+
+
+class TorchRunner:
+    """Runs a :class:`~inference.model.VGGT` in torch.
+
+    Args:
+        model: the model (its weights stay float32).
+        device: e.g. ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``.
+        dtype: compute dtype of the aggregator: ``torch.float32`` (CPU default), or
+            ``torch.bfloat16`` / ``torch.float16`` (GPU), applied with ``torch.autocast`` for
+            the runner's device type; the heads stay in float32, as upstream.
+    """
+
+    def __init__(self, model: VGGT, device: str | torch.device = "cpu", dtype: torch.dtype | None = None) -> None:
+        import torch
+
+        self.device = torch.device(device)
+        self.dtype = dtype or torch.float32
+        self.model = model.to(self.device).eval()
+
+    def forward(self, images: Any) -> dict[str, Any]:
+        """Raw model outputs (torch tensors, batch axis 1) for ``[S, 3, H, W]`` images."""
+        import torch
+
+        x = torch.as_tensor(_check_images(images), device=self.device)[None]
+        with torch.inference_mode():
+            if self.dtype == torch.float32:
+                return self.model(x)
+            with torch.autocast(device_type=self.device.type, dtype=self.dtype):
+                return self.model(x)
+
+    def predict(self, images: Any) -> ChunkPrediction:
+        """See :class:`Runner`."""
+        arr = _check_images(images)
+        out = self.forward(arr)
+
+        def np32(name: str) -> np.ndarray:
+            return out[name][0].float().cpu().numpy()
+
+        return _to_prediction(arr, np32("pose_enc"), np32("depth"), np32("depth_conf"), np32("patch_tokens"))
+
+
+class OnnxRunner:
+    """Runs a graph written by :func:`inference.onnx_export.export_onnx` with onnxruntime.
+
+    Args:
+        path: the ``.onnx`` file.
+        providers: onnxruntime execution providers, e.g. ``["CUDAExecutionProvider",
+            "CPUExecutionProvider"]``; default: CPU.
+        intra_op_threads: threads per operator (0 = onnxruntime's default).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
+                 intra_op_threads: int = 0) -> None:
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = intra_op_threads
+        self.session = ort.InferenceSession(os.fspath(path), sess_options=opts,
+                                            providers=list(providers or ["CPUExecutionProvider"]))
+        inp = self.session.get_inputs()[0]
+        if inp.name != ONNX_INPUT:
+            raise ValueError(f"{path}: expected an input named {ONNX_INPUT!r}, got {inp.name!r}")
+        self.input_shape = tuple(inp.shape)  # (1, "frames" or S, 3, H, W)
+        names = [o.name for o in self.session.get_outputs()]
+        missing = [n for n in ONNX_OUTPUTS if n not in names]
+        if missing:
+            raise ValueError(f"{path}: graph lacks outputs {missing} (has {names})")
+
+    def forward(self, images: Any) -> dict[str, np.ndarray]:
+        """Raw graph outputs (batch axis 1) for ``[S, 3, H, W]`` images."""
+        arr = _check_images(images)
+        for axis, (want, got) in enumerate(zip(self.input_shape[2:], arr.shape[1:]), start=2):
+            if isinstance(want, int) and want != got:
+                raise ValueError(
+                    f"the ONNX graph was exported for input shape {self.input_shape}; got frames of shape "
+                    f"{arr.shape[1:]} (axis {axis}): export again for this image size"
+                )
+        if isinstance(self.input_shape[1], int) and self.input_shape[1] != arr.shape[0]:
+            raise ValueError(f"the ONNX graph has a fixed frame count {self.input_shape[1]}; got {arr.shape[0]} frames")
+        outs = self.session.run(list(ONNX_OUTPUTS), {ONNX_INPUT: arr[None]})
+        return dict(zip(ONNX_OUTPUTS, outs))
+
+    def predict(self, images: Any) -> ChunkPrediction:
+        """See :class:`Runner`."""
+        arr = _check_images(images)
+        out = self.forward(arr)
+        return _to_prediction(arr, out["pose_enc"][0], out["depth"][0], out["depth_conf"][0], out["patch_tokens"][0])
