@@ -1,0 +1,149 @@
+"""swiftjax.io.chunk_store: round trips within float16 tolerance, atomic saves, clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swiftjax.io import chunk_store as cs
+from swiftjax.io.chunk_store import ChunkStore
+from swiftjax.prediction import ChunkPrediction
+
+S, H, W = 4, 14, 18
+EPS16 = 2.0**-11  # float16 unit roundoff (round to nearest)
+
+
+def _pred(seed=0, descriptors=True, images=True, tokens=False):
+    rng = np.random.default_rng(seed)
+    ext = np.concatenate([np.linalg.qr(rng.standard_normal((S, 3, 3)))[0], rng.standard_normal((S, 3, 1))], -1)
+    k = np.tile(np.array([[300.0, 0, 9.0], [0, 301.0, 7.0], [0, 0, 1]]), (S, 1, 1))
+    return ChunkPrediction(
+        depth=rng.uniform(0.05, 60.0, (S, H, W)).astype(np.float32),
+        conf=(1 + np.exp(rng.normal(1, 2, (S, H, W)))).astype(np.float32),
+        extrinsic=ext.astype(np.float32),
+        intrinsic=k.astype(np.float32),
+        descriptors=rng.standard_normal((S, 32)).astype(np.float32) if descriptors else None,
+        patch_tokens=rng.standard_normal((S, 5, 8)).astype(np.float32) if tokens else None,
+        images=rng.integers(0, 256, (S, H, W, 3), dtype=np.uint8) if images else None,
+    )
+
+
+def test_round_trip_values(tmp_path):
+    store = ChunkStore(tmp_path)
+    pred = _pred()
+    path = store.save("chunk", 3, pred, extra={"frames": np.arange(45, 49), "scale": 1.5, "tag": "x"})
+    assert path == tmp_path / "chunks" / "chunk_00003.npz"
+    out = store.load("chunk", 3)
+    for name in ("depth", "conf"):
+        got, want = getattr(out, name), getattr(pred, name)
+        assert got.dtype == np.float32 and got.shape == want.shape
+        rel = np.abs(got - want) / np.abs(want)
+        assert rel.max() <= EPS16 * (1 + 1e-6)  # float16 round-to-nearest bound
+        assert rel.max() > 1e-5  # really stored in half precision
+    for name in ("extrinsic", "intrinsic", "descriptors", "images"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(pred, name))
+    assert out.images.dtype == np.uint8 and out.patch_tokens is None
+    extra = store.load_extra("chunk", 3)
+    np.testing.assert_array_equal(extra["frames"], np.arange(45, 49))
+    assert float(extra["scale"]) == 1.5 and str(extra["tag"]) == "x"
+    with np.load(path) as z:  # the storage dtypes themselves
+        assert z["depth"].dtype == np.float16 and z["conf"].dtype == np.float16
+        assert z["extrinsic"].dtype == np.float32 and z["images"].dtype == np.uint8
+
+
+def test_depth_error_small_against_mask_threshold(tmp_path):
+    """At depths up to 10 (VGGT units) float16 moves depth by <= 0.005, 2.5 % of lambda_D = 0.2."""
+    d = np.linspace(0.01, 10.0, S * H * W, dtype=np.float32).reshape(S, H, W)
+    pred = _pred()
+    pred = ChunkPrediction(d, pred.conf, pred.extrinsic, pred.intrinsic)
+    store = ChunkStore(tmp_path)
+    store.save("chunk", 0, pred)
+    err = np.abs(store.load("chunk", 0).depth - d).max()
+    assert 1e-4 < err <= 10.0 * EPS16 <= 0.2 * 0.025
+
+
+def test_out_of_half_range_and_non_finite_kept_exact(tmp_path):
+    pred = _pred()
+    conf = pred.conf.copy()
+    conf[0, 0, 0] = 1e6  # beyond float16's 65504: the whole array stays float32
+    depth = pred.depth.copy()
+    depth[1, 2, 3], depth[1, 2, 4] = np.nan, np.inf  # non-finite values survive float16
+    pred = ChunkPrediction(depth, conf, pred.extrinsic, pred.intrinsic)
+    store = ChunkStore(tmp_path)
+    store.save("loop", 0, pred)
+    out = store.load("loop", 0)
+    np.testing.assert_array_equal(out.conf, conf)
+    assert np.isnan(out.depth[1, 2, 3]) and out.depth[1, 2, 4] == np.inf
+    assert out.descriptors is None and out.images is None
+
+
+def test_half_false_is_exact_and_tokens_kept(tmp_path):
+    store = ChunkStore(tmp_path, subdir="c", compress=True, half=False)
+    pred = _pred(tokens=True, descriptors=False)
+    store.save("chunk", 0, pred)
+    out = store.load("chunk", 0)
+    np.testing.assert_array_equal(out.depth, pred.depth)
+    np.testing.assert_array_equal(out.conf, pred.conf)
+    np.testing.assert_array_equal(out.patch_tokens, pred.patch_tokens)
+    assert out.descriptors is None
+
+
+def test_exists_remove_indices(tmp_path):
+    store = ChunkStore(tmp_path)
+    assert not store.exists("chunk", 0) and store.indices("chunk") == []
+    for i in (2, 0, 11):
+        store.save("chunk", i, _pred(i))
+    store.save("loop", 1, _pred())
+    (store.root / "notes.txt").write_text("x")
+    assert store.indices("chunk") == [0, 2, 11] and store.indices("loop") == [1]
+    assert store.exists("chunk", 2)
+    store.remove("chunk", 2)
+    store.remove("chunk", 2)  # absent: no error
+    assert not store.exists("chunk", 2) and store.indices("chunk") == [0, 11]
+    with pytest.raises(ValueError, match="kind must be one of"):
+        store.path("frame", 0)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        store.exists("chunk", -1)
+
+
+def test_overwrite_and_atomic_failure_keeps_old_file(tmp_path, monkeypatch):
+    store = ChunkStore(tmp_path)
+    store.save("chunk", 0, _pred(0))
+    store.save("chunk", 0, _pred(1))  # replace
+    np.testing.assert_array_equal(store.load("chunk", 0).images, _pred(1).images)
+    before = store.path("chunk", 0).read_bytes()
+
+    def broken_savez(f, **arrays):
+        f.write(b"PK\x03\x04 partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", broken_savez)
+    with pytest.raises(OSError, match="disk full"):
+        store.save("chunk", 0, _pred(2))
+    assert store.path("chunk", 0).read_bytes() == before
+    assert sorted(p.name for p in store.root.iterdir()) == ["chunk_00000.npz"]
+
+
+def test_errors_name_the_file(tmp_path):
+    store = ChunkStore(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"chunk_00007\.npz: no saved chunk 7"):
+        store.load("chunk", 7)
+    store.path("loop", 0).write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"loop_00000\.npz: unreadable chunk file"):
+        store.load("loop", 0)
+    np.savez(store.path("loop", 1), depth=np.zeros((1, 2, 2)))
+    with pytest.raises(ValueError, match=r"loop_00001\.npz: chunk file format None"):
+        store.load("loop", 1)
+    with pytest.raises(ValueError, match=r"extra\['bad'\]"):
+        store.save("chunk", 0, _pred(), extra={"bad": np.array([{}, 1], dtype=object)})
+    pred = _pred()
+    bad = ChunkPrediction(pred.depth, pred.conf, pred.extrinsic, pred.intrinsic, images=pred.images.astype(np.int16))
+    with pytest.raises(ValueError, match="images must be uint8"):
+        store.save("chunk", 0, bad)
+    assert not store.exists("chunk", 0)
+
+
+def test_half_if_fits_boundary():
+    assert cs._half_if_fits(np.array([65504.0], np.float32)).dtype == np.float16
+    assert cs._half_if_fits(np.array([65520.0], np.float32)).dtype == np.float32
+    assert cs._half_if_fits(np.array([np.inf, -1.0], np.float32)).dtype == np.float16
