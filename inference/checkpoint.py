@@ -72,20 +72,30 @@ def read_state_dict(path: str | os.PathLike[str]) -> dict[str, Tensor]:
     return {str(k): v for k, v in obj.items()}
 
 
+def _pickle_reason(e: Exception) -> str:
+    """The informative line of torch's weights-only error (e.g. 'unsupported GLOBAL posix.system')."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for ln in lines:
+        if "GLOBAL" in ln or "Unsupported" in ln:
+            return ln.rstrip(".")
+    return lines[0] if lines else type(e).__name__
+
+
 def _torch_load(p: Path) -> object:
     try:
         return torch.load(p, map_location="cpu", weights_only=True, mmap=True)
     except pickle.UnpicklingError as e:
         raise CheckpointError(
             f"refused to load {p}: torch.load(weights_only=True) found something other than tensors "
-            f"in the pickle (it may run code; only load checkpoints you trust). Details: {e}"
+            f"in the pickle, which could run code when unpickled ({_pickle_reason(e)}). VGGT "
+            f"checkpoints hold tensors only: this file is not one, or has been tampered with."
         ) from e
     except RuntimeError as e:
         if "mmap" in str(e) and "zip" in str(e):  # legacy (non-zip) serialisation cannot be mmapped
             try:
                 return torch.load(p, map_location="cpu", weights_only=True)
             except pickle.UnpicklingError as e2:
-                raise CheckpointError(f"refused to load {p} (unsafe pickle): {e2}") from e2
+                raise CheckpointError(f"refused to load {p} (unsafe pickle: {_pickle_reason(e2)})") from e2
             except Exception as e2:  # noqa: BLE001 - report any reader failure uniformly
                 raise CheckpointError(f"cannot read torch checkpoint {p}: {e2}") from e2
         raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
