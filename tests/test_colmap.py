@@ -83,7 +83,8 @@ def test_independent_reader(tmp_path):
         np.testing.assert_allclose(back, c2w[i], atol=1e-12 * max(1, np.abs(c2w[i]).max()))
         model, w, h, (fx, fy, cx, cy) = cams[cid]
         assert (model, w, h) == ("PINHOLE", W, H)
-        np.testing.assert_array_equal([fx, fy, cx, cy], [ks[i][0, 0], ks[i][1, 1], ks[i][0, 2] + 0.5, ks[i][1, 2] + 0.5])
+        k = ks[i]
+        np.testing.assert_array_equal([fx, fy, cx, cy], [k[0, 0], k[1, 1], k[0, 2] + 0.5, k[1, 2] + 0.5])
     assert images[1][2] == 1 and images[2][2] == 2  # camera ids in order of first use
     for j in range(400):
         xyz, rgb, e = points[j + 1]

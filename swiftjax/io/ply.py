@@ -204,14 +204,17 @@ class PlyStreamWriter:
         return ctx.__exit__(exc_type, exc, tb)
 
 
-def _parse_header(f: IO[bytes], path: PathLike) -> tuple[str, list[tuple[str, int, list[tuple[str, str | None, str]]]], int]:
-    """Parse a PLY header: returns (format, [(element, count, [(prop, list_count_type|None, type)])],
-    header byte length)."""
+_Property = tuple[str, str | None, str]  # (name, list count type or None, type)
+_Element = tuple[str, int, list[_Property]]  # (name, count, properties)
+
+
+def _parse_header(f: IO[bytes], path: PathLike) -> tuple[str, list[_Element], int]:
+    """Parse a PLY header: returns (format, elements, header byte length)."""
     magic = f.readline()
     if magic.rstrip(b"\r\n") != b"ply":
         raise ValueError(f"{path} is not a PLY file (first line is {magic[:20]!r}, expected 'ply')")
     fmt = None
-    elements: list[tuple[str, int, list[tuple[str, str | None, str]]]] = []
+    elements: list[_Element] = []
     while True:
         raw = f.readline()
         if not raw:
