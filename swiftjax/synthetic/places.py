@@ -17,15 +17,17 @@ is measured on tokens with the properties the SwiftVGGT paper relies on and figh
 Token ``k`` of a frame with camera centre ``p`` (metres) and optical axis ``v`` (unit vector,
 world frame), global frame id ``f``::
 
-    x_k = a_place · phi_k(p, v)  +  (b + b_jit · eps_f) · u  +  burst_f  +  sigma · n_{f,k} / sqrt(d)
+    x_k = a_place · (sqrt(1 - rho) · phi_0(p, v) + sqrt(rho) · phi_k(p, v))
+          + (b + b_jit · eps_f) · u  +  burst_f  +  sigma · n_{f,k} / sqrt(d)
 
-    phi_k(p, v) = sqrt(2/d) · cos(Omega_k^p p + Omega_k^v v + c_k)            (random Fourier features)
+    phi_k(p, v) = sqrt(2/d) · cos(Omega_k^p p + Omega_k^v v + c_k)    k = 0..K  (random Fourier features)
     Omega_k^p ~ N(0, I / l_p^2),  Omega_k^v ~ N(0, I / l_v^2),  c_k ~ U[0, 2 pi)
 
 so ``E[phi_k(x) · phi_k(y)] = exp(-|p_x - p_y|^2 / (2 l_p^2) - |v_x - v_y|^2 / (2 l_v^2))``
 (|v_x - v_y| ≈ the angle between the two optical axes, in radians, for small angles) and
-``|phi_k| ≈ 1``.  Each token index has its own frequencies (different image patches see
-different things).  ``u`` is a fixed random unit vector; ``eps_f ~ N(0, 1)``;
+``|phi_k| ≈ 1``.  ``phi_0`` is the part of the place every patch sees (its mean over patches),
+each token index ``k >= 1`` adds its own field (different patches see different things) with
+weight ``rho`` (``token_diversity``).  ``u`` is a fixed random unit vector; ``eps_f ~ N(0, 1)``;
 ``burst_f = s_burst · m_f ⊙ eta_f / sqrt(p_burst d)`` with ``m_f ~ Bernoulli(p_burst)^d`` and
 ``eta_f ~ N(0, I)``; ``n_{f,k} ~ N(0, I)``.
 
@@ -73,6 +75,8 @@ class PlaceTokenConfig:
         length_scale_rad: ``l_v``, place-signal correlation length of the viewing direction,
             in radians.
         place_strength: ``a_place`` (the place signal has norm ≈ ``a_place`` per token).
+        token_diversity: ``rho`` in ``[0, 1]``, share of the place signal specific to each
+            token (0: all tokens carry the same place vector).
         bias_strength: ``b``, mean amplitude of the shared direction ``u``.
         bias_jitter: ``b_jit``, per-frame standard deviation of that amplitude.
         burst_strength: ``s_burst``, expected norm of the per-frame burst vector.
@@ -86,6 +90,7 @@ class PlaceTokenConfig:
     length_scale_m: float = 4.0
     length_scale_rad: float = 0.35
     place_strength: float = 1.0
+    token_diversity: float = 0.5
     bias_strength: float = 3.0
     bias_jitter: float = 1.0
     burst_strength: float = 1.5
@@ -98,12 +103,12 @@ class PlaceTokenParams(NamedTuple):
     """The arrays of one synthetic token distribution (a pytree; pass it through ``jit``).
 
     Attributes:
-        position_freqs: ``[K, d, 3]`` ``Omega^p`` (1/metres).
-        direction_freqs: ``[K, d, 3]`` ``Omega^v`` (1/radians).
-        phases: ``[K, d]`` ``c``.
+        position_freqs: ``[K + 1, d, 3]`` ``Omega^p`` (1/metres); row 0 is the shared field.
+        direction_freqs: ``[K + 1, d, 3]`` ``Omega^v`` (1/radians).
+        phases: ``[K + 1, d]`` ``c``.
         bias_direction: ``[d]`` unit vector ``u``.
         noise_key: ``[2]`` uint32 raw PRNG key of the per-frame stream.
-        scalars: ``[6]`` float32 ``(a_place, b, b_jit, s_burst, p_burst, sigma)``.
+        scalars: ``[7]`` float32 ``(a_place, b, b_jit, s_burst, p_burst, sigma, rho)``.
     """
 
     position_freqs: jax.Array
@@ -131,10 +136,12 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
     for name in ("place_strength", "bias_strength", "bias_jitter", "burst_strength", "noise"):
         if getattr(c, name) < 0:
             raise ValueError(f"{name} must be >= 0, got {getattr(c, name)}")
+    if not 0 <= c.token_diversity <= 1:
+        raise ValueError(f"token_diversity must be in [0, 1], got {c.token_diversity}")
     if not 0 < c.burst_fraction <= 1:
         raise ValueError(f"burst_fraction must be in (0, 1], got {c.burst_fraction}")
     k_pos, k_dir, k_phase, k_bias, k_noise = jax.random.split(jax.random.PRNGKey(c.seed), 5)
-    shape = (c.tokens_per_frame, c.dim, 3)
+    shape = (c.tokens_per_frame + 1, c.dim, 3)
     bias = jax.random.normal(k_bias, (c.dim,), jnp.float32)
     return PlaceTokenParams(
         position_freqs=jax.random.normal(k_pos, shape, jnp.float32) / c.length_scale_m,
@@ -144,7 +151,7 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
         noise_key=jnp.asarray(jax.random.key_data(k_noise), jnp.uint32),
         scalars=jnp.asarray(
             [c.place_strength, c.bias_strength, c.bias_jitter, c.burst_strength,
-             c.burst_fraction, c.noise],
+             c.burst_fraction, c.noise, c.token_diversity],
             jnp.float32,
         ),
     )
@@ -160,7 +167,8 @@ def camera_centres_and_axes(cam_to_world: jax.Array) -> tuple[jax.Array, jax.Arr
 
 
 def place_signal(params: PlaceTokenParams, cam_to_world: jax.Array) -> jax.Array:
-    """The noise-free place component ``phi_k(p, v)``: ``[S, 3|4, 4]`` → ``[S, K, d]`` float32.
+    """The noise-free place component ``sqrt(1 - rho) phi_0 + sqrt(rho) phi_k``, ``k = 1..K``:
+    ``[S, 3|4, 4]`` → ``[S, K, d]`` float32 (without the factor ``a_place``).
 
     ``E[<phi_k(x), phi_k(y)>]`` is the squared-exponential kernel of the module docstring.
     """
@@ -171,13 +179,16 @@ def place_signal(params: PlaceTokenParams, cam_to_world: jax.Array) -> jax.Array
         + params.phases
     )
     d = params.phases.shape[-1]
-    return jnp.sqrt(2.0 / d) * jnp.cos(arg)
+    phi = jnp.sqrt(2.0 / d) * jnp.cos(arg)
+    rho = params.scalars[6]
+    return jnp.sqrt(1.0 - rho) * phi[:, :1] + jnp.sqrt(rho) * phi[:, 1:]
 
 
 def _frame_extras(params: PlaceTokenParams, frame_id: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Per-frame bias+burst vector ``[d]`` and per-token noise ``[K, d]`` for one frame id."""
-    _, b, b_jit, s_burst, p_burst, sigma = params.scalars
+    _, b, b_jit, s_burst, p_burst, sigma, _ = params.scalars
     k_count, d = params.phases.shape
+    k_count -= 1
     key = jax.random.fold_in(jax.random.wrap_key_data(params.noise_key), frame_id)
     k_eps, k_mask, k_eta, k_noise = jax.random.split(key, 4)
     eps = jax.random.normal(k_eps, (), jnp.float32)
