@@ -26,6 +26,7 @@ Other deliberate differences from upstream (documented, tested):
 
 from __future__ import annotations
 
+import functools
 import os
 import warnings
 from collections.abc import Sequence
@@ -120,42 +121,48 @@ def target_size_hw(height: int, width: int, mode: Mode = "crop", target: int = 5
     return int(new_h), int(new_w)
 
 
-def _pil_bicubic(x: float) -> float:
+def _pil_bicubic(x: np.ndarray) -> np.ndarray:
+    """PIL's bicubic kernel (a = -0.5), support 2."""
     a = -0.5
-    x = abs(x)
-    if x < 1.0:
-        return ((a + 2.0) * x - (a + 3.0)) * x * x + 1
-    if x < 2.0:
-        return (((x - 5) * x + 8) * x - 4) * a
-    return 0.0
+    x = np.abs(x)
+    near = ((a + 2.0) * x - (a + 3.0)) * x * x + 1
+    far = (((x - 5) * x + 8) * x - 4) * a
+    return np.where(x < 1.0, near, np.where(x < 2.0, far, 0.0))
 
 
+@functools.lru_cache(maxsize=32)
 def _pil_coeffs(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """PIL's ``precompute_coeffs`` + ``normalize_coeffs_8bpc``: first index and int weights."""
+    """PIL's ``precompute_coeffs`` + ``normalize_coeffs_8bpc``: first input index per output and
+    fixed-point weights ``[out_size, ksize]`` (zero beyond each output's window)."""
     scale = in_size / out_size
     filterscale = max(scale, 1.0)
     support = 2.0 * filterscale
     ksize = int(np.ceil(support)) * 2 + 1
-    starts = np.zeros(out_size, dtype=np.int64)
-    weights = np.zeros((out_size, ksize), dtype=np.int64)
-    for xx in range(out_size):
-        center = (xx + 0.5) * scale
-        xmin = max(int(center - support + 0.5), 0)
-        xmax = min(int(center + support + 0.5), in_size) - xmin
-        w = np.array([_pil_bicubic((x + xmin - center + 0.5) / filterscale) for x in range(xmax)])
-        total = w.sum()
-        if total != 0.0:
-            w = w / total
-        fixed = np.where(w < 0, np.trunc(-0.5 + w * (1 << _PRECISION_BITS)), np.trunc(0.5 + w * (1 << _PRECISION_BITS)))
-        starts[xx] = xmin
-        weights[xx, :xmax] = fixed.astype(np.int64)
-    return starts, weights
+    center = (np.arange(out_size) + 0.5) * scale
+    xmin = np.maximum((center - support + 0.5).astype(np.int64), 0)  # C casts truncate
+    xmax = np.minimum((center + support + 0.5).astype(np.int64), in_size) - xmin
+    taps = np.arange(ksize)
+    inside = taps[None, :] < xmax[:, None]
+    w = np.where(inside, _pil_bicubic((taps[None, :] + xmin[:, None] - center[:, None] + 0.5) / filterscale), 0.0)
+    total = w.sum(axis=1, keepdims=True)
+    w = np.where(total != 0.0, w / np.where(total != 0.0, total, 1.0), w)
+    fixed = np.trunc(w * (1 << _PRECISION_BITS) + np.where(w < 0, -0.5, 0.5)).astype(np.int64)
+    fixed[~inside] = 0
+    xmin.flags.writeable = False
+    fixed.flags.writeable = False
+    return xmin, fixed
 
 
-def _pil_resample_axis(img: np.ndarray, out_size: int, axis: int) -> np.ndarray:
-    """One PIL resampling pass along ``axis`` (0 rows, 1 columns) of ``[H, W, C]`` uint8."""
+def _pil_resample_axis(img: np.ndarray, out_size: int, axis: int, keep: tuple[int, int] | None = None) -> np.ndarray:
+    """One PIL resampling pass along ``axis`` (0 rows, 1 columns) of ``[H, W, C]`` uint8.
+
+    ``keep = (start, stop)`` computes only those output indices (each output is independent).
+    """
     in_size = img.shape[axis]
     starts, weights = _pil_coeffs(in_size, out_size)
+    if keep is not None:
+        starts, weights = starts[keep[0] : keep[1]], weights[keep[0] : keep[1]]
+        out_size = len(starts)
     src = np.moveaxis(img, axis, 0).astype(np.int64)  # [in, other, C]
     acc = np.full((out_size,) + src.shape[1:], 1 << (_PRECISION_BITS - 1), dtype=np.int64)
     for k in range(weights.shape[1]):
@@ -165,15 +172,19 @@ def _pil_resample_axis(img: np.ndarray, out_size: int, axis: int) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(out, 0, axis))
 
 
-def resize_rgb(img: np.ndarray, height: int, width: int, resample: Resample = "pil") -> np.ndarray:
+def resize_rgb(
+    img: np.ndarray, height: int, width: int, resample: Resample = "pil", rows: tuple[int, int] | None = None
+) -> np.ndarray:
     """Resizes ``[H, W, 3]`` uint8 to ``[height, width, 3]`` uint8.
 
     ``"pil"`` reproduces ``PIL.Image.resize(..., BICUBIC)`` exactly; ``"cv2-cubic"`` is
     ``cv2.INTER_CUBIC``; ``"cv2-area"`` is ``cv2.INTER_AREA`` when shrinking, INTER_CUBIC otherwise.
+    ``rows = (start, stop)`` returns only those output rows (same values as resizing fully and
+    cropping; with ``"pil"`` the other rows are not computed).
     """
     h0, w0 = img.shape[:2]
     if (h0, w0) == (height, width):
-        return img.copy()
+        return img[slice(*rows) if rows else slice(None)].copy()
     if resample == "pil":
         # Pillow runs the horizontal pass first, except when the vertical pass shrinks the
         # image by more than twice as many pixels as the horizontal one (an order that matters
@@ -183,9 +194,13 @@ def resize_rgb(img: np.ndarray, height: int, width: int, resample: Resample = "p
         passes = [(height, 0), (width, 1)] if vertical_first else [(width, 1), (height, 0)]
         out = img
         for size, axis in passes:
-            if size != out.shape[axis]:
-                out = _pil_resample_axis(out, size, axis)
-        return out
+            if axis == 0 and size != h0:
+                out = _pil_resample_axis(out, size, 0, keep=rows)
+            elif axis == 1 and size != w0:
+                out = _pil_resample_axis(out, size, 1)
+        if rows is not None and height == h0:
+            out = out[rows[0] : rows[1]]
+        return np.ascontiguousarray(out)
     import cv2
 
     if resample == "cv2-cubic":
@@ -194,7 +209,8 @@ def resize_rgb(img: np.ndarray, height: int, width: int, resample: Resample = "p
         interp = cv2.INTER_AREA if (height <= h0 and width <= w0) else cv2.INTER_CUBIC
     else:
         raise ValueError(f"resample must be 'pil', 'cv2-cubic' or 'cv2-area', got {resample!r}")
-    return cv2.resize(img, (width, height), interpolation=interp)
+    out = cv2.resize(img, (width, height), interpolation=interp)
+    return np.ascontiguousarray(out[rows[0] : rows[1]]) if rows else out
 
 
 def _pad_white(img: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -237,10 +253,11 @@ def preprocess(
     for src in sources:
         rgb = load_image(src)
         new_h, new_w = target_size_hw(rgb.shape[0], rgb.shape[1], mode, target_size)
-        chw = resize_rgb(rgb, new_h, new_w, resample).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
-        if mode == "crop" and new_h > target_size:
+        rows = None
+        if mode == "crop" and new_h > target_size:  # centre crop, computing only the kept rows
             start = (new_h - target_size) // 2
-            chw = chw[:, start : start + target_size]
+            rows = (start, start + target_size)
+        chw = resize_rgb(rgb, new_h, new_w, resample, rows).transpose(2, 0, 1).astype(np.float32) / np.float32(255.0)
         if mode == "pad":
             chw = _pad_white(chw, target_size, target_size)
         out.append(np.ascontiguousarray(chw))
