@@ -20,10 +20,13 @@ input dtype.  A rough centre ``c`` (weighted mean of a strided subsample of at m
 so no sum ever holds ``|x|^2 ~ 10^4`` next to a spread of ``~1``: the covariances are formed
 from the centred second moments minus a *small* mean correction (``|mu - c|`` is a fraction
 of the spread), which removes the catastrophic cancellation of the naive ``E[xy^T] - mu mu^T``.
-All 18 moments (``W``, ``sum w x'``, ``sum w y'``, ``sum w y' x'^T``, ``sum w |x'|^2``,
-``sum w |y'|^2``) are summed in ONE fused pass, in blocks of ``_BLOCK`` points whose
-partial sums are then added (a two-level sum: rounding error grows like
-``eps (block + N / block)`` instead of ``eps N``).  This is what makes float32 inputs of
+All 19 sums (``W``, ``sum w x'``, ``sum w y'``, ``sum w y' x'^T``, ``sum w |x'|^2``,
+``sum w |y'|^2`` and the int32 point count) are accumulated in ONE pass by a single variadic
+``lax.reduce`` over rows of ``_ROW`` points, whose row partials are then added (a two-level
+sum: rounding error grows like ``eps (row + N / row)`` instead of ``eps N``).  XLA CPU
+turns sibling ``jnp.sum`` calls into separate or badly fused loops (measured 4x slower per
+extra output); the variadic reduce keeps all accumulators in one loop, and the row split
+lets XLA run rows on both cores.  This is what makes float32 inputs of
 2-3 M points at ~100 m coordinates give rotations to ~1e-6 rad (tested), and it is also the
 fastest scheme measured on XLA CPU (bench/bench_align.py).  We chose it over float64
 accumulation because float64 does not exist in JAX unless ``jax_enable_x64`` is on; with x64
@@ -39,14 +42,27 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from swiftjax import sim3
+import warnings
+
+import numpy as np
+
+from swiftjax import camera, sim3
 
 __all__ = [
     "UmeyamaInfo",
     "umeyama",
+    "reliability_mask",
+    "frame_conf_mean",
+    "IRLSInfo",
+    "irls_sim3",
+    "ChunkFrames",
+    "AlignInfo",
+    "align_chunk_pair",
+    "align_chunk_pairs",
+    "align_chunk_pair_checked",
+    "pose_based_estimate",
 ]
 
-_BLOCK = 4096  # points per partial sum
 _CENTRE_SAMPLES = 1024  # at most this many strided points estimate the centring point
 
 
@@ -99,56 +115,91 @@ def _rough_centre(p: Array, w: Array) -> Array:
     return jnp.where((wsum > 0)[..., None], c_w, c_u)
 
 
-def _block_sum(f: Array, axis_len: int) -> Array:
-    """Two-level sum over the point axis (-2) of ``f [..., N, k]`` -> ``[..., k]``."""
-    n = axis_len
-    nb = n // _BLOCK
-    if nb <= 1:
-        return jnp.sum(f, axis=-2)
-    head = f[..., : nb * _BLOCK, :].reshape(*f.shape[:-2], nb, _BLOCK, f.shape[-1])
-    total = jnp.sum(jnp.sum(head, axis=-2), axis=-2)
-    if nb * _BLOCK < n:
-        total = total + jnp.sum(f[..., nb * _BLOCK :, :], axis=-2)
-    return total
+_ROW = 2048  # points per first-level partial sum (one row of the variadic reduce)
 
 
-def _moments(src: Array, dst: Array, w: Array) -> _Moments:
-    """Sanitise and accumulate the centred moments of ``src``/``dst`` with weights ``w``."""
-    ok = (w > 0) & jnp.all(jnp.isfinite(src), axis=-1) & jnp.all(jnp.isfinite(dst), axis=-1)
-    ok = ok & jnp.isfinite(w)
-    w = jnp.where(ok, w, 0)
-    x = jnp.where(ok[..., None], src, 0)
-    y = jnp.where(ok[..., None], dst, 0)
-    cx = jax.lax.stop_gradient(_rough_centre(x, w))
-    cy = jax.lax.stop_gradient(_rough_centre(y, w))
-    xc = jnp.where(ok[..., None], x - cx[..., None, :], 0)
-    yc = jnp.where(ok[..., None], y - cy[..., None, :], 0)
-    wx = w[..., None] * xc
-    wy = w[..., None] * yc
-    feats = jnp.concatenate(
-        [
-            w[..., None],
-            wx,
-            wy,
-            (wy[..., :, None] * xc[..., None, :]).reshape(*wy.shape[:-1], 9),
-            jnp.sum(wx * xc, axis=-1, keepdims=True),
-            jnp.sum(wy * yc, axis=-1, keepdims=True),
-            ok[..., None].astype(w.dtype),
-        ],
-        axis=-1,
-    )  # [..., N, 19]
-    tot = _block_sum(feats, src.shape[-2])
+def _variadic_sum(operands: tuple[Array, ...], axis: int) -> tuple[Array, ...]:
+    """One ``lax.reduce`` summing all operands over ``axis`` at once (one pass, one loop).
+
+    XLA CPU emits sibling ``jnp.sum`` calls as separate (or poorly fused) loops; a single
+    variadic reduce keeps every accumulator in registers while the inputs stream through.
+    """
+    inits = tuple(jnp.zeros((), o.dtype) for o in operands)
+    ax = axis % operands[0].ndim
+    return jax.lax.reduce(operands, inits, lambda a, b: tuple(x + y for x, y in zip(a, b)), (ax,))
+
+
+def _moment_terms(xc: tuple[Array, Array, Array], yc: tuple[Array, Array, Array], w: Array, ok: Array):
+    """The 19 per-point terms ``(w, w x, w y, w y x^T, w|x|^2, w|y|^2, ok)`` (x, y already centred, 0 where not ok)."""
+    wx = tuple(w * a for a in xc)
+    wy = tuple(w * b for b in yc)
+    outer = tuple(wy[i] * xc[j] for i in range(3) for j in range(3))
+    sxx = wx[0] * xc[0] + wx[1] * xc[1] + wx[2] * xc[2]
+    syy = wy[0] * yc[0] + wy[1] * yc[1] + wy[2] * yc[2]
+    return (w, *wx, *wy, *outer, sxx, syy, ok.astype(jnp.int32))
+
+
+def _sum_terms(terms: tuple[Array, ...], point_axes: int) -> tuple[Array, ...]:
+    """Two-level sum of per-point terms over their trailing ``point_axes`` axes.
+
+    Level 1: one variadic reduce over the last axis (a row of points); level 2: the row
+    partials are summed over the remaining point axes.
+    """
+    part = _variadic_sum(terms, -1)
+    if point_axes == 1:
+        return part
+    axes = tuple(range(-(point_axes - 1), 0))
+    return tuple(jnp.sum(p, axis=axes) for p in part)
+
+
+def _pack_moments(tot: tuple[Array, ...], cx: Array, cy: Array) -> _Moments:
     return _Moments(
-        w=tot[..., 0],
-        n=jnp.round(tot[..., 18]).astype(jnp.int32),
-        sx=tot[..., 1:4],
-        sy=tot[..., 4:7],
-        syx=tot[..., 7:16].reshape(*tot.shape[:-1], 3, 3),
-        sxx=tot[..., 16],
-        syy=tot[..., 17],
+        w=tot[0],
+        n=tot[18],
+        sx=jnp.stack(tot[1:4], -1),
+        sy=jnp.stack(tot[4:7], -1),
+        syx=jnp.stack(tot[7:16], -1).reshape(*tot[0].shape, 3, 3),
+        sxx=tot[16],
+        syy=tot[17],
         cx=cx,
         cy=cy,
     )
+
+
+def _add_moments(a: tuple[Array, ...], b: tuple[Array, ...]) -> tuple[Array, ...]:
+    return tuple(x + y for x, y in zip(a, b))
+
+
+def _moments(src: Array, dst: Array, w: Array) -> _Moments:
+    """Sanitise and accumulate the centred moments of ``src``/``dst`` with weights ``w``.
+
+    The point axis is split into rows of ``_ROW`` points (``[..., R, _ROW]``) plus a tail of
+    fewer than ``_ROW`` points; both are reduced with the same variadic reduce.
+    """
+    fin = jnp.isfinite
+    ok = (w > 0) & fin(w) & jnp.all(fin(src), axis=-1) & jnp.all(fin(dst), axis=-1)
+    w0 = jnp.where(ok, w, 0)
+    cx = jax.lax.stop_gradient(_rough_centre(jnp.where(ok[..., None], src, 0), w0))
+    cy = jax.lax.stop_gradient(_rough_centre(jnp.where(ok[..., None], dst, 0), w0))
+
+    def terms(sl: slice, shape: tuple[int, ...]):
+        okb = ok[..., sl].reshape(shape)
+        wb = jnp.where(okb, w[..., sl].reshape(shape), 0)
+        e = (Ellipsis,) + (None,) * (len(shape) - ok.ndim + 1)
+        xc = tuple(jnp.where(okb, src[..., sl, i].reshape(shape) - cx[..., i][e], 0) for i in range(3))
+        yc = tuple(jnp.where(okb, dst[..., sl, i].reshape(shape) - cy[..., i][e], 0) for i in range(3))
+        return _moment_terms(xc, yc, wb, okb)
+
+    n = src.shape[-2]
+    lead = src.shape[:-2]
+    rows = n // _ROW
+    if rows >= 2:
+        tot = _sum_terms(terms(slice(0, rows * _ROW), (*lead, rows, _ROW)), 2)
+        if rows * _ROW < n:
+            tot = _add_moments(tot, _sum_terms(terms(slice(rows * _ROW, n), (*lead, n - rows * _ROW)), 1))
+    else:
+        tot = _sum_terms(terms(slice(0, n), (*lead, n)), 1)
+    return _pack_moments(tot, cx, cy)
 
 
 def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:
@@ -233,3 +284,482 @@ def umeyama(
         if w.shape != src.shape[:-1]:
             raise ValueError(f"umeyama: weights {w.shape} must be {src.shape[:-1]}")
     return _solve(_moments(src, dst, w))
+
+
+# ----------------------------------------------------------------------- reliability mask
+
+
+def frame_conf_mean(conf: ArrayLike) -> Array:
+    """Per-frame mean confidence over the finite pixels: ``[..., H, W] -> [...]`` (NaN if none)."""
+    conf = jnp.asarray(conf)
+    fin = jnp.isfinite(conf)
+    total, count = _variadic_sum(
+        (jnp.where(fin, conf, 0).reshape(*conf.shape[:-2], -1), fin.reshape(*conf.shape[:-2], -1).astype(jnp.int32)),
+        -1,
+    )
+    return total / count.astype(total.dtype)
+
+
+def reliability_mask(
+    depth_a: ArrayLike,
+    depth_b: ArrayLike,
+    conf_a: ArrayLike,
+    conf_b: ArrayLike,
+    depth_threshold: float | ArrayLike = 0.2,
+    conf_ratio: float | ArrayLike = 0.5,
+    conf_mean_a: ArrayLike | None = None,
+    conf_mean_b: ArrayLike | None = None,
+) -> Array:
+    """Reliable overlap pixels (paper eq. 2): bool ``[..., H, W]``.
+
+    ``|D_a - D_b| < depth_threshold``  and  ``gamma_a > conf_ratio * mean(gamma_a)``  and
+    ``gamma_b > conf_ratio * mean(gamma_b)``, the means taken per frame over all finite
+    pixels (the authors' choice); pixels where any of the four inputs is NaN/inf are never
+    reliable (and do not enter the means).  The depths are the *normalised* depths
+    (:func:`swiftjax.camera.normalize_depth`) of the same frames seen by the two chunks, and
+    the difference is absolute, in the chunks' (VGGT) units.
+
+    Args:
+        depth_a, depth_b, conf_a, conf_b: ``[..., H, W]``.
+        depth_threshold: ``lambda_D`` (scalar or broadcastable to ``[...]``).
+        conf_ratio: ``lambda_gamma``.
+        conf_mean_a, conf_mean_b: optional precomputed :func:`frame_conf_mean` ``[...]``.
+    """
+    da, db = jnp.asarray(depth_a), jnp.asarray(depth_b)
+    ca, cb = jnp.asarray(conf_a), jnp.asarray(conf_b)
+    ma = frame_conf_mean(ca) if conf_mean_a is None else jnp.asarray(conf_mean_a)
+    mb = frame_conf_mean(cb) if conf_mean_b is None else jnp.asarray(conf_mean_b)
+    e = (Ellipsis, None, None)
+    lam_d = jnp.asarray(depth_threshold, da.dtype)
+    lam_c = jnp.asarray(conf_ratio, ca.dtype)
+    lam_d = lam_d[e] if lam_d.ndim else lam_d
+    lam_c = lam_c[e] if lam_c.ndim else lam_c
+    fin = jnp.isfinite(da) & jnp.isfinite(db) & jnp.isfinite(ca) & jnp.isfinite(cb)
+    return fin & (jnp.abs(da - db) < lam_d) & (ca > lam_c * ma[e]) & (cb > lam_c * mb[e])
+
+
+# ------------------------------------------------------------------------ IRLS baseline
+
+
+class IRLSInfo(NamedTuple):
+    """Diagnostics of :func:`irls_sim3`: ``iterations`` (int32) run and ``converged`` (bool)."""
+
+    iterations: Array
+    converged: Array
+
+
+def _vggt_long_weighted_sim3(src: Array, dst: Array, w: Array) -> tuple[Array, Array, Array]:
+    """VGGT-Long's ``weighted_estimate_sim3``: scale = ratio of weighted RMS spreads.
+
+    ``w`` normalised to sum 1; ``s = sqrt(sum w |y - mu_y|^2) / sqrt(sum w |x - mu_x|^2)``;
+    ``H = sum w (s x_c) y_c^T``, ``H = U S V^T``, ``R = V U^T`` (last row of ``V^T`` negated
+    if ``det R < 0``), ``t = mu_y - s R mu_x``.  Returns ``(s, R, t)``.
+    """
+    wn = w / jnp.maximum(jnp.sum(w, axis=-1, keepdims=True), jnp.finfo(w.dtype).tiny)
+    mu_x = jnp.einsum("...n,...ni->...i", wn, src)
+    mu_y = jnp.einsum("...n,...ni->...i", wn, dst)
+    xc = src - mu_x[..., None, :]
+    yc = dst - mu_y[..., None, :]
+    sc_x = jnp.sqrt(jnp.einsum("...n,...ni,...ni->...", wn, xc, xc))
+    sc_y = jnp.sqrt(jnp.einsum("...n,...ni,...ni->...", wn, yc, yc))
+    s = sc_y / sc_x
+    H = s[..., None, None] * jnp.einsum("...n,...ni,...nj->...ij", wn, xc, yc)
+    U, _, Vt = jnp.linalg.svd(H)
+    V = jnp.swapaxes(Vt, -1, -2)
+    R = V @ jnp.swapaxes(U, -1, -2)
+    flip = jnp.linalg.det(R) < 0
+    V = V.at[..., :, 2].multiply(jnp.where(flip, -1.0, 1.0)[..., None].astype(V.dtype))
+    R = V @ jnp.swapaxes(U, -1, -2)
+    t = mu_y - s[..., None] * jnp.einsum("...ij,...j->...i", R, mu_x)
+    return s, R, t
+
+
+def irls_sim3(
+    src: ArrayLike,
+    dst: ArrayLike,
+    weights: ArrayLike | None = None,
+    delta: float = 0.1,
+    max_iters: int = 5,
+    tol: float = 1e-9,
+) -> tuple[Array, IRLSInfo]:
+    """VGGT-Long's robust IRLS Sim(3) (``robust_weighted_estimate_sim3``), the baseline.
+
+    Faithful port, for comparison only (one problem, ``src``/``dst`` ``[N, 3]``)::
+
+        (s, R, t) = weighted_estimate_sim3(src, dst, w0)
+        repeat max_iters times:
+            r = |dst - (s R src + t)|;  h = 1 if r <= delta else delta / r
+            w = w0 h / (sum w0 h + 1e-12)
+            (s', R', t') = weighted_estimate_sim3(src, dst, w)
+            E = sum huber(r, delta) w0
+            stop if (|s' - s| + |t' - t| < tol and angle(R' R^T) < 0.1 deg)
+                    or |E_prev - E| < tol E_prev        (keeping (s, R, t))
+            (s, R, t) = (s', R', t')
+
+    Non-finite points are given zero weight (as in :func:`umeyama`).  Jit-able
+    (``max_iters`` static; ``lax.while_loop``); every iteration is two passes over the points.
+
+    Returns:
+        ``(S [8], IRLSInfo)``.
+    """
+    src = jnp.asarray(src)
+    if not jnp.issubdtype(src.dtype, jnp.floating):
+        src = src.astype(jnp.float32)
+    dst = jnp.asarray(dst, src.dtype)
+    w0 = jnp.ones(src.shape[:-1], src.dtype) if weights is None else jnp.asarray(weights).astype(src.dtype)
+    ok = jnp.all(jnp.isfinite(src), -1) & jnp.all(jnp.isfinite(dst), -1) & jnp.isfinite(w0)
+    w0 = jnp.where(ok, w0, 0)
+    src = jnp.where(ok[..., None], src, 0)
+    dst = jnp.where(ok[..., None], dst, 0)
+    dt = src.dtype
+
+    def huber(r):
+        return jnp.where(r <= delta, 0.5 * r * r, delta * (r - 0.5 * delta))
+
+    s, R, t = _vggt_long_weighted_sim3(src, dst, w0)
+
+    def cond(state):
+        k, _, _, _, _, done = state
+        return (k < max_iters) & ~done
+
+    def body(state):
+        k, s, R, t, prev_err, _ = state
+        pred = s * src @ R.T + t
+        r = jnp.linalg.norm(dst - pred, axis=-1)
+        h = jnp.where(r > delta, delta / jnp.where(r > delta, r, 1), 1)
+        cw = w0 * h
+        cw = cw / (jnp.sum(cw) + 1e-12)
+        s_n, R_n, t_n = _vggt_long_weighted_sim3(src, dst, cw)
+        change = jnp.abs(s_n - s) + jnp.linalg.norm(t_n - t)
+        angle = jnp.arccos(jnp.clip((jnp.trace(R_n @ R.T) - 1) / 2, -1.0, 1.0))
+        err = jnp.sum(huber(r) * w0)
+        done = ((change < tol) & (angle < jnp.deg2rad(0.1))) | (jnp.abs(prev_err - err) < tol * prev_err)
+        keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
+        return (k + 1, keep(s, s_n), keep(R, R_n), keep(t, t_n), jnp.where(done, prev_err, err), done)
+
+    state = (jnp.int32(0), s, R, t, jnp.asarray(jnp.inf, dt), jnp.asarray(False))
+    k, s, R, t, _, done = jax.lax.while_loop(cond, body, state)
+    return sim3.from_rst(R, t, s), IRLSInfo(iterations=k, converged=done)
+
+
+# ----------------------------------------------------------------- chunk-pair alignment
+
+
+class ChunkFrames(NamedTuple):
+    """The overlap frames of one chunk (a NamedTuple, hence a pytree).
+
+    Attributes:
+        depth: ``[O, H, W]`` depth in the chunk's units.
+        conf: ``[O, H, W]`` depth confidence.
+        intrinsic: ``[O, 3, 3]``.
+        extrinsic: ``[O, 3, 4]`` world-to-camera in the chunk's own frame.
+    """
+
+    depth: Array
+    conf: Array
+    intrinsic: Array
+    extrinsic: Array
+
+
+class AlignInfo(NamedTuple):
+    """Diagnostics of :func:`align_chunk_pair` (scalars; batch shape ``[P]`` when batched).
+
+    Attributes:
+        num_points: int32 overlap points used (reliable pixels).
+        fraction_used: ``num_points / (O H W)``; ``1 - fraction_used`` were masked out.
+        rms: weighted RMS residual of the fit in chunk ``t`` units (closed form; its float32
+            floor is about ``3e-4 x`` the spread of the points).
+        valid: the Umeyama solve was well posed (see :class:`UmeyamaInfo`).
+        used_fallback_threshold: fewer than ``min_points`` passed at ``depth_threshold`` and
+            the mask was recomputed with ``fallback_depth_threshold``.
+        depth_threshold: the ``lambda_D`` finally used.
+        pose_fallback: ``S`` comes from :func:`pose_based_estimate` (Umeyama invalid).
+        umeyama: the :class:`UmeyamaInfo` of the solve.
+    """
+
+    num_points: Array
+    fraction_used: Array
+    rms: Array
+    valid: Array
+    used_fallback_threshold: Array
+    depth_threshold: Array
+    pose_fallback: Array
+    umeyama: UmeyamaInfo
+
+
+def _chunk_geometry(frames: ChunkFrames, K_ref: Array):
+    """Per-frame ``(focal ratio r [O], B = R_c2w K_ref^-1 [O,3,3], centre c [O,3])``.
+
+    World point of pixel ``(u, v)`` of frame ``f``: ``x = r_f D (B_f (u, v, 1)) + c_f``,
+    which is ``unproject(normalize_depth(D), K_ref, camera_to_world(E))`` (eq. 1 + pinhole).
+    """
+    r = camera.focal_ratio(frames.intrinsic, K_ref)
+    c2w = camera.camera_to_world(frames.extrinsic)
+    K_inv = jnp.linalg.inv(K_ref)
+    B = c2w[..., :3, :3] @ K_inv
+    return r, B, c2w[..., :3, 3]
+
+
+def _points_soa(depth: Array, r: Array, B: Array, c: Array, centre: Array, u: Array, v: Array):
+    """Centred world points as three ``[O, H, W]`` components (see :func:`_chunk_geometry`)."""
+    e = (slice(None), None, None)
+    d = r[e] * depth
+    out = []
+    for i in range(3):
+        ray = B[:, i, 0][e] * u + B[:, i, 1][e] * v + B[:, i, 2][e]
+        out.append(d * ray + (c[:, i] - centre[i])[e])
+    return tuple(out)
+
+
+def pose_based_estimate(prev_extrinsic: ArrayLike, cur_extrinsic: ArrayLike) -> tuple[Array, Array]:
+    """``S_{t->t+1}`` from the overlap cameras alone (the fallback when Umeyama is invalid).
+
+    Each overlap frame has a camera-to-world pose in both chunks, ``P_f`` (chunk t) and
+    ``Q_f`` (chunk t+1).  ``R = chordal mean of R_Pf R_Qf^T`` (SVD projection of the sum);
+    ``s = sqrt(sum |c_P - mean c_P|^2 / sum |c_Q - mean c_Q|^2)`` (1 when the cameras do not
+    move); ``t = mean c_P - s R mean c_Q``.  Returns ``(S [8], ok)``; ``ok`` is False (and
+    ``S`` the identity) when the extrinsics are not finite.
+    """
+    P = camera.camera_to_world(jnp.asarray(prev_extrinsic))
+    Q = camera.camera_to_world(jnp.asarray(cur_extrinsic, P.dtype))
+    ok = jnp.all(jnp.isfinite(P)) & jnp.all(jnp.isfinite(Q))
+    P = jnp.where(ok, P, jnp.eye(3, 4, dtype=P.dtype))
+    Q = jnp.where(ok, Q, jnp.eye(3, 4, dtype=P.dtype))
+    M = jnp.sum(P[:, :, :3] @ jnp.swapaxes(Q[:, :, :3], -1, -2), axis=0)
+    U, _, Vt = jnp.linalg.svd(M)
+    d = jnp.where(jnp.linalg.det(U @ Vt) < 0, -1.0, 1.0).astype(P.dtype)
+    R = (U * jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ Vt
+    cp, cq = P[:, :, 3], Q[:, :, 3]
+    mp, mq = cp.mean(0), cq.mean(0)
+    vp, vq = jnp.sum((cp - mp) ** 2), jnp.sum((cq - mq) ** 2)
+    tiny = jnp.finfo(P.dtype).eps ** 2 * (1 + jnp.sum(mq * mq))
+    s = jnp.where((vq > tiny) & (vp > tiny), jnp.sqrt(vp / jnp.where(vq > tiny, vq, 1)), 1.0)
+    t = mp - s * R @ mq
+    S = sim3.from_rst(R, t, s)
+    return jnp.where(ok, S, sim3.identity(dtype=P.dtype)), ok
+
+
+def _align_core(
+    prev: ChunkFrames,
+    cur: ChunkFrames,
+    K_ref: Array,
+    depth_threshold: Array,
+    conf_ratio: Array,
+    min_points: Array,
+    fallback_depth_threshold: Array,
+) -> tuple[Array, AlignInfo]:
+    dtype = prev.depth.dtype
+    o, h, w = prev.depth.shape
+    K_ref = K_ref.astype(dtype)
+    r_p, B_p, c_p = _chunk_geometry(prev, K_ref)
+    r_c, B_c, c_c = _chunk_geometry(cur, K_ref)
+    mean_p = frame_conf_mean(prev.conf)
+    mean_c = frame_conf_mean(cur.conf)
+    e = (slice(None), None, None)
+
+    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, mp, mc, lam):
+        return reliability_mask(
+            rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio, mp, mc
+        )
+
+    u = jnp.arange(w, dtype=dtype)[None, None, :]
+    v = jnp.arange(h, dtype=dtype)[None, :, None]
+
+    # Rough centres from a strided subsample of pixels (about 8 x 8 x 16 of them).
+    fs, hs, ws = max(1, o // 8), max(1, h // 8), max(1, w // 16)
+    sub = (slice(None, None, fs), slice(None, None, hs), slice(None, None, ws))
+    fsub = slice(None, None, fs)
+    m_sub = mask(prev.depth[sub], cur.depth[sub], prev.conf[sub], cur.conf[sub],
+                 r_p[fsub], r_c[fsub], mean_p[fsub], mean_c[fsub], depth_threshold)
+    zero = jnp.zeros(3, dtype)
+    ps = _points_soa(prev.depth[sub], r_p[fsub], B_p[fsub], c_p[fsub], zero, u[sub], v[sub])
+    cs = _points_soa(cur.depth[sub], r_c[fsub], B_c[fsub], c_c[fsub], zero, u[sub], v[sub])
+    fin_sub = jnp.all(jnp.isfinite(jnp.stack(ps + cs)), 0)
+    w_sub = (m_sub & fin_sub).astype(dtype).reshape(-1)
+    p_pts = jnp.where(fin_sub[..., None], jnp.stack(ps, -1), 0).reshape(-1, 3)
+    c_pts = jnp.where(fin_sub[..., None], jnp.stack(cs, -1), 0).reshape(-1, 3)
+    cy = jax.lax.stop_gradient(_rough_centre(p_pts, w_sub))  # dst = prev
+    cx = jax.lax.stop_gradient(_rough_centre(c_pts, w_sub))  # src = cur
+
+    def moments(lam):
+        m = mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam)
+        xs = _points_soa(cur.depth, r_c, B_c, c_c, cx, u, v)
+        ys = _points_soa(prev.depth, r_p, B_p, c_p, cy, u, v)
+        ok = m & jnp.isfinite(xs[0] + xs[1] + xs[2] + ys[0] + ys[1] + ys[2])
+        wts = ok.astype(dtype)
+        xs = tuple(jnp.where(ok, a, 0) for a in xs)
+        ys = tuple(jnp.where(ok, b, 0) for b in ys)
+        return _sum_terms(_moment_terms(xs, ys, wts, ok), 3)
+
+    tot = moments(depth_threshold)
+    few = tot[18] < min_points
+    tot = jax.lax.cond(few, lambda: moments(fallback_depth_threshold), lambda: tot)
+    lam_used = jnp.where(few, fallback_depth_threshold, depth_threshold).astype(dtype)
+    S, uinfo = _solve(_pack_moments(tot, cx, cy))
+    S_pose, _ = pose_based_estimate(prev.extrinsic.astype(dtype), cur.extrinsic.astype(dtype))
+    S = jnp.where(uinfo.valid, S, S_pose)
+    info = AlignInfo(
+        num_points=uinfo.num_points,
+        fraction_used=uinfo.num_points.astype(dtype) / (o * h * w),
+        rms=uinfo.rms,
+        valid=uinfo.valid,
+        used_fallback_threshold=few,
+        depth_threshold=lam_used,
+        pose_fallback=~uinfo.valid,
+        umeyama=uinfo,
+    )
+    return S, info
+
+
+_align_core_jit = jax.jit(_align_core)
+_align_core_batched = jax.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None)))
+
+
+def _as_frames(x, dtype=None) -> ChunkFrames:
+    return ChunkFrames(*(jnp.asarray(getattr(x, f), dtype) for f in ChunkFrames._fields))
+
+
+def align_chunk_pair(
+    prev: ChunkFrames,
+    cur: ChunkFrames,
+    K_ref: ArrayLike,
+    *,
+    depth_threshold: float = 0.2,
+    conf_ratio: float = 0.5,
+    min_points: int = 20_000,
+    fallback_depth_threshold: float = 0.25,
+) -> tuple[Array, AlignInfo]:
+    """``S_{t->t+1}`` (maps chunk t+1 coordinates into chunk t) from the overlap frames.
+
+    ``prev`` holds the LAST ``O`` frames of chunk ``t`` and ``cur`` the FIRST ``O`` frames of
+    chunk ``t+1`` (the same global frames).  For each chunk: depths normalised to ``K_ref``
+    (eq. 1), unprojected with ``K_ref`` at integer pixels, mapped to the chunk frame with the
+    inverse of that chunk's extrinsic.  Reliable pixels (eq. 2, :func:`reliability_mask`)
+    weight one Umeyama solve with ``src`` = chunk t+1's points, ``dst`` = chunk t's points.
+    If fewer than ``min_points`` pass, the mask is recomputed once with
+    ``fallback_depth_threshold`` (the authors' rule).  If the solve is still invalid (e.g.
+    empty overlap), ``S`` is :func:`pose_based_estimate` of the overlap cameras (identity if
+    those are not finite either) and ``info.pose_fallback`` is set: ``S`` is always finite.
+
+    Args:
+        prev, cur: :class:`ChunkFrames` (``depth, conf [O, H, W]``, ``intrinsic [O, 3, 3]``,
+            ``extrinsic [O, 3, 4]``), or any object with those attributes
+            (e.g. a :class:`swiftjax.prediction.ChunkPrediction` sliced to the overlap).
+        K_ref: ``[3, 3]`` reference intrinsics.
+        depth_threshold, conf_ratio, min_points, fallback_depth_threshold: options
+            (traced: changing them never recompiles).  Loop chunks use ``depth_threshold=0.4``.
+
+    Returns:
+        ``(S [8], AlignInfo)``.  One jitted call; it compiles once per ``(O, H, W)`` and dtype.
+        The pass over the pixels is a single fused variadic reduction (plus one pass over the
+        confidences for their per-frame means); the fallback pass runs only when needed.
+    """
+    prev = _as_frames(prev)
+    dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
+    prev = _as_frames(prev, dtype)
+    cur = _as_frames(cur, dtype)
+    return _align_core_jit(
+        prev,
+        cur,
+        jnp.asarray(K_ref, dtype),
+        jnp.asarray(depth_threshold, dtype),
+        jnp.asarray(conf_ratio, dtype),
+        jnp.asarray(min_points, jnp.int32),
+        jnp.asarray(fallback_depth_threshold, dtype),
+    )
+
+
+def align_chunk_pairs(
+    prev: ChunkFrames,
+    cur: ChunkFrames,
+    K_ref: ArrayLike,
+    *,
+    depth_threshold: float = 0.2,
+    conf_ratio: float = 0.5,
+    min_points: int = 20_000,
+    fallback_depth_threshold: float = 0.25,
+) -> tuple[Array, AlignInfo]:
+    """:func:`align_chunk_pair` for ``P`` pairs at once (``jax.vmap``, one jitted call).
+
+    ``prev``/``cur`` fields carry a leading ``[P]`` axis; ``K_ref`` is ``[3, 3]`` (shared)
+    or ``[P, 3, 3]``.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap``
+    the fallback-threshold pass becomes a select, so it is computed for every pair.
+    """
+    prev = _as_frames(prev)
+    dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
+    prev = _as_frames(prev, dtype)
+    cur = _as_frames(cur, dtype)
+    K = jnp.asarray(K_ref, dtype)
+    K = jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3))
+    return _align_core_batched(
+        prev,
+        cur,
+        K,
+        jnp.asarray(depth_threshold, dtype),
+        jnp.asarray(conf_ratio, dtype),
+        jnp.asarray(min_points, jnp.int32),
+        jnp.asarray(fallback_depth_threshold, dtype),
+    )
+
+
+def _check_frames(name: str, f, shape: tuple[int, int, int] | None) -> tuple[int, int, int]:
+    for field in ChunkFrames._fields:
+        if not hasattr(f, field):
+            raise ValueError(f"{name} has no field {field!r} (expected depth, conf, intrinsic, extrinsic)")
+    d = np.shape(f.depth)
+    if len(d) != 3:
+        raise ValueError(f"{name}.depth must be [O, H, W], got shape {d}")
+    if shape is not None and d != shape:
+        raise ValueError(f"{name}.depth has shape {d} but the other chunk's overlap is {shape}")
+    o = d[0]
+    for field, want in (("conf", d), ("intrinsic", (o, 3, 3)), ("extrinsic", (o, 3, 4))):
+        got = np.shape(getattr(f, field))
+        if got != tuple(want):
+            raise ValueError(f"{name}.{field} has shape {got}, expected {tuple(want)}")
+    K = np.asarray(f.intrinsic, np.float64)
+    if not np.all(np.isfinite(K)):
+        raise ValueError(f"{name}.intrinsic has non-finite entries")
+    if not (np.all(K[:, 0, 0] > 0) and np.all(K[:, 1, 1] > 0)):
+        raise ValueError(f"{name}.intrinsic has a non-positive focal length (fx, fy must be > 0)")
+    return d
+
+
+def align_chunk_pair_checked(
+    prev,
+    cur,
+    K_ref: ArrayLike,
+    *,
+    name: str = "chunk pair",
+    **options,
+) -> tuple[Array, AlignInfo]:
+    """Host-level :func:`align_chunk_pair`: validates inputs first, warns on a fallback.
+
+    Raises:
+        ValueError: shapes do not match (``depth, conf [O, H, W]``, ``intrinsic [O, 3, 3]``,
+            ``extrinsic [O, 3, 4]``, both chunks the same ``O, H, W``), ``O == 0``, or an
+            intrinsic (``K_ref`` included) is non-finite or has a focal ``<= 0``.
+
+    Warns (``RuntimeWarning``) when the Umeyama solve was invalid and the pose-based
+    estimate (or identity) was returned.  The fallback depth threshold is the authors'
+    normal rule, not a warning: it is reported in ``info.used_fallback_threshold``.
+    The returned ``S`` is always finite.
+    """
+    shape = _check_frames("prev", prev, None)
+    _check_frames("cur", cur, shape)
+    if shape[0] == 0:
+        raise ValueError("the overlap is empty: prev/cur have O = 0 frames")
+    K = np.asarray(K_ref, np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K_ref must be [3, 3], got shape {K.shape}")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"K_ref must be finite with positive focal lengths, got {K.tolist()}")
+    S, info = align_chunk_pair(prev, cur, K_ref, **options)
+    if bool(info.pose_fallback):
+        warnings.warn(
+            f"{name}: Umeyama alignment is ill-posed ({int(info.num_points)} reliable points, "
+            f"{100 * float(info.fraction_used):.2f}% of the overlap); using the estimate from "
+            "the overlap camera poses instead",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return S, info

@@ -195,3 +195,221 @@ def test_umeyama_rejects_bad_shapes():
         align.umeyama(jnp.ones((10, 2)), jnp.ones((10, 2)))
     with pytest.raises(ValueError, match="weights"):
         align.umeyama(jnp.ones((10, 3)), jnp.ones((10, 3)), jnp.ones(9))
+
+
+# ------------------------------------------------------------------ mask and chunk pairs
+
+from swiftjax import camera  # noqa: E402
+
+
+def test_reliability_mask_hand_computed():
+    da = np.array([[[1.0, 2.0], [3.0, 4.0]]], np.float32)
+    db = np.array([[[1.1, 2.5], [3.0, np.nan]]], np.float32)
+    ca = np.array([[[2.0, 2.0], [0.5, 3.5]]], np.float32)  # mean 2.0 -> threshold 1.0
+    cb = np.array([[[1.0, 4.0], [4.0, np.inf]]], np.float32)  # finite mean 3.0 -> threshold 1.5
+    m = np.asarray(align.reliability_mask(da, db, ca, cb, 0.2, 0.5))
+    # (0,0): |dd|=0.1 ok, ca 2>1 ok, cb 1>1.5 no -> False
+    # (0,1): |dd|=0.5 no; (1,0): ca 0.5 > 1 no; (1,1): NaN depth / inf conf -> False
+    np.testing.assert_array_equal(m, [[[False, False], [False, False]]])
+    cb2 = cb.copy()
+    cb2[0, 0, 0] = 2.0  # finite mean (2+4+4)/3 = 3.333 -> threshold 1.667: 2 > 1.667
+    m2 = np.asarray(align.reliability_mask(da, db, ca, cb2, 0.2, 0.5))
+    np.testing.assert_array_equal(m2, [[[True, False], [False, False]]])
+    np.testing.assert_allclose(np.asarray(align.frame_conf_mean(cb2)), [10.0 / 3.0], rtol=1e-6)
+    m3 = np.asarray(align.reliability_mask(da, db, ca, cb2, 0.6, 0.5))
+    np.testing.assert_array_equal(m3, [[[True, True], [False, False]]])  # (0,1): cb 4 ok, ca 2 ok, |dd| .5 < .6
+    m3 = np.asarray(align.reliability_mask(da, db, ca, cb2, 0.6, 0.0))
+    np.testing.assert_array_equal(m3, [[[True, True], [True, False]]])
+
+
+def _K(fx, fy, w, h):
+    return np.array([[fx, 0, w / 2 - 0.5], [0, fy, h / 2 - 0.5], [0, 0, 1.0]])
+
+
+def make_pair(seed=0, o=4, h=24, w=40, s=1.02, outliers=0.3, dtype=np.float64):
+    """Synthetic overlap: chunk t+1 is chunk t mapped by S_true^-1 (depths / s, new focals)."""
+    rng = np.random.default_rng(seed)
+    K_ref = _K(50.0, 52.0, w, h)
+    R_S = Rotation.from_rotvec(rng.normal(size=3) * 0.3).as_matrix()
+    t_S = rng.normal(size=3) * 3
+    # chunk t cameras (world-to-camera), gently moving forward
+    Kp = np.stack([_K(50.0 * (1 + 0.05 * rng.normal()), 52.0 * (1 + 0.05 * rng.normal()), w, h) for _ in range(o)])
+    Kc = np.stack([_K(50.0 * (1 + 0.05 * rng.normal()), 52.0 * (1 + 0.05 * rng.normal()), w, h) for _ in range(o)])
+    Ep, Ec = [], []
+    for f in range(o):
+        Rp_c2w = Rotation.from_rotvec(rng.normal(size=3) * 0.05).as_matrix()
+        cp = np.array([0.1 * f, 0.0, 0.8 * f]) + rng.normal(size=3) * 0.05
+        Ep.append(np.concatenate([Rp_c2w.T, (-Rp_c2w.T @ cp)[:, None]], 1))
+        # chunk t+1 pose of the same camera: Q = S^-1 P  (rotation R_S^T R_p, centre S^-1 c)
+        Rq = R_S.T @ Rp_c2w
+        cq = R_S.T @ (cp - t_S) / s
+        Ec.append(np.concatenate([Rq.T, (-Rq.T @ cq)[:, None]], 1))
+    Ep, Ec = np.stack(Ep), np.stack(Ec)
+    yy, xx = np.mgrid[0:h, 0:w]
+    Dreg = 3.0 + 1.5 * np.sin(xx / 7.0 + np.arange(o)[:, None, None]) + 0.02 * yy  # normalised depth
+    rp = 0.5 * (K_ref[0, 0] / Kp[:, 0, 0] + K_ref[1, 1] / Kp[:, 1, 1])
+    rc = 0.5 * (K_ref[0, 0] / Kc[:, 0, 0] + K_ref[1, 1] / Kc[:, 1, 1])
+    Dp = Dreg / rp[:, None, None]
+    Dc = (Dreg / s) / rc[:, None, None]
+    conf_p = 1 + rng.random((o, h, w)) * 3
+    conf_c = 1 + rng.random((o, h, w)) * 3
+    bad = rng.random((o, h, w)) < outliers
+    Dc = np.where(bad, Dc + rng.uniform(1.0, 5.0, (o, h, w)), Dc)  # gross depth outliers
+    prev = align.ChunkFrames(*(a.astype(dtype) for a in (Dp, conf_p, Kp, Ep)))
+    cur = align.ChunkFrames(*(a.astype(dtype) for a in (Dc, conf_c, Kc, Ec)))
+    return prev, cur, K_ref.astype(dtype), (R_S, t_S, s)
+
+
+def _reference_pair(prev, cur, K_ref, lam=0.2, conf_ratio=0.5):
+    """The long way, with the public building blocks (float64 NumPy at the end)."""
+    dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
+    dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
+    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, lam, conf_ratio))
+    Xp = np.asarray(camera.unproject(dp, K_ref, camera.camera_to_world(prev.extrinsic))).reshape(-1, 3)
+    Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)
+    mm = m.reshape(-1)
+    return np_weighted_umeyama(Xc[mm], Xp[mm], np.ones(mm.sum())), mm.sum()
+
+
+def test_align_chunk_pair_recovers_sim3_float64(x64):
+    prev, cur, K_ref, (R, t, s) = make_pair(seed=1)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    assert S.dtype == jnp.float64
+    rot, se, te = _errors(S, R, t, s)
+    assert rot < 1e-9 and se < 1e-9 and te < 1e-9
+    assert bool(info.valid) and not bool(info.pose_fallback) and not bool(info.used_fallback_threshold)
+    (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref)
+    assert int(info.num_points) == n_ref
+    assert float(info.fraction_used) == pytest.approx(n_ref / prev.depth.size)
+    assert 0.5 < float(info.fraction_used) < 0.65  # 0.7 inliers x (11/12)^2 confident = 0.58
+    assert float(info.rms) < 1e-6
+
+
+def test_align_chunk_pair_float32_close_to_float64():
+    prev, cur, K_ref, (R, t, s) = make_pair(seed=2, dtype=np.float32)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    assert S.dtype == jnp.float32 and bool(info.valid)
+    rot, se, te = _errors(S, R, t, s)
+    assert rot < 1e-5 and se < 1e-4 and te < 1e-4
+
+
+def test_align_chunk_pair_fallback_threshold_and_batch():
+    prev, cur, K_ref, _ = make_pair(seed=3, s=1.0, dtype=np.float32)
+    # Shift cur's depth by 0.22 (scale-free): nothing passes at 0.2, all inliers at 0.25.
+    cur = cur._replace(depth=cur.depth + 0.22 / (0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1]))[:, None, None])
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    assert bool(info.used_fallback_threshold) and float(info.depth_threshold) == pytest.approx(0.25)
+    assert bool(info.valid) and int(info.num_points) > 100
+    S2, info2 = align.align_chunk_pair(prev, cur, K_ref, min_points=0)
+    assert not bool(info2.used_fallback_threshold) and not bool(info2.valid)  # 0 points at 0.2
+    # Batched form = individual calls.
+    p2, c2, _, _ = make_pair(seed=4, dtype=np.float32)
+    pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
+    cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
+    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)
+    S1, _ = align.align_chunk_pair(p2, c2, K_ref, min_points=100)
+    np.testing.assert_allclose(np.asarray(Sb[0]), np.asarray(S), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(Sb[1]), np.asarray(S1), atol=1e-6)
+    assert ib.num_points.shape == (2,) and bool(ib.used_fallback_threshold[0])
+
+
+def test_align_chunk_pair_nan_pixels_never_reach_S(x64):
+    prev, cur, K_ref, (R, t, s) = make_pair(seed=5)
+    rng = np.random.default_rng(0)
+    dp, cc = prev.depth.copy(), cur.conf.copy()
+    dp[rng.random(dp.shape) < 0.05] = np.nan
+    dp[rng.random(dp.shape) < 0.05] = np.inf
+    cc[rng.random(cc.shape) < 0.05] = np.nan
+    S, info = align.align_chunk_pair(prev._replace(depth=dp), cur._replace(conf=cc), K_ref, min_points=100)
+    assert np.all(np.isfinite(np.asarray(S))) and bool(info.valid)
+    rot, se, te = _errors(S, R, t, s)
+    assert rot < 1e-9 and se < 1e-9 and te < 1e-9
+
+
+def test_align_chunk_pair_checked_empty_overlap_warns_and_falls_back(x64):
+    prev, cur, K_ref, (R, t, s) = make_pair(seed=6, outliers=0.0)
+    cur_bad = cur._replace(depth=cur.depth + 10.0)  # no pixel passes either threshold
+    with pytest.warns(RuntimeWarning, match="ill-posed"):
+        S, info = align.align_chunk_pair_checked(prev, cur_bad, K_ref)
+    assert not bool(info.valid) and bool(info.pose_fallback) and int(info.num_points) == 0
+    assert np.all(np.isfinite(np.asarray(S)))
+    # The pose-based fallback recovers the rotation exactly and the rest approximately.
+    rot, se, te = _errors(S, R, t, s)
+    assert rot < 1e-9 and se < 1e-6 and te < 1e-6
+    # All-NaN depths: still finite.
+    S2, info2 = align.align_chunk_pair(prev, cur._replace(depth=np.full_like(cur.depth, np.nan)), K_ref)
+    assert np.all(np.isfinite(np.asarray(S2))) and not bool(info2.valid)
+
+
+def test_align_chunk_pair_checked_rejects_bad_inputs():
+    prev, cur, K_ref, _ = make_pair(seed=7, o=2, h=4, w=6, dtype=np.float32)
+    with pytest.raises(ValueError, match="cur.depth has shape"):
+        align.align_chunk_pair_checked(prev, cur._replace(depth=cur.depth[:1]), K_ref)
+    with pytest.raises(ValueError, match="prev.extrinsic"):
+        align.align_chunk_pair_checked(prev._replace(extrinsic=prev.extrinsic[:, :3, :3]), cur, K_ref)
+    K_bad = cur.intrinsic.copy()
+    K_bad[0, 0, 0] = -1
+    with pytest.raises(ValueError, match="focal"):
+        align.align_chunk_pair_checked(prev, cur._replace(intrinsic=K_bad), K_ref)
+    K_nan = K_ref.copy()
+    K_nan[0, 2] = np.nan
+    with pytest.raises(ValueError, match="K_ref"):
+        align.align_chunk_pair_checked(prev, cur, K_nan)
+
+
+# ------------------------------------------------------------------------ IRLS baseline
+
+
+def np_vggt_long_irls(src, dst, w0, delta=0.1, max_iters=5, tol=1e-9):
+    """NumPy float64 port of VGGT-Long's robust_weighted_estimate_sim3 (the reference)."""
+
+    def est(x, y, w):
+        w = w / w.sum()
+        mx, my = w @ x, w @ y
+        xc, yc = x - mx, y - my
+        s = np.sqrt(np.sum(w * (yc**2).sum(1))) / np.sqrt(np.sum(w * (xc**2).sum(1)))
+        H = (s * xc * np.sqrt(w)[:, None]).T @ (yc * np.sqrt(w)[:, None])
+        U, _, Vt = np.linalg.svd(H)
+        R = Vt.T @ U.T
+        if np.linalg.det(R) < 0:
+            Vt[-1, :] *= -1
+            R = Vt.T @ U.T
+        return s, R, my - s * R @ mx
+
+    s, R, t = est(src, dst, w0)
+    prev = np.inf
+    for _ in range(max_iters):
+        r = np.linalg.norm(dst - (s * src @ R.T + t), axis=1)
+        h = np.where(r > delta, delta / np.maximum(r, 1e-300), 1.0)
+        cw = w0 * h
+        cw = cw / (cw.sum() + 1e-12)
+        s2, R2, t2 = est(src, dst, cw)
+        change = abs(s2 - s) + np.linalg.norm(t2 - t)
+        ang = np.arccos(np.clip((np.trace(R2 @ R.T) - 1) / 2, -1, 1))
+        err = np.sum(np.where(r <= delta, 0.5 * r**2, delta * (r - 0.5 * delta)) * w0)
+        if (change < tol and ang < np.radians(0.1)) or abs(prev - err) < tol * prev:
+            break
+        s, R, t = s2, R2, t2
+        prev = err
+    return s, R, t
+
+
+def test_irls_matches_numpy_port(x64):
+    rng = np.random.default_rng(14)
+    x = rng.normal(size=(2000, 3)) * 4
+    R, t, s = _random_sim3(rng, 14)
+    y = s * x @ R.T + t + rng.normal(size=(2000, 3)) * 0.05
+    y[:300] += rng.normal(size=(300, 3)) * 5  # outliers IRLS down-weights
+    w0 = rng.uniform(1, 3, 2000)
+    s_r, R_r, t_r = np_vggt_long_irls(x, y, w0)
+    S, info = jax.jit(align.irls_sim3)(jnp.asarray(x), jnp.asarray(y), jnp.asarray(w0))
+    Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
+    np.testing.assert_allclose(Rg, R_r, atol=1e-9)
+    np.testing.assert_allclose(tg, t_r, atol=1e-8)
+    assert float(sg) == pytest.approx(s_r, rel=1e-10)
+    assert 1 <= int(info.iterations) <= 5
+    # Robust: much closer to the truth than a plain Umeyama on the contaminated data.
+    rot_i, se_i, _ = _errors(S, R, t, s)
+    S_u, _ = umeyama_jit(jnp.asarray(x), jnp.asarray(y))
+    rot_u, se_u, _ = _errors(S_u, R, t, s)
+    assert se_i < se_u
