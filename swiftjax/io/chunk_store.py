@@ -61,10 +61,11 @@ _NAME = re.compile(r"^(chunk|loop)_(\d{5,})\.npz$")
 def _half_if_fits(x: np.ndarray) -> np.ndarray:
     """float16 when every finite value fits float16's range, else float32 (no overflow to inf)."""
     x = np.asarray(x)
-    finite = x[np.isfinite(x)]
-    if finite.size and float(np.abs(finite).max()) > _F16_MAX:
+    with np.errstate(over="ignore"):  # overflow is detected below
+        half = x.astype(np.float16)
+    if np.count_nonzero(np.isinf(half)) != np.count_nonzero(np.isinf(x)):  # a finite value overflowed
         return x.astype(np.float32, copy=False)
-    return x.astype(np.float16)
+    return half
 
 
 class ChunkStore:

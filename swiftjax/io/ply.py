@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+from collections.abc import Sequence
 from typing import IO, Any, NamedTuple
 
 import numpy as np
@@ -298,12 +299,14 @@ def read_ply(path: PathLike) -> PlyPoints:
         rec = np.fromfile(path, dtype=dtype, count=count, offset=offset)
         cols = {name: rec[name] for name in prop_names}
 
-    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)
-    colors = None
-    for rgb in _COLOUR_NAMES:
-        if all(c in cols for c in rgb):
-            colors = np.stack([cols[c] for c in rgb], axis=1).astype(np.uint8)
-            break
+    def gather(names: Sequence[str], dtype: type) -> np.ndarray:
+        out = np.empty((count, len(names)), dtype)
+        for j, name in enumerate(names):  # one strided copy per property, not per point
+            out[:, j] = cols[name]
+        return out
+
+    points = gather("xyz", np.float32)
+    colors = next((gather(rgb, np.uint8) for rgb in _COLOUR_NAMES if all(c in cols for c in rgb)), None)
     conf = cols["confidence"].astype(np.float32) if "confidence" in cols else None
     return PlyPoints(points, colors, conf)
 
