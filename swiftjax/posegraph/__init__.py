@@ -1,0 +1,54 @@
+"""Global Sim(3) pose-graph optimisation (paper sec. 3.4): LM over all chunk transforms.
+
+    from swiftjax import posegraph
+    problem = posegraph.Problem(poses0, edges, measurements, information=w, fixed=None)
+    result = posegraph.optimize(problem)          # -> Result(poses, cost_initial, cost_final, ...)
+
+Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, robust kernels, size buckets),
+:mod:`~swiftjax.posegraph.residuals` (residuals and exact Jacobians),
+:mod:`~swiftjax.posegraph.linear` (block-sparse normal equations, dense Cholesky, PCG),
+:mod:`~swiftjax.posegraph.solver` (the optimistix-compatible LM solver),
+:mod:`~swiftjax.posegraph.driver` (host entry point ``optimize``).
+"""
+
+from swiftjax.posegraph.driver import DENSE_MAX_NODES, Result, choose_linear_solver, optimize
+from swiftjax.posegraph.problem import (
+    Problem,
+    ProblemError,
+    bucket_size,
+    pad_problem,
+    robust_rho,
+    robust_weight,
+    validate,
+)
+from swiftjax.posegraph.residuals import (
+    cost,
+    edge_costs,
+    residuals,
+    residuals_and_jacobians,
+    right_jacobian_inverse_at,
+)
+from swiftjax.posegraph.solver import STATUS, SparseSim3LM, linearize, retract
+
+__all__ = [
+    "DENSE_MAX_NODES",
+    "Problem",
+    "ProblemError",
+    "Result",
+    "STATUS",
+    "SparseSim3LM",
+    "bucket_size",
+    "choose_linear_solver",
+    "cost",
+    "edge_costs",
+    "linearize",
+    "optimize",
+    "pad_problem",
+    "residuals",
+    "residuals_and_jacobians",
+    "retract",
+    "right_jacobian_inverse_at",
+    "robust_rho",
+    "robust_weight",
+    "validate",
+]

@@ -1,0 +1,206 @@
+"""Host-level entry point: validate, pad to a size bucket, compile once, solve, report.
+
+``optimize(problem)`` is the only function in this package that touches the host: it validates
+the concrete problem (clear errors before any work), pads it to a ``(N_bucket, E_bucket)``
+size bucket (:func:`swiftjax.posegraph.problem.bucket_size`), looks up — or compiles, timing
+it — the jitted solver for that bucket, runs it and unpads the result.
+
+What triggers a compile: a new ``(N_bucket, E_bucket)`` pair, a new dtype, or a change of
+the static options (``linear_solver`` as resolved, ``kernel``, ``max_steps``,
+``max_linear_iterations``).  Tolerances, ``lambda0`` and ``kernel_scale`` are traced values
+and never recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
+suite enable it) a bucket compiled by an earlier process is loaded from disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jax import Array
+
+from swiftjax.posegraph.problem import Problem, RobustKernel, bucket_size, pad_problem, validate
+from swiftjax.posegraph.solver import STATUS, SparseSim3LM, residual_fn
+
+__all__ = ["optimize", "Result", "choose_linear_solver", "DENSE_MAX_NODES"]
+
+LinearSolver = Literal["auto", "dense", "pcg"]
+
+#: Largest padded node count for which "auto" picks the dense Cholesky (7 N <= 1,792 rows).
+DENSE_MAX_NODES = 256
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """Outcome of :func:`optimize` (host values; ``poses`` is a JAX array ``[N, 8]``).
+
+    ``cost_*`` are ``1/2 sum rho(r^T Omega r)`` (GTSAM's ``graph.error`` definition).
+    ``converged`` is True when a stopping test (``status``) was met; False when ``max_steps``
+    ran out or the damping stalled.  ``compile_seconds`` is 0 when the bucket was already
+    compiled in this process.
+    """
+
+    poses: Array
+    cost_initial: float
+    cost_final: float
+    num_steps: int
+    converged: bool
+    status: str
+    gradient_max: float
+    num_accepted: int
+    num_rejected: int
+    linear_iterations: int
+    linear_solver: str
+    bucket: tuple[int, int]
+    compile_seconds: float
+    solve_seconds: float
+
+
+@dataclasses.dataclass(frozen=True)
+class _Static:
+    max_steps: int
+    linear_solver: str
+    kernel: str | None
+    max_linear_iterations: int
+
+
+def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[str, Array]:
+    solver = SparseSim3LM(
+        rtol=params["rtol"],
+        atol=params["atol"],
+        gtol=params["gtol"],
+        lambda0=params["lambda0"],
+        eta_max=params["eta_max"],
+        kernel_scale=params["kernel_scale"],
+        linear_solver=static.linear_solver,
+        max_linear_iterations=static.max_linear_iterations,
+        kernel=static.kernel,
+    )
+    sol = optx.least_squares(
+        residual_fn, solver, problem.poses, args=problem, max_steps=static.max_steps, throw=False
+    )
+    st = sol.state
+    return {
+        "poses": sol.value,
+        "num_steps": sol.stats["num_steps"] - 1,  # step 0 only linearises
+        "optx_result": sol.result._value,  # noqa: SLF001 - the integer code of optx.RESULTS
+        "status": st.status,
+        "cost_initial": st.cost_initial,
+        "cost_final": st.lin.cost,
+        "gradient_max": st.grad_inf,
+        "num_accepted": st.num_accepted,
+        "num_rejected": st.num_rejected,
+        "linear_iterations": st.linear_iterations,
+    }
+
+
+_solve_jit = jax.jit(_solve, static_argnames=("static",))
+_COMPILED: dict[tuple, object] = {}
+
+
+def choose_linear_solver(num_nodes_padded: int, requested: str = "auto") -> str:
+    """``"dense"`` for ``N_bucket <= DENSE_MAX_NODES``, ``"pcg"`` above (``requested`` wins if not auto)."""
+    if requested != "auto":
+        if requested not in ("dense", "pcg"):
+            raise ValueError(f"linear_solver must be 'auto', 'dense' or 'pcg', not {requested!r}")
+        return requested
+    return "dense" if num_nodes_padded <= DENSE_MAX_NODES else "pcg"
+
+
+def optimize(
+    problem: Problem,
+    *,
+    max_steps: int = 100,
+    rtol: float = 1e-10,
+    atol: float = 0.0,
+    gtol: float = 1e-10,
+    lambda0: float = 1e-5,
+    linear_solver: LinearSolver = "auto",
+    max_linear_iterations: int = 300,
+    eta_max: float = 1e-2,
+    kernel: RobustKernel | None = None,
+    kernel_scale: float = 1.0,
+    pad: bool = True,
+    check: bool = True,
+) -> Result:
+    """Solve the Sim(3) pose graph by Levenberg–Marquardt (see :mod:`swiftjax.posegraph.solver`).
+
+    Args:
+        problem: the graph; its ``poses`` are the initial guess and set the dtype (use
+            float64 arrays under ``jax.enable_x64(True)`` for kilometre-scale maps; float32
+            works and stops at rounding level).
+        max_steps: LM iterations (accepted + rejected); static.
+        rtol, atol: stop on an accepted step whose cost decrease is ``<= rtol * cost`` or
+            ``<= atol`` (GTSAM's ``relativeErrorTol`` / ``absoluteErrorTol``).
+        gtol: stop when ``|g|_inf <= gtol * |g_0|_inf``.
+        lambda0: initial damping relative to ``diag(H)``.
+        linear_solver: ``"auto"`` (dense Cholesky up to ``DENSE_MAX_NODES`` padded nodes,
+            block-Jacobi PCG above), ``"dense"`` or ``"pcg"``.
+        max_linear_iterations: PCG cap per LM step (static).
+        eta_max: loosest PCG relative tolerance (Eisenstat–Walker forcing).
+        kernel, kernel_scale: robust kernel (``"huber"``/``"cauchy"``) for the edges flagged
+            ``problem.robust``, scale in whitened units (``sqrt(r^T Omega r)``).
+        pad: pad to the size bucket (compile once per bucket); False compiles for the exact size.
+        check: validate the problem on the host first (:func:`~swiftjax.posegraph.validate`).
+
+    Returns:
+        :class:`Result` with the unpadded poses.
+
+    Raises:
+        ProblemError: invalid input (before any compilation or solve).
+    """
+    if check:
+        validate(problem)
+    if kernel not in (None, "huber", "cauchy"):
+        raise ValueError(f"kernel must be None, 'huber' or 'cauchy', not {kernel!r}")
+    n, e = problem.num_nodes, problem.num_edges
+    nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)
+    padded = pad_problem(problem, nb, eb)
+    solver_name = choose_linear_solver(nb, linear_solver)
+    static = _Static(
+        max_steps=int(max_steps),
+        linear_solver=solver_name,
+        kernel=kernel,
+        max_linear_iterations=int(max_linear_iterations),
+    )
+    dtype = padded.poses.dtype
+    params = {
+        k: jnp.asarray(v, dtype)
+        for k, v in dict(
+            rtol=rtol, atol=atol, gtol=gtol, lambda0=lambda0, eta_max=eta_max, kernel_scale=kernel_scale
+        ).items()
+    }
+    key = (nb, eb, str(dtype), static)
+    compile_seconds = 0.0
+    compiled = _COMPILED.get(key)
+    if compiled is None:
+        t0 = time.perf_counter()
+        compiled = _solve_jit.lower(padded, params, static=static).compile()
+        compile_seconds = time.perf_counter() - t0
+        _COMPILED[key] = compiled
+    t0 = time.perf_counter()
+    out = compiled(padded, params)
+    out = jax.block_until_ready(out)
+    solve_seconds = time.perf_counter() - t0
+    status_code = int(out["status"])
+    status = STATUS[status_code] if status_code else "max_steps reached"
+    return Result(
+        poses=out["poses"][:n],
+        cost_initial=float(out["cost_initial"]),
+        cost_final=float(out["cost_final"]),
+        num_steps=int(out["num_steps"]),
+        converged=status_code in (1, 2, 3, 4),
+        status=status,
+        gradient_max=float(out["gradient_max"]),
+        num_accepted=int(out["num_accepted"]),
+        num_rejected=int(out["num_rejected"]),
+        linear_iterations=int(out["linear_iterations"]),
+        linear_solver=solver_name,
+        bucket=(nb, eb),
+        compile_seconds=compile_seconds,
+        solve_seconds=solve_seconds,
+    )

@@ -1,0 +1,332 @@
+"""The Sim(3) pose-graph problem: data, robust kernels, host-side validation and size buckets.
+
+A pose graph has ``N`` nodes (chunk-to-world transforms ``S_n``, ``[N, 8]``) and ``E`` edges
+``(i, j)`` with a measurement ``Z_ij ~ S_i^-1 S_j`` (``[E, 8]``, DESIGN.md: the edge maps
+chunk ``j`` coordinates into chunk ``i`` coordinates) and an information matrix
+``Omega_ij`` (``[E, 7, 7]``, in our tangent order ``(rho, omega, sigma)``).  The cost is
+(paper sec. 3.4; the same definition as GTSAM's ``graph.error``)::
+
+    C(S) = 1/2 sum_e  rho_e( r_e^T Omega_e r_e ),    r_e = log(Z_e^-1 S_i^-1 S_j)   (7-D)
+
+with ``rho_e(s) = s`` for ordinary edges and a robust kernel (Huber or Cauchy, scale ``k`` in
+whitened units) for the edges flagged robust (typically the loop edges: a false loop is the
+method's documented failure mode).
+
+* Huber:  ``rho(s) = s`` for ``s <= k^2``, ``2 k sqrt(s) - k^2`` above  (weight ``min(1, k/sqrt(s))``);
+* Cauchy: ``rho(s) = k^2 log(1 + s / k^2)``                            (weight ``1 / (1 + s/k^2)``).
+
+Padding (``pad_problem``): the jitted solver compiles once per ``(N_bucket, E_bucket, dtype,
+options)``.  Padded nodes are identity poses marked fixed; padded edges have ``edge_mask``
+False (weight 0), endpoints ``(0, 0)`` and identity measurements.  Buckets are the sizes
+``m * 2^k`` with ``m`` in ``{4, 5, 6, 7}`` (at most 25 % padding, 4 buckets per doubling).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+__all__ = [
+    "Problem",
+    "RobustKernel",
+    "robust_rho",
+    "robust_weight",
+    "validate",
+    "bucket_size",
+    "pad_problem",
+    "ProblemError",
+]
+
+RobustKernel = Literal["huber", "cauchy"]
+
+
+class ProblemError(ValueError):
+    """An invalid pose-graph input, raised on the host before any work starts."""
+
+
+def _as_information(information: ArrayLike | None, num_edges: int, dtype) -> Array:
+    """Normalise ``information`` to ``[E, 7, 7]``.
+
+    Accepted: ``None`` (identity), a scalar weight, ``[E]`` per-edge weights, ``[E, 7]``
+    diagonals, ``[E, 7, 7]`` full matrices.
+    """
+    eye = jnp.eye(7, dtype=dtype)
+    if information is None:
+        return jnp.broadcast_to(eye, (num_edges, 7, 7))
+    info = jnp.asarray(information, dtype=dtype)
+    if info.ndim == 0:
+        return jnp.broadcast_to(info * eye, (num_edges, 7, 7))
+    if info.ndim == 1 and info.shape[0] == num_edges:
+        return info[:, None, None] * eye
+    if info.ndim == 2 and info.shape == (num_edges, 7):
+        return info[:, :, None] * eye
+    if info.ndim == 3 and info.shape == (num_edges, 7, 7):
+        return info
+    raise ProblemError(
+        f"information has shape {tuple(info.shape)}; expected a scalar, [E]={num_edges}, "
+        f"[E, 7] or [E, 7, 7] with E = {num_edges}"
+    )
+
+
+class Problem(eqx.Module):
+    """A Sim(3) pose graph (a pytree; every field is an array).
+
+    Attributes:
+        poses: ``[N, 8]`` initial chunk-to-world transforms (the solve starts here).
+        edges: ``[E, 2]`` int32 node indices ``(i, j)``.
+        measurements: ``[E, 8]`` relative transforms ``Z_ij ~ S_i^-1 S_j``.
+        information: ``[E, 7, 7]`` information matrices in tangent order ``(rho, omega, sigma)``.
+        fixed: ``[N]`` bool; fixed nodes never move (the gauge).  Default: node 0 only.
+        robust: ``[E]`` bool; edges whose cost goes through the robust kernel (if one is
+            chosen in :func:`swiftjax.posegraph.optimize`).  Default: none.
+        edge_mask: ``[E]`` bool; False for padding edges (weight 0).  Default: all True.
+
+    ``information`` may be given as ``None`` (identity), a scalar weight, ``[E]`` per-edge
+    weights, ``[E, 7]`` diagonals or ``[E, 7, 7]``.  The dtype of every float field is the
+    dtype of ``poses`` (float32 unless you pass float64 arrays under ``jax.enable_x64``).
+    Construction does no validation (it must work under ``jit``);
+    :func:`validate` checks a concrete problem on the host.
+    """
+
+    poses: Array
+    edges: Array
+    measurements: Array
+    information: Array
+    fixed: Array
+    robust: Array
+    edge_mask: Array
+
+    def __init__(
+        self,
+        poses: ArrayLike,
+        edges: ArrayLike,
+        measurements: ArrayLike,
+        information: ArrayLike | None = None,
+        fixed: ArrayLike | None = None,
+        robust: ArrayLike | None = None,
+        edge_mask: ArrayLike | None = None,
+    ):
+        poses = jnp.asarray(poses)
+        if not jnp.issubdtype(poses.dtype, jnp.floating):
+            poses = poses.astype(jnp.float32)
+        dtype = poses.dtype
+        if poses.ndim != 2 or poses.shape[1] != 8:
+            raise ProblemError(f"poses has shape {tuple(poses.shape)}; expected [N, 8]")
+        edges = jnp.asarray(edges)
+        if edges.ndim != 2 or edges.shape[1] != 2:
+            raise ProblemError(f"edges has shape {tuple(edges.shape)}; expected [E, 2]")
+        if not jnp.issubdtype(edges.dtype, jnp.integer):
+            raise ProblemError(f"edges has dtype {edges.dtype}; expected integers")
+        num_nodes, num_edges = poses.shape[0], edges.shape[0]
+        measurements = jnp.asarray(measurements, dtype=dtype)
+        if measurements.shape != (num_edges, 8):
+            raise ProblemError(
+                f"measurements has shape {tuple(measurements.shape)}; expected [E, 8] = [{num_edges}, 8]"
+            )
+        self.poses = poses
+        self.edges = edges.astype(jnp.int32)
+        self.measurements = measurements
+        self.information = _as_information(information, num_edges, dtype)
+        if fixed is None:
+            fixed = jnp.zeros((num_nodes,), bool).at[0].set(num_nodes > 0)
+        self.fixed = jnp.asarray(fixed, bool)
+        if self.fixed.shape != (num_nodes,):
+            raise ProblemError(f"fixed has shape {tuple(self.fixed.shape)}; expected [N] = [{num_nodes}]")
+        self.robust = jnp.zeros((num_edges,), bool) if robust is None else jnp.asarray(robust, bool)
+        if self.robust.shape != (num_edges,):
+            raise ProblemError(f"robust has shape {tuple(self.robust.shape)}; expected [E] = [{num_edges}]")
+        self.edge_mask = (
+            jnp.ones((num_edges,), bool) if edge_mask is None else jnp.asarray(edge_mask, bool)
+        )
+        if self.edge_mask.shape != (num_edges,):
+            raise ProblemError(
+                f"edge_mask has shape {tuple(self.edge_mask.shape)}; expected [E] = [{num_edges}]"
+            )
+
+    @property
+    def num_nodes(self) -> int:
+        return self.poses.shape[0]
+
+    @property
+    def num_edges(self) -> int:
+        return self.edges.shape[0]
+
+
+# ------------------------------------------------------------------------- robust kernels
+
+
+def robust_rho(s: Array, kernel: RobustKernel | None, k: float) -> Array:
+    """``rho(s)`` for squared whitened residuals ``s = r^T Omega r`` (module docstring)."""
+    if kernel is None:
+        return s
+    k2 = k * k
+    if kernel == "huber":
+        safe = jnp.where(s > k2, s, k2)
+        return jnp.where(s > k2, 2.0 * k * jnp.sqrt(safe) - k2, s)
+    if kernel == "cauchy":
+        return k2 * jnp.log1p(s / k2)
+    raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
+
+
+def robust_weight(s: Array, kernel: RobustKernel | None, k: float) -> Array:
+    """``rho'(s)``: the IRLS weight of an edge (1 for ``kernel=None``)."""
+    if kernel is None:
+        return jnp.ones_like(s)
+    k2 = k * k
+    if kernel == "huber":
+        safe = jnp.where(s > k2, s, k2)
+        return jnp.where(s > k2, k / jnp.sqrt(safe), 1.0)
+    if kernel == "cauchy":
+        return 1.0 / (1.0 + s / k2)
+    raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
+
+
+# ----------------------------------------------------------------------- host validation
+
+
+def _first(items, n: int = 8) -> str:
+    items = list(items)
+    more = f" (and {len(items) - n} more)" if len(items) > n else ""
+    return ", ".join(str(x) for x in items[:n]) + more
+
+
+def validate(problem: Problem, *, quaternion_tol: float = 1e-3) -> None:
+    """Check a concrete problem on the host; raise :class:`ProblemError` naming what is wrong.
+
+    Checks: finite poses with positive scale and unit quaternions (``|1 - |q|| <=
+    quaternion_tol``); edge indices in ``[0, N)``; no self-edges; no duplicate edges (``(i, j)``
+    twice, or ``(i, j)`` and ``(j, i)``: merge them into one measurement before building the
+    problem); finite measurements with positive scale and unit quaternions; symmetric
+    positive-definite, finite information; at least one fixed node; every node connected to
+    a fixed node (otherwise its gauge is free and the normal equations are singular).
+    Only edges with ``edge_mask`` True are checked.
+    """
+    poses = np.asarray(problem.poses, dtype=np.float64)
+    edges = np.asarray(problem.edges)
+    meas = np.asarray(problem.measurements, dtype=np.float64)
+    info = np.asarray(problem.information, dtype=np.float64)
+    fixed = np.asarray(problem.fixed)
+    valid = np.asarray(problem.edge_mask)
+    n = poses.shape[0]
+    if n == 0:
+        raise ProblemError("the problem has no nodes")
+
+    bad = np.nonzero(~np.all(np.isfinite(poses), axis=1))[0]
+    if bad.size:
+        raise ProblemError(f"poses: non-finite values at nodes {_first(bad)}")
+    bad = np.nonzero(poses[:, 7] <= 0)[0]
+    if bad.size:
+        raise ProblemError(f"poses: non-positive scale at nodes {_first(bad)}")
+    bad = np.nonzero(np.abs(np.linalg.norm(poses[:, 3:7], axis=1) - 1) > quaternion_tol)[0]
+    if bad.size:
+        raise ProblemError(f"poses: quaternion not unit at nodes {_first(bad)}")
+
+    ids = np.nonzero(valid)[0]
+    e = edges[ids]
+    bad = ids[np.any((e < 0) | (e >= n), axis=1)]
+    if bad.size:
+        raise ProblemError(
+            f"edges: node index out of range [0, {n}) at edges {_first(f'{k}:{tuple(edges[k])}' for k in bad)}"
+        )
+    bad = ids[e[:, 0] == e[:, 1]]
+    if bad.size:
+        raise ProblemError(f"edges: self-edges (i == j) at edges {_first(f'{k}:{tuple(edges[k])}' for k in bad)}")
+    key = np.sort(e, axis=1)
+    _, first_idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    if np.any(counts > 1):
+        dup = key[first_idx[counts > 1]]
+        raise ProblemError(
+            "edges: duplicate edges between node pairs "
+            f"{_first(tuple(int(v) for v in d) for d in dup)} (merge repeated measurements of one "
+            "pair into a single edge, e.g. by information-weighted averaging)"
+        )
+
+    m = meas[ids]
+    bad = ids[~np.all(np.isfinite(m), axis=1)]
+    if bad.size:
+        raise ProblemError(f"measurements: non-finite values at edges {_first(bad)}")
+    bad = ids[m[:, 7] <= 0]
+    if bad.size:
+        raise ProblemError(f"measurements: non-positive scale at edges {_first(bad)}")
+    bad = ids[np.abs(np.linalg.norm(m[:, 3:7], axis=1) - 1) > quaternion_tol]
+    if bad.size:
+        raise ProblemError(f"measurements: quaternion not unit at edges {_first(bad)}")
+
+    om = info[ids]
+    bad = ids[~np.all(np.isfinite(om), axis=(1, 2))]
+    if bad.size:
+        raise ProblemError(f"information: non-finite values at edges {_first(bad)}")
+    asym = np.abs(om - np.swapaxes(om, 1, 2)).max(axis=(1, 2)) > 1e-8 * np.maximum(
+        np.abs(om).max(axis=(1, 2)), 1e-300
+    )
+    bad = ids[asym]
+    if bad.size:
+        raise ProblemError(f"information: not symmetric at edges {_first(bad)}")
+    if om.shape[0]:
+        eig = np.linalg.eigvalsh(om)
+        bad = ids[eig[:, 0] <= 1e-12 * np.maximum(eig[:, -1], 1e-300)]
+        if bad.size:
+            raise ProblemError(
+                f"information: not positive definite at edges {_first(bad)} "
+                f"(smallest eigenvalues {_first(np.round(eig[np.isin(ids, bad), 0], 6))})"
+            )
+
+    if not fixed.any():
+        raise ProblemError(
+            "fixed: no node is fixed; fix at least one (e.g. chunk 0) to remove the Sim(3) gauge freedom"
+        )
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ones = np.ones(len(e))
+    graph = coo_matrix((ones, (e[:, 0], e[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    anchored = np.isin(labels, np.unique(labels[fixed]))
+    loose = np.nonzero(~anchored)[0]
+    if loose.size:
+        raise ProblemError(
+            f"edges: nodes {_first(loose)} are not connected to any fixed node "
+            f"({loose.size} of {n}); connect them or mark one node of each component fixed"
+        )
+
+
+# ------------------------------------------------------------------------------- buckets
+
+
+def bucket_size(n: int, minimum: int = 16) -> int:
+    """Smallest size ``m * 2^k >= max(n, minimum)`` with ``m in {4, 5, 6, 7}``."""
+    n = max(int(n), minimum)
+    k = max(int(np.floor(np.log2(n))) - 2, 0)
+    while True:
+        for m in (4, 5, 6, 7):
+            if m * 2**k >= n:
+                return m * 2**k
+        k += 1
+
+
+def pad_problem(problem: Problem, num_nodes: int, num_edges: int) -> Problem:
+    """Pad to ``(num_nodes, num_edges)``: fixed identity nodes, masked ``(0, 0)`` identity edges."""
+    n, e = problem.num_nodes, problem.num_edges
+    if num_nodes < n or num_edges < e:
+        raise ValueError(f"cannot pad ({n}, {e}) down to ({num_nodes}, {num_edges})")
+    dtype = problem.poses.dtype
+    ident = jnp.array([0, 0, 0, 0, 0, 0, 1, 1], dtype)
+    pn, pe = num_nodes - n, num_edges - e
+    if pn == 0 and pe == 0:
+        return problem
+    return Problem(
+        poses=jnp.concatenate([problem.poses, jnp.broadcast_to(ident, (pn, 8))]),
+        edges=jnp.concatenate([problem.edges, jnp.zeros((pe, 2), jnp.int32)]),
+        measurements=jnp.concatenate([problem.measurements, jnp.broadcast_to(ident, (pe, 8))]),
+        information=jnp.concatenate(
+            [problem.information, jnp.broadcast_to(jnp.eye(7, dtype=dtype), (pe, 7, 7))]
+        ),
+        fixed=jnp.concatenate([problem.fixed, jnp.ones((pn,), bool)]),
+        robust=jnp.concatenate([problem.robust, jnp.zeros((pe,), bool)]),
+        edge_mask=jnp.concatenate([problem.edge_mask, jnp.zeros((pe,), bool)]),
+    )
