@@ -50,6 +50,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from swiftjax import so3
+from swiftjax._elementary import sincos
 
 __all__ = [
     "identity",
@@ -90,16 +91,46 @@ def scale(S: ArrayLike) -> Array:
     return jnp.asarray(S)[..., 7]
 
 
-def _pack(t: Array, q: Array, s: Array) -> Array:
-    batch = jnp.broadcast_shapes(t.shape[:-1], q.shape[:-1], s.shape)
-    return jnp.concatenate(
-        [
-            jnp.broadcast_to(t, (*batch, 3)),
-            jnp.broadcast_to(q, (*batch, 4)),
-            jnp.broadcast_to(s, batch)[..., None],
-        ],
-        axis=-1,
+# Component form (see swiftjax.so3): an element is (t: Vec3, q: Quat, s).
+_Elem = tuple[so3.Vec3, so3.Quat, Array]
+
+
+def _split(S: ArrayLike) -> _Elem:
+    c = so3.split(jnp.asarray(S))
+    return c[0:3], c[3:7], c[7]
+
+
+def _join(t: so3.Vec3, q: so3.Quat, s: Array) -> Array:
+    return so3.join((*t, *q, s))
+
+
+def _compose_c(a: _Elem, b: _Elem) -> _Elem:
+    (ta, qa, sa), (tb, qb, sb) = a, b
+    rt = so3.rotate_components(qa, tb)
+    return (
+        (sa * rt[0] + ta[0], sa * rt[1] + ta[1], sa * rt[2] + ta[2]),
+        so3.multiply_components(qa, qb),
+        sa * sb,
     )
+
+
+def _inverse_c(a: _Elem) -> _Elem:
+    t, q, s = a
+    q_inv = so3.conjugate_components(q)
+    s_inv = 1.0 / s
+    rt = so3.rotate_components(q_inv, t)
+    return (-s_inv * rt[0], -s_inv * rt[1], -s_inv * rt[2]), q_inv, s_inv
+
+
+def _act_c(a: _Elem, x: so3.Vec3) -> so3.Vec3:
+    t, q, s = a
+    rx = so3.rotate_components(q, x)
+    return s * rx[0] + t[0], s * rx[1] + t[1], s * rx[2] + t[2]
+
+
+def _pack(t: Array, q: Array, s: Array) -> Array:
+    """Concatenate ``t [..., 3]``, ``q [..., 4]`` and ``s [...]`` (broadcast) into ``[..., 8]``."""
+    return so3.join((*so3.split(t), *so3.split(q), s))
 
 
 # ----------------------------------------------------------------------- group operations
@@ -113,23 +144,17 @@ def identity(batch_shape: tuple[int, ...] = (), dtype: jnp.dtype = jnp.float32) 
 
 def compose(A: ArrayLike, B: ArrayLike) -> Array:
     """``A o B``: ``(s_A R_A t_B + t_A, q_A q_B, s_A s_B)``; ``[..., 8] x [..., 8] -> [..., 8]``."""
-    A, B = jnp.asarray(A), jnp.asarray(B)
-    qa, sa = quaternion(A), scale(A)
-    t = sa[..., None] * so3.rotate(qa, translation(B)) + translation(A)
-    return _pack(t, so3.multiply(qa, quaternion(B)), sa * scale(B))
+    return _join(*_compose_c(_split(A), _split(B)))
 
 
 def inverse(S: ArrayLike) -> Array:
     """``S^-1 = (-(1/s) R^T t, q*, 1/s)``: ``[..., 8] -> [..., 8]``."""
-    S = jnp.asarray(S)
-    q_inv = so3.conjugate(quaternion(S))
-    s_inv = 1.0 / scale(S)
-    return _pack(-s_inv[..., None] * so3.rotate(q_inv, translation(S)), q_inv, s_inv)
+    return _join(*_inverse_c(_split(S)))
 
 
 def between(A: ArrayLike, B: ArrayLike) -> Array:
     """``A^-1 o B``, the relative transform that maps B's frame into A's."""
-    return compose(inverse(A), B)
+    return _join(*_compose_c(_inverse_c(_split(A)), _split(B)))
 
 
 def act(S: ArrayLike, points: ArrayLike) -> Array:
@@ -140,86 +165,92 @@ def act(S: ArrayLike, points: ArrayLike) -> Array:
         points: ``[..., 3]``; ``S``'s batch axes broadcast against the points' leading axes
             (pass ``S[..., None, :]`` to map one transform over a trailing point axis).
     """
-    S, points = jnp.asarray(S), jnp.asarray(points)
-    return scale(S)[..., None] * so3.rotate(quaternion(S), points) + translation(S)
+    return so3.join(_act_c(_split(S), so3.split(jnp.asarray(points))))
 
 
 def normalize(S: ArrayLike) -> Array:
     """Re-unit the quaternion of ``S`` (e.g. after many compositions)."""
-    S = jnp.asarray(S)
-    q = quaternion(S)
-    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
-    return _pack(translation(S), q, scale(S))
+    t, q, s = _split(S)
+    inv = jax.lax.rsqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
+    return _join(t, (q[0] * inv, q[1] * inv, q[2] * inv, q[3] * inv), s)
 
 
 # ---------------------------------------------------------------------- exp / log
 
 
-def _eps(dtype: jnp.dtype) -> tuple[float, float]:
-    """(theta^2 threshold, |sigma| threshold for the cancellation-prone theta -> 0 limits)."""
-    if jnp.finfo(dtype).bits <= 32:
-        return 1e-7, 1e-1
-    return 1e-14, 1e-3
+def _sigma_eps(dtype: jnp.dtype) -> float:
+    """|sigma| below which the cancellation-prone theta -> 0 limits use their Taylor series."""
+    return 1e-1 if jnp.finfo(dtype).bits <= 32 else 1e-3
 
 
-def _w_coefficients(theta_sq: Array, sigma: Array) -> tuple[Array, Array, Array]:
-    """``(A, B, C)`` of ``W = C I + A K + B K^2`` (module docstring), all branches jit-safe."""
-    theta_eps, sigma_eps = _eps(theta_sq.dtype)
-    sigma_zero = jnp.abs(sigma) < 1e-3 * theta_eps
+def _w_from_parts(
+    half: so3.HalfAngle, sigma: Array, exp_sigma: Array, expm1_sigma: Array
+) -> tuple[Array, Array, Array]:
+    """``(A, B, C)`` of ``W = C I + A K + B K^2`` from precomputed trigonometry (module docstring).
+
+    Only products and quotients here: the transcendentals (half-angle sine/cosine, ``e^sigma``,
+    ``expm1(sigma)``) are computed once by the caller and shared with the rotation part.
+    """
+    theta_sq = half.theta_sq
+    sigma_zero = jnp.abs(sigma) < 1e-10
     sigma_safe = jnp.where(sigma_zero, jnp.ones_like(sigma), sigma)
-    c_coef = jnp.where(
-        sigma_zero, 1.0 + sigma / 2.0 + sigma**2 / 6.0, jnp.expm1(sigma_safe) / sigma_safe
-    )
+    c_coef = jnp.where(sigma_zero, 1.0 + sigma / 2.0 + sigma**2 / 6.0, expm1_sigma / sigma_safe)
 
     # theta -> 0: A0(sigma), B0(sigma) plus the sigma = 0 part of the theta^2 correction.
-    sigma_small = jnp.abs(sigma) < sigma_eps
+    sigma_small = jnp.abs(sigma) < _sigma_eps(sigma.dtype)
     ss = jnp.where(sigma_small, jnp.ones_like(sigma), sigma)
-    es = jnp.exp(ss)
     a0 = jnp.where(
         sigma_small,
         0.5 + sigma / 3.0 + sigma**2 / 8.0 + sigma**3 / 30.0 + sigma**4 / 144.0,
-        ((ss - 1.0) * es + 1.0) / ss**2,
+        ((ss - 1.0) * exp_sigma + 1.0) / ss**2,
     )
     b0 = jnp.where(
         sigma_small,
         1.0 / 6.0 + sigma / 8.0 + sigma**2 / 20.0 + sigma**3 / 72.0 + sigma**4 / 336.0,
-        (es * (0.5 * ss**2 - ss + 1.0) - 1.0) / ss**3,
+        (exp_sigma * (0.5 * ss**2 - ss + 1.0) - 1.0) / ss**3,
     )
-    a_small = a0 - theta_sq / 24.0
-    b_small = b0 - theta_sq / 120.0
 
-    # General branch.
-    theta_small = theta_sq < theta_eps
-    tsq = jnp.where(theta_small, jnp.ones_like(theta_sq), theta_sq)
-    theta = jnp.sqrt(tsq)
-    sin_t, cos_t = jnp.sin(theta), jnp.cos(theta)
-    em_re = jnp.expm1(sigma) * cos_t - 2.0 * jnp.sin(0.5 * theta) ** 2  # Re(e^z - 1)
-    em_im = jnp.exp(sigma) * sin_t  # Im(e^z - 1)
+    # General branch, with sin(theta) = 2 sh ch, cos(theta) = 1 - 2 sh^2.
+    theta = half.theta
+    tsq = jnp.where(half.small, jnp.ones_like(theta_sq), theta_sq)
+    sh_sq = half.sin_half**2
+    sin_t = 2.0 * half.sin_half * half.cos_half
+    em_re = expm1_sigma * (1.0 - 2.0 * sh_sq) - 2.0 * sh_sq  # Re(e^z - 1), z = sigma + i theta
+    em_im = exp_sigma * sin_t  # Im(e^z - 1)
     c = sigma**2 + tsq
     a_gen = (em_im * sigma - em_re * theta) / (theta * c)
     b_gen = (c_coef - (em_re * sigma + em_im * theta) / c) / tsq
 
     return (
-        jnp.where(theta_small, a_small, a_gen),
-        jnp.where(theta_small, b_small, b_gen),
+        jnp.where(half.small, a0 - theta_sq / 24.0, a_gen),
+        jnp.where(half.small, b0 - theta_sq / 120.0, b_gen),
         c_coef,
     )
 
 
-def _apply_poly(x: Array, y: Array, z: Array, omega: Array, v: Array) -> Array:
+def _w_coefficients(theta_sq: Array, sigma: Array) -> tuple[Array, Array, Array]:
+    """``(A, B, C)`` of ``W`` as a function of ``(theta^2, sigma)`` alone (for differentiation)."""
+    small = theta_sq < so3._small_angle_eps(theta_sq.dtype)  # noqa: SLF001
+    theta = jnp.sqrt(jnp.where(small, jnp.ones_like(theta_sq), theta_sq))
+    half = so3.HalfAngle(theta_sq, theta, *sincos(0.5 * theta), small)
+    return _w_from_parts(half, sigma, jnp.exp(sigma), jnp.expm1(sigma))
+
+
+def _apply_poly(x: Array, y: Array, z: Array, omega: so3.Vec3, v: so3.Vec3) -> so3.Vec3:
     """``(x I + y K + z K^2) v`` with ``K = [omega]x``, via two cross products."""
-    wv = jnp.cross(omega, v)
-    return x[..., None] * v + y[..., None] * wv + z[..., None] * jnp.cross(omega, wv)
+    wv = so3.cross(omega, v)
+    wwv = so3.cross(omega, wv)
+    return tuple(x * v[k] + y * wv[k] + z * wwv[k] for k in range(3))  # type: ignore[return-value]
 
 
 def exp(xi: ArrayLike) -> Array:
     """Exponential map ``[..., 7] (rho, omega, sigma) -> [..., 8]``: ``(W rho, exp(omega), e^sigma)``."""
-    xi = jnp.asarray(xi)
-    rho, omega, sigma = xi[..., 0:3], xi[..., 3:6], xi[..., 6]
-    theta_sq = jnp.sum(omega * omega, axis=-1)
-    a, b, c = _w_coefficients(theta_sq, sigma)
-    t = _apply_poly(c, a, b, omega, rho)
-    return _pack(t, so3.exp(omega), jnp.exp(sigma))
+    c = so3.split(jnp.asarray(xi))
+    rho, omega, sigma = c[0:3], c[3:6], c[6]
+    q, half = so3.exp_components(omega)  # the half-angle trigonometry is shared with W
+    exp_sigma = jnp.exp(sigma)
+    a, b, cc = _w_from_parts(half, sigma, exp_sigma, jnp.expm1(sigma))
+    return _join(_apply_poly(cc, a, b, omega, rho), q, exp_sigma)
 
 
 def log(S: ArrayLike) -> Array:
@@ -227,18 +258,16 @@ def log(S: ArrayLike) -> Array:
 
     ``S`` and ``S`` with its quaternion negated give the same tangent.
     """
-    S = jnp.asarray(S)
-    omega = so3.log(quaternion(S))
-    sigma = jnp.log(scale(S))
-    theta_sq = jnp.sum(omega * omega, axis=-1)
-    a, b, c = _w_coefficients(theta_sq, sigma)
+    t, q, s = _split(S)
+    omega, half = so3.log_components(q)  # W reuses the quaternion's half angle: no sin/cos
+    sigma = jnp.log(s)
+    theta_sq = half.theta_sq
+    # e^sigma = s exactly, and expm1(sigma) = s - 1 is exact in floating point near s = 1.
+    a, b, c = _w_from_parts(half, sigma, s, s - 1.0)
     d = c - theta_sq * b
     det = d * d + theta_sq * a * a
-    x = 1.0 / c
-    y = -a / det
-    z = (a * a - b * d) / (c * det)
-    rho = _apply_poly(x, y, z, omega, translation(S))
-    return jnp.concatenate([rho, omega, sigma[..., None]], axis=-1)
+    rho = _apply_poly(1.0 / c, -a / det, (a * a - b * d) / (c * det), omega, t)
+    return so3.join((*rho, *omega, sigma))
 
 
 # ---------------------------------------------------------------- matrices and adjoint

@@ -17,9 +17,14 @@ Maths (Sola, "A micro Lie theory", 2018, eqs. 101-106; Sophus ``so3.hpp``):
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
+
+from swiftjax._elementary import arctan2_nonneg, sincos
 
 __all__ = [
     "hat",
@@ -38,6 +43,107 @@ __all__ = [
 def _small_angle_eps(dtype: jnp.dtype) -> float:
     """Squared-angle threshold below which the Taylor branches are exact to rounding."""
     return 1e-7 if jnp.finfo(dtype).bits <= 32 else 1e-14
+
+
+# ------------------------------------------------------------------ component form
+#
+# XLA on CPU vectorises poorly over a trailing axis of 3 or 4 (every slice and concatenate
+# becomes a strided gather), so the hot paths work on *tuples of component arrays*
+# ("structure of arrays"): ``split`` moves the component axis to the front once, the maths
+# runs on whole arrays, ``join`` stacks and moves it back.  This is 5-6x faster than the
+# same formulas on ``[..., 3]`` slices (bench/bench_sim3.py).
+
+Vec3 = tuple[Array, Array, Array]
+Quat = tuple[Array, Array, Array, Array]
+
+
+def split(x: Array) -> tuple[Array, ...]:
+    """``[..., k] -> k`` arrays of shape ``[...]`` (component axis moved to the front)."""
+    return tuple(jnp.moveaxis(x, -1, 0))
+
+
+def join(components: tuple[Array, ...]) -> Array:
+    """Inverse of :func:`split`: broadcast the components and stack them on a last axis."""
+    return jnp.moveaxis(jnp.stack(jnp.broadcast_arrays(*components), axis=0), 0, -1)
+
+
+def cross(a: Vec3, b: Vec3) -> Vec3:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def dot(a: Vec3, b: Vec3) -> Array:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+class HalfAngle(NamedTuple):
+    """Shared trigonometry of a rotation by ``theta`` (computed once, reused by Sim(3)).
+
+    ``theta_sq`` is exact; ``theta`` is ``sqrt(theta_sq)``, or 1 where ``small`` (so that
+    divisions by it are safe); ``sin_half``/``cos_half`` are ``sin(theta/2)``/``cos(theta/2)``.
+    """
+
+    theta_sq: Array
+    theta: Array
+    sin_half: Array
+    cos_half: Array
+    small: Array
+
+
+def exp_components(w: Vec3) -> tuple[Quat, HalfAngle]:
+    """:func:`exp` on components, also returning the half-angle trigonometry."""
+    theta_sq = dot(w, w)
+    small = theta_sq < _small_angle_eps(theta_sq.dtype)
+    theta = jnp.sqrt(jnp.where(small, jnp.ones_like(theta_sq), theta_sq))
+    sin_half, cos_half = sincos(0.5 * theta)
+    coeff = jnp.where(small, 0.5 - theta_sq / 48.0 + theta_sq**2 / 3840.0, sin_half / theta)
+    real = jnp.where(small, 1.0 - theta_sq / 8.0 + theta_sq**2 / 384.0, cos_half)
+    q = (coeff * w[0], coeff * w[1], coeff * w[2], real)
+    return q, HalfAngle(theta_sq, theta, sin_half, cos_half, small)
+
+
+def log_components(q: Quat) -> tuple[Vec3, HalfAngle]:
+    """:func:`log` on components, also returning the half-angle trigonometry."""
+    sign = jnp.where(q[3] < 0, -1.0, 1.0).astype(q[3].dtype)
+    v = (sign * q[0], sign * q[1], sign * q[2])
+    w = sign * q[3]
+    n_sq = dot(v, v)
+    norm_sq = n_sq + w * w
+    # Relative threshold so that non-unit quaternions behave like their unit versions.
+    small = n_sq < _small_angle_eps(w.dtype) * norm_sq
+    safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
+    safe_w = jnp.where(small, w, jnp.ones_like(w))
+    theta = 2.0 * arctan2_nonneg(safe_n, w)
+    coeff = jnp.where(small, 2.0 / safe_w * (1.0 - n_sq / (3.0 * safe_w * safe_w)), theta / safe_n)
+    omega = (coeff * v[0], coeff * v[1], coeff * v[2])
+    inv_norm = jax.lax.rsqrt(norm_sq)
+    half = HalfAngle(dot(omega, omega), jnp.where(small, 1.0, theta), safe_n * inv_norm, w * inv_norm, small)
+    return omega, half
+
+
+def multiply_components(a: Quat, b: Quat) -> Quat:
+    av, bv = a[:3], b[:3]
+    c = cross(av, bv)
+    return (
+        a[3] * bv[0] + b[3] * av[0] + c[0],
+        a[3] * bv[1] + b[3] * av[1] + c[1],
+        a[3] * bv[2] + b[3] * av[2] + c[2],
+        a[3] * b[3] - dot(av, bv),
+    )
+
+
+def conjugate_components(q: Quat) -> Quat:
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+def rotate_components(q: Quat, x: Vec3) -> Vec3:
+    """``x + 2w (v x x) + 2 v x (v x x)`` (15 multiplies fewer than building ``R``)."""
+    v, w = q[:3], q[3]
+    uv = cross(v, x)
+    uuv = cross(v, uv)
+    return tuple(x[k] + 2.0 * (w * uv[k] + uuv[k]) for k in range(3))  # type: ignore[return-value]
+
+
+# ------------------------------------------------------------------------- public API
 
 
 def identity(batch_shape: tuple[int, ...] = (), dtype: jnp.dtype = jnp.float32) -> Array:
@@ -67,15 +173,7 @@ def vee(m: ArrayLike) -> Array:
 
 def exp(w: ArrayLike) -> Array:
     """Exponential map, rotation vector ``[..., 3]`` -> unit quaternion ``[..., 4]``."""
-    w = jnp.asarray(w)
-    theta_sq = jnp.sum(w * w, axis=-1, keepdims=True)
-    small = theta_sq < _small_angle_eps(w.dtype)
-    safe_sq = jnp.where(small, jnp.ones_like(theta_sq), theta_sq)
-    safe_theta = jnp.sqrt(safe_sq)
-    half = 0.5 * safe_theta
-    coeff = jnp.where(small, 0.5 - theta_sq / 48.0 + theta_sq**2 / 3840.0, jnp.sin(half) / safe_theta)
-    real = jnp.where(small, 1.0 - theta_sq / 8.0 + theta_sq**2 / 384.0, jnp.cos(half))
-    return jnp.concatenate([coeff * w, real], axis=-1)
+    return join(exp_components(split(jnp.asarray(w)))[0])
 
 
 def log(q: ArrayLike) -> Array:
@@ -84,48 +182,23 @@ def log(q: ArrayLike) -> Array:
     ``q`` and ``-q`` give the same result (except at exactly ``pi``, where both ``+-w`` are
     valid).  Non-unit input is tolerated: only the direction of ``q`` matters.
     """
-    q = jnp.asarray(q)
-    q = jnp.where(q[..., 3:4] < 0, -q, q)
-    v, w = q[..., :3], q[..., 3:4]
-    n_sq = jnp.sum(v * v, axis=-1, keepdims=True)
-    norm_sq = n_sq + w * w
-    # Relative threshold so that non-unit quaternions behave like their unit versions.
-    small = n_sq < _small_angle_eps(q.dtype) * norm_sq
-    safe_n = jnp.sqrt(jnp.where(small, jnp.ones_like(n_sq), n_sq))
-    safe_w = jnp.where(small, w, jnp.ones_like(w))
-    coeff = jnp.where(
-        small,
-        2.0 / safe_w * (1.0 - n_sq / (3.0 * safe_w * safe_w)),
-        2.0 * jnp.arctan2(safe_n, w) / safe_n,
-    )
-    return coeff * v
+    return join(log_components(split(jnp.asarray(q)))[0])
 
 
 def multiply(a: ArrayLike, b: ArrayLike) -> Array:
     """Hamilton product ``a * b`` (rotation ``b`` first, then ``a``): ``[..., 4]``."""
-    a, b = jnp.asarray(a), jnp.asarray(b)
-    av, aw = a[..., :3], a[..., 3:4]
-    bv, bw = b[..., :3], b[..., 3:4]
-    v = aw * bv + bw * av + jnp.cross(av, bv)
-    w = aw * bw - jnp.sum(av * bv, axis=-1, keepdims=True)
-    return jnp.concatenate([v, w], axis=-1)
+    return join(multiply_components(split(jnp.asarray(a)), split(jnp.asarray(b))))
 
 
 def conjugate(q: ArrayLike) -> Array:
     """Conjugate (= inverse for unit quaternions): ``(-v, w)``."""
     q = jnp.asarray(q)
-    return jnp.concatenate([-q[..., :3], q[..., 3:]], axis=-1)
+    return q * jnp.array([-1, -1, -1, 1], dtype=q.dtype)
 
 
 def rotate(q: ArrayLike, x: ArrayLike) -> Array:
-    """Rotate points: ``R(q) x`` for ``q [..., 4]``, ``x [..., 3]`` (broadcast).
-
-    Uses ``x + 2w (v x x) + 2 v x (v x x)``, 15 multiplies fewer than building ``R``.
-    """
-    q, x = jnp.asarray(q), jnp.asarray(x)
-    v, w = q[..., :3], q[..., 3:4]
-    uv = jnp.cross(v, x)
-    return x + 2.0 * (w * uv + jnp.cross(v, uv))
+    """Rotate points: ``R(q) x`` for ``q [..., 4]``, ``x [..., 3]`` (broadcast)."""
+    return join(rotate_components(split(jnp.asarray(q)), split(jnp.asarray(x))))
 
 
 def as_matrix(q: ArrayLike) -> Array:
