@@ -1,0 +1,507 @@
+"""A "VGGT oracle": what VGGT returns for a chunk of frames, from a world whose truth we know.
+
+``VGGTOracle(world, cam_to_world, K, image_hw, noise, seed).predict_chunk(frames)`` returns
+the :class:`~swiftjax.prediction.ChunkPrediction` arrays the real runners return, with
+VGGT's kinds of error.  Notation: chunk frames ``f_0 .. f_{S-1}`` (``frames``), true
+camera-to-world ``T_k = [R_k | c_k]``, true depth ``z`` (metres), chunk index ``k``.
+
+**Gauge** (what VGGT normalises away).  Chunk coordinates are the first camera's frame
+scaled by ``sigma_c = depth_units / mean(z) * exp(scale_jitter * n_c)`` (mean over the
+chunk's finite true depths): ``x_c = sigma_c R_0^T (x_w - c_0)``.  The TRUE chunk-to-world
+Sim(3) is ``G_c = (t = c_0, R = R_0, s = 1 / sigma_c)`` (:meth:`VGGTOracle.true_chunk_gauge`).
+
+**Poses.**  True camera-to-chunk ``(R_0^T R_k, sigma_c R_0^T (c_k - c_0))`` warped by a slow
+drift ``D_k = (exp(k w_c), scale exp(k delta_c))`` (rotation about the chunk origin and a
+scale that creeps along the chunk; ``w_c ~ N(0, drift_rot^2 I)``, ``delta_c ~ N(0,
+drift_scale^2)`` per chunk), then per-frame jitter (rotation ``pose_rot`` rad, translation
+``pose_trans`` chunk units); frame 0 stays exactly at the origin.  The depth of frame ``k``
+carries the drift scale ``exp(k delta_c)``, so the frame's points move with its camera (the
+chunk's geometry is consistently warped, which is what makes chunk-to-chunk alignment drift).
+
+**Intrinsics.**  ``fx, fy <- (1 + eps_f) fx, fy`` with ``eps_f`` uniform in
+``+-focal`` (principal point exact), and the frame's depth multiplied by
+``(1 + eps_f)^focal_depth_coupling`` (VGGT's zoom ambiguity: a larger focal comes with a larger
+depth; the paper's depth normalisation eq. 1 undoes exactly this).
+
+**Depth.**  ``d = z sigma_c s_k (1+eps_f) (1 + bias_c z sigma_c) exp(rel(z) n)`` with
+``rel(z) = depth_rel (1 + z / depth_rel_ref_m)`` (noise grows with distance), ``n`` a unit
+normal made of a 14x14-patch-correlated part and a per-pixel part (``n = 0.6 n_patch +
+0.8 n_pixel``), ``bias_c ~ N(0, depth_bias^2)`` per chunk (per chunk unit of depth).  At depth
+discontinuities (neighbouring log-depths differ by more than ``edge_log_ratio``) the depth is a
+"flying pixel" between the two surfaces; a fraction ``gross_fraction`` of pixels is off by a
+factor ``exp(U(-gross_log, gross_log))``; sky gets ``sky_depth_m`` (finite, as VGGT).
+
+**Confidence** (``>= 1``, like VGGT's ``1 + exp(.)``): ``1 + conf_max exp(-z / conf_falloff_m)
+exp(0.25 n')``, times ``edge_conf`` at discontinuities, and ``1 + 0.05 u`` on sky.
+
+**Determinism.**  Every random quantity of a FRAME (its focal error, its share of the pixel
+noise, its gross-error pixels) is keyed by ``(seed, frame)``; every quantity of a CHUNK
+(gauge jitter, drift, bias, the other share of the noise) by ``(seed, frames)``.  A fraction
+``chunk_share`` of each frame-level noise is re-drawn per chunk, so the same frame in two
+chunks agrees up to the chunk gauge and that share.  Results are bit-identical for the same
+``(seed, frames)`` whatever was computed before.
+
+**Cost.**  Frames are rendered in fixed blocks of ``block`` consecutive frames (a frame grid,
+so a block's render does not depend on which chunk asked for it), kept in a small LRU cache:
+the 30 overlap frames of consecutive chunks are rendered once.  Two jitted functions run per
+block (render, then noise/confidence/colour), each compiled once per image size; place
+tokens come from :func:`swiftjax.synthetic.places.place_tokens`, also called per block.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import zlib
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from swiftjax import sim3
+from swiftjax.prediction import ChunkPrediction
+from swiftjax.synthetic import places
+from swiftjax.synthetic.render import chunk_candidates, frame_planes, render_frames
+from swiftjax.synthetic.world import SKY, World
+
+__all__ = ["OracleNoise", "VGGTOracle", "kitti_intrinsics"]
+
+
+def kitti_intrinsics(width: int = 518, height: int = 154) -> np.ndarray:
+    """KITTI odometry camera 0 (``fx = fy = 718.856, cx = 607.19, cy = 185.22`` at 1241x376)
+    resized to ``width x height``: ``[3, 3]`` float64."""
+    sx, sy = width / 1241.0, height / 376.0
+    return np.array([[718.856 * sx, 0.0, 607.1928 * sx], [0.0, 718.856 * sy, 185.2157 * sy], [0.0, 0.0, 1.0]])
+
+
+@dataclasses.dataclass(frozen=True)
+class OracleNoise:
+    """Every error of the oracle (module docstring); defaults make drift visible without loops.
+
+    Angles in radians, ``*_m`` in metres, depth noise relative, pose translation in chunk units.
+    """
+
+    depth_units: float = 2.0
+    scale_jitter: float = 0.03
+    drift_rot: float = 4e-5  # rad per frame, per axis
+    drift_scale: float = 2e-4  # log-scale per frame
+    pose_rot: float = 2e-4
+    pose_trans: float = 2e-3
+    focal: float = 0.02
+    focal_depth_coupling: float = 1.0
+    depth_rel: float = 0.01
+    depth_rel_ref_m: float = 20.0
+    depth_bias: float = 0.005
+    edge_log_ratio: float = 0.1
+    edge_conf: float = 0.15
+    gross_fraction: float = 0.01
+    gross_log: float = 0.7
+    sky_depth_m: float = 300.0
+    conf_max: float = 20.0
+    conf_falloff_m: float = 25.0
+    chunk_share: float = 0.5
+
+    @classmethod
+    def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> "OracleNoise":
+        """No error at all: depths, poses and intrinsics are the truth in the chunk gauge."""
+        return cls(
+            depth_units=depth_units, scale_jitter=scale_jitter, drift_rot=0.0, drift_scale=0.0,
+            pose_rot=0.0, pose_trans=0.0, focal=0.0, depth_rel=0.0, depth_bias=0.0,
+            edge_log_ratio=np.inf, gross_fraction=0.0,
+        )
+
+
+# ------------------------------------------------------------------- counter-based noise
+# jax.random's threefry costs ~10-20 ns per number on CPU and a chunk needs ~30 M of them;
+# a counter-based integer hash (lowbias32) gives them for a few integer ops each.
+
+
+def _mix(x: jax.Array) -> jax.Array:
+    """lowbias32 integer hash (uint32 -> uint32)."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def _approx_normal(h: jax.Array) -> jax.Array:
+    """Zero-mean unit-variance noise from one uint32: the sum of its 4 bytes (Irwin-Hall, |n| <= 3.46)."""
+    m = jnp.uint32(0xFF)
+    s = (h & m) + ((h >> 8) & m) + ((h >> 16) & m) + (h >> 24)
+    return (s.astype(jnp.float32) - 510.0) * jnp.float32(1.0 / np.sqrt(4 * (256.0**2 - 1) / 12))
+
+
+def _u16(h: jax.Array, high: bool) -> jax.Array:
+    """A uniform in [0, 1) from 16 bits of ``h``."""
+    bits = (h >> 16) if high else (h & jnp.uint32(0xFFFF))
+    return bits.astype(jnp.float32) * jnp.float32(1.0 / 65536.0)
+
+
+class _PixelParams(NamedTuple):
+    frame_key: jax.Array  # uint32 [] keyed by seed
+    chunk_key: jax.Array  # uint32 [] keyed by (seed, frames)
+    frames: jax.Array  # [F] int32
+    depth_factor: jax.Array  # [F] sigma_c s_k (1+eps)^coupling
+    sigma: jax.Array  # [] chunk units per metre
+    bias: jax.Array  # [] per chunk unit
+    scalars: jax.Array  # [10] noise scalars
+
+
+def _upsample_patches(x: jax.Array, H: int, W: int, p: int = 14) -> jax.Array:
+    """``[F, ceil(H/p), ceil(W/p)]`` -> ``[F, H, W]`` by repetition (a broadcast, no gather)."""
+    F, hp, wp = x.shape
+    y = jnp.broadcast_to(x[:, :, None, :, None], (F, hp, p, wp, p)).reshape(F, hp * p, wp * p)
+    return y[:, :H, :W]
+
+
+_PALETTE = np.array(  # per semantic id: sky (unused), ground, building, pole, tree
+    [[0.0, 0.0, 0.0], [0.42, 0.42, 0.44], [0.72, 0.62, 0.52], [0.35, 0.35, 0.38], [0.20, 0.45, 0.18]],
+    np.float32,
+)
+_FACADES = np.array(
+    [[0.72, 0.62, 0.52], [0.80, 0.78, 0.70], [0.60, 0.45, 0.38], [0.55, 0.58, 0.62]], np.float32
+)
+
+
+def _albedo(sem: jax.Array, inst: jax.Array) -> jax.Array:
+    """``[F, H, W, 3]`` surface colour from semantic id and instance (where-chains, no gathers)."""
+    h = _mix(inst.astype(jnp.uint32) + jnp.uint32(0x2545F491))
+    base = jnp.zeros((*sem.shape, 3), jnp.float32)
+    for k in range(1, len(_PALETTE)):
+        base = jnp.where((sem == k)[..., None], _PALETTE[k], base)
+    pick = h & jnp.uint32(3)
+    for k in range(len(_FACADES)):
+        base = jnp.where(((sem == 2) & (pick == k))[..., None], _FACADES[k], base)
+    return base * (0.85 + 0.3 * _u16(h, True))[..., None]
+
+
+@jax.jit
+def _pixels(z: jax.Array, sem: jax.Array, inst: jax.Array, p: _PixelParams):
+    """Depth, confidence and colour of ``F`` frames from their true depth ``[F, H, W]``.
+
+    One jitted function per ``(F, H, W)``.  Noise (module docstring): per pixel, one hash of
+    ``(frame key, frame, pixel)`` and one of ``(chunk key, frame, pixel)``, each giving an
+    approximately normal value, plus re-mixed hashes for the uniforms; patch noise is drawn
+    per 14x14 patch and repeated.
+    """
+    (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff,
+     share) = (p.scalars[i] for i in range(10))
+    F, H, W = z.shape
+    sky = sem == SKY
+    zf = jnp.where(sky, sky_m, z)  # finite stand-in for the sky
+    # ---- discontinuities: max |log z - log z_nb| over the 4-neighbourhood
+    lz = jnp.log(zf)
+    pad = jnp.pad(lz, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    nbs = [pad[:, 0:-2, 1:-1], pad[:, 2:, 1:-1], pad[:, 1:-1, 0:-2], pad[:, 1:-1, 2:]]
+    lmax = jnp.maximum(jnp.maximum(nbs[0], nbs[1]), jnp.maximum(nbs[2], nbs[3]))
+    lmin = jnp.minimum(jnp.minimum(nbs[0], nbs[1]), jnp.minimum(nbs[2], nbs[3]))
+    edge = jnp.maximum(lmax - lz, lz - lmin) > edge_lr
+    # ---- noise
+    fr = _mix(p.frames.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))[:, None, None]
+    kf = _mix(p.frame_key ^ fr)  # [F, 1, 1] per-frame bases
+    kc = _mix(p.chunk_key ^ fr)
+    pix = (jnp.arange(H, dtype=jnp.uint32)[:, None] * jnp.uint32(W) + jnp.arange(W, dtype=jnp.uint32)[None, :])[None]
+    hf = _mix(kf ^ pix)  # frame-keyed
+    hc = _mix(kc ^ pix)  # chunk-keyed
+    hg = _mix(hf + jnp.uint32(0x68E31DA4))  # frame-keyed uniforms (gross errors)
+    hq = _mix(hc + jnp.uint32(0xB5297A4D))  # chunk-keyed extras (confidence, flying pixels)
+    hp, wp = -(-H // 14), -(-W // 14)
+    pidx = (jnp.arange(hp, dtype=jnp.uint32)[:, None] * jnp.uint32(wp) + jnp.arange(wp, dtype=jnp.uint32)[None, :])[None]
+    pf = _mix(kf ^ (pidx + jnp.uint32(0x1B873593)))
+    pc = _mix(kc ^ (pidx + jnp.uint32(0x1B873593)))
+    a, b = jnp.sqrt(1.0 - share), jnp.sqrt(share)
+    n_pat = _upsample_patches(a * _approx_normal(pf) + b * _approx_normal(pc), H, W)
+    n_depth = 0.6 * n_pat + 0.8 * (a * _approx_normal(hf) + b * _approx_normal(hc))
+    n_conf = 0.6 * _upsample_patches(_approx_normal(_mix(pc + jnp.uint32(7))), H, W) + 0.8 * _approx_normal(hq)
+    # ---- depth
+    far_nb = jnp.minimum(jnp.exp(lmax), sky_m)
+    zt = jnp.where(edge, zf + _u16(hq, False) * (far_nb - zf), zf)  # flying pixels
+    rel = depth_rel * (1.0 + zt / rel_ref)
+    d = zt * p.depth_factor[:, None, None] * (1.0 + p.bias * zt * p.sigma) * jnp.exp(rel * n_depth)
+    gross = _u16(hg, False) < gross_frac
+    d = jnp.where(gross, d * jnp.exp(gross_log * (2.0 * _u16(hg, True) - 1.0)), d)
+    # ---- confidence
+    conf = 1.0 + conf_max * jnp.exp(-zf / falloff) * jnp.exp(0.25 * n_conf)
+    conf = jnp.where(edge, 1.0 + (conf - 1.0) * edge_conf, conf)
+    conf = jnp.where(sky, 1.0 + 0.05 * _u16(hq, True), conf)
+    # ---- colour: a palette per semantic class, varied per instance (hash), distance shading
+    albedo = _albedo(sem, inst)
+    shade = (0.55 + 0.45 * jnp.exp(-zf / 60.0))[..., None]
+    rows = (jnp.arange(H, dtype=jnp.float32) / H)[None, :, None, None]
+    sky_rgb = jnp.asarray([0.55, 0.70, 0.92], jnp.float32) + rows * jnp.asarray([0.2, 0.15, 0.05])
+    rgb = jnp.where(sky[..., None], sky_rgb, albedo * shade) * (1.0 + 0.04 * n_pat[..., None])
+    img = jnp.clip(jnp.round(rgb * 255.0), 0, 255).astype(jnp.uint8)
+    return d.astype(jnp.float32), conf.astype(jnp.float32), img
+
+
+def _so3_exp_np(w: np.ndarray) -> np.ndarray:
+    """Rodrigues, ``[..., 3] -> [..., 3, 3]`` float64."""
+    w = np.asarray(w, np.float64)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    Kx = np.zeros((*w.shape[:-1], 3, 3))
+    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    Kx = Kx - np.swapaxes(Kx, -1, -2)
+    small = th < 1e-8
+    A = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
+    B = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th**2))
+    return np.eye(3) + A * Kx + B * (Kx @ Kx)
+
+
+class _Block(NamedTuple):
+    depth: np.ndarray  # [F, H, W] float32 metres (inf: sky)
+    semantic: np.ndarray  # [F, H, W] int8
+    instance: np.ndarray  # [F, H, W] int32
+
+
+class VGGTOracle:
+    """Stand-in for VGGT over a synthetic world (module docstring).
+
+    Args:
+        world: the scene (:func:`swiftjax.synthetic.world.build_world`).
+        cam_to_world: ``[N, 4, 4]`` true camera-to-world poses (metres, OpenCV cameras).
+        intrinsic: ``[3, 3]`` true intrinsics at ``image_hw`` (default: :func:`kitti_intrinsics`).
+        image_hw: ``(H, W)`` (default ``(154, 518)``, VGGT's KITTI size).
+        noise: :class:`OracleNoise` (``OracleNoise.off()`` for the exact truth).
+        seed: seed of every random quantity.
+        place_config: :class:`~swiftjax.synthetic.places.PlaceTokenConfig` for the patch
+            tokens (default: its defaults with ``seed``); ``tokens=False`` skips them.
+        block: frames per render block (fixed; one compile per image size).
+        far: the world's draw distance in metres.
+        k_box, k_cyl: per-frame object budgets of the renderer.
+        cache_blocks: rendered blocks kept in memory (LRU).
+    """
+
+    def __init__(
+        self,
+        world: World,
+        cam_to_world: np.ndarray,
+        intrinsic: np.ndarray | None = None,
+        image_hw: tuple[int, int] = (154, 518),
+        noise: OracleNoise = OracleNoise(),
+        seed: int = 0,
+        place_config: places.PlaceTokenConfig | None = None,
+        tokens: bool = True,
+        block: int = 15,
+        far: float = 80.0,
+        k_box: int = 12,
+        k_cyl: int = 10,
+        cache_blocks: int = 12,
+    ) -> None:
+        T = np.asarray(cam_to_world, np.float64)
+        if T.ndim != 3 or T.shape[1:] not in ((4, 4), (3, 4)) or T.shape[0] < 1:
+            raise ValueError(f"cam_to_world must have shape [N, 4, 4], got {T.shape}")
+        if not np.all(np.isfinite(T)):
+            raise ValueError("cam_to_world holds non-finite values (nan/inf)")
+        self.poses = np.tile(np.eye(4), (T.shape[0], 1, 1))
+        self.poses[:, :3, :] = T[:, :3, :]
+        h, w = (int(image_hw[0]), int(image_hw[1]))
+        if h < 2 or w < 2:
+            raise ValueError(f"image_hw must be at least (2, 2), got {image_hw}")
+        self.image_hw = (h, w)
+        K = kitti_intrinsics(w, h) if intrinsic is None else np.asarray(intrinsic, np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"intrinsic must be a finite [3, 3] matrix with positive focals, got {K}")
+        self.K = K
+        self.world = world
+        self.noise = noise
+        self.seed = int(seed)
+        self.block = int(block)
+        self.far, self.k_box, self.k_cyl = float(far), int(k_box), int(k_cyl)
+        self._cache: collections.OrderedDict[int, _Block] = collections.OrderedDict()
+        self._cache_blocks = int(cache_blocks)
+        self._tokens = tokens
+        if tokens:
+            cfg = place_config or places.PlaceTokenConfig(seed=self.seed)
+            self.place_params = places.make_place_params(cfg)
+        self._frame_key = np.uint32(zlib.crc32(np.int64(self.seed).tobytes()))
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+    # ------------------------------------------------------------------ ground truth
+
+    def _check_frames(self, frames) -> np.ndarray:
+        f = np.asarray(frames)
+        if f.ndim != 1 or f.size == 0 or not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"frame_indices must be a non-empty 1-D integer array, got {f!r:.80}")
+        if f.min() < 0 or f.max() >= self.num_frames:
+            raise ValueError(
+                f"frame_indices must lie in [0, {self.num_frames}), got range [{f.min()}, {f.max()}]"
+            )
+        return f.astype(np.int64)
+
+    def _render_block(self, b: int) -> _Block:
+        if b in self._cache:
+            self._cache.move_to_end(b)
+            return self._cache[b]
+        F = self.block
+        idx = np.minimum(np.arange(b * F, (b + 1) * F), self.num_frames - 1)
+        P = self.poses[idx]
+        origin = P[0, :3, 3]
+        cand = chunk_candidates(self.world, P[:, :3, 3], origin, far=self.far)
+        planes = frame_planes(self.world, P[:, :3, 3], origin)
+        out = render_frames(
+            self.K.astype(np.float32), P[:, :3, :3].astype(np.float32),
+            (P[:, :3, 3] - origin).astype(np.float32), planes.astype(np.float32), cand,
+            np.int32(self.world.num_boxes), height=self.image_hw[0], width=self.image_hw[1],
+            k_box=self.k_box, k_cyl=self.k_cyl, far=self.far,
+        )
+        blk = _Block(np.asarray(out.depth), np.asarray(out.semantic).astype(np.int8), np.asarray(out.instance))
+        self._cache[b] = blk
+        while len(self._cache) > self._cache_blocks:
+            self._cache.popitem(last=False)
+        return blk
+
+    def render_truth(self, frames) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """True ``(depth [S, H, W] metres (inf: sky), semantic [S, H, W] int8, instance [S, H, W] int32)``.
+
+        ``instance``: box index for buildings, ``num_boxes +`` cylinder index for poles and
+        trees, ``-1`` for ground and sky.
+        """
+        f = self._check_frames(frames)
+        blocks = {b: self._render_block(b) for b in np.unique(f // self.block)}
+        depth = np.stack([blocks[i // self.block].depth[i % self.block] for i in f])
+        sem = np.stack([blocks[i // self.block].semantic[i % self.block] for i in f])
+        inst = np.stack([blocks[i // self.block].instance[i % self.block] for i in f])
+        return depth, sem, inst
+
+    def true_cam_to_world(self, frames) -> np.ndarray:
+        """``[S, 4, 4]`` float64 true camera-to-world poses."""
+        return self.poses[self._check_frames(frames)].copy()
+
+    def true_world_points(self, frames) -> tuple[np.ndarray, np.ndarray]:
+        """``(points [S, H, W, 3] float64 world, valid [S, H, W] bool)``; sky is invalid (NaN)."""
+        f = self._check_frames(frames)
+        depth, _, _ = self.render_truth(f)
+        h, w = self.image_hw
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        K = self.K
+        y = (v - K[1, 2]) / K[1, 1]
+        x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        rays = np.stack([x, y, np.ones_like(x)], -1)
+        valid = np.isfinite(depth)
+        z = np.where(valid, depth, np.nan).astype(np.float64)
+        cam = z[..., None] * rays
+        P = self.poses[f]
+        pts = np.einsum("sij,shwj->shwi", P[:, :3, :3], cam) + P[:, None, None, :3, 3]
+        return pts, valid
+
+    def _chunk_sigma(self, f: np.ndarray, depth: np.ndarray) -> float:
+        z = depth[np.isfinite(depth)]
+        mean = float(z.mean()) if z.size else self.far
+        rng = self._chunk_rng(f, 0)
+        return self.noise.depth_units / mean * float(np.exp(self.noise.scale_jitter * rng.normal()))
+
+    def _chunk_key(self, f: np.ndarray) -> int:
+        return zlib.crc32(np.asarray(f, np.int64).tobytes(), zlib.crc32(np.int64(self.seed).tobytes()))
+
+    def _chunk_rng(self, f: np.ndarray, stream: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, self._chunk_key(f), stream, 1])
+
+    def _frame_rng(self, frame: int, stream: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, int(frame), stream, 2])
+
+    def true_chunk_gauge(self, frames) -> np.ndarray:
+        """The TRUE chunk-to-world Sim(3) ``[8]`` float64: ``x_world = s R x_chunk + t``."""
+        f = self._check_frames(frames)
+        depth, _, _ = self.render_truth(f)
+        sigma = self._chunk_sigma(f, depth)
+        T0 = self.poses[f[0]]
+        with jax.enable_x64(True):
+            return np.asarray(sim3.from_rst(T0[:3, :3], T0[:3, 3], 1.0 / sigma), np.float64)
+
+    # ------------------------------------------------------------------- prediction
+
+    def _focal_eps(self, f: np.ndarray) -> np.ndarray:
+        nz = self.noise
+        a, b = np.sqrt(1 - nz.chunk_share), np.sqrt(nz.chunk_share)
+        crng = self._chunk_rng(f, 3)
+        eps = np.array([
+            a * self._frame_rng(i, 3).uniform(-1, 1) + b * crng.uniform(-1, 1) for i in f
+        ])
+        return nz.focal * np.clip(eps, -1.0, 1.0)
+
+    def predict_chunk(self, frame_indices) -> ChunkPrediction:
+        """VGGT's outputs for ``frame_indices`` ``[S]`` (module docstring for the model).
+
+        Deterministic per ``(seed, frame_indices)``.  Raises ``ValueError`` for an empty,
+        non-integer or out-of-range index array.
+        """
+        f = self._check_frames(frame_indices)
+        nz = self.noise
+        S = len(f)
+        depth_true, sem, inst = self.render_truth(f)
+        sigma = self._chunk_sigma(f, depth_true)
+        rng = self._chunk_rng(f, 1)
+        w_c = rng.normal(scale=nz.drift_rot, size=3)
+        delta_c = rng.normal(scale=nz.drift_scale)
+        bias_c = rng.normal(scale=nz.depth_bias)
+        eps = self._focal_eps(f)
+
+        # ---- poses (host float64: S small matrices)
+        T = self.poses[f]
+        R0, c0 = T[0, :3, :3], T[0, :3, 3]
+        R_ck = R0.T @ T[:, :3, :3]
+        t_ck = sigma * (T[:, :3, 3] - c0) @ R0
+        k = np.arange(S, dtype=np.float64)
+        R_D = _so3_exp_np(k[:, None] * w_c)
+        s_k = np.exp(k * delta_c)
+        jr = np.array([self._frame_rng(i, 4).normal(size=3) for i in f]) * nz.pose_rot
+        jt = self._chunk_rng(f, 4).normal(size=(S, 3)) * nz.pose_trans
+        jr[0] = 0.0
+        jt[0] = 0.0
+        R_pred = R_D @ R_ck @ _so3_exp_np(jr)
+        t_pred = s_k[:, None] * np.einsum("sij,sj->si", R_D, t_ck) + jt
+        extrinsic = np.concatenate(
+            [np.swapaxes(R_pred, 1, 2), -np.einsum("sji,sj->si", R_pred, t_pred)[..., None]], axis=2
+        )
+        K = np.tile(self.K, (S, 1, 1))
+        K[:, 0, 0] *= 1.0 + eps
+        K[:, 1, 1] *= 1.0 + eps
+        depth_factor = sigma * s_k * (1.0 + eps) ** nz.focal_depth_coupling
+
+        # ---- pixels, in fixed blocks of `block` frames
+        F = self.block
+        n_blk = -(-S // F)
+        pad = n_blk * F - S
+        padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a  # noqa: E731
+        zt, st, at, ft, dft = padi(depth_true), padi(sem), padi(inst), padi(f), padi(depth_factor)
+        scalars = np.asarray(
+            [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
+             nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share],
+            np.float32,
+        )
+        ckey = np.uint32(self._chunk_key(f))
+        outs = []
+        for j in range(n_blk):
+            sl = slice(j * F, (j + 1) * F)
+            p = _PixelParams(
+                np.uint32(self._frame_key), ckey, ft[sl].astype(np.int32),
+                dft[sl].astype(np.float32), np.float32(sigma), np.float32(bias_c), scalars,
+            )
+            outs.append(_pixels(zt[sl], st[sl], at[sl], p))
+        depth = np.concatenate([np.asarray(o[0]) for o in outs])[:S]
+        conf = np.concatenate([np.asarray(o[1]) for o in outs])[:S]
+        images = np.concatenate([np.asarray(o[2]) for o in outs])[:S]
+
+        tokens = None
+        if self._tokens:
+            pt = []
+            Tp = padi(T).astype(np.float32)
+            fp = ft.astype(np.int32)
+            for j in range(n_blk):
+                sl = slice(j * F, (j + 1) * F)
+                pt.append(np.asarray(places.place_tokens(self.place_params, Tp[sl], fp[sl])))
+            tokens = np.concatenate(pt)[:S]
+        return ChunkPrediction(
+            depth=depth,
+            conf=conf,
+            extrinsic=extrinsic.astype(np.float32),
+            intrinsic=K.astype(np.float32),
+            patch_tokens=tokens,
+            images=images,
+        )
