@@ -411,3 +411,25 @@ def test_find_loops_planted_and_errors():
     with pytest.raises(ValueError, match="fit_on"):
         L.find_loops(G, sched, fit_on="g0")
     assert L.find_loops(G[:50], chunk_schedule(50)) == []
+
+
+def test_synthetic_kitti00_every_region_no_false_loop(shared_dir):
+    """The acceptance benchmark: synthetic tokens along KITTI 00, the full default pipeline
+    (g0 per chunk -> power -> whitening -> detection -> chunk filter) finds every loop region
+    with precision 1.0 (bench/bench_place_recognition.py has the ablation)."""
+    from swiftjax.io.trajectory import read_kitti
+    from swiftjax.synthetic import places
+
+    poses = read_kitti(shared_dir / "data" / "trajectories" / "KITTI_00_gt.txt")
+    n = len(poses)
+    params = places.make_place_params(places.PlaceTokenConfig(tokens_per_frame=16, seed=0))
+    G = np.concatenate([
+        np.asarray(L.frame_descriptor(places.place_tokens(params, poses[idx], idx)))
+        for idx in (np.minimum(np.arange(s, s + 75), n - 1) for s in range(0, n, 75))
+    ])[:n]
+    loops = L.find_loops(G, chunk_schedule(n))
+    gt = places.ground_truth_loops(poses)
+    ev = places.evaluate_loops(np.array([(lp.i, lp.j) for lp in loops]), gt)
+    assert ev.n_regions == 5
+    assert ev.precision == 1.0 and ev.n_regions_found == 5, ev
+    assert len({(lp.chunk_i, lp.chunk_j) for lp in loops}) == len(loops)
