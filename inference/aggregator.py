@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import torch
 from torch import Tensor, nn
 
@@ -16,8 +18,9 @@ _IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class AggregatorOutput(dict):  # type: ignore[type-arg]
-    """``tokens``: list of ``depth`` tensors ``[B, S, T, 2C]`` (``cat(frame_i, global_i)``);
-    ``patch_tokens``: ``[B, S, P, C]`` DINO ``x_norm_patchtokens``."""
+    """``tokens``: list of ``depth`` entries ``[B, S, T, 2C]`` (``cat(frame_i, global_i)``),
+    ``None`` for layers not requested; ``patch_tokens``: ``[B, S, P, C]`` DINO
+    ``x_norm_patchtokens``."""
 
 
 def _first_and_rest(token: Tensor, batch: int, frames: int) -> Tensor:
@@ -67,8 +70,18 @@ class Aggregator(nn.Module):
         positions = torch.cat([special, patch_pos], dim=0)
         return rope_tables_2d(positions, self.cfg.embed_dim // self.cfg.num_heads, self.cfg.rope_freq)
 
-    def forward(self, images: Tensor) -> AggregatorOutput:
-        """``images``: ``[B, S, 3, H, W]`` RGB in [0, 1]; see :class:`AggregatorOutput`."""
+    def forward(self, images: Tensor, keep: Collection[int] | None = None) -> AggregatorOutput:
+        """Runs the aggregator.
+
+        Args:
+            images: ``[B, S, 3, H, W]`` RGB in [0, 1].
+            keep: indices of the outputs to return (negative ones count from the end); the
+                others are ``None``, which saves memory (the heads need 5 of the 24).  ``None``
+                keeps all.
+
+        Returns:
+            see :class:`AggregatorOutput`.
+        """
         b, s, ch, height, width = images.shape
         if ch != 3 or height % self.cfg.patch_size or width % self.cfg.patch_size:
             raise ValueError(
@@ -88,7 +101,8 @@ class Aggregator(nn.Module):
         t = tokens.shape[1]
         rope = self.rope_tables(height // self.cfg.patch_size, width // self.cfg.patch_size, images.device)
 
-        outputs: list[Tensor] = []
+        keep_set = None if keep is None else {i % self.cfg.depth for i in keep}
+        outputs: list[Tensor | None] = []
         frame_idx = global_idx = 0
         block = self.cfg.aa_block_size
         for _ in range(self.cfg.depth // block):
@@ -108,5 +122,6 @@ class Aggregator(nn.Module):
                         global_idx += 1
                         inter[kind].append(tokens.reshape(b, s, t, c))
             for f, g in zip(inter["frame"], inter["global"]):
-                outputs.append(torch.cat([f, g], dim=-1))
+                wanted = keep_set is None or len(outputs) in keep_set
+                outputs.append(torch.cat([f, g], dim=-1) if wanted else None)
         return AggregatorOutput(tokens=outputs, patch_tokens=patch_tokens.reshape(b, s, p, c))

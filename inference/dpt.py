@@ -7,6 +7,7 @@ in-place ReLU to its input, so the skip connection adds ``relu(x)``, not ``x``.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -132,7 +133,7 @@ class DPTHead(nn.Module):
 
     def forward(
         self,
-        tokens: list[Tensor],
+        tokens: Sequence[Tensor | None],
         image_hw: tuple[int, int],
         patch_start_idx: int,
         frames_chunk_size: int | None = None,
@@ -140,7 +141,8 @@ class DPTHead(nn.Module):
         """Depth and confidence.
 
         Args:
-            tokens: all aggregator outputs, each ``[B, S, T, 2C]``.
+            tokens: the aggregator outputs, each ``[B, S, T, 2C]`` (only the entries at
+                ``intermediate_layer_idx`` are used; the others may be ``None``).
             image_hw: ``(H, W)`` of the input images.
             patch_start_idx: index of the first patch token (1 + registers).
             frames_chunk_size: frames per pass (bounds memory); ``None`` = all at once.
@@ -148,7 +150,7 @@ class DPTHead(nn.Module):
         Returns:
             ``depth [B, S, H, W, 1]`` and ``conf [B, S, H, W]``.
         """
-        s = tokens[0].shape[1]
+        s = _at(tokens, self.intermediate_layer_idx[0]).shape[1]
         if frames_chunk_size is None or frames_chunk_size >= s:
             return self._forward_frames(tokens, image_hw, patch_start_idx, 0, s)
         parts = [
@@ -157,13 +159,13 @@ class DPTHead(nn.Module):
         ]
         return torch.cat([d for d, _ in parts], dim=1), torch.cat([c for _, c in parts], dim=1)
 
-    def raw_logits(self, tokens: list[Tensor], image_hw: tuple[int, int], patch_start_idx: int) -> Tensor:
+    def raw_logits(self, tokens: Sequence[Tensor | None], image_hw: tuple[int, int], patch_start_idx: int) -> Tensor:
         """Pre-activation output ``[B*S, output_dim, H, W]`` (channel 0 depth, last conf)."""
         height, width = image_hw
         h, w = height // self.patch_size, width // self.patch_size
         levels = []
         for i, layer in enumerate(self.intermediate_layer_idx):
-            x = tokens[layer][:, :, patch_start_idx:]
+            x = _at(tokens, layer)[:, :, patch_start_idx:]
             x = self.norm(x.reshape(-1, x.shape[-2], x.shape[-1]))  # [B*S, P, 2C]
             x = x.permute(0, 2, 1).reshape(x.shape[0], x.shape[-1], h, w)
             x = uv_pos_embed(self.projects[i](x), height, width)
@@ -181,15 +183,24 @@ class DPTHead(nn.Module):
         return sc.output_conv2(out)
 
     def _forward_frames(
-        self, tokens: list[Tensor], image_hw: tuple[int, int], patch_start_idx: int, start: int, stop: int
+        self, tokens: Sequence[Tensor | None], image_hw: tuple[int, int], patch_start_idx: int, start: int, stop: int
     ) -> tuple[Tensor, Tensor]:
-        b = tokens[0].shape[0]
-        if start != 0 or stop != tokens[0].shape[1]:
-            tokens = [t[:, start:stop] if i in self.intermediate_layer_idx else t for i, t in enumerate(tokens)]
+        first = _at(tokens, self.intermediate_layer_idx[0])
+        b = first.shape[0]
+        if start != 0 or stop != first.shape[1]:
+            tokens = [t[:, start:stop] if i in self.intermediate_layer_idx and t is not None else None
+                      for i, t in enumerate(tokens)]
         logits = self.raw_logits(tokens, image_hw, patch_start_idx)
         depth = torch.exp(logits[:, :-1]).permute(0, 2, 3, 1)  # [B*S, H, W, 1]
         conf = 1 + torch.exp(logits[:, -1])
         return depth.reshape(b, -1, *depth.shape[1:]), conf.reshape(b, -1, *conf.shape[1:])
+
+
+def _at(tokens: Sequence[Tensor | None], layer: int) -> Tensor:
+    t = tokens[layer]
+    if t is None:
+        raise ValueError(f"the depth head needs aggregator output {layer}, which was not kept")
+    return t
 
 
 def _hw(x: Tensor) -> tuple[int, int]:

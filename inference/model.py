@@ -67,13 +67,16 @@ class VGGT(nn.Module):
         """
         if images.dim() == 4:
             images = images.unsqueeze(0)
-        agg = self.aggregator(images)
-        tokens: list[Tensor] = agg["tokens"]
+        needed = None if return_aggregated else (*self.config.dpt_intermediate_layer_idx, -1)
+        agg = self.aggregator(images, keep=needed)
+        tokens: list[Tensor | None] = agg["tokens"]
         chunk = self.config.dpt_frames_chunk_size if frames_chunk_size == "config" else frames_chunk_size
         head_dtype = self.camera_head.embed_pose.weight.dtype
         with _heads_without_autocast(images.device):
-            head_tokens = [t.to(head_dtype) for t in tokens]
-            pose_enc_list = self.camera_head(head_tokens[-1], self.config.camera_iterations)
+            head_tokens = [None if t is None else t.to(head_dtype) for t in tokens]
+            last = head_tokens[-1]
+            assert last is not None  # always kept
+            pose_enc_list = self.camera_head(last, self.config.camera_iterations)
             depth, depth_conf = self.depth_head(
                 head_tokens,
                 image_hw=(int(images.shape[-2]), int(images.shape[-1])),

@@ -99,7 +99,7 @@ def pose_encoding_to_extrinsics_intrinsics(pose_enc: ArrayT, image_hw: tuple[int
     extrinsic = _cat(xp, [rot, t[..., None]], -1)
     fy = (height / 2.0) / xp.tan(pose_enc[..., 7] / 2.0)  # type: ignore[index]
     fx = (width / 2.0) / xp.tan(pose_enc[..., 8] / 2.0)  # type: ignore[index]
-    zero = fx * 0
+    zero = xp.zeros_like(fx)
     one = zero + 1
     intrinsic = _stack(
         xp,

@@ -255,3 +255,11 @@ def test_quat_to_mat_is_xyzw_and_scale_invariant() -> None:
     q = np.array([0.0, 0.0, np.sin(half), np.cos(half)])
     np.testing.assert_allclose(quat_to_mat(q), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     np.testing.assert_allclose(quat_to_mat(3.0 * q), quat_to_mat(q), atol=1e-12)
+
+
+def test_aggregator_keeps_only_requested_outputs(tiny_model: VGGT, golden: dict[str, np.ndarray]) -> None:
+    with torch.no_grad():
+        out = tiny_model.aggregator(torch.from_numpy(golden["images"]), keep=(1, -1))
+    kept = [i for i, t in enumerate(out["tokens"]) if t is not None]
+    assert kept == [1, 5]
+    np.testing.assert_allclose(out["tokens"][5].numpy(), golden["aggregated_tokens_all"][5], atol=1e-5)
