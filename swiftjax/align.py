@@ -581,15 +581,23 @@ def _align_core(
     cy = jax.lax.stop_gradient(_rough_centre(p_pts, w_sub))  # dst = prev
     cx = jax.lax.stop_gradient(_rough_centre(c_pts, w_sub))  # src = cur
 
+    # Frames whose camera parameters are not finite are dropped as a whole; their (zeroed)
+    # parameters keep every point finite, so a zero weight is enough to remove a pixel.
+    frame_ok = (
+        jnp.isfinite(r_p) & jnp.isfinite(r_c)
+        & jnp.all(jnp.isfinite(B_p), (-2, -1)) & jnp.all(jnp.isfinite(B_c), (-2, -1))
+        & jnp.all(jnp.isfinite(c_p), -1) & jnp.all(jnp.isfinite(c_c), -1)
+    )
+    fo = frame_ok[:, None, None]
+    geo_p = [jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0) for a in (r_p, B_p, c_p)]
+    geo_c = [jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0) for a in (r_c, B_c, c_c)]
+
     def moments(lam):
-        m = mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam)
-        xs = _points_soa(cur.depth, r_c, B_c, c_c, cx, u, v)
-        ys = _points_soa(prev.depth, r_p, B_p, c_p, cy, u, v)
-        ok = m & jnp.isfinite(xs[0] + xs[1] + xs[2] + ys[0] + ys[1] + ys[2])
-        wts = ok.astype(dtype)
-        xs = tuple(jnp.where(ok, a, 0) for a in xs)
-        ys = tuple(jnp.where(ok, b, 0) for b in ys)
-        return _sum_terms(_moment_terms(xs, ys, wts, ok), 3)
+        ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam)
+        # Non-finite depths sit only at masked pixels: zero them once, not per coordinate.
+        xs = _points_soa(jnp.where(ok, cur.depth, 0), *geo_c, cx, u, v)
+        ys = _points_soa(jnp.where(ok, prev.depth, 0), *geo_p, cy, u, v)
+        return _sum_terms(_moment_terms(xs, ys, ok.astype(dtype), ok), 3)
 
     tot = moments(depth_threshold)
     few = tot[18] < min_points

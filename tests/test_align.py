@@ -324,6 +324,15 @@ def test_align_chunk_pair_nan_pixels_never_reach_S(x64):
     assert np.all(np.isfinite(np.asarray(S))) and bool(info.valid)
     rot, se, te = _errors(S, R, t, s)
     assert rot < 1e-9 and se < 1e-9 and te < 1e-9
+    # A frame with a non-finite camera is dropped as a whole (its pixels are not counted).
+    ep = prev.extrinsic.copy()
+    ep[1, 0, 3] = np.nan
+    S2, info2 = align.align_chunk_pair(prev._replace(extrinsic=ep), cur, K_ref, min_points=100)
+    _, n_ref = _reference_pair(prev, cur, K_ref)
+    n_frame1 = _reference_pair(*(f._replace(**{k: getattr(f, k)[1:2] for k in f._fields}) for f in (prev, cur)), K_ref)[1]
+    assert bool(info2.valid) and int(info2.num_points) == n_ref - n_frame1
+    rot, se, te = _errors(S2, R, t, s)
+    assert rot < 1e-9 and se < 1e-9 and te < 1e-9
 
 
 def test_align_chunk_pair_checked_empty_overlap_warns_and_falls_back(x64):
