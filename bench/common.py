@@ -14,8 +14,10 @@ import os
 import pathlib
 import platform
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
+
+from swiftjax.report import markdown_table  # noqa: F401  (re-exported for the bench scripts)
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -45,19 +47,6 @@ def compile_time(jitted: Callable, *args: Any, **kwargs: Any) -> tuple[Callable,
     t0 = time.perf_counter()
     compiled = jitted.lower(*args, **kwargs).compile()
     return compiled, time.perf_counter() - t0
-
-
-def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
-    def fmt(v: Any) -> str:
-        if isinstance(v, float):
-            if v == 0 or 1e-3 <= abs(v) < 1e5:
-                return f"{v:.3g}" if abs(v) < 100 else f"{v:.0f}"
-            return f"{v:.2e}"
-        return str(v)
-
-    lines = ["| " + " | ".join(headers) + " |", "| " + " | ".join("---" for _ in headers) + " |"]
-    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def machine_info() -> dict[str, Any]:

@@ -1,0 +1,299 @@
+"""The ``swiftjax`` command: ``demo``, ``reconstruct``, ``evaluate``, ``export-onnx``.
+
+Bad input ends with a one-line ``swiftjax: error: ...`` and exit status 2, never a
+traceback (``--debug`` shows it).  JAX's persistent compilation cache is enabled
+(``$SWIFTJAX_CACHE_DIR``, default ``~/.cache/swiftjax/jax``), so only the first run of a
+given shape pays for XLA compilation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import pathlib
+import sys
+import time
+import tomllib
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["main"]
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+# ------------------------------------------------------------------------------ set-up
+
+
+def _enable_compilation_cache() -> None:
+    import jax
+
+    cache = os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax"))
+    try:
+        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return  # an unwritable cache only costs compile time
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
+def _add_method_options(parser: argparse.ArgumentParser) -> None:
+    """One ``--option`` per :class:`PipelineConfig` field (default: the config file's, else the paper's)."""
+    from swiftjax.pipeline import PipelineConfig
+
+    group = parser.add_argument_group("method parameters (paper defaults)")
+    for field in dataclasses.fields(PipelineConfig):
+        flag = "--" + field.name.replace("_", "-")
+        default = field.default
+        if isinstance(default, bool):
+            group.add_argument(flag, dest=field.name, action=argparse.BooleanOptionalAction, default=None,
+                               help=f"(default {default})")
+        else:
+            kind = {int: int, float: float}.get(type(default), str)
+            if field.name == "voxel_size":
+                kind = float
+            group.add_argument(flag, dest=field.name, type=kind, default=None, metavar=field.name.upper(),
+                               help=f"(default {default})")
+    parser.add_argument("--config", type=pathlib.Path, help="TOML file of method parameters (options override it)")
+
+
+def _pipeline_config(args: argparse.Namespace) -> Any:
+    from swiftjax.pipeline import PipelineConfig
+
+    values: dict[str, Any] = {}
+    if args.config is not None:
+        try:
+            with open(args.config, "rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError as err:
+            raise CliError(f"config file {args.config} does not exist") from err
+        except tomllib.TOMLDecodeError as err:
+            raise CliError(f"config file {args.config} is not valid TOML: {err}") from err
+        values.update(data.get("swiftjax", data))
+    for field in dataclasses.fields(PipelineConfig):
+        v = getattr(args, field.name, None)
+        if v is not None:
+            values[field.name] = None if (field.name == "robust_loops" and v == "none") else v
+    try:
+        return PipelineConfig.from_dict(values)
+    except (TypeError, ValueError) as err:
+        raise CliError(f"invalid configuration: {err}") from err
+
+
+def _common_run_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--overwrite", action="store_true", help="replace a run directory of another input/config")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+# ---------------------------------------------------------------------------- commands
+
+
+def _print_summary(result: Any) -> None:
+    from swiftjax.pipeline import summary_table
+
+    print(summary_table(result))
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from swiftjax import demo, pipeline
+
+    run = demo.loop_route_run(args.frames, seed=args.seed)
+    config = _pipeline_config(args)
+    result = pipeline.reconstruct(
+        run.predictor, args.out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
+        progress=not args.no_progress,
+    )
+    _print_summary(result)
+    return 0
+
+
+def _load_ground_truth(path: pathlib.Path, fmt: str) -> Any:
+    from swiftjax.io import trajectory
+
+    if not path.exists():
+        raise CliError(f"ground-truth file {path} does not exist")
+    return trajectory.read_kitti(path) if fmt == "kitti" else trajectory.read_tum(path)[1]
+
+
+def _make_runner(args: argparse.Namespace) -> Any:
+    weights = pathlib.Path(args.weights)
+    if not weights.exists():
+        raise CliError(f"weights file {weights} does not exist")
+    if args.backend == "onnx":
+        from inference.runners import OnnxRunner
+
+        if weights.suffix != ".onnx":
+            raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if args.device.startswith("cuda") else None
+        return OnnxRunner(weights, providers=providers)
+    import torch
+
+    from inference import VGGT, VGGTConfig, load_checkpoint
+    from inference.runners import TorchRunner
+
+    model = VGGT(VGGTConfig())
+    load_checkpoint(model, weights)
+    dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[args.dtype]
+    return TorchRunner(model, device=args.device, dtype=dtype)
+
+
+def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from swiftjax import pipeline
+    from swiftjax.io import images
+
+    config = _pipeline_config(args)
+    source = images.validate(images.list_frames(args.input, stride=args.stride), skip_bad=args.skip_bad)
+    gt = _load_ground_truth(args.gt, args.gt_format) if args.gt is not None else None
+    if gt is not None and len(gt) != len(source):
+        raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
+    if len(source) < config.chunk_size:
+        print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
+    runner = _make_runner(args)
+    predictor = pipeline.ImagePredictor(source, runner, mode=args.mode)
+    result = pipeline.reconstruct(
+        predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress
+    )
+    _print_summary(result)
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from swiftjax import evaluation
+    from swiftjax.report import markdown_table
+
+    est = _load_ground_truth(args.estimate, args.format)
+    ref = _load_ground_truth(args.reference, args.format)
+    if len(est) != len(ref):
+        raise CliError(f"{args.estimate} has {len(est)} poses but {args.reference} has {len(ref)}")
+    a = evaluation.ate(est, ref, align=args.align)
+    r = evaluation.rpe(est, ref, delta=args.delta)
+    rows = [
+        ["ATE translation (m)", a.rmse, a.mean, a.median, a.max],
+        [f"RPE translation, delta {args.delta} (m)", *_stats(r.translation)],
+        [f"RPE rotation, delta {args.delta} (deg)", *_stats(np.degrees(r.rotation))],
+    ]
+    print(f"alignment: {args.align} (scale {a.scale:.6g}); {len(est)} poses")
+    print(markdown_table(["metric", "rmse", "mean", "median", "max"], rows))
+    return 0
+
+
+def _stats(x: Any) -> list[float]:
+    import numpy as np
+
+    x = np.asarray(x, np.float64)
+    return [float(np.sqrt(np.mean(x**2))), float(np.mean(x)), float(np.median(x)), float(np.max(x))]
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from inference import VGGT, VGGTConfig, export_onnx, load_checkpoint
+
+    weights = pathlib.Path(args.weights)
+    if not weights.exists():
+        raise CliError(f"weights file {weights} does not exist")
+    model = VGGT(VGGTConfig())
+    load_checkpoint(model, weights)
+    report = export_onnx(model, args.out, frames=args.frames, height=args.height, width=args.width)
+    print(report.summary())
+    return 0
+
+
+# ------------------------------------------------------------------------------ parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="swiftjax", description="SwiftVGGT large-scale reconstruction (JAX geometry core)."
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="synthetic loop route through the full pipeline (no weights needed)")
+    p.add_argument("--frames", type=int, default=None, help="frames of the route (default: all, ~620)")
+    p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
+    p.add_argument("--seed", type=int, default=0)
+    _common_run_options(p)
+    _add_method_options(p)
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("reconstruct", help="images (folder, glob or video) -> trajectory and point cloud")
+    p.add_argument("input", help="image folder, glob pattern or video file")
+    p.add_argument("--weights", required=True, help="VGGT-1B weights (.pt/.pth/.safetensors; .onnx with --backend onnx)")
+    p.add_argument("--out", type=pathlib.Path, required=True)
+    p.add_argument("--backend", choices=("torch", "onnx"), default="torch")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
+    p.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32")
+    p.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
+    p.add_argument("--stride", type=int, default=1, help="use every k-th frame")
+    p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
+    p.add_argument("--gt", type=pathlib.Path, help="ground-truth poses for ATE")
+    p.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti")
+    _common_run_options(p)
+    _add_method_options(p)
+    p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
+    p.add_argument("estimate", type=pathlib.Path)
+    p.add_argument("reference", type=pathlib.Path)
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti")
+    p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3")
+    p.add_argument("--delta", type=int, default=1, help="RPE frame offset")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("export-onnx", help="export VGGT-1B to ONNX for onnxruntime")
+    p.add_argument("--weights", required=True)
+    p.add_argument("--out", type=pathlib.Path, required=True)
+    p.add_argument("--frames", type=int, default=75)
+    p.add_argument("--height", type=int, default=154)
+    p.add_argument("--width", type=int, default=518)
+    p.set_defaults(func=_cmd_export_onnx)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _enable_compilation_cache()
+    from swiftjax.io.images import InputError
+    from swiftjax.io.trajectory import TrajectoryFormatError
+    from swiftjax.pipeline import RunDirError
+
+    user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ValueError, OSError)
+    try:
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            code = args.func(args)
+        if args.command in ("demo", "reconstruct"):
+            print(f"done in {time.perf_counter() - t0:.1f} s")
+        return code
+    except KeyboardInterrupt:
+        print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
+        return 130
+    except user_errors as err:
+        if args.debug:
+            raise
+        print(f"swiftjax: error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except ImportError as err:
+        if args.debug:
+            raise
+        print(f"swiftjax: error: {_one_line(err)} (install the extra: pip install 'swiftjax[inference]')",
+              file=sys.stderr)
+        return 2
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err) or type(err).__name__
+    if isinstance(err, OSError) and err.filename:
+        text = f"{err.strerror or text}: {err.filename}"
+    return " ".join(text.split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

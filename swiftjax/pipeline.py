@@ -1,0 +1,788 @@
+"""The host-level SwiftVGGT pipeline: chunks in, trajectory and point cloud out.
+
+This is the imperative shell around the pure JAX core, and the only place with loops over
+chunks, files and progress bars::
+
+    schedule ─► for each chunk: predict ─► descriptors ─► align with previous ─► chunk store
+            ─► loop detection ─► loop-centric chunks: predict ─► align both halves ─► loop edges
+            ─► Sim(3) pose graph (LM) ─► final pass over the store ─► poses, PLY, COLMAP, metrics
+
+Memory stays flat in the sequence length: one chunk's dense arrays are in memory at a time
+(plus the previous chunk's overlap frames), descriptors are reduced as chunks arrive
+(``[N, d]`` is all that is kept), and dense outputs stream to disk.
+
+Resumability: ``run_dir/manifest.json`` records the configuration, the input fingerprint
+and every finished chunk, edge and loop edge.  Re-running the same command skips finished
+work; a changed input or configuration is refused (:class:`RunDirError`) unless
+``overwrite=True``.  Every file is written atomically (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+import warnings
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from swiftjax import align, camera, chunks, loops, posegraph, sim3
+from swiftjax.io.atomic import atomic_write
+from swiftjax.io.chunk_store import ChunkStore
+from swiftjax.prediction import ChunkPrediction
+
+__all__ = [
+    "PipelineConfig",
+    "Predictor",
+    "ImagePredictor",
+    "OraclePredictor",
+    "RunDirError",
+    "RunResult",
+    "reconstruct",
+    "chain_poses",
+    "summary_table",
+]
+
+MANIFEST_VERSION = 1
+
+
+class RunDirError(RuntimeError):
+    """The run directory belongs to a different input or configuration (or is unusable)."""
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """Every method parameter, with the paper's / authors' defaults (DESIGN.md).
+
+    Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``depth_threshold``
+    (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
+    ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
+    (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold`` (cosine of the
+    whitened descriptors), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
+    ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Pose
+    graph: ``robust_loops`` (``None``, ``"huber"`` or ``"cauchy"`` on loop edges; the
+    authors use none), ``robust_scale``, ``max_lm_steps``.  Output: ``point_conf_ratio``
+    (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
+    subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
+    ``colmap_max_points``.
+    """
+
+    chunk_size: int = 75
+    overlap: int = 30
+    depth_threshold: float = 0.2
+    conf_ratio: float = 0.5
+    min_points: int = 20_000
+    fallback_depth_threshold: float = 0.25
+    loop_depth_threshold: float = 0.4
+    loop_closure: bool = True
+    loop_threshold: float = loops.DEFAULT_THRESHOLD
+    loop_min_separation: int = 100
+    loop_nms_radius: int = 25
+    loop_top_k: int = 8
+    whitening_dim: int = 512
+    whitening_remove: int = 1
+    power_beta: float = 0.5
+    loop_half_window: int = 10
+    robust_loops: str | None = None
+    robust_scale: float = 1.0
+    max_lm_steps: int = 100
+    point_conf_ratio: float = 0.75
+    point_stride: int = 4
+    voxel_size: float | None = None
+    colmap_max_points: int = 200_000
+
+    def __post_init__(self) -> None:
+        if self.chunk_size < 2:
+            raise ValueError(f"chunk_size must be >= 2, got {self.chunk_size}")
+        if not 1 <= self.overlap < self.chunk_size:
+            raise ValueError(
+                f"overlap must satisfy 1 <= overlap < chunk_size ({self.chunk_size}), got {self.overlap}"
+            )
+        if self.robust_loops not in (None, "huber", "cauchy"):
+            raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
+        if self.point_stride < 1:
+            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
+        if self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size:
+            raise ValueError(
+                f"loop_half_window must be in [1, chunk_size / 2], got {self.loop_half_window}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
+        """Build from a dict (e.g. a TOML table); unknown keys are an error naming them."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"unknown configuration keys: {', '.join(unknown)}")
+        return cls(**values)
+
+
+# ------------------------------------------------------------------------------ predictors
+
+
+class Predictor(Protocol):
+    """What the pipeline needs from VGGT (a real runner or the synthetic oracle)."""
+
+    num_frames: int
+
+    def predict(self, frames: np.ndarray) -> ChunkPrediction:
+        """One forward pass over the given global frame indices."""
+        ...
+
+    def fingerprint(self) -> list[Any]:
+        """JSON-able identity of the input (names, sizes, modification times, ...)."""
+        ...
+
+    def frame_names(self) -> list[str]:
+        """A name per frame (COLMAP image names)."""
+        ...
+
+
+class ImagePredictor:
+    """:class:`Predictor` over image files or a video, through an ``inference`` runner.
+
+    Frames are read with :mod:`swiftjax.io.images`, preprocessed as VGGT's loader does
+    (:func:`inference.preprocess.preprocess`, ``mode``) and passed to ``runner.predict``
+    (``inference.TorchRunner`` or ``inference.OnnxRunner``).
+    """
+
+    def __init__(self, source: Any, runner: Any, mode: str = "crop") -> None:
+        self.source = source
+        self.runner = runner
+        self.mode = mode
+        self.num_frames = len(source)
+
+    def predict(self, frames: np.ndarray) -> ChunkPrediction:
+        from inference.preprocess import preprocess
+
+        images = preprocess([self.source.read(int(k)) for k in frames], mode=self.mode)
+        return self.runner.predict(images)
+
+    def fingerprint(self) -> list[Any]:
+        return [list(item) for item in self.source.fingerprint()] + [["mode", self.mode]]
+
+    def frame_names(self) -> list[str]:
+        return list(self.source.names)
+
+
+class OraclePredictor:
+    """:class:`Predictor` over a :class:`swiftjax.synthetic.oracle.VGGTOracle`."""
+
+    def __init__(self, oracle: Any, description: dict[str, Any] | None = None) -> None:
+        self.oracle = oracle
+        self.num_frames = int(oracle.num_frames)
+        self._description = description or {}
+
+    def predict(self, frames: np.ndarray) -> ChunkPrediction:
+        return self.oracle.predict_chunk(np.asarray(frames))
+
+    def fingerprint(self) -> list[Any]:
+        return [["synthetic", self.num_frames, self.oracle.seed, self._description]]
+
+    def frame_names(self) -> list[str]:
+        return [f"{k:06d}.png" for k in range(self.num_frames)]
+
+
+# ------------------------------------------------------------------------------- manifest
+
+
+class _Manifest:
+    """``run_dir/manifest.json``: configuration, input fingerprint and finished work."""
+
+    def __init__(self, path: pathlib.Path, data: dict[str, Any]) -> None:
+        self.path = path
+        self.data = data
+
+    @classmethod
+    def open(
+        cls, run_dir: pathlib.Path, config: dict[str, Any], inputs: list[Any], overwrite: bool
+    ) -> _Manifest:
+        path = run_dir / "manifest.json"
+        fresh = {
+            "version": MANIFEST_VERSION,
+            "config": config,
+            "inputs": inputs,
+            "chunks": {},
+            "edges": {},
+            "loops": None,
+            "loop_edges": {},
+        }
+        if path.exists() and not overwrite:
+            try:
+                data = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError) as err:
+                raise RunDirError(f"{path} is unreadable ({err}); use --overwrite to start afresh") from err
+            if data.get("version") != MANIFEST_VERSION:
+                raise RunDirError(f"{path} has manifest version {data.get('version')}; use --overwrite")
+            if data.get("config") != config:
+                changed = sorted(
+                    k for k in set(config) | set(data.get("config", {}))
+                    if config.get(k) != data.get("config", {}).get(k)
+                )
+                raise RunDirError(
+                    f"{run_dir} holds a run with a different configuration ({', '.join(changed)}); "
+                    "use --overwrite to replace it or choose another --out"
+                )
+            if data.get("inputs") != json.loads(json.dumps(inputs)):
+                raise RunDirError(
+                    f"{run_dir} holds a run of different input frames (names, sizes or modification "
+                    "times changed); use --overwrite to replace it or choose another --out"
+                )
+            return cls(path, data)
+        manifest = cls(path, fresh)
+        manifest.save()
+        return manifest
+
+    def save(self) -> None:
+        with atomic_write(self.path) as f:
+            json.dump(self.data, f, indent=1)
+
+
+# ------------------------------------------------------------------------------ results
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What :func:`reconstruct` produced (also written to ``metrics.json``)."""
+
+    run_dir: pathlib.Path
+    num_frames: int
+    num_chunks: int
+    loops: list[dict[str, Any]]
+    chunk_poses: np.ndarray  # [T, 8] optimised chunk-to-world
+    chunk_poses_no_loops: np.ndarray  # [T, 8] chained alignment only
+    cam_to_world: np.ndarray  # [N, 4, 4] (rotation orthonormal)
+    cam_to_world_no_loops: np.ndarray
+    intrinsics: np.ndarray  # [N, 3, 3]
+    timings: dict[str, float]
+    metrics: dict[str, Any]
+
+
+# ------------------------------------------------------------------------- pure helpers
+
+
+def chain_poses(relative: np.ndarray) -> np.ndarray:
+    """Chunk-to-world poses ``S_0 = I, S_{t+1} = S_t S_{t->t+1}``: ``[T-1, 8] -> [T, 8]`` float64."""
+    relative = np.asarray(relative, np.float64).reshape(-1, 8)
+    with jax.enable_x64(True):
+
+        def step(s, r):
+            nxt = sim3.normalize(sim3.compose(s, r))
+            return nxt, nxt
+
+        first = sim3.identity((), jnp.float64)
+        if relative.shape[0] == 0:
+            return np.asarray(first)[None]
+        _, rest = jax.lax.scan(step, first, jnp.asarray(relative))
+        return np.concatenate([np.asarray(first)[None], np.asarray(rest)], axis=0)
+
+
+@jax.jit
+def _world_cameras(chunk_pose: jax.Array, extrinsic: jax.Array) -> jax.Array:
+    """Camera-to-world ``[S, 4, 4]`` with orthonormal rotation: ``S_t`` composed with each camera.
+
+    ``S_t`` scales the chunk; the camera's orientation is ``R_t R_c`` and its centre
+    ``S_t(c)``.  Recompiles per chunk length and dtype.
+    """
+    c2w = camera.camera_to_world(extrinsic)
+    R, t, _ = sim3.to_rst(chunk_pose)
+    rot = R @ c2w[..., :3, :3]
+    centre = sim3.act(chunk_pose, c2w[..., :3, 3])
+    top = jnp.concatenate([rot, centre[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], rot.dtype), (*rot.shape[:-2], 1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
+
+
+@jax.jit
+def _frame_points(
+    depth: jax.Array, conf: jax.Array, K: jax.Array, K_ref: jax.Array, cam_to_chunk: jax.Array,
+    chunk_pose: jax.Array, conf_ratio: jax.Array,
+) -> tuple[jax.Array, jax.Array]:
+    """World points ``[S, h, w, 3]`` and keep-mask of (subsampled) depth maps ``[S, h, w]``.
+
+    Depth is normalised to ``K_ref`` (eq. 1) and unprojected with ``K_ref`` as in the
+    alignment; pixels are kept when finite and ``conf >= conf_ratio x frame mean``.  The
+    caller subsamples pixels before the call (static strides): one compile per shape.
+    """
+    d = camera.normalize_depth(depth, K, K_ref)
+    pts = camera.unproject(d, K_ref, cam_to_chunk)
+    pts = sim3.act(chunk_pose[None, None, None, :], pts)
+    finite = jnp.isfinite(conf)
+    mean = jnp.sum(jnp.where(finite, conf, 0), axis=(-2, -1), keepdims=True) / jnp.maximum(
+        jnp.sum(finite, axis=(-2, -1), keepdims=True), 1
+    )
+    keep = finite & (conf >= conf_ratio * mean) & jnp.all(jnp.isfinite(pts), axis=-1)
+    return pts, keep
+
+
+def _overlap(pred: ChunkPrediction, index: slice | np.ndarray) -> align.ChunkFrames:
+    return align.ChunkFrames(
+        pred.depth[index], pred.conf[index], pred.intrinsic[index], pred.extrinsic[index]
+    )
+
+
+# ---------------------------------------------------------------------------- the pipeline
+
+
+class _Stages:
+    """Wall-clock time per stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    def add(self, name: str, seconds: float) -> None:
+        self.seconds[name] = self.seconds.get(name, 0.0) + seconds
+
+
+def _progress(iterable: Iterable, enabled: bool, **kwargs: Any) -> Iterable:
+    if not enabled:
+        return iterable
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, dynamic_ncols=True, **kwargs)
+
+
+def _with_descriptors(pred: ChunkPrediction) -> ChunkPrediction:
+    """Reduce patch tokens to per-frame descriptors at once (tokens are never kept)."""
+    if pred.descriptors is not None:
+        return dataclasses.replace(pred, patch_tokens=None)
+    if pred.patch_tokens is None:
+        raise ValueError("the predictor returned neither descriptors nor patch tokens")
+    g = np.asarray(loops.frame_descriptor(jnp.asarray(pred.patch_tokens)))
+    return dataclasses.replace(pred, descriptors=g, patch_tokens=None)
+
+
+def _align_options(config: PipelineConfig, loop: bool) -> dict[str, Any]:
+    return dict(
+        depth_threshold=config.loop_depth_threshold if loop else config.depth_threshold,
+        conf_ratio=config.conf_ratio,
+        min_points=config.min_points,
+        fallback_depth_threshold=max(
+            config.fallback_depth_threshold, config.loop_depth_threshold if loop else 0.0
+        ),
+    )
+
+
+def _info_dict(info: align.AlignInfo) -> dict[str, Any]:
+    return {
+        "num_points": int(info.num_points),
+        "fraction_used": float(info.fraction_used),
+        "rms": float(info.rms),
+        "valid": bool(info.valid),
+        "used_fallback_threshold": bool(info.used_fallback_threshold),
+        "pose_fallback": bool(info.pose_fallback),
+    }
+
+
+def reconstruct(
+    predictor: Predictor,
+    run_dir: str | pathlib.Path,
+    config: PipelineConfig = PipelineConfig(),
+    *,
+    ground_truth: np.ndarray | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    timestamps: Sequence[float] | None = None,
+    log: Callable[[str], None] = print,
+) -> RunResult:
+    """Run SwiftVGGT over every frame of ``predictor`` and write the outputs to ``run_dir``.
+
+    Args:
+        predictor: a :class:`Predictor` (e.g. :class:`OraclePredictor`, or
+            ``inference.runners``' image predictor).
+        run_dir: output folder (created; resumable, see the module docstring).
+        config: method parameters.
+        ground_truth: optional ``[N, 4, 4]`` camera-to-world reference for ATE/RPE.
+        overwrite: replace a run directory that belongs to another input/configuration.
+        progress: show tqdm progress bars.
+        timestamps: ``[N]`` times for ``poses_tum.txt`` (default: the frame index).
+        log: where one-line messages go.
+
+    Returns:
+        :class:`RunResult`; the files are ``poses_kitti.txt``, ``poses_tum.txt``,
+        ``intrinsics.txt``, ``points.ply``, ``loops.txt``, ``trajectory.png``,
+        ``metrics.json``, ``colmap/{cameras,images,points3D}.txt`` and the chunk store.
+    """
+    run_dir = pathlib.Path(run_dir)
+    n = int(predictor.num_frames)
+    if n < 1:
+        raise ValueError("the input has no frames")
+    if ground_truth is not None:
+        ground_truth = np.asarray(ground_truth, np.float64)
+        if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
+            raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise RunDirError(f"cannot create output directory {run_dir}: {err.strerror}") from err
+    if not _writable(run_dir):
+        raise RunDirError(f"output directory {run_dir} is not writable")
+
+    schedule = chunks.chunk_schedule(n, config.chunk_size, config.overlap)
+    manifest = _Manifest.open(run_dir, config.to_dict(), predictor.fingerprint(), overwrite)
+    store = ChunkStore(run_dir)
+    stages = _Stages()
+    T = schedule.num_chunks
+
+    # ----------------------------------------------------------------- temporal chunks
+    descriptors: np.ndarray | None = None
+    relative = np.zeros((max(T - 1, 0), 8))
+    align_infos: list[dict[str, Any]] = []
+    K_ref: np.ndarray | None = None
+    prev_tail: align.ChunkFrames | None = None
+    for t in _progress(range(T), progress, desc="chunks", unit="chunk"):
+        frames = schedule.frames(t)
+        key = str(t)
+        t0 = time.perf_counter()
+        if manifest.data["chunks"].get(key) and store.exists("chunk", t):
+            pred = store.load("chunk", t)
+        else:
+            pred = _with_descriptors(predictor.predict(frames))
+            if pred.num_frames != len(frames):
+                raise ValueError(
+                    f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}"
+                )
+            store.save("chunk", t, pred, {"frames": frames})
+            manifest.data["chunks"][key] = True
+            manifest.save()
+        stages.add("predict", time.perf_counter() - t0)
+
+        if descriptors is None:
+            descriptors = np.zeros((n, pred.descriptors.shape[1]), np.float32)
+        descriptors[frames] = pred.descriptors
+        if K_ref is None:
+            K_ref = np.asarray(pred.intrinsic[0], np.float64)
+
+        t0 = time.perf_counter()
+        if t > 0:
+            edge = manifest.data["edges"].get(str(t - 1))
+            if edge is None:
+                head = _overlap(pred, slice(0, config.overlap))
+                S, info = align.align_chunk_pair_checked(
+                    prev_tail, head, K_ref, name=f"chunks {t - 1}/{t}", **_align_options(config, False)
+                )
+                edge = {"S": np.asarray(S, np.float64).tolist(), **_info_dict(info)}
+                manifest.data["edges"][str(t - 1)] = edge
+                manifest.save()
+            relative[t - 1] = edge["S"]
+            align_infos.append(edge)
+        prev_tail = _overlap(pred, slice(pred.num_frames - config.overlap, pred.num_frames))
+        stages.add("align", time.perf_counter() - t0)
+        del pred
+    assert descriptors is not None and K_ref is not None
+    chunk_poses_no_loops = chain_poses(relative)
+
+    # --------------------------------------------------------------------- loop closure
+    loop_records: list[dict[str, Any]] = []
+    loop_edges: list[tuple[int, int, np.ndarray]] = []
+    if config.loop_closure and T > 2:
+        t0 = time.perf_counter()
+        found = loops.find_loops(
+            descriptors,
+            schedule,
+            threshold=config.loop_threshold,
+            beta=config.power_beta,
+            remove=config.whitening_remove,
+            dim=config.whitening_dim,
+            min_separation=config.loop_min_separation,
+            nms_radius=config.loop_nms_radius,
+            top_k=config.loop_top_k,
+            half_window=config.loop_half_window,
+        )
+        # A loop between neighbouring chunks duplicates their temporal edge: drop it.
+        found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
+        stages.add("loop detection", time.perf_counter() - t0)
+
+        t0 = time.perf_counter()
+        hw2 = 2 * config.loop_half_window
+        for lp in _progress(found, progress, desc="loop chunks", unit="loop"):
+            key = f"{lp.i}-{lp.j}"
+            record = manifest.data["loop_edges"].get(key)
+            if record is None:
+                pred = predictor.predict(lp.frames)
+                halves = []
+                for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
+                    chunk_pred = store.load("chunk", c)
+                    local = lp.frames[half] - schedule.starts[c]
+                    S, info = align.align_chunk_pair_checked(
+                        _overlap(chunk_pred, local), _overlap(pred, half), K_ref,
+                        name=f"loop ({lp.i}, {lp.j}) to chunk {c}", **_align_options(config, True),
+                    )
+                    halves.append((np.asarray(S, np.float64), _info_dict(info)))
+                with jax.enable_x64(True):
+                    Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
+                record = {
+                    "i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i,
+                    "chunk_j": lp.chunk_j, "Z": Z.tolist(),
+                    "align_i": halves[0][1], "align_j": halves[1][1],
+                }
+                manifest.data["loop_edges"][key] = record
+                manifest.save()
+            loop_records.append(record)
+            # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
+            loop_edges.append((record["chunk_j"], record["chunk_i"], np.asarray(record["Z"])))
+        stages.add("loop chunks", time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------------ pose graph
+    t0 = time.perf_counter()
+    graph_metrics: dict[str, Any] = {}
+    if loop_edges:
+        edges = [(t, t + 1) for t in range(T - 1)] + [(a, b) for a, b, _ in loop_edges]
+        meas = np.concatenate([relative, np.stack([z for _, _, z in loop_edges])])
+        robust = np.arange(len(edges)) >= T - 1
+        with jax.enable_x64(True):
+            problem = posegraph.Problem(
+                jnp.asarray(chunk_poses_no_loops), np.asarray(edges, np.int32), jnp.asarray(meas),
+                robust=robust,
+            )
+            res = posegraph.optimize(
+                problem, max_steps=config.max_lm_steps, kernel=config.robust_loops,
+                kernel_scale=config.robust_scale,
+            )
+            chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
+        graph_metrics = {
+            "cost_initial": res.cost_initial, "cost_final": res.cost_final,
+            "iterations": res.num_steps, "converged": res.converged, "status": res.status,
+            "compile_seconds": res.compile_seconds, "solve_seconds": res.solve_seconds,
+        }
+        if not res.converged:
+            warnings.warn(f"pose graph did not converge ({res.status})", RuntimeWarning, stacklevel=2)
+    else:
+        chunk_poses = chunk_poses_no_loops
+    stages.add("pose graph", time.perf_counter() - t0)
+
+    # ---------------------------------------------------------------------------- export
+    t0 = time.perf_counter()
+    exported = _export(
+        predictor, run_dir, schedule, store, config, K_ref, chunk_poses, chunk_poses_no_loops,
+        progress, timestamps,
+    )
+    _write_loops(run_dir / "loops.txt", loop_records)
+    stages.add("export", time.perf_counter() - t0)
+
+    metrics = _metrics(
+        n, T, loop_records, align_infos, graph_metrics, stages.seconds, exported, ground_truth
+    )
+    with atomic_write(run_dir / "metrics.json") as f:
+        json.dump(metrics, f, indent=1)
+    _plot(run_dir / "trajectory.png", exported, ground_truth, loop_records)
+    return RunResult(
+        run_dir=run_dir,
+        num_frames=n,
+        num_chunks=T,
+        loops=loop_records,
+        chunk_poses=chunk_poses,
+        chunk_poses_no_loops=chunk_poses_no_loops,
+        cam_to_world=exported["cam_to_world"],
+        cam_to_world_no_loops=exported["cam_to_world_no_loops"],
+        intrinsics=exported["intrinsics"],
+        timings=dict(stages.seconds),
+        metrics=metrics,
+    )
+
+
+def _writable(path: pathlib.Path) -> bool:
+    probe = path / ".swiftjax-write-test"
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+        return True
+    except OSError:
+        return False
+
+
+def _export(
+    predictor: Predictor,
+    run_dir: pathlib.Path,
+    schedule: chunks.ChunkSchedule,
+    store: ChunkStore,
+    config: PipelineConfig,
+    K_ref: np.ndarray,
+    chunk_poses: np.ndarray,
+    chunk_poses_no_loops: np.ndarray,
+    progress: bool,
+    timestamps: Sequence[float] | None,
+) -> dict[str, Any]:
+    """The final pass over the chunk store: world poses, points, COLMAP model."""
+    from swiftjax.io import colmap, ply, trajectory
+
+    n = schedule.n_frames
+    owner = np.searchsorted(schedule.starts, np.arange(n), side="right") - 1  # later chunk wins
+    c2w = np.zeros((n, 4, 4))
+    c2w_no_loops = np.zeros((n, 4, 4))
+    intrinsics = np.zeros((n, 3, 3))
+    stride = config.point_stride
+    rng = np.random.default_rng(0)
+    colmap_pts: list[np.ndarray] = []
+    colmap_rgb: list[np.ndarray] = []
+    image_hw: tuple[int, int] | None = None
+    total_points = 0
+    with ply.PlyStreamWriter(run_dir / "points.ply") as cloud:
+        for t in _progress(range(schedule.num_chunks), progress, desc="export", unit="chunk"):
+            pred = store.load("chunk", t)
+            image_hw = pred.image_hw
+            frames = schedule.frames(t)
+            own = owner[frames] == t
+            local = np.nonzero(own)[0]
+            ext = jnp.asarray(pred.extrinsic[local], jnp.float32)
+            with jax.enable_x64(True):
+                c2w[frames[own]] = np.asarray(
+                    _world_cameras(jnp.asarray(chunk_poses[t]), jnp.asarray(pred.extrinsic[local], jnp.float64))
+                )
+                c2w_no_loops[frames[own]] = np.asarray(
+                    _world_cameras(
+                        jnp.asarray(chunk_poses_no_loops[t]), jnp.asarray(pred.extrinsic[local], jnp.float64)
+                    )
+                )
+            intrinsics[frames[own]] = pred.intrinsic[local]
+
+            # Points of the frames this chunk owns, pixel grid subsampled by `stride`.
+            depth = pred.depth[local][:, ::stride, ::stride]
+            conf = pred.conf[local][:, ::stride, ::stride]
+            K = pred.intrinsic[local].astype(np.float32)
+            scale_px = np.diag([1.0 / stride, 1.0 / stride, 1.0]).astype(np.float32)
+            K_sub = scale_px @ K  # the subsampled grid's intrinsics
+            K_ref_sub = scale_px @ K_ref.astype(np.float32)
+            pts, keep = _frame_points(
+                jnp.asarray(depth), jnp.asarray(conf), jnp.asarray(K_sub), jnp.asarray(K_ref_sub),
+                camera.camera_to_world(ext), jnp.asarray(chunk_poses[t], jnp.float32),
+                jnp.float32(config.point_conf_ratio),
+            )
+            keep = np.asarray(keep)
+            xyz = np.asarray(pts)[keep]
+            cf = conf[keep]
+            if pred.images is not None:
+                rgb = pred.images[local][:, ::stride, ::stride][keep]
+            else:
+                rgb = np.full((xyz.shape[0], 3), 200, np.uint8)
+            if config.voxel_size:
+                down = ply.voxel_downsample(xyz, rgb, cf, config.voxel_size)
+                xyz, rgb, cf = down.points, down.colors, down.conf
+            cloud.append(xyz.astype(np.float32), rgb, cf.astype(np.float32))
+            total_points += xyz.shape[0]
+            # A uniform sample for COLMAP's points3D.txt (text, slow for millions of points):
+            # twice the budget over all pixels in expectation, cut to the budget at the end.
+            take = rng.random(xyz.shape[0]) < 2.0 * config.colmap_max_points / max(1, n * depth[0].size)
+            colmap_pts.append(xyz[take])
+            colmap_rgb.append(rgb[take])
+            del pred
+
+    ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
+    trajectory.write_kitti(run_dir / "poses_kitti.txt", c2w)
+    trajectory.write_tum(run_dir / "poses_tum.txt", ts, c2w)
+    _write_intrinsics(run_dir / "intrinsics.txt", intrinsics)
+    pts_all = np.concatenate(colmap_pts) if colmap_pts else np.zeros((0, 3))
+    rgb_all = np.concatenate(colmap_rgb) if colmap_rgb else np.zeros((0, 3), np.uint8)
+    if pts_all.shape[0] > config.colmap_max_points:
+        idx = np.sort(rng.choice(pts_all.shape[0], config.colmap_max_points, replace=False))
+        pts_all, rgb_all = pts_all[idx], rgb_all[idx]
+    assert image_hw is not None
+    h, w = image_hw
+    # After depth normalisation every frame shares K_ref (as the exported points do).
+    colmap.write_colmap_text(
+        run_dir / "colmap", c2w, np.broadcast_to(K_ref, (n, 3, 3)), predictor.frame_names(),
+        image_size=(w, h), points=pts_all, colors=rgb_all,
+    )
+    return {
+        "cam_to_world": c2w,
+        "cam_to_world_no_loops": c2w_no_loops,
+        "intrinsics": intrinsics,
+        "num_points": total_points,
+    }
+
+
+def _write_intrinsics(path: pathlib.Path, intrinsics: np.ndarray) -> None:
+    """One line per frame: ``fx fy cx cy`` (VGGT's predicted intrinsics at the model's resolution)."""
+    with atomic_write(path) as f:
+        f.write("# frame fx fy cx cy (pixels; principal point with integer pixel centres)\n")
+        for k, K in enumerate(intrinsics):
+            f.write(f"{k} {K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
+
+
+def _write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
+    with atomic_write(path) as f:
+        f.write("# i j score chunk_i chunk_j points_i points_j\n")
+        for r in records:
+            f.write(
+                f"{r['i']} {r['j']} {r['score']:.6f} {r['chunk_i']} {r['chunk_j']} "
+                f"{r['align_i']['num_points']} {r['align_j']['num_points']}\n"
+            )
+
+
+def _metrics(
+    n: int,
+    T: int,
+    loop_records: list[dict[str, Any]],
+    align_infos: list[dict[str, Any]],
+    graph: dict[str, Any],
+    timings: dict[str, float],
+    exported: dict[str, Any],
+    ground_truth: np.ndarray | None,
+) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "frames": n,
+        "chunks": T,
+        "loops": len(loop_records),
+        "points": int(exported["num_points"]),
+        "timings_seconds": timings,
+        "alignment": {
+            "pairs": len(align_infos),
+            "mean_points": float(np.mean([a["num_points"] for a in align_infos])) if align_infos else 0.0,
+            "fallback_threshold_used": int(sum(a["used_fallback_threshold"] for a in align_infos)),
+            "pose_fallbacks": int(sum(a["pose_fallback"] for a in align_infos)),
+        },
+        "pose_graph": graph,
+    }
+    if ground_truth is not None:
+        from swiftjax import evaluation
+
+        gt = ground_truth[:, :3, 3]
+        out["ate_rmse"] = evaluation.ate(exported["cam_to_world"][:, :3, 3], gt).rmse
+        out["ate_rmse_no_loops"] = evaluation.ate(exported["cam_to_world_no_loops"][:, :3, 3], gt).rmse
+    return out
+
+
+def _plot(
+    path: pathlib.Path, exported: dict[str, Any], ground_truth: np.ndarray | None,
+    loop_records: list[dict[str, Any]],
+) -> None:
+    from swiftjax.io import plot
+
+    plot.plot_trajectory(
+        path,
+        exported["cam_to_world"][:, :3, 3],
+        reference=None if ground_truth is None else ground_truth[:, :3, 3],
+        loops=[(r["i"], r["j"]) for r in loop_records],
+        extra={"no loop closure": exported["cam_to_world_no_loops"][:, :3, 3]},
+    )
+
+
+def summary_table(result: RunResult) -> str:
+    """The end-of-run summary: sizes, time per stage, ATE with and without loop closure."""
+    from swiftjax.report import markdown_table
+
+    m = result.metrics
+    rows: list[list[Any]] = [
+        ["frames", m["frames"]],
+        ["chunks", m["chunks"]],
+        ["loops closed", m["loops"]],
+        ["points written", m["points"]],
+    ]
+    rows += [[f"time: {k} (s)", float(v)] for k, v in m["timings_seconds"].items()]
+    if "ate_rmse" in m:
+        rows += [
+            ["ATE rmse, loop closure (m)", float(m["ate_rmse"])],
+            ["ATE rmse, no loop closure (m)", float(m["ate_rmse_no_loops"])],
+        ]
+    return f"{result.run_dir}\n" + markdown_table(["", "value"], rows)
