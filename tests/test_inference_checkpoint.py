@@ -84,7 +84,7 @@ def test_wrong_keys_are_all_listed(tmp_path: pathlib.Path) -> None:
     _assert_same_weights(model, before)  # nothing was half-loaded
 
 
-def test_config_mismatch_is_reported(tmp_path: pathlib.Path, ) -> None:
+def test_config_mismatch_is_reported(tmp_path: pathlib.Path) -> None:
     path = tmp_path / "w.safetensors"
     save_file(_state(), path)
     with pytest.raises(CheckpointError, match="shape mismatch") as err:
