@@ -85,8 +85,8 @@ class OracleNoise:
 
     depth_units: float = 2.0
     scale_jitter: float = 0.03
-    drift_rot: float = 4e-5  # rad per frame, per axis
-    drift_scale: float = 2e-4  # log-scale per frame
+    drift_rot: float = 1e-4  # rad per frame, per axis
+    drift_scale: float = 4e-4  # log-scale per frame
     pose_rot: float = 2e-4
     pose_trans: float = 2e-3
     focal: float = 0.02
