@@ -162,8 +162,6 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from swiftjax import evaluation
     from swiftjax.report import markdown_table
 
@@ -172,22 +170,19 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if len(est) != len(ref):
         raise CliError(f"{args.estimate} has {len(est)} poses but {args.reference} has {len(ref)}")
     a = evaluation.ate(est, ref, align=args.align)
-    r = evaluation.rpe(est, ref, delta=args.delta)
+    r = evaluation.rpe(est, ref, delta=args.delta, align=args.align)
     rows = [
         ["ATE translation (m)", a.rmse, a.mean, a.median, a.max],
         [f"RPE translation, delta {args.delta} (m)", *_stats(r.translation)],
-        [f"RPE rotation, delta {args.delta} (deg)", *_stats(np.degrees(r.rotation))],
+        [f"RPE rotation, delta {args.delta} (deg)", *_stats(r.rotation_deg)],
     ]
     print(f"alignment: {args.align} (scale {a.scale:.6g}); {len(est)} poses")
     print(markdown_table(["metric", "rmse", "mean", "median", "max"], rows))
     return 0
 
 
-def _stats(x: Any) -> list[float]:
-    import numpy as np
-
-    x = np.asarray(x, np.float64)
-    return [float(np.sqrt(np.mean(x**2))), float(np.mean(x)), float(np.median(x)), float(np.max(x))]
+def _stats(s: Any) -> list[float]:
+    return [float(s.rmse), float(s.mean), float(s.median), float(s.max)]
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
