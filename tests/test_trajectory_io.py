@@ -130,3 +130,19 @@ def test_writers_reject_bad_input(tmp_path):
     with pytest.raises(ValueError, match="timestamps must have shape"):
         write_tum(tmp_path / "x.txt", np.zeros(3), _random_poses(2))
     assert not (tmp_path / "x.txt").exists()
+
+
+def test_plot_trajectory_writes_a_png(tmp_path, shared_dir):
+    from swiftjax.io.plot import plot_trajectory, top_view_axes
+
+    P = read_kitti(shared_dir / "data/trajectories/KITTI_00_gt.txt")[::10]
+    assert top_view_axes(P[:, :3, 3]) == (0, 2)  # KITTI drives in the x-z plane
+    est = P.copy()
+    est[:, :3, 3] += np.linspace(0, 20, len(P))[:, None]
+    out = tmp_path / "traj.png"
+    plot_trajectory(out, est, reference=P, loops=np.array([[400, 10], [450, 20]]), title="KITTI 00")
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    with pytest.raises(ValueError, match="loops index frames outside"):
+        plot_trajectory(tmp_path / "x.png", est, loops=np.array([[0, len(est)]]))
+    assert not (tmp_path / "x.png").exists()
