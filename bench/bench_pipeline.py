@@ -1,0 +1,101 @@
+"""Synthetic KITTI 00: the whole pipeline along the real KITTI 00 trajectory through the oracle.
+
+4,541 frames at 518x154, B = 75, O = 30.  Each configuration runs in a fresh child process
+(so peak RSS is that run's own) with a warm persistent compilation cache (a first,
+untimed run fills it): time per stage, peak RSS, ATE with and without loop closure.
+Peak RSS is measured at 600 and 4,541 frames to show it does not grow with the sequence.
+Targets: geometry stages (everything but the predictor) under 24 s, peak RSS under 2 GB,
+loop closure cutting ATE at least in half.
+
+    python bench/bench_pipeline.py [--frames 600 4541] [--skip-warmup]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import resource
+import subprocess
+import sys
+import tempfile
+
+from common import markdown_table, write_results
+
+HERE = pathlib.Path(__file__).resolve().parent
+CHILD = r"""
+import json, os, pathlib, resource, sys, time
+import jax
+jax.config.update("jax_compilation_cache_dir", os.environ["SWIFTJAX_CACHE_DIR"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+from swiftjax import demo, pipeline
+shared, frames, out = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+run = demo.kitti00_run(shared, frames=frames)
+t0 = time.perf_counter()
+res = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(), ground_truth=run.ground_truth,
+                           progress=False, overwrite=True)
+wall = time.perf_counter() - t0
+peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({"metrics": res.metrics, "wall": wall, "peak_rss_mb": peak_mb}))
+"""
+
+
+def _shared() -> pathlib.Path:
+    env = os.environ.get("SWIFTJAX_SHARED")
+    path = pathlib.Path(env) if env else HERE.parent.parent / "shared"
+    if not (path / "data" / "trajectories" / "KITTI_00_gt.txt").exists():
+        sys.exit(f"KITTI 00 ground truth not found under {path}: set SWIFTJAX_SHARED")
+    return path
+
+
+def run_child(frames: int, cache: str, out: str) -> dict:
+    env = dict(os.environ, SWIFTJAX_CACHE_DIR=cache)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, str(_shared()), str(frames), out],
+        capture_output=True, text=True, env=env, cwd=HERE,
+    )
+    if proc.returncode != 0:
+        sys.exit(f"child run failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, nargs="+", default=[600, 4541])
+    parser.add_argument("--skip-warmup", action="store_true", help="do not fill the compile cache first")
+    args = parser.parse_args()
+
+    cache = os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax"))
+    records = []
+    with tempfile.TemporaryDirectory() as tmp:
+        if not args.skip_warmup:
+            run_child(min(args.frames), cache, os.path.join(tmp, "warmup"))
+        for frames in args.frames:
+            rec = run_child(frames, cache, os.path.join(tmp, f"run{frames}"))
+            rec["frames"] = frames
+            records.append(rec)
+            m = rec["metrics"]
+            print(f"{frames} frames: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
+                  f"loops {m['loops']}, ATE {m['ate_rmse']:.2f} m (no loops {m['ate_rmse_no_loops']:.2f} m)",
+                  flush=True)
+
+    stages = ["predict", "align", "loop detection", "loop chunks", "pose graph", "export"]
+    rows = []
+    for rec in records:
+        t = rec["metrics"]["timings_seconds"]
+        geometry = sum(v for k, v in t.items() if k != "predict")
+        m = rec["metrics"]
+        rows.append(
+            [rec["frames"], m["chunks"], m["loops"], *[float(t.get(s, 0.0)) for s in stages], geometry,
+             rec["peak_rss_mb"], m["ate_rmse_no_loops"], m["ate_rmse"], m["ate_rmse_no_loops"] / m["ate_rmse"]]
+        )
+    headers = ["frames", "chunks", "loops", *[f"{s} s" for s in stages], "geometry s (all but predict)",
+               "peak RSS MB", "ATE no loops m", "ATE loops m", "ATE ratio"]
+    print(markdown_table(headers, rows))
+    path = write_results("pipeline", {"runs": records})
+    print(f"\nwrote {path}")
+
+
+if __name__ == "__main__":
+    main()
