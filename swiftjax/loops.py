@@ -262,8 +262,10 @@ def _default_max_loops(n: int, nms_radius: int, top_k: int, nms: str) -> int:
 
 
 def _default_block_rows(n: int) -> int:
-    # Keep one [T, N] float32 similarity tile near 64 MB.
-    return int(max(1, min(n, (16 * 1024 * 1024) // max(n, 1))))
+    # Small tiles keep the masked [T, N] similarity cache-resident between the GEMM, the mask
+    # and top-k; measured on the 2-core dev CPU (bench/bench_loops.py): at N = 4,541 tiles of
+    # 128 rows run ~2x faster than one dense tile, at N = 20,000 tiles of 256 rows are best.
+    return min(n, 128 if n <= 8192 else 256)
 
 
 def detect_loops(
@@ -294,8 +296,9 @@ def detect_loops(
 
     The separation mask is applied *before* the per-row top-k (otherwise a frame's top-k are
     its temporal neighbours and no loop survives).  The ``N × N`` matrix is never built:
-    rows are processed in tiles of ``block_rows`` (default: a ~64 MB tile), keeping only each
-    row's top-k; the result is identical for every tile size.  NMS is a ``lax.while_loop``
+    rows are processed in tiles of ``block_rows`` (default 128 rows, 256 above N = 8,192),
+    keeping only each row's top-k; the pairs are identical for every tile size (the scores
+    can differ in the last float32 bit: the GEMM rounds differently per tile shape).  NMS is a ``lax.while_loop``
     over the valid candidates (it stops at the first candidate below the threshold or after
     ``max_loops`` acceptances).
 

@@ -254,7 +254,12 @@ def ground_truth_loops(
         return np.zeros((0, 2), np.int64)
     pairs = np.sort(pairs, axis=1)[:, ::-1].astype(np.int64)  # i > j
     cos = np.einsum("nc,nc->n", v[pairs[:, 0]], v[pairs[:, 1]])
-    keep = (cos > np.cos(np.deg2rad(max_angle_deg))) & (pairs[:, 0] - pairs[:, 1] > min_separation)
+    dist = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)  # strict: the tree uses <=
+    keep = (
+        (dist < max_distance)
+        & (cos > np.cos(np.deg2rad(max_angle_deg)))
+        & (pairs[:, 0] - pairs[:, 1] > min_separation)
+    )
     pairs = pairs[keep]
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
