@@ -135,7 +135,8 @@ def _make_runner(args: argparse.Namespace) -> Any:
     from inference import VGGT, VGGTConfig, load_checkpoint
     from inference.runners import TorchRunner
 
-    model = VGGT(VGGTConfig())
+    with torch.device("meta"):  # no 5 GB allocation: load_checkpoint assigns the (mmapped) tensors
+        model = VGGT(VGGTConfig())
     load_checkpoint(model, weights)
     dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[args.dtype]
     return TorchRunner(model, device=args.device, dtype=dtype)
@@ -186,12 +187,15 @@ def _stats(s: Any) -> list[float]:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    import torch
+
     from inference import VGGT, VGGTConfig, export_onnx, load_checkpoint
 
     weights = pathlib.Path(args.weights)
     if not weights.exists():
         raise CliError(f"weights file {weights} does not exist")
-    model = VGGT(VGGTConfig())
+    with torch.device("meta"):
+        model = VGGT(VGGTConfig())
     load_checkpoint(model, weights)
     report = export_onnx(model, args.out, frames=args.frames, height=args.height, width=args.width)
     print(report.summary())
