@@ -764,17 +764,20 @@ def _plot(
     path: pathlib.Path, exported: dict[str, Any], ground_truth: np.ndarray | None,
     loop_records: list[dict[str, Any]],
 ) -> None:
-    try:  # TEMPORARY until swiftjax.io.plot lands
-        from swiftjax.io import plot
-    except ImportError:
-        return
-    plot.plot_trajectory(
-        path,
-        exported["cam_to_world"][:, :3, 3],
-        reference=None if ground_truth is None else ground_truth[:, :3, 3],
-        loops=[(r["i"], r["j"]) for r in loop_records],
-        extra={"no loop closure": exported["cam_to_world_no_loops"][:, :3, 3]},
-    )
+    """Top view of the trajectory (Sim(3)-aligned to the ground truth when given), loops drawn."""
+    from swiftjax import evaluation
+    from swiftjax.io import plot
+
+    estimate = exported["cam_to_world"][:, :3, 3]
+    reference = None
+    title = "swiftjax trajectory"
+    if ground_truth is not None:
+        reference = ground_truth[:, :3, 3]
+        result = evaluation.ate(estimate, reference)
+        estimate = result.aligned
+        title = f"ATE {result.rmse:.3g} m (Sim(3)-aligned)"
+    pairs = np.array([(r["i"], r["j"]) for r in loop_records], dtype=np.int64).reshape(-1, 2)
+    plot.plot_trajectory(path, estimate, reference=reference, loops=pairs, title=title)
 
 
 def summary_table(result: RunResult) -> str:
