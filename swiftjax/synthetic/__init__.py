@@ -1,1 +1,30 @@
-"""A synthetic driving world with a VGGT oracle, for development and benchmarks without weights."""
+"""A synthetic driving world with a VGGT oracle, for development and benchmarks without weights.
+
+    from swiftjax.synthetic import VGGTOracle, build_world, loop_route
+    poses = loop_route()
+    oracle = VGGTOracle(build_world(poses), poses)
+    pred = oracle.predict_chunk(np.arange(75))     # a ChunkPrediction, as VGGT's runners return
+
+Modules: :mod:`~swiftjax.synthetic.world` (procedural street around a trajectory),
+:mod:`~swiftjax.synthetic.render` (JAX ray casting), :mod:`~swiftjax.synthetic.oracle`
+(VGGT's outputs with VGGT's kinds of error), :mod:`~swiftjax.synthetic.places` (per-frame
+place tokens for loop detection), :mod:`~swiftjax.synthetic.routes` (a generated loop route).
+"""
+
+from swiftjax.synthetic.oracle import OracleNoise, VGGTOracle, kitti_intrinsics
+from swiftjax.synthetic.places import PlaceTokenConfig, make_place_params, place_tokens
+from swiftjax.synthetic.routes import loop_route
+from swiftjax.synthetic.world import World, WorldConfig, build_world
+
+__all__ = [
+    "OracleNoise",
+    "PlaceTokenConfig",
+    "VGGTOracle",
+    "World",
+    "WorldConfig",
+    "build_world",
+    "kitti_intrinsics",
+    "loop_route",
+    "make_place_params",
+    "place_tokens",
+]
