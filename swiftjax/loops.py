@@ -530,6 +530,14 @@ def filter_by_chunks(
     return LoopCandidates(pairs, scores, count, candidates.truncated)
 
 
+@functools.partial(jax.jit, static_argnames=("chunk_size", "n_frames", "half_window"))
+def _loop_chunks(pairs, chunk_starts, chunk_size, n_frames, half_window):
+    """:func:`loop_chunk_frames` for every row of ``pairs [M, 2]``."""
+    return jax.vmap(
+        lambda a, b: loop_chunk_frames(a, b, chunk_starts, chunk_size, n_frames, half_window)
+    )(pairs[:, 0], pairs[:, 1])
+
+
 @jax.jit
 def loop_edge(S_i_loop: jax.Array, S_j_loop: jax.Array) -> jax.Array:
     """Loop edge ``S_{j,loop} · S_{i,loop}⁻¹`` (DESIGN.md "loop edge"), Sim(3) ``[..., 8]``.
@@ -636,12 +644,13 @@ def find_loops(
     c = int(kept.count)
     loops: list[Loop] = []
     if c:
-        pairs = np.asarray(kept.pairs[:c])
-        lc = jax.vmap(
-            lambda a, b: loop_chunk_frames(a, b, schedule.starts, schedule.chunk_size, n, half_window)
-        )(pairs[:, 0], pairs[:, 1])
-        lc = jax.tree.map(np.asarray, lc)
-        scores = np.asarray(kept.scores[:c])
+        # all M buffer rows at once (one compile per buffer size, not per loop count)
+        lc = jax.tree.map(np.asarray, _loop_chunks(
+            jnp.maximum(kept.pairs, 0), jnp.asarray(schedule.starts), schedule.chunk_size, n,
+            half_window,
+        ))
+        pairs = np.asarray(kept.pairs)
+        scores = np.asarray(kept.scores)
         for k in range(c):
             if not lc.valid[k]:
                 warnings.warn(
