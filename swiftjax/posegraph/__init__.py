@@ -5,7 +5,7 @@
     result = posegraph.optimize(problem)          # -> Result(poses, cost_initial, cost_final, ...)
 
 Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, robust kernels, size buckets),
-:mod:`~swiftjax.posegraph.residuals` (residuals and exact Jacobians),
+:mod:`~swiftjax.posegraph.factors` (residuals and exact Jacobians),
 :mod:`~swiftjax.posegraph.linear` (block-sparse normal equations, dense Cholesky, PCG),
 :mod:`~swiftjax.posegraph.solver` (the optimistix-compatible LM solver),
 :mod:`~swiftjax.posegraph.driver` (host entry point ``optimize``).
@@ -21,7 +21,7 @@ from swiftjax.posegraph.problem import (
     robust_weight,
     validate,
 )
-from swiftjax.posegraph.residuals import (
+from swiftjax.posegraph.factors import (
     cost,
     edge_costs,
     residuals,

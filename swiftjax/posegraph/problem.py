@@ -18,7 +18,8 @@ method's documented failure mode).
 Padding (``pad_problem``): the jitted solver compiles once per ``(N_bucket, E_bucket, dtype,
 options)``.  Padded nodes are identity poses marked fixed; padded edges have ``edge_mask``
 False (weight 0), endpoints ``(0, 0)`` and identity measurements.  Buckets are the sizes
-``m * 2^k`` with ``m`` in ``{4, 5, 6, 7}`` (at most 25 % padding, 4 buckets per doubling).
+``m * 2^k >= 32`` with ``m`` in ``{4, 5, 6, 7}`` (at most 25 % padding above 32, 4 buckets
+per doubling).
 """
 
 from __future__ import annotations
@@ -298,7 +299,7 @@ def validate(problem: Problem, *, quaternion_tol: float = 1e-3) -> None:
 # ------------------------------------------------------------------------------- buckets
 
 
-def bucket_size(n: int, minimum: int = 16) -> int:
+def bucket_size(n: int, minimum: int = 32) -> int:
     """Smallest size ``m * 2^k >= max(n, minimum)`` with ``m in {4, 5, 6, 7}``."""
     n = max(int(n), minimum)
     k = max(int(np.floor(np.log2(n))) - 2, 0)

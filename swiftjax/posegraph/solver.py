@@ -4,7 +4,7 @@
 ``optimistix.least_squares`` (optimistix's iteration loop, ``max_steps``, ``RESULTS``), but
 where optimistix's ``LevenbergMarquardt`` would materialise a dense Jacobian (QR) or go
 matrix-free without a preconditioner, it linearises edge by edge with the exact analytic
-Jacobians of :mod:`swiftjax.posegraph.residuals`, assembles the block-sparse normal
+Jacobians of :mod:`swiftjax.posegraph.factors`, assembles the block-sparse normal
 equations with segment sums and solves them with a dense Cholesky (small graphs) or
 block-Jacobi PCG (large graphs).  Updates are on the manifold, ``S <- S exp(delta)``.
 
@@ -20,7 +20,8 @@ Stopping (``status`` codes in :data:`STATUS`): an accepted step with
 ``actual <= rtol * C`` (GTSAM's relativeErrorTol) or ``actual <= atol`` (absoluteErrorTol);
 ``|g|_inf <= gtol |g_0|_inf`` (the gradient test that certifies a stationary point: the
 Jacobians are exact, so ``g = 0`` is the true optimum); the model predicting a decrease below
-rounding (``predicted <= 16 eps C`` while ``lambda <= 1``); or ``lambda`` exceeding ``1e16`` (stalled, not converged).
+rounding (``predicted <= 16 eps C`` while ``lambda <= 1``) or the cost itself at rounding level
+(``C <= eps E``: whitened residuals of ~1e-8 sigma, e.g. a chain without loops); or ``lambda`` exceeding ``1e16`` (stalled, not converged).
 The robust kernels use IRLS weights in ``H`` and the exact gradient.
 """
 
@@ -37,7 +38,7 @@ from jax import Array
 from swiftjax import sim3
 from swiftjax.posegraph import linear
 from swiftjax.posegraph.problem import Problem, RobustKernel
-from swiftjax.posegraph.residuals import edge_costs, residual_jacobian_factors, residuals
+from swiftjax.posegraph.factors import edge_costs, residual_jacobian_factors, residuals
 
 __all__ = ["SparseSim3LM", "LMState", "STATUS", "linearize", "retract"]
 
@@ -46,7 +47,7 @@ STATUS = {
     1: "relative cost decrease <= rtol",
     2: "absolute cost decrease <= atol",
     3: "gradient <= gtol * initial gradient",
-    4: "model predicts no further decrease (rounding level)",
+    4: "cost or predicted decrease at rounding level",
     5: "stalled: damping exceeded 1e16 without progress",
 }
 
@@ -193,6 +194,9 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         status = jnp.where(accept & (actual <= self.atol), 2, status)
         status = jnp.where(accept & (actual <= self.rtol * lin.cost), 1, status)
         status = jnp.where(first, 0, status)
+        # A cost at rounding level in whitened units (e.g. a chain without loops) is the minimum.
+        num_edges = jnp.sum(problem.edge_mask)
+        status = jnp.where(lin_next.cost <= eps * num_edges, 4, status)
         # g == 0 exactly at the start (e.g. a chain without loops) also stops here.
         status = jnp.where(g_inf <= self.gtol * grad_initial, 3, status)
 

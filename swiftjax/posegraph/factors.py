@@ -48,21 +48,6 @@ def _winv_coefficients(theta_sq: Array, sigma: Array) -> tuple[Array, Array, Arr
     return 1.0 / c, -a / det, (a * a - b * d) / (c * det)
 
 
-def _so3_right_jacobian_inverse(omega: Array) -> Array:
-    """``Jr^-1`` of SO(3): ``I + 1/2 K + (1/theta^2 - (1 + cos)/(2 theta sin)) K^2``, ``[..., 3, 3]``."""
-    theta_sq = jnp.sum(omega * omega, axis=-1)
-    small = theta_sq < (1e-6 if omega.dtype == jnp.float32 else 1e-8)
-    tsq = jnp.where(small, 1.0, theta_sq)
-    theta = jnp.sqrt(tsq)
-    # (1/theta^2 - (1+cos)/(2 theta sin)) = 1/theta^2 - cot(theta/2)/(2 theta)
-    coef_gen = 1.0 / tsq - 0.5 / (theta * jnp.tan(0.5 * jnp.where(small, 1.0, theta)))
-    coef_small = 1.0 / 12.0 + theta_sq / 720.0 + theta_sq * theta_sq / 30240.0
-    coef = jnp.where(small, coef_small, coef_gen)
-    k = so3.hat(omega)
-    eye = jnp.eye(3, dtype=omega.dtype)
-    return eye + 0.5 * k + coef[..., None, None] * (k @ k)
-
-
 def right_jacobian_inverse_at(E: Array) -> Array:
     """``Jr^-1(log E) = d log(E exp(d)) / d d |_{d=0}``: ``[..., 8] -> [..., 7, 7]``.
 
@@ -85,52 +70,83 @@ def right_jacobian_inverse_at(E: Array) -> Array:
 
 
 def _jr_inv(E: Array, r: Array) -> Array:
-    """:func:`right_jacobian_inverse_at` given ``r = log E`` already computed."""
-    t = sim3.translation(E)
-    q = sim3.quaternion(E)
-    s = sim3.scale(E)
-    omega = r[..., 3:6]
-    sigma = r[..., 6]
-    theta_sq = jnp.sum(omega * omega, axis=-1)
+    """:func:`right_jacobian_inverse_at` given ``r = log E`` already computed.
 
-    # Partial derivatives of (x, y, z) in theta^2 and sigma: one batched JVP (two tangents).
+    Written component by component on ``[...]``-shaped arrays (3-vectors and 3x3 matrices are
+    Python lists), so XLA fuses the whole evaluation into a few elementwise kernels: batched
+    ``3 x 3`` dots would each be a separate kernel and dominate compile time.
+    """
+    dtype = E.dtype
+    t = [E[..., k] for k in range(3)]
+    qx, qy, qz, qw = (E[..., k] for k in range(3, 7))
+    s = E[..., 7]
+    w = [r[..., k] for k in range(3, 6)]
+    sigma = r[..., 6]
+    theta_sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+
+    # Partial derivatives of (x, y, z) in theta^2 and sigma: two scalar JVPs.
     f = lambda a, b: jnp.stack(_winv_coefficients(a, b))  # noqa: E731
-    coeffs, derivs = jax.vmap(
-        lambda tan: jax.jvp(
-            f, (theta_sq, sigma), (jnp.full_like(theta_sq, tan[0]), jnp.full_like(sigma, tan[1]))
-        ),
-        out_axes=(None, 0),
-    )(jnp.eye(2, dtype=E.dtype))
+    ones, zeros = jnp.ones_like(theta_sq), jnp.zeros_like(theta_sq)
+    coeffs, d_q = jax.jvp(f, (theta_sq, sigma), (ones, zeros))
+    _, d_s = jax.jvp(f, (theta_sq, sigma), (zeros, ones))
+    derivs = (d_q, d_s)
     x, y, z = coeffs
     xq, yq, zq = derivs[0]
     xs, ys, zs = derivs[1]
 
-    wt = jnp.cross(omega, t)
-    wwt = jnp.cross(omega, wt)
-    eye = jnp.eye(3, dtype=E.dtype)
-    kw = so3.hat(omega)
-    winv = x[..., None, None] * eye + y[..., None, None] * kw + z[..., None, None] * (kw @ kw)
-    R = so3.as_matrix(q)
-    top_left = s[..., None, None] * (winv @ R)
+    def cross(a, b):
+        return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
-    outer = lambda a, b: a[..., :, None] * b[..., None, :]  # noqa: E731
-    wdt = jnp.sum(omega * t, axis=-1)
-    grad_q = xq[..., None] * t + yq[..., None] * wt + zq[..., None] * wwt
-    M = (
-        y[..., None, None] * (-so3.hat(t))
-        + z[..., None, None] * (wdt[..., None, None] * eye + outer(omega, t) - 2.0 * outer(t, omega))
-        + 2.0 * outer(grad_q, omega)
+    def hat(a):
+        zero = jnp.zeros_like(a[0])
+        return [[zero, -a[2], a[1]], [a[2], zero, -a[0]], [-a[1], a[0], zero]]
+
+    def mm(a, b):
+        return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)] for i in range(3)]
+
+    eye = lambda i, j: 1.0 if i == j else 0.0  # noqa: E731
+    wt = cross(w, t)
+    wwt = cross(w, wt)
+    wdt = w[0] * t[0] + w[1] * t[1] + w[2] * t[2]
+    # K^2 = w w^T - theta^2 I
+    k = hat(w)
+    k2 = [[w[i] * w[j] - theta_sq * eye(i, j) for j in range(3)] for i in range(3)]
+    winv = [[x * eye(i, j) + y * k[i][j] + z * k2[i][j] for j in range(3)] for i in range(3)]
+    rot = [
+        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+    ]
+    top_left = [[s * v for v in row] for row in mm(winv, rot)]
+    ht = hat(t)
+    gq = [xq * t[i] + yq * wt[i] + zq * wwt[i] for i in range(3)]
+    M = [
+        [
+            -y * ht[i][j] + z * (wdt * eye(i, j) + w[i] * t[j] - 2.0 * t[i] * w[j]) + 2.0 * gq[i] * w[j]
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+    m = [xs * t[i] + ys * wt[i] + zs * wwt[i] for i in range(3)]
+
+    # SO(3) Jr^-1 = I + K/2 + c K^2,  c = 1/theta^2 - cot(theta/2) / (2 theta)
+    small = theta_sq < (1e-6 if dtype == jnp.float32 else 1e-8)
+    tsq = jnp.where(small, 1.0, theta_sq)
+    theta = jnp.sqrt(tsq)
+    c = jnp.where(
+        small,
+        1.0 / 12.0 + theta_sq / 720.0 + theta_sq * theta_sq / 30240.0,
+        1.0 / tsq - 0.5 / (theta * jnp.tan(0.5 * theta)),
     )
-    m = xs[..., None] * t + ys[..., None] * wt + zs[..., None] * wwt
-    jso3 = _so3_right_jacobian_inverse(omega)
+    jso3 = [[eye(i, j) + 0.5 * k[i][j] + c * k2[i][j] for j in range(3)] for i in range(3)]
+    mj = mm(M, jso3)
 
-    batch = E.shape[:-1]
-    zeros33 = jnp.zeros((*batch, 3, 3), E.dtype)
-    zeros31 = jnp.zeros((*batch, 3, 1), E.dtype)
-    row0 = jnp.concatenate([top_left, M @ jso3, m[..., :, None]], axis=-1)
-    row1 = jnp.concatenate([zeros33, jso3, zeros31], axis=-1)
-    row2 = jnp.broadcast_to(jnp.array([0, 0, 0, 0, 0, 0, 1], E.dtype), (*batch, 1, 7))
-    return jnp.concatenate([row0, row1, row2], axis=-2)
+    zero = jnp.zeros_like(s)
+    one = jnp.ones_like(s)
+    rows = [top_left[i] + mj[i] + [m[i]] for i in range(3)]
+    rows += [[zero] * 3 + jso3[i] + [zero] for i in range(3)]
+    rows += [[zero] * 6 + [one]]
+    return jnp.stack([jnp.stack([jnp.broadcast_to(v, s.shape) for v in row], -1) for row in rows], -2)
 
 
 def _edge_errors(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
