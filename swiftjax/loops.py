@@ -98,7 +98,7 @@ def frame_descriptor(tokens: jax.Array) -> jax.Array:
     return _l2(jnp.mean(_l2(x), axis=-2))
 
 
-@functools.partial(jax.jit, static_argnames=())
+@jax.jit
 def power_normalize(g: jax.Array, beta: float | jax.Array = 0.5) -> jax.Array:
     """Signed power normalisation ``g¹ = ℓ2(sign(g) |g|^β)``, ``[..., d]`` → ``[..., d]``.
 
