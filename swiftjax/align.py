@@ -297,14 +297,22 @@ def umeyama(
 
 
 def frame_conf_mean(conf: ArrayLike) -> Array:
-    """Per-frame mean confidence over the finite pixels: ``[..., H, W] -> [...]`` (NaN if none)."""
+    """Per-frame mean confidence over the finite pixels: ``[..., H, W] -> [...]`` (NaN if none).
+
+    Fast path: a plain (vectorised) per-frame sum, exact when every confidence is finite;
+    only when some per-frame sum is not finite does a second, masked pass run (``lax.cond``;
+    a select under ``vmap``).
+    """
     conf = jnp.asarray(conf)
-    fin = jnp.isfinite(conf)
-    total, count = _variadic_sum(
-        (jnp.where(fin, conf, 0).reshape(*conf.shape[:-2], -1), fin.reshape(*conf.shape[:-2], -1).astype(jnp.int32)),
-        -1,
-    )
-    return total / count.astype(total.dtype)
+    flat = conf.reshape(*conf.shape[:-2], -1)
+
+    def masked(flat):
+        fin = jnp.isfinite(flat)
+        total, count = _variadic_sum((jnp.where(fin, flat, 0), fin.astype(jnp.int32)), -1)
+        return total / count.astype(total.dtype)
+
+    plain = jnp.sum(flat, axis=-1) / flat.shape[-1]
+    return jax.lax.cond(jnp.all(jnp.isfinite(plain)), lambda f: plain, masked, flat)
 
 
 def reliability_mask(
@@ -546,6 +554,99 @@ def pose_based_estimate(prev_extrinsic: ArrayLike, cur_extrinsic: ArrayLike) -> 
     return jnp.where(ok, S, sim3.identity(dtype=P.dtype)), ok
 
 
+# Pixel-domain moments.  For frame f of a chunk, with normalised depth d = r_f D, pixel
+# (u, v) = T (u~, v~, 1) (u~, v~ in [-1, 1]) and a rough per-frame depth centre e_f
+# (d = delta + e_f), the centred world point is an affine map of the feature vector
+#     phi = (delta u~, delta v~, delta, u~, v~, 1):    x - c = M_f phi,
+#     M_f = [B~, e_f B~[:, :2], e_f B~[:, 2] + c_f - c]   (3 x 6),  B~ = R_c2w K_ref^-1 T.
+# So every Umeyama moment is M_y,f G_f M_x,f^T summed over frames, where the 6 x 6 Gram
+# matrices G_f = sum m phi_y phi_x^T are gathered from the per-frame pixel moments
+#     S[f, (i, j), k, l] = sum_{h, w} m delta_p^i delta_c^j u~^k v~^l   (i + j <= 2, k, l <= 2).
+_PHI_U = np.array([1, 0, 0, 1, 0, 0])  # power of u~ in phi
+_PHI_V = np.array([0, 1, 0, 0, 1, 0])  # power of v~
+_PHI_D = np.array([1, 1, 1, 0, 0, 0])  # power of delta
+_IMAGES = ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2))  # (power of delta_p, of delta_c)
+_IMG = {ij: n for n, ij in enumerate(_IMAGES)}
+
+
+def _gram_index(which: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index tables ``(image, k, l)`` ``[6, 6]`` gathering ``G`` from ``S`` (``which`` in yx/xx/yy)."""
+    a, b = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+    da, db = _PHI_D[a], _PHI_D[b]
+    pw = {"yx": zip(da.ravel(), db.ravel()), "xx": ((0, i + j) for i, j in zip(da.ravel(), db.ravel())),
+          "yy": ((i + j, 0) for i, j in zip(da.ravel(), db.ravel()))}[which]
+    img = np.array([_IMG[ij] for ij in pw]).reshape(6, 6)
+    return tuple(x.astype(np.int32) for x in (img, _PHI_U[a] + _PHI_U[b], _PHI_V[a] + _PHI_V[b]))
+
+
+_G_YX, _G_XX, _G_YY = (_gram_index(k) for k in ("yx", "xx", "yy"))
+
+
+def _pixel_grid(h: int, w: int, dtype) -> tuple[Array, Array, Array]:
+    """``u~ [W]``, ``v~ [H]`` in ``[-1, 1]`` and ``T [3, 3]`` with ``(u, v, 1) = T (u~, v~, 1)``."""
+    u0, v0 = (w - 1) / 2, (h - 1) / 2
+    su, sv = max(u0, 1.0), max(v0, 1.0)
+    ut = (jnp.arange(w, dtype=dtype) - u0) / su
+    vt = (jnp.arange(h, dtype=dtype) - v0) / sv
+    T = jnp.array([[su, 0, u0], [0, sv, v0], [0, 0, 1]], dtype)
+    return ut, vt, T
+
+
+def _pixel_moments(ok: Array, a: Array, b: Array, ut: Array, vt: Array) -> tuple[Array, Array]:
+    """Per-frame pixel moments ``S [O, 6, 3, 3]`` and the int32 count of ``ok`` pixels.
+
+    ``ok`` bool ``[O, H, W]``; ``a = ok * delta_p``, ``b = ok * delta_c`` (zero where not ok).
+    One variadic reduce over the pixel rows (18 terms: 6 images x powers of ``u~``), then a
+    tiny contraction over rows with the powers of ``v~``.
+    """
+    m = ok.astype(a.dtype)
+    u1 = jnp.broadcast_to(ut, a.shape)
+    u2 = u1 * u1
+    images = (m, a, b, a * b, a * a, b * b)  # order of _IMAGES
+    rows = _variadic_sum(tuple(t for im in images for t in (im, im * u1, im * u2)), -1)
+    R = jnp.stack(rows, -1).reshape(*a.shape[:-1], 6, 3)  # [O, H, 6, 3]
+    V = jnp.stack([jnp.ones_like(vt), vt, vt * vt], -1)  # [H, 3]
+    S = jnp.einsum("fhik,hl->fikl", R, V)
+    n = jnp.sum(rows[0].astype(jnp.int32))  # row counts are exact (<= W < 2^24)
+    return S, n
+
+
+def _affine_maps(B: Array, c: Array, e: Array, centre: Array, T: Array) -> Array:
+    """``M_f [O, 3, 6]``: centred world point ``= M_f phi`` (see the comment above).
+
+    ``e`` is the per-frame centre of the *normalised* depth, so the focal ratio is already in
+    ``delta`` and does not appear here.
+    """
+    Bt = B @ T
+    last = e[:, None] * Bt[:, :, 2] + c - centre
+    return jnp.concatenate([Bt, e[:, None, None] * Bt[:, :, :2], last[:, :, None]], -1)
+
+
+def _moments_from_pixels(S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy: Array) -> _Moments:
+    """Combine per-frame pixel moments with the per-frame affine maps into global moments."""
+    Gyx, Gxx, Gyy = (S[:, i, k, l] for i, k, l in (_G_YX, _G_XX, _G_YY))  # [O, 6, 6]
+    return _Moments(
+        w=jnp.sum(S[:, 0, 0, 0]),
+        n=n,
+        sx=jnp.einsum("fia,fa->i", Mx, Gxx[:, :, 5]),
+        sy=jnp.einsum("fia,fa->i", My, Gyy[:, :, 5]),
+        syx=jnp.einsum("fia,fab,fjb->ij", My, Gyx, Mx),
+        sxx=jnp.einsum("fia,fab,fib->", Mx, Gxx, Mx),
+        syy=jnp.einsum("fia,fab,fib->", My, Gyy, My),
+        cx=cx,
+        cy=cy,
+    )
+
+
+def _frame_depth_centre(depth: Array, r: Array, sub: tuple) -> Array:
+    """Rough per-frame centre of the normalised depth: mean of a strided subsample ``[O]``."""
+    d = r[:, None, None] * depth[sub]
+    fin = jnp.isfinite(d)
+    cnt = jnp.sum(fin, (1, 2))
+    e = jnp.sum(jnp.where(fin, d, 0), (1, 2)) / jnp.maximum(cnt, 1)
+    return jax.lax.stop_gradient(jnp.where(jnp.isfinite(e), e, 0))
+
+
 def _align_core(
     prev: ChunkFrames,
     cur: ChunkFrames,
@@ -587,30 +688,34 @@ def _align_core(
     c_pts = jnp.where(fin_sub[..., None], jnp.stack(cs, -1), 0).reshape(-1, 3)
     cy = jax.lax.stop_gradient(_rough_centre(p_pts, w_sub))  # dst = prev
     cx = jax.lax.stop_gradient(_rough_centre(c_pts, w_sub))  # src = cur
+    fsub_all = (slice(None), slice(None, None, hs), slice(None, None, ws))
+    e_p = _frame_depth_centre(prev.depth, r_p, fsub_all)
+    e_c = _frame_depth_centre(cur.depth, r_c, fsub_all)
 
-    # Frames whose camera parameters are not finite are dropped as a whole; their (zeroed)
-    # parameters keep every point finite, so a zero weight is enough to remove a pixel.
+    # Frames whose camera parameters are not finite are dropped as a whole (zero weight);
+    # their zeroed parameters keep every per-frame term finite.
     frame_ok = (
         jnp.isfinite(r_p) & jnp.isfinite(r_c)
         & jnp.all(jnp.isfinite(B_p), (-2, -1)) & jnp.all(jnp.isfinite(B_c), (-2, -1))
         & jnp.all(jnp.isfinite(c_p), -1) & jnp.all(jnp.isfinite(c_c), -1)
     )
     fo = frame_ok[:, None, None]
-    geo_p = [jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0) for a in (r_p, B_p, c_p)]
-    geo_c = [jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0) for a in (r_c, B_c, c_c)]
+    keep = lambda a: jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0)  # noqa: E731
+    ut, vt, T = _pixel_grid(h, w, dtype)
+    My = _affine_maps(*(keep(a) for a in (B_p, c_p, e_p)), cy, T)
+    Mx = _affine_maps(*(keep(a) for a in (B_c, c_c, e_c)), cx, T)
 
     def moments(lam):
         ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam)
-        # Non-finite depths sit only at masked pixels: zero them once, not per coordinate.
-        xs = _points_soa(jnp.where(ok, cur.depth, 0), *geo_c, cx, u, v)
-        ys = _points_soa(jnp.where(ok, prev.depth, 0), *geo_p, cy, u, v)
-        return _sum_terms(_moment_terms(xs, ys, ok.astype(dtype), ok), 3)
+        a = jnp.where(ok, r_p[e] * prev.depth - e_p[e], 0)  # delta_p (dst = prev)
+        b = jnp.where(ok, r_c[e] * cur.depth - e_c[e], 0)  # delta_c (src = cur)
+        return _pixel_moments(ok, a, b, ut, vt)
 
-    tot = moments(depth_threshold)
-    few = tot[18] < min_points
-    tot = jax.lax.cond(few, lambda: moments(fallback_depth_threshold), lambda: tot)
+    S_pix, n = moments(depth_threshold)
+    few = n < min_points
+    S_pix, n = jax.lax.cond(few, lambda: moments(fallback_depth_threshold), lambda: (S_pix, n))
     lam_used = jnp.where(few, fallback_depth_threshold, depth_threshold).astype(dtype)
-    S, uinfo = _solve(_pack_moments(tot, cx, cy))
+    S, uinfo = _solve(_moments_from_pixels(S_pix, n, My, Mx, cx, cy))
     S_pose, _ = pose_based_estimate(prev.extrinsic.astype(dtype), cur.extrinsic.astype(dtype))
     S = jnp.where(uinfo.valid, S, S_pose)
     info = AlignInfo(
