@@ -30,10 +30,11 @@ import jax
 jax.config.update("jax_compilation_cache_dir", os.environ["SWIFTJAX_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 from swiftjax import demo, pipeline
-shared, frames, out = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+shared, frames, out, method = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 run = demo.kitti00_run(shared, frames=frames)
 t0 = time.perf_counter()
-res = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(), ground_truth=run.ground_truth,
+config = pipeline.PipelineConfig(alignment=method)
+res = pipeline.reconstruct(run.predictor, out, config, ground_truth=run.ground_truth,
                            progress=False, overwrite=True)
 wall = time.perf_counter() - t0
 peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -49,10 +50,10 @@ def _shared() -> pathlib.Path:
     return path
 
 
-def run_child(frames: int, cache: str, out: str) -> dict:
+def run_child(frames: int, cache: str, out: str, method: str = "umeyama") -> dict:
     env = dict(os.environ, SWIFTJAX_CACHE_DIR=cache)
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(_shared()), str(frames), out],
+        [sys.executable, "-c", CHILD, str(_shared()), str(frames), out, method],
         capture_output=True, text=True, env=env, cwd=HERE,
     )
     if proc.returncode != 0:
@@ -63,6 +64,8 @@ def run_child(frames: int, cache: str, out: str) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, nargs="+", default=[600, 4541])
+    parser.add_argument("--irls-frames", type=int, default=4541,
+                        help="also run this many frames with VGGT-Long's IRLS alignment (0: skip)")
     parser.add_argument("--skip-warmup", action="store_true", help="do not fill the compile cache first")
     args = parser.parse_args()
 
@@ -71,12 +74,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_warmup:
             run_child(min(args.frames), cache, os.path.join(tmp, "warmup"))
-        for frames in args.frames:
-            rec = run_child(frames, cache, os.path.join(tmp, f"run{frames}"))
-            rec["frames"] = frames
+        runs = [(f, "umeyama") for f in args.frames] + ([(args.irls_frames, "irls")] if args.irls_frames else [])
+        for frames, method in runs:
+            rec = run_child(frames, cache, os.path.join(tmp, f"run{frames}{method}"), method)
+            rec["frames"], rec["alignment"] = frames, method
             records.append(rec)
             m = rec["metrics"]
-            print(f"{frames} frames: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
+            print(f"{frames} frames, {method}: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
                   f"loops {m['loops']}, ATE {m['ate_rmse']:.2f} m (no loops {m['ate_rmse_no_loops']:.2f} m)",
                   flush=True)
 
@@ -87,10 +91,10 @@ def main() -> None:
         geometry = sum(v for k, v in t.items() if k != "predict")
         m = rec["metrics"]
         rows.append(
-            [rec["frames"], m["chunks"], m["loops"], *[float(t.get(s, 0.0)) for s in stages], geometry,
+            [rec["frames"], rec["alignment"], m["chunks"], m["loops"], *[float(t.get(s, 0.0)) for s in stages], geometry,
              rec["peak_rss_mb"], m["ate_rmse_no_loops"], m["ate_rmse"], m["ate_rmse_no_loops"] / m["ate_rmse"]]
         )
-    headers = ["frames", "chunks", "loops", *[f"{s} s" for s in stages], "geometry s (all but predict)",
+    headers = ["frames", "alignment", "chunks", "loops", *[f"{s} s" for s in stages], "geometry s (all but predict)",
                "peak RSS MB", "ATE no loops m", "ATE loops m", "ATE ratio"]
     print(markdown_table(headers, rows))
     path = write_results("pipeline", {"runs": records})

@@ -62,7 +62,9 @@ class RunDirError(RuntimeError):
 class PipelineConfig:
     """Every method parameter, with the paper's / authors' defaults (DESIGN.md).
 
-    Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``depth_threshold``
+    Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
+    (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's
+    iterative baseline on the same reliable points, for comparison), ``depth_threshold``
     (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
     ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
     (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold`` (cosine of the
@@ -77,6 +79,7 @@ class PipelineConfig:
 
     chunk_size: int = 75
     overlap: int = 30
+    alignment: str = "umeyama"
     depth_threshold: float = 0.2
     conf_ratio: float = 0.5
     min_points: int = 20_000
@@ -106,6 +109,8 @@ class PipelineConfig:
             raise ValueError(
                 f"overlap must satisfy 1 <= overlap < chunk_size ({self.chunk_size}), got {self.overlap}"
             )
+        if self.alignment not in ("umeyama", "irls"):
+            raise ValueError(f"alignment must be 'umeyama' or 'irls', got {self.alignment!r}")
         if self.robust_loops not in (None, "huber", "cauchy"):
             raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
         if self.point_stride < 1:
@@ -363,6 +368,49 @@ def _with_descriptors(pred: ChunkPrediction) -> ChunkPrediction:
     return dataclasses.replace(pred, descriptors=g, patch_tokens=None)
 
 
+@jax.jit
+def _irls_chunk_pair(
+    prev: align.ChunkFrames, cur: align.ChunkFrames, K_ref: jax.Array, depth_threshold: jax.Array,
+    conf_ratio: jax.Array,
+) -> tuple[jax.Array, align.IRLSInfo, jax.Array]:
+    """VGGT-Long's IRLS Sim(3) on the same reliable overlap points (the comparison baseline)."""
+
+    def points(f: align.ChunkFrames) -> tuple[jax.Array, jax.Array]:
+        d = camera.normalize_depth(f.depth, f.intrinsic, K_ref)
+        return d, camera.unproject(d, K_ref, camera.camera_to_world(f.extrinsic))
+
+    dp, xp = points(prev)
+    dc, xc = points(cur)
+    ok = align.reliability_mask(dp, dc, prev.conf, cur.conf, depth_threshold, conf_ratio)
+    ok = ok & jnp.all(jnp.isfinite(xp), -1) & jnp.all(jnp.isfinite(xc), -1)
+    src = jnp.where(ok[..., None], xc, 0.0).reshape(-1, 3)
+    dst = jnp.where(ok[..., None], xp, 0.0).reshape(-1, 3)
+    S, info = align.irls_sim3(src, dst, ok.reshape(-1).astype(src.dtype))
+    return S, info, jnp.sum(ok)
+
+
+def _align_pair(
+    prev: align.ChunkFrames, cur: align.ChunkFrames, K_ref: np.ndarray, config: PipelineConfig,
+    loop: bool, name: str,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """``S`` mapping ``cur``'s chunk into ``prev``'s, with the configured method, and diagnostics."""
+    options = _align_options(config, loop)
+    if config.alignment == "irls":
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        S, info, count = _irls_chunk_pair(
+            align.ChunkFrames(*map(f32, prev)), align.ChunkFrames(*map(f32, cur)), f32(K_ref),
+            f32(options["depth_threshold"]), f32(options["conf_ratio"]),
+        )
+        ok = bool(np.all(np.isfinite(np.asarray(S)))) and int(count) >= 3
+        if not ok:
+            S = sim3.identity((), jnp.float32)
+        diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
+                "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok}
+        return np.asarray(S, np.float64), diag
+    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, **options)
+    return np.asarray(S, np.float64), _info_dict(info)
+
+
 def _align_options(config: PipelineConfig, loop: bool) -> dict[str, Any]:
     return dict(
         depth_threshold=config.loop_depth_threshold if loop else config.depth_threshold,
@@ -469,10 +517,8 @@ def reconstruct(
             edge = manifest.data["edges"].get(str(t - 1))
             if edge is None:
                 head = _overlap(pred, slice(0, config.overlap))
-                S, info = align.align_chunk_pair_checked(
-                    prev_tail, head, K_ref, name=f"chunks {t - 1}/{t}", **_align_options(config, False)
-                )
-                edge = {"S": np.asarray(S, np.float64).tolist(), **_info_dict(info)}
+                S, diag = _align_pair(prev_tail, head, K_ref, config, False, f"chunks {t - 1}/{t}")
+                edge = {"S": S.tolist(), **diag}
                 manifest.data["edges"][str(t - 1)] = edge
                 manifest.save()
             relative[t - 1] = edge["S"]
@@ -522,11 +568,10 @@ def reconstruct(
                 for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
                     chunk_pred = store.load("chunk", c)
                     local = lp.frames[half] - schedule.starts[c]
-                    S, info = align.align_chunk_pair_checked(
-                        _overlap(chunk_pred, local), _overlap(pred, half), K_ref,
-                        name=f"loop ({lp.i}, {lp.j}) to chunk {c}", **_align_options(config, True),
-                    )
-                    halves.append((np.asarray(S, np.float64), _info_dict(info)))
+                    halves.append(_align_pair(
+                        _overlap(chunk_pred, local), _overlap(pred, half), K_ref, config, True,
+                        f"loop ({lp.i}, {lp.j}) to chunk {c}",
+                    ))
                 with jax.enable_x64(True):
                     Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
                 record = {

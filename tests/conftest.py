@@ -1,7 +1,8 @@
 """Shared test configuration.
 
-* JAX's persistent compilation cache is on (``.jax_cache/`` in the repo, or
-  ``$JAX_COMPILATION_CACHE_DIR``), so a second test run skips most XLA compiles.
+* JAX's persistent compilation cache is on (``$JAX_COMPILATION_CACHE_DIR``, default
+  ``~/.cache/swiftjax/jax-tests``, outside the checkout so that a fresh clone on the same
+  machine reuses it), so a second test run skips most XLA compiles.
 * ``shared_dir``: the read-only reference folder (``$SWIFTJAX_SHARED`` or ``../shared``);
   tests that need it skip with a clear reason when it is absent (CI always has it).
 * ``x64``: runs a test with ``jax_enable_x64`` on, for float64 reference checks only.
@@ -17,9 +18,10 @@ import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
-jax.config.update(
-    "jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR", str(REPO / ".jax_cache"))
+CACHE = os.environ.get(
+    "JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests")
 )
+jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 

@@ -169,3 +169,14 @@ def test_config_rejects_bad_values():
         pipeline.PipelineConfig(chunk_size=30, overlap=30)
     with pytest.raises(ValueError, match="unknown configuration keys: bogus"):
         pipeline.PipelineConfig.from_dict({"bogus": 1})
+
+
+def test_irls_alignment_option_runs_the_baseline(tmp_path, small_run):
+    few = demo.trajectory_run(small_run.ground_truth[:70], seed=2, image_hw=IMAGE_HW)
+    out_u = pipeline.reconstruct(few.predictor, tmp_path / "u", CONFIG, progress=False)
+    out_i = pipeline.reconstruct(
+        few.predictor, tmp_path / "i", dataclasses.replace(CONFIG, alignment="irls"), progress=False
+    )
+    # Same reliable points, a different estimator: the chunk poses agree closely, not exactly.
+    np.testing.assert_allclose(out_i.chunk_poses, out_u.chunk_poses, atol=5e-2)
+    assert not np.array_equal(out_i.chunk_poses, out_u.chunk_poses)
