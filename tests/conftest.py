@@ -39,6 +39,8 @@ def find_shared() -> pathlib.Path | None:
 @pytest.fixture(scope="session")
 def shared_dir() -> pathlib.Path:
     path = find_shared()
+    if path is None and os.environ.get("CI"):
+        pytest.fail("CI must have the shared reference data at ../shared or $SWIFTJAX_SHARED")
     if path is None:
         pytest.skip(
             "shared reference data not found: set SWIFTJAX_SHARED to the folder holding "
