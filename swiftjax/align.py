@@ -32,12 +32,28 @@ fastest scheme measured on XLA CPU (bench/bench_align.py).  We chose it over flo
 accumulation because float64 does not exist in JAX unless ``jax_enable_x64`` is on; with x64
 on and float64 inputs the very same code runs in float64.
 
-Known limits.  XLA CPU emits the variadic reduce as a scalar loop (IEEE order forbids
-re-associating the sums into SIMD lanes), so the pass is compute-bound, not memory-bound:
-~60 scalar flops per point pair.  With ``XLA_FLAGS=--xla_cpu_enable_fast_math=true
---xla_cpu_fast_math_honor_nans=true --xla_cpu_fast_math_honor_infs=true`` the same code
-took ~40 % less CPU time in our measurement; the library sets no flags.  The closed-form
-``rms`` has a float32 floor of about ``sqrt(eps) * spread`` (~3e-4 x the point spread).
+Chunk pairs (:func:`align_chunk_pair`) never form the world points: every point of frame
+``f`` is an affine map of ``phi = (delta u~, delta v~, delta, u~, v~, 1)`` (``delta`` the
+normalised depth minus a rough per-frame centre, ``u~, v~`` the pixel coordinates scaled to
+``[-1, 1]``), so all moments follow from per-frame *pixel* moments
+``sum m delta_p^i delta_c^j u~^k v~^l`` (6 images x powers of ``u~``: 18 terms in one
+variadic reduce over each pixel row, then a tiny contraction with the powers of ``v~`` and
+``sum_f M_y,f G_f M_x,f^T`` over frames).  The inputs are read once (plus the
+confidences once more for their per-frame means); the centring (per-frame depth centre,
+global rough world centres) keeps float32 accurate (tested far from the origin).
+
+Known limits (measured on XLA CPU, jax 0.10.2, bench/bench_align.py).  A variadic reduce is
+emitted as a scalar loop (IEEE order forbids re-associating into SIMD lanes, whatever the
+reduced axis: rows, columns or 8/16-wide lanes all measured the same), so the pass costs
+about 0.7 ns per term per point pair and stays compute-bound (~10-20x the memory
+roofline).  Single-output sums are vectorised (XNNPACK/YNN fusions) but each re-reads
+its inputs, and sibling sums are not fused; dot products ``[N, 7]^T [N, 7]`` (moments as a
+GEMM) measured 4x slower than the variadic reduce, and materialising stacked feature
+images was slower still, so :func:`umeyama` keeps the 19-term variadic reduce.  With
+``XLA_FLAGS=--xla_cpu_enable_fast_math=true --xla_cpu_fast_math_honor_nans=true
+--xla_cpu_fast_math_honor_infs=true`` the reduce took ~40 % less CPU time in an earlier
+measurement; the library sets no flags.  The closed-form ``rms`` has a float32 floor of
+about ``sqrt(eps) * spread`` (~3e-4 x the point spread).
 """
 
 from __future__ import annotations
@@ -771,8 +787,9 @@ def align_chunk_pair(
 
     Returns:
         ``(S [8], AlignInfo)``.  One jitted call; it compiles once per ``(O, H, W)`` and dtype.
-        The pass over the pixels is a single fused variadic reduction (plus one pass over the
-        confidences for their per-frame means); the fallback pass runs only when needed.
+        One pass over the pixels accumulates per-frame pixel moments (module docstring),
+        plus one plain sum over the confidences for their per-frame means; the fallback
+        pass runs only when needed.
     """
     prev = _as_frames(prev)
     dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
