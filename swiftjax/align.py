@@ -755,6 +755,22 @@ def _as_frames(x, dtype=None) -> ChunkFrames:
     return ChunkFrames(*(jnp.asarray(getattr(x, f), dtype) for f in ChunkFrames._fields))
 
 
+def _core_arguments(prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold):
+    """Both chunks' frames in one floating dtype (the depth's; float32 for integer depth) and
+    every option as a traced array, in the order of :func:`_align_core`."""
+    prev = _as_frames(prev)
+    dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
+    return (
+        _as_frames(prev, dtype),
+        _as_frames(cur, dtype),
+        jnp.asarray(K_ref, dtype),
+        jnp.asarray(depth_threshold, dtype),
+        jnp.asarray(conf_ratio, dtype),
+        jnp.asarray(min_points, jnp.int32),
+        jnp.asarray(fallback_depth_threshold, dtype),
+    )
+
+
 def align_chunk_pair(
     prev: ChunkFrames,
     cur: ChunkFrames,
@@ -791,19 +807,8 @@ def align_chunk_pair(
         plus one plain sum over the confidences for their per-frame means; the fallback
         pass runs only when needed.
     """
-    prev = _as_frames(prev)
-    dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
-    prev = _as_frames(prev, dtype)
-    cur = _as_frames(cur, dtype)
-    return _align_core_jit(
-        prev,
-        cur,
-        jnp.asarray(K_ref, dtype),
-        jnp.asarray(depth_threshold, dtype),
-        jnp.asarray(conf_ratio, dtype),
-        jnp.asarray(min_points, jnp.int32),
-        jnp.asarray(fallback_depth_threshold, dtype),
-    )
+    args = _core_arguments(prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold)
+    return _align_core_jit(*args)
 
 
 def align_chunk_pairs(
@@ -822,21 +827,10 @@ def align_chunk_pairs(
     or ``[P, 3, 3]``.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap``
     the fallback-threshold pass becomes a select, so it is computed for every pair.
     """
-    prev = _as_frames(prev)
-    dtype = prev.depth.dtype if jnp.issubdtype(prev.depth.dtype, jnp.floating) else jnp.float32
-    prev = _as_frames(prev, dtype)
-    cur = _as_frames(cur, dtype)
-    K = jnp.asarray(K_ref, dtype)
-    K = jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3))
-    return _align_core_batched(
-        prev,
-        cur,
-        K,
-        jnp.asarray(depth_threshold, dtype),
-        jnp.asarray(conf_ratio, dtype),
-        jnp.asarray(min_points, jnp.int32),
-        jnp.asarray(fallback_depth_threshold, dtype),
+    prev, cur, K, *options = _core_arguments(
+        prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold
     )
+    return _align_core_batched(prev, cur, jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3)), *options)
 
 
 def _check_frames(name: str, f, shape: tuple[int, int, int] | None) -> tuple[int, int, int]:

@@ -54,3 +54,12 @@ def x64():
     """Enable float64 in JAX for the duration of one test."""
     with jax.enable_x64(True):
         yield
+
+
+@pytest.fixture(scope="session")
+def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
+    """``shared/golden/vggt``: tensors from the official VGGT code on a tiny configuration."""
+    d = shared_dir / "golden" / "vggt"
+    if not (d / "tiny_golden.npz").is_file():
+        pytest.fail(f"the shared folder {shared_dir} has no VGGT golden tensors in {d}")
+    return d

@@ -24,14 +24,6 @@ from inference.runners import TorchRunner  # noqa: E402
 from swiftjax.prediction import ChunkPrediction  # noqa: E402
 
 
-@pytest.fixture(scope="session")
-def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
-    d = shared_dir / "golden" / "vggt"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.skip(f"no VGGT golden tensors in {d}")
-    return d
-
-
 @pytest.fixture(scope="module")
 def golden(golden_dir: pathlib.Path) -> dict[str, np.ndarray]:
     with np.load(golden_dir / "tiny_golden.npz") as z:

@@ -26,14 +26,6 @@ from swiftjax.prediction import ChunkPrediction  # noqa: E402
 GOLDEN_FILES = ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz")
 
 
-@pytest.fixture(scope="session")
-def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
-    d = shared_dir / "golden" / "vggt"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.skip(f"no VGGT golden tensors in {d}")
-    return d
-
-
 @pytest.fixture(scope="module")
 def checked(golden_dir: pathlib.Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[list[Check], pathlib.Path]:
     onnx_path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
