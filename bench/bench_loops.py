@@ -13,20 +13,30 @@ N = 4,541 (KITTI 00 synthetic descriptors) and N = 20,000 (the KITTI 00 trajecto
 4.4 times, each copy shifted 2 km so copies do not match each other).  Best-of-N wall clock
 on a shared 2-core CPU; compile times separately.
 
-Usage:  .venv/bin/python bench/bench_loops.py [--repeat 5] [--skip-20k]
+LAPACK threads: the whitening fit's ``eigh`` is a LAPACK call into OpenBLAS (XLA's GEMMs do
+not use OpenBLAS).  On the shared 2-core machine, multi-threaded OpenBLAS ``ssyevd`` on
+1024 x 1024 was ~10x slower than single-threaded (2.3 s vs 0.22 s, same minute), so this
+script sets ``OPENBLAS_NUM_THREADS=1`` unless it is already set (``--blas-threads`` overrides).
+
+Usage:  .venv/bin/python bench/bench_loops.py [--repeat 5] [--skip-20k] [--blas-threads N]
 """
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import pathlib
+import os
 import sys
-import time
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+if "--blas-threads" in sys.argv:  # must happen before numpy / jax load OpenBLAS
+    os.environ["OPENBLAS_NUM_THREADS"] = sys.argv[sys.argv.index("--blas-threads") + 1]
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import pathlib  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
@@ -61,6 +71,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--skip-20k", action="store_true")
+    ap.add_argument("--blas-threads", type=int, default=None,
+                    help="OPENBLAS_NUM_THREADS for LAPACK (default 1, see the module docstring)")
     args = ap.parse_args()
     rep = args.repeat
     rows, out = [], {}
@@ -80,7 +92,7 @@ def main() -> None:
                  f"{t_desc / t_read:.2f}x one read pass ({t_read * 1e3:.1f} ms); "
                  f"NumPy {t_np / t_desc:.1f}x slower; {gbps:.1f} GB/s", f"{first:.2f}"])
     out["descriptor_chunk"] = dict(t=t_desc, t_read_pass=t_read, t_numpy=t_np, first_call=first)
-    del tokens, tok_np
+
 
     # ---- KITTI 00 synthetic descriptors
     poses = load_kitti00()
@@ -100,7 +112,7 @@ def main() -> None:
         g1_np = np.asarray(g1)
         t_fit_np = best_of(lambda: np_fit(g1_np), max(2, rep // 2))
         rows.append([f"fit_whitening N={n}, d=1024 -> 512", f"{t_fit * 1e3:.0f} ms",
-                     f"NumPy (same eigh) {t_fit_np / t_fit:.2f}x of ours", f"{first:.2f}"])
+                     f"NumPy (same eigh) takes {t_fit_np / t_fit:.2f}x our time", f"{first:.2f}"])
         w = L.fit_whitening(g1)
         Z = L.whiten(w, g1)
         t_wh = best_of(lambda: L.whiten(w, g1), rep)
@@ -133,7 +145,7 @@ def main() -> None:
                             t_gemm_tiles=t_gemm_t, t_detect=t_det, detect_over_gemm=t_det / t_gemm, n_pairs=int(cand.count))
         if n == 4541:
             dense = best_of(lambda: L.detect_loops(Z, block_rows=n), rep)
-            rows.append([f"  same, one dense N x N tile", f"{dense * 1e3:.0f} ms",
+            rows.append(["  same, one dense N x N tile", f"{dense * 1e3:.0f} ms",
                          f"{dense / t_gemm:.2f}x GEMM", "-"])
             out[f"n{n}"]["t_detect_dense"] = dense
             sched = chunk_schedule(n)
@@ -147,6 +159,9 @@ def main() -> None:
                                              n_loops=nl)
 
     print(markdown_table(["step", "best time", "vs same-run anchor", "first call s (compile)"], rows))
+    out["openblas_num_threads"] = os.environ.get("OPENBLAS_NUM_THREADS")
+    out["load_average"] = os.getloadavg()
+    print(f"OPENBLAS_NUM_THREADS={out['openblas_num_threads']}, load average {out['load_average']}")
     path = write_results("loops", out)
     print(f"wrote {path}")
 

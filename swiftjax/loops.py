@@ -24,7 +24,6 @@ concrete arrays) reject NaN/Inf and bad shapes with a clear error before work st
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import equinox as eqx
