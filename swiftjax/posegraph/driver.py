@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jax import Array
 
+from swiftjax import sim3
 from swiftjax.posegraph.problem import Problem, RobustKernel, bucket_size, pad_problem, validate
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, residual_fn
 
@@ -30,8 +31,9 @@ __all__ = ["optimize", "Result", "choose_linear_solver", "DENSE_MAX_NODES"]
 
 LinearSolver = Literal["auto", "dense", "pcg"]
 
-#: Largest padded node count for which "auto" picks the dense Cholesky (7 N <= 1,792 rows).
-DENSE_MAX_NODES = 256
+#: Largest padded node count for which "auto" picks the dense Cholesky (7 N <= 448 rows).
+#: Measured (circle graph, N = 100, bucket 112): one dense Cholesky 68 ms vs one PCG solve 3.7 ms.
+DENSE_MAX_NODES = 64
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,6 +100,19 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
     }
 
 
+def _normalized(problem: Problem) -> Problem:
+    """The problem with unit quaternions in its poses and measurements."""
+    return Problem(
+        poses=sim3.normalize(problem.poses),
+        edges=problem.edges,
+        measurements=sim3.normalize(problem.measurements),
+        information=problem.information,
+        fixed=problem.fixed,
+        robust=problem.robust,
+        edge_mask=problem.edge_mask,
+    )
+
+
 _solve_jit = jax.jit(_solve, static_argnames=("static",))
 _COMPILED: dict[tuple, object] = {}
 
@@ -157,6 +172,8 @@ def optimize(
         validate(problem)
     if kernel not in (None, "huber", "cauchy"):
         raise ValueError(f"kernel must be None, 'huber' or 'cauchy', not {kernel!r}")
+    # Unit quaternions exactly (validation allowed |q| within 1e-3 of 1).
+    problem = _normalized(problem)
     n, e = problem.num_nodes, problem.num_edges
     nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)
     padded = pad_problem(problem, nb, eb)

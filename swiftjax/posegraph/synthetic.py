@@ -9,13 +9,14 @@
 
 Measurements are ``Z = T_i^-1 T_j exp(n)``, ``n ~ N(0, diag(sigma^2))`` in our tangent order;
 the initial guess is dead reckoning (odometry composed from node 0, which is fixed at truth).
-Host-side NumPy + :mod:`swiftjax.sim3` (float64 when x64 is on).
+Host-side NumPy + :mod:`swiftjax.sim3`, always float64 (x64 is enabled locally).
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import numpy as np
 
 from swiftjax import sim3
@@ -79,7 +80,12 @@ def circle_graph(
     seed: int = 0,
 ) -> SyntheticGraph:
     """Circle of ``n`` nodes (radius ``n / 2 pi``, 1 unit apart), ``n`` odometry + ``num_loops``
-    (default ``n``) random loop edges; true scales ``exp(N(0, scale_spread^2))``."""
+    (default ``n``) random loop edges; true scales ``exp(N(0, scale_spread^2))``.  Always float64."""
+    with jax.enable_x64(True):
+        return _circle_graph(n, num_loops, noise, scale_spread, seed)
+
+
+def _circle_graph(n, num_loops, noise, scale_spread, seed) -> SyntheticGraph:
     rng = np.random.default_rng(seed)
     num_loops = n if num_loops is None else num_loops
     ang = 2 * np.pi * np.arange(n) / n
@@ -108,7 +114,13 @@ def chain_graph(
     seed: int = 0,
 ) -> SyntheticGraph:
     """KITTI-like chain: ``n - 1`` odometry edges and one loop edge ``(t - loop_every, t)``
-    for every ``t`` that is a positive multiple of ``loop_every`` (none when ``n <= loop_every``)."""
+    for every ``t`` that is a positive multiple of ``loop_every`` (none when ``n <= loop_every``).
+    Always float64."""
+    with jax.enable_x64(True):
+        return _chain_graph(n, loop_every, noise, scale_drift, seed)
+
+
+def _chain_graph(n, loop_every, noise, scale_drift, seed) -> SyntheticGraph:
     rng = np.random.default_rng(seed)
     heading = np.cumsum(0.05 * rng.normal(size=n))
     step = np.stack([np.cos(heading), np.sin(heading), 0.01 * rng.normal(size=n)], 1) * 10.0
