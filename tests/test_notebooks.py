@@ -99,4 +99,22 @@ def test_notebook_runs(path, kernel_env, tmp_path):
     )
     t0 = time.perf_counter()
     client.execute()  # raises CellExecutionError (with the traceback) on the first failing cell
-    print(f"{path.name}: executed in {time.perf_counter() - t0:.1f} s")
+    print(f"{path.name}: executed in {time.perf_counter() - t0:.1f} s; slowest cells: {_slowest(nb)}")
+
+
+def _slowest(nb, n: int = 3) -> str:
+    """The ``n`` slowest code cells as ``"#index seconds"`` (from nbclient's execution timing)."""
+    from datetime import datetime
+
+    def seconds(cell) -> float:
+        t = cell.get("metadata", {}).get("execution", {})
+        try:
+            start, end = t["iopub.execute_input"], t["shell.execute_reply"]
+        except KeyError:
+            return 0.0
+        parse = lambda s: datetime.fromisoformat(s.replace("Z", "+00:00"))  # noqa: E731
+        return (parse(end) - parse(start)).total_seconds()
+
+    # Index 0 is the injected kernel check; notebook cell k is nb.cells[k + 1].
+    timed = sorted(((seconds(c), k - 1) for k, c in enumerate(nb.cells) if c.cell_type == "code"), reverse=True)
+    return ", ".join(f"#{k} {s:.1f} s" for s, k in timed[:n])
