@@ -58,13 +58,14 @@ def sincos(x: Array) -> tuple[Array, Array]:
     sin_c, cos_c, dp = (_SIN_F32, _COS_F32, _DP_F32) if single else (_SIN_F64, _COS_F64, _DP_F64)
     sign = jnp.where(x < 0, -1.0, 1.0).astype(x.dtype)
     ax = jnp.abs(x)
+    # floor/multiply only: XLA lowers a floating-point remainder to a scalar fmod call.
     j = jnp.floor(ax * (4.0 / math.pi))
-    j = j + jnp.mod(j, 2.0)  # map zeros to origin: j even
+    j = j + (j - 2.0 * jnp.floor(0.5 * j))  # map zeros to origin: j even
     r = ((ax - j * dp[0]) - j * dp[1]) - j * dp[2]
     z = r * r
     s = r + r * z * _horner(z, sin_c)
     c = 1.0 - 0.5 * z + z * z * _horner(z, cos_c)
-    octant = jnp.mod(j, 8.0)  # 0, 2, 4, 6
+    octant = j - 8.0 * jnp.floor(0.125 * j)  # 0, 2, 4, 6
     swap = (octant == 2.0) | (octant == 6.0)
     sin_v = jnp.where(swap, c, s)
     cos_v = jnp.where(swap, s, c)

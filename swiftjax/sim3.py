@@ -262,8 +262,9 @@ def log(S: ArrayLike) -> Array:
     omega, half = so3.log_components(q)  # W reuses the quaternion's half angle: no sin/cos
     sigma = jnp.log(s)
     theta_sq = half.theta_sq
-    # e^sigma = s exactly, and expm1(sigma) = s - 1 is exact in floating point near s = 1.
-    a, b, c = _w_from_parts(half, sigma, s, s - 1.0)
+    # expm1 from sigma itself, not s - 1: under jit XLA may fold log(exp(sigma)) back to sigma,
+    # and s - 1 = 0 with sigma = 1e-9 would make C = 0 (a NaN translation).
+    a, b, c = _w_from_parts(half, sigma, s, jnp.expm1(sigma))
     d = c - theta_sq * b
     det = d * d + theta_sq * a * a
     rho = _apply_poly(1.0 / c, -a / det, (a * a - b * d) / (c * det), omega, t)

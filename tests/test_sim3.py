@@ -326,3 +326,14 @@ def test_broadcasting_of_batch_axes():
 def test_import_swiftjax_does_not_import_torch():
     code = "import sys, swiftjax, swiftjax.sim3; assert 'torch' not in sys.modules, 'torch imported'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_jitted_log_exp_with_tiny_log_scale_is_finite(dtype):
+    # Regression: under jit XLA may fold log(exp(sigma)) to sigma while s - 1 rounds to 0.
+    with jax.enable_x64(dtype == jnp.float64):
+        for sigma in (1e-10, 1e-9, 3e-8, 6e-8):
+            xi = jnp.asarray([3.0, -1.0, 2.0, 0.0, 0.0, 0.0, sigma], dtype)
+            back = jax.jit(lambda x: sim3.log(sim3.exp(x)))(xi)
+            np.testing.assert_allclose(back, xi, rtol=0, atol=50 * _tol(dtype))
+            assert np.all(np.isfinite(jax.jit(sim3.right_jacobian_inverse)(xi)))
