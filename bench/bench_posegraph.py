@@ -62,9 +62,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="only the small graphs")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--rtol", type=float, default=1e-6)
+    ap.add_argument("--rtol", type=float, default=1e-5, help="GTSAM's default relativeErrorTol")
     ap.add_argument("--max-steps", type=int, default=100)
-    ap.add_argument("--gtsam-max-nodes", type=int, default=5000, help="skip GTSAM above this size")
+    ap.add_argument(
+        "--gtsam-max-nodes", type=int, default=2500,
+        help="skip GTSAM above this size (random loops make its Cholesky dense: N=1,000 already takes ~100 s)",
+    )
     ap.add_argument("--only", default="", help="substring filter on graph names")
     args = ap.parse_args()
     shared_env = os.environ.get("SWIFTJAX_SHARED")
@@ -92,10 +95,11 @@ def main() -> None:
                 from swiftjax.posegraph.gtsam_baseline import solve_gtsam
 
                 g_runs = []
-                reps = args.repeat if len(poses) <= 2000 else 1
-                for _ in range(reps):
+                for _ in range(args.repeat):
                     ref = solve_gtsam(poses, edges, meas, info, fixed, rtol=args.rtol, atol=0.0, max_iterations=args.max_steps)
                     g_runs.append(ref.seconds)
+                    if ref.seconds > 5.0:  # slow runs: once is enough for a ratio
+                        break
                 cost_at_gtsam = float(posegraph.cost(jax.numpy.asarray(ref.poses), prob))
                 row.update(
                     gtsam_seconds=min(g_runs), gtsam_iterations=ref.iterations, gtsam_error=ref.error_final,
@@ -131,12 +135,14 @@ def _markdown(rows) -> str:
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
-        gs = r.get("gtsam_seconds")
+        has = "gtsam_seconds" in r
+        gs = f"{r['gtsam_seconds']:.3f}" if has else "skipped"
+        gi = str(r["gtsam_iterations"]) if has else ""
+        ratio = f"{r['time_ratio']:.3f}" if has else ""
+        gc = f"{r['gtsam_cost']:.6f}" if has else ""
         out.append(
             f"| {r['graph']} | {r['nodes']} | {r['edges']} | {r['ours_seconds']:.3f} | {r['ours_compile_seconds']:.1f} | "
-            f"{r['ours_steps']} | {'' if gs is None else f'{gs:.3f}'} | {r.get('gtsam_iterations', '')} | "
-            f"{'' if gs is None else f'{r['time_ratio']:.3f}'} | {r['ours_cost']:.6f} | "
-            f"{'' if gs is None else f'{r['gtsam_cost']:.6f}'} |"
+            f"{r['ours_steps']} | {gs} | {gi} | {ratio} | {r['ours_cost']:.6f} | {gc} |"
         )
     return "\n".join(out)
 

@@ -6,9 +6,9 @@ size bucket (:func:`swiftjax.posegraph.problem.bucket_size`), looks up — or co
 it — the jitted solver for that bucket, runs it and unpads the result.
 
 What triggers a compile: a new ``(N_bucket, E_bucket)`` pair, a new dtype, or a change of
-the static options (``linear_solver`` as resolved, ``kernel``, ``max_steps``,
-``max_linear_iterations``).  Tolerances, ``lambda0`` and ``kernel_scale`` are traced values
-and never recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
+the static options (``linear_solver`` as resolved, ``max_steps``, ``max_linear_iterations``).
+Tolerances, ``lambda0``, the robust ``kernel`` and ``kernel_scale`` are traced values and never
+recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
 suite enable it) a bucket compiled by an earlier process is loaded from disk.
 """
 
@@ -24,7 +24,14 @@ import optimistix as optx
 from jax import Array
 
 from swiftjax import sim3
-from swiftjax.posegraph.problem import Problem, RobustKernel, bucket_size, pad_problem, validate
+from swiftjax.posegraph.problem import (
+    Problem,
+    RobustKernel,
+    bucket_size,
+    kernel_code,
+    pad_problem,
+    validate,
+)
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, residual_fn
 
 __all__ = ["optimize", "Result", "choose_linear_solver", "DENSE_MAX_NODES"]
@@ -66,7 +73,6 @@ class Result:
 class _Static:
     max_steps: int
     linear_solver: str
-    kernel: str | None
     max_linear_iterations: int
 
 
@@ -78,9 +84,9 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
         lambda0=params["lambda0"],
         eta_max=params["eta_max"],
         kernel_scale=params["kernel_scale"],
+        kernel=params["kernel"],
         linear_solver=static.linear_solver,
         max_linear_iterations=static.max_linear_iterations,
-        kernel=static.kernel,
     )
     sol = optx.least_squares(
         residual_fn, solver, problem.poses, args=problem, max_steps=static.max_steps, throw=False
@@ -181,7 +187,6 @@ def optimize(
     static = _Static(
         max_steps=int(max_steps),
         linear_solver=solver_name,
-        kernel=kernel,
         max_linear_iterations=int(max_linear_iterations),
     )
     dtype = padded.poses.dtype
@@ -191,6 +196,7 @@ def optimize(
             rtol=rtol, atol=atol, gtol=gtol, lambda0=lambda0, eta_max=eta_max, kernel_scale=kernel_scale
         ).items()
     }
+    params["kernel"] = jnp.asarray(kernel_code(kernel), jnp.int32)
     key = (nb, eb, str(dtype), static)
     compile_seconds = 0.0
     compiled = _COMPILED.get(key)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from swiftjax import sim3, so3
-from swiftjax.posegraph.problem import Problem, RobustKernel, robust_rho, robust_weight
+from swiftjax.posegraph.problem import Problem, RobustKernel, kernel_code, robust_rho_weight
 
 __all__ = [
     "residuals",
@@ -177,21 +177,24 @@ def residuals_and_jacobians(poses: Array, problem: Problem) -> tuple[Array, Arra
 
 
 def edge_costs(
-    r: Array, problem: Problem, kernel: RobustKernel | None = None, kernel_scale: float = 1.0
+    r: Array, problem: Problem, kernel: RobustKernel | Array | None = None, kernel_scale: float | Array = 1.0
 ) -> tuple[Array, Array]:
-    """``(rho_e(r^T Omega r) [E], IRLS weight rho'_e [E])``; zero for masked edges."""
+    """``(rho_e(r^T Omega r) [E], IRLS weight rho'_e [E])``; zero for masked edges.
+
+    ``kernel`` is a name (``None``, ``"huber"``, ``"cauchy"``) or a traced integer code
+    (:func:`~swiftjax.posegraph.problem.kernel_code`); it applies to edges with ``problem.robust``.
+    """
     sq = jnp.einsum("ei,eij,ej->e", r, problem.information, r)
-    if kernel is None:
-        rho, w = sq, jnp.ones_like(sq)
-    else:
-        rho = jnp.where(problem.robust, robust_rho(sq, kernel, kernel_scale), sq)
-        w = jnp.where(problem.robust, robust_weight(sq, kernel, kernel_scale), 1.0)
+    code = kernel_code(kernel) if kernel is None or isinstance(kernel, str) else kernel
+    rho_k, w_k = robust_rho_weight(sq, code, jnp.asarray(kernel_scale, r.dtype))
+    rho = jnp.where(problem.robust, rho_k, sq)
+    w = jnp.where(problem.robust, w_k, 1.0)
     mask = problem.edge_mask.astype(r.dtype)
     return rho * mask, w * mask
 
 
 def cost(
-    poses: Array, problem: Problem, kernel: RobustKernel | None = None, kernel_scale: float = 1.0
+    poses: Array, problem: Problem, kernel: RobustKernel | Array | None = None, kernel_scale: float | Array = 1.0
 ) -> Array:
     """``1/2 sum_e rho_e(r_e^T Omega_e r_e)`` (GTSAM's ``graph.error`` definition)."""
     rho, _ = edge_costs(residuals(poses, problem), problem, kernel, kernel_scale)

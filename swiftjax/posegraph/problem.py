@@ -37,6 +37,8 @@ __all__ = [
     "RobustKernel",
     "robust_rho",
     "robust_weight",
+    "kernel_code",
+    "robust_rho_weight",
     "validate",
     "bucket_size",
     "pad_problem",
@@ -185,6 +187,30 @@ def robust_weight(s: Array, kernel: RobustKernel | None, k: float) -> Array:
     if kernel == "cauchy":
         return 1.0 / (1.0 + s / k2)
     raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
+
+
+KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
+
+
+def kernel_code(kernel: RobustKernel | None) -> int:
+    """Integer code of a kernel name (0 none, 1 Huber, 2 Cauchy) for the traced variant below."""
+    if kernel not in KERNEL_CODES:
+        raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
+    return KERNEL_CODES[kernel]
+
+
+def robust_rho_weight(s: Array, code: Array, k: Array) -> tuple[Array, Array]:
+    """``(rho(s), rho'(s))`` with the kernel chosen by a *traced* integer ``code`` (no recompile)."""
+    code = jnp.asarray(code)
+    rho = jnp.select(
+        [code == 1, code == 2], [robust_rho(s, "huber", k), robust_rho(s, "cauchy", k)], s
+    )
+    w = jnp.select(
+        [code == 1, code == 2],
+        [robust_weight(s, "huber", k), robust_weight(s, "cauchy", k)],
+        jnp.ones_like(s),
+    )
+    return rho, w
 
 
 # ----------------------------------------------------------------------- host validation

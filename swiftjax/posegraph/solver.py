@@ -63,7 +63,7 @@ class Linearization(eqx.Module):
 
 
 def linearize(
-    poses: Array, problem: Problem, kernel: RobustKernel | None, kernel_scale: Array
+    poses: Array, problem: Problem, kernel: RobustKernel | Array | None, kernel_scale: Array
 ) -> Linearization:
     """Residuals, exact Jacobians, IRLS weights and the assembled normal equations at ``poses``."""
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)
@@ -107,7 +107,10 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         linear_solver: ``"dense"`` or ``"pcg"``.
         max_linear_iterations: PCG iteration cap per LM step.
         eta_max: largest PCG relative tolerance (forcing ``eta = min(eta_max, sqrt(|g|/|g0|))``).
-        kernel, kernel_scale: robust kernel for edges with ``problem.robust`` set.
+        kernel, kernel_scale: robust kernel for edges with ``problem.robust`` set: a name
+            (``None``/``"huber"``/``"cauchy"``, static) or an integer code array (traced, see
+            :func:`~swiftjax.posegraph.problem.kernel_code`; the driver passes codes so that
+            switching kernels never recompiles).
     """
 
     rtol: Any = 1e-10
@@ -118,7 +121,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
     linear_solver: str = eqx.field(static=True, default="dense")
     max_linear_iterations: int = eqx.field(static=True, default=300)
     eta_max: Any = 1e-2
-    kernel: RobustKernel | None = eqx.field(static=True, default=None)
+    kernel: Any = 0
     kernel_scale: Any = 1.0
 
     def _linearize(self, y, problem):
