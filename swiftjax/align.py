@@ -274,6 +274,7 @@ def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:
     return S, info
 
 
+@jax.jit
 def umeyama(
     src: ArrayLike, dst: ArrayLike, weights: ArrayLike | None = None
 ) -> tuple[Array, UmeyamaInfo]:
@@ -331,6 +332,7 @@ def frame_conf_mean(conf: ArrayLike) -> Array:
     return jax.lax.cond(jnp.all(jnp.isfinite(plain)), lambda f: plain, masked, flat)
 
 
+@jax.jit
 def reliability_mask(
     depth_a: ArrayLike,
     depth_b: ArrayLike,
@@ -405,6 +407,7 @@ def _vggt_long_weighted_sim3(src: Array, dst: Array, w: Array) -> tuple[Array, A
     return s, R, t
 
 
+@jax.jit
 def irls_sim3(
     src: ArrayLike,
     dst: ArrayLike,
@@ -490,6 +493,11 @@ class ChunkFrames(NamedTuple):
     conf: Array
     intrinsic: Array
     extrinsic: Array
+
+    @classmethod
+    def from_prediction(cls, pred, index=slice(None)) -> "ChunkFrames":
+        """Frames ``index`` (a slice or index array) of a :class:`~swiftjax.prediction.ChunkPrediction`."""
+        return cls(pred.depth[index], pred.conf[index], pred.intrinsic[index], pred.extrinsic[index])
 
 
 class AlignInfo(NamedTuple):

@@ -15,6 +15,7 @@ All functions are pure, broadcast over leading batch axes and are safe under ``j
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -64,6 +65,7 @@ def _as_sim3(T: Array) -> Array:
     )
 
 
+@jax.jit
 def unproject(depth: ArrayLike, K: ArrayLike, cam_to_world: ArrayLike | None = None) -> Array:
     """Depth maps to 3D points.
 
@@ -142,6 +144,7 @@ def focal_ratio(K_src: ArrayLike, K_ref: ArrayLike) -> Array:
     return 0.5 * (K_ref[..., 0, 0] / K_src[..., 0, 0] + K_ref[..., 1, 1] / K_src[..., 1, 1])
 
 
+@jax.jit
 def normalize_depth(depth: ArrayLike, K_src: ArrayLike, K_ref: ArrayLike) -> Array:
     """Depth normalised to the reference intrinsics (paper eq. 1).
 

@@ -227,9 +227,9 @@ class _Manifest:
             try:
                 data = json.loads(path.read_text())
             except (OSError, json.JSONDecodeError) as err:
-                raise RunDirError(f"{path} is unreadable ({err}); use --overwrite to start afresh") from err
+                raise RunDirError(f"{path} is unreadable ({err}); overwrite it (--overwrite) to start afresh") from err
             if data.get("version") != MANIFEST_VERSION:
-                raise RunDirError(f"{path} has manifest version {data.get('version')}; use --overwrite")
+                raise RunDirError(f"{path} has manifest version {data.get('version')}; overwrite it (--overwrite)")
             if data.get("config") != config:
                 changed = sorted(
                     k for k in set(config) | set(data.get("config", {}))
@@ -237,12 +237,12 @@ class _Manifest:
                 )
                 raise RunDirError(
                     f"{run_dir} holds a run with a different configuration ({', '.join(changed)}); "
-                    "use --overwrite to replace it or choose another --out"
+                    "overwrite it (--overwrite) or choose another output directory"
                 )
             if data.get("inputs") != json.loads(json.dumps(inputs)):
                 raise RunDirError(
                     f"{run_dir} holds a run of different input frames (names, sizes or modification "
-                    "times changed); use --overwrite to replace it or choose another --out"
+                    "times changed); overwrite it (--overwrite) or choose another output directory"
                 )
             return cls(path, data)
         manifest = cls(path, fresh)
@@ -329,12 +329,6 @@ def _frame_points(
     )
     keep = finite & (conf >= conf_ratio * mean) & jnp.all(jnp.isfinite(pts), axis=-1)
     return pts, keep
-
-
-def _overlap(pred: ChunkPrediction, index: slice | np.ndarray) -> align.ChunkFrames:
-    return align.ChunkFrames(
-        pred.depth[index], pred.conf[index], pred.intrinsic[index], pred.extrinsic[index]
-    )
 
 
 # ---------------------------------------------------------------------------- the pipeline
@@ -516,14 +510,14 @@ def reconstruct(
         if t > 0:
             edge = manifest.data["edges"].get(str(t - 1))
             if edge is None:
-                head = _overlap(pred, slice(0, config.overlap))
+                head = align.ChunkFrames.from_prediction(pred, slice(0, config.overlap))
                 S, diag = _align_pair(prev_tail, head, K_ref, config, False, f"chunks {t - 1}/{t}")
                 edge = {"S": S.tolist(), **diag}
                 manifest.data["edges"][str(t - 1)] = edge
                 manifest.save()
             relative[t - 1] = edge["S"]
             align_infos.append(edge)
-        prev_tail = _overlap(pred, slice(pred.num_frames - config.overlap, pred.num_frames))
+        prev_tail = align.ChunkFrames.from_prediction(pred, slice(pred.num_frames - config.overlap, pred.num_frames))
         stages.add("align", time.perf_counter() - t0)
         del pred
     assert descriptors is not None and K_ref is not None
@@ -534,20 +528,13 @@ def reconstruct(
     loop_edges: list[tuple[int, int, np.ndarray]] = []
     if config.loop_closure and T > 2:
         t0 = time.perf_counter()
-        # PCA whitening of N samples into d' >~ N/4 dimensions whitens the sampling noise
-        # too and flattens every cosine (measured: N = 238, d' = 236 -> best far-apart
-        # similarity 0.03; d' = 59 -> true revisits at 0.85-0.92).  With few dimensions the
-        # cosine of two unrelated whitened descriptors spreads as 1/sqrt(d'), so the
-        # threshold is at least 5 such standard deviations (0.65 at d' = 59; at d' = 512 the
-        # configured 0.43 is already 10 sigma).
-        dim = min(config.whitening_dim, max(8, n // 4))
         found = loops.find_loops(
             descriptors,
             schedule,
-            threshold=max(config.loop_threshold, 5.0 / np.sqrt(dim)),
+            threshold=config.loop_threshold,
             beta=config.power_beta,
             remove=config.whitening_remove,
-            dim=dim,
+            dim=config.whitening_dim,
             min_separation=config.loop_min_separation,
             nms_radius=config.loop_nms_radius,
             top_k=config.loop_top_k,
@@ -569,7 +556,7 @@ def reconstruct(
                     chunk_pred = store.load("chunk", c)
                     local = lp.frames[half] - schedule.starts[c]
                     halves.append(_align_pair(
-                        _overlap(chunk_pred, local), _overlap(pred, half), K_ref, config, True,
+                        align.ChunkFrames.from_prediction(chunk_pred, local), align.ChunkFrames.from_prediction(pred, half), K_ref, config, True,
                         f"loop ({lp.i}, {lp.j}) to chunk {c}",
                     ))
                 with jax.enable_x64(True):
