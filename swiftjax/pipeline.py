@@ -115,7 +115,7 @@ class PipelineConfig:
             raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
         if self.point_stride < 1:
             raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
-        if self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size:
+        if self.loop_closure and (self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size):
             raise ValueError(
                 f"loop_half_window must be in [1, chunk_size / 2], got {self.loop_half_window}"
             )
