@@ -19,6 +19,8 @@ Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "aut
   segment sum per product (``O(E)``), preconditioned by the inverses of the damped ``7 x 7``
   diagonal blocks (block Jacobi), relative-residual tolerance ``eta`` (Eisenstat–Walker
   forcing, set by the caller) and a fixed iteration cap (static).
+* :func:`solve_sparse` — SciPy SuperLU on the host through ``jax.pure_callback`` (sparse
+  direct; the right tool for chains with few loops, whose conditioning defeats PCG).
 """
 
 from __future__ import annotations
@@ -28,7 +30,15 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-__all__ = ["NormalEquations", "assemble", "matvec", "damping_diagonal", "solve_dense", "solve_pcg"]
+__all__ = [
+    "NormalEquations",
+    "assemble",
+    "matvec",
+    "damping_diagonal",
+    "solve_dense",
+    "solve_pcg",
+    "solve_sparse",
+]
 
 
 class NormalEquations(eqx.Module):
@@ -169,3 +179,59 @@ def solve_pcg(
     x, _, _, _, _, _, k = jax.lax.while_loop(cond, body, init)
     ok = jnp.all(jnp.isfinite(x))
     return jnp.where(ok, x, 0.0), k, ok
+
+
+def _host_sparse_solve(diag, off, damping, grad, edges):
+    """NumPy/SciPy side of :func:`solve_sparse`: assemble CSC, SuperLU (COLAMD ordering), solve."""
+    import numpy as np
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    diag, off, damping, grad, edges = (np.asarray(a) for a in (diag, off, damping, grad, edges))
+    n = diag.shape[0]
+    a = np.arange(7)
+    rr, cc = np.meshgrid(a, a, indexing="ij")  # block-local (row, col)
+    i, j = edges[:, 0], edges[:, 1]
+    nodes = np.arange(n)
+    diag = diag + damping[:, :, None] * np.eye(7)
+    rows = np.concatenate([
+        (7 * nodes[:, None, None] + rr).ravel(),
+        (7 * i[:, None, None] + rr).ravel(),
+        (7 * j[:, None, None] + rr).ravel(),
+    ])
+    cols = np.concatenate([
+        (7 * nodes[:, None, None] + cc).ravel(),
+        (7 * j[:, None, None] + cc).ravel(),
+        (7 * i[:, None, None] + cc).ravel(),
+    ])
+    data = np.concatenate([diag.ravel(), off.ravel(), np.swapaxes(off, 1, 2).ravel()])
+    mat = sp.csc_matrix((data, (rows, cols)), shape=(7 * n, 7 * n))
+    try:
+        lu = sla.splu(mat, permc_spec="COLAMD", options=dict(SymmetricMode=True))
+        x = lu.solve(-grad.reshape(-1)).reshape(n, 7)
+        ok = bool(np.all(np.isfinite(x)))
+    except RuntimeError:  # exactly singular
+        x, ok = np.zeros_like(grad), False
+    return x.astype(grad.dtype), np.asarray(ok)
+
+
+def solve_sparse(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Array]:
+    """Solve ``(H + diag(damping)) x = -g`` with a sparse direct factorisation on the host.
+
+    The block matrix is assembled in SciPy CSC form and factored by SuperLU with the COLAMD
+    ordering (symmetric mode) through ``jax.pure_callback``.  Measured on the 2,000-node
+    KITTI-like chain: COLAMD 23 ms / 0.52 M factor entries, minimum degree on ``A^T + A``
+    3.6 s / 18.7 M.  Cost is set
+    by the fill-in of the factor: near-linear for chains with few loops (KITTI-like), where
+    block-Jacobi PCG needs thousands of iterations; random loops make the factor dense (use
+    PCG there).  Returns ``(x [N, 7], iterations (0), ok)``.
+    """
+    out_shapes = (
+        jax.ShapeDtypeStruct(ne.grad.shape, ne.grad.dtype),
+        jax.ShapeDtypeStruct((), jnp.bool_),
+    )
+    x, ok = jax.pure_callback(
+        _host_sparse_solve, out_shapes, ne.diag, ne.off, damping, ne.grad, ne.edges,
+        vmap_method="sequential",
+    )
+    return jnp.where(ok, x, 0.0), jnp.zeros((), jnp.int32), ok

@@ -104,7 +104,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         rtol, atol: relative / absolute cost-decrease tolerances (GTSAM semantics).
         gtol: gradient tolerance relative to the initial gradient's max-norm.
         lambda0: initial damping (relative to ``diag(H)``).
-        linear_solver: ``"dense"`` or ``"pcg"``.
+        linear_solver: ``"dense"``, ``"pcg"`` or ``"sparse"`` (host SuperLU).
         max_linear_iterations: PCG iteration cap per LM step.
         eta_max: largest PCG relative tolerance (forcing ``eta = min(eta_max, sqrt(|g|/|g0|))``).
         kernel, kernel_scale: robust kernel for edges with ``problem.robust`` set: a name
@@ -119,8 +119,8 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
     gtol: Any = 1e-10
     lambda0: Any = 1e-5
     linear_solver: str = eqx.field(static=True, default="dense")
-    max_linear_iterations: int = eqx.field(static=True, default=300)
-    eta_max: Any = 1e-2
+    max_linear_iterations: int = eqx.field(static=True, default=1000)
+    eta_max: Any = 1e-4
     kernel: Any = 0
     kernel_scale: Any = 1.0
 
@@ -163,6 +163,8 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         damping = state.lam * linear.damping_diagonal(ne)
         if self.linear_solver == "dense":
             delta, iters, ok = linear.solve_dense(ne, damping)
+        elif self.linear_solver == "sparse":
+            delta, iters, ok = linear.solve_sparse(ne, damping)
         elif self.linear_solver == "pcg":
             ratio = state.grad_inf / jnp.maximum(state.grad_initial, jnp.finfo(dtype).tiny)
             eta = jnp.clip(jnp.sqrt(ratio), 10 * eps, self.eta_max)
