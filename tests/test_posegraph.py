@@ -186,6 +186,20 @@ def test_dense_and_pcg_agree(x64):
     assert b.linear_iterations > 0 and a.linear_iterations == 0
 
 
+def test_sparse_host_solver_agrees_and_auto_rule(x64):
+    g = circle_graph(16, seed=2)
+    a = posegraph.optimize(_problem(g), linear_solver="dense", rtol=1e-14)
+    c = posegraph.optimize(_problem(g), linear_solver="sparse", rtol=1e-14)
+    assert c.cost_final == pytest.approx(a.cost_final, rel=1e-12)
+    np.testing.assert_allclose(_canon(c.poses), _canon(a.poses), atol=1e-9)
+    # auto: a chain with few loops goes to the sparse solver, random loops to PCG.
+    chain = chain_graph(200, loop_every=50)
+    assert posegraph.choose_linear_solver(224, num_nodes=200, edges=chain.edges) == "sparse"
+    circ = circle_graph(200)
+    assert posegraph.choose_linear_solver(224, num_nodes=200, edges=circ.edges) == "pcg"
+    assert posegraph.choose_linear_solver(32, num_nodes=20, edges=circ.edges[:20]) == "dense"
+
+
 def test_optimistix_least_squares_entry_point(x64):
     g = circle_graph(16, seed=5)
     prob = _problem(g)

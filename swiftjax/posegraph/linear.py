@@ -25,7 +25,10 @@ Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "aut
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import numpy as np
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -181,13 +184,23 @@ def solve_pcg(
     return jnp.where(ok, x, 0.0), k, ok
 
 
-def _host_sparse_solve(diag, off, damping, grad, edges):
-    """NumPy/SciPy side of :func:`solve_sparse`: assemble CSC, SuperLU (COLAMD ordering), solve."""
+def _host_sparse_solve(dtype, diag, off, damping, grad, edges):
+    """NumPy/SciPy side of :func:`solve_sparse`: assemble CSC, SuperLU (COLAMD ordering), solve.
+
+    Float arrays travel as raw 32-bit words (``[..., words]`` uint32): JAX canonicalises callback
+    operands and results with the *callback thread's* x64 flag, which differs from the caller's
+    under a ``jax.enable_x64(True)`` context, and would silently round float64 to float32.
+    """
     import numpy as np
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
-    diag, off, damping, grad, edges = (np.asarray(a) for a in (diag, off, damping, grad, edges))
+    def unwords(a):
+        a = np.ascontiguousarray(np.asarray(a, np.uint32))
+        return a.view(dtype).reshape(a.shape[:-1])
+
+    diag, off, damping, grad = (unwords(a) for a in (diag, off, damping, grad))
+    edges = np.asarray(edges)
     n = diag.shape[0]
     a = np.arange(7)
     rr, cc = np.meshgrid(a, a, indexing="ij")  # block-local (row, col)
@@ -212,7 +225,8 @@ def _host_sparse_solve(diag, off, damping, grad, edges):
         ok = bool(np.all(np.isfinite(x)))
     except RuntimeError:  # exactly singular
         x, ok = np.zeros_like(grad), False
-    return x.astype(grad.dtype), np.asarray(ok)
+    x = np.ascontiguousarray(x.astype(dtype))
+    return x.view(np.uint32).reshape(n, 7, -1), np.asarray(ok)
 
 
 def solve_sparse(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Array]:
@@ -226,12 +240,24 @@ def solve_sparse(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Arr
     block-Jacobi PCG needs thousands of iterations; random loops make the factor dense (use
     PCG there).  Returns ``(x [N, 7], iterations (0), ok)``.
     """
+    n = ne.grad.shape[0]
+    words = jnp.dtype(ne.grad.dtype).itemsize // 4
     out_shapes = (
-        jax.ShapeDtypeStruct(ne.grad.shape, ne.grad.dtype),
+        jax.ShapeDtypeStruct((n, 7, words), jnp.uint32),
         jax.ShapeDtypeStruct((), jnp.bool_),
     )
-    x, ok = jax.pure_callback(
-        _host_sparse_solve, out_shapes, ne.diag, ne.off, damping, ne.grad, ne.edges,
+    dtype = jnp.dtype(ne.grad.dtype)
+
+    def words_of(a):
+        w = jax.lax.bitcast_convert_type(a, jnp.uint32)
+        return w if words > 1 else w[..., None]
+
+    raw, ok = jax.pure_callback(
+        functools.partial(_host_sparse_solve, np.dtype(dtype.name)),
+        out_shapes,
+        words_of(ne.diag), words_of(ne.off), words_of(damping), words_of(ne.grad), ne.edges,
         vmap_method="sequential",
     )
+    raw = raw if words > 1 else raw[..., 0]
+    x = jax.lax.bitcast_convert_type(raw, ne.grad.dtype).reshape(n, 7)
     return jnp.where(ok, x, 0.0), jnp.zeros((), jnp.int32), ok
