@@ -13,7 +13,7 @@ Jacobian code); every later step (Nielsen's damping rule, Marquardt scaling ``D 
 
     (H + lambda D) delta = -g
     predicted = -(g.delta + 1/2 delta^T H delta),   actual = C(S) - C(S exp(delta))
-    accept if actual > 1e-3 predicted:  lambda *= max(1/3, 1 - (2 actual/predicted - 1)^3), nu = 2
+    accept if actual > 1e-3 predicted:  lambda *= max(1/10, 1 - (2 actual/predicted - 1)^3), nu = 2
     otherwise:                          lambda *= nu, nu *= 2
 
 Stopping (``status`` codes in :data:`STATUS`): an accepted step with
@@ -181,7 +181,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         ratio = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = ok & jnp.isfinite(new_lin.cost) & (predicted > 0) & (ratio > 1e-3)
 
-        lam_accept = state.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        lam_accept = state.lam * jnp.maximum(0.1, 1.0 - (2.0 * ratio - 1.0) ** 3)
         lam = jnp.where(accept, jnp.maximum(lam_accept, _LAMBDA_MIN), state.lam * state.nu)
         nu = jnp.where(accept, 2.0, 2.0 * state.nu)
         lam = jnp.where(first, state.lam, lam)
