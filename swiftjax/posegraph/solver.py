@@ -9,7 +9,9 @@ equations with segment sums and solves them with a dense Cholesky (small graphs)
 block-Jacobi PCG (large graphs).  Updates are on the manifold, ``S <- S exp(delta)``.
 
 Step 0 only linearises at the initial guess (so the compiled loop holds one copy of the
-Jacobian code); every later step (Nielsen's damping rule, Marquardt scaling ``D = clip(diag H)``)::
+Jacobian code); every later step (Nielsen's damping rule with its decrease floor lowered from
+1/3 to 1/10 — measured: parking-garage 12 -> 8 steps, other graphs within one step — and
+Marquardt scaling ``D = clip(diag H)``)::
 
     (H + lambda D) delta = -g
     predicted = -(g.delta + 1/2 delta^T H delta),   actual = C(S) - C(S exp(delta))
