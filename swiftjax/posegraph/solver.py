@@ -6,7 +6,8 @@ where optimistix's ``LevenbergMarquardt`` would materialise a dense Jacobian (QR
 matrix-free without a preconditioner, it linearises edge by edge with the exact analytic
 Jacobians of :mod:`swiftjax.posegraph.factors`, assembles the block-sparse normal
 equations with segment sums and solves them with a dense Cholesky (small graphs) or
-block-Jacobi PCG (large graphs).  Updates are on the manifold, ``S <- S exp(delta)``.
+block-Jacobi PCG (large graphs with many loops) or a host sparse direct solve (chains and other
+low-fill graphs; see :func:`swiftjax.posegraph.choose_linear_solver`).  Updates are on the manifold, ``S <- S exp(delta)``.
 
 Step 0 only linearises at the initial guess (so the compiled loop holds one copy of the
 Jacobian code); every later step (Nielsen's damping rule with its decrease floor lowered from
