@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from swiftjax import sim3, so3
+from swiftjax import sim3
 from swiftjax.posegraph.problem import Problem, RobustKernel, kernel_code, robust_rho_weight
 
 __all__ = [

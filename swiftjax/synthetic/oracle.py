@@ -52,7 +52,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import zlib
 from typing import NamedTuple
 

@@ -252,7 +252,7 @@ def build_world(cam_to_world: np.ndarray, config: WorldConfig = WorldConfig()) -
         horiz = v - np.outer(v @ up, up)
         keep_cyl[i] = np.all(np.linalg.norm(horiz, axis=1) - cyl_radius[i] >= cfg.pole_clearance_m)
 
-    nb, nc = int(keep_box.sum()), int(keep_cyl.sum())
+    nb = int(keep_box.sum())
     cyl_sem = cyl_semantic[keep_cyl]
     return World(
         up=up,
