@@ -69,6 +69,8 @@ def main() -> None:
         help="skip GTSAM above this size (random loops make its Cholesky dense: N=1,000 already takes ~100 s)",
     )
     ap.add_argument("--only", default="", help="substring filter on graph names")
+    ap.add_argument("--damping", default="identity", choices=["identity", "marquardt"])
+    ap.add_argument("--linear-solver", default="auto", choices=["auto", "dense", "pcg", "sparse"])
     args = ap.parse_args()
     shared_env = os.environ.get("SWIFTJAX_SHARED")
     shared = pathlib.Path(shared_env) if shared_env else REPO.parent / "shared"
@@ -80,7 +82,10 @@ def main() -> None:
             if args.only and args.only not in name:
                 continue
             prob = posegraph.Problem(poses, edges, meas, information=info, fixed=fixed)
-            opts = dict(rtol=args.rtol, atol=0.0, max_steps=args.max_steps)
+            opts = dict(
+                rtol=args.rtol, atol=0.0, max_steps=args.max_steps, damping=args.damping,
+                linear_solver=args.linear_solver,
+            )
             first = posegraph.optimize(prob, **opts)
             runs = [first.solve_seconds]
             for _ in range(args.repeat - 1):
