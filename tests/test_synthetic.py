@@ -115,7 +115,9 @@ def test_renderer_matches_float64_numpy_reference(world, route):
         K.astype(np.float32), P[:, :3, :3].astype(np.float32), (P[:, :3, 3] - origin).astype(np.float32),
         planes.astype(np.float32), cand, np.int32(world.num_boxes), height=h, width=w,
         k_box=40, k_cyl=40,  # budgets above every frame's visible set: no culling difference
+        k_box_tile=16, k_cyl_tile=15,
     )
+    assert np.all(np.asarray(out.tile_overflow) == 0)  # so every candidate was tested where visible
     depth = np.asarray(out.depth)
     sem = np.asarray(out.semantic)
     for i, f in enumerate(frames):
@@ -130,6 +132,43 @@ def test_renderer_matches_float64_numpy_reference(world, route):
     # a street: ground at the bottom rows, buildings present, sky somewhere
     assert (sem[:, -1, :] == GROUND).mean() > 0.9
     assert (sem == BUILDING).mean() > 0.2 and (sem == SKY).mean() > 0.01
+
+
+def _render(world, route, frames, h, w, **kw):
+    K = kitti_intrinsics(w, h)
+    P = route[frames]
+    origin = P[0, :3, 3]
+    cand = chunk_candidates(world, P[:, :3, 3], origin)
+    planes = frame_planes(world, P[:, :3, 3], origin)
+    out = render_frames(
+        K.astype(np.float32), P[:, :3, :3].astype(np.float32), (P[:, :3, 3] - origin).astype(np.float32),
+        planes.astype(np.float32), cand, np.int32(world.num_boxes), height=h, width=w, **kw,
+    )
+    return [np.asarray(a) for a in out]
+
+
+def test_tile_culling_is_invisible_unless_a_tile_overflows(world, route):
+    # 127 columns: the last 14-column tile is partial (padding columns are cropped)
+    frames = np.array([3, 90, 180, 260, 333, 420])
+    h, w = 36, 127
+    full = _render(world, route, frames, h, w, k_box_tile=12, k_cyl_tile=10)  # every frame candidate
+    tiled = _render(world, route, frames, h, w)  # defaults: 8 + 6 per tile
+    assert np.all(full[3] == 0) and np.all(tiled[3] == 0)
+    # identical up to seam pixels where two surfaces lie within 2^b float32 ulps
+    assert np.mean(full[1] == tiled[1]) > 0.999 and np.mean(full[2] == tiled[2]) > 0.999
+    fin = np.isfinite(full[0])
+    assert np.array_equal(fin, np.isfinite(tiled[0]))
+    np.testing.assert_allclose(tiled[0][fin], full[0][fin], rtol=1e-5)
+    # narrow tiles (one column each) cull hardest and still agree
+    narrow = _render(world, route, frames, h, w, tile_width=1)
+    assert np.all(narrow[3] == 0)
+    assert np.mean(full[2] == narrow[2]) > 0.999
+    # a budget of one object per tile drops visible objects, and says so
+    tiny = _render(world, route, frames, h, w, k_box_tile=1, k_cyl_tile=1)
+    assert np.all(tiny[3] > 0)
+    assert np.mean(full[2] != tiny[2]) > 0.01
+    with pytest.raises(ValueError, match="<= 32"):
+        _render(world, route, frames, h, w, k_box=20, k_cyl=20, k_box_tile=20, k_cyl_tile=20)
 
 
 # ----------------------------------------------------------------------------- oracle

@@ -13,20 +13,26 @@ the optical axis: ``x_cam = t d``.  The scene of one frame is:
 
 Hits farther than ``far`` (depth) are dropped (the world ends there: sky).
 
-Culling, two levels, both static-size so the cost does not grow with the world:
+Culling, three levels, all static-size so the cost does not grow with the world:
 
 1. host (:func:`chunk_candidates`): the ``n_box``/``n_cyl`` objects nearest to a set of
    cameras (a KD-tree query), padded with invalid entries;
 2. jit (:func:`render_frames`): per frame, the ``k_box``/``k_cyl`` candidates nearest to
-   the camera whose bounding sphere touches the view cone (``lax.top_k``).
+   the camera whose bounding sphere touches the view cone (``lax.top_k``);
+3. jit: per image column tile (``tile_width`` columns), the first ``k_box_tile`` /
+   ``k_cyl_tile`` of those whose box / cylinder touches the tile's wedge of rays
+   (separating planes): ~8 tested objects per pixel instead of 22, with an identical image
+   unless a tile overflows (counted in :attr:`Render.tile_overflow`; never on KITTI 00).
 
 Objects beyond the per-frame budget are not drawn: with the defaults (12 boxes, 10
 cylinders, 80 m) this only drops small far objects, and the result is still a pure function
 of the frame's pose, so every frame renders identically in every chunk.
 
 Computation is in float32 in a local frame (``origin`` subtracted in float64 on the host),
-so positions stay exact to ~1e-5 m on a 3.7 km route.  The object loop is unrolled into one
-fused elementwise kernel over ``[F, H*W]`` pixels (no per-object intermediates in memory).
+so positions stay exact to ~1e-5 m on a 3.7 km route.  Per pixel, the closest hit over the
+tile's slots is one fused elementwise kernel over ``[F, tiles, H * tile_width]`` (a min over
+packed ``(distance, slot)`` keys: no per-object intermediates in memory), then a second
+fused pass recomputes the winner's exact distance (see :func:`render_frames`).
 """
 
 from __future__ import annotations
@@ -81,11 +87,15 @@ class Render(NamedTuple):
         semantic: ``[F, H, W]`` int32 semantic id (:mod:`swiftjax.synthetic.world` constants).
         instance: ``[F, H, W]`` int32: global box index for buildings, ``num_boxes +``
             cylinder index for poles/trees, ``-1`` for ground and sky.
+        tile_overflow: ``[F]`` int32: per frame, how many (tile, object) pairs that touch a
+            tile were not tested because the tile's budget was full (0: the image equals
+            the one testing every frame candidate in every pixel).
     """
 
     depth: jax.Array
     semantic: jax.Array
     instance: jax.Array
+    tile_overflow: jax.Array
 
 
 def _basis(up: np.ndarray) -> np.ndarray:
@@ -170,7 +180,27 @@ def _select(centre: jax.Array, radius: jax.Array, valid: jax.Array, cam_c: jax.A
     return idx
 
 
-@functools.partial(jax.jit, static_argnames=("height", "width", "k_box", "k_cyl", "far"))
+def _tile_select(valid: jax.Array, k_tile: int) -> tuple[jax.Array, jax.Array]:
+    """The first ``k_tile`` valid slots of each row, in slot order: ``[..., k] -> ([..., k_tile], ok)``.
+
+    Slot order is the per-frame order (nearest first), so every tile keeps the frame's
+    tie-breaking.  ``ok`` marks real entries; the dropped count is ``sum(valid) - sum(ok)``.
+    """
+    k = valid.shape[-1]
+    slot = jnp.arange(k, dtype=jnp.int32)
+    score = jnp.where(valid, slot, k + slot)  # valid slots first, each group in slot order
+    _, idx = jax.lax.top_k(-score, k_tile)
+    return idx, jnp.take_along_axis(valid, idx, axis=-1)
+
+
+def _support(n: jax.Array, axes: jax.Array, half: jax.Array) -> jax.Array:
+    """Support ``sum_i h_i |n . a_i|`` of boxes along normals: ``n [F, U, 3]``, ``axes [F, k, 3, 3]``
+    (rows ``a_i``), ``half [F, k, 3]`` -> ``[F, U, k]``."""
+    return jnp.einsum("fuki,fki->fuk", jnp.abs(jnp.einsum("fuc,fkic->fuki", n, axes)), half)
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "height", "width", "k_box", "k_cyl", "far", "tile_width", "k_box_tile", "k_cyl_tile"))
 def render_frames(
     K: jax.Array,
     cam_R: jax.Array,
@@ -184,6 +214,9 @@ def render_frames(
     k_box: int = 12,
     k_cyl: int = 10,
     far: float = 80.0,
+    tile_width: int = 14,
+    k_box_tile: int = 8,
+    k_cyl_tile: int = 6,
 ) -> Render:
     """Ray-cast ``F`` frames of the world.
 
@@ -197,20 +230,52 @@ def render_frames(
         height, width: image size (static).
         k_box, k_cyl: per-frame object budgets (static).
         far: depth beyond which hits are dropped (static).
+        tile_width: columns per image tile (static; VGGT's patch width by default).
+        k_box_tile, k_cyl_tile: per-tile budgets (static), taken from the frame's candidates
+            (``min(k_tile, k)``; ``1 + k_box_tile + k_cyl_tile <= 32``).  Dropped objects are
+            counted in :attr:`Render.tile_overflow`.
+
+    Per image column tile (``tile_width`` columns, all rows) only the frame candidates whose
+    box / cylinder touches the tile's wedge of rays are tested: a separating-axis test
+    against the two planes through the camera centre that bound the tile's columns (half a
+    pixel of margin), ``n(u) = R (f_x, s, c_x - u)``, with the support function
+    ``sum_i h_i |n . a_i|`` of a box (``r |n_h| + h/2 |n . up|`` for a vertical cylinder).
+    That keeps ~``k_box_tile + k_cyl_tile`` objects per pixel instead of ``k_box + k_cyl``
+    and gives the same image as testing all of them whenever no tile overflows.
+
+    Per pixel the closest hit is found in one fused kernel: every slot's hit distance ``t``
+    (positive float32, whose bits order like the floats) is packed with the slot index in
+    the low ``b`` mantissa bits, ``key = (bits(t) & ~(2^b - 1)) | slot``, and the keys are
+    min-reduced (an unrolled chain of ``uint32`` minima, one input each, so XLA fuses it
+    without re-computation or per-object arrays).  A second fused pass recomputes ``t`` of
+    the winning slot exactly.  Two hits closer than ``2^b`` float32 ulps (~``2^b * 6e-8``
+    relative; where two surfaces meet) go to the lower slot (ground, then boxes, then
+    cylinders, nearest first): the depth is exact, only such seam pixels may change owner.
 
     Returns:
         :class:`Render`.  Recompiles when ``F``, the image size, the candidate counts, the
-        budgets or ``far`` change.
+        budgets, ``tile_width`` or ``far`` change.
     """
     f32 = jnp.float32
     K = K.astype(f32)
-    rays = pixel_rays(K, height, width).reshape(-1, 3)  # [P, 3], z = 1
+    H, W, tw = height, width, tile_width
+    T = -(-W // tw)
+    Wp = T * tw
+    Pt = H * tw
     G = cand.basis
     up = G[2]
     nF = cam_R.shape[0]
+    k_bt, k_ct = min(k_box_tile, k_box), min(k_cyl_tile, k_cyl)
+    n_slots = 1 + k_bt + k_ct
+    if n_slots > 32:
+        raise ValueError(f"1 + k_box_tile + k_cyl_tile must be <= 32, got {n_slots}")
+    bits = max(1, (n_slots - 1).bit_length())
+    low = jnp.uint32((1 << bits) - 1)
+    no_hit = jnp.uint32(0xFFFFFFFF)
 
-    # ---- per-frame culling
-    corner = jnp.abs(pixel_rays(K, height, width)[jnp.array([0, 0, -1, -1]), jnp.array([0, -1, 0, -1])])
+    # ---- per-frame culling (view cone, k nearest)
+    rays_img = pixel_rays(K, H, Wp)  # [H, Wp, 3], z = 1
+    corner = jnp.abs(rays_img[jnp.array([0, 0, -1, -1]), jnp.array([0, W - 1, 0, W - 1])])
     cos_cone = jnp.min(1.0 / jnp.linalg.norm(corner, axis=-1))
     fwd = cam_R[:, :, 2]
     box_valid = cand.box_id >= 0
@@ -221,80 +286,150 @@ def render_frames(
     cidx = _select(cyl_mid, jnp.hypot(cand.cyl_radius, 0.5 * cand.cyl_height), cyl_valid, cam_c, fwd,
                    cos_cone, far, k_cyl)
 
-    # ---- per-pixel ray directions in the (e1, e2, up) basis: g = G R_f d.  Written out
-    # elementwise (an einsum to [F, 3, P] is a slow dot on XLA CPU; this fuses).
+    # ---- per-tile culling: separating planes of each tile's column wedge
+    u_edges = jnp.stack([jnp.arange(T, dtype=f32) * tw - 0.5, jnp.arange(T, dtype=f32) * tw + tw - 0.5], 1)
+    n_cam = jnp.stack([jnp.broadcast_to(K[0, 0], u_edges.shape), jnp.broadcast_to(K[0, 1], u_edges.shape),
+                       K[0, 2] - u_edges], -1)  # [T, 2, 3]: u_x >= u  <=>  n(u) . x_cam >= 0
+    n_w = jnp.einsum("fij,tej->ftei", cam_R, n_cam).reshape(nF, 2 * T, 3)  # world (local) frame
+    ax2 = cand.box_axis_x[bidx]  # [F, kb, 2]
+    e1, e2 = G[0], G[1]
+    a_x = ax2[..., 0:1] * e1 + ax2[..., 1:2] * e2
+    a_y = -ax2[..., 1:2] * e1 + ax2[..., 0:1] * e2
+    box_axes = jnp.stack([a_x, a_y, jnp.broadcast_to(up, a_x.shape)], -2)  # [F, kb, 3, 3]
+    s_box = jnp.einsum("fuc,fkc->fuk", n_w, cand.box_center[bidx] - cam_c[:, None, :])
+    r_box = _support(n_w, box_axes, cand.box_half[bidx])
+    cyl_c = cyl_mid[cidx]
+    s_cyl = jnp.einsum("fuc,fkc->fuk", n_w, cyl_c - cam_c[:, None, :])
+    r_cyl = (jnp.hypot(n_w @ e1, n_w @ e2)[..., None] * cand.cyl_radius[cidx][:, None, :]
+             + jnp.abs(n_w @ up)[..., None] * (0.5 * cand.cyl_height[cidx])[:, None, :])
+
+    def in_tile(s, r, valid):  # [F, 2T, k] -> [F, T, k]
+        s, r = s.reshape(nF, T, 2, -1), r.reshape(nF, T, 2, -1)
+        return valid[:, None, :] & (s[:, :, 0] + r[:, :, 0] >= 0) & (s[:, :, 1] - r[:, :, 1] <= 0)
+
+    vis_b = in_tile(s_box, r_box, box_valid[bidx])
+    vis_c = in_tile(s_cyl, r_cyl, cyl_valid[cidx])
+    tb, okb = _tile_select(vis_b, k_bt)  # [F, T, k_bt]
+    tc, okc = _tile_select(vis_c, k_ct)
+    overflow = (jnp.sum(vis_b, (1, 2)) - jnp.sum(okb, (1, 2)) + jnp.sum(vis_c, (1, 2))
+                - jnp.sum(okc, (1, 2))).astype(jnp.int32)
+    bsel = jnp.take_along_axis(bidx[:, None, :], tb, axis=-1)  # [F, T, k_bt] candidate index
+    csel = jnp.take_along_axis(cidx[:, None, :], tc, axis=-1)
+
+    # ---- per-pixel ray directions in the (e1, e2, up) basis, tile layout [F, T, H * tw]
+    # (built in tile order from pixel indices with pixel_rays' arithmetic: no transposes,
+    # which would make XLA treat every pixel value as re-used and stop fusing)
+    u = (jnp.arange(T, dtype=f32)[:, None, None] * tw + jnp.arange(tw, dtype=f32)[None, None, :])  # [T, 1, tw]
+    v = jnp.arange(H, dtype=f32)[None, :, None]  # [1, H, 1]
+    ry = (v - K[1, 2]) / K[1, 1]
+    rx = (u - K[0, 2] - K[0, 1] * ry) / K[0, 0]
+    rx, ry = jnp.broadcast_to(rx, (T, H, tw)).reshape(1, T, Pt), jnp.broadcast_to(ry, (T, H, tw)).reshape(1, T, Pt)
     M = jnp.einsum("ij,fjk->fik", G, cam_R)  # [F, 3, 3]
-    rx, ry = rays[None, :, 0], rays[None, :, 1]  # [1, P]; rays[:, 2] == 1
-    g1 = M[:, 0, 0, None] * rx + M[:, 0, 1, None] * ry + M[:, 0, 2, None]
-    g2 = M[:, 1, 0, None] * rx + M[:, 1, 1, None] * ry + M[:, 1, 2, None]
-    g3 = M[:, 2, 0, None] * rx + M[:, 2, 1, None] * ry + M[:, 2, 2, None]
-    col = lambda a: a[:, None]  # noqa: E731  per-frame scalar -> [F, 1]
+    e = (slice(None), None, None)
+    g1 = M[:, 0, 0][e] * rx + M[:, 0, 1][e] * ry + M[:, 0, 2][e]
+    g2 = M[:, 1, 0][e] * rx + M[:, 1, 1][e] * ry + M[:, 1, 2][e]
+    g3 = M[:, 2, 0][e] * rx + M[:, 2, 1][e] * ry + M[:, 2, 2][e]
+    g1, g2, g3 = jax.lax.optimization_barrier((g1, g2, g3))
 
-    # ---- ground
-    n_g = planes[:, :3] @ G.T  # normal in the basis  [F, 3]
+    # ---- slot parameters per (frame, tile)
+    n_g = planes[:, :3] @ G.T  # ground normal in the basis [F, 3]
     num = planes[:, 3] - jnp.sum(planes[:, :3] * cam_c, axis=-1)  # d - n.c  (< 0 above ground)
-    den = col(n_g[:, 0]) * g1 + col(n_g[:, 1]) * g2 + col(n_g[:, 2]) * g3
-    t_ground = col(num) / den
-    depth = jnp.where((den < 0) & (t_ground > 0), t_ground, jnp.inf)
-    # `code` packs what was hit: semantic | (instance + 1) << 3  (sky: 0, ground: GROUND)
-    code = jnp.where(jnp.isfinite(depth), GROUND, SKY).astype(jnp.int32)
-    g1, g2, g3, depth, code = jax.lax.optimization_barrier((g1, g2, g3, depth, code))
-
-    # ---- boxes (slab test in the box frame; the box z axis is `up`).  One fori_loop step
-    # per object: each step is one fused elementwise kernel over [F, P]; carrying depth and
-    # code through a loop (not an unrolled chain) keeps XLA from re-computing the chain.
-    inv_g3 = 1.0 / g3
-    ax = cand.box_axis_x[bidx]  # [F, kb, 2]
-    hb = cand.box_half[bidx]  # [F, kb, 3]
-    rel = jnp.einsum("fkc,ic->fki", cam_c[:, None, :] - cand.box_center[bidx], G)
+    ax = cand.box_axis_x[bsel]  # [F, T, k_bt, 2]
+    hb = cand.box_half[bsel]
+    rel = jnp.einsum("ftkc,ic->ftki", cam_c[:, None, None, :] - cand.box_center[bsel], G)
     ob = jnp.stack([rel[..., 0] * ax[..., 0] + rel[..., 1] * ax[..., 1],
                     -rel[..., 0] * ax[..., 1] + rel[..., 1] * ax[..., 0], rel[..., 2]], -1)
-    okb = box_valid[bidx]
-    box_code = BUILDING | ((cand.box_id[bidx] + 1) << 3)  # [F, kb]
+    box_code = BUILDING | ((cand.box_id[bsel] + 1) << 3)  # [F, T, k_bt]
+    mc = jnp.einsum("ftkc,ic->ftki", cam_c[:, None, None, :] - cand.cyl_base[csel], G)
+    rc, hc = cand.cyl_radius[csel], cand.cyl_height[csel]
+    Cc = mc[..., 0] ** 2 + mc[..., 1] ** 2 - rc**2
+    okc = okc & (Cc > 0)
+    cyl_code = cand.cyl_semantic[csel] | ((num_boxes + cand.cyl_id[csel] + 1) << 3)
+    P = lambda a: a[..., None]  # noqa: E731  per-(frame, tile) value -> broadcast over pixels
 
-    def box_step(j, carry):
-        depth, code = carry
-        a0, a1 = col(ax[:, j, 0]), col(ax[:, j, 1])
-        h, o = hb[:, j], ob[:, j]
+    def ground_t():
+        den = P(n_g[:, 0:1]) * g1 + P(n_g[:, 1:2]) * g2 + P(n_g[:, 2:3]) * g3
+        t = P(num[:, None]) / den
+        return t, (den < 0) & (t > 0)
+
+    def box_t(a0, a1, lo, hi):  # axis (a0, a1) in (e1, e2); slab bounds lo = -h - o, hi = h - o
         bx = a0 * g1 + a1 * g2
         by = -a1 * g1 + a0 * g2
-        ix, iy = 1.0 / bx, 1.0 / by
-        tx1, tx2 = col(-h[:, 0] - o[:, 0]) * ix, col(h[:, 0] - o[:, 0]) * ix
-        ty1, ty2 = col(-h[:, 1] - o[:, 1]) * iy, col(h[:, 1] - o[:, 1]) * iy
-        tz1, tz2 = col(-h[:, 2] - o[:, 2]) * inv_g3, col(h[:, 2] - o[:, 2]) * inv_g3
+        ix, iy, iz = 1.0 / bx, 1.0 / by, 1.0 / g3
+        tx1, tx2 = lo[0] * ix, hi[0] * ix
+        ty1, ty2 = lo[1] * iy, hi[1] * iy
+        tz1, tz2 = lo[2] * iz, hi[2] * iz
         t0 = jnp.maximum(jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2)), jnp.minimum(tz1, tz2))
         t1 = jnp.minimum(jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2)), jnp.maximum(tz1, tz2))
-        hit = col(okb[:, j]) & (t1 >= t0) & (t0 > 0) & (t0 < depth)
-        return jnp.where(hit, t0, depth), jnp.where(hit, col(box_code[:, j]), code)
+        return t0, (t1 >= t0) & (t0 > 0)
 
-    depth, code = jax.lax.fori_loop(0, k_box, box_step, (depth, code))
+    def cyl_t(m0, m1, m2, C, h):  # camera offset m in (e1, e2, up), C = |m_h|^2 - r^2, height h
+        A = g1 * g1 + g2 * g2
+        Bh = m0 * g1 + m1 * g2
+        disc = Bh * Bh - A * C
+        t = (-Bh - jnp.sqrt(jnp.maximum(disc, 0.0))) * (1.0 / A)
+        zc = m2 + t * g3
+        return t, (disc >= 0) & (t > 0) & (zc >= 0) & (zc <= h)
 
-    # ---- vertical cylinders (lateral surface)
-    A = g1 * g1 + g2 * g2
-    inv_A = 1.0 / A
-    mc = jnp.einsum("fkc,ic->fki", cam_c[:, None, :] - cand.cyl_base[cidx], G)  # [F, kc, 3]
-    rc, hc = cand.cyl_radius[cidx], cand.cyl_height[cidx]
-    Cc = mc[..., 0] ** 2 + mc[..., 1] ** 2 - rc**2
-    okc = cyl_valid[cidx] & (Cc > 0)
-    cyl_code = cand.cyl_semantic[cidx] | ((num_boxes + cand.cyl_id[cidx] + 1) << 3)  # [F, kc]
+    # per-slot parameters, each [F, T, k]: box (a0, a1, lo xyz, hi xyz); cylinder (m xyz, C, h)
+    box_par = [ax[..., 0], ax[..., 1], -hb[..., 0] - ob[..., 0], -hb[..., 1] - ob[..., 1],
+               -hb[..., 2] - ob[..., 2], hb[..., 0] - ob[..., 0], hb[..., 1] - ob[..., 1], hb[..., 2] - ob[..., 2]]
+    cyl_par = [mc[..., 0], mc[..., 1], mc[..., 2], Cc, hc]
 
-    def cyl_step(j, carry):
-        depth, code = carry
-        m = mc[:, j]
-        Bh = col(m[:, 0]) * g1 + col(m[:, 1]) * g2
-        disc = Bh * Bh - A * col(Cc[:, j])
-        t = (-Bh - jnp.sqrt(jnp.maximum(disc, 0.0))) * inv_A
-        zc = col(m[:, 2]) + t * g3
-        hit = col(okc[:, j]) & (disc >= 0) & (t > 0) & (zc >= 0) & (zc <= col(hc[:, j])) & (t < depth)
-        return jnp.where(hit, t, depth), jnp.where(hit, col(cyl_code[:, j]), code)
+    # ---- pass 1: min over packed (distance, slot) keys.  Slot 0: ground, 1..k_bt: boxes,
+    # then cylinders.
+    bp = [P(a) for a in box_par]  # [F, T, k, 1]
+    cp = [P(a) for a in cyl_par]
+    t, hit = ground_t()
 
-    depth, code = jax.lax.fori_loop(0, k_cyl, cyl_step, (depth, code))
+    def pack(t, hit, s):
+        k_s = (jax.lax.bitcast_convert_type(t, jnp.uint32) & ~low) | jnp.uint32(s)
+        return jnp.where(hit & (t <= far), k_s, no_hit)
 
+    key = pack(t, hit, 0)
+    for j in range(k_bt):
+        t, hit = box_t(bp[0][:, :, j], bp[1][:, :, j], [b[:, :, j] for b in bp[2:5]], [b[:, :, j] for b in bp[5:8]])
+        key = jnp.minimum(key, pack(t, hit & P(okb[:, :, j]), 1 + j))
+    for j in range(k_ct):
+        t, hit = cyl_t(*[c[:, :, j] for c in cp])
+        key = jnp.minimum(key, pack(t, hit & P(okc[:, :, j]), 1 + k_bt + j))
+
+    # ---- pass 2: the winning slot's parameters (select chains over the slots), then its
+    # exact distance.  Run as a `lax.cond` branch (the predicate is always true but not a
+    # compile-time constant): XLA neither CSEs nor fuses across a conditional, so pass 1's
+    # intermediates are never shared with pass 2 (a shared divide or sqrt would be
+    # materialised as a full [F, T, P] array per slot, which made the kernel 10x slower).
+    def pass2(key):
+        slot = key & low
+
+        def pick(par, first):  # list of [F, T, k] -> per-pixel value of the winning slot
+            out = []
+            for a in par:
+                v = jnp.zeros(slot.shape, a.dtype)
+                for j in range(a.shape[-1]):
+                    v = jnp.where(slot == jnp.uint32(first + j), P(a[:, :, j]), v)
+                out.append(v)
+            return out
+
+        qb = pick(box_par, 1)
+        qc = pick(cyl_par, 1 + k_bt)
+        (code,) = pick([jnp.concatenate([jnp.full((nF, T, 1), GROUND, jnp.int32), box_code, cyl_code], -1)], 0)
+        t_b, _ = box_t(qb[0], qb[1], qb[2:5], qb[5:8])
+        t_c, _ = cyl_t(*qc)
+        depth = jnp.where(slot == 0, ground_t()[0], jnp.where(slot <= jnp.uint32(k_bt), t_b, t_c))
+        sky = key == no_hit
+        return jnp.where(sky, jnp.inf, depth), jnp.where(sky, SKY, code)
+
+    depth, code = jax.lax.cond(num_boxes >= 0, pass2, pass2, key)
     far_hit = depth > far
     depth = jnp.where(far_hit, jnp.inf, depth)
     code = jnp.where(far_hit, SKY, code)
-    shape = (nF, height, width)
-    return Render(depth.reshape(shape), (code & 7).reshape(shape), ((code >> 3) - 1).reshape(shape))
+
+    def image(a):  # [F, T, H * tw] -> [F, H, W]
+        return a.reshape(nF, T, H, tw).transpose(0, 2, 1, 3).reshape(nF, H, Wp)[:, :, :W]
+
+    code = image(code)
+    return Render(image(depth), code & 7, (code >> 3) - 1, overflow)
 
 
 def render_numpy(world: World, K: np.ndarray, cam_to_world: np.ndarray, height: int, width: int,
