@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from swiftjax import camera, sim3
+from swiftjax.synthetic import places
 from swiftjax.synthetic.oracle import OracleNoise, VGGTOracle, kitti_intrinsics
 from swiftjax.synthetic.render import chunk_candidates, frame_planes, render_frames, render_numpy
 from swiftjax.synthetic.routes import loop_route
@@ -181,8 +182,11 @@ def _world_points_from_prediction(pred, gauge):
         return np.asarray(sim3.act(jnp.asarray(gauge)[None, None, None, :], jnp.asarray(np.asarray(pts, np.float64))))
 
 
-def test_noise_off_reproduces_true_world_points(exact):
-    frames = np.arange(200, 275)
+# 200: pixel blocks gathered from two render blocks each; 150: each pixel block IS a cached
+# render block (the regular schedule's case, fed to the pixel kernel on the device)
+@pytest.mark.parametrize("start", [200, 150])
+def test_noise_off_reproduces_true_world_points(exact, start):
+    frames = np.arange(start, start + 75)
     pred = exact.predict_chunk(frames)
     G = exact.true_chunk_gauge(frames)
     truth, valid = exact.true_world_points(frames)
@@ -196,7 +200,7 @@ def test_noise_off_reproduces_true_world_points(exact):
     np.testing.assert_allclose(pred.intrinsic, np.broadcast_to(exact.K, (75, 3, 3)), rtol=1e-7)
     assert pred.depth[valid].mean() == pytest.approx(2.0, rel=1e-4)
     # the gauge maps the chunk origin onto the first camera's centre
-    np.testing.assert_allclose(np.asarray(sim3.translation(G)), exact.poses[200, :3, 3], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(sim3.translation(G)), exact.poses[start, :3, 3], atol=1e-12)
 
 
 def test_noise_statistics_are_as_configured(world, route):
@@ -288,6 +292,9 @@ def test_predictions_are_deterministic_and_history_free(world, route, noisy):
     again = fresh.predict_chunk(frames)
     for name in ("depth", "conf", "extrinsic", "intrinsic", "patch_tokens", "images"):
         np.testing.assert_array_equal(getattr(first, name), getattr(again, name), err_msg=name)
+    # the place tokens are per frame (cached per frame): a fresh computation agrees
+    np.testing.assert_array_equal(first.patch_tokens, np.asarray(places.place_tokens(
+        fresh.place_params, route[frames].astype(np.float32), frames.astype(np.int32))))
     other_seed = VGGTOracle(world, route, image_hw=HW, seed=8, tokens=False).predict_chunk(frames)
     assert not np.array_equal(other_seed.depth, first.depth)
 
