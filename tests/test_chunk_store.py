@@ -144,6 +144,57 @@ def test_errors_name_the_file(tmp_path):
 
 
 def test_half_if_fits_boundary():
-    assert cs._half_if_fits(np.array([65504.0], np.float32)).dtype == np.float16
-    assert cs._half_if_fits(np.array([65520.0], np.float32)).dtype == np.float32
-    assert cs._half_if_fits(np.array([np.inf, -1.0], np.float32)).dtype == np.float16
+    assert cs.half_if_fits(np.array([65504.0], np.float32)).dtype == np.float16
+    assert cs.half_if_fits(np.array([65520.0], np.float32)).dtype == np.float32
+    assert cs.half_if_fits(np.array([np.inf, -1.0], np.float32)).dtype == np.float16
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_partial_loads_match_full_load(tmp_path, compress):
+    """frames/fields read exactly the same values as a full load (memory-mapped when stored
+    uncompressed, whole-member fallback when compressed); load_array reads one field."""
+    store = ChunkStore(tmp_path, compress=compress)
+    pred = _pred(tokens=True)
+    store.save("chunk", 0, pred)
+    full = store.load("chunk", 0)
+    for frames in (np.array([3, 1]), slice(1, 3), np.array([2])):
+        part = store.load("chunk", 0, frames=frames)
+        for name in ("depth", "conf", "extrinsic", "intrinsic", "descriptors", "patch_tokens", "images"):
+            got, want = getattr(part, name), getattr(full, name)[frames]
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+    lean = store.load("chunk", 0, frames=slice(0, 2), fields=())
+    assert lean.descriptors is None and lean.images is None and lean.patch_tokens is None
+    np.testing.assert_array_equal(lean.conf, full.conf[:2])
+    np.testing.assert_array_equal(store.load_array("chunk", 0, "descriptors"), full.descriptors)
+    np.testing.assert_array_equal(store.load_array("chunk", 0, "depth", frames=[2]), full.depth[[2]])
+    assert store.load_array("chunk", 0, "depth").dtype == np.float32
+    with pytest.raises(ValueError, match="optional fields"):
+        store.load("chunk", 0, fields=("depth",))
+    with pytest.raises(ValueError, match="field must be one of"):
+        store.load_array("chunk", 0, "frames")
+
+
+def test_partial_load_reads_only_the_selected_frames(tmp_path):
+    """A memory-mapped read touches only the selected rows: a corrupted byte of frame 0 is
+    invisible to a read of frames 1-2 and seen by a read of frame 0; a full read checks the
+    zip CRC and names the file (partial reads skip the CRC)."""
+    store = ChunkStore(tmp_path, half=False)
+    pred = _pred()
+    path = store.save("chunk", 0, pred)
+    raw = bytearray(path.read_bytes())
+    start = bytes(raw).find(pred.depth[0].tobytes())  # frame 0 of depth, stored float32
+    assert start > 0
+    raw[start:start + 4] = np.float32(-7.0).tobytes()
+    path.write_bytes(bytes(raw))
+    np.testing.assert_array_equal(store.load("chunk", 0, frames=[1, 2]).depth, pred.depth[1:3])
+    assert store.load("chunk", 0, frames=[0]).depth[0, 0, 0] == -7.0
+    with pytest.raises(ValueError, match=r"chunk_00000\.npz: corrupt chunk file"):
+        store.load("chunk", 0)
+
+
+def test_missing_optional_field_is_none(tmp_path):
+    store = ChunkStore(tmp_path)
+    store.save("chunk", 0, _pred(descriptors=False, images=False))
+    assert store.load_array("chunk", 0, "descriptors") is None
+    assert store.load("chunk", 0, frames=[0]).images is None

@@ -7,6 +7,7 @@ chunk being processed, and so that an interrupted run resumes where it stopped.
     store.save("chunk", 3, prediction, extra={"frames": np.arange(90, 165)})
     store.exists("chunk", 3)                        # True
     pred = store.load("chunk", 3)                   # ChunkPrediction, float32 again
+    tail = store.load("chunk", 3, frames=slice(45, 75), fields=())  # partial read
     extra = store.load_extra("chunk", 3)            # {"frames": ...}
 
 File ``<kind>_<index:05d>.npz`` (kind ``"chunk"`` or ``"loop"``), written atomically, read
@@ -25,6 +26,12 @@ images          uint8      as given
 extra           as given   any numeric arrays / scalars (no objects)
 ==============  =========  =====================================================
 
+Partial reads: members are stored uncompressed by default, so :meth:`ChunkStore.load` with
+``frames`` memory-maps each array inside the ``.npz`` (the zip member's data offset plus the
+``.npy`` header) and reads only those frames' bytes, and ``fields`` skips the other members
+altogether (the pipeline's loop chunks read 20 frames of two fields out of 75 frames).
+Compressed files fall back to reading the whole member.
+
 float16 halves the biggest arrays (a KITTI chunk, 75x154x518 with images and 1024-D
 descriptors: 42 MB instead of 66 MB).  Rounding moves a depth ``d`` by at most
 ``4.9e-4 d``: at VGGT-scale depths (``d`` of order 1-10) that is <= 0.005, <= 2.5 % of the
@@ -37,6 +44,7 @@ from __future__ import annotations
 import os
 import pathlib
 import re
+import struct
 import zipfile
 from typing import Any
 
@@ -45,7 +53,7 @@ import numpy as np
 from swiftjax.io.atomic import atomic_save_npz
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ChunkStore", "KINDS"]
+__all__ = ["ChunkStore", "KINDS", "half_if_fits"]
 
 PathLike = str | os.PathLike[str]
 
@@ -58,9 +66,14 @@ _FLOAT32_FIELDS = ("extrinsic", "intrinsic", "descriptors", "patch_tokens")
 _NAME = re.compile(r"^(chunk|loop)_(\d{5,})\.npz$")
 
 
-def _half_if_fits(x: np.ndarray) -> np.ndarray:
-    """float16 when every finite value fits float16's range, else float32 (no overflow to inf)."""
+def half_if_fits(x: np.ndarray) -> np.ndarray:
+    """float16 when every finite value fits float16's range, else float32 (no overflow to inf).
+
+    A float16 input is returned as is (e.g. converted by the caller on the device).
+    """
     x = np.asarray(x)
+    if x.dtype == np.float16:
+        return x
     with np.errstate(over="ignore"):  # overflow is detected below
         half = x.astype(np.float16)
     if np.count_nonzero(np.isinf(half)) != np.count_nonzero(np.isinf(x)):  # a finite value overflowed
@@ -107,7 +120,7 @@ class ChunkStore:
         arrays: dict[str, np.ndarray] = {"format_version": np.asarray(FORMAT_VERSION)}
         for name in _HALF_FIELDS:
             value = getattr(prediction, name)
-            arrays[name] = _half_if_fits(value) if self.half else np.asarray(value, dtype=np.float32)
+            arrays[name] = half_if_fits(value) if self.half else np.asarray(value, dtype=np.float32)
         for name in _FLOAT32_FIELDS:
             value = getattr(prediction, name)
             if value is not None:
@@ -139,20 +152,59 @@ class ChunkStore:
             raise ValueError(f"{path}: chunk file format {version}, this swiftjax reads format {FORMAT_VERSION}")
         return path, data
 
-    def load(self, kind: str, index: int) -> ChunkPrediction:
-        """The saved prediction, every float field as float32 (images uint8)."""
+    def load(
+        self, kind: str, index: int, frames: Any = None, fields: tuple[str, ...] | None = None
+    ) -> ChunkPrediction:
+        """The saved prediction, every float field as float32 (images uint8).
+
+        Args:
+            frames: optional slice or integer index array into the chunk's frames: only
+                those frames of every per-frame field are read (memory-mapped, see the module
+                docstring).  ``None`` reads all frames.
+            fields: which optional fields (``descriptors``, ``patch_tokens``, ``images``) to
+                read; the others are returned as ``None``.  ``None`` reads every field.
+                ``depth, conf, extrinsic, intrinsic`` are always read.
+        """
+        names = _HALF_FIELDS + _FLOAT32_FIELDS + ("images",)
+        optional = ("descriptors", "patch_tokens", "images")
+        chosen = optional if fields is None else tuple(fields)
+        unknown = sorted(set(chosen) - set(optional))
+        if unknown:
+            raise ValueError(f"chunk store optional fields are {optional}, got {unknown}")
+        wanted = set(chosen) | {"depth", "conf", "extrinsic", "intrinsic"}
         path, data = self._open(kind, index)
         with data:
             try:
-                fields: dict[str, Any] = {}
-                for name in _HALF_FIELDS + _FLOAT32_FIELDS:
-                    fields[name] = data[name].astype(np.float32) if name in data.files else None
-                fields["images"] = data["images"] if "images" in data.files else None
+                out: dict[str, Any] = {}
+                for name in names:
+                    if name not in wanted or name not in data.files:
+                        out[name] = None
+                        continue
+                    value = _read_member(path, data, name, frames)
+                    out[name] = value if name == "images" else value.astype(np.float32)
             except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
                 raise ValueError(f"{path}: corrupt chunk file ({type(e).__name__}: {e})".splitlines()[0]) from None
-        if fields["depth"] is None or fields["extrinsic"] is None:
+        if out["depth"] is None or out["extrinsic"] is None:
             raise ValueError(f"{path}: chunk file lacks depth or extrinsic arrays")
-        return ChunkPrediction(**fields)
+        return ChunkPrediction(**out)
+
+    def load_array(self, kind: str, index: int, name: str, frames: Any = None) -> np.ndarray | None:
+        """One prediction field (``depth``, ``conf``, ``extrinsic``, ``intrinsic``,
+        ``descriptors``, ``patch_tokens`` or ``images``), float32 (images uint8), rows
+        ``frames`` only if given; ``None`` if the chunk was saved without it.  Reads nothing
+        else from the file."""
+        names = _HALF_FIELDS + _FLOAT32_FIELDS + ("images",)
+        if name not in names:
+            raise ValueError(f"chunk store field must be one of {names}, got {name!r}")
+        path, data = self._open(kind, index)
+        with data:
+            if name not in data.files:
+                return None
+            try:
+                value = _read_member(path, data, name, frames)
+            except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+                raise ValueError(f"{path}: corrupt chunk file ({type(e).__name__}: {e})".splitlines()[0]) from None
+        return value if name == "images" else value.astype(np.float32)
 
     def load_extra(self, kind: str, index: int) -> dict[str, np.ndarray]:
         """The ``extra`` arrays saved with the chunk (as saved)."""
@@ -178,3 +230,47 @@ class ChunkStore:
             if m and m.group(1) == kind:
                 out.append(int(m.group(2)))
         return sorted(out)
+
+
+def _read_member(path: pathlib.Path, data: Any, name: str, frames: Any) -> np.ndarray:
+    """Array ``name`` of an open ``.npz`` (``np.load`` result), rows ``frames`` only if given.
+
+    With ``frames`` and an uncompressed member, the array is memory-mapped in place and only
+    the selected rows are copied out; otherwise the member is read whole (and sliced).
+    """
+    if frames is None:
+        return data[name]
+    view = _member_memmap(path, data.zip, name + ".npy")
+    if view is None:  # compressed member: read it whole
+        return data[name][frames]
+    try:
+        return np.array(view[frames])
+    finally:
+        del view
+
+
+def _member_memmap(path: pathlib.Path, zf: zipfile.ZipFile, member: str) -> np.memmap | None:
+    """A read-only memory map of the ``.npy`` member ``member`` of the zip ``zf`` at ``path``.
+
+    ``None`` when the member is compressed.  The data start is the local file header's
+    offset + 30 + its name and extra-field lengths (APPNOTE 4.3.7), then the ``.npy`` header.
+    """
+    info = zf.getinfo(member)
+    if info.compress_type != zipfile.ZIP_STORED:
+        return None
+    with open(path, "rb") as f:
+        f.seek(info.header_offset)
+        local = f.read(30)
+        if len(local) != 30 or local[:4] != b"PK\x03\x04":
+            raise ValueError(f"bad zip local header for {member}")
+        name_len, extra_len = struct.unpack("<HH", local[26:30])
+        f.seek(info.header_offset + 30 + name_len + extra_len)
+        major, _ = np.lib.format.read_magic(f)
+        read_header = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(f)
+        offset = f.tell()
+    if dtype.hasobject:
+        raise ValueError(f"{member} holds Python objects")
+    if int(np.prod(shape)) == 0:
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
