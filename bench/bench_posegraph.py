@@ -70,6 +70,11 @@ def main() -> None:
     )
     ap.add_argument("--only", default="", help="substring filter on graph names")
     ap.add_argument("--damping", default="identity", choices=["identity", "marquardt"])
+    ap.add_argument(
+        "--init", default="both", choices=["none", "chordal", "both"],
+        help="LM start: the given poses (dead reckoning), our chordal initialisation, or one row of each "
+        "(GTSAM always starts from the same poses as our LM: for 'chordal' it is handed our chordal start, free)",
+    )
     ap.add_argument("--linear-solver", default="auto", choices=["auto", "dense", "pcg", "sparse"])
     args = ap.parse_args()
     shared_env = os.environ.get("SWIFTJAX_SHARED")
@@ -82,42 +87,56 @@ def main() -> None:
             if args.only and args.only not in name:
                 continue
             prob = posegraph.Problem(poses, edges, meas, information=info, fixed=fixed)
-            opts = dict(
-                rtol=args.rtol, atol=0.0, max_steps=args.max_steps, damping=args.damping,
-                linear_solver=args.linear_solver,
-            )
-            first = posegraph.optimize(prob, **opts)
-            runs = [first.solve_seconds]
-            for _ in range(args.repeat - 1):
-                runs.append(posegraph.optimize(prob, **opts).solve_seconds)
-            row = dict(
-                graph=name, nodes=len(poses), edges=len(edges), solver=first.linear_solver, bucket=list(first.bucket),
-                ours_seconds=min(runs), ours_compile_seconds=first.compile_seconds, ours_steps=first.num_steps,
-                ours_linear_iterations=first.linear_iterations, ours_cost=first.cost_final,
-                ours_converged=first.converged, ours_status=first.status, cost_initial=first.cost_initial,
-            )
-            if len(poses) <= args.gtsam_max_nodes:
-                from swiftjax.posegraph.gtsam_baseline import solve_gtsam
-
-                g_runs = []
-                for _ in range(args.repeat):
-                    ref = solve_gtsam(poses, edges, meas, info, fixed, rtol=args.rtol, atol=0.0, max_iterations=args.max_steps)
-                    g_runs.append(ref.seconds)
-                    if ref.seconds > 5.0:  # slow runs: once is enough for a ratio
-                        break
-                cost_at_gtsam = float(posegraph.cost(jax.numpy.asarray(ref.poses), prob))
-                row.update(
-                    gtsam_seconds=min(g_runs), gtsam_iterations=ref.iterations, gtsam_error=ref.error_final,
-                    gtsam_cost=cost_at_gtsam, time_ratio=min(runs) / min(g_runs),
-                    cost_rel_vs_gtsam=(first.cost_final - cost_at_gtsam) / cost_at_gtsam,
-                )
-            rows.append(row)
-            _print_row(row)
+            for init in ["none", "chordal"] if args.init == "both" else [args.init]:
+                row = _bench_graph(args, name, prob, init)
+                rows.append(row)
+                _print_row(row)
 
     stamp = time.strftime("%Y%m%d-%H%M%S")
     _atomic_json(REPO / "bench" / "results" / f"posegraph-{stamp}.json", dict(args=vars(args), rows=rows))
     print()
     print(_markdown(rows))
+
+
+def _bench_graph(args, name, prob, init):
+    """One row: ours (best of ``--repeat``; init time included) and GTSAM from the same LM start."""
+    opts = dict(
+        rtol=args.rtol, atol=0.0, max_steps=args.max_steps, damping=args.damping,
+        linear_solver=args.linear_solver, initialization=init,
+    )
+    first = posegraph.optimize(prob, **opts)
+    runs = [first.solve_seconds]
+    for _ in range(args.repeat - 1):
+        runs.append(posegraph.optimize(prob, **opts).solve_seconds)
+    n = prob.num_nodes
+    row = dict(
+        graph=name, init=init, nodes=n, edges=prob.num_edges, solver=first.linear_solver, bucket=list(first.bucket),
+        ours_seconds=min(runs), ours_compile_seconds=first.compile_seconds, ours_steps=first.num_steps,
+        ours_linear_iterations=first.linear_iterations, ours_cost=first.cost_final,
+        ours_converged=first.converged, ours_status=first.status, cost_initial=first.cost_initial,
+        cost_start=first.cost_start,
+    )
+    if n <= args.gtsam_max_nodes:
+        from swiftjax.posegraph.gtsam_baseline import solve_gtsam
+        from swiftjax.posegraph.initialization import chordal_initialization
+
+        start = prob.poses
+        if init == "chordal":
+            start, _ = jax.jit(chordal_initialization, static_argnums=1)(prob, first.linear_solver)
+        np_args = [np.asarray(a) for a in (start, prob.edges, prob.measurements, prob.information, prob.fixed)]
+        g_runs = []
+        for _ in range(args.repeat):
+            ref = solve_gtsam(*np_args, rtol=args.rtol, atol=0.0, max_iterations=args.max_steps)
+            g_runs.append(ref.seconds)
+            if ref.seconds > 5.0:  # slow runs: once is enough for a ratio
+                break
+        cost_at_gtsam = float(posegraph.cost(jax.numpy.asarray(ref.poses), prob))
+        row.update(
+            gtsam_seconds=min(g_runs), gtsam_iterations=ref.iterations, gtsam_error=ref.error_final,
+            gtsam_cost=cost_at_gtsam, time_ratio=min(runs) / min(g_runs),
+            cost_rel_vs_gtsam=(first.cost_final - cost_at_gtsam) / cost_at_gtsam,
+        )
+    return row
 
 
 def _print_row(r) -> None:
@@ -128,7 +147,7 @@ def _print_row(r) -> None:
         else "gtsam skipped"
     )
     print(
-        f"{r['graph']:>18}: ours {r['ours_seconds']:.3f}s (+{r['ours_compile_seconds']:.1f}s compile) "
+        f"{r['graph']:>18} [{r['init']:>7}]: ours {r['ours_seconds']:.3f}s (+{r['ours_compile_seconds']:.1f}s compile) "
         f"steps={r['ours_steps']} cg={r['ours_linear_iterations']} {r['solver']} cost={r['ours_cost']:.6f} | {g}",
         flush=True,
     )
@@ -136,8 +155,8 @@ def _print_row(r) -> None:
 
 def _markdown(rows) -> str:
     out = [
-        "| graph | N | E | ours (s) | compile (s) | steps | GTSAM (s) | GTSAM iters | time ours/GTSAM | cost ours | cost GTSAM (our fn) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| graph | start | N | E | ours (s) | compile (s) | steps | GTSAM (s) | GTSAM iters | time ours/GTSAM | cost ours | cost GTSAM (our fn) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         has = "gtsam_seconds" in r
@@ -146,7 +165,7 @@ def _markdown(rows) -> str:
         ratio = f"{r['time_ratio']:.3f}" if has else ""
         gc = f"{r['gtsam_cost']:.6f}" if has else ""
         out.append(
-            f"| {r['graph']} | {r['nodes']} | {r['edges']} | {r['ours_seconds']:.3f} | {r['ours_compile_seconds']:.1f} | "
+            f"| {r['graph']} | {r['init']} | {r['nodes']} | {r['edges']} | {r['ours_seconds']:.3f} | {r['ours_compile_seconds']:.1f} | "
             f"{r['ours_steps']} | {gs} | {gi} | {ratio} | {r['ours_cost']:.6f} | {gc} |"
         )
     return "\n".join(out)

@@ -11,7 +11,7 @@ import pytest
 import scipy.optimize
 
 from swiftjax import posegraph, sim3
-from swiftjax.posegraph import ProblemError
+from swiftjax.posegraph import ProblemError, sparse_direct
 from swiftjax.posegraph.solver import SparseSim3LM, residual_fn
 from swiftjax.posegraph.synthetic import chain_graph, circle_graph
 
@@ -161,7 +161,7 @@ def scipy_case():
     return g, _scipy_reference(g, np.arange(6) == 0)
 
 
-@pytest.mark.parametrize("linear_solver", ["dense", "pcg"])
+@pytest.mark.parametrize("linear_solver", ["dense", "pcg", "sparse"])
 def test_optimum_matches_scipy_reference(x64, scipy_case, linear_solver):
     g, (ref_cost, ref_mats) = scipy_case
     res = posegraph.optimize(
@@ -195,9 +195,12 @@ def test_sparse_host_solver_agrees_and_auto_rule(x64):
     # auto: a chain with few loops goes to the sparse solver, random loops to PCG.
     chain = chain_graph(200, loop_every=50)
     assert posegraph.choose_linear_solver(224, num_nodes=200, edges=chain.edges) == "sparse"
-    circ = circle_graph(200)
-    assert posegraph.choose_linear_solver(224, num_nodes=200, edges=circ.edges) == "pcg"
+    circ = circle_graph(1000)  # node-graph fill ratio 40
+    assert posegraph.choose_linear_solver(1024, num_nodes=1000, edges=circ.edges) == "pcg"
     assert posegraph.choose_linear_solver(32, num_nodes=20, edges=circ.edges[:20]) == "dense"
+    circ = circle_graph(200)  # fill 9.8: the direct solve when CHOLMOD is there (SuperLU: PCG)
+    want = "sparse" if sparse_direct.BACKEND == "cholmod" else "pcg"
+    assert posegraph.choose_linear_solver(224, num_nodes=200, edges=circ.edges) == want
 
 
 def test_optimistix_least_squares_entry_point(x64):

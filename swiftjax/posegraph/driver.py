@@ -6,7 +6,8 @@ size bucket (:func:`swiftjax.posegraph.problem.bucket_size`), looks up — or co
 it — the jitted solver for that bucket, runs it and unpads the result.
 
 What triggers a compile: a new ``(N_bucket, E_bucket)`` pair, a new dtype, or a change of
-the static options (``linear_solver`` as resolved, ``max_steps``, ``max_linear_iterations``).
+the static options (``linear_solver`` as resolved, ``max_steps``, ``max_linear_iterations``,
+``damping``, ``initialization``).
 Tolerances, ``lambda0``, the robust ``kernel`` and ``kernel_scale`` are traced values and never
 recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
 suite enable it) a bucket compiled by an earlier process is loaded from disk.
@@ -32,6 +33,9 @@ from swiftjax.posegraph.problem import (
     pad_problem,
     validate,
 )
+from swiftjax.posegraph import sparse_direct
+from swiftjax.posegraph.factors import cost
+from swiftjax.posegraph.initialization import chordal_initialization
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, residual_fn
 
 __all__ = [
@@ -55,7 +59,9 @@ DENSE_MAX_NODES = 64
 class Result:
     """Outcome of :func:`optimize` (host values; ``poses`` is a JAX array ``[N, 8]``).
 
-    ``cost_*`` are ``1/2 sum rho(r^T Omega r)`` (GTSAM's ``graph.error`` definition).
+    ``cost_*`` are ``1/2 sum rho(r^T Omega r)`` (GTSAM's ``graph.error`` definition):
+    ``cost_initial`` at the given poses, ``cost_start`` where LM started (after the chordal
+    initialisation, else the same), ``cost_final`` at the result.
     ``converged`` is True when a stopping test (``status``) was met; False when ``max_steps``
     ran out or the damping stalled.  ``compile_seconds`` is 0 when the bucket was already
     compiled in this process.
@@ -63,6 +69,7 @@ class Result:
 
     poses: Array
     cost_initial: float
+    cost_start: float
     cost_final: float
     num_steps: int
     converged: bool
@@ -83,6 +90,7 @@ class _Static:
     linear_solver: str
     max_linear_iterations: int
     damping: str
+    initialization: str
 
 
 def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[str, Array]:
@@ -98,12 +106,14 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
         max_linear_iterations=static.max_linear_iterations,
         damping=static.damping,
     )
-    sol = optx.least_squares(
-        residual_fn, solver, problem.poses, args=problem, max_steps=static.max_steps, throw=False
-    )
+    start = problem.poses
+    if static.initialization == "chordal":
+        start, _ = chordal_initialization(problem, static.linear_solver, static.max_linear_iterations)
+    sol = optx.least_squares(residual_fn, solver, start, args=problem, max_steps=static.max_steps, throw=False)
     st = sol.state
     return {
         "poses": sol.value,
+        "cost_given": cost(problem.poses, problem, params["kernel"], params["kernel_scale"]),
         "num_steps": sol.stats["num_steps"] - 1,  # step 0 only linearises
         "optx_result": sol.result._value,  # noqa: SLF001 - the integer code of optx.RESULTS
         "status": st.status,
@@ -138,10 +148,13 @@ _COMPILED: dict[tuple, object] = {}
 SPARSE_MAX_CYCLE_FRACTION = 0.05
 #: ... or, for ``N <= FILL_ESTIMATE_MAX_NODES``, when the COLAMD factor of the node graph has at
 #: most ``SPARSE_MAX_FILL`` times the entries of the graph.  Measured node-level fill ratios:
-#: KITTI-like chains 1.5-1.9, parking-garage 2.1, smallGrid3D 5.7, sphere2500 10.9, random-loop
-#: circles 5.0 (N = 100), 40 (N = 1,000), 203 (N = 5,000).  sphere2500 is faster with PCG (5.8 s
-#: vs 6.9 s sparse), parking-garage with sparse (2.8 s vs 30 s PCG).
-SPARSE_MAX_FILL = 4.0
+#: KITTI-like chains 1.5-1.9, parking-garage 2.1, smallGrid3D 5.7, random-loop circles 9.8
+#: (N = 200), 15.5 (400), 40 (1,000), 203 (5,000), sphere2500 10.9.  With CHOLMOD (chordal start,
+#: ``bench/bench_posegraph.py``): sphere2500 sparse 0.52 s vs PCG 3.0 s; circles sparse/PCG 0.036/0.030 s
+#: (N = 200), 0.115/0.094 s (400), 0.66/0.20 s (1,000) — random loops make the graph an expander,
+#: which PCG likes and a factorisation does not.  With SuperLU (no cvxopt) the direct solve is
+#: 10-30x slower, hence the lower threshold.
+SPARSE_MAX_FILL = 12.0 if sparse_direct.BACKEND == "cholmod" else 4.0
 FILL_ESTIMATE_MAX_NODES = 3000
 
 
@@ -187,6 +200,7 @@ def optimize(
     gtol: float = 1e-10,
     lambda0: float = 1e-5,
     damping: Literal["identity", "marquardt"] = "identity",
+    initialization: Literal["none", "chordal"] = "none",
     linear_solver: LinearSolver = "auto",
     max_linear_iterations: int = 1000,
     eta_max: float = 1e-4,
@@ -211,6 +225,13 @@ def optimize(
             Marquardt scaling cripples the first steps on chains, whose lever arms make the
             rotation entries of ``diag H`` ~1e9 while the rigid-rotation directions are the
             weakest of ``H`` (KITTI-like chain N = 2,000: 54 steps vs 9 with ``lambda I``).
+        initialization: ``"none"`` starts LM at ``problem.poses``; ``"chordal"`` first solves the
+            three linear problems of :mod:`swiftjax.posegraph.initialization` (rotations by chordal
+            relaxation, log-scales, translations) and starts there.  Measured (``bench/bench_posegraph.py``):
+            synthetic circle N = 5,000 from dead reckoning: LM alone stops in a local minimum
+            (cost 87,536); chordal first reaches the global one (17,500) in 4 steps.  Robust
+            kernels do not enter the initialisation: keep ``"none"`` when the given poses are
+            good and some loops may be false (the pipeline's case).
         linear_solver: ``"auto"`` (:func:`choose_linear_solver`), ``"dense"``, ``"pcg"`` or
             ``"sparse"`` (SciPy SuperLU on the host via ``jax.pure_callback``).
         max_linear_iterations: PCG cap per LM step (static).
@@ -230,6 +251,8 @@ def optimize(
     """
     if check:
         validate(problem)
+    if initialization not in ("none", "chordal"):
+        raise ValueError(f"initialization must be 'none' or 'chordal', not {initialization!r}")
     if damping not in ("identity", "marquardt"):
         raise ValueError(f"damping must be 'identity' or 'marquardt', not {damping!r}")
     if kernel not in (None, "huber", "cauchy"):
@@ -251,6 +274,7 @@ def optimize(
         linear_solver=solver_name,
         max_linear_iterations=int(max_linear_iterations),
         damping=damping,
+        initialization=initialization,
     )
     dtype = padded.poses.dtype
     params = {
@@ -276,7 +300,8 @@ def optimize(
     status = STATUS[status_code] if status_code else "max_steps reached"
     return Result(
         poses=out["poses"][:n],
-        cost_initial=float(out["cost_initial"]),
+        cost_initial=float(out["cost_given"]),
+        cost_start=float(out["cost_initial"]),
         cost_final=float(out["cost_final"]),
         num_steps=int(out["num_steps"]),
         converged=status_code in (1, 2, 3, 4),

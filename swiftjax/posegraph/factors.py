@@ -146,7 +146,11 @@ def _jr_inv(E: Array, r: Array) -> Array:
     rows = [top_left[i] + mj[i] + [m[i]] for i in range(3)]
     rows += [[zero] * 3 + jso3[i] + [zero] for i in range(3)]
     rows += [[zero] * 6 + [one]]
-    return jnp.stack([jnp.stack([jnp.broadcast_to(v, s.shape) for v in row], -1) for row in rows], -2)
+    # Stack entry-major ([49, ...]) and transpose once: stacking on the last axis makes XLA fuse the
+    # whole expression into the interleaving copy and re-evaluate the shared subexpressions for
+    # each of the 49 entries (measured, 2,048 edges: 3.8 ms vs 1.0 ms).
+    flat = jnp.stack([jnp.broadcast_to(v, s.shape) for row in rows for v in row], 0)
+    return jnp.moveaxis(flat, 0, -1).reshape(s.shape + (7, 7))
 
 
 def _edge_errors(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:

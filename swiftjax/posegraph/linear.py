@@ -125,16 +125,16 @@ def solve_dense(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Arra
     Returns ``(x [N, 7], iterations (0), ok)``; ``ok`` is False if the factorisation failed
     (non-finite factor), in which case the caller rejects the step.
     """
-    n = ne.diag.shape[0]
+    n, b = ne.grad.shape
     i, j = ne.edges[:, 0], ne.edges[:, 1]
-    h = jnp.zeros((n, n, 7, 7), ne.diag.dtype)
+    h = jnp.zeros((n, n, b, b), ne.diag.dtype)
     h = h.at[i, j].add(ne.off)
     h = h.at[j, i].add(jnp.swapaxes(ne.off, 1, 2))
     idx = jnp.arange(n)
     h = h.at[idx, idx].add(ne.diag + jax.vmap(jnp.diag)(damping))
-    h = jnp.transpose(h, (0, 2, 1, 3)).reshape(7 * n, 7 * n)
+    h = jnp.transpose(h, (0, 2, 1, 3)).reshape(b * n, b * n)
     factor = jax.scipy.linalg.cho_factor(h, lower=True)
-    x = jax.scipy.linalg.cho_solve(factor, -ne.grad.reshape(-1)).reshape(n, 7)
+    x = jax.scipy.linalg.cho_solve(factor, -ne.grad.reshape(-1)).reshape(n, b)
     ok = jnp.all(jnp.isfinite(x))
     return jnp.where(ok, x, 0.0), jnp.zeros((), jnp.int32), ok
 
@@ -184,66 +184,46 @@ def solve_pcg(
     return jnp.where(ok, x, 0.0), k, ok
 
 
-def _host_sparse_solve(dtype, diag, off, damping, grad, edges):
-    """NumPy/SciPy side of :func:`solve_sparse`: assemble CSC, SuperLU (COLAMD ordering), solve.
+def _host_sparse_solve(dtype, diag, off, damping, grad, edges, active, fixed):
+    """NumPy side of :func:`solve_sparse` (see :mod:`swiftjax.posegraph.sparse_direct`).
 
     Float arrays travel as raw 32-bit words (``[..., words]`` uint32): JAX canonicalises callback
     operands and results with the *callback thread's* x64 flag, which differs from the caller's
     under a ``jax.enable_x64(True)`` context, and would silently round float64 to float32.
     """
-    import numpy as np
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as sla
+    from swiftjax.posegraph import sparse_direct
 
     def unwords(a):
         a = np.ascontiguousarray(np.asarray(a, np.uint32))
         return a.view(dtype).reshape(a.shape[:-1])
 
     diag, off, damping, grad = (unwords(a) for a in (diag, off, damping, grad))
-    edges = np.asarray(edges)
-    n = diag.shape[0]
-    a = np.arange(7)
-    rr, cc = np.meshgrid(a, a, indexing="ij")  # block-local (row, col)
-    i, j = edges[:, 0], edges[:, 1]
-    nodes = np.arange(n)
-    diag = diag + damping[:, :, None] * np.eye(7)
-    rows = np.concatenate([
-        (7 * nodes[:, None, None] + rr).ravel(),
-        (7 * i[:, None, None] + rr).ravel(),
-        (7 * j[:, None, None] + rr).ravel(),
-    ])
-    cols = np.concatenate([
-        (7 * nodes[:, None, None] + cc).ravel(),
-        (7 * j[:, None, None] + cc).ravel(),
-        (7 * i[:, None, None] + cc).ravel(),
-    ])
-    data = np.concatenate([diag.ravel(), off.ravel(), np.swapaxes(off, 1, 2).ravel()])
-    mat = sp.csc_matrix((data, (rows, cols)), shape=(7 * n, 7 * n))
-    try:
-        lu = sla.splu(mat, permc_spec="COLAMD", options=dict(SymmetricMode=True))
-        x = lu.solve(-grad.reshape(-1)).reshape(n, 7)
-        ok = bool(np.all(np.isfinite(x)))
-    except RuntimeError:  # exactly singular
-        x, ok = np.zeros_like(grad), False
+    x, ok = sparse_direct.solve(diag, off, damping, -grad, np.asarray(edges), np.asarray(active), np.asarray(fixed))
+    n, b = grad.shape
     x = np.ascontiguousarray(x.astype(dtype))
-    return x.view(np.uint32).reshape(n, 7, -1), np.asarray(ok)
+    return x.view(np.uint32).reshape(n, b, -1), np.asarray(ok)
 
 
-def solve_sparse(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Array]:
+def solve_sparse(
+    ne: NormalEquations, damping: Array, fixed: Array | None = None, active: Array | None = None
+) -> tuple[Array, Array, Array]:
     """Solve ``(H + diag(damping)) x = -g`` with a sparse direct factorisation on the host.
 
-    The block matrix is assembled in SciPy CSC form and factored by SuperLU with the COLAMD
-    ordering (symmetric mode) through ``jax.pure_callback``.  Measured on the 2,000-node
-    KITTI-like chain: COLAMD 23 ms / 0.52 M factor entries, minimum degree on ``A^T + A``
-    3.6 s / 18.7 M.  Cost is set
-    by the fill-in of the factor: near-linear for chains with few loops (KITTI-like), where
-    block-Jacobi PCG needs thousands of iterations; random loops make the factor dense (use
-    PCG there).  Returns ``(x [N, 7], iterations (0), ok)``.
+    Through ``jax.pure_callback`` into :func:`swiftjax.posegraph.sparse_direct.solve`: CHOLMOD's
+    supernodal Cholesky with the ordering and symbolic factorisation cached per graph (SuperLU
+    without ``cvxopt``).  Its cost is set by the fill-in of the factor: near-linear for chains
+    with few loops (KITTI-like) and meshes like sphere2500, where block-Jacobi PCG needs
+    hundreds of iterations per step; random long loops make the factor dense (PCG is faster
+    there).  ``fixed [N]`` / ``active [E]`` (default: none fixed / all active) only prune the
+    pattern; the blocks they remove must be zero.  Returns ``(x [N, b], iterations (0), ok)``.
     """
-    n = ne.grad.shape[0]
+    n, b = ne.grad.shape
+    e = ne.edges.shape[0]
+    fixed = jnp.zeros((n,), bool) if fixed is None else fixed
+    active = jnp.ones((e,), bool) if active is None else active
     words = jnp.dtype(ne.grad.dtype).itemsize // 4
     out_shapes = (
-        jax.ShapeDtypeStruct((n, 7, words), jnp.uint32),
+        jax.ShapeDtypeStruct((n, b, words), jnp.uint32),
         jax.ShapeDtypeStruct((), jnp.bool_),
     )
     dtype = jnp.dtype(ne.grad.dtype)
@@ -255,9 +235,9 @@ def solve_sparse(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Arr
     raw, ok = jax.pure_callback(
         functools.partial(_host_sparse_solve, np.dtype(dtype.name)),
         out_shapes,
-        words_of(ne.diag), words_of(ne.off), words_of(damping), words_of(ne.grad), ne.edges,
+        words_of(ne.diag), words_of(ne.off), words_of(damping), words_of(ne.grad), ne.edges, active, fixed,
         vmap_method="sequential",
     )
     raw = raw if words > 1 else raw[..., 0]
-    x = jax.lax.bitcast_convert_type(raw, ne.grad.dtype).reshape(n, 7)
+    x = jax.lax.bitcast_convert_type(raw, ne.grad.dtype).reshape(n, b)
     return jnp.where(ok, x, 0.0), jnp.zeros((), jnp.int32), ok

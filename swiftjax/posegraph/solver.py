@@ -180,7 +180,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         if self.linear_solver == "dense":
             delta, iters, ok = linear.solve_dense(ne, damping)
         elif self.linear_solver == "sparse":
-            delta, iters, ok = linear.solve_sparse(ne, damping)
+            delta, iters, ok = linear.solve_sparse(ne, damping, problem.fixed, problem.edge_mask)
         elif self.linear_solver == "pcg":
             ratio = state.grad_inf / jnp.maximum(state.grad_initial, jnp.finfo(dtype).tiny)
             eta = jnp.clip(jnp.sqrt(ratio), 10 * eps, self.eta_max)
