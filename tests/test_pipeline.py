@@ -180,3 +180,64 @@ def test_irls_alignment_option_runs_the_baseline(tmp_path, small_run):
     # Same reliable points, a different estimator: the chunk poses agree closely, not exactly.
     np.testing.assert_allclose(out_i.chunk_poses, out_u.chunk_poses, atol=5e-2)
     assert not np.array_equal(out_i.chunk_poses, out_u.chunk_poses)
+
+
+class Interrupted(Exception):
+    pass
+
+
+class FailingPredictor(CountingPredictor):
+    """Raises on call ``fail_at`` (1-based), like a Ctrl-C in the middle of a run."""
+
+    def __init__(self, inner, fail_at):
+        super().__init__(inner)
+        self.fail_at = fail_at
+
+    def predict(self, frames):
+        if self.calls + 1 == self.fail_at:
+            raise Interrupted
+        return super().predict(frames)
+
+
+def test_interrupted_run_resumes_after_the_last_complete_chunk(small_run, result, tmp_path):
+    """Chunk files are written in the background and committed to the manifest once complete
+    (manifest writes are throttled): an interruption keeps every complete chunk, and the
+    re-run predicts only the rest.  The outputs agree to the chunk store's float16 rounding:
+    the edge (2, 3) is aligned against chunk 2's stored (float16) overlap on the re-run."""
+    run_dir = tmp_path / "interrupted"
+    failing = FailingPredictor(small_run.predictor, fail_at=4)
+    with pytest.raises(Interrupted):
+        pipeline.reconstruct(failing, run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False)
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert sorted(manifest["chunks"]) == ["0", "1", "2"] and sorted(manifest["edges"]) == ["0", "1"]
+    again = CountingPredictor(small_run.predictor)
+    out = pipeline.reconstruct(again, run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False)
+    assert again.calls == result.num_chunks - 3 + len(result.loops)
+    extent = np.abs(result.cam_to_world[:, :3, 3]).max()
+    np.testing.assert_allclose(out.cam_to_world, result.cam_to_world, atol=1e-4 * extent)
+    assert not np.array_equal(out.cam_to_world, result.cam_to_world)  # really re-aligned
+    a, b = ply.read_ply(run_dir / "points.ply"), ply.read_ply(result.run_dir / "points.ply")
+    np.testing.assert_array_equal(a.colors, b.colors)  # the same pixels, moved by ~1e-4
+    np.testing.assert_allclose(a.points, b.points, atol=1e-3 * np.abs(b.points).max())
+
+
+def test_chunk_files_hold_export_points_not_images(result):
+    """The chunk store keeps the dense maps (float16) and the chunk's share of the cloud in the
+    chunk frame; mapped by the optimised chunk poses those are exactly the PLY's points."""
+    from swiftjax import sim3
+    from swiftjax.io.chunk_store import ChunkStore
+
+    store = ChunkStore(result.run_dir)
+    cloud = ply.read_ply(result.run_dir / "points.ply")
+    offset = 0
+    for t in range(result.num_chunks):
+        assert store.load("chunk", t, frames=[0]).images is None
+        extra = store.load_extra("chunk", t)
+        local = extra["points_xyz"].astype(np.float64)
+        M = np.asarray(sim3.as_matrix(np.asarray(result.chunk_poses[t], np.float32)), np.float64)
+        want = local @ M[:3, :3].T + M[:3, 3]
+        got = cloud.points[offset:offset + len(local)]
+        np.testing.assert_allclose(got, want, atol=1e-5 * max(1.0, np.abs(want).max()))
+        np.testing.assert_array_equal(cloud.conf[offset:offset + len(local)], extra["points_conf"])
+        offset += len(local)
+    assert offset == cloud.points.shape[0]
