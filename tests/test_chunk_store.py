@@ -173,6 +173,8 @@ def test_partial_loads_match_full_load(tmp_path, compress):
         store.load("chunk", 0, fields=("depth",))
     with pytest.raises(ValueError, match="field must be one of"):
         store.load_array("chunk", 0, "frames")
+    with pytest.raises(IndexError, match=r"chunk_00000\.npz: frames .* out of range for depth"):
+        store.load("chunk", 0, frames=[S])
 
 
 def test_partial_load_reads_only_the_selected_frames(tmp_path):

@@ -29,7 +29,7 @@ extra           as given   any numeric arrays / scalars (no objects)
 Partial reads: members are stored uncompressed by default, so :meth:`ChunkStore.load` with
 ``frames`` memory-maps each array inside the ``.npz`` (the zip member's data offset plus the
 ``.npy`` header) and reads only those frames' bytes, and ``fields`` skips the other members
-altogether (the pipeline's loop chunks read 20 frames of two fields out of 75 frames).
+altogether (the pipeline's loop chunks read 20 of 75 frames and no optional field).
 Compressed files fall back to reading the whole member.
 
 float16 halves the biggest arrays (a KITTI chunk, 75x154x518 with images and 1024-D
@@ -241,12 +241,13 @@ def _read_member(path: pathlib.Path, data: Any, name: str, frames: Any) -> np.nd
     if frames is None:
         return data[name]
     view = _member_memmap(path, data.zip, name + ".npy")
-    if view is None:  # compressed member: read it whole
-        return data[name][frames]
+    whole = data[name] if view is None else view  # compressed member: read it whole
     try:
-        return np.array(view[frames])
+        return np.array(whole[frames])
+    except IndexError as e:
+        raise IndexError(f"{path}: frames {frames!r} out of range for {name} of shape {whole.shape} ({e})") from None
     finally:
-        del view
+        del view, whole
 
 
 def _member_memmap(path: pathlib.Path, zf: zipfile.ZipFile, member: str) -> np.memmap | None:
