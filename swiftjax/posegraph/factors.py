@@ -90,6 +90,9 @@ def _jr_inv(E: Array, r: Array) -> Array:
     coeffs, d_q = jax.jvp(f, (theta_sq, sigma), (ones, zeros))
     _, d_s = jax.jvp(f, (theta_sq, sigma), (zeros, ones))
     derivs = (d_q, d_s)
+    # Materialise the coefficients: otherwise XLA inlines their (branchy) formulas into each of
+    # the 49 entries below (measured, 2,048 edges: compile 2.1 -> 1.1 s, run 0.83 -> 0.59 ms).
+    coeffs, derivs = jax.lax.optimization_barrier((coeffs, derivs))
     x, y, z = coeffs
     xq, yq, zq = derivs[0]
     xs, ys, zs = derivs[1]

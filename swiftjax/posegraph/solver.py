@@ -164,29 +164,48 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
             linear_iterations=jnp.zeros((), jnp.int32),
         )
 
+    def damping_vector(self, state: LMState) -> Array:
+        """``lambda D`` as ``[N, 7]`` (``D = I`` or Marquardt's ``clip(diag H)``)."""
+        ne = state.lin.ne
+        if self.damping == "marquardt":
+            return state.lam * linear.damping_diagonal(ne)
+        if self.damping == "identity":
+            return jnp.broadcast_to(state.lam, ne.grad.shape)
+        raise ValueError(f"unknown damping {self.damping!r}")
+
+    def solve_linear(self, state: LMState, problem: Problem) -> tuple[Array, Array, Array]:
+        """``(H + lambda D) delta = -g`` with the configured linear solver: ``(delta, iterations, ok)``."""
+        ne = state.lin.ne
+        damping = self.damping_vector(state)
+        if self.linear_solver == "dense":
+            return linear.solve_dense(ne, damping)
+        if self.linear_solver == "sparse":
+            return linear.solve_sparse(ne, damping, problem.fixed, problem.edge_mask)
+        if self.linear_solver == "pcg":
+            dtype = ne.grad.dtype
+            ratio = state.grad_inf / jnp.maximum(state.grad_initial, jnp.finfo(dtype).tiny)
+            eta = jnp.clip(jnp.sqrt(ratio), 10 * jnp.finfo(dtype).eps, self.eta_max)
+            return linear.solve_pcg(ne, damping, eta, self.max_linear_iterations)
+        raise ValueError(f"unknown linear_solver {self.linear_solver!r}")
+
     def step(self, fn, y, args, options, state: LMState, tags):
-        problem: Problem = args
+        delta, iters, ok = self.solve_linear(state, args)
+        y_next, new_state = self.advance(y, args, state, delta, iters, ok)
+        return y_next, new_state, None
+
+    def advance(
+        self, y: Array, problem: Problem, state: LMState, delta: Array, iters: Array, ok: Array
+    ) -> tuple[Array, LMState]:
+        """Evaluate the step ``delta`` (accept/reject, damping update, stopping tests).
+
+        Split from :meth:`step` so that a host-side loop can supply ``delta`` from a solver that
+        lives outside XLA (:func:`swiftjax.posegraph.optimize` does so for ``"sparse"``).
+        """
         first = state.num_accepted < 0
         lin = state.lin
         ne = lin.ne
         dtype = y.dtype
         eps = jnp.finfo(dtype).eps
-        if self.damping == "marquardt":
-            damping = state.lam * linear.damping_diagonal(ne)
-        elif self.damping == "identity":
-            damping = jnp.broadcast_to(state.lam, ne.grad.shape)
-        else:
-            raise ValueError(f"unknown damping {self.damping!r}")
-        if self.linear_solver == "dense":
-            delta, iters, ok = linear.solve_dense(ne, damping)
-        elif self.linear_solver == "sparse":
-            delta, iters, ok = linear.solve_sparse(ne, damping, problem.fixed, problem.edge_mask)
-        elif self.linear_solver == "pcg":
-            ratio = state.grad_inf / jnp.maximum(state.grad_initial, jnp.finfo(dtype).tiny)
-            eta = jnp.clip(jnp.sqrt(ratio), 10 * eps, self.eta_max)
-            delta, iters, ok = linear.solve_pcg(ne, damping, eta, self.max_linear_iterations)
-        else:
-            raise ValueError(f"unknown linear_solver {self.linear_solver!r}")
         delta = jnp.where(first, 0.0, delta)
 
         predicted = -(jnp.sum(ne.grad * delta) + 0.5 * jnp.sum(delta * linear.matvec(ne, delta)))
@@ -233,7 +252,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
             num_rejected=state.num_rejected + (~take),
             linear_iterations=state.linear_iterations + jnp.where(first, 0, iters),
         )
-        return y_next, new_state, None
+        return y_next, new_state
 
     def terminate(self, fn, y, args, options, state: LMState, tags):
         return state.status != 0, optx.RESULTS.successful
