@@ -117,10 +117,9 @@ def _start(problem: Problem, *, static: _Static) -> tuple[Problem, Array]:
     return problem, start
 
 
-def _report(problem: Problem, params, y: Array, st, num_steps: Array) -> dict[str, Array]:
-    return {
+def _report(problem: Problem, params, y: Array, st, num_steps: Array, cost_given: bool = False) -> dict[str, Array]:
+    out = {
         "poses": y,
-        "cost_given": cost(problem.poses, problem, params["kernel"], params["kernel_scale"]),
         "num_steps": num_steps,
         "status": st.status,
         "cost_initial": st.cost_initial,
@@ -130,6 +129,9 @@ def _report(problem: Problem, params, y: Array, st, num_steps: Array) -> dict[st
         "num_rejected": st.num_rejected,
         "linear_iterations": st.linear_iterations,
     }
+    if cost_given:
+        out["cost_given"] = cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
+    return out
 
 
 def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[str, Array]:
@@ -138,7 +140,8 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
     sol = optx.least_squares(
         residual_fn, _solver(params, static), start, args=problem, max_steps=static.max_steps, throw=False
     )
-    return _report(problem, params, sol.value, sol.state, sol.stats["num_steps"] - 1)  # step 0 only linearises
+    # step 0 only linearises
+    return _report(problem, params, sol.value, sol.state, sol.stats["num_steps"] - 1, cost_given=True)
 
 
 # The "sparse" path: the LM loop runs on the host around two cacheable XLA programs, and the
@@ -147,42 +150,44 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
 # process would recompile them — measured 8-10 s on the pipeline's 101-chunk graph).
 
 
-def _host_first(problem: Problem, start: Array, params: dict[str, Array], *, static: _Static):
-    """Initial state and the step-0 linearisation at ``start``."""
+def _host_begin(problem: Problem, params: dict[str, Array], *, static: _Static):
+    """Normalise, start (chordal or given), linearise there: ``(problem, y, state, damping, cost_given)``."""
+    problem, start = _start(problem, static=static)
     solver = _solver(params, static)
     f_struct = jax.eval_shape(residual_fn, start, problem)
     state = solver.init(residual_fn, start, problem, {}, f_struct, None, frozenset())
     zeros = jnp.zeros((problem.num_nodes, 7), start.dtype)
-    return solver.advance(start, problem, state, zeros, jnp.zeros((), jnp.int32), jnp.ones((), bool))
+    y, state = solver.advance(start, problem, state, zeros, jnp.zeros((), jnp.int32), jnp.ones((), bool))
+    given = cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
+    return problem, y, state, solver.damping_vector(state), given
 
 
 def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, ok, *, static: _Static):
-    return _solver(params, static).advance(y, problem, state, delta, jnp.zeros((), jnp.int32), ok)
+    """One LM step with a host-computed ``delta``: ``(y, state, next damping)``."""
+    solver = _solver(params, static)
+    y, state = solver.advance(y, problem, state, delta, jnp.zeros((), jnp.int32), ok)
+    return y, state, solver.damping_vector(state)
 
 
-def _host_damping(params: dict[str, Array], state, *, static: _Static) -> Array:
-    return _solver(params, static).damping_vector(state)
-
-
-def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict[str, Array]:
+def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
     """Run the LM iterations with :func:`swiftjax.posegraph.sparse_direct.solve` on the host."""
     import numpy as np
 
-    start_c, first_c, damping_c, advance_c, report_c = compiled
-    problem, start = start_c(problem)
-    y, state = first_c(problem, start, params)
+    begin_c, advance_c = compiled
+    problem, y, state, damping, given = begin_c(problem, params)
     edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
     dtype = np.dtype(y.dtype)
     steps = 0
     while steps < static.max_steps and int(state.status) == 0:
         ne = state.lin.ne
         delta, ok = sparse_direct.solve(
-            np.asarray(ne.diag), np.asarray(ne.off), np.asarray(damping_c(params, state)),
-            -np.asarray(ne.grad), edges, mask, fixed,
+            np.asarray(ne.diag), np.asarray(ne.off), np.asarray(damping), -np.asarray(ne.grad), edges, mask, fixed
         )
-        y, state = advance_c(problem, params, y, state, delta.astype(dtype), np.asarray(ok))
+        y, state, damping = advance_c(problem, params, y, state, delta.astype(dtype), np.asarray(ok))
         steps += 1
-    return report_c(problem, params, y, state, np.int32(steps))
+    out = _report(problem, params, y, state, steps)
+    out["cost_given"] = given
+    return out
 
 
 def _normalized(problem: Problem) -> Problem:
@@ -202,24 +207,19 @@ _COMPILED: dict[tuple, object] = {}
 
 
 def _compile(padded: Problem, params: dict[str, Array], static: _Static):
-    """AOT-compile the program(s) of one bucket: one for dense/PCG, five small ones for sparse."""
+    """AOT-compile the program(s) of one bucket: one for dense/PCG, two for the host-looped sparse path."""
     if static.linear_solver != "sparse":
         return jax.jit(_solve, static_argnames=("static",)).lower(padded, params, static=static).compile()
     import functools
 
-    def aot(fn, *args):
-        return jax.jit(fn).lower(*args).compile()
-
-    start_c = aot(functools.partial(_start, static=static), padded)
-    problem, start = jax.eval_shape(functools.partial(_start, static=static), padded)
-    first_c = aot(functools.partial(_host_first, static=static), problem, start, params)
-    y, state = jax.eval_shape(functools.partial(_host_first, static=static), problem, start, params)
-    damping_c = aot(functools.partial(_host_damping, static=static), params, state)
-    delta = jax.ShapeDtypeStruct((padded.num_nodes, 7), start.dtype)
+    begin = jax.jit(functools.partial(_host_begin, static=static)).lower(padded, params)
+    problem, y, state, _, _ = begin.out_info
+    delta = jax.ShapeDtypeStruct((padded.num_nodes, 7), y.dtype)
     ok = jax.ShapeDtypeStruct((), jnp.bool_)
-    advance_c = aot(functools.partial(_host_advance, static=static), problem, params, y, state, delta, ok)
-    report_c = aot(_report, problem, params, y, state, jax.ShapeDtypeStruct((), jnp.int32))
-    return start_c, first_c, damping_c, advance_c, report_c
+    advance = jax.jit(functools.partial(_host_advance, static=static))
+    advance_c = advance.lower(problem, params, y, state, delta, ok).compile()
+    begin_c = begin.compile()
+    return begin_c, advance_c
 
 
 #: "auto" picks the host sparse direct solver when the graph's cycle rank ``E - N + 1`` is at

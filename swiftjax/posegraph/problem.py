@@ -27,6 +27,7 @@ from __future__ import annotations
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -52,18 +53,18 @@ class ProblemError(ValueError):
     """An invalid pose-graph input, raised on the host before any work starts."""
 
 
-def _as_information(information: ArrayLike | None, num_edges: int, dtype) -> Array:
-    """Normalise ``information`` to ``[E, 7, 7]``.
+def _as_information(information: ArrayLike | None, num_edges: int, dtype, xp=jnp) -> Array:
+    """Normalise ``information`` to ``[E, 7, 7]`` (``xp``: NumPy for concrete inputs, else jnp).
 
     Accepted: ``None`` (identity), a scalar weight, ``[E]`` per-edge weights, ``[E, 7]``
     diagonals, ``[E, 7, 7]`` full matrices.
     """
-    eye = jnp.eye(7, dtype=dtype)
+    eye = xp.eye(7, dtype=dtype)
     if information is None:
-        return jnp.broadcast_to(eye, (num_edges, 7, 7))
-    info = jnp.asarray(information, dtype=dtype)
+        return xp.broadcast_to(eye, (num_edges, 7, 7))
+    info = xp.asarray(information, dtype=dtype)
     if info.ndim == 0:
-        return jnp.broadcast_to(info * eye, (num_edges, 7, 7))
+        return xp.broadcast_to(info * eye, (num_edges, 7, 7))
     if info.ndim == 1 and info.shape[0] == num_edges:
         return info[:, None, None] * eye
     if info.ndim == 2 and info.shape == (num_edges, 7):
@@ -114,42 +115,46 @@ class Problem(eqx.Module):
         robust: ArrayLike | None = None,
         edge_mask: ArrayLike | None = None,
     ):
-        poses = jnp.asarray(poses)
-        if not jnp.issubdtype(poses.dtype, jnp.floating):
-            poses = poses.astype(jnp.float32)
-        dtype = poses.dtype
+        # Concrete inputs are normalised with NumPy (no eager XLA kernels to compile in a fresh
+        # process); traced ones (inside jit) with jnp.
+        args = (poses, edges, measurements, information, fixed, robust, edge_mask)
+        xp = jnp if any(isinstance(a, jax.core.Tracer) for a in args) else np
+        poses = xp.asarray(poses)
+        if not xp.issubdtype(poses.dtype, xp.floating):
+            poses = poses.astype(np.float32)
+        dtype = jax.dtypes.canonicalize_dtype(poses.dtype)
+        poses = poses.astype(dtype)
         if poses.ndim != 2 or poses.shape[1] != 8:
             raise ProblemError(f"poses has shape {tuple(poses.shape)}; expected [N, 8]")
-        edges = jnp.asarray(edges)
+        edges = xp.asarray(edges)
         if edges.ndim != 2 or edges.shape[1] != 2:
             raise ProblemError(f"edges has shape {tuple(edges.shape)}; expected [E, 2]")
-        if not jnp.issubdtype(edges.dtype, jnp.integer):
+        if not xp.issubdtype(edges.dtype, xp.integer):
             raise ProblemError(f"edges has dtype {edges.dtype}; expected integers")
         num_nodes, num_edges = poses.shape[0], edges.shape[0]
-        measurements = jnp.asarray(measurements, dtype=dtype)
+        measurements = xp.asarray(measurements, dtype=dtype)
         if measurements.shape != (num_edges, 8):
             raise ProblemError(
                 f"measurements has shape {tuple(measurements.shape)}; expected [E, 8] = [{num_edges}, 8]"
             )
-        self.poses = poses
-        self.edges = edges.astype(jnp.int32)
-        self.measurements = measurements
-        self.information = _as_information(information, num_edges, dtype)
-        if fixed is None:
-            fixed = jnp.zeros((num_nodes,), bool).at[0].set(num_nodes > 0)
-        self.fixed = jnp.asarray(fixed, bool)
-        if self.fixed.shape != (num_nodes,):
-            raise ProblemError(f"fixed has shape {tuple(self.fixed.shape)}; expected [N] = [{num_nodes}]")
-        self.robust = jnp.zeros((num_edges,), bool) if robust is None else jnp.asarray(robust, bool)
-        if self.robust.shape != (num_edges,):
-            raise ProblemError(f"robust has shape {tuple(self.robust.shape)}; expected [E] = [{num_edges}]")
-        self.edge_mask = (
-            jnp.ones((num_edges,), bool) if edge_mask is None else jnp.asarray(edge_mask, bool)
-        )
-        if self.edge_mask.shape != (num_edges,):
+        fixed = (xp.arange(num_nodes) == 0) if fixed is None else xp.asarray(fixed, bool)
+        if fixed.shape != (num_nodes,):
+            raise ProblemError(f"fixed has shape {tuple(fixed.shape)}; expected [N] = [{num_nodes}]")
+        robust = xp.zeros((num_edges,), bool) if robust is None else xp.asarray(robust, bool)
+        if robust.shape != (num_edges,):
+            raise ProblemError(f"robust has shape {tuple(robust.shape)}; expected [E] = [{num_edges}]")
+        edge_mask = xp.ones((num_edges,), bool) if edge_mask is None else xp.asarray(edge_mask, bool)
+        if edge_mask.shape != (num_edges,):
             raise ProblemError(
-                f"edge_mask has shape {tuple(self.edge_mask.shape)}; expected [E] = [{num_edges}]"
+                f"edge_mask has shape {tuple(edge_mask.shape)}; expected [E] = [{num_edges}]"
             )
+        self.poses = jnp.asarray(poses)
+        self.edges = jnp.asarray(edges.astype(np.int32))
+        self.measurements = jnp.asarray(measurements)
+        self.information = jnp.asarray(_as_information(information, num_edges, dtype, xp))
+        self.fixed = jnp.asarray(fixed)
+        self.robust = jnp.asarray(robust)
+        self.edge_mask = jnp.asarray(edge_mask)
 
     @property
     def num_nodes(self) -> int:
@@ -342,18 +347,17 @@ def pad_problem(problem: Problem, num_nodes: int, num_edges: int) -> Problem:
     if num_nodes < n or num_edges < e:
         raise ValueError(f"cannot pad ({n}, {e}) down to ({num_nodes}, {num_edges})")
     dtype = problem.poses.dtype
-    ident = jnp.array([0, 0, 0, 0, 0, 0, 1, 1], dtype)
+    ident = np.array([0, 0, 0, 0, 0, 0, 1, 1], dtype)
     pn, pe = num_nodes - n, num_edges - e
     if pn == 0 and pe == 0:
         return problem
+    cat = lambda a, pad: np.concatenate([np.asarray(a), pad])  # noqa: E731 - host-side, no XLA kernels
     return Problem(
-        poses=jnp.concatenate([problem.poses, jnp.broadcast_to(ident, (pn, 8))]),
-        edges=jnp.concatenate([problem.edges, jnp.zeros((pe, 2), jnp.int32)]),
-        measurements=jnp.concatenate([problem.measurements, jnp.broadcast_to(ident, (pe, 8))]),
-        information=jnp.concatenate(
-            [problem.information, jnp.broadcast_to(jnp.eye(7, dtype=dtype), (pe, 7, 7))]
-        ),
-        fixed=jnp.concatenate([problem.fixed, jnp.ones((pn,), bool)]),
-        robust=jnp.concatenate([problem.robust, jnp.zeros((pe,), bool)]),
-        edge_mask=jnp.concatenate([problem.edge_mask, jnp.zeros((pe,), bool)]),
+        poses=cat(problem.poses, np.broadcast_to(ident, (pn, 8))),
+        edges=cat(problem.edges, np.zeros((pe, 2), np.int32)),
+        measurements=cat(problem.measurements, np.broadcast_to(ident, (pe, 8))),
+        information=cat(problem.information, np.broadcast_to(np.eye(7, dtype=dtype), (pe, 7, 7))),
+        fixed=cat(problem.fixed, np.ones((pn,), bool)),
+        robust=cat(problem.robust, np.zeros((pe,), bool)),
+        edge_mask=cat(problem.edge_mask, np.zeros((pe,), bool)),
     )
