@@ -117,7 +117,7 @@ def _start(problem: Problem, *, static: _Static) -> tuple[Problem, Array]:
     return problem, start
 
 
-def _report(problem: Problem, params, y: Array, st, num_steps: Array, cost_given: bool = False) -> dict[str, Array]:
+def _report(problem: Problem, params, y: Array, st, num_steps: Array, static: _Static) -> dict[str, Array]:
     out = {
         "poses": y,
         "num_steps": num_steps,
@@ -129,9 +129,15 @@ def _report(problem: Problem, params, y: Array, st, num_steps: Array, cost_given
         "num_rejected": st.num_rejected,
         "linear_iterations": st.linear_iterations,
     }
-    if cost_given:
-        out["cost_given"] = cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
+    out["cost_given"] = _cost_given(problem, params, st, static)
     return out
+
+
+def _cost_given(problem: Problem, params, st, static: _Static) -> Array:
+    """Cost at the given poses: the LM's first linearisation unless a chordal start moved them."""
+    if static.initialization == "chordal":
+        return cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
+    return st.cost_initial
 
 
 def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[str, Array]:
@@ -141,7 +147,7 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
         residual_fn, _solver(params, static), start, args=problem, max_steps=static.max_steps, throw=False
     )
     # step 0 only linearises
-    return _report(problem, params, sol.value, sol.state, sol.stats["num_steps"] - 1, cost_given=True)
+    return _report(problem, params, sol.value, sol.state, sol.stats["num_steps"] - 1, static)
 
 
 # The "sparse" path: the LM loop runs on the host around two cacheable XLA programs, and the
@@ -151,15 +157,18 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
 
 
 def _host_begin(problem: Problem, params: dict[str, Array], *, static: _Static):
-    """Normalise, start (chordal or given), linearise there: ``(problem, y, state, damping, cost_given)``."""
+    """Normalise and start (chordal or given): ``(problem, start, state, damping, cost_given)``.
+
+    No linearisation here (the first :func:`_host_advance`, with ``delta = 0``, is LM's step 0),
+    so the residual/Jacobian code is compiled once, in the advance program.
+    """
     problem, start = _start(problem, static=static)
     solver = _solver(params, static)
     f_struct = jax.eval_shape(residual_fn, start, problem)
     state = solver.init(residual_fn, start, problem, {}, f_struct, None, frozenset())
-    zeros = jnp.zeros((problem.num_nodes, 7), start.dtype)
-    y, state = solver.advance(start, problem, state, zeros, jnp.zeros((), jnp.int32), jnp.ones((), bool))
     given = cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
-    return problem, y, state, solver.damping_vector(state), given
+    given = given if static.initialization == "chordal" else jnp.zeros((), start.dtype)
+    return problem, start, state, solver.damping_vector(state), given
 
 
 def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, ok, *, static: _Static):
@@ -177,7 +186,7 @@ def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
     problem, y, state, damping, given = begin_c(problem, params)
     edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
     dtype = np.dtype(y.dtype)
-    steps = 0
+    steps = -1  # the first advance is step 0: it only linearises (its delta is ignored)
     while steps < static.max_steps and int(state.status) == 0:
         ne = state.lin.ne
         delta, ok = sparse_direct.solve(
@@ -185,8 +194,9 @@ def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
         )
         y, state, damping = advance_c(problem, params, y, state, delta.astype(dtype), np.asarray(ok))
         steps += 1
-    out = _report(problem, params, y, state, steps)
-    out["cost_given"] = given
+    out = _report(problem, params, y, state, steps, dataclasses.replace(static, initialization="none"))
+    if static.initialization == "chordal":
+        out["cost_given"] = given
     return out
 
 
