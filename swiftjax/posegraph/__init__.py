@@ -7,6 +7,8 @@
 Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, robust kernels, size buckets),
 :mod:`~swiftjax.posegraph.factors` (residuals and exact Jacobians),
 :mod:`~swiftjax.posegraph.linear` (block-sparse normal equations, dense Cholesky, PCG),
+:mod:`~swiftjax.posegraph.sparse_direct` (host CHOLMOD/SuperLU with the symbolic analysis cached),
+:mod:`~swiftjax.posegraph.initialization` (chordal initialisation: three linear least squares),
 :mod:`~swiftjax.posegraph.solver` (the optimistix-compatible LM solver),
 :mod:`~swiftjax.posegraph.driver` (host entry point ``optimize``).
 """
@@ -29,6 +31,7 @@ from swiftjax.posegraph.factors import (
     residuals_and_jacobians,
     right_jacobian_inverse_at,
 )
+from swiftjax.posegraph.initialization import chordal_initialization
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, linearize, retract
 
 __all__ = [
@@ -40,6 +43,7 @@ __all__ = [
     "SparseSim3LM",
     "bucket_size",
     "choose_linear_solver",
+    "chordal_initialization",
     "cost",
     "edge_costs",
     "kernel_code",

@@ -8,6 +8,9 @@ Jacobians of :mod:`swiftjax.posegraph.factors`, assembles the block-sparse norma
 equations with segment sums and solves them with a dense Cholesky (small graphs) or
 block-Jacobi PCG (large graphs with many loops) or a host sparse direct solve (chains and other
 low-fill graphs; see :func:`swiftjax.posegraph.choose_linear_solver`).  Updates are on the manifold, ``S <- S exp(delta)``.
+Inside ``optimistix.least_squares`` the sparse solve is a ``pure_callback``; :func:`swiftjax.posegraph.optimize`
+instead runs that case's loop on the host around :meth:`SparseSim3LM.advance` (two programs that
+JAX's persistent cache can hold: it refuses programs with host callbacks).
 
 Step 0 only linearises at the initial guess (so the compiled loop holds one copy of the
 Jacobian code); every later step (Nielsen's damping rule with its decrease floor lowered from
