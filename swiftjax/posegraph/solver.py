@@ -13,13 +13,18 @@ instead runs that case's loop on the host around :meth:`SparseSim3LM.advance` (t
 JAX's persistent cache can hold: it refuses programs with host callbacks).
 
 Step 0 only linearises at the initial guess (so the compiled loop holds one copy of the
-Jacobian code); every later step (Nielsen's damping rule with its decrease floor lowered from
-1/3 to 1/10 — measured: parking-garage 12 -> 8 steps, other graphs within one step)::
+Jacobian code); every later step::
 
     (H + lambda D) delta = -g
     predicted = -(g.delta + 1/2 delta^T H delta),   actual = C(S) - C(S exp(delta))
-    accept if actual > 1e-3 predicted:  lambda *= max(1/10, 1 - (2 actual/predicted - 1)^3), nu = 2
+    accept if actual > 1e-3 predicted:  lambda /= 10, nu = 2
     otherwise:                          lambda *= nu, nu *= 2
+
+The decrease on acceptance is GTSAM's fixed factor 10.  Measured against Nielsen's
+``lambda *= max(1/3, 1 - (2 actual/predicted - 1)^3)`` (and its 1/10-floor variant): the
+KITTI-like chain N = 2,000 from dead reckoning takes 6 steps instead of 9, parking-garage,
+sphere2500 and the circles from the chordal start are unchanged, the N = 5,000 circle from dead
+reckoning takes 41 steps instead of 31 (both end in the same local minimum).
 
 ``D = I`` by default (GTSAM's choice, in tangent units), or Marquardt's ``D = clip(diag H)``
 (``damping="marquardt"``).  Marquardt scaling is the textbook choice but measurably wrong for
@@ -219,7 +224,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         ratio = actual / jnp.where(predicted > 0, predicted, 1.0)
         accept = ok & jnp.isfinite(new_lin.cost) & (predicted > 0) & (ratio > 1e-3)
 
-        lam_accept = state.lam * jnp.maximum(0.1, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        lam_accept = state.lam * 0.1
         lam = jnp.where(accept, jnp.maximum(lam_accept, _LAMBDA_MIN), state.lam * state.nu)
         nu = jnp.where(accept, 2.0, 2.0 * state.nu)
         lam = jnp.where(first, state.lam, lam)
