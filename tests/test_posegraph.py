@@ -177,21 +177,25 @@ def test_optimum_matches_scipy_reference(x64, scipy_case, linear_solver):
     assert float(jnp.max(jnp.abs(grad[1:]))) < 1e-6
 
 
-def test_dense_and_pcg_agree(x64):
-    g = circle_graph(16, seed=2)
-    a = posegraph.optimize(_problem(g), linear_solver="dense", rtol=1e-14)
-    b = posegraph.optimize(_problem(g), linear_solver="pcg", rtol=1e-14)
-    assert a.cost_final == pytest.approx(b.cost_final, rel=1e-10)
-    np.testing.assert_allclose(_canon(a.poses), _canon(b.poses), atol=1e-8)
-    assert b.linear_iterations > 0 and a.linear_iterations == 0
+@pytest.fixture(scope="module")
+def dense_reference():
+    with jax.enable_x64(True):
+        g = circle_graph(16, seed=2)
+        return g, posegraph.optimize(_problem(g), linear_solver="dense", rtol=1e-14)
 
 
-def test_sparse_host_solver_agrees_and_auto_rule(x64):
-    g = circle_graph(16, seed=2)
-    a = posegraph.optimize(_problem(g), linear_solver="dense", rtol=1e-14)
-    c = posegraph.optimize(_problem(g), linear_solver="sparse", rtol=1e-14)
-    assert c.cost_final == pytest.approx(a.cost_final, rel=1e-12)
-    np.testing.assert_allclose(_canon(c.poses), _canon(a.poses), atol=1e-9)
+@pytest.mark.parametrize("linear_solver, rel, atol", [("pcg", 1e-10, 1e-8), ("sparse", 1e-12, 1e-9)])
+def test_linear_solvers_agree_with_dense(x64, dense_reference, linear_solver, rel, atol):
+    g, a = dense_reference
+    b = posegraph.optimize(_problem(g), linear_solver=linear_solver, rtol=1e-14)
+    assert b.cost_final == pytest.approx(a.cost_final, rel=rel)
+    np.testing.assert_allclose(_canon(b.poses), _canon(a.poses), atol=atol)
+    assert a.linear_iterations == 0
+    if linear_solver == "pcg":
+        assert b.linear_iterations > 0
+
+
+def test_auto_rule(x64):
     # auto: a chain with few loops goes to the sparse solver, random loops to PCG.
     chain = chain_graph(200, loop_every=50)
     assert posegraph.choose_linear_solver(224, num_nodes=200, edges=chain.edges) == "sparse"

@@ -16,11 +16,13 @@ suite enable it) a bucket compiled by an earlier process is loaded from disk.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Literal
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax import Array
 
@@ -109,7 +111,8 @@ def _solver(params: dict[str, Array], static: _Static) -> SparseSim3LM:
 
 
 def _start(problem: Problem, *, static: _Static) -> tuple[Problem, Array]:
-    """Unit quaternions, and the LM start (the given poses or the chordal initialisation)."""
+    """Unit quaternions exactly (validation allowed ``|q|`` within 1e-3 of 1), and the LM start
+    (the given poses or the chordal initialisation)."""
     problem = _normalized(problem)
     start = problem.poses
     if static.initialization == "chordal":
@@ -117,11 +120,12 @@ def _start(problem: Problem, *, static: _Static) -> tuple[Problem, Array]:
     return problem, start
 
 
-def _report(problem: Problem, params, y: Array, st, num_steps: Array, static: _Static) -> dict[str, Array]:
-    out = {
+def _report(y: Array, st, num_steps: Array, cost_given: Array) -> dict[str, Array]:
+    return {
         "poses": y,
         "num_steps": num_steps,
         "status": st.status,
+        "cost_given": cost_given,
         "cost_initial": st.cost_initial,
         "cost_final": st.lin.cost,
         "gradient_max": st.grad_inf,
@@ -129,15 +133,14 @@ def _report(problem: Problem, params, y: Array, st, num_steps: Array, static: _S
         "num_rejected": st.num_rejected,
         "linear_iterations": st.linear_iterations,
     }
-    out["cost_given"] = _cost_given(problem, params, st, static)
-    return out
 
 
-def _cost_given(problem: Problem, params, st, static: _Static) -> Array:
-    """Cost at the given poses: the LM's first linearisation unless a chordal start moved them."""
+def _chordal_cost_given(problem: Problem, params, static: _Static) -> Array | None:
+    """Cost at the given poses when a chordal start moved LM away from them; else None (it is
+    then the LM's first linearisation cost, ``cost_initial``)."""
     if static.initialization == "chordal":
         return cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
-    return st.cost_initial
+    return None
 
 
 def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[str, Array]:
@@ -146,8 +149,10 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
     sol = optx.least_squares(
         residual_fn, _solver(params, static), start, args=problem, max_steps=static.max_steps, throw=False
     )
+    given = _chordal_cost_given(problem, params, static)
+    st = sol.state
     # step 0 only linearises
-    return _report(problem, params, sol.value, sol.state, sol.stats["num_steps"] - 1, static)
+    return _report(sol.value, st, sol.stats["num_steps"] - 1, st.cost_initial if given is None else given)
 
 
 # The "sparse" path: the LM loop runs on the host around two cacheable XLA programs, and the
@@ -157,7 +162,7 @@ def _solve(problem: Problem, params: dict[str, Array], static: _Static) -> dict[
 
 
 def _host_begin(problem: Problem, params: dict[str, Array], *, static: _Static):
-    """Normalise and start (chordal or given): ``(problem, start, state, damping, cost_given)``.
+    """Normalise and start (chordal or given): ``(problem, start, state, damping, cost_given | None)``.
 
     No linearisation here (the first :func:`_host_advance`, with ``delta = 0``, is LM's step 0),
     so the residual/Jacobian code is compiled once, in the advance program.
@@ -166,9 +171,7 @@ def _host_begin(problem: Problem, params: dict[str, Array], *, static: _Static):
     solver = _solver(params, static)
     f_struct = jax.eval_shape(residual_fn, start, problem)
     state = solver.init(residual_fn, start, problem, {}, f_struct, None, frozenset())
-    given = cost(problem.poses, problem, params["kernel"], params["kernel_scale"])
-    given = given if static.initialization == "chordal" else jnp.zeros((), start.dtype)
-    return problem, start, state, solver.damping_vector(state), given
+    return problem, start, state, solver.damping_vector(state), _chordal_cost_given(problem, params, static)
 
 
 def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, ok, *, static: _Static):
@@ -180,8 +183,6 @@ def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, o
 
 def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
     """Run the LM iterations with :func:`swiftjax.posegraph.sparse_direct.solve` on the host."""
-    import numpy as np
-
     begin_c, advance_c = compiled
     problem, y, state, damping, given = begin_c(problem, params)
     edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
@@ -194,10 +195,7 @@ def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
         )
         y, state, damping = advance_c(problem, params, y, state, delta.astype(dtype), np.asarray(ok))
         steps += 1
-    out = _report(problem, params, y, state, steps, dataclasses.replace(static, initialization="none"))
-    if static.initialization == "chordal":
-        out["cost_given"] = given
-    return out
+    return _report(y, state, steps, state.cost_initial if given is None else given)
 
 
 def _normalized(problem: Problem) -> Problem:
@@ -220,8 +218,6 @@ def _compile(padded: Problem, params: dict[str, Array], static: _Static):
     """AOT-compile the program(s) of one bucket: one for dense/PCG, two for the host-looped sparse path."""
     if static.linear_solver != "sparse":
         return jax.jit(_solve, static_argnames=("static",)).lower(padded, params, static=static).compile()
-    import functools
-
     begin = jax.jit(functools.partial(_host_begin, static=static)).lower(padded, params)
     problem, y, state, _, _ = begin.out_info
     delta = jax.ShapeDtypeStruct((padded.num_nodes, 7), y.dtype)
@@ -249,7 +245,6 @@ FILL_ESTIMATE_MAX_NODES = 3000
 
 def node_fill_ratio(num_nodes: int, edges) -> float:
     """``nnz(L + U) / (N + 2E)`` of SuperLU (COLAMD) on the node graph's ``A + A^T + cI`` (host)."""
-    import numpy as np
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
@@ -322,7 +317,8 @@ def optimize(
             kernels do not enter the initialisation: keep ``"none"`` when the given poses are
             good and some loops may be false (the pipeline's case).
         linear_solver: ``"auto"`` (:func:`choose_linear_solver`), ``"dense"``, ``"pcg"`` or
-            ``"sparse"`` (SciPy SuperLU on the host via ``jax.pure_callback``).
+            ``"sparse"`` (:mod:`swiftjax.posegraph.sparse_direct`: CHOLMOD, or SuperLU without
+            cvxopt, with the LM loop on the host around two compiled programs).
         max_linear_iterations: PCG cap per LM step (static).
         eta_max: loosest PCG relative tolerance (Eisenstat–Walker forcing ``eta = min(eta_max,
             sqrt(|g|/|g0|))``).  Measured on the N = 5,000 circle from dead reckoning: 1e-2
@@ -347,13 +343,10 @@ def optimize(
         raise ValueError(f"damping must be 'identity' or 'marquardt', not {damping!r}")
     if kernel not in (None, "huber", "cauchy"):
         raise ValueError(f"kernel must be None, 'huber' or 'cauchy', not {kernel!r}")
-    # Unit quaternions exactly (validation allowed |q| within 1e-3 of 1).
     n, e = problem.num_nodes, problem.num_edges
     nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)
     padded = pad_problem(problem, nb, eb)
     if linear_solver == "auto":
-        import numpy as np
-
         valid_edges = np.asarray(problem.edges)[np.asarray(problem.edge_mask)]
     else:
         valid_edges = None

@@ -19,8 +19,9 @@ Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "aut
   segment sum per product (``O(E)``), preconditioned by the inverses of the damped ``7 x 7``
   diagonal blocks (block Jacobi), relative-residual tolerance ``eta`` (Eisenstat–Walker
   forcing, set by the caller) and a fixed iteration cap (static).
-* :func:`solve_sparse` — SciPy SuperLU on the host through ``jax.pure_callback`` (sparse
-  direct; the right tool for chains with few loops, whose conditioning defeats PCG).
+* :func:`solve_sparse` — a sparse direct solve on the host through ``jax.pure_callback``
+  (:mod:`swiftjax.posegraph.sparse_direct`: CHOLMOD, or SuperLU without cvxopt; the right tool
+  for chains with few loops and meshes, whose conditioning defeats PCG).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 from jax import Array
+
+from swiftjax.posegraph import sparse_direct
 
 __all__ = [
     "NormalEquations",
@@ -194,8 +197,6 @@ def _host_sparse_solve(dtype, diag, off, damping, grad, edges, active, fixed):
     operands and results with the *callback thread's* x64 flag, which differs from the caller's
     under a ``jax.enable_x64(True)`` context, and would silently round float64 to float32.
     """
-    from swiftjax.posegraph import sparse_direct
-
     def unwords(a):
         a = np.ascontiguousarray(np.asarray(a, np.uint32))
         return a.view(dtype).reshape(a.shape[:-1])

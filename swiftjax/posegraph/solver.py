@@ -122,7 +122,8 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         gtol: gradient tolerance relative to the initial gradient's max-norm.
         lambda0: initial damping.
         damping: ``"identity"`` (``D = I``) or ``"marquardt"`` (``D = clip(diag H)``); static.
-        linear_solver: ``"dense"``, ``"pcg"`` or ``"sparse"`` (host SuperLU).
+        linear_solver: ``"dense"``, ``"pcg"`` or ``"sparse"`` (host CHOLMOD/SuperLU through
+            ``pure_callback``, :func:`~swiftjax.posegraph.linear.solve_sparse`).
         max_linear_iterations: PCG iteration cap per LM step.
         eta_max: largest PCG relative tolerance (forcing ``eta = min(eta_max, sqrt(|g|/|g0|))``).
         kernel, kernel_scale: robust kernel for edges with ``problem.robust`` set: a name

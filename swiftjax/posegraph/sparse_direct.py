@@ -48,9 +48,9 @@ class SparsePattern:
 
     Attributes:
         size: ``b N``.
-        indptr, indices: CSC structure of the lower triangle (sorted rows per column).
+        rows, cols: coordinates of the lower triangle's entries in CSC order (by column, then row).
+        indptr: CSC column pointers (``rows`` are the CSC row indices).
         assembly: ``[nnz, N b^2 + E b^2]`` CSR matrix, ``values = assembly @ concat(diag, off)``.
-        diagonal: positions (in ``values``) of the diagonal entries, in row order.
     """
 
     def __init__(self, num_nodes: int, block: int, edges: np.ndarray, active: np.ndarray, fixed: np.ndarray):
@@ -86,13 +86,11 @@ class SparsePattern:
         self.size = size
         self.rows = (ukey % size).astype(np.int64)
         self.cols = (ukey // size).astype(np.int64)
-        self.indices = self.rows
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.cols, minlength=size))])
         num_data = n * b * b + e.shape[0] * b * b
         self.assembly = sp.csr_matrix(
             (np.ones(pos.shape[0]), (pos, data_idx)), shape=(ukey.shape[0], num_data)
         )
-        self.diagonal = np.nonzero(self.rows == self.cols)[0]
         self._matrix = None
         self._symbolic = None
 
@@ -129,7 +127,7 @@ class SparsePattern:
     def _solve_superlu(self, values, rhs):
         import scipy.sparse.linalg as sla
 
-        low = sp.csc_matrix((values, self.indices, self.indptr), shape=(self.size, self.size))
+        low = sp.csc_matrix((values, self.rows, self.indptr), shape=(self.size, self.size))
         full = (low + low.T - sp.diags(low.diagonal())).tocsc()
         try:
             lu = sla.splu(full, permc_spec="COLAMD", options=dict(SymmetricMode=True))
