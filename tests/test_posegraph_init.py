@@ -107,3 +107,18 @@ def test_invalid_initialization_name():
     g = circle_graph(8, num_loops=2)
     with pytest.raises(ValueError, match="initialization"):
         posegraph.optimize(_problem(g), initialization="spanning-tree")
+
+
+@pytest.mark.parametrize("linear_solver", ["sparse", "pcg"])
+def test_chordal_start_reports_the_given_cost(x64, linear_solver):
+    """Both drivers (host-looped sparse, one-program PCG): ``cost_initial`` is the cost of the
+    given poses, ``cost_start`` that of the chordal start, and the optimum is the same."""
+    g = circle_graph(60, num_loops=20, seed=4)
+    given = float(posegraph.cost(jax.numpy.asarray(g.initial), _problem(g)))
+    plain = posegraph.optimize(_problem(g), rtol=1e-12, linear_solver=linear_solver)
+    chordal = posegraph.optimize(_problem(g), rtol=1e-12, linear_solver=linear_solver, initialization="chordal")
+    assert plain.cost_initial == pytest.approx(given, rel=1e-12)
+    assert plain.cost_start == plain.cost_initial
+    assert chordal.cost_initial == pytest.approx(given, rel=1e-12)
+    assert chordal.cost_start < chordal.cost_initial
+    assert chordal.cost_final == pytest.approx(plain.cost_final, rel=1e-9)
