@@ -5,8 +5,8 @@ Graphs: the synthetic circle (N nodes, N odometry + N random loop edges, sigma =
 every 300 nodes); sphere2500 and parking-garage from ../shared lifted to Sim(3) (scale 1).
 Both solvers use the same relative/absolute cost-decrease tolerances and iteration cap, in
 float64.  "cost" columns are *our* cost function (identical to GTSAM's graph.error, see
-tests/test_posegraph_gtsam.py) at each solver's optimum.  Timings are best of ``--repeat``;
-our compile time is the first call's (``Result.compile_seconds``).  ``--init`` picks the LM start:
+tests/test_posegraph_gtsam.py) at each solver's optimum.  Timings are best of ``--repeat``, ours and
+GTSAM's alternating; our compile time is the first call's (``Result.compile_seconds``).  ``--init`` picks the LM start:
 the given poses (dead reckoning), or our chordal initialisation; GTSAM always starts from the same
 poses as our LM, and on "chordal" rows its time includes our initialisation's (measured
 separately, best of ``--repeat``), as ours does.
@@ -102,44 +102,46 @@ def main() -> None:
 
 
 def _bench_graph(args, name, prob, init):
-    """One row: ours (best of ``--repeat``; init time included) and GTSAM from the same LM start."""
+    """One row: ours and GTSAM from the same LM start, alternating run by run (best of ``--repeat``
+    each), so that both see the same machine load; ours includes its initialisation's time."""
     opts = dict(
         rtol=args.rtol, atol=0.0, max_steps=args.max_steps, damping=args.damping,
         linear_solver=args.linear_solver, initialization=init,
     )
     first = posegraph.optimize(prob, **opts)
-    runs = [first.solve_seconds]
-    for _ in range(args.repeat - 1):
-        runs.append(posegraph.optimize(prob, **opts).solve_seconds)
     n = prob.num_nodes
     row = dict(
         graph=name, init=init, nodes=n, edges=prob.num_edges, solver=first.linear_solver, bucket=list(first.bucket),
-        ours_seconds=min(runs), ours_compile_seconds=first.compile_seconds, ours_steps=first.num_steps,
+        ours_compile_seconds=first.compile_seconds, ours_steps=first.num_steps,
         ours_linear_iterations=first.linear_iterations, ours_cost=first.cost_final,
         ours_converged=first.converged, ours_status=first.status, cost_initial=first.cost_initial,
         cost_start=first.cost_start,
     )
-    if n <= args.gtsam_max_nodes:
+    with_gtsam = n <= args.gtsam_max_nodes
+    if with_gtsam:
         from swiftjax.posegraph.gtsam_baseline import solve_gtsam
         from swiftjax.posegraph.initialization import chordal_initialization
 
-        start, init_seconds = prob.poses, 0.0
+        start, init_fn = prob.poses, None
         if init == "chordal":  # GTSAM starts from our chordal poses; their cost is added to its time
             init_fn = jax.jit(chordal_initialization, static_argnums=1)
             start, _ = jax.block_until_ready(init_fn(prob, first.linear_solver))
-            times = []
-            for _ in range(max(args.repeat, 2)):
-                t0 = time.perf_counter()
-                jax.block_until_ready(init_fn(prob, first.linear_solver))
-                times.append(time.perf_counter() - t0)
-            init_seconds = min(times)
         np_args = [np.asarray(a) for a in (start, prob.edges, prob.measurements, prob.information, prob.fixed)]
-        g_runs = []
-        for _ in range(args.repeat):
-            ref = solve_gtsam(*np_args, rtol=args.rtol, atol=0.0, max_iterations=args.max_steps)
-            g_runs.append(ref.seconds)
-            if ref.seconds > 5.0:  # slow runs: once is enough for a ratio
-                break
+    runs, g_runs, init_runs = [first.solve_seconds], [], []
+    for k in range(args.repeat):
+        if k > 0:
+            runs.append(posegraph.optimize(prob, **opts).solve_seconds)
+        if not with_gtsam or (g_runs and min(g_runs) > 5.0):  # slow runs: once is enough for a ratio
+            continue
+        if init_fn is not None:
+            t0 = time.perf_counter()
+            jax.block_until_ready(init_fn(prob, first.linear_solver))
+            init_runs.append(time.perf_counter() - t0)
+        ref = solve_gtsam(*np_args, rtol=args.rtol, atol=0.0, max_iterations=args.max_steps)
+        g_runs.append(ref.seconds)
+    row["ours_seconds"] = min(runs)
+    if with_gtsam:
+        init_seconds = min(init_runs) if init_runs else 0.0
         cost_at_gtsam = float(posegraph.cost(jax.numpy.asarray(ref.poses), prob))
         row.update(
             gtsam_seconds=min(g_runs) + init_seconds, gtsam_lm_seconds=min(g_runs), init_seconds=init_seconds,

@@ -187,7 +187,9 @@ def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
     problem, y, state, damping, given = begin_c(problem, params)
     edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
     dtype = np.dtype(y.dtype)
-    steps = -1  # the first advance is step 0: it only linearises (its delta is ignored)
+    # The first advance is step 0: it only linearises (its delta is ignored, so nothing is solved).
+    y, state, damping = advance_c(problem, params, y, state, np.zeros(y.shape[:1] + (7,), dtype), np.asarray(True))
+    steps = 0
     while steps < static.max_steps and int(state.status) == 0:
         ne = state.lin.ne
         delta, ok = sparse_direct.solve(

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from swiftjax import sim3
+from swiftjax.posegraph.blockmat import bmm, quadratic
 from swiftjax.posegraph.problem import Problem, RobustKernel, kernel_code, robust_rho_weight
 
 __all__ = [
@@ -180,7 +181,7 @@ def residual_jacobian_factors(poses: Array, problem: Problem) -> tuple[Array, Ar
 def residuals_and_jacobians(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
     """``(r [E, 7], J_i [E, 7, 7], J_j [E, 7, 7])`` with respect to right perturbations of ``S_i, S_j``."""
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)
-    return r, -jr_inv @ adj, jr_inv
+    return r, -bmm(jr_inv, adj), jr_inv
 
 
 def edge_costs(
@@ -191,7 +192,7 @@ def edge_costs(
     ``kernel`` is a name (``None``, ``"huber"``, ``"cauchy"``) or a traced integer code
     (:func:`~swiftjax.posegraph.problem.kernel_code`); it applies to edges with ``problem.robust``.
     """
-    sq = jnp.einsum("ei,eij,ej->e", r, problem.information, r)
+    sq = quadratic(r, problem.information)
     code = kernel_code(kernel) if kernel is None or isinstance(kernel, str) else kernel
     rho_k, w_k = robust_rho_weight(sq, code, jnp.asarray(kernel_scale, r.dtype))
     rho = jnp.where(problem.robust, rho_k, sq)

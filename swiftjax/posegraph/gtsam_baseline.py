@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["GtsamResult", "to_gtsam", "from_gtsam", "solve_gtsam", "TANGENT_PERMUTATION"]
+__all__ = ["GtsamResult", "to_gtsam", "from_gtsam", "build_graph", "solve_gtsam", "TANGENT_PERMUTATION"]
 
 #: ``ours[TANGENT_PERMUTATION]`` is in GTSAM's order ``[omega, u, lambda]``.
 TANGENT_PERMUTATION = np.array([3, 4, 5, 0, 1, 2, 6])
@@ -55,18 +55,10 @@ def from_gtsam(sim) -> np.ndarray:
     return np.concatenate([t, quat, [s]])
 
 
-def solve_gtsam(
-    poses: np.ndarray,
-    edges: np.ndarray,
-    measurements: np.ndarray,
-    information: np.ndarray,
-    fixed: np.ndarray,
-    *,
-    rtol: float = 1e-5,
-    atol: float = 1e-5,
-    max_iterations: int = 100,
-) -> GtsamResult:
-    """GTSAM LM (multifrontal Cholesky, default ordering) on the graph; returns our layout."""
+def build_graph(poses, edges, measurements, information, fixed):
+    """``(gtsam.NonlinearFactorGraph, gtsam.Values)`` of the graph: ``BetweenFactorSimilarity3`` per
+    edge (information permuted to GTSAM's tangent order), ``NonlinearEqualitySimilarity3`` per
+    fixed node."""
     import gtsam
 
     poses = np.asarray(poses, np.float64)
@@ -84,6 +76,24 @@ def solve_gtsam(
         graph.add(
             gtsam.BetweenFactorSimilarity3(int(i), int(j), to_gtsam(np.asarray(measurements[k], np.float64)), noise)
         )
+    return graph, values
+
+
+def solve_gtsam(
+    poses: np.ndarray,
+    edges: np.ndarray,
+    measurements: np.ndarray,
+    information: np.ndarray,
+    fixed: np.ndarray,
+    *,
+    rtol: float = 1e-5,
+    atol: float = 1e-5,
+    max_iterations: int = 100,
+) -> GtsamResult:
+    """GTSAM LM (multifrontal Cholesky, default ordering) on the graph; returns our layout."""
+    import gtsam
+
+    graph, values = build_graph(poses, edges, measurements, information, fixed)
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(rtol)
     params.setAbsoluteErrorTol(atol)

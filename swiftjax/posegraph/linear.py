@@ -35,6 +35,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from swiftjax.posegraph import sparse_direct
+from swiftjax.posegraph.blockmat import bmm, bmtm, bmtv, bmv, unfused
 
 __all__ = [
     "NormalEquations",
@@ -63,16 +64,6 @@ class NormalEquations(eqx.Module):
     edges: Array
 
 
-def _bmv(a: Array, v: Array) -> Array:
-    """Batched ``a @ v``: ``[B, 7, 7] x [B, 7] -> [B, 7]``."""
-    return jnp.einsum("bij,bj->bi", a, v)
-
-
-def _bmtv(a: Array, v: Array) -> Array:
-    """Batched ``a^T @ v``."""
-    return jnp.einsum("bji,bj->bi", a, v)
-
-
 def assemble(
     r: Array, jr_inv: Array, adj: Array, weight: Array, information: Array, edges: Array, fixed: Array
 ) -> NormalEquations:
@@ -87,21 +78,20 @@ def assemble(
     dtype = r.dtype
     free_i = (~fixed[edges[:, 0]]).astype(dtype)
     free_j = (~fixed[edges[:, 1]]).astype(dtype)
-    w = information * weight[:, None, None]
-    wj = w @ jr_inv
-    big_b = jnp.swapaxes(jr_inv, 1, 2) @ wj
-    b = _bmtv(wj, r)
-    adt_b = jnp.swapaxes(adj, 1, 2) @ big_b
-    h_ii = (adt_b @ adj) * free_i[:, None, None]
+    # Each product level in kernels of its own (blockmat.unfused); the last one fuses into the
+    # scatter's operand.  Parking-garage, 7,168 edges: 7.0-9.7 ms -> 3.5-4.6 ms.
+    wj = unfused(lambda a, c, jr: bmm(a * c[:, None, None], jr), information, weight, jr_inv)
+    big_b, b = unfused(lambda jr, wj, r: (bmtm(jr, wj), bmtv(wj, r)), jr_inv, wj, r)
+    adt_b, g_i = unfused(lambda ad, bb, b: (bmtm(ad, bb), -bmtv(ad, b)), adj, big_b, b)
+    h_ii = bmm(adt_b, adj) * free_i[:, None, None]
     h_jj = big_b * free_j[:, None, None]
     h_ij = -adt_b * (free_i * free_j)[:, None, None]
-    g_i = -_bmtv(adj, b) * free_i[:, None]
+    g_i = g_i * free_i[:, None]
     g_j = b * free_j[:, None]
-    seg = lambda x, idx: jax.ops.segment_sum(x, idx, num_segments=n)  # noqa: E731
-    diag = seg(h_ii, edges[:, 0]) + seg(h_jj, edges[:, 1])
-    diag = jnp.where(fixed[:, None, None], jnp.eye(7, dtype=dtype), diag)
-    grad = seg(g_i, edges[:, 0]) + seg(g_j, edges[:, 1])
-    return NormalEquations(diag=diag, off=h_ij, grad=grad, edges=edges)
+    ends = jnp.concatenate([edges[:, 0], edges[:, 1]])
+    seg = lambda a, b: jax.ops.segment_sum(jnp.concatenate([a, b]), ends, num_segments=n)  # noqa: E731
+    diag = jnp.where(fixed[:, None, None], jnp.eye(7, dtype=dtype), seg(h_ii, h_jj))
+    return NormalEquations(diag=diag, off=h_ij, grad=seg(g_i, g_j), edges=edges)
 
 
 def matvec(ne: NormalEquations, v: Array, damping: Array | None = None) -> Array:
@@ -112,10 +102,10 @@ def matvec(ne: NormalEquations, v: Array, damping: Array | None = None) -> Array
     """
     n = v.shape[0]
     i, j = ne.edges[:, 0], ne.edges[:, 1]
-    out = _bmv(ne.diag, v)
+    out = bmv(ne.diag, v)
     if damping is not None:
         out = out + damping * v
-    coupled = jnp.concatenate([_bmv(ne.off, v[j]), _bmtv(ne.off, v[i])])
+    coupled = jnp.concatenate([bmv(ne.off, v[j]), bmtv(ne.off, v[i])])
     return out + jax.ops.segment_sum(coupled, jnp.concatenate([i, j]), num_segments=n)
 
 
@@ -158,7 +148,7 @@ def solve_pcg(
     blocks = ne.diag + jax.vmap(jnp.diag)(damping)
     precond = jnp.linalg.inv(blocks)
     b = -ne.grad
-    apply_m = lambda v: _bmv(precond, v)  # noqa: E731
+    apply_m = lambda v: bmv(precond, v)  # noqa: E731
     apply_a = lambda v: matvec(ne, v, damping)  # noqa: E731
     vdot = lambda a, c: jnp.sum(a * c)  # noqa: E731
     target = (tol * jnp.sqrt(vdot(b, b))) ** 2

@@ -3,10 +3,9 @@
 The block-sparse normal equations of :mod:`swiftjax.posegraph.linear` (``[N, b, b]`` diagonal
 blocks, one ``[b, b]`` block per edge) keep the same sparsity pattern for every step of a
 solve: only the values change.  :func:`solve` therefore builds, once per pattern (edges, active
-edges, fixed nodes), the lower triangle's compressed-column structure, a sparse *assembly
-matrix* ``P`` mapping the concatenated block values to it (``values = P @ [diag; off]``, which
-also sums duplicate positions), and the fill-reducing ordering plus supernodal symbolic
-factorisation.  Each step then costs one sparse mat-vec and one numeric factorisation.
+edges, fixed nodes), the lower triangle's compressed-column structure, the map from the block
+values to it (a gather, plus the duplicate positions summed) and the fill-reducing ordering plus
+supernodal symbolic factorisation.  Each step then costs one gather and one numeric factorisation.
 
 Backends, picked at import (:data:`BACKEND`):
 
@@ -50,7 +49,7 @@ class SparsePattern:
         size: ``b N``.
         rows, cols: coordinates of the lower triangle's entries in CSC order (by column, then row).
         indptr: CSC column pointers (``rows`` are the CSC row indices).
-        assembly: ``[nnz, N b^2 + E b^2]`` CSR matrix, ``values = assembly @ concat(diag, off)``.
+        nnz: number of stored entries (:meth:`values` gathers them from the blocks).
     """
 
     def __init__(self, num_nodes: int, block: int, edges: np.ndarray, active: np.ndarray, fixed: np.ndarray):
@@ -87,16 +86,29 @@ class SparsePattern:
         self.rows = (ukey % size).astype(np.int64)
         self.cols = (ukey // size).astype(np.int64)
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.cols, minlength=size))])
-        num_data = n * b * b + e.shape[0] * b * b
-        self.assembly = sp.csr_matrix(
-            (np.ones(pos.shape[0]), (pos, data_idx)), shape=(ukey.shape[0], num_data)
-        )
+        self.nnz = ukey.shape[0]
+        # values = gather of each entry's first source, plus the (rare) duplicate sources added on
+        # top: parking-garage, 357,602 entries: 0.4 ms vs 1.3 ms for a sparse assembly mat-vec.
+        order = np.argsort(pos, kind="stable")
+        first = np.ones(order.shape[0], bool)
+        first[1:] = pos[order][1:] != pos[order][:-1]
+        self._gather = data_idx[order[first]]
+        self._dup_pos = pos[order[~first]]
+        self._dup_src = data_idx[order[~first]]
+        self._diag_pos = np.searchsorted(ukey, np.arange(size) * (size + 1))  # CSC index of (k, k)
         self._matrix = None
         self._symbolic = None
 
-    def values(self, diag: np.ndarray, off: np.ndarray) -> np.ndarray:
-        """CSC values of the lower triangle from the blocks ``diag [N, b, b]``, ``off [E, b, b]``."""
-        return self.assembly @ np.concatenate([diag.ravel(), off.ravel()])
+    def values(self, diag: np.ndarray, off: np.ndarray, damping: np.ndarray | None = None) -> np.ndarray:
+        """CSC values of the lower triangle from the blocks ``diag [N, b, b]``, ``off [E, b, b]``,
+        plus ``damping [N, b]`` on the diagonal."""
+        flat = np.concatenate([np.ravel(diag), np.ravel(off)])
+        values = flat[self._gather]
+        if self._dup_pos.size:
+            np.add.at(values, self._dup_pos, flat[self._dup_src])
+        if damping is not None:
+            values[self._diag_pos] += np.ravel(damping)
+        return values
 
     def solve(self, values: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, bool]:
         """Solve ``H x = rhs`` for the symmetric ``H`` given by its lower-triangle ``values``."""
@@ -182,7 +194,6 @@ def solve(
     """
     n, b = rhs.shape
     pat = pattern(n, b, edges, active, fixed)
-    diag = np.asarray(diag, np.float64) + np.asarray(damping, np.float64)[:, :, None] * np.eye(b)
-    values = pat.values(diag, np.asarray(off, np.float64))
+    values = pat.values(np.asarray(diag, np.float64), np.asarray(off, np.float64), np.asarray(damping, np.float64))
     x, ok = pat.solve(values, np.asarray(rhs, np.float64).reshape(-1))
     return x.reshape(n, b), ok
