@@ -65,10 +65,11 @@ def unfused(fn: Callable[..., T], *args: Array) -> T:
     """``fn(*args)``, computed in XLA kernels of its own whose outputs are materialised.
 
     The body of a ``lax.while_loop`` whose trip count XLA cannot know at compile time is never
-    fused with the code around it.  The count is ``1 + (x != x)`` for ``x = args[0].flat[0]``: it is 1, and
-    were it 2 the (pure) body would only recompute the same value.  Overhead: one loop
+    fused with the code around it.  The count is ``1 + (x != x)`` for ``x = args[0].flat[0]``:
+    it is 1, and were it 2 the (pure) body would only recompute the same value.  Overhead: one loop
     iteration (~10 us).  Measured on the parking-garage normal equations (7,168 edges, four
-    chained products): 8.1 ms -> ... ms.
+    chained products): 7.0-9.7 ms -> 3.5-4.6 ms per assembly (XLA profiler, same process).
+    Forward-mode differentiable and vmappable; not reverse-mode (a ``while_loop``).
     """
     first = jnp.ravel(args[0])[0]
     trips = 1 + (first != first).astype(jnp.int32)

@@ -24,12 +24,12 @@ works from it).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jax import Array
 
 from swiftjax import sim3
 from swiftjax.posegraph import linear
+from swiftjax.posegraph.blockmat import bmm, bmtm, bmtv, bmv
 from swiftjax.posegraph.problem import Problem
 
 __all__ = ["chordal_initialization", "solve_difference_system"]
@@ -62,24 +62,19 @@ def solve_difference_system(
     n, b = x0.shape
     dtype = x0.dtype
     xi, xj = x0[edges[:, 0]], x0[edges[:, 1]]
-    eye = jnp.eye(b, dtype=dtype)
-    if a is None:
-        a = jnp.broadcast_to(eye, (edges.shape[0], b, b))
-    r = xj - jnp.einsum("eab,eb->ea", a, xi) - c
-    free_i = (~fixed[edges[:, 0]]).astype(dtype)
-    free_j = (~fixed[edges[:, 1]]).astype(dtype)
     w = weight.astype(dtype)
-    at = jnp.swapaxes(a, 1, 2)
-    h_ii = (w * free_i)[:, None, None] * (at @ a)
-    h_jj = (w * free_j)[:, None, None] * eye
-    h_ij = -(w * free_i * free_j)[:, None, None] * at
-    g_i = -(w * free_i)[:, None] * jnp.einsum("eab,eb->ea", at, r)
-    g_j = (w * free_j)[:, None] * r
-    seg = lambda v, idx: jax.ops.segment_sum(v, idx, num_segments=n)  # noqa: E731
-    diag = seg(h_ii, edges[:, 0]) + seg(h_jj, edges[:, 1])
-    diag = jnp.where(fixed[:, None, None], eye, diag)
-    grad = seg(g_i, edges[:, 0]) + seg(g_j, edges[:, 1])
-    ne = linear.NormalEquations(diag=diag, off=h_ij, grad=grad, edges=edges)
+    if a is None:  # A = I
+        r = xj - xi - c
+        at = h_ii = jnp.broadcast_to(jnp.eye(b, dtype=dtype), (edges.shape[0], b, b))
+        at_r = r
+    else:
+        r = xj - bmv(a, xi) - c
+        at, h_ii, at_r = jnp.swapaxes(a, 1, 2), bmtm(a, a), bmtv(a, r)
+    # J_j = I, J_i = -A:  H_jj = w I, H_ij = -w A^T, H_ii = w A^T A, g_j = w r, g_i = -w A^T r.
+    wb = w[:, None, None]
+    ne = linear.from_edge_blocks(
+        wb * h_ii, wb * jnp.eye(b, dtype=dtype), -wb * at, -w[:, None] * at_r, w[:, None] * r, edges, fixed
+    )
     damping = jnp.zeros((n, b), dtype)
     if linear_solver == "dense":
         delta, _, ok = linear.solve_dense(ne, damping)
@@ -96,10 +91,10 @@ def solve_difference_system(
 def _project_to_so3(m: Array) -> Array:
     """Nearest rotation (Frobenius) of each ``[..., 3, 3]``: ``U diag(1, 1, det(U V^T)) V^T``."""
     u, _, vt = jnp.linalg.svd(m)
-    d = jnp.sign(jnp.linalg.det(u @ vt))
+    d = jnp.sign(jnp.linalg.det(bmm(u, vt)))
     d = jnp.where(d == 0, 1.0, d)
     u = u.at[..., :, 2].multiply(d[..., None])
-    return u @ vt
+    return bmm(u, vt)
 
 
 def chordal_initialization(
@@ -137,7 +132,7 @@ def chordal_initialization(
 
     # 3. translations: t_j - t_i = s_i R_i t_z, weighted by 1 / s_i^2 (residual in node i's units).
     i = problem.edges[:, 0]
-    c_t = scale[i, None] * jnp.einsum("eab,eb->ea", rot[i], t_z)
+    c_t = scale[i, None] * bmv(rot[i], t_z)
     trans, ok_t = solve_difference_system(
         t0, None, c_t, w_t / scale[i] ** 2, problem, linear_solver, max_linear_iterations
     )

@@ -8,8 +8,10 @@ With per-edge Jacobian blocks ``J_i, J_j`` (``[E, 7, 7]``), weighted information
 * gradient  ``g_n = sum_{e: i=n} J_i^T W r + sum_{e: j=n} J_j^T W r``  (``[N, 7]``).
 
 Fixed nodes (gauge, padding) get ``H_nn = I``, zero gradient and zero coupling, so their
-update is exactly zero.  Levenberg–Marquardt damping adds ``lambda * diag(H)`` (Marquardt's
-scaling, diagonal clamped to ``[1e-6, 1e32]`` like Ceres) to the diagonal blocks.
+update is exactly zero.  Every solver takes the Levenberg–Marquardt damping as a vector
+``[N, b]`` added to the diagonal (``lambda`` times ones, or Marquardt's ``lambda clip(diag H)``,
+:func:`damping_diagonal`; the choice is the solver's, :mod:`swiftjax.posegraph.solver`).
+The batched ``7 x 7`` products are :mod:`swiftjax.posegraph.blockmat`'s unrolled multiply-adds.
 
 Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "auto" rule):
 
@@ -40,6 +42,7 @@ from swiftjax.posegraph.blockmat import bmm, bmtm, bmtv, bmv, unfused
 __all__ = [
     "NormalEquations",
     "assemble",
+    "from_edge_blocks",
     "matvec",
     "damping_diagonal",
     "solve_dense",
@@ -74,23 +77,34 @@ def assemble(
 
         H_jj = B,  H_ij = -Ad^T B,  H_ii = Ad^T B Ad,  g_j = b,  g_i = -Ad^T b
     """
-    n = fixed.shape[0]
-    dtype = r.dtype
-    free_i = (~fixed[edges[:, 0]]).astype(dtype)
-    free_j = (~fixed[edges[:, 1]]).astype(dtype)
     # Each product level in kernels of its own (blockmat.unfused); the last one fuses into the
     # scatter's operand.  Parking-garage, 7,168 edges: 7.0-9.7 ms -> 3.5-4.6 ms.
     wj = unfused(lambda a, c, jr: bmm(a * c[:, None, None], jr), information, weight, jr_inv)
     big_b, b = unfused(lambda jr, wj, r: (bmtm(jr, wj), bmtv(wj, r)), jr_inv, wj, r)
     adt_b, g_i = unfused(lambda ad, bb, b: (bmtm(ad, bb), -bmtv(ad, b)), adj, big_b, b)
-    h_ii = bmm(adt_b, adj) * free_i[:, None, None]
-    h_jj = big_b * free_j[:, None, None]
-    h_ij = -adt_b * (free_i * free_j)[:, None, None]
+    return from_edge_blocks(bmm(adt_b, adj), big_b, -adt_b, g_i, b, edges, fixed)
+
+
+def from_edge_blocks(
+    h_ii: Array, h_jj: Array, h_ij: Array, g_i: Array, g_j: Array, edges: Array, fixed: Array
+) -> NormalEquations:
+    """Sum per-edge blocks into the normal equations (segment sums over the edge ends).
+
+    ``h_ii, h_jj, h_ij [E, b, b]`` and ``g_i, g_j [E, b]`` are edge ``(i, j)``'s contributions
+    to ``H_ii, H_jj, H_ij`` and ``g_i, g_j``.  Blocks touching a fixed node are dropped and fixed
+    nodes get ``H_nn = I``, so their update is exactly zero.
+    """
+    n, dtype = fixed.shape[0], g_i.dtype
+    free_i = (~fixed[edges[:, 0]]).astype(dtype)
+    free_j = (~fixed[edges[:, 1]]).astype(dtype)
+    h_ii = h_ii * free_i[:, None, None]
+    h_jj = h_jj * free_j[:, None, None]
+    h_ij = h_ij * (free_i * free_j)[:, None, None]
     g_i = g_i * free_i[:, None]
-    g_j = b * free_j[:, None]
+    g_j = g_j * free_j[:, None]
     ends = jnp.concatenate([edges[:, 0], edges[:, 1]])
     seg = lambda a, b: jax.ops.segment_sum(jnp.concatenate([a, b]), ends, num_segments=n)  # noqa: E731
-    diag = jnp.where(fixed[:, None, None], jnp.eye(7, dtype=dtype), seg(h_ii, h_jj))
+    diag = jnp.where(fixed[:, None, None], jnp.eye(g_i.shape[-1], dtype=dtype), seg(h_ii, h_jj))
     return NormalEquations(diag=diag, off=h_ij, grad=seg(g_i, g_j), edges=edges)
 
 
