@@ -29,7 +29,7 @@ from jax import Array
 
 from swiftjax import sim3
 from swiftjax.posegraph import linear
-from swiftjax.posegraph.blockmat import bmm, bmtm, bmtv, bmv
+from swiftjax.posegraph.blockmat import bmtm, bmtv, bmv
 from swiftjax.posegraph.problem import Problem
 
 __all__ = ["chordal_initialization", "solve_difference_system"]
@@ -91,10 +91,13 @@ def solve_difference_system(
 def _project_to_so3(m: Array) -> Array:
     """Nearest rotation (Frobenius) of each ``[..., 3, 3]``: ``U diag(1, 1, det(U V^T)) V^T``."""
     u, _, vt = jnp.linalg.svd(m)
-    d = jnp.sign(jnp.linalg.det(bmm(u, vt)))
+    # Batched dots here on purpose, not blockmat's elementwise products: with those, XLA:CPU
+    # (jaxlib 0.10.2, 2 threads) deadlocks the whole chordal + LM program of the N = 20,000 circle
+    # (every thread parked, reproducible); with the dots it runs.  Run time is irrelevant here.
+    d = jnp.sign(jnp.linalg.det(u @ vt))
     d = jnp.where(d == 0, 1.0, d)
     u = u.at[..., :, 2].multiply(d[..., None])
-    return bmm(u, vt)
+    return u @ vt
 
 
 def chordal_initialization(
