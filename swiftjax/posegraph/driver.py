@@ -147,7 +147,8 @@ def _chordal_cost_given(problem: Problem, params, static: _Static) -> Array | No
 
 
 def _begin(problem: Problem, params: dict[str, Array], *, static: _Static):
-    """Dense/PCG path, first program: ``(normalised problem, LM start, cost at the given poses | None)``."""
+    """First program of a bucket: ``(normalised problem, LM start, cost at the given poses | None)``
+    (the sparse path's :func:`_host_begin` adds LM's initial state)."""
     problem, start = _start(problem, static=static)
     return problem, start, _chordal_cost_given(problem, params, static)
 
@@ -176,11 +177,11 @@ def _host_begin(problem: Problem, params: dict[str, Array], *, static: _Static):
     No linearisation here (the first :func:`_host_advance`, with ``delta = 0``, is LM's step 0),
     so the residual/Jacobian code is compiled once, in the advance program.
     """
-    problem, start = _start(problem, static=static)
+    problem, start, given = _begin(problem, params, static=static)
     solver = _solver(params, static)
     f_struct = jax.eval_shape(residual_fn, start, problem)
     state = solver.init(residual_fn, start, problem, {}, f_struct, None, frozenset())
-    return problem, start, state, solver.damping_vector(state), _chordal_cost_given(problem, params, static)
+    return problem, start, state, solver.damping_vector(state), given
 
 
 def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, ok, *, static: _Static):
