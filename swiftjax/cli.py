@@ -1,4 +1,4 @@
-"""The ``swiftjax`` command: ``demo``, ``reconstruct``, ``evaluate``, ``export-onnx``.
+"""The ``swiftjax`` command: ``demo``, ``reconstruct``, ``view``, ``evaluate``, ``export-onnx``.
 
 Bad input ends with a one-line ``swiftjax: error: ...`` and exit status 2, never a
 traceback (``--debug`` shows it).  JAX's persistent compilation cache is enabled
@@ -103,12 +103,80 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     run = demo.loop_route_run(args.frames, seed=args.seed)
     config = _pipeline_config(args)
-    result = pipeline.reconstruct(
-        run.predictor, args.out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
-        progress=not args.no_progress,
-    )
-    _print_summary(result)
+    with _LiveView(args) as live:
+        result = pipeline.reconstruct(
+            run.predictor, args.out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
+            progress=not args.no_progress,
+        )
+        _print_summary(result)
+        live.wait()
     return 0
+
+
+class _LiveView:
+    """``--view``: a viewer of the run directory while it is written, kept open after the run."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.live = None
+        if getattr(args, "view", False):
+            viewer = _import_viewer()
+            try:
+                self.live = viewer.LiveViewer(args.out, host=args.view_host, port=args.view_port,
+                                              max_points=args.view_max_points)
+            except viewer.ViewerError as err:
+                raise CliError(str(err)) from None
+
+    def __enter__(self) -> _LiveView:
+        return self
+
+    def wait(self) -> None:
+        """Keep serving the finished run until Ctrl-C."""
+        if self.live is None:
+            return
+        self.live.refresh_now()
+        print("swiftjax: run finished; the viewer stays open (Ctrl-C to stop)")
+        try:
+            while True:
+                time.sleep(3600)
+        except KeyboardInterrupt:
+            pass
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.live is not None:
+            self.live.close()
+
+
+def _import_viewer() -> Any:
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise CliError("the viewer needs viser: pip install 'swiftjax[view]'") from None
+    from swiftjax import viewer
+
+    return viewer
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    viewer = _import_viewer()
+    try:
+        v = viewer.serve(args.run_dir, host=args.host, port=args.port, max_points=args.max_points)
+    except viewer.ViewerError as err:
+        raise CliError(str(err)) from None
+    try:
+        v.watch()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        v.close()
+    return 0
+
+
+def _view_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("live viewer (the 'view' extra)")
+    group.add_argument("--view", action="store_true", help="watch the run in a web viewer as chunks arrive")
+    group.add_argument("--view-port", type=int, default=8080)
+    group.add_argument("--view-host", default="127.0.0.1", help="0.0.0.0 shares the viewer on the network")
+    group.add_argument("--view-max-points", type=int, default=1_000_000)
 
 
 def _load_ground_truth(path: pathlib.Path, fmt: str) -> Any:
@@ -155,10 +223,12 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     runner = _make_runner(args)
     predictor = pipeline.ImagePredictor(source, runner, mode=args.mode)
-    result = pipeline.reconstruct(
-        predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress
-    )
-    _print_summary(result)
+    with _LiveView(args) as live:
+        result = pipeline.reconstruct(
+            predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress
+        )
+        _print_summary(result)
+        live.wait()
     return 0
 
 
@@ -217,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
     p.add_argument("--seed", type=int, default=0)
     _common_run_options(p)
+    _view_options(p)
     _add_method_options(p)
     p.set_defaults(func=_cmd_demo)
 
@@ -233,8 +304,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", type=pathlib.Path, help="ground-truth poses for ATE")
     p.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti")
     _common_run_options(p)
+    _view_options(p)
     _add_method_options(p)
     p.set_defaults(func=_cmd_reconstruct)
+
+    p = sub.add_parser("view", help="web viewer (viser) of a run directory, finished or running")
+    p.add_argument("run_dir", type=pathlib.Path, help="the --out folder of a run")
+    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (0.0.0.0 shares it on the network)")
+    p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
+    p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
     p.add_argument("estimate", type=pathlib.Path)

@@ -1,0 +1,573 @@
+"""``swiftjax view``: a web viewer (viser) of a finished or still-running run directory.
+
+What it shows, all read from the run directory (nothing is recomputed but the placement of
+chunks):
+
+* the point cloud: each chunk file's export points (chunk frame, already confidence
+  filtered), read **one chunk at a time** and merged into a uniform reservoir sample of at
+  most ``max_points`` points (:class:`Reservoir`), so memory is bounded by the budget plus
+  one chunk, whatever the run's size; a confidence-percentile slider hides the least
+  confident share; colours from the images or one colour per chunk;
+* the cameras as frustums (the frame as texture where ``colmap/images/`` holds it), the
+  trajectory, loop-closure candidates as segments between the two frames (accepted green,
+  rejected red; records without an ``accepted`` key count as accepted, as every loop edge
+  was before loop verification), the ground truth (Sim(3)-aligned to the estimate) when the
+  run had one;
+* a toggle between the chunk poses with and without loop closure.
+
+Placement: a finished run has ``chunk_poses.json`` (the optimised ``S_t`` and the chained
+ones, written by the export); while a run is going, the viewer chains the temporal edges
+``S_{t-1 -> t}`` recorded in ``manifest.json`` over the longest prefix of finished chunks
+(no loop closure yet).  :func:`serve` polls the directory (``manifest.json``'s and
+``chunk_poses.json``'s modification times) and adds chunks as they arrive: ``swiftjax view``
+on a running reconstruction, or ``swiftjax reconstruct ... --view``.
+
+The server binds ``127.0.0.1`` unless told otherwise (a map is private).  ``import
+swiftjax`` never imports viser: this module imports it inside :func:`serve` only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port"]
+
+#: Distinct colours for per-chunk colouring (matplotlib's tab10, as uint8).
+_CHUNK_COLOURS = np.array(
+    [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+     [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8,
+)
+_ACCEPTED = (40, 170, 60)
+_REJECTED = (220, 30, 30)
+_TRAJECTORY = (30, 90, 220)
+_GROUND_TRUTH = (110, 110, 110)
+POSE_SETS = ("loop closure", "no loop closure")
+
+
+class ViewerError(RuntimeError):
+    """The run directory cannot be shown (missing, not a swiftjax run) or the port is taken."""
+
+
+# ------------------------------------------------------------------------------ reading
+
+
+class Reservoir:
+    """A uniform sample of at most ``capacity`` points of a stream of chunks.
+
+    Every point gets an independent uniform key; the sample is the ``capacity`` points with
+    the smallest keys seen so far (a bottom-k sketch), which is a uniform sample without
+    replacement of the stream, kept in ``O(capacity + chunk)`` memory: :meth:`add` merges
+    one chunk and cuts back with ``argpartition`` (no Python loop over points).  A chunk
+    added again replaces its previous points (live runs re-read nothing, but resume does).
+
+    Arrays: ``xyz [k, 3]`` float32 (chunk frame), ``rgb [k, 3]`` uint8, ``conf [k]``
+    float32, ``chunk [k]`` int32, ``key [k]`` float64.
+    """
+
+    def __init__(self, capacity: int, seed: int = 0) -> None:
+        if capacity < 1:
+            raise ValueError(f"the point budget must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self.rng = np.random.default_rng(seed)
+        self.xyz = np.zeros((0, 3), np.float32)
+        self.rgb = np.zeros((0, 3), np.uint8)
+        self.conf = np.zeros(0, np.float32)
+        self.chunk = np.zeros(0, np.int32)
+        self.key = np.zeros(0, np.float64)
+        self.seen = 0  # points offered so far
+
+    def __len__(self) -> int:
+        return len(self.key)
+
+    def add(self, chunk: int, xyz: np.ndarray, rgb: np.ndarray, conf: np.ndarray) -> None:
+        """Merge one chunk's points (``[P, 3]``, ``[P, 3]`` uint8, ``[P]``)."""
+        keep = self.chunk != chunk
+        key = self.rng.random(len(xyz))
+        self.seen += len(xyz)
+        xyz_all = np.concatenate([self.xyz[keep], np.asarray(xyz, np.float32)])
+        rgb_all = np.concatenate([self.rgb[keep], np.asarray(rgb, np.uint8)])
+        conf_all = np.concatenate([self.conf[keep], np.asarray(conf, np.float32)])
+        chunk_all = np.concatenate([self.chunk[keep], np.full(len(xyz), chunk, np.int32)])
+        key_all = np.concatenate([self.key[keep], key])
+        if len(key_all) > self.capacity:
+            sel = np.argpartition(key_all, self.capacity - 1)[: self.capacity]
+            sel.sort()
+            xyz_all, rgb_all, conf_all = xyz_all[sel], rgb_all[sel], conf_all[sel]
+            chunk_all, key_all = chunk_all[sel], key_all[sel]
+        self.xyz, self.rgb, self.conf, self.chunk, self.key = xyz_all, rgb_all, conf_all, chunk_all, key_all
+
+
+@dataclasses.dataclass
+class RunView:
+    """What the viewer draws, in world coordinates, for one pose set at a time.
+
+    ``chunks`` are the placed chunk indices (a prefix ``0..k-1`` of the run's chunks);
+    ``poses[name]`` ``[k, 8]`` chunk-to-world Sim(3) for each name in ``POSE_SETS`` that is
+    known (a live run has only ``"no loop closure"``); ``frames [F]`` the global indices of
+    the cameras the placed chunks own, ``frame_chunk [F]`` their chunk, ``extrinsic [F, 3,
+    4]`` their chunk-frame world-to-camera; ``K [3, 3]`` and ``image_hw`` of the model's
+    resolution; ``loops``: ``(i, j, accepted)`` frame pairs; ``ground_truth [N, 4, 4]`` or
+    None; ``names``: a file name per frame if known; ``final``: the run has finished its export.
+    """
+
+    run_dir: pathlib.Path
+    chunks: list[int]
+    poses: dict[str, np.ndarray]
+    frames: np.ndarray
+    frame_chunk: np.ndarray
+    extrinsic: np.ndarray
+    K: np.ndarray
+    image_hw: tuple[int, int]
+    loops: list[tuple[int, int, bool]]
+    ground_truth: np.ndarray | None
+    names: list[str] | None
+    final: bool
+
+    def cam_to_world(self, pose_set: str) -> np.ndarray:
+        """``[F, 4, 4]`` camera-to-world of the placed frames under ``pose_set``."""
+        import jax
+        import jax.numpy as jnp
+
+        try:
+            from swiftjax.pipeline.export import world_cameras
+        except ImportError:  # before the pipeline package
+            from swiftjax.pipeline import _world_cameras as world_cameras
+
+        poses = self.poses[pose_set][np.searchsorted(self.chunks, self.frame_chunk)]
+        with jax.enable_x64(True):
+            return np.asarray(world_cameras(jnp.asarray(poses), jnp.asarray(self.extrinsic, jnp.float64)))
+
+
+def _load_json(path: pathlib.Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ViewerError(f"{path} is unreadable ({err})") from None
+
+
+def open_manifest(run_dir: pathlib.Path) -> dict[str, Any]:
+    """The run's manifest, or :class:`ViewerError` naming what is wrong with ``run_dir``."""
+    run_dir = pathlib.Path(run_dir)
+    if not run_dir.exists():
+        raise ViewerError(f"run directory {run_dir} does not exist")
+    if not run_dir.is_dir():
+        raise ViewerError(f"{run_dir} is not a directory (give the run directory written by swiftjax)")
+    path = run_dir / "manifest.json"
+    if not path.is_file():
+        raise ViewerError(
+            f"{run_dir} is not a swiftjax run directory (no manifest.json; give the --out folder of "
+            "'swiftjax reconstruct' or 'swiftjax demo')"
+        )
+    data = _load_json(path)
+    if not isinstance(data, dict) or not {"config", "chunks", "edges"} <= set(data):
+        raise ViewerError(f"{path} is not a swiftjax manifest (no config/chunks/edges)")
+    return data
+
+
+def loop_candidates(manifest: dict[str, Any]) -> list[tuple[int, int, bool]]:
+    """``(i, j, accepted)`` of every loop candidate recorded in the manifest.
+
+    Candidates come from ``manifest["loop_edges"]`` (one record per loop chunk; ``accepted``
+    defaults to True there: before loop verification every recorded edge entered the graph)
+    and ``manifest["loops"]`` when it is a list of candidate records (``accepted`` defaults
+    to False there: a candidate without a loop edge was not used).
+    """
+    out: dict[tuple[int, int], bool] = {}
+    candidates = manifest.get("loops")
+    if isinstance(candidates, list):
+        for r in candidates:
+            if isinstance(r, dict) and "i" in r and "j" in r:
+                out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", False))
+    for r in (manifest.get("loop_edges") or {}).values():
+        if isinstance(r, dict) and "i" in r and "j" in r:
+            out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", True))
+    return [(i, j, a) for (i, j), a in sorted(out.items())]
+
+
+def _frame_names(run_dir: pathlib.Path) -> list[str] | None:
+    path = run_dir / "frames.txt"
+    if not path.is_file():
+        return None
+    return [ln.split(maxsplit=1)[1] for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+
+
+@dataclasses.dataclass
+class _Chunk:
+    """What the viewer keeps of one chunk file: its frames and chunk-frame extrinsics."""
+
+    frames: np.ndarray  # [S] global frame indices
+    extrinsic: np.ndarray  # [S, 3, 4]
+    K: np.ndarray  # [3, 3] of its first frame
+    image_hw: tuple[int, int]
+
+
+def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
+             cache: dict[int, _Chunk] | None = None) -> RunView:
+    """Read the run's placement; chunk files not in ``cache`` are read once each (their points
+    merged into ``reservoir``, their frames and extrinsics kept in ``cache``)."""
+    from swiftjax.io import trajectory
+    from swiftjax.io.chunk_store import ChunkStore
+    from swiftjax.pipeline import chain_poses
+
+    run_dir = pathlib.Path(run_dir)
+    manifest = open_manifest(run_dir)
+    cache = {} if cache is None else cache
+    store = ChunkStore(run_dir)
+    done = {int(c) for c, ok in manifest["chunks"].items() if ok}
+    final_path = run_dir / "chunk_poses.json"
+    poses: dict[str, np.ndarray] = {}
+    if final_path.is_file():
+        data = _load_json(final_path)
+        for name in POSE_SETS:
+            if name in data:
+                poses[name] = np.asarray(data[name], np.float64).reshape(-1, 8)
+        count = min(len(p) for p in poses.values()) if poses else 0
+        if not all(c in done for c in range(count)):
+            raise ViewerError(f"{final_path} has {count} chunk poses but the chunk store lacks some of them")
+        chunk_ids = list(range(count))
+        final = True
+    else:
+        # Live: the longest prefix 0..k-1 of finished chunks whose edges are all recorded.
+        k = 0
+        while k in done and (k == 0 or str(k - 1) in manifest["edges"]):
+            k += 1
+        rel = np.array([manifest["edges"][str(t)]["S"] for t in range(k - 1)], np.float64).reshape(-1, 8)
+        chunk_ids = list(range(k))
+        poses = {"no loop closure": chain_poses(rel)} if k else {}
+        final = False
+
+    for t in chunk_ids:
+        if t in cache:
+            continue
+        extra = store.load_extra("chunk", t)
+        extrinsic = store.load_array("chunk", t, "extrinsic")
+        K = np.asarray(store.load_array("chunk", t, "intrinsic", frames=slice(0, 1))[0], np.float64)
+        hw = (int(extra["image_hw"][0]), int(extra["image_hw"][1]))
+        cache[t] = _Chunk(np.asarray(extra["frames"], np.int64), extrinsic, K, hw)
+        if reservoir is not None:
+            xyz = extra["points_xyz"]
+            rgb = extra["points_rgb"] if "points_rgb" in extra else np.full((len(xyz), 3), 200, np.uint8)
+            reservoir.add(t, xyz, rgb, extra["points_conf"])
+        del extra
+
+    frames, owner, extrinsic = [], [], []
+    for t in chunk_ids:
+        c, nxt = cache[t], cache.get(t + 1) if (t + 1) in chunk_ids else None
+        own = c.frames < nxt.frames[0] if nxt is not None else np.ones(len(c.frames), bool)  # later chunk wins
+        frames.append(c.frames[own])
+        owner.append(np.full(int(own.sum()), t))
+        extrinsic.append(c.extrinsic[own])
+
+    gt_path = run_dir / "ground_truth_kitti.txt"
+    gt = trajectory.read_kitti(gt_path) if gt_path.is_file() else None
+    first = cache.get(0)
+    return RunView(
+        run_dir=run_dir, chunks=chunk_ids, poses=poses,
+        frames=np.concatenate(frames) if frames else np.zeros(0, np.int64),
+        frame_chunk=np.concatenate(owner) if owner else np.zeros(0, np.int64),
+        extrinsic=np.concatenate(extrinsic) if extrinsic else np.zeros((0, 3, 4), np.float32),
+        K=first.K if first else np.eye(3), image_hw=first.image_hw if first else (1, 1),
+        loops=loop_candidates(manifest), ground_truth=gt, names=_frame_names(run_dir), final=final,
+    )
+
+
+def world_points(view: RunView, reservoir: Reservoir, pose_set: str) -> tuple[np.ndarray, np.ndarray]:
+    """The reservoir's points of the placed chunks in world coordinates ``[k, 3]`` float32
+    (``S_t`` of each point's chunk applied: ``s R x + t``) and the mask of placed points."""
+    from swiftjax.io.trajectory import quaternion_to_matrix
+
+    placed = np.isin(reservoir.chunk, view.chunks)
+    P = view.poses[pose_set]
+    idx = np.searchsorted(view.chunks, reservoir.chunk[placed])
+    R = quaternion_to_matrix(P[:, 3:7]) * P[:, 7, None, None]  # [k, 3, 3] s R
+    xyz = np.einsum("nij,nj->ni", R[idx].astype(np.float32), reservoir.xyz[placed]) + P[idx, :3].astype(np.float32)
+    return xyz.astype(np.float32), placed
+
+
+def check_port(host: str, port: int) -> None:
+    """:class:`ViewerError` if ``host:port`` cannot be bound (in use, or not an address here)."""
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError as err:
+            what = "is already in use" if err.errno in (98, 48) else f"cannot be bound ({err.strerror})"
+            raise ViewerError(f"port {port} on {host} {what}; choose another with --port") from None
+
+
+# ------------------------------------------------------------------------------ serving
+
+
+class Viewer:
+    """A viser server showing one run directory; :meth:`refresh` re-reads what changed.
+
+    Scene nodes: ``/cloud``, ``/trajectory``, ``/frustums/<frame>``, ``/loops/accepted``,
+    ``/loops/rejected``, ``/ground_truth``.  GUI: confidence percentile slider, colour
+    dropdown (``image`` / ``chunk``), loop-closure toggle, frustum / loop / ground-truth
+    checkboxes, a status line.
+    """
+
+    def __init__(self, run_dir: str | pathlib.Path, *, host: str = "127.0.0.1", port: int = 8080,
+                 max_points: int = 1_000_000, max_frustums: int = 200, point_size: float | None = None,
+                 log: Callable[[str], None] = print) -> None:
+        self.run_dir = pathlib.Path(run_dir)
+        open_manifest(self.run_dir)  # a clear error before the server starts
+        check_port(host, port)
+        import viser
+
+        self.log = log
+        self.max_frustums = max_frustums
+        self.reservoir = Reservoir(max_points)
+        self.cache: dict[int, _Chunk] = {}
+        self._signature: tuple[Any, ...] | None = None
+        self._lock = threading.RLock()
+        self.view: RunView | None = None
+        self._point_size = point_size
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        if port and self.server.get_port() != port:  # viser moves on to a free port silently
+            self.server.stop()
+            raise ViewerError(f"port {port} on {host} is already in use; choose another with --port")
+        self.server.scene.set_up_direction("-y")  # OpenCV world: y down
+        gui = self.server.gui
+        self.status = gui.add_markdown("reading the run ...")
+        self.conf_slider = gui.add_slider("confidence percentile", min=0, max=99, step=1, initial_value=0,
+                                          hint="hide the least confident points (percentile of the shown sample)")
+        self.colour = gui.add_dropdown("colour", ("image", "chunk"), initial_value="image")
+        self.loop_toggle = gui.add_checkbox("loop closure", True, hint="chunk poses after the pose graph")
+        self.show_frustums = gui.add_checkbox("cameras", True)
+        self.show_loops = gui.add_checkbox("loop candidates", True)
+        self.show_gt = gui.add_checkbox("ground truth", True)
+        for handle in (self.conf_slider, self.colour):
+            handle.on_update(lambda _: self._draw_cloud())
+        self.loop_toggle.on_update(lambda _: self._draw_all())
+        for handle in (self.show_frustums, self.show_loops, self.show_gt):
+            handle.on_update(lambda _: self._draw_all())
+        self.refresh()
+
+    @property
+    def url(self) -> str:
+        host = self.server.get_host()
+        return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}/"
+
+    def _state_signature(self) -> tuple[Any, ...]:
+        sig = []
+        for name in ("manifest.json", "chunk_poses.json"):
+            try:
+                st = (self.run_dir / name).stat()
+                sig.append((st.st_mtime_ns, st.st_size))
+            except FileNotFoundError:
+                sig.append(None)
+        return tuple(sig)
+
+    def refresh(self) -> bool:
+        """Re-read the run if ``manifest.json`` or ``chunk_poses.json`` changed; True if it did."""
+        with self._lock:
+            sig = self._state_signature()
+            if sig == self._signature:
+                return False
+            self._signature = sig
+            self.view = read_run(self.run_dir, self.reservoir, self.cache)
+            self._draw_all()
+            return True
+
+    def pose_set(self) -> str | None:
+        view = self.view
+        if view is None or not view.poses:
+            return None
+        if self.loop_toggle.value and "loop closure" in view.poses:
+            return "loop closure"
+        return "no loop closure" if "no loop closure" in view.poses else next(iter(view.poses))
+
+    def _scale(self, centres: np.ndarray) -> float:
+        if len(centres) < 2:
+            return 1.0
+        return float(np.linalg.norm(np.ptp(centres, axis=0))) or 1.0
+
+    def _draw_all(self) -> None:
+        with self._lock:
+            view, name = self.view, self.pose_set()
+            if view is None or name is None:
+                self.status.content = f"**{self.run_dir}**: no finished chunk yet"
+                return
+            self.loop_toggle.disabled = "loop closure" not in view.poses
+            c2w = view.cam_to_world(name)
+            self._c2w = c2w
+            self._draw_cloud()
+            scene = self.server.scene
+            centres = c2w[:, :3, 3]
+            extent = self._scale(centres)
+            if len(centres) >= 2:
+                seg = np.stack([centres[:-1], centres[1:]], axis=1)
+                scene.add_line_segments("/trajectory", seg, _TRAJECTORY, thickness=3.0, thickness_units="screen")
+            self._draw_frustums(view, c2w, extent)
+            self._draw_loops(view, centres)
+            self._draw_ground_truth(view, centres)
+            n_acc = sum(a for _, _, a in view.loops)
+            state = "finished" if view.final else "running (poses chained, no loop closure yet)"
+            self.status.content = (
+                f"**{self.run_dir.name}** ({state})  \n{len(view.chunks)} chunks, {len(view.frames)} cameras, "
+                f"{len(self.reservoir):,} of {self.reservoir.seen:,} points shown  \n"
+                f"loop candidates: {n_acc} accepted, {len(view.loops) - n_acc} rejected  \nposes: {name}"
+            )
+            if not getattr(self, "_camera_set", False) and len(centres):
+                self._initial_camera(centres, extent)
+
+    def _initial_camera(self, centres: np.ndarray, extent: float) -> None:
+        """Look at the trajectory's centre from above and behind (y is down in the world)."""
+        centre = centres.mean(axis=0)
+        self.server.initial_camera.look_at = tuple(centre)
+        self.server.initial_camera.up = (0.0, -1.0, 0.0)
+        self.server.initial_camera.position = tuple(centre + np.array([0.0, -0.8, -0.6]) * extent)
+        self._camera_set = True
+
+    def _draw_cloud(self) -> None:
+        with self._lock:
+            view, name = self.view, self.pose_set()
+            if view is None or name is None or len(self.reservoir) == 0:
+                return
+            xyz, placed = world_points(view, self.reservoir, name)
+            conf = self.reservoir.conf[placed]
+            if self.colour.value == "chunk":
+                rgb = _CHUNK_COLOURS[self.reservoir.chunk[placed] % len(_CHUNK_COLOURS)]
+            else:
+                rgb = self.reservoir.rgb[placed]
+            pct = float(self.conf_slider.value)
+            if pct > 0 and len(conf):
+                keep = conf >= np.percentile(conf, pct)
+                xyz, rgb = xyz[keep], rgb[keep]
+            size = self._point_size or 0.002 * self._scale(xyz if len(xyz) else np.zeros((1, 3)))
+            self.server.scene.add_point_cloud("/cloud", xyz, rgb, point_size=size, point_shape="circle")
+
+    def _draw_frustums(self, view: RunView, c2w: np.ndarray, extent: float) -> None:
+        from swiftjax.io.trajectory import matrix_to_quaternion
+
+        scene = self.server.scene
+        scene.remove_by_name("/frustums")
+        if not self.show_frustums.value or not len(c2w):
+            return
+        h, w = view.image_hw
+        fy = float(view.K[1, 1])
+        fov = 2.0 * np.arctan2(h / 2.0, fy)
+        step = max(1, -(-len(c2w) // self.max_frustums))
+        q = matrix_to_quaternion(c2w[:, :3, :3])[:, [3, 0, 1, 2]]  # wxyz
+        for k in range(0, len(c2w), step):
+            frame = int(view.frames[k])
+            scene.add_camera_frustum(
+                f"/frustums/{frame:06d}", fov=fov, aspect=w / h, scale=0.015 * extent,
+                color=_CHUNK_COLOURS[view.frame_chunk[k] % len(_CHUNK_COLOURS)],
+                image=self._thumbnail(view, frame), wxyz=q[k], position=c2w[k, :3, 3],
+                thickness=1.5, thickness_units="screen",
+            )
+
+    def _thumbnail(self, view: RunView, frame: int) -> np.ndarray | None:
+        """The frame from ``colmap/images/`` (written when COLMAP export is on), 1/4 size."""
+        if view.names is None or frame >= len(view.names):
+            return None
+        path = view.run_dir / "colmap" / "images" / view.names[frame]
+        if not path.is_file():
+            return None
+        import cv2
+
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            return None
+        img = cv2.resize(img, (max(1, img.shape[1] // 4), max(1, img.shape[0] // 4)), interpolation=cv2.INTER_AREA)
+        return np.ascontiguousarray(img[..., ::-1])
+
+    def _draw_loops(self, view: RunView, centres: np.ndarray) -> None:
+        scene = self.server.scene
+        scene.remove_by_name("/loops")
+        if not self.show_loops.value:
+            return
+        index = {int(f): k for k, f in enumerate(view.frames)}
+        for accepted, node, colour in ((True, "accepted", _ACCEPTED), (False, "rejected", _REJECTED)):
+            pairs = [(index[i], index[j]) for i, j, a in view.loops if a == accepted and i in index and j in index]
+            if pairs:
+                p = np.asarray(pairs)
+                seg = np.stack([centres[p[:, 0]], centres[p[:, 1]]], axis=1)
+                scene.add_line_segments(f"/loops/{node}", seg, colour, thickness=4.0 if accepted else 2.0,
+                                        thickness_units="screen")
+
+    def _draw_ground_truth(self, view: RunView, centres: np.ndarray) -> None:
+        from swiftjax.evaluation import umeyama_alignment
+
+        scene = self.server.scene
+        scene.remove_by_name("/ground_truth")
+        if view.ground_truth is None or not self.show_gt.value or len(centres) < 3:
+            return
+        gt = view.ground_truth[view.frames, :3, 3]
+        R, t, s = umeyama_alignment(gt, centres, "sim3")  # ground truth onto the estimate
+        aligned = s * gt @ R.T + t
+        seg = np.stack([aligned[:-1], aligned[1:]], axis=1)
+        scene.add_line_segments("/ground_truth", seg, _GROUND_TRUTH, thickness=2.0, thickness_units="screen")
+
+    def watch(self, interval: float = 1.0, stop: threading.Event | None = None) -> None:
+        """Poll the run directory every ``interval`` seconds until ``stop`` is set."""
+        stop = stop or threading.Event()
+        while not stop.wait(interval):
+            try:
+                self.refresh()
+            except (ViewerError, OSError, ValueError) as err:  # a file mid-replacement: retry
+                self.log(f"swiftjax view: {err}")
+
+    def close(self) -> None:
+        self.server.stop()
+
+
+def serve(run_dir: str | pathlib.Path, *, host: str = "127.0.0.1", port: int = 8080,
+          max_points: int = 1_000_000, log: Callable[[str], None] = print) -> Viewer:
+    """Start a :class:`Viewer` on ``run_dir`` (returns at once; the server runs in threads)."""
+    viewer = Viewer(run_dir, host=host, port=port, max_points=max_points, log=log)
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        log(f"swiftjax view: warning: serving on {host}: anyone who can reach this machine can see the map")
+    log(f"swiftjax view: {viewer.url} ({run_dir}; Ctrl-C to stop)")
+    return viewer
+
+
+class LiveViewer:
+    """A :class:`Viewer` started once the run directory has a manifest, polling in a thread
+    (``swiftjax reconstruct ... --view``)."""
+
+    def __init__(self, run_dir: str | pathlib.Path, *, host: str, port: int, max_points: int,
+                 log: Callable[[str], None] = print, interval: float = 1.0) -> None:
+        self.run_dir = pathlib.Path(run_dir)
+        self.viewer: Viewer | None = None
+        self._args = dict(host=host, port=port, max_points=max_points, log=log)
+        self._stop = threading.Event()
+        check_port(host, port)
+        self._thread = threading.Thread(target=self._run, args=(interval,), daemon=True, name="swiftjax-view")
+        self._thread.start()
+
+    def _run(self, interval: float) -> None:
+        while not self._stop.is_set() and self.viewer is None:
+            if (self.run_dir / "manifest.json").is_file():
+                try:
+                    self.viewer = serve(self.run_dir, **self._args)
+                except Exception as err:  # noqa: BLE001 - the run goes on without a viewer
+                    self._args["log"](f"swiftjax view: error: {err}")
+                    return
+                break
+            self._stop.wait(0.2)
+        if self.viewer is not None:
+            self.viewer.watch(interval, self._stop)
+
+    def refresh_now(self) -> None:
+        """Show the finished run at once (without waiting for the next poll)."""
+        if self.viewer is not None:
+            self.viewer.refresh()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        if self.viewer is not None:
+            self.viewer.close()

@@ -1,0 +1,233 @@
+"""swiftjax.viewer: reading a run directory (live and finished), and the page in a real browser.
+
+The browser test starts the viewer on a small demo run, takes screenshots with headless
+Chromium (software WebGL) and checks what a person would: the page connected, the canvas
+shows the cloud's colours, the scene tree has the cloud / frustum / trajectory nodes, and
+moving the confidence slider (server side) changes the picture.  In CI it must run: a
+missing Chromium or viser fails there (``.ci/run`` installs Chromium).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+
+import numpy as np
+import pytest
+
+from swiftjax import viewer
+
+CI = bool(os.environ.get("CI"))
+
+
+def _need(what: str, ok: bool, how: str) -> None:
+    if ok:
+        return
+    if CI:
+        pytest.fail(f"{what} is missing in CI ({how})")
+    pytest.skip(f"{what} is not installed ({how})")
+
+
+#: test_pipeline.py's small loop run (same shapes: the compile cache serves both).
+CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
+              colmap_max_points=5_000)
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    """A small finished run with loop closure and ground truth; the RunResult beside it."""
+    from swiftjax import demo, pipeline
+    from swiftjax.synthetic.routes import loop_route
+
+    poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
+    run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
+    out = tmp_path_factory.mktemp("viewer") / "run"
+    result = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(**CONFIG),
+                                  ground_truth=run.ground_truth, progress=False, log=lambda _: None)
+    return out, result
+
+
+def test_reservoir_is_uniform_and_bounded():
+    """Each of 100 points (5 chunks) is kept with probability k / N = 0.2 (400 seeds)."""
+    counts = np.zeros(100)
+    for seed in range(400):
+        r = viewer.Reservoir(20, seed=seed)
+        for c in range(5):
+            ids = np.arange(20 * c, 20 * c + 20)
+            r.add(c, np.c_[ids, ids, ids].astype(np.float32), np.zeros((20, 3), np.uint8), ids.astype(np.float32))
+            assert len(r) == min(20, 20 * (c + 1))
+        counts[r.conf.astype(int)] += 1
+        assert len(np.unique(r.conf)) == 20 and np.all(r.xyz[:, 0] == r.conf)  # rows stay together
+    freq = counts / 400
+    assert np.all(np.abs(freq - 0.2) < 0.09), freq  # 4.5 sigma
+    r.add(4, np.zeros((3, 3), np.float32), np.zeros((3, 3), np.uint8), np.full(3, -1, np.float32))
+    assert np.sum(r.chunk == 4) <= 3 and not np.any((r.chunk == 4) & (r.conf >= 0))  # chunk 4 replaced
+
+
+def test_loop_candidates_accepted_and_rejected():
+    manifest = {
+        "loop_edges": {"5-300": {"i": 5, "j": 300}, "9-400": {"i": 9, "j": 400, "accepted": False}},
+        "loops": [{"i": 5, "j": 300, "accepted": True}, {"i": 7, "j": 350}, {"i": 8, "j": 390, "accepted": True}],
+    }
+    assert viewer.loop_candidates(manifest) == [(5, 300, True), (7, 350, False), (8, 390, True), (9, 400, False)]
+    assert viewer.loop_candidates({"loops": None, "loop_edges": {}}) == []
+
+
+def test_errors_name_the_problem(tmp_path):
+    with pytest.raises(viewer.ViewerError, match="does not exist"):
+        viewer.open_manifest(tmp_path / "nope")
+    with pytest.raises(viewer.ViewerError, match="not a swiftjax run directory"):
+        viewer.open_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"something": 1}))
+    with pytest.raises(viewer.ViewerError, match="not a swiftjax manifest"):
+        viewer.open_manifest(tmp_path)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        with pytest.raises(viewer.ViewerError, match=f"port {s.getsockname()[1]} .* already in use"):
+            viewer.check_port("127.0.0.1", s.getsockname()[1])
+
+
+def test_live_run_grows_as_chunks_arrive(demo_run, tmp_path):
+    """A run directory mid-run (2 chunks recorded, no chunk poses yet): chained placement;
+    when the manifest records more chunks, refresh() adds them."""
+    from swiftjax import chunks
+    from swiftjax.pipeline import chain_poses
+
+    out, result = demo_run
+    live = tmp_path / "live"
+    shutil.copytree(out / "chunks", live / "chunks")
+    manifest = json.loads((out / "manifest.json").read_text())
+    full = json.loads(json.dumps(manifest))
+    manifest["chunks"] = {"0": True, "1": True}
+    manifest["edges"] = {"0": manifest["edges"]["0"]}
+    (live / "manifest.json").write_text(json.dumps(manifest))
+    res = viewer.Reservoir(10**7)
+    cache: dict = {}
+    view = viewer.read_run(live, res, cache)
+    assert not view.final and view.chunks == [0, 1] and list(view.poses) == ["no loop closure"]
+    np.testing.assert_allclose(view.poses["no loop closure"], chain_poses(np.array([full["edges"]["0"]["S"]])))
+    schedule = chunks.chunk_schedule(result.num_frames, 40, 15)
+    np.testing.assert_array_equal(view.frames, np.arange(schedule.ends[1]))  # chunk 1 owns all its frames
+    own = view.frames < schedule.starts[2]  # frames that chunk 1 still owns once chunk 2 is in
+    c2w = view.cam_to_world("no loop closure")
+    np.testing.assert_allclose(c2w[own], result.cam_to_world_no_loops[view.frames[own]], atol=1e-9)
+    n2 = len(res)
+    (live / "manifest.json").write_text(json.dumps(full))
+    view = viewer.read_run(live, res, cache)
+    assert view.chunks == list(range(result.num_chunks)) and len(res) > n2 and len(cache) == result.num_chunks
+
+
+def _chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _live_group_members(pgid: int) -> list[int]:
+    """Processes of group ``pgid`` that are not zombies (zombies wait for init to reap them)."""
+    alive = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            alive.append(int(entry))
+    return alive
+
+
+def _screenshot(url: str, path: str) -> np.ndarray:
+    """Headless Chromium with software WebGL; returns the PNG as ``[H, W, 3]`` uint8. The
+    browser's whole process group is killed afterwards, and checked gone."""
+    from PIL import Image
+
+    with tempfile.TemporaryDirectory() as profile:
+        cmd = [
+            _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader", "--window-size=1200,800", "--virtual-time-budget=15000",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync",
+            "--no-first-run", f"--user-data-dir={profile}", f"--screenshot={path}", url,
+        ]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            _, err = proc.communicate(timeout=120)
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            proc.wait()
+        deadline = time.monotonic() + 10
+        while _live_group_members(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _live_group_members(proc.pid), "browser processes were left behind"
+    assert proc.returncode == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def _canvas(img: np.ndarray) -> np.ndarray:
+    """The 3-D canvas without the control panel (top right) and the notification (top left)."""
+    out = img.astype(np.int32).copy()
+    out[:400, 850:] = 255
+    out[:160, :330] = 255
+    return out
+
+
+def test_browser_shows_the_run(demo_run, tmp_path):
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    _need("chromium", _chromium() is not None, "apt-get install chromium")
+    out, _ = demo_run
+    v = viewer.Viewer(out, port=0, max_points=100_000, log=lambda _: None)
+    connected = []
+    v.server.on_client_connect(lambda client: connected.append(client.client_id))
+    try:
+        for name in ("/cloud", "/trajectory"):
+            assert v.server.scene.get_handle_by_name(name) is not None, name
+        frustums = [n for n in v.server.scene._handle_from_node_name if n.startswith("/frustums/")]
+        assert len(frustums) >= 20
+        first = _screenshot(v.url, str(tmp_path / "first.png"))
+        assert connected, "the page never connected to the viewer's websocket"
+        canvas = _canvas(first)
+        drawn = np.abs(canvas - 255).max(axis=-1) > 40  # not background
+        assert drawn.mean() > 0.03 and canvas.std() > 20, (drawn.mean(), canvas.std())
+        # The cloud's colours are on the canvas: most drawn pixels are near a colour of the sample.
+        palette = v.reservoir.rgb[:: max(1, len(v.reservoir) // 3000)].astype(np.int32)
+        pixels = canvas[drawn][:: max(1, int(drawn.sum()) // 4000)]
+        nearest = np.min(np.abs(pixels[:, None, :] - palette[None, :, :]).max(-1), axis=1)
+        assert np.mean(nearest < 30) > 0.5, np.mean(nearest < 30)
+
+        v.conf_slider.value = 95  # server-side GUI handle: the cloud keeps its top 5 %
+        second = _screenshot(v.url, str(tmp_path / "second.png"))
+        drawn2 = np.abs(_canvas(second) - 255).max(axis=-1) > 40
+        assert np.abs(second.astype(int) - first.astype(int)).max(-1).astype(bool).mean() > 0.02
+        assert drawn2.mean() < 0.8 * drawn.mean(), (drawn.mean(), drawn2.mean())
+    finally:
+        v.close()
+
+
+def test_cli_view_errors_are_one_line(tmp_path, capsys):
+    from swiftjax import cli
+
+    assert cli.main(["view", str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not exist" in err
+    assert cli.main(["view", str(tmp_path)]) == 2
+    assert "not a swiftjax run directory" in capsys.readouterr().err
+
+
+def test_import_swiftjax_does_not_import_viser():
+    import subprocess
+    import sys
+
+    code = "import sys, swiftjax, swiftjax.viewer, swiftjax.cli; print('viser' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
