@@ -38,7 +38,7 @@ import os
 import pathlib
 import struct
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -216,23 +216,9 @@ def write_colmap(
     return out
 
 
-def write_colmap_text(
-    model_dir: PathLike,
-    cam_to_world: np.ndarray,
-    intrinsics: np.ndarray,
-    names: Sequence[str],
-    image_size: tuple[int, int] | np.ndarray,
-    points: np.ndarray | None = None,
-    colors: np.ndarray | None = None,
-    errors: np.ndarray | None = None,
-    pixel_offset: float = 0.5,
-    observations: Observations | tuple[np.ndarray, np.ndarray] | None = None,
-) -> pathlib.Path:
+def write_colmap_text(model_dir: PathLike, *args: Any, **kwargs: Any) -> pathlib.Path:
     """:func:`write_colmap` with text files only (``cameras.txt``, ``images.txt``, ``points3D.txt``)."""
-    return write_colmap(
-        model_dir, cam_to_world, intrinsics, names, image_size, points, colors, errors,
-        observations=observations, pixel_offset=pixel_offset, binary=False, text=True,
-    )
+    return write_colmap(model_dir, *args, binary=False, text=True, **kwargs)
 
 
 class _Model(NamedTuple):
