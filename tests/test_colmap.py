@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from swiftjax.io.colmap import world_to_camera_qt, write_colmap_text
+from swiftjax.io.colmap import world_to_camera_qt, write_colmap, write_colmap_text
 
 W, H = 518, 154
 
@@ -162,3 +162,75 @@ def test_bad_input_writes_nothing(tmp_path, change, match):
     with pytest.raises(ValueError, match=match):
         write_colmap_text(tmp_path / "m", c2w, ks, names, (W, H), pts, cols, errs)
     assert not (tmp_path / "m").exists()
+
+
+def _observed_scene(n=5, m=300, seed=1):
+    """Points unprojected from known pixels of known images: the observations are exact."""
+    c2w, ks, names, _, cols, errs = _scene(n=n, m=m, seed=seed)
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, n, m)
+    img[:n] = np.arange(n)  # every image observes at least one point
+    uv = np.column_stack([rng.integers(0, W, m), rng.integers(0, H, m)]).astype(np.float64)
+    depth = rng.uniform(1.0, 40.0, m)
+    rays = np.einsum("nij,nj->ni", np.linalg.inv(ks[img]), np.column_stack([uv, np.ones(m)]))
+    pts = np.einsum("nij,nj->ni", c2w[img, :3, :3], depth[:, None] * rays) + c2w[img, :3, 3]
+    return c2w, ks, names, pts, cols, errs, img, uv
+
+
+@pytest.mark.parametrize("fmt", ["binary", "text"])
+def test_observations_reproject_in_pycolmap(tmp_path, fmt):
+    """Every point has a one-element track; its 2-D point is the pixel centre (+0.5) it came
+    from, and the 3-D point reprojects there through pycolmap's camera and pose."""
+    pycolmap = pytest.importorskip("pycolmap")
+    c2w, ks, names, pts, cols, errs, img, uv = _observed_scene()
+    write_colmap(tmp_path, c2w, ks, names, (W, H), pts, cols, errs, observations=(img, uv),
+                 binary=fmt == "binary", text=fmt == "text")
+    assert sorted(p.name for p in tmp_path.iterdir()) == (
+        ["cameras.bin", "images.bin", "points3D.bin"] if fmt == "binary" else ["cameras.txt", "images.txt", "points3D.txt"]
+    )
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert (rec.num_images(), rec.num_points3D()) == (5, 300)
+    per_image = np.bincount(img, minlength=5)
+    for i in range(5):
+        assert rec.images[i + 1].num_points2D() == per_image[i] and rec.images[i + 1].name == names[i]
+    for j in range(300):
+        p = rec.points3D[j + 1]
+        np.testing.assert_allclose(p.xyz, pts[j], rtol=1e-15, atol=1e-12)
+        np.testing.assert_array_equal(p.color, cols[j])
+        (el,) = p.track.elements
+        assert el.image_id == img[j] + 1
+        image = rec.images[el.image_id]
+        p2d = image.points2D[el.point2D_idx]
+        assert p2d.point3D_id == j + 1
+        np.testing.assert_allclose(p2d.xy, uv[j] + 0.5, atol=1e-12)
+        proj = image.camera.img_from_cam(np.asarray(image.cam_from_world() * p.xyz)[None])[0]
+        assert np.abs(proj - p2d.xy).max() < 1e-6
+
+
+def test_binary_and_text_models_agree(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    c2w, ks, names, pts, cols, errs, img, uv = _observed_scene(seed=4)
+    write_colmap(tmp_path, c2w, ks, names, (W, H), pts, cols, errs, observations=(img, uv), text=True)
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "txt").mkdir()
+    for p in tmp_path.glob("*.*"):
+        p.rename(tmp_path / ("bin" if p.suffix == ".bin" else "txt") / p.name)
+    a, b = (pycolmap.Reconstruction(str(tmp_path / d)) for d in ("bin", "txt"))
+    for i in a.images:
+        np.testing.assert_allclose(a.images[i].cam_from_world().matrix(), b.images[i].cam_from_world().matrix(),
+                                   atol=1e-15)
+        np.testing.assert_array_equal([p.xy for p in a.images[i].points2D], [p.xy for p in b.images[i].points2D])
+    for c in a.cameras:
+        np.testing.assert_array_equal(a.cameras[c].params, b.cameras[c].params)
+    for j in a.points3D:
+        np.testing.assert_array_equal(a.points3D[j].xyz, b.points3D[j].xyz)
+        assert a.points3D[j].error == pytest.approx(b.points3D[j].error, rel=1e-8)
+
+
+def test_bad_observations_are_refused(tmp_path):
+    c2w, ks, names, pts, cols, errs, img, uv = _observed_scene()
+    with pytest.raises(ValueError, match=r"one per point"):
+        write_colmap(tmp_path / "a", c2w, ks, names, (W, H), pts, cols, errs, observations=(img[:-1], uv[:-1]))
+    with pytest.raises(ValueError, match=r"image indices must be integers in \[0, 5\)"):
+        write_colmap(tmp_path / "b", c2w, ks, names, (W, H), pts, cols, errs, observations=(img + 1, uv))
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -40,6 +40,7 @@ __all__ = [
     "VideoFrames",
     "list_frames",
     "natural_key",
+    "read_timestamps",
     "to_rgb8",
     "validate",
 ]
@@ -146,6 +147,10 @@ class FrameSource:
     def read(self, i: int) -> np.ndarray:
         """Frame ``i`` as ``[H, W, 3]`` uint8 RGB; :class:`InputError` naming the file if it can't be decoded."""
         raise NotImplementedError
+
+    def timestamps(self) -> tuple[np.ndarray, str]:
+        """``([N] seconds, how they were obtained)``; image files have none: the frame index."""
+        return np.arange(len(self), dtype=np.float64), "frame index (the input has no timestamps; see --timestamps)"
 
     def read_many(self, indices: Iterable[int]) -> np.ndarray:
         """Frames ``indices`` stacked as ``[n, H, W, 3]`` uint8 RGB (in the given order)."""
@@ -321,6 +326,20 @@ class VideoFrames(FrameSource):
             raise InputError(f"{self.path}: cannot decode frame {k}")
         return to_rgb8(frame, f"{self.path} frame {k}")
 
+    def timestamps(self) -> tuple[np.ndarray, str]:
+        """The video's own times: frame index / frame rate (container's ``CAP_PROP_FPS``), so a
+        ``stride`` keeps the original times; the frame index if the container has no rate."""
+        cv2 = _cv2()
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
+        finally:
+            cap.release()
+        index = np.asarray(self.frame_indices, np.float64)
+        if not (np.isfinite(fps) and fps > 0):
+            return index, f"video frame index ({self.path.name} has no frame rate)"
+        return index / fps, f"video time: frame index / {fps:g} fps ({self.path.name}, stride {self.stride})"
+
     def subset(self, keep: Sequence[int]) -> VideoFrames:
         return VideoFrames(self.path, self.stride, [self.frame_indices[i] for i in keep])
 
@@ -332,6 +351,55 @@ class VideoFrames(FrameSource):
 
     def __del__(self) -> None:
         self.close()
+
+
+def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.ndarray:
+    """Per-frame times (seconds) for ``source`` from a text file.
+
+    Lines (``#`` comments and blank lines skipped) are either ``timestamp name`` (TUM's
+    ``rgb.txt``; matched to the frames by file name, so any order and ``--stride`` work) or
+    one ``timestamp`` per line, for every input image in order (before ``stride``: every
+    ``stride``-th is used) or for the frames used.  Times must be finite and increasing.
+
+    Raises:
+        InputError: unreadable file, a frame without a time, a bad or decreasing value.
+    """
+    path = pathlib.Path(path)
+    try:
+        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"timestamps file {path}: cannot read it ({err})") from None
+    n = len(source)
+
+    def number(text: str) -> float:
+        try:
+            return float(text)
+        except ValueError:
+            raise InputError(f"timestamps file {path}: {text!r} is not a number") from None
+
+    if lines and all(len(w) >= 2 for w in lines):
+        by_name = {pathlib.PurePath(w[1]).name: number(w[0]) for w in lines}
+        missing = [name for name in source.names if pathlib.PurePath(name).name not in by_name]
+        if missing:
+            raise InputError(f"timestamps file {path} has no time for frame {missing[0]} ({len(missing)} missing)")
+        t = np.array([by_name[pathlib.PurePath(name).name] for name in source.names])
+    else:
+        values = np.array([number(w[0]) for w in lines])
+        if len(values) == n:
+            t = values
+        elif stride > 1 and len(values[::stride]) == n:
+            t = values[::stride]
+        else:
+            raise InputError(
+                f"timestamps file {path} has {len(values)} times for {n} frames"
+                + (f" ({n} after --stride {stride})" if stride > 1 else "")
+            )
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"timestamps file {path} holds non-finite times")
+    if np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0])
+        raise InputError(f"timestamps file {path}: times must increase, but frame {k + 1} ({t[k + 1]}) <= frame {k} ({t[k]})")
+    return t
 
 
 def _glob_root(pattern: str) -> pathlib.Path:

@@ -1,4 +1,5 @@
-"""Top-view trajectory plot (PNG): estimate vs reference, loop closures drawn as segments.
+"""PNGs without a browser: the top-view trajectory (estimate vs reference, loop closures drawn as
+segments) and a bird's-eye view of the coloured point cloud with the cameras (``points.png``).
 
 Uses matplotlib's object API with the Agg canvas (no pyplot global state, no display) and
 writes the file atomically (:func:`swiftjax.io.atomic.atomic_path`).
@@ -12,7 +13,7 @@ import numpy as np
 
 from swiftjax.io.atomic import atomic_path
 
-__all__ = ["plot_trajectory", "top_view_axes"]
+__all__ = ["plot_points", "plot_trajectory", "top_view_axes"]
 
 _AXIS = "xyz"
 
@@ -82,6 +83,83 @@ def plot_trajectory(
     ax.set_ylabel(f"{_AXIS[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    if title:
+        ax.set_title(title)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+
+
+def plot_points(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    colors: np.ndarray,
+    cameras: np.ndarray,
+    loops: np.ndarray | None = None,
+    title: str | None = None,
+    max_points: int = 300_000,
+    dpi: int = 120,
+) -> None:
+    """Write a bird's-eye PNG of a coloured point cloud with the camera trajectory.
+
+    The view looks down the vertical axis: the coordinate axis outside the two of largest
+    trajectory extent (:func:`top_view_axes`), "up" being the cameras' mean up direction
+    (``-y`` of OpenCV cameras).  Points are drawn lowest first, so roofs and tree tops cover
+    the ground as seen from above; at most ``max_points`` (an evenly spaced subset).
+
+    Args:
+        path: output ``.png`` (written atomically; the folder must exist).
+        points: ``[M, 3]`` world points; colors: ``[M, 3]`` uint8 RGB.
+        cameras: ``[N, 4, 4]`` camera-to-world poses (OpenCV axes) -- the trajectory.
+        loops: optional ``[L, 2]`` frame pairs drawn as segments.
+        title: figure title.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    rgb = np.asarray(colors).reshape(-1, 3)
+    if rgb.shape != pts.shape or rgb.dtype != np.uint8:
+        raise ValueError(f"colors must be uint8 [{len(pts)}, 3] like the points, got {rgb.dtype} {rgb.shape}")
+    c2w = np.asarray(cameras, np.float64)
+    if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)) or len(c2w) == 0:
+        raise ValueError(f"cameras must be camera-to-world poses [N, 4, 4], got shape {c2w.shape}")
+    est = c2w[:, :3, 3]
+    lp = np.zeros((0, 2), np.int64) if loops is None else np.asarray(loops, np.int64).reshape(-1, 2)
+    if lp.size and (lp.min() < 0 or lp.max() >= len(est)):
+        raise ValueError(f"loops index frames outside [0, {len(est)})")
+    a, b = top_view_axes(est) if len(est) > 1 else (0, 2)
+    vertical = 3 - a - b
+    up = -c2w[:, :3, 1].mean(axis=0)  # OpenCV: the camera's y axis points down
+    sign = 1.0 if up[vertical] >= 0 else -1.0
+    if len(pts) > max_points:
+        pts, rgb = pts[:: -(-len(pts) // max_points)], rgb[:: -(-len(pts) // max_points)]
+    order = np.argsort(sign * pts[:, vertical], kind="stable")
+    # Mirror so that the picture is a view from above (right-handed: a x b = up).
+    flip = sign * np.cross(np.eye(3)[a], np.eye(3)[b])[vertical] < 0
+    x = lambda p: -p[..., a] if flip else p[..., a]  # noqa: E731
+
+    fig = Figure(figsize=(8, 8))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.scatter(x(pts[order]), pts[order, b], c=rgb[order] / 255.0, s=0.6, marker="s", linewidths=0,
+               rasterized=True)
+    ax.plot(x(est), est[:, b], "-", color="tab:blue", lw=1.2, label="cameras")
+    ax.plot(x(est[:1]), est[:1, b], "o", color="tab:green", ms=6, label="start")
+    for k, (i, j) in enumerate(lp):
+        ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color="tab:red", lw=1.0,
+                label="loop closures" if k == 0 else None)
+    ax.set_xlabel(f"{'-' if flip else ''}{_AXIS[a]}")
+    ax.set_ylabel(_AXIS[b])
+    ax.set_aspect("equal", adjustable="box")
+    # Frame the cloud without its farthest 0.5 % (sky, stray depth) and the whole trajectory.
+    uv_cam = np.stack([x(est), est[:, b]], axis=1)
+    uv = np.stack([x(pts), pts[:, b]], axis=1) if len(pts) else uv_cam
+    lo = np.minimum(np.percentile(uv, 0.5, axis=0), uv_cam.min(axis=0))
+    hi = np.maximum(np.percentile(uv, 99.5, axis=0), uv_cam.max(axis=0))
+    pad = 0.03 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.legend(loc="best", fontsize=8)
     if title:
         ax.set_title(title)
