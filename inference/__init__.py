@@ -20,11 +20,12 @@ _NAMES = {
     "load_image": "preprocess",
     "TorchRunner": "runners",
     "OnnxRunner": "runners",
+    "ImagePredictor": "predictor",
     "export_onnx": "onnx_export",
 }
 _SUBMODULES = (
     "aggregator", "camera_head", "check_golden", "checkpoint", "config", "dino", "dpt", "layers",
-    "model", "onnx_export", "pose_encoding", "preprocess", "runners",
+    "model", "onnx_export", "pose_encoding", "predictor", "preprocess", "runners",
 )
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)

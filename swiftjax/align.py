@@ -78,6 +78,7 @@ __all__ = [
     "frame_conf_mean",
     "IRLSInfo",
     "irls_sim3",
+    "irls_chunk_pair",
     "ChunkFrames",
     "AlignInfo",
     "align_chunk_pair",
@@ -902,3 +903,31 @@ def align_chunk_pair_checked(
             stacklevel=2,
         )
     return S, info
+
+
+@jax.jit
+def irls_chunk_pair(
+    prev: ChunkFrames, cur: ChunkFrames, K_ref: Array, depth_threshold: Array, conf_ratio: Array,
+) -> tuple[Array, IRLSInfo, Array]:
+    """VGGT-Long's IRLS Sim(3) (:func:`irls_sim3`) on the same reliable overlap points as
+    :func:`align_chunk_pair` (the comparison baseline).
+
+    ``prev``/``cur``: the overlap frames ``[O, H, W]`` of the earlier and later chunk; both
+    are depth-normalised to ``K_ref`` (eq. 1) and unprojected with ``K_ref``; the reliable
+    pixels are :func:`reliability_mask`'s, with finite points in both.  Returns ``(S, info,
+    count)``: ``S [8]`` maps ``cur``'s chunk into ``prev``'s, ``count`` the number of
+    reliable points.  Recompiles per ``(O, H, W)`` and dtype.
+    """
+
+    def points(f: ChunkFrames) -> tuple[Array, Array]:
+        d = camera.normalize_depth(f.depth, f.intrinsic, K_ref)
+        return d, camera.unproject(d, K_ref, camera.camera_to_world(f.extrinsic))
+
+    dp, xp = points(prev)
+    dc, xc = points(cur)
+    ok = reliability_mask(dp, dc, prev.conf, cur.conf, depth_threshold, conf_ratio)
+    ok = ok & jnp.all(jnp.isfinite(xp), -1) & jnp.all(jnp.isfinite(xc), -1)
+    src = jnp.where(ok[..., None], xc, 0.0).reshape(-1, 3)
+    dst = jnp.where(ok[..., None], xp, 0.0).reshape(-1, 3)
+    S, info = irls_sim3(src, dst, ok.reshape(-1).astype(src.dtype))
+    return S, info, jnp.sum(ok)

@@ -221,8 +221,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
     if len(source) < config.chunk_size:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
+    from inference.predictor import ImagePredictor
+
     runner = _make_runner(args)
-    predictor = pipeline.ImagePredictor(source, runner, mode=args.mode)
+    predictor = ImagePredictor(source, runner, mode=args.mode)
     with _LiveView(args) as live:
         result = pipeline.reconstruct(
             predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress

@@ -21,6 +21,7 @@ cv2 = pytest.importorskip("cv2")
 @pytest.mark.filterwarnings("ignore:.*ill-posed:RuntimeWarning")  # random weights: expected fallback
 def test_reconstruct_from_image_files_with_tiny_vggt(tmp_path, golden_dir):
     from inference import VGGT, VGGTConfig, load_checkpoint
+    from inference.predictor import ImagePredictor
     from inference.runners import TorchRunner
 
     folder = tmp_path / "frames"
@@ -33,7 +34,7 @@ def test_reconstruct_from_image_files_with_tiny_vggt(tmp_path, golden_dir):
     model = VGGT(VGGTConfig.from_json(golden_dir / "tiny_config.json"))
     load_checkpoint(model, golden_dir / "tiny_weights.safetensors")
     source = images.validate(images.list_frames(folder))
-    predictor = pipeline.ImagePredictor(source, TorchRunner(model))
+    predictor = ImagePredictor(source, TorchRunner(model))
     config = pipeline.PipelineConfig(chunk_size=8, overlap=3, min_points=10, loop_closure=False)
     result = pipeline.reconstruct(predictor, tmp_path / "run", config, progress=False)
 

@@ -31,7 +31,7 @@ from swiftjax.posegraph.factors import (
     residuals_and_jacobians,
     right_jacobian_inverse_at,
 )
-from swiftjax.posegraph.initialization import chordal_initialization
+from swiftjax.posegraph.initialization import chain_poses, chordal_initialization
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, linearize, retract
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "STATUS",
     "SparseSim3LM",
     "bucket_size",
+    "chain_poses",
     "choose_linear_solver",
     "chordal_initialization",
     "cost",

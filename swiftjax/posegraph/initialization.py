@@ -24,7 +24,9 @@ works from it).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from swiftjax import sim3
@@ -143,3 +145,24 @@ def chordal_initialization(
     out = sim3.normalize(sim3.from_rst(rot, trans, scale))
     out = jnp.where(problem.fixed[:, None], poses, out)
     return jnp.where(ok, out, poses), ok
+
+
+def chain_poses(relative) -> np.ndarray:
+    """Dead reckoning along a chain: ``S_0 = I, S_{t+1} = S_t S_{t->t+1}``, renormalised.
+
+    ``relative [T-1, 8]`` (edge ``t`` maps node ``t+1`` into node ``t``) -> ``[T, 8]``
+    float64 node-to-world poses (host in/out, a ``lax.scan`` in float64 inside; the
+    pipeline's start for the pose graph and its "no loop closure" trajectory).
+    """
+    relative = np.asarray(relative, np.float64).reshape(-1, 8)
+    with jax.enable_x64(True):
+
+        def step(s, r):
+            nxt = sim3.normalize(sim3.compose(s, r))
+            return nxt, nxt
+
+        first = sim3.identity((), jnp.float64)
+        if relative.shape[0] == 0:
+            return np.asarray(first)[None]
+        _, rest = jax.lax.scan(step, first, jnp.asarray(relative))
+        return np.concatenate([np.asarray(first)[None], np.asarray(rest)], axis=0)

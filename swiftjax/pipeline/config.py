@@ -1,0 +1,85 @@
+"""Method parameters of a run: :class:`PipelineConfig`."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from swiftjax import loops
+
+__all__ = ["PipelineConfig"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """Every method parameter, with the paper's / authors' defaults (DESIGN.md).
+
+    Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
+    (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's
+    iterative baseline on the same reliable points, for comparison), ``depth_threshold``
+    (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
+    ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
+    (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold`` (cosine of the
+    whitened descriptors), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
+    ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Pose
+    graph: ``robust_loops`` (``None``, ``"huber"`` or ``"cauchy"`` on loop edges; the
+    authors use none), ``robust_scale``, ``max_lm_steps``.  Output: ``point_conf_ratio``
+    (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
+    subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
+    ``colmap_max_points``.
+    """
+
+    chunk_size: int = 75
+    overlap: int = 30
+    alignment: str = "umeyama"
+    depth_threshold: float = 0.2
+    conf_ratio: float = 0.5
+    min_points: int = 20_000
+    fallback_depth_threshold: float = 0.25
+    loop_depth_threshold: float = 0.4
+    loop_closure: bool = True
+    loop_threshold: float = loops.DEFAULT_THRESHOLD
+    loop_min_separation: int = 100
+    loop_nms_radius: int = 25
+    loop_top_k: int = 8
+    whitening_dim: int = 512
+    whitening_remove: int = 1
+    power_beta: float = 0.5
+    loop_half_window: int = 10
+    robust_loops: str | None = None
+    robust_scale: float = 1.0
+    max_lm_steps: int = 100
+    point_conf_ratio: float = 0.75
+    point_stride: int = 4
+    voxel_size: float | None = None
+    colmap_max_points: int = 200_000
+
+    def __post_init__(self) -> None:
+        if self.chunk_size < 2:
+            raise ValueError(f"chunk_size must be >= 2, got {self.chunk_size}")
+        if not 1 <= self.overlap < self.chunk_size:
+            raise ValueError(
+                f"overlap must satisfy 1 <= overlap < chunk_size ({self.chunk_size}), got {self.overlap}"
+            )
+        if self.alignment not in ("umeyama", "irls"):
+            raise ValueError(f"alignment must be 'umeyama' or 'irls', got {self.alignment!r}")
+        if self.robust_loops not in (None, "huber", "cauchy"):
+            raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
+        if self.point_stride < 1:
+            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
+        if self.loop_closure and (self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size):
+            raise ValueError(
+                f"loop_half_window must be in [1, chunk_size / 2], got {self.loop_half_window}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
+        """Build from a dict (e.g. a TOML table); unknown keys are an error naming them."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ValueError(f"unknown configuration keys: {', '.join(unknown)}")
+        return cls(**values)

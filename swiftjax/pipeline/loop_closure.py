@@ -1,0 +1,101 @@
+"""The loop-closure stage: find loops -> loop-centric chunks -> align both halves -> loop edges.
+
+Loops are found from the per-frame descriptors (:func:`swiftjax.loops.find_loops`); a loop
+between neighbouring chunks duplicates their temporal edge and is dropped.  Each loop
+``(i, j)`` gets a loop-centric chunk of the ``2 x loop_half_window`` frames around ``i`` and
+``j``; each half is aligned with the temporal chunk it overlaps, reading only those frames
+from the chunk's file (memory-mapped), and the two alignments give the loop edge
+(:func:`swiftjax.loops.loop_edge`).  Finished loop edges are recorded in the manifest.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from swiftjax import align, loops
+from swiftjax.pipeline.rundir import RunContext
+from swiftjax.pipeline.temporal import TemporalResult, align_pair
+
+__all__ = ["LoopEdge", "LoopResult", "run"]
+
+
+class LoopEdge(NamedTuple):
+    """A loop edge of the pose graph: ``Z [8]`` maps chunk ``chunk_b`` into chunk ``chunk_a``;
+    ``information [7, 7]`` or None (identity)."""
+
+    chunk_a: int
+    chunk_b: int
+    Z: np.ndarray
+    information: np.ndarray | None = None
+
+
+class LoopResult(NamedTuple):
+    """``records``: one dict per loop (as in the manifest and ``loops.txt``); ``edges``: the
+    pose graph's loop edges."""
+
+    records: list[dict[str, Any]]
+    edges: list[LoopEdge]
+
+
+def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
+    """Loop edges from ``temporal``'s descriptors and the chunk store (none when loop closure
+    is off or there are fewer than three chunks)."""
+    config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
+    K_ref = temporal.K_ref
+    loop_records: list[dict[str, Any]] = []
+    loop_edges: list[LoopEdge] = []
+    if not (config.loop_closure and schedule.num_chunks > 2):
+        return LoopResult(loop_records, loop_edges)
+    with timer("loop detection"):
+        found = loops.find_loops(
+            temporal.descriptors,
+            schedule,
+            threshold=config.loop_threshold,
+            beta=config.power_beta,
+            remove=config.whitening_remove,
+            dim=config.whitening_dim,
+            min_separation=config.loop_min_separation,
+            nms_radius=config.loop_nms_radius,
+            top_k=config.loop_top_k,
+            half_window=config.loop_half_window,
+        )
+        # A loop between neighbouring chunks duplicates their temporal edge: drop it.
+        found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
+
+    hw2 = 2 * config.loop_half_window
+    with timer("loop chunks"):
+        try:
+            for lp in ctx.bar(found, desc="loop chunks", unit="loop"):
+                key = f"{lp.i}-{lp.j}"
+                record = manifest.data["loop_edges"].get(key)
+                if record is None:
+                    with timer("predict (loop chunks)"):
+                        pred = ctx.predictor.predict(lp.frames)
+                    halves = []
+                    for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
+                        # Only the 2 x half_window frames of chunk c that the loop chunk overlaps.
+                        local = lp.frames[half] - schedule.starts[c]
+                        chunk_frames = store.load("chunk", c, frames=local, fields=())
+                        halves.append(align_pair(
+                            align.ChunkFrames.from_prediction(chunk_frames), align.ChunkFrames.from_prediction(pred, half),
+                            K_ref, config, True, f"loop ({lp.i}, {lp.j}) to chunk {c}",
+                        ))
+                    with jax.enable_x64(True):
+                        Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
+                    record = {
+                        "i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i,
+                        "chunk_j": lp.chunk_j, "Z": Z.tolist(),
+                        "align_i": halves[0][1], "align_j": halves[1][1],
+                    }
+                    manifest.data["loop_edges"][key] = record
+                    manifest.save_soon()
+                loop_records.append(record)
+                # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
+                loop_edges.append(LoopEdge(record["chunk_j"], record["chunk_i"], np.asarray(record["Z"])))
+        finally:
+            manifest.flush()  # also when interrupted: keep the finished loop edges
+    return LoopResult(loop_records, loop_edges)

@@ -1,0 +1,51 @@
+"""What the pipeline needs from VGGT (:class:`Predictor`) and the synthetic oracle's predictor.
+
+The image predictor (files or a video through a torch/ONNX runner) lives with the runners:
+:class:`inference.predictor.ImagePredictor`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+from swiftjax.prediction import ChunkPrediction
+
+__all__ = ["Predictor", "OraclePredictor"]
+
+
+class Predictor(Protocol):
+    """What the pipeline needs from VGGT (a real runner or the synthetic oracle)."""
+
+    num_frames: int
+
+    def predict(self, frames: np.ndarray) -> ChunkPrediction:
+        """One forward pass over the given global frame indices."""
+        ...
+
+    def fingerprint(self) -> list[Any]:
+        """JSON-able identity of the input (names, sizes, modification times, ...)."""
+        ...
+
+    def frame_names(self) -> list[str]:
+        """A name per frame (COLMAP image names)."""
+        ...
+
+
+class OraclePredictor:
+    """:class:`Predictor` over a :class:`swiftjax.synthetic.oracle.VGGTOracle`."""
+
+    def __init__(self, oracle: Any, description: dict[str, Any] | None = None) -> None:
+        self.oracle = oracle
+        self.num_frames = int(oracle.num_frames)
+        self._description = description or {}
+
+    def predict(self, frames: np.ndarray) -> ChunkPrediction:
+        return self.oracle.predict_chunk(np.asarray(frames))
+
+    def fingerprint(self) -> list[Any]:
+        return [["synthetic", self.num_frames, self.oracle.seed, self._description]]
+
+    def frame_names(self) -> list[str]:
+        return [f"{k:06d}.png" for k in range(self.num_frames)]

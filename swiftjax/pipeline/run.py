@@ -1,0 +1,94 @@
+"""``reconstruct``: the stages in order over one run directory."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from swiftjax.pipeline import export, graph, loop_closure, report, rundir, temporal
+from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.predictors import Predictor
+
+__all__ = ["RunResult", "reconstruct"]
+
+
+@dataclasses.dataclass
+class RunResult:
+    """What :func:`reconstruct` produced (also written to ``metrics.json``)."""
+
+    run_dir: pathlib.Path
+    num_frames: int
+    num_chunks: int
+    loops: list[dict[str, Any]]
+    chunk_poses: np.ndarray  # [T, 8] optimised chunk-to-world
+    chunk_poses_no_loops: np.ndarray  # [T, 8] chained alignment only
+    cam_to_world: np.ndarray  # [N, 4, 4] (rotation orthonormal)
+    cam_to_world_no_loops: np.ndarray
+    intrinsics: np.ndarray  # [N, 3, 3]
+    timings: dict[str, float]
+    metrics: dict[str, Any]
+
+
+def reconstruct(
+    predictor: Predictor,
+    run_dir: str | pathlib.Path,
+    config: PipelineConfig = PipelineConfig(),
+    *,
+    ground_truth: np.ndarray | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    timestamps: Sequence[float] | None = None,
+    log: Callable[[str], None] = print,
+) -> RunResult:
+    """Run SwiftVGGT over every frame of ``predictor`` and write the outputs to ``run_dir``.
+
+    Args:
+        predictor: a :class:`~swiftjax.pipeline.predictors.Predictor` (e.g.
+            :class:`~swiftjax.pipeline.predictors.OraclePredictor`, or
+            :class:`inference.predictor.ImagePredictor`).
+        run_dir: output folder (created; resumable, see :mod:`swiftjax.pipeline.rundir`).
+        config: method parameters.
+        ground_truth: optional ``[N, 4, 4]`` camera-to-world reference for ATE/RPE.
+        overwrite: replace a run directory that belongs to another input/configuration.
+        progress: show tqdm progress bars.
+        timestamps: ``[N]`` times for ``poses_tum.txt`` (default: the frame index).
+        log: where one-line messages go.
+
+    Returns:
+        :class:`RunResult`; the files are ``poses_kitti.txt``, ``poses_tum.txt``,
+        ``intrinsics.txt``, ``points.ply``, ``loops.txt``, ``trajectory.png``,
+        ``metrics.json``, ``colmap/{cameras,images,points3D}.txt`` and the chunk store.
+    """
+    run_dir = pathlib.Path(run_dir)
+    n = int(predictor.num_frames)
+    if n < 1:
+        raise ValueError("the input has no frames")
+    if ground_truth is not None:
+        ground_truth = np.asarray(ground_truth, np.float64)
+        if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
+            raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
+    ctx = rundir.open_run(predictor, run_dir, config, overwrite=overwrite, progress=progress, log=log)
+
+    chain = temporal.run(ctx)
+    loops = loop_closure.run(ctx, chain)
+    poses = graph.run(ctx, chain, loops)
+    exported = export.run(ctx, poses, loops, timestamps)
+    metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
+
+    return RunResult(
+        run_dir=run_dir,
+        num_frames=n,
+        num_chunks=ctx.schedule.num_chunks,
+        loops=loops.records,
+        chunk_poses=poses.chunk_poses,
+        chunk_poses_no_loops=poses.chunk_poses_no_loops,
+        cam_to_world=exported["cam_to_world"],
+        cam_to_world_no_loops=exported["cam_to_world_no_loops"],
+        intrinsics=exported["intrinsics"],
+        timings=dict(ctx.timer.seconds),
+        metrics=metrics,
+    )
