@@ -680,6 +680,7 @@ def _align_core(
     conf_ratio: Array,
     min_points: Array,
     fallback_depth_threshold: Array,
+    user_keep: Array | None = None,
 ) -> tuple[Array, AlignInfo]:
     dtype = prev.depth.dtype
     o, h, w = prev.depth.shape
@@ -690,10 +691,9 @@ def _align_core(
     mean_c = frame_conf_mean(cur.conf)
     e = (slice(None), None, None)
 
-    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, mp, mc, lam):
-        return reliability_mask(
-            rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio, mp, mc
-        )
+    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, mp, mc, lam, user):
+        m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio, mp, mc)
+        return m if user is None else m & user
 
     u = jnp.arange(w, dtype=dtype)[None, None, :]
     v = jnp.arange(h, dtype=dtype)[None, :, None]
@@ -703,7 +703,8 @@ def _align_core(
     sub = (slice(None, None, fs), slice(None, None, hs), slice(None, None, ws))
     fsub = slice(None, None, fs)
     m_sub = mask(prev.depth[sub], cur.depth[sub], prev.conf[sub], cur.conf[sub],
-                 r_p[fsub], r_c[fsub], mean_p[fsub], mean_c[fsub], depth_threshold)
+                 r_p[fsub], r_c[fsub], mean_p[fsub], mean_c[fsub], depth_threshold,
+                 None if user_keep is None else user_keep[sub])
     zero = jnp.zeros(3, dtype)
     ps = _points_soa(prev.depth[sub], r_p[fsub], B_p[fsub], c_p[fsub], zero, u[sub], v[sub])
     cs = _points_soa(cur.depth[sub], r_c[fsub], B_c[fsub], c_c[fsub], zero, u[sub], v[sub])
@@ -731,7 +732,7 @@ def _align_core(
     Mx = _affine_maps(*(keep(a) for a in (B_c, c_c, e_c)), cx, T)
 
     def moments(lam):
-        ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam)
+        ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam, user_keep)
         a = jnp.where(ok, r_p[e] * prev.depth - e_p[e], 0)  # delta_p (dst = prev)
         b = jnp.where(ok, r_c[e] * cur.depth - e_c[e], 0)  # delta_c (src = cur)
         return _pixel_moments(ok, a, b, ut, vt)
@@ -757,7 +758,7 @@ def _align_core(
 
 
 _align_core_jit = jax.jit(_align_core)
-_align_core_batched = jax.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None)))
+_align_core_batched = jax.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, 0)))
 
 
 def _as_frames(x, dtype=None) -> ChunkFrames:
@@ -789,6 +790,7 @@ def align_chunk_pair(
     conf_ratio: float = 0.5,
     min_points: int = 20_000,
     fallback_depth_threshold: float = 0.25,
+    mask: ArrayLike | None = None,
 ) -> tuple[Array, AlignInfo]:
     """``S_{t->t+1}`` (maps chunk t+1 coordinates into chunk t) from the overlap frames.
 
@@ -809,6 +811,10 @@ def align_chunk_pair(
         K_ref: ``[3, 3]`` reference intrinsics.
         depth_threshold, conf_ratio, min_points, fallback_depth_threshold: options
             (traced: changing them never recompiles).  Loop chunks use ``depth_threshold=0.4``.
+        mask: optional bool ``[O, H, W]`` keep-mask of the overlap frames (user masks, sky;
+            :mod:`swiftjax.masks`; both chunks see the same frames, so one mask): pixels where
+            it is False are never reliable.  ``None`` keeps every pixel (a masked pair
+            compiles once more).  A mask that keeps nothing ends in the pose fallback.
 
     Returns:
         ``(S [8], AlignInfo)``.  One jitted call; it compiles once per ``(O, H, W)`` and dtype.
@@ -817,7 +823,7 @@ def align_chunk_pair(
         pass runs only when needed.
     """
     args = _core_arguments(prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold)
-    return _align_core_jit(*args)
+    return _align_core_jit(*args, None if mask is None else jnp.asarray(mask, bool))
 
 
 def align_chunk_pairs(
@@ -829,17 +835,19 @@ def align_chunk_pairs(
     conf_ratio: float = 0.5,
     min_points: int = 20_000,
     fallback_depth_threshold: float = 0.25,
+    mask: ArrayLike | None = None,
 ) -> tuple[Array, AlignInfo]:
     """:func:`align_chunk_pair` for ``P`` pairs at once (``jax.vmap``, one jitted call).
 
     ``prev``/``cur`` fields carry a leading ``[P]`` axis; ``K_ref`` is ``[3, 3]`` (shared)
-    or ``[P, 3, 3]``.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap``
+    or ``[P, 3, 3]``; ``mask`` is ``None`` or bool ``[P, O, H, W]``.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap``
     the fallback-threshold pass becomes a select, so it is computed for every pair.
     """
     prev, cur, K, *options = _core_arguments(
         prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold
     )
-    return _align_core_batched(prev, cur, jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3)), *options)
+    keep = None if mask is None else jnp.asarray(mask, bool)
+    return _align_core_batched(prev, cur, jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3)), *options, keep)
 
 
 def _check_frames(name: str, f, shape: tuple[int, int, int] | None) -> tuple[int, int, int]:
@@ -880,7 +888,8 @@ def align_chunk_pair_checked(
             intrinsic (``K_ref`` included) is non-finite or has a focal ``<= 0``.
 
     Warns (``RuntimeWarning``) when the Umeyama solve was invalid and the pose-based
-    estimate (or identity) was returned.  The fallback depth threshold is the authors'
+    estimate (or identity) was returned (saying how much of the overlap a ``mask`` kept:
+    a mask removing the whole overlap ends here).  The fallback depth threshold is the authors'
     normal rule, not a warning: it is reported in ``info.used_fallback_threshold``.
     The returned ``S`` is always finite.
     """
@@ -893,12 +902,16 @@ def align_chunk_pair_checked(
         raise ValueError(f"K_ref must be [3, 3], got shape {K.shape}")
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"K_ref must be finite with positive focal lengths, got {K.tolist()}")
+    mask = options.get("mask")
+    if mask is not None and tuple(np.shape(mask)) != tuple(shape):
+        raise ValueError(f"mask has shape {tuple(np.shape(mask))}, expected the overlap's {tuple(shape)}")
     S, info = align_chunk_pair(prev, cur, K_ref, **options)
     if bool(info.pose_fallback):
+        masked = "" if mask is None else f"; the mask keeps {100 * float(np.mean(mask)):.2f}% of its pixels"
         warnings.warn(
             f"{name}: Umeyama alignment is ill-posed ({int(info.num_points)} reliable points, "
-            f"{100 * float(info.fraction_used):.2f}% of the overlap); using the estimate from "
-            "the overlap camera poses instead",
+            f"{100 * float(info.fraction_used):.2f}% of the overlap{masked}); using the estimate "
+            "from the overlap camera poses instead",
             RuntimeWarning,
             stacklevel=2,
         )

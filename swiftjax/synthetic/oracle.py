@@ -34,6 +34,13 @@ factor ``exp(U(-gross_log, gross_log))``; sky gets ``sky_depth_m`` (finite, as V
 **Confidence** (``>= 1``, like VGGT's ``1 + exp(.)``): ``1 + conf_max exp(-z / conf_falloff_m)
 exp(0.25 n')``, times ``edge_conf`` at discontinuities, and ``1 + 0.05 u`` on sky.
 
+**Moving cars** (a world built with ``num_movers > 0``): rendered per frame at their pose
+at that frame (:func:`swiftjax.synthetic.world.mover_boxes`), so a frame's depth on a car is
+consistent within the frame; on top of the usual noise, each car's depth in a chunk is
+multiplied by ``exp(mover_depth n)`` with ``n`` drawn per (chunk, car): like VGGT, which
+fits a moving object into a static multi-view reconstruction differently in each chunk, two
+chunks disagree on the car while agreeing on the static scene.
+
 **Determinism.**  Every random quantity of a FRAME (its focal error, its share of the pixel
 noise, its gross-error pixels) is keyed by ``(seed, frame)``; every quantity of a CHUNK
 (gauge jitter, drift, bias, the other share of the noise) by ``(seed, frames)``.  A fraction
@@ -68,8 +75,10 @@ import numpy as np
 from swiftjax import sim3
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.synthetic import places
-from swiftjax.synthetic.render import chunk_candidates, frame_planes, render_frames
-from swiftjax.synthetic.world import SKY, World
+from swiftjax.synthetic.render import (
+    chunk_candidates, composite_movers, frame_movers, frame_planes, render_frames, render_movers,
+)
+from swiftjax.synthetic.world import CAR, SKY, World
 
 __all__ = ["OracleNoise", "VGGTOracle", "kitti_intrinsics"]
 
@@ -107,6 +116,7 @@ class OracleNoise:
     conf_max: float = 20.0
     conf_falloff_m: float = 25.0
     chunk_share: float = 0.5
+    mover_depth: float = 0.05  # log-std of a car's depth factor, drawn per (chunk, car)
 
     @classmethod
     def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> "OracleNoise":
@@ -162,8 +172,9 @@ def _upsample_patches(x: jax.Array, H: int, W: int, p: int = 14) -> jax.Array:
     return y[:, :H, :W]
 
 
-_PALETTE = np.array(  # per semantic id: sky (unused), ground, building, pole, tree
-    [[0.0, 0.0, 0.0], [0.42, 0.42, 0.44], [0.72, 0.62, 0.52], [0.35, 0.35, 0.38], [0.20, 0.45, 0.18]],
+_PALETTE = np.array(  # per semantic id: sky (unused), ground, building, pole, tree, car
+    [[0.0, 0.0, 0.0], [0.42, 0.42, 0.44], [0.72, 0.62, 0.52], [0.35, 0.35, 0.38], [0.20, 0.45, 0.18],
+     [0.70, 0.12, 0.10]],
     np.float32,
 )
 _FACADES = np.array(
@@ -199,7 +210,7 @@ def _pixels(z: jax.Array, sem: jax.Array, inst: jax.Array, p: _PixelParams):
     and materialised the expensive intermediates (``exp``, ``log``): 1.5-2x slower.
     """
     (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff,
-     share) = (p.scalars[i] for i in range(10))
+     share, mover_depth) = (p.scalars[i] for i in range(11))
     F, H, W = z.shape
     fr = _mix(p.frames.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))[:, None, None]
     kf = _mix(p.frame_key ^ fr)  # [F, 1, 1] per-frame bases
@@ -244,6 +255,9 @@ def _pixels(z: jax.Array, sem: jax.Array, inst: jax.Array, p: _PixelParams):
     d = zt * p.depth_factor[:, None, None] * (1.0 + p.bias * zt * p.sigma) * jnp.exp(rel * n_depth)
     gross = _u16(hg, False) < gross_frac
     d = jnp.where(gross, d * jnp.exp(gross_log * (2.0 * _u16(hg, True) - 1.0)), d)
+    # moving cars: one depth factor per (chunk, car), so two chunks disagree on them
+    n_car = _approx_normal(_mix(p.chunk_key ^ (inst.astype(jnp.uint32) * jnp.uint32(0x9E3779B9) + jnp.uint32(0x3C6EF372))))
+    d = jnp.where(sem == CAR, d * jnp.exp(mover_depth * n_car), d)
     # ---- confidence
     conf = 1.0 + conf_max * jnp.exp(-zf / falloff) * jnp.exp(0.25 * n_conf)
     conf = jnp.where(edge, 1.0 + (conf - 1.0) * edge_conf, conf)
@@ -385,6 +399,15 @@ class VGGTOracle:
             np.int32(self.world.num_boxes), height=self.image_hw[0], width=self.image_hw[1],
             k_box=self.k_box, k_cyl=self.k_cyl, far=self.far,
         )
+        if self.world.movers is not None and self.world.movers.num:
+            cars = frame_movers(self.world, idx, origin, far=self.far)
+            car_depth, car_id = render_movers(
+                self.K.astype(np.float32), P[:, :3, :3].astype(np.float32),
+                (P[:, :3, 3] - origin).astype(np.float32), *cars,
+                height=self.image_hw[0], width=self.image_hw[1],
+            )
+            offset = np.int32(self.world.num_boxes + self.world.num_cylinders)
+            out = composite_movers(out, car_depth, car_id, offset, far=self.far)
         sem, row_sum, row_count = _block_stats(out.depth, out.semantic)
         blk = _Block(out.depth, sem, out.instance, idx,
                      np.asarray(row_sum).sum(axis=1, dtype=np.float64), np.asarray(row_count).sum(axis=1, dtype=np.int64))
@@ -397,7 +420,8 @@ class VGGTOracle:
         """True ``(depth [S, H, W] metres (inf: sky), semantic [S, H, W] int8, instance [S, H, W] int32)``.
 
         ``instance``: box index for buildings, ``num_boxes +`` cylinder index for poles and
-        trees, ``-1`` for ground and sky.
+        trees, ``num_boxes + num_cylinders +`` car index for moving cars (semantic
+        :data:`~swiftjax.synthetic.world.CAR`), ``-1`` for ground and sky.
         """
         f = self._check_frames(frames)
         blocks = self._blocks(f)
@@ -534,7 +558,7 @@ class VGGTOracle:
         ft, dft = padi(f), padi(depth_factor)
         scalars = np.asarray(
             [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
-             nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share],
+             nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share, nz.mover_depth],
             np.float32,
         )
         ckey = np.uint32(self._chunk_key(f))

@@ -46,9 +46,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from swiftjax.camera import pixel_rays
-from swiftjax.synthetic.world import BUILDING, GROUND, SKY, World, ground_planes
+from swiftjax.synthetic.world import BUILDING, CAR, GROUND, SKY, World, ground_planes, mover_boxes
 
-__all__ = ["Candidates", "Render", "chunk_candidates", "render_frames", "render_numpy"]
+__all__ = ["Candidates", "Render", "chunk_candidates", "render_frames", "render_numpy", "frame_movers", "render_movers",
+           "composite_movers"]
 
 
 class Candidates(NamedTuple):
@@ -430,6 +431,77 @@ def render_frames(
 
     code = image(code)
     return Render(image(depth), code & 7, (code >> 3) - 1, overflow)
+
+
+def frame_movers(world: World, frames: np.ndarray, origin: np.ndarray, k: int = 6, far: float = 80.0):
+    """The ``k`` nearest visible cars of each frame, relative to ``origin`` (host, float32):
+    ``(centre [F, k, 3], axes [F, k, 3, 3], half [F, k, 3], car id [F, k] int32, -1 = none)``."""
+    f = np.asarray(frames, np.int64).reshape(-1)
+    centre, axes, half, vis = mover_boxes(world, f)
+    F, C = vis.shape
+    out_c = np.full((F, k, 3), 1e6, np.float64)
+    out_a = np.tile(np.eye(3), (F, k, 1, 1))
+    out_h = np.zeros((F, k, 3))
+    out_id = np.full((F, k), -1, np.int32)
+    if C:
+        cam = world.movers.camera[np.clip(f, 0, len(world.movers.camera) - 1)]
+        dist = np.where(vis, np.linalg.norm(centre - cam[:, None, :], axis=-1), np.inf)
+        order = np.argsort(dist, axis=1, kind="stable")[:, :k]
+        for j in range(min(k, C)):
+            idx = order[:, j]
+            ok = np.isfinite(dist[np.arange(F), idx]) & (dist[np.arange(F), idx] < far + 5.0)
+            rows = np.nonzero(ok)[0]
+            out_c[rows, j] = centre[rows, idx[rows]] - origin
+            out_a[rows, j] = axes[rows, idx[rows]]
+            out_h[rows, j] = half[rows, idx[rows]]
+            out_id[rows, j] = idx[rows]
+    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    return f32(out_c), f32(out_a), f32(out_h), out_id
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width"))
+def render_movers(
+    K: jax.Array, cam_R: jax.Array, cam_c: jax.Array, centre: jax.Array, axes: jax.Array,
+    half: jax.Array, car_id: jax.Array, *, height: int, width: int,
+) -> tuple[jax.Array, jax.Array]:
+    """Ray-cast ``k`` oriented boxes per frame (the cars of :func:`frame_movers`).
+
+    ``K [3, 3]``, ``cam_R [F, 3, 3]``, ``cam_c [F, 3]`` (local frame), ``centre [F, k, 3]``,
+    ``axes [F, k, 3, 3]`` (columns: box axes), ``half [F, k, 3]``, ``car_id [F, k]`` (-1:
+    none).  Slab test per pixel and car (the camera is outside every car).  Returns
+    ``(depth [F, H, W]`` (``+inf``: no car), ``car id [F, H, W]`` int32, -1 where none).
+    Recompiles per ``F``, ``k`` and image size.
+    """
+    rays = pixel_rays(K.astype(jnp.float32), height, width)  # [H, W, 3], z = 1
+    d_w = jnp.einsum("fij,hwj->fhwi", cam_R, rays)  # [F, H, W, 3]
+    d_b = jnp.einsum("fkia,fhwi->fkhwa", axes, d_w)  # [F, k, H, W, 3] in the box frames
+    o_b = jnp.einsum("fkia,fki->fka", axes, cam_c[:, None, :] - centre)[:, :, None, None, :]
+    hb = half[:, :, None, None, :]
+    inv = 1.0 / d_b
+    t1, t2 = (-hb - o_b) * inv, (hb - o_b) * inv
+    t0 = jnp.max(jnp.minimum(t1, t2), -1)
+    tt = jnp.min(jnp.maximum(t1, t2), -1)
+    hit = (tt >= t0) & (t0 > 0) & (car_id >= 0)[:, :, None, None]
+    t = jnp.where(hit, t0, jnp.inf)
+    j = jnp.argmin(t, axis=1)
+    depth = jnp.min(t, axis=1)
+    ids = jnp.take_along_axis(jnp.broadcast_to(car_id[:, :, None, None], t.shape), j[:, None], axis=1)[:, 0]
+    return depth, jnp.where(jnp.isfinite(depth), ids, -1)
+
+
+@functools.partial(jax.jit, static_argnames=("far",))
+def composite_movers(render: Render, car_depth: jax.Array, car_id: jax.Array, id_offset: jax.Array,
+                     *, far: float = 80.0) -> Render:
+    """The static :class:`Render` with the cars in front: where a car is nearer (and within
+    ``far``), depth = the car's, semantic = :data:`~swiftjax.synthetic.world.CAR`, instance =
+    ``id_offset + car id`` (``id_offset`` = boxes + cylinders of the world)."""
+    front = (car_depth < render.depth) & (car_depth <= far)
+    return Render(
+        jnp.where(front, car_depth, render.depth),
+        jnp.where(front, CAR, render.semantic),
+        jnp.where(front, id_offset + car_id, render.instance),
+        render.tile_overflow,
+    )
 
 
 def render_numpy(world: World, K: np.ndarray, cam_to_world: np.ndarray, height: int, width: int,

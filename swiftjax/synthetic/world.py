@@ -25,7 +25,15 @@ Geometry (world frame = the trajectory's frame, metres; OpenCV cameras, y down):
   ``pole_clearance_m`` (cylinders) to ANY camera position of the trajectory is dropped, so
   loops, crossings and revisits never drive through a wall.
 
-Semantic ids: :data:`SKY` 0, :data:`GROUND` 1, :data:`BUILDING` 2, :data:`POLE` 3, :data:`TREE` 4.
+Moving objects (``num_movers > 0``, default none): cars (boxes ``car_size``) driving along
+the route in a lane ``car_lane`` to the left or right of it, each at a constant arc-length
+speed (a random fraction ``car_speed`` of the camera's mean speed, either direction; a
+negative speed is oncoming traffic), from a random start.  Their pose is a function of the
+frame index (time), :func:`mover_boxes`; a car off either end of the route, or within
+``car_clearance_m`` of the camera at that frame, is not drawn.
+
+Semantic ids: :data:`SKY` 0, :data:`GROUND` 1, :data:`BUILDING` 2, :data:`POLE` 3, :data:`TREE` 4,
+:data:`CAR` 5.
 """
 
 from __future__ import annotations
@@ -42,15 +50,18 @@ __all__ = [
     "BUILDING",
     "POLE",
     "TREE",
+    "CAR",
     "SEMANTIC_NAMES",
+    "Movers",
+    "mover_boxes",
     "WorldConfig",
     "World",
     "build_world",
     "ground_planes",
 ]
 
-SKY, GROUND, BUILDING, POLE, TREE = 0, 1, 2, 3, 4
-SEMANTIC_NAMES = ("sky", "ground", "building", "pole", "tree")
+SKY, GROUND, BUILDING, POLE, TREE, CAR = 0, 1, 2, 3, 4, 5
+SEMANTIC_NAMES = ("sky", "ground", "building", "pole", "tree", "car")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +91,40 @@ class WorldConfig:
     tree_offset: tuple[float, float] = (5.5, 7.0)
     tree_radius: tuple[float, float] = (0.4, 0.9)
     tree_height: tuple[float, float] = (4.0, 9.0)
+    num_movers: int = 0
+    car_size: tuple[float, float, float] = (4.2, 1.8, 1.5)  # length, width, height
+    car_lane: tuple[float, float] = (2.6, 3.2)  # lateral offset from the route
+    car_speed: tuple[float, float] = (0.4, 1.3)  # |speed| / the camera's mean speed
+    car_clearance_m: float = 1.5
+
+
+class Movers(NamedTuple):
+    """Cars driving along the route (host NumPy float64; see the module docstring).
+
+    Attributes:
+        start: ``[C]`` arc length at frame 0 (metres).
+        speed: ``[C]`` metres of arc length per frame (negative: against the route).
+        lane: ``[C]`` signed lateral offset (positive: left of the route).
+        half: ``[C, 3]`` half extents (length, width, height).
+        route_s, route_ground, route_fwd: the route samples (``[M]``, ``[M, 3]``, ``[M, 3]``).
+        camera: ``[N, 3]`` camera positions (a car never comes within ``clearance`` of the
+            camera at the same frame).
+        clearance: metres.
+    """
+
+    start: np.ndarray
+    speed: np.ndarray
+    lane: np.ndarray
+    half: np.ndarray
+    route_s: np.ndarray
+    route_ground: np.ndarray
+    route_fwd: np.ndarray
+    camera: np.ndarray
+    clearance: float
+
+    @property
+    def num(self) -> int:
+        return int(self.start.shape[0])
 
 
 class World(NamedTuple):
@@ -97,6 +142,7 @@ class World(NamedTuple):
         cyl_semantic: ``[C]`` int32 (:data:`POLE` or :data:`TREE`).
         ground_points: ``[M, 3]`` a point of the road plane at each route sample.
         ground_normals: ``[M, 3]`` the plane's unit normal (pointing up).
+        movers: :class:`Movers` (cars) or ``None`` (a static world).
     """
 
     up: np.ndarray
@@ -110,6 +156,7 @@ class World(NamedTuple):
     cyl_semantic: np.ndarray
     ground_points: np.ndarray
     ground_normals: np.ndarray
+    movers: Movers | None = None
 
     @property
     def num_boxes(self) -> int:
@@ -254,6 +301,21 @@ def build_world(cam_to_world: np.ndarray, config: WorldConfig = WorldConfig()) -
 
     nb = int(keep_box.sum())
     cyl_sem = cyl_semantic[keep_cyl]
+    movers = None
+    if cfg.num_movers > 0:
+        # a separate stream: adding cars leaves the static world unchanged
+        mrng = np.random.default_rng([cfg.seed, 5])
+        C = int(cfg.num_movers)
+        v_cam = total / max(len(positions) - 1, 1)
+        speed = mrng.uniform(*cfg.car_speed, size=C) * v_cam * np.where(mrng.random(C) < 0.5, -1.0, 1.0)
+        movers = Movers(
+            start=mrng.uniform(0.0, total, size=C),
+            speed=speed,
+            lane=mrng.uniform(*cfg.car_lane, size=C) * np.where(mrng.random(C) < 0.5, -1.0, 1.0),
+            half=np.tile(0.5 * np.asarray(cfg.car_size, np.float64), (C, 1)),
+            route_s=route.s, route_ground=route.ground, route_fwd=route.fwd, camera=positions.copy(),
+            clearance=float(cfg.car_clearance_m),
+        )
     return World(
         up=up,
         box_center=box_center[keep_box],
@@ -266,7 +328,40 @@ def build_world(cam_to_world: np.ndarray, config: WorldConfig = WorldConfig()) -
         cyl_semantic=cyl_sem,
         ground_points=route.ground,
         ground_normals=route.normal,
+        movers=movers,
     )
+
+
+def mover_boxes(world: World, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cars at each of ``frames [F]``: ``(centre [F, C, 3], axes [F, C, 3, 3], half [F, C, 3],
+    visible [F, C])`` (world frame; axes' columns: travel direction, left, up).
+
+    A car stands on the route's road point at its arc length (sunk 5 cm), ``lane`` to the
+    side; it is invisible off the route or within ``clearance`` (plus its half diagonal) of
+    that frame's camera.  ``C = 0`` for a static world.
+    """
+    f = np.asarray(frames, np.int64).reshape(-1)
+    m = world.movers
+    if m is None:
+        z = np.zeros((len(f), 0))
+        return z[..., None].repeat(3, -1), np.zeros((len(f), 0, 3, 3)), z[..., None].repeat(3, -1), z.astype(bool)
+    s = m.start[None, :] + m.speed[None, :] * f[:, None].astype(np.float64)  # [F, C]
+    total = m.route_s[-1]
+    on = (s >= 0.0) & (s <= total)
+    sc = np.clip(s, 0.0, total)
+    g = np.stack([np.interp(sc, m.route_s, m.route_ground[:, k]) for k in range(3)], -1)
+    fwd = np.stack([np.interp(sc, m.route_s, m.route_fwd[:, k]) for k in range(3)], -1)
+    fwd /= np.maximum(np.linalg.norm(fwd, axis=-1, keepdims=True), 1e-12)
+    up = np.broadcast_to(world.up, fwd.shape)
+    left = np.cross(up, fwd)
+    left /= np.maximum(np.linalg.norm(left, axis=-1, keepdims=True), 1e-12)
+    fwd = np.cross(left, up)
+    half = np.broadcast_to(m.half, (*s.shape, 3)).copy()
+    centre = g + left * m.lane[None, :, None] + up * (half[..., 2:3] - 0.05)
+    axes = np.stack([fwd, left, up], axis=-1)
+    cam = m.camera[np.clip(f, 0, len(m.camera) - 1)]
+    near = np.linalg.norm(centre - cam[:, None, :], axis=-1) < m.clearance + np.linalg.norm(half, axis=-1)
+    return centre, axes, half, on & ~near
 
 
 def ground_planes(world: World, positions: np.ndarray) -> np.ndarray:

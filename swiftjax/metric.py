@@ -1,0 +1,293 @@
+"""Metric scale from a known camera height: robust road-plane fits (pure JAX) and their combination.
+
+A driving camera sits ``H`` metres above the road.  In a chunk's (VGGT) units the road under
+frame ``f`` is a plane ``n . x = d`` in that camera's frame, ``x = D_reg(u, v) K_ref^-1 (u, v,
+1)`` with the depth normalised to ``K_ref`` (eq. 1), and the camera's height is ``h_f = -d``
+(``n`` points up, towards the camera: ``n . (0, -1, 0) > 0`` in OpenCV axes, so road points
+have ``n . x = -h``).  The chunk's metric factor is ``m_t = H / h_t`` (metres per chunk unit)
+with ``h_t`` the median of its frames' heights, and since the chunk-to-world ``S_t`` scales
+chunk lengths by ``s_t``, every chunk votes ``m_t / s_t`` metres per world unit; the run's
+factor is their median (:func:`combine_scales`).  Applying it (:func:`apply_scale`, ``x ->
+m x`` on the world) turns every output into metres.
+
+Why per frame in the camera's own frame: the road bends and climbs over a 75-frame chunk,
+but under one camera it is a plane, and its height needs no pose at all (a pose error
+cannot leak into the scale).  Why a relative inlier band: a depth error ``eps`` moves a road
+point off the plane by ``eps h`` along the normal, so ``|n . x - d| < tau |d|`` means "depth
+within ``tau`` of the plane's", whatever the chunk's units.
+
+Fit (:func:`fit_plane`): ``num_hypotheses`` RANSAC planes through 3 points drawn with
+probability proportional to the weights (fixed shapes: ``jax.random.categorical``), kept
+only if tilted less than ``max_tilt_deg`` from ``up`` and below the camera; score = weighted
+inlier count; the best is refined by ``iterations`` IRLS steps (Tukey biweight with scale
+``c = 4.685 x 1.4826 MAD`` of the residuals within ``2 tau |d|``, clipped to ``[1e-3 |d|,
+2 tau |d|]``, so the band adapts to the depth noise and the feet of walls and poles drop
+out; weighted PCA: normal = eigenvector of the smallest eigenvalue of the weighted
+covariance, ``d = n . mu``).  No boolean indexing: points that must not count have weight 0.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from swiftjax import camera
+
+__all__ = [
+    "PlaneFit",
+    "fit_plane",
+    "ground_points",
+    "GroundHeight",
+    "chunk_ground_height",
+    "combine_scales",
+    "apply_scale",
+    "parse_metric",
+]
+
+_UP = (0.0, -1.0, 0.0)  # OpenCV camera: y points down
+
+
+class PlaneFit(NamedTuple):
+    """A plane ``n . x = d`` (batch shape ``[...]``).
+
+    Attributes:
+        normal: ``[..., 3]`` unit normal with ``n . up > 0``.
+        offset: ``[...]`` ``d``; the camera (origin) is ``-d`` above the plane.
+        inlier_fraction: ``[...]`` weighted fraction of the points within ``tau |d|`` of the plane.
+        valid: ``[...]`` at least 3 weighted points, an admissible RANSAC hypothesis, and a
+            finite refined plane below the origin.
+    """
+
+    normal: Array
+    offset: Array
+    inlier_fraction: Array
+    valid: Array
+
+
+def _weighted_plane(x: Array, w: Array, up: Array) -> tuple[Array, Array]:
+    """Weighted least-squares plane of ``x [N, 3]``: ``(n [3], d)``; ``n`` = the smallest
+    eigenvector of ``sum w (x - mu)(x - mu)^T``, oriented along ``up``."""
+    W = jnp.maximum(jnp.sum(w), jnp.finfo(x.dtype).tiny)
+    mu = jnp.sum(w[:, None] * x, 0) / W
+    xc = x - mu
+    C = jnp.einsum("n,ni,nj->ij", w, xc, xc) / W
+    _, vecs = jnp.linalg.eigh(C)
+    n = vecs[:, 0]
+    n = jnp.where(jnp.dot(n, up) < 0, -n, n)
+    return n, jnp.dot(n, mu)
+
+
+def _fit_one(x: Array, w: Array, key: Array, up: Array, num_hypotheses: int, iterations: int,
+             tau: Array, cos_tilt: Array) -> PlaneFit:
+    dtype = x.dtype
+    ok = (w > 0) & jnp.all(jnp.isfinite(x), -1) & jnp.isfinite(w)
+    w = jnp.where(ok, w, 0).astype(dtype)
+    x = jnp.where(ok[:, None], x, 0)
+    enough = jnp.sum(ok) >= 3
+    logits = jnp.where(ok, jnp.log(jnp.where(ok, w, 1)), -jnp.inf)
+    logits = jnp.where(enough, logits, 0)  # keep categorical finite when nothing is usable
+    idx = jax.random.categorical(key, logits, shape=(num_hypotheses, 3))
+    p = x[idx]  # [K, 3, 3]
+    n = jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = jnp.linalg.norm(n, axis=-1)
+    n = n / jnp.where(norm > 0, norm, 1)[:, None]
+    n = jnp.where((n @ up < 0)[:, None], -n, n)
+    d = jnp.sum(n * p[:, 0], -1)
+    admissible = (norm > 0) & (n @ up >= cos_tilt) & (d < 0)
+    resid = jnp.abs(x @ n.T - d[None, :])  # [N, K]
+    score = jnp.sum(w[:, None] * (resid < tau * jnp.abs(d)[None, :]), 0)
+    score = jnp.where(admissible, score, -1)
+    best = jnp.argmax(score)
+    n0, d0 = n[best], d[best]
+
+    def irls(_, nd):
+        n_, d_ = nd
+        band = 2 * tau * jnp.abs(d_)
+        res = jnp.abs(x @ n_ - d_)
+        # Tukey's scale from the points in the band: c = 4.685 x 1.4826 MAD (clipped to the band)
+        in_band = (w > 0) & (res < band)
+        srt = jnp.sort(jnp.where(in_band, res, jnp.inf))
+        cnt = jnp.sum(in_band)
+        mad = srt[jnp.maximum(cnt - 1, 0) // 2]
+        c = jnp.clip(4.685 * 1.4826 * mad, 1e-3 * jnp.abs(d_), band)
+        r = (x @ n_ - d_) / jnp.where(c > 0, c, 1)
+        rw = jnp.where(jnp.abs(r) < 1, (1 - r * r) ** 2, 0) * w
+        n2, d2 = _weighted_plane(x, rw, up)
+        good = (jnp.sum(rw > 0) >= 3) & jnp.all(jnp.isfinite(n2)) & jnp.isfinite(d2)
+        return jnp.where(good, n2, n_), jnp.where(good, d2, d_)
+
+    n1, d1 = jax.lax.fori_loop(0, iterations, irls, (n0, d0))
+    inl = jnp.sum(w * (jnp.abs(x @ n1 - d1) < tau * jnp.abs(d1))) / jnp.maximum(jnp.sum(w), jnp.finfo(dtype).tiny)
+    valid = enough & (score[best] >= 3) & jnp.all(jnp.isfinite(n1)) & jnp.isfinite(d1) & (d1 < 0)
+    return PlaneFit(n1, d1, inl, valid)
+
+
+@functools.partial(jax.jit, static_argnames=("num_hypotheses", "iterations"))
+def fit_plane(
+    points: ArrayLike,
+    weights: ArrayLike,
+    key: ArrayLike,
+    up: ArrayLike = _UP,
+    *,
+    num_hypotheses: int = 128,
+    iterations: int = 8,
+    inlier_scale: float | ArrayLike = 0.05,
+    max_tilt_deg: float | ArrayLike = 30.0,
+) -> PlaneFit:
+    """Robust plane ``n . x = d`` below the origin: RANSAC + IRLS (module docstring).
+
+    Args:
+        points: ``[..., N, 3]``.
+        weights: ``[..., N]`` non-negative (0: not a candidate; bool masks are cast).
+        key: a ``jax.random.PRNGKey`` (``[2]`` uint32); leading batch axes get independent
+            keys split from it.
+        up: ``[3]`` direction the normal must be within ``max_tilt_deg`` of (default: the
+            OpenCV camera's up, ``(0, -1, 0)``).
+        num_hypotheses, iterations: RANSAC samples and IRLS steps (static: recompile).
+        inlier_scale: ``tau``, the inlier band relative to the plane's distance ``|d|``.
+        max_tilt_deg: largest admissible angle between ``n`` and ``up``.
+
+    Returns:
+        :class:`PlaneFit` with batch shape ``[...]``.  Recompiles per shape, dtype and the
+        static arguments; ``inlier_scale`` and ``max_tilt_deg`` are traced.
+    """
+    x = jnp.asarray(points)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.float32)
+    w = jnp.asarray(weights).astype(x.dtype)
+    if x.shape[-1] != 3 or w.shape != x.shape[:-1]:
+        raise ValueError(f"fit_plane: points {x.shape} must be [..., N, 3] and weights {w.shape} [..., N]")
+    up = jnp.asarray(up, x.dtype)
+    up = up / jnp.linalg.norm(up)
+    tau = jnp.asarray(inlier_scale, x.dtype)
+    cos_tilt = jnp.cos(jnp.deg2rad(jnp.asarray(max_tilt_deg, x.dtype)))
+    batch = x.shape[:-2]
+    n_items = int(np.prod(batch)) if batch else 1
+    key = jnp.asarray(key)
+    keys = jax.random.split(key, n_items) if batch else key[None]
+    xf = x.reshape(n_items, *x.shape[-2:])
+    wf = w.reshape(n_items, w.shape[-1])
+    fit = jax.vmap(lambda a, b, k: _fit_one(a, b, k, up, num_hypotheses, iterations, tau, cos_tilt))(xf, wf, keys)
+    return jax.tree_util.tree_map(lambda a: a.reshape(*batch, *a.shape[1:]), fit)
+
+
+def ground_points(
+    depth: ArrayLike, conf: ArrayLike, intrinsic: ArrayLike, K_ref: ArrayLike, keep: ArrayLike | None = None,
+    conf_ratio: float | ArrayLike = 0.5, stride: int = 4,
+) -> tuple[Array, Array]:
+    """Candidate road points of each frame in its camera frame, on a ``stride`` pixel grid.
+
+    ``depth, conf [S, H, W]``, ``intrinsic [S, 3, 3]`` (the frames' predicted K), ``K_ref
+    [3, 3]``, ``keep [S, H, W]`` bool (user / sky masks) or ``None``.  Points are
+    ``D_reg K_ref^-1 (u, v, 1)`` (eq. 1); the weight is 1 for pixels below the horizon
+    (``v > cy_ref``: rays pointing down), finite, with ``conf > conf_ratio x`` the frame's
+    mean confidence (eq. 2's confidence half) and kept by the mask; else 0.
+
+    Returns ``(points [S, h, w, 3], weights [S, h, w])``, ``h = ceil(H / stride)``.
+    """
+    depth = jnp.asarray(depth)
+    conf = jnp.asarray(conf, depth.dtype)
+    K_ref = jnp.asarray(K_ref, depth.dtype)
+    sub = (slice(None), slice(None, None, stride), slice(None, None, stride))
+    scale_px = jnp.diag(jnp.array([1.0 / stride, 1.0 / stride, 1.0], depth.dtype))
+    Ks = scale_px @ K_ref
+    d = camera.normalize_depth(depth[sub], jnp.asarray(intrinsic, depth.dtype), K_ref)
+    pts = camera.unproject(d, Ks)
+    c = conf[sub]
+    fin = jnp.isfinite(c)
+    mean = jnp.sum(jnp.where(fin, c, 0), (-2, -1)) / jnp.maximum(jnp.sum(fin, (-2, -1)), 1)
+    w = fin & (c > jnp.asarray(conf_ratio, c.dtype) * mean[:, None, None]) & jnp.all(jnp.isfinite(pts), -1)
+    w = w & (pts[..., 1] > 0)
+    if keep is not None:
+        w = w & jnp.asarray(keep, bool)[sub]
+    return pts, w.astype(depth.dtype)
+
+
+class GroundHeight(NamedTuple):
+    """Camera height above the road in a chunk's units.
+
+    Attributes:
+        height: ``[]`` median of the valid frames' heights (NaN if none).
+        frame_heights: ``[S]`` ``-d`` of each frame's plane (NaN where invalid).
+        num_valid: ``[]`` int32 frames with a valid plane.
+        inlier_fraction: ``[S]``.
+    """
+
+    height: Array
+    frame_heights: Array
+    num_valid: Array
+    inlier_fraction: Array
+
+
+@functools.partial(jax.jit, static_argnames=("stride", "num_hypotheses", "iterations"))
+def chunk_ground_height(
+    depth: ArrayLike, conf: ArrayLike, intrinsic: ArrayLike, K_ref: ArrayLike, keep: ArrayLike | None = None,
+    key: ArrayLike | None = None, *, conf_ratio: float | ArrayLike = 0.5, stride: int = 4,
+    num_hypotheses: int = 128, iterations: int = 8, inlier_scale: float | ArrayLike = 0.05,
+    max_tilt_deg: float | ArrayLike = 30.0,
+) -> GroundHeight:
+    """The camera's height above the road in a chunk: per-frame :func:`fit_plane` on
+    :func:`ground_points`, then the median over frames.  Shapes as :func:`ground_points`;
+    one jitted call, recompiles per ``(S, H, W)``, dtype, ``keep`` given or not, and the
+    static arguments.  ``key`` defaults to ``PRNGKey(0)`` (deterministic)."""
+    pts, w = ground_points(depth, conf, intrinsic, K_ref, keep, conf_ratio, stride)
+    S = pts.shape[0]
+    key = jax.random.PRNGKey(0) if key is None else key
+    fit = fit_plane(pts.reshape(S, -1, 3), w.reshape(S, -1), key, num_hypotheses=num_hypotheses,
+                    iterations=iterations, inlier_scale=inlier_scale, max_tilt_deg=max_tilt_deg)
+    h = jnp.where(fit.valid, -fit.offset, jnp.nan)
+    return GroundHeight(jnp.nanmedian(h), h, jnp.sum(fit.valid).astype(jnp.int32), fit.inlier_fraction)
+
+
+def combine_scales(
+    chunk_heights: ArrayLike, chunk_scales: ArrayLike, camera_height: float
+) -> tuple[float, dict]:
+    """Metres per world unit from every chunk's ground height: ``median_t (H / h_t / s_t)``.
+
+    ``chunk_heights [T]`` (chunk units; NaN: no road seen), ``chunk_scales [T]`` the scales
+    ``s_t`` of the chunk-to-world poses.  Host NumPy (T numbers).  Returns ``(m, stats)``
+    with ``stats`` = number of voting chunks and the relative spread (MAD / median) of the
+    votes.  Raises ``ValueError`` when no chunk saw the road.
+    """
+    h = np.asarray(chunk_heights, np.float64)
+    s = np.asarray(chunk_scales, np.float64)
+    votes = camera_height / (h * s)
+    ok = np.isfinite(votes) & (votes > 0)
+    if not np.any(ok):
+        raise ValueError("--metric camera-height: no chunk has a valid road-plane fit (is the road visible?)")
+    v = votes[ok]
+    m = float(np.median(v))
+    mad = float(np.median(np.abs(v - m)))
+    return m, {"chunks_voting": int(ok.sum()), "chunks": int(h.size), "relative_mad": mad / m}
+
+
+def apply_scale(poses: ArrayLike, m: float) -> np.ndarray:
+    """``M_m o S`` for Sim(3) poses ``[..., 8]``: translation and scale times ``m`` (the world
+    stretched by ``m``; rotations unchanged).  Host NumPy float64."""
+    S = np.array(poses, np.float64, copy=True)
+    S[..., :3] *= m
+    S[..., 7] *= m
+    return S
+
+
+def parse_metric(value: str | None) -> tuple[str, float | None] | None:
+    """``None``, ``"gt"`` or ``"camera-height=H"`` (metres > 0) -> ``(kind, H)``; ``ValueError`` otherwise."""
+    if value is None or value == "" or value == "none":
+        return None
+    if value == "gt":
+        return ("gt", None)
+    if value.startswith("camera-height="):
+        try:
+            h = float(value.split("=", 1)[1])
+        except ValueError:
+            h = float("nan")
+        if not (np.isfinite(h) and h > 0):
+            raise ValueError(f"--metric camera-height=H needs a height in metres > 0, got {value!r}")
+        return ("camera-height", h)
+    raise ValueError(f"--metric must be 'camera-height=H' (metres) or 'gt', got {value!r}")
