@@ -7,16 +7,20 @@
 
 Modules: :mod:`~swiftjax.synthetic.world` (procedural street around a trajectory),
 :mod:`~swiftjax.synthetic.render` (JAX ray casting), :mod:`~swiftjax.synthetic.oracle`
-(VGGT's outputs with VGGT's kinds of error), :mod:`~swiftjax.synthetic.places` (per-frame
-place tokens for loop detection), :mod:`~swiftjax.synthetic.routes` (a generated loop route).
+(VGGT's outputs with VGGT's kinds of error, including its failure on loop chunks whose halves
+share no view), :mod:`~swiftjax.synthetic.covisibility` (co-visibility of frame sets from the
+world), :mod:`~swiftjax.synthetic.places` (per-frame place tokens for loop detection, with
+optional perceptual aliasing), :mod:`~swiftjax.synthetic.routes` (a generated loop route).
 """
 
-from swiftjax.synthetic.oracle import OracleNoise, VGGTOracle, kitti_intrinsics
-from swiftjax.synthetic.places import PlaceTokenConfig, make_place_params, place_tokens
+from swiftjax.synthetic.oracle import Hallucination, LoopChunkTruth, OracleNoise, VGGTOracle, kitti_intrinsics
+from swiftjax.synthetic.places import PlaceTokenConfig, make_place_params, place_tokens, plant_aliasing
 from swiftjax.synthetic.routes import loop_route
 from swiftjax.synthetic.world import World, WorldConfig, build_world
 
 __all__ = [
+    "Hallucination",
+    "LoopChunkTruth",
     "OracleNoise",
     "PlaceTokenConfig",
     "VGGTOracle",
@@ -27,4 +31,5 @@ __all__ = [
     "loop_route",
     "make_place_params",
     "place_tokens",
+    "plant_aliasing",
 ]

@@ -41,6 +41,33 @@ multiplied by ``exp(mover_depth n)`` with ``n`` drawn per (chunk, car): like VGG
 fits a moving object into a static multi-view reconstruction differently in each chunk, two
 chunks disagree on the car while agreeing on the static scene.
 
+**Loop-centric chunks: VGGT's failure on unrelated frames.**  A frame list with a break
+(``f_{k+1} != f_k + 1``; the pipeline's loop chunks: 20 frames around ``i``, then 20 around
+``j``) is split at its first break into halves ``A = f_0..f_k`` and ``B = f_{k+1}..``.  Their
+co-visibility ``c = min(covis(A -> B), covis(B -> A))`` is measured in the world
+(:mod:`swiftjax.synthetic.covisibility`: the fraction of one half's true surface points that
+the other half's frames see at a consistent depth).  Given frames that share no view, VGGT
+still returns one coherent-looking reconstruction, the halves superimposed; so does the oracle.
+With ``a`` and ``b`` the middle frames of ``A`` and ``B`` and a small random offset
+``Delta = (exp([n_r] rot), n_t trans_m)`` (``n_r, n_t ~ N(0, I)``, keyed by ``(seed, frames)``),
+the re-basing of ``B`` onto ``A``'s cameras is the rigid world motion::
+
+    H_1 = T_a Delta T_b^-1          (B's middle camera lands on A's, offset by Delta)
+    H(w) = Exp(w Log H_1),   w = smoothstep((c_high - c) / (c_high - c_low))  in [0, 1]
+
+and ``B``'s cameras become ``H(w) T_k``; everything else (depth maps, so ``B``'s own geometry,
+the chunk gauge, noise) is computed as for an honest chunk.  Confidence of every frame of the
+chunk is lowered as ``1 + (conf - 1)(1 - w (1 - conf_factor))``.  So ``c >= c_high`` (a true
+revisit) gives ``w = 0``: the prediction is bit-identical to the honest one; ``c <= c_low`` (no
+shared view) gives ``H_1``: ``B``'s points in the chunk frame are the chunk gauge applied to
+``H_1 x_world`` -- the loop edge derived from this chunk is off by ``H_1`` (superimposed at
+``a``), not by VGGT's usual noise.  :meth:`VGGTOracle.loop_chunk_truth` returns ``(c, w, H(w))``
+for any frame list; :class:`Hallucination` holds the constants (``hallucination=None``: honest
+for every chunk, the first wave's oracle).  Measured on the demo route (20 + 20 frames,
+stride 8): true revisits ``c = 0.76-0.99``, the false candidate (563, 139) 62.6 m apart
+``c = 0.000``; sliding ``B`` along the road away from a revisit, ``c`` = 0.75 at 9 m, 0.31 at
+18 m, 0.06 at 27 m.
+
 **Determinism.**  Every random quantity of a FRAME (its focal error, its share of the pixel
 noise, its gross-error pixels) is keyed by ``(seed, frame)``; every quantity of a CHUNK
 (gauge jitter, drift, bias, the other share of the noise) by ``(seed, frames)``.  A fraction
@@ -75,12 +102,13 @@ import numpy as np
 from swiftjax import sim3
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.synthetic import places
+from swiftjax.synthetic.covisibility import covisibility as _covisibility
 from swiftjax.synthetic.render import (
     chunk_candidates, composite_movers, frame_movers, frame_planes, render_frames, render_movers,
 )
 from swiftjax.synthetic.world import CAR, SKY, World
 
-__all__ = ["OracleNoise", "VGGTOracle", "kitti_intrinsics"]
+__all__ = ["Hallucination", "LoopChunkTruth", "OracleNoise", "VGGTOracle", "kitti_intrinsics"]
 
 
 def kitti_intrinsics(width: int = 518, height: int = 154) -> np.ndarray:
@@ -126,6 +154,86 @@ class OracleNoise:
             pose_rot=0.0, pose_trans=0.0, focal=0.0, depth_rel=0.0, depth_bias=0.0,
             edge_log_ratio=np.inf, gross_fraction=0.0,
         )
+
+
+@dataclasses.dataclass(frozen=True)
+class Hallucination:
+    """How a loop-centric chunk whose halves share no view comes back (module docstring).
+
+    Attributes:
+        covis_low: mutual co-visibility at or below which the second half is fully re-based.
+        covis_high: at or above which the chunk is honest (bit-identical to the first wave).
+        rot: standard deviation per axis of the offset ``Delta``'s rotation, radians.
+        trans_m: standard deviation per axis of its translation, metres.
+        conf_factor: factor on ``conf - 1`` at full hallucination (``w = 1``).
+        stride: pixel step of the co-visibility sample grid.
+        rel_tol: relative depth agreement of the co-visibility test.
+    """
+
+    covis_low: float = 0.05
+    covis_high: float = 0.3
+    rot: float = 0.02
+    trans_m: float = 0.3
+    conf_factor: float = 0.5
+    stride: int = 8
+    rel_tol: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.covis_low < self.covis_high:
+            raise ValueError(
+                f"Hallucination needs 0 <= covis_low < covis_high, got {self.covis_low}, {self.covis_high}"
+            )
+        if self.rot < 0 or self.trans_m < 0 or not 0 < self.conf_factor <= 1:
+            raise ValueError(
+                f"Hallucination needs rot, trans_m >= 0 and conf_factor in (0, 1], got {self.rot}, "
+                f"{self.trans_m}, {self.conf_factor}"
+            )
+        if self.stride < 1 or self.rel_tol <= 0:
+            raise ValueError(f"Hallucination needs stride >= 1, rel_tol > 0, got {self.stride}, {self.rel_tol}")
+
+    def weight(self, covisibility: float) -> float:
+        """``w = smoothstep((c_high - c) / (c_high - c_low))``: 1 at ``c <= c_low``, 0 at ``c >= c_high``."""
+        u = min(max((self.covis_high - float(covisibility)) / (self.covis_high - self.covis_low), 0.0), 1.0)
+        return u * u * (3.0 - 2.0 * u)
+
+
+class LoopChunkTruth(NamedTuple):
+    """What the oracle does with a frame list (:meth:`VGGTOracle.loop_chunk_truth`).
+
+    Attributes:
+        split: frames in the first half ``A`` (the list's length when it has no break).
+        covisibility: ``min(covis(A -> B), covis(B -> A))`` (1.0 without a break).
+        weight: hallucination weight ``w`` in ``[0, 1]``.
+        rebase: ``[4, 4]`` float64 ``H(w)``, the world motion applied to ``B``'s cameras.
+        full_rebase: ``[4, 4]`` float64 ``H_1`` (what ``w = 1`` would apply).
+    """
+
+    split: int
+    covisibility: float
+    weight: float
+    rebase: np.ndarray
+    full_rebase: np.ndarray
+
+
+def _se3_power(H: np.ndarray, w: float) -> np.ndarray:
+    """``Exp(w Log H)`` of a rigid ``[4, 4]`` motion, float64: with ``omega = Log R`` (any angle up
+    to pi, via SciPy's rotation vector) and ``V(omega) = I + (1 - cos t)/t^2 [omega] + (t - sin t)/t^3
+    [omega]^2``, ``Log H = (V(omega)^-1 t, omega)`` and the result is ``(exp(w omega), V(w omega) w rho)``."""
+    from scipy.spatial.transform import Rotation
+
+    def V(om: np.ndarray) -> np.ndarray:
+        th = float(np.linalg.norm(om))
+        Kx = np.array([[0.0, -om[2], om[1]], [om[2], 0.0, -om[0]], [-om[1], om[0], 0.0]])
+        if th < 1e-8:
+            return np.eye(3) + 0.5 * Kx + Kx @ Kx / 6.0
+        return np.eye(3) + (1 - np.cos(th)) / th**2 * Kx + (th - np.sin(th)) / th**3 * (Kx @ Kx)
+
+    omega = Rotation.from_matrix(H[:3, :3]).as_rotvec()
+    rho = np.linalg.solve(V(omega), H[:3, 3])
+    out = np.eye(4)
+    out[:3, :3] = _so3_exp_np(w * omega)
+    out[:3, 3] = V(w * omega) @ (w * rho)
+    return out
 
 
 # ------------------------------------------------------------------- counter-based noise
@@ -320,6 +428,8 @@ class VGGTOracle:
         k_box, k_cyl: per-frame object budgets of the renderer.
         cache_blocks: rendered blocks kept in memory (LRU); place tokens of the last
             ``cache_blocks * block`` frames are kept too.
+        hallucination: :class:`Hallucination` (default) for loop-centric chunks whose halves
+            share no view, or ``None`` (every chunk honest).
     """
 
     def __init__(
@@ -337,6 +447,7 @@ class VGGTOracle:
         k_box: int = 12,
         k_cyl: int = 10,
         cache_blocks: int = 12,
+        hallucination: Hallucination | None = Hallucination(),
     ) -> None:
         T = np.asarray(cam_to_world, np.float64)
         if T.ndim != 3 or T.shape[1:] not in ((4, 4), (3, 4)) or T.shape[0] < 1:
@@ -366,6 +477,8 @@ class VGGTOracle:
             cfg = place_config or places.PlaceTokenConfig(seed=self.seed)
             self.place_params = places.make_place_params(cfg)
         self._frame_key = np.uint32(zlib.crc32(np.int64(self.seed).tobytes()))
+        self.hallucination = hallucination
+        self._loop_truth: collections.OrderedDict[bytes, LoopChunkTruth] = collections.OrderedDict()
 
     @property
     def num_frames(self) -> int:
@@ -476,6 +589,58 @@ class VGGTOracle:
         with jax.enable_x64(True):
             return np.asarray(sim3.from_rst(T0[:3, :3], T0[:3, 3], 1.0 / sigma), np.float64)
 
+    def covisibility(self, frames_a, frames_b, *, mutual: bool = False, stride: int = 8,
+                     rel_tol: float = 0.1) -> float:
+        """``covis(A -> B)`` (or ``min`` of both directions when ``mutual``) of two frame lists,
+        from the true depth and poses (:mod:`swiftjax.synthetic.covisibility`).
+
+        Raises ``ValueError`` for empty, non-integer or out-of-range frame lists."""
+        fa, fb = self._check_frames(frames_a), self._check_frames(frames_b)
+        return self._covisibility(fa, fb, mutual, stride, rel_tol)
+
+    def _covisibility(self, fa, fb, mutual, stride, rel_tol) -> float:
+        (da, _, _), (db, _, _) = self.render_truth(fa), self.render_truth(fb)
+        origin = self.poses[fa[0], :3, 3]
+        Ta, Tb = self.poses[fa].copy(), self.poses[fb].copy()
+        Ta[:, :3, 3] -= origin  # float64 centring, float32 inside
+        Tb[:, :3, 3] -= origin
+        K = self.K.astype(np.float32)
+        ab = float(_covisibility(da, Ta.astype(np.float32), db, Tb.astype(np.float32), K, stride, rel_tol))
+        if not mutual:
+            return ab
+        return min(ab, float(_covisibility(db, Tb.astype(np.float32), da, Ta.astype(np.float32), K, stride, rel_tol)))
+
+    def loop_chunk_truth(self, frame_indices) -> LoopChunkTruth:
+        """Co-visibility of the halves of a frame list and the re-basing the oracle applies to its
+        second half (module docstring, "Loop-centric chunks").  A list without a break, or an
+        oracle with ``hallucination=None``, is honest: ``weight = 0``, ``rebase = I``.
+        Deterministic per ``(seed, frame_indices)``; cached."""
+        f = self._check_frames(frame_indices)
+        key = f.tobytes()
+        if key in self._loop_truth:
+            return self._loop_truth[key]
+        breaks = np.nonzero(np.diff(f) != 1)[0]
+        eye = np.eye(4)
+        hz = self.hallucination
+        if len(breaks) == 0 or hz is None:
+            return LoopChunkTruth(len(f), 1.0, 0.0, eye, eye)
+        k = int(breaks[0]) + 1
+        A, B = f[:k], f[k:]
+        c = self._covisibility(A, B, True, hz.stride, hz.rel_tol)
+        w = hz.weight(c)
+        rng = self._chunk_rng(f, 5)
+        delta = np.eye(4)
+        delta[:3, :3] = _so3_exp_np(rng.normal(scale=hz.rot, size=3))
+        delta[:3, 3] = rng.normal(scale=hz.trans_m, size=3)
+        Ta, Tb = self.poses[A[len(A) // 2]], self.poses[B[len(B) // 2]]
+        H1 = Ta @ delta @ np.linalg.inv(Tb)
+        H = eye if w == 0.0 else (H1 if w == 1.0 else _se3_power(H1, w))
+        out = LoopChunkTruth(k, c, w, H, H1)
+        self._loop_truth[key] = out
+        while len(self._loop_truth) > 256:
+            self._loop_truth.popitem(last=False)
+        return out
+
     # ------------------------------------------------------------------- prediction
 
     def _focal_eps(self, f: np.ndarray) -> np.ndarray:
@@ -526,8 +691,12 @@ class VGGTOracle:
         bias_c = rng.normal(scale=nz.depth_bias)
         eps = self._focal_eps(f)
 
-        # ---- poses (host float64: S small matrices)
+        # ---- poses (host float64: S small matrices); a hallucinated second half is re-based
         T = self.poses[f]
+        truth = self.loop_chunk_truth(f)
+        if truth.weight > 0.0:
+            T = T.copy()
+            T[truth.split:] = truth.rebase @ T[truth.split:]
         R0, c0 = T[0, :3, :3], T[0, :3, 3]
         R_ck = R0.T @ T[:, :3, :3]
         t_ck = sigma * (T[:, :3, 3] - c0) @ R0
@@ -577,6 +746,8 @@ class VGGTOracle:
             outs.append(_pixels(z, sem, inst, p))
         depth = np.concatenate([np.asarray(o[0]) for o in outs])[:S]
         conf = np.concatenate([np.asarray(o[1]) for o in outs])[:S]
+        if truth.weight > 0.0:
+            conf = (1.0 + (conf - 1.0) * np.float32(1.0 - truth.weight * (1.0 - self.hallucination.conf_factor)))
         images = np.concatenate([np.asarray(o[2]) for o in outs])[:S]
         tokens = self._place_tokens(f) if self._tokens else None
         return ChunkPrediction(

@@ -31,6 +31,27 @@ weight ``rho`` (``token_diversity``).  ``u`` is a fixed random unit vector; ``ep
 ``burst_f = s_burst · m_f ⊙ eta_f / sqrt(p_burst d)`` with ``m_f ~ Bernoulli(p_burst)^d`` and
 ``eta_f ~ N(0, I)``; ``n_{f,k} ~ N(0, I)``.
 
+**Perceptual aliasing** (optional; off by default): look-alike places, pairs of far-apart route
+segments ``(s_a, s_b, L)`` (``aliasing``) whose frames share a place component of strength
+``lambda`` (``alias_strength``).  Frame ``f = s_a + t`` and frame ``s_b + t`` (``0 <= t < L``) both
+replace their place component ``phi(p, v)`` by::
+
+    sqrt(1 - lambda) · phi(p_f, v_f)  +  sqrt(lambda) · phi(q_m(t), e_z)
+    q_m(t) = (t, 5000 + 100 m, 0) metres       (segment pair m: a virtual street, 1 m per frame)
+
+so the noise-free place components of the two corresponding frames have expected cosine
+``lambda`` (the two real places are uncorrelated, the virtual one is shared), neighbouring
+offsets correlate as along a real street, and the virtual streets of different pairs (100 m
+apart, 5 km from any route) match nothing else.  ``lambda = 1`` is a full copy: segment ``b``
+looks exactly like segment ``a`` (up to the per-frame noise).  :func:`plant_aliasing` chooses the
+segments deterministically for a trajectory at a rate relative to its true loop regions; the
+planted pairs are false loops by construction (their cameras are ``min_distance_m`` apart).
+To turn it on::
+
+    segs = plant_aliasing(cam_to_world, rate=0.3)              # ~30 % extra false candidates
+    cfg = PlaceTokenConfig(aliasing=segs)                      # alias_strength 0.9
+    # or: swiftjax.demo.loop_route_run(aliasing=0.3) / trajectory_run(..., aliasing=0.3)
+
 Everything random about a frame is keyed by its **global frame id** (``jax.random.fold_in``),
 so the same frame seen in a temporal chunk and in a loop-centric chunk gets bit-identical
 tokens: :func:`place_tokens` is stateless and deterministic per frame.
@@ -61,7 +82,13 @@ __all__ = [
     "loop_regions",
     "LoopEvaluation",
     "evaluate_loops",
+    "plant_aliasing",
+    "DEFAULT_ALIAS_STRENGTH",
 ]
+
+#: ``lambda`` of the planted look-alike places unless set: their candidates then score like
+#: true revisits (KITTI 00: 0.50-0.59 against 0.32-0.79; 0.8 left some below 0.43).
+DEFAULT_ALIAS_STRENGTH = 0.9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +110,9 @@ class PlaceTokenConfig:
         burst_fraction: ``p_burst``, fraction of coordinates that burst in a frame.
         noise: ``sigma``, expected norm of the per-token i.i.d. noise.
         seed: seed of the fixed random field, bias direction and noise stream.
+        aliasing: look-alike segment pairs ``((s_a, s_b, L), ...)`` of global frame ids
+            (module docstring; :func:`plant_aliasing`); ``()``: none.
+        alias_strength: ``lambda`` in ``[0, 1]``, the shared share of their place component.
     """
 
     dim: int = 1024
@@ -97,6 +127,8 @@ class PlaceTokenConfig:
     burst_fraction: float = 0.01
     noise: float = 1.0
     seed: int = 0
+    aliasing: tuple[tuple[int, int, int], ...] = ()
+    alias_strength: float = DEFAULT_ALIAS_STRENGTH
 
 
 class PlaceTokenParams(NamedTuple):
@@ -108,7 +140,9 @@ class PlaceTokenParams(NamedTuple):
         phases: ``[K + 1, d]`` ``c``.
         bias_direction: ``[d]`` unit vector ``u``.
         noise_key: ``[2]`` uint32 raw PRNG key of the per-frame stream.
-        scalars: ``[7]`` float32 ``(a_place, b, b_jit, s_burst, p_burst, sigma, rho)``.
+        scalars: ``[8]`` float32 ``(a_place, b, b_jit, s_burst, p_burst, sigma, rho, lambda)``.
+        alias_segments: ``[P, 3]`` int32 look-alike segment pairs ``(s_a, s_b, L)``
+            (``P = 0``: no aliasing; ``P`` is a shape, so it is part of the compile key).
     """
 
     position_freqs: jax.Array
@@ -117,6 +151,22 @@ class PlaceTokenParams(NamedTuple):
     bias_direction: jax.Array
     noise_key: jax.Array
     scalars: jax.Array
+    alias_segments: jax.Array
+
+
+def _check_aliasing(segments, strength: float) -> np.ndarray:
+    segs = np.asarray(segments, np.int64).reshape(-1, 3)
+    if not 0.0 <= strength <= 1.0:
+        raise ValueError(f"alias_strength must be in [0, 1], got {strength}")
+    if len(segs) == 0:
+        return segs
+    if np.any(segs[:, :2] < 0) or np.any(segs[:, 2] < 1):
+        raise ValueError(f"aliasing segments need s_a, s_b >= 0 and L >= 1, got {segs.tolist()}")
+    iv = np.concatenate([segs[:, [0, 2]], segs[:, [1, 2]]])  # (start, length) of every segment
+    iv = iv[np.argsort(iv[:, 0])]
+    if np.any(iv[1:, 0] < iv[:-1, 0] + iv[:-1, 1]):
+        raise ValueError(f"aliasing segments overlap (a frame may look like one other place only): {segs.tolist()}")
+    return segs
 
 
 def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTokenParams:
@@ -140,6 +190,7 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
         raise ValueError(f"token_diversity must be in [0, 1], got {c.token_diversity}")
     if not 0 < c.burst_fraction <= 1:
         raise ValueError(f"burst_fraction must be in (0, 1], got {c.burst_fraction}")
+    segs = _check_aliasing(c.aliasing, c.alias_strength)
     k_pos, k_dir, k_phase, k_bias, k_noise = jax.random.split(jax.random.PRNGKey(c.seed), 5)
     shape = (c.tokens_per_frame + 1, c.dim, 3)
     bias = jax.random.normal(k_bias, (c.dim,), jnp.float32)
@@ -151,9 +202,10 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
         noise_key=jnp.asarray(jax.random.key_data(k_noise), jnp.uint32),
         scalars=jnp.asarray(
             [c.place_strength, c.bias_strength, c.bias_jitter, c.burst_strength,
-             c.burst_fraction, c.noise, c.token_diversity],
+             c.burst_fraction, c.noise, c.token_diversity, c.alias_strength],
             jnp.float32,
         ),
+        alias_segments=jnp.asarray(segs, jnp.int32).reshape(-1, 3),
     )
 
 
@@ -186,7 +238,7 @@ def place_signal(params: PlaceTokenParams, cam_to_world: jax.Array) -> jax.Array
 
 def _frame_extras(params: PlaceTokenParams, frame_id: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Per-frame bias+burst vector ``[d]`` and per-token noise ``[K, d]`` for one frame id."""
-    _, b, b_jit, s_burst, p_burst, sigma, _ = params.scalars
+    _, b, b_jit, s_burst, p_burst, sigma = params.scalars[:6]
     k_count, d = params.phases.shape
     k_count -= 1
     key = jax.random.fold_in(jax.random.wrap_key_data(params.noise_key), frame_id)
@@ -200,6 +252,25 @@ def _frame_extras(params: PlaceTokenParams, frame_id: jax.Array) -> tuple[jax.Ar
     return shared, noise
 
 
+def _alias_share(params: PlaceTokenParams, frame_ids: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Per frame ``lambda`` (0 outside every look-alike segment) and the virtual pose
+    ``[S, 4, 4]`` of the shared place (module docstring)."""
+    seg = params.alias_segments  # [P, 3]
+    f = frame_ids[:, None]
+    ta, tb = f - seg[None, :, 0], f - seg[None, :, 1]
+    in_a = (ta >= 0) & (ta < seg[None, :, 2])
+    in_b = (tb >= 0) & (tb < seg[None, :, 2])
+    hit = in_a | in_b  # [S, P]; at most one True per row (segments are disjoint)
+    m = jnp.argmax(hit, axis=1)
+    t = jnp.where(jnp.take_along_axis(in_a, m[:, None], 1)[:, 0],
+                  jnp.take_along_axis(ta, m[:, None], 1)[:, 0], jnp.take_along_axis(tb, m[:, None], 1)[:, 0])
+    lam = jnp.where(jnp.any(hit, axis=1), params.scalars[7], 0.0)
+    S = frame_ids.shape[0]
+    virtual = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (S, 4, 4))
+    centre = jnp.stack([t.astype(jnp.float32), 5000.0 + 100.0 * m.astype(jnp.float32), jnp.zeros(S)], -1)
+    return lam, virtual.at[:, :3, 3].set(centre)
+
+
 @jax.jit
 def place_tokens(params: PlaceTokenParams, cam_to_world: jax.Array, frame_ids: jax.Array) -> jax.Array:
     """Synthetic patch tokens ``[S, K, d]`` float32 for ``S`` cameras (module docstring formula).
@@ -211,13 +282,17 @@ def place_tokens(params: PlaceTokenParams, cam_to_world: jax.Array, frame_ids: j
         frame_ids: ``[S]`` int global frame ids; they key all per-frame randomness, so a frame
             gets the same tokens whichever chunk it is generated in.
 
-    Pure and jit-compiled; recompiles for each new ``S`` (and ``K``, ``d``).
+    Pure and jit-compiled; recompiles for each new ``S`` (and ``K``, ``d``, number of
+    look-alike segment pairs).
     """
     a_place = params.scalars[0]
+    frame_ids = jnp.asarray(frame_ids, jnp.int32)
     signal = place_signal(params, cam_to_world)
-    shared, noise = jax.vmap(_frame_extras, in_axes=(None, 0))(
-        params, jnp.asarray(frame_ids, jnp.int32)
-    )
+    if params.alias_segments.shape[0]:  # static: no aliasing, no extra work
+        lam, virtual = _alias_share(params, frame_ids)
+        signal = (jnp.sqrt(1.0 - lam)[:, None, None] * signal
+                  + jnp.sqrt(lam)[:, None, None] * place_signal(params, virtual))
+    shared, noise = jax.vmap(_frame_extras, in_axes=(None, 0))(params, frame_ids)
     return a_place * signal + shared[:, None, :] + noise
 
 
@@ -343,3 +418,87 @@ def evaluate_loops(
         n_regions_found=n_found,
         correct=correct,
     )
+
+
+def plant_aliasing(
+    cam_to_world: np.ndarray,
+    rate: float,
+    *,
+    length: int = 20,
+    chunk_stride: int = 45,
+    min_distance_m: float = 50.0,
+    min_separation: int = 100,
+    margin: int = 30,
+    gap: int = 10,
+    seed: int = 0,
+    strict: bool = True,
+) -> tuple[tuple[int, int, int], ...]:
+    """Look-alike segment pairs for :class:`PlaceTokenConfig` ``aliasing``, deterministic per ``seed``.
+
+    The number of pairs is ``round(rate · C_true)`` (at least one for ``rate > 0`` when the
+    trajectory has a true loop; none without one), ``C_true`` the number of distinct chunk
+    pairs ``(c_i, c_j)``, ``|c_i - c_j| >= 2``, among its :func:`ground_truth_loops` (frame
+    ``f`` in chunk ``round((f - 37) / chunk_stride)``, DESIGN.md's schedule B = 75, O = 30):
+    the most true candidates the detector's one-loop-per-chunk-pair filter can return.  A
+    look-alike pair of ``length = 20`` frames yields about one candidate, so ``rate`` is the
+    planted false candidates relative to the true ones (0.1, 0.3, 0.5: 10, 30, 50 % extra;
+    report the realised count: NMS, the chunk filter and the threshold decide it; measured
+    with ``alias_strength = 0.9``: KITTI 00, ``C_true = 40``, rate 0.3 -> 12 pairs -> 12 false
+    candidates scoring 0.50-0.59 (true ones 0.32-0.79); the demo route, 1 pair -> 1 at 0.67).
+    Each pair ``(s_a, s_b, length)``: ``s_a > s_b``, more than
+    ``min_separation + length`` frames apart, every camera of one segment more than
+    ``min_distance_m`` from every camera of the other (a false loop), every pair
+    ``(s_a + t, s_b + t)`` more than ``margin`` frames (Chebyshev, both ends) from every true
+    loop pair (so :func:`evaluate_loops` never counts its candidates as correct; a segment
+    may lie inside a true loop region's frames), and no segment within ``gap`` frames of
+    another planted segment.  Drawn by rejection
+    sampling from ``numpy.random.default_rng(seed)``.  ``strict=False`` returns the pairs that
+    fit instead of raising when there is no room for all of them.
+
+    Raises:
+        ValueError: ``rate < 0``, ``length < 1``, or (``strict``) no room for the pairs.
+    """
+    p, _ = _np_centres_axes(cam_to_world)
+    if not rate >= 0 or length < 1:
+        raise ValueError(f"plant_aliasing needs rate >= 0 and length >= 1, got rate={rate}, length={length}")
+    n = len(p)
+    gt = ground_truth_loops(cam_to_world)
+    chunk = np.maximum(np.round((gt - 37) / chunk_stride), 0).astype(np.int64)
+    c_true = len({(a, b) for a, b in chunk.tolist() if abs(a - b) >= 2})
+    if rate == 0 or c_true == 0:
+        return ()
+    count = max(1, int(round(rate * c_true)))
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.concatenate([gt, gt[:, ::-1]]).astype(np.float64))
+    busy = np.zeros(n + 2 * gap, bool)  # frames near planted segments (padded by gap)
+
+    def free(s: int) -> bool:
+        return not busy[s: s + length + 2 * gap].any()
+
+    rng = np.random.default_rng(seed)
+    out: list[tuple[int, int, int]] = []
+    for _ in range(20_000):
+        if len(out) == count:
+            break
+        a, b = sorted(rng.integers(0, n - length + 1, 2).tolist(), reverse=True)
+        if a - b <= min_separation + length or not (free(a) and free(b)):
+            continue
+        d = np.linalg.norm(p[a: a + length, None] - p[None, b: b + length], axis=-1)
+        if d.min() <= min_distance_m:
+            continue
+        t = np.arange(length)
+        near = tree.query_ball_point(np.stack([a + t, b + t], 1).astype(np.float64), margin, p=np.inf)
+        if any(len(x) for x in near):
+            continue
+        out.append((int(a), int(b), int(length)))
+        for s in (a, b):
+            busy[s: s + length + 2 * gap] = True
+    if len(out) < count:
+        if not strict:
+            return tuple(sorted(out))
+        raise ValueError(
+            f"plant_aliasing: room for only {len(out)} of {count} look-alike pairs of {length} frames "
+            f"in {n} frames (rate={rate}); lower rate, length, min_distance_m or margin"
+        )
+    return tuple(sorted(out))
