@@ -15,25 +15,7 @@ from swiftjax import camera, sim3
 from swiftjax.synthetic import places
 from swiftjax.synthetic.covisibility import covisibility, covisibility_mutual
 from swiftjax.synthetic.oracle import Hallucination, OracleNoise, VGGTOracle, _se3_power, _so3_exp_np
-from swiftjax.synthetic.routes import loop_route
-from swiftjax.synthetic.world import build_world
-
-HW = (28, 84)
-
-
-@pytest.fixture(scope="module")
-def route():
-    return loop_route()
-
-
-@pytest.fixture(scope="module")
-def world(route):
-    return build_world(route)
-
-
-@pytest.fixture(scope="module")
-def exact(world, route):
-    return VGGTOracle(world, route, image_hw=HW, noise=OracleNoise.off(), tokens=False)
+from test_synthetic import HW, exact, route, world  # noqa: F401  (shared fixtures)
 
 
 def loop_frames(i, j, h=10):
