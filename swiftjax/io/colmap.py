@@ -46,7 +46,7 @@ import numpy as np
 from swiftjax import so3
 from swiftjax.io.atomic import atomic_write
 
-__all__ = ["Observations", "world_to_camera_qt", "write_colmap", "write_colmap_text"]
+__all__ = ["Observations", "image_names", "world_to_camera_qt", "write_colmap", "write_colmap_text"]
 
 PathLike = str | os.PathLike[str]
 
@@ -63,6 +63,17 @@ class Observations(NamedTuple):
 
     image_index: np.ndarray  # [M] int
     xy: np.ndarray  # [M, 2] float
+
+
+def image_names(names: Sequence[str]) -> list[str]:
+    """The PNG file names of frames ``names`` in ``colmap/images/``: the name with its suffix
+    replaced by ``.png`` (``a.jpg -> a.png``; subfolders kept), or ``.png`` appended to the
+    whole name where two frames would collide (``a.jpg`` and ``a.png`` in one folder)."""
+    out = [str(pathlib.PurePosixPath(str(n)).with_suffix(".png")) for n in names]
+    seen: dict[str, int] = {}
+    for name in out:
+        seen[name] = seen.get(name, 0) + 1
+    return [o if seen[o] == 1 or str(n) == o else f"{n}.png" for n, o in zip(names, out)]
 
 
 def _float_format(dtype: np.dtype) -> str:

@@ -100,6 +100,15 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
+def _comment_lines(header: Sequence[str] | None) -> list[str]:
+    """``# line`` for each header line (what the readers here and evo skip)."""
+    out = []
+    for line in header or ():
+        for part in str(line).splitlines() or [""]:
+            out.append(f"# {part}".rstrip())
+    return out
+
+
 # ------------------------------------------------------------------------------- rotations
 
 
@@ -195,14 +204,16 @@ def read_kitti(path: PathLike) -> np.ndarray:
     return P
 
 
-def write_kitti(path: PathLike, poses: np.ndarray) -> None:
+def write_kitti(path: PathLike, poses: np.ndarray, header: Sequence[str] | None = None) -> None:
     """Write ``[N, 4, 4]`` (or ``[N, 3, 4]``) poses as KITTI lines, atomically, exactly.
+
+    ``header``: lines written first as ``#`` comments (evo and :func:`read_kitti` skip them).
 
     Raises:
         ValueError: bad shape, no poses, or non-finite values.
     """
     P = _check_poses(poses, "poses")
-    lines = [" ".join(_fmt(v) for v in p[:3, :].reshape(12)) for p in P]
+    lines = _comment_lines(header) + [" ".join(_fmt(v) for v in p[:3, :].reshape(12)) for p in P]
     _atomic_write_text(path, "\n".join(lines) + "\n")
 
 
@@ -228,8 +239,10 @@ def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     return t, _poses_from_rows(rows[:, :3], rows[:, 3:])
 
 
-def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], poses: np.ndarray) -> None:
-    """Write TUM lines ``t tx ty tz qx qy qz qw`` atomically.
+def write_tum(
+    path: PathLike, timestamps: np.ndarray | Sequence[float], poses: np.ndarray, header: Sequence[str] | None = None
+) -> None:
+    """Write TUM lines ``t tx ty tz qx qy qz qw`` atomically (``header`` lines first, as ``#`` comments).
 
     Args:
         path: output file.
@@ -256,5 +269,5 @@ def write_tum(path: PathLike, timestamps: np.ndarray | Sequence[float], poses: n
         raise ValueError("poses is empty (no poses)")
     if not np.all(np.isfinite(t)):
         raise ValueError("timestamps holds non-finite values (nan/inf)")
-    lines = [" ".join([_fmt(ti), *(_fmt(v) for v in r)]) for ti, r in zip(t, rows)]
+    lines = _comment_lines(header) + [" ".join([_fmt(ti), *(_fmt(v) for v in r)]) for ti, r in zip(t, rows)]
     _atomic_write_text(path, "\n".join(lines) + "\n")
