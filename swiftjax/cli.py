@@ -219,6 +219,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     gt = _load_ground_truth(args.gt, args.gt_format) if args.gt is not None else None
     if gt is not None and len(gt) != len(source):
         raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
+    if args.timestamps is not None:
+        timestamps = images.read_timestamps(args.timestamps, source, args.stride)
+        note = f"from {args.timestamps}"
+    else:
+        timestamps, note = source.timestamps()
     if len(source) < config.chunk_size:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
@@ -227,7 +232,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     predictor = ImagePredictor(source, runner, mode=args.mode)
     with _LiveView(args) as live:
         result = pipeline.reconstruct(
-            predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress
+            predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
+            timestamps=timestamps, timestamps_note=note,
         )
         _print_summary(result)
         live.wait()
@@ -305,6 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     p.add_argument("--gt", type=pathlib.Path, help="ground-truth poses for ATE")
     p.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti")
+    p.add_argument("--timestamps", type=pathlib.Path,
+                   help="per-frame times for poses_tum.txt: 'time name' lines (TUM rgb.txt) or one time per image "
+                        "(default: a video's own times, else the frame index)")
     _common_run_options(p)
     _view_options(p)
     _add_method_options(p)

@@ -6,6 +6,8 @@
 * ``shared_dir``: the read-only reference folder (``$SWIFTJAX_SHARED`` or ``../shared``);
   tests that need it skip with a clear reason when it is absent (CI always has it).
 * ``x64``: runs a test with ``jax_enable_x64`` on, for float64 reference checks only.
+* ``small_loop_run``: one finished small run with loop closure and ground truth (the shapes
+  of ``test_pipeline.py``'s, so the compile cache serves both), shared by the output tests.
 """
 
 from __future__ import annotations
@@ -63,3 +65,22 @@ def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
     if not (d / "tiny_golden.npz").is_file():
         pytest.fail(f"the shared folder {shared_dir} has no VGGT golden tensors in {d}")
     return d
+
+
+#: ``small_loop_run``'s configuration (``test_pipeline.py``'s CONFIG).
+SMALL_RUN_CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
+                        colmap_max_points=5_000)
+
+
+@pytest.fixture(scope="session")
+def small_loop_run(tmp_path_factory):
+    """``(run_dir, RunResult)`` of a finished synthetic loop run (42x140 frames, 9 chunks)."""
+    from swiftjax import demo, pipeline
+    from swiftjax.synthetic.routes import loop_route
+
+    poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
+    run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
+    out = tmp_path_factory.mktemp("small_loop_run") / "run"
+    result = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(**SMALL_RUN_CONFIG),
+                                  ground_truth=run.ground_truth, progress=False, log=lambda _: None)
+    return out, result

@@ -59,3 +59,143 @@ def test_bad_timestamps_files(tmp_path, text, match):
     (tmp_path / "t.txt").write_text(text)
     with pytest.raises(images.InputError, match=match):
         images.read_timestamps(tmp_path / "t.txt", images.list_frames(tmp_path))
+
+
+# ------------------------------------------------------------------ outputs of a finished run
+
+
+def test_colmap_model_is_trainer_ready(small_loop_run):
+    """The layout gsplat and nerfstudio load; pycolmap reads it; every image observes points
+    and every observation reprojects to its 3-D point; images exist at the camera's size."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from PIL import Image
+
+    from swiftjax.io import trajectory
+
+    out, result = small_loop_run
+    data = out / "colmap"  # gsplat: --data_dir RUN/colmap; nerfstudio: --data RUN/colmap --colmap-path sparse/0
+    sparse = data / "sparse" / "0"
+    assert sorted(p.name for p in sparse.iterdir()) == ["cameras.bin", "images.bin", "points3D.bin"]
+    rec = pycolmap.Reconstruction(str(sparse))
+    n = result.num_frames
+    assert rec.num_images() == n and rec.num_cameras() == 1 and 0 < rec.num_points3D() <= 5_000
+    (cam,) = rec.cameras.values()
+    K_ref = result.intrinsics[0]
+    np.testing.assert_allclose(cam.params, [K_ref[0, 0], K_ref[1, 1], K_ref[0, 2] + 0.5, K_ref[1, 2] + 0.5], rtol=1e-6)
+
+    # gsplat's Parser: images/ holds exactly the model's images (it zips the two sorted lists),
+    # every image name has point indices (its depth loss), the image size sets the K scale.
+    files = sorted(str(p.relative_to(data / "images")) for p in (data / "images").rglob("*") if p.is_file())
+    names = sorted(im.name for im in rec.images.values())
+    assert files == names
+    point_indices: dict[str, list[int]] = {}
+    for im in rec.images.values():
+        for p2d in im.get_observation_points2D():
+            point_indices.setdefault(im.name, []).append(p2d.point3D_id)
+    assert set(point_indices) == set(names)
+    # nerfstudio: data/images/<name> exists with the camera's size (its full-image datamanager
+    # asserts it); max_2D_matches_per_3D_point=-1 stacks every track (non-empty).
+    for name in names[:: max(1, n // 25)]:
+        assert Image.open(data / "images" / name).size == (cam.width, cam.height)
+    kitti = trajectory.read_kitti(out / "poses_kitti.txt")
+    worst = 0.0
+    for pid, p in rec.points3D.items():
+        assert p.track.length() == 1
+        el = p.track.elements[0]
+        image = rec.images[el.image_id]
+        xy = image.points2D[el.point2D_idx].xy
+        assert image.points2D[el.point2D_idx].point3D_id == pid
+        proj = cam.img_from_cam(np.asarray(image.cam_from_world() * p.xyz)[None])[0]
+        worst = max(worst, float(np.abs(proj - xy).max()))
+        assert p.error < 1.0
+    assert worst < 1.0, worst  # measured ~1e-3 px: float32 points
+    for i in (1, n // 2, n):
+        w2c = rec.images[i].cam_from_world().matrix()
+        np.testing.assert_allclose(np.linalg.inv(kitti[i - 1])[:3], w2c, atol=1e-6)
+
+
+def _header(path):
+    return [ln[2:] for ln in path.read_text().splitlines() if ln.startswith("#")]
+
+
+def test_text_outputs_describe_themselves(small_loop_run):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from swiftjax.io import trajectory
+
+    out, result = small_loop_run
+    head = "\n".join(_header(out / "intrinsics.txt"))
+    assert "resolution: 140 x 42 pixels" in head and "pixel centres at integers" in head
+    assert "K_ref" in head and "colmap/sparse/0: one shared PINHOLE camera = K_ref with cx + 0.5" in head
+    rows = np.loadtxt(out / "intrinsics.txt")
+    np.testing.assert_allclose(rows[:, 1:], result.intrinsics[:, [0, 1, 0, 1], [0, 1, 2, 2]], atol=1e-6)
+
+    loops = out / "loops.txt"
+    columns = _header(loops)[-1].split()
+    body = [ln.split() for ln in loops.read_text().splitlines() if not ln.startswith("#")]
+    assert columns[:5] == ["i", "j", "score", "chunk_i", "chunk_j"] and "align_i.num_points" in columns
+    assert len(body) == len(result.loops) > 0 and all(len(r) == len(columns) for r in body)
+    for r, rec in zip(body, result.loops):
+        assert (int(r[0]), int(r[1])) == (rec["i"], rec["j"])
+        assert float(r[2]) == pytest.approx(rec["score"], rel=1e-5)
+        assert int(r[columns.index("align_j.num_points")]) == rec["align_j"]["num_points"]
+
+    for name in ("poses_kitti.txt", "poses_tum.txt"):
+        assert any(h.startswith("unit: up to scale") for h in _header(out / name)), name
+    assert "timestamps (s): frame index" in "\n".join(_header(out / "poses_tum.txt"))
+    np.testing.assert_allclose(trajectory.read_kitti(out / "poses_kitti.txt"), result.cam_to_world, atol=1e-12)
+    ts, tum = trajectory.read_tum(out / "poses_tum.txt")
+    np.testing.assert_array_equal(ts, np.arange(result.num_frames))
+    evo = Path(sys.executable).with_name("evo_traj")
+    if not evo.exists():
+        pytest.skip("evo_traj is not installed beside this Python")
+    for fmt, name in (("kitti", "poses_kitti.txt"), ("tum", "poses_tum.txt")):
+        run = subprocess.run([str(evo), fmt, str(out / name), "--full_check"], capture_output=True, text=True)
+        assert run.returncode == 0 and "SE(3) conform\tyes" in run.stdout, run.stdout + run.stderr
+
+
+def test_points_png_shows_the_cloud(small_loop_run):
+    from PIL import Image
+
+    out, _ = small_loop_run
+    img = np.asarray(Image.open(out / "points.png").convert("RGB")).astype(int)
+    assert img.shape[0] >= 600 and img.shape[1] >= 600
+    coloured = (img.max(-1) - img.min(-1)) > 40  # the synthetic facades, trees and the trajectory
+    grey = (np.abs(img - 255).max(-1) > 60) & ~coloured  # grey road / facades
+    assert coloured.mean() > 0.005 and grey.mean() > 0.02, (coloured.mean(), grey.mean())
+
+
+def test_reconstruct_cli_passes_the_sources_times(tmp_path, monkeypatch):
+    """``swiftjax reconstruct VIDEO --stride 2``: poses_tum.txt gets the video's own times."""
+    from swiftjax import cli, pipeline
+
+    _video(tmp_path / "drive.avi", 10, 5.0)
+    (tmp_path / "w.pt").write_bytes(b"")
+    seen = {}
+
+    def fake_reconstruct(predictor, out, config, **kwargs):
+        seen.update(kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_make_runner", lambda args: None)
+    monkeypatch.setattr(pipeline, "reconstruct", fake_reconstruct)
+    assert cli.main(["reconstruct", str(tmp_path / "drive.avi"), "--weights", str(tmp_path / "w.pt"),
+                     "--out", str(tmp_path / "run"), "--stride", "2"]) == 130
+    np.testing.assert_allclose(seen["timestamps"], np.arange(0, 10, 2) / 5.0)
+    assert "5 fps" in seen["timestamps_note"]
+
+
+def test_trajectory_headers_carry_unit_and_time_source(tmp_path):
+    from swiftjax.io import trajectory
+    from swiftjax.pipeline.export import _write_trajectories
+
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    c2w[:, 0, 3] = [0.0, 1.0, 2.0]
+    _write_trajectories(tmp_path, c2w, np.array([0.0, 0.4, 0.8]), "metres", "video time: frame index / 5 fps")
+    assert "unit: metres" in _header(tmp_path / "poses_kitti.txt")
+    assert "timestamps (s): video time: frame index / 5 fps" in _header(tmp_path / "poses_tum.txt")
+    ts, poses = trajectory.read_tum(tmp_path / "poses_tum.txt")
+    np.testing.assert_array_equal(ts, [0.0, 0.4, 0.8])
+    np.testing.assert_allclose(poses, c2w)

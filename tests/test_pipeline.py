@@ -113,7 +113,7 @@ def test_point_cloud_lies_on_the_true_surfaces(result, small_run):
 
 def test_colmap_model_reads_back(result):
     pycolmap = pytest.importorskip("pycolmap")
-    rec = pycolmap.Reconstruction(str(result.run_dir / "colmap"))
+    rec = pycolmap.Reconstruction(str(result.run_dir / "colmap" / "sparse" / "0"))
     assert rec.num_reg_images() == result.num_frames
     assert rec.num_points3D() > 100
 

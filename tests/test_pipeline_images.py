@@ -42,9 +42,13 @@ def test_reconstruct_from_image_files_with_tiny_vggt(tmp_path, golden_dir):
     poses = trajectory.read_kitti(tmp_path / "run" / "poses_kitti.txt")
     assert poses.shape == (14, 4, 4) and np.all(np.isfinite(poses))
     # Preprocessed as VGGT's loader does: width 518, height a multiple of 14.
-    names = (tmp_path / "run" / "colmap" / "images.txt").read_text()
-    assert "0013.png" in names
-    cams = (tmp_path / "run" / "colmap" / "cameras.txt").read_text().split("\n")
-    w, h = [int(v) for v in [line for line in cams if line and not line.startswith("#")][0].split()[2:4]]
-    assert w == 518 and h % 14 == 0
+    import pycolmap
+    from PIL import Image
+
+    rec = pycolmap.Reconstruction(str(tmp_path / "run" / "colmap" / "sparse" / "0"))
+    assert "0013.png" in {im.name for im in rec.images.values()}
+    (cam,) = rec.cameras.values()
+    assert cam.width == 518 and cam.height % 14 == 0
+    # The frames VGGT saw, at its resolution, beside the model.
+    assert Image.open(tmp_path / "run" / "colmap" / "images" / "0013.png").size == (cam.width, cam.height)
 

@@ -34,23 +34,9 @@ def _need(what: str, ok: bool, how: str) -> None:
     pytest.skip(f"{what} is not installed ({how})")
 
 
-#: test_pipeline.py's small loop run (same shapes: the compile cache serves both).
-CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
-              colmap_max_points=5_000)
-
-
 @pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    """A small finished run with loop closure and ground truth; the RunResult beside it."""
-    from swiftjax import demo, pipeline
-    from swiftjax.synthetic.routes import loop_route
-
-    poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
-    run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
-    out = tmp_path_factory.mktemp("viewer") / "run"
-    result = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(**CONFIG),
-                                  ground_truth=run.ground_truth, progress=False, log=lambda _: None)
-    return out, result
+def demo_run(small_loop_run):
+    return small_loop_run
 
 
 def test_reservoir_is_uniform_and_bounded():
@@ -92,6 +78,29 @@ def test_errors_name_the_problem(tmp_path):
         s.listen()
         with pytest.raises(viewer.ViewerError, match=f"port {s.getsockname()[1]} .* already in use"):
             viewer.check_port("127.0.0.1", s.getsockname()[1])
+
+
+def test_finished_run_matches_the_pipeline(demo_run):
+    """Cameras equal the pipeline's (with and without loop closure); every shown point is a
+    point of points.ply."""
+    from scipy.spatial import cKDTree
+
+    from swiftjax.io.ply import read_ply
+
+    out, result = demo_run
+    res = viewer.Reservoir(5_000)
+    view = viewer.read_run(out, res)
+    assert view.final and view.chunks == list(range(result.num_chunks))
+    np.testing.assert_array_equal(view.frames, np.arange(result.num_frames))
+    np.testing.assert_allclose(view.cam_to_world("loop closure"), result.cam_to_world, atol=1e-9)
+    np.testing.assert_allclose(view.cam_to_world("no loop closure"), result.cam_to_world_no_loops, atol=1e-9)
+    assert len(res) == 5_000 and res.seen == result.metrics["points"]
+    xyz, placed = viewer.world_points(view, res, "loop closure")
+    assert placed.all()
+    cloud = read_ply(out / "points.ply")
+    dist, _ = cKDTree(cloud.points).query(xyz)
+    assert dist.max() < 1e-4 * np.abs(cloud.points).max()
+    assert view.ground_truth is not None and view.ground_truth.shape == (result.num_frames, 4, 4)
 
 
 def test_live_run_grows_as_chunks_arrive(demo_run, tmp_path):
@@ -190,7 +199,7 @@ def test_browser_shows_the_run(demo_run, tmp_path):
     connected = []
     v.server.on_client_connect(lambda client: connected.append(client.client_id))
     try:
-        for name in ("/cloud", "/trajectory"):
+        for name in ("/cloud", "/trajectory", "/ground_truth", "/loops/accepted"):
             assert v.server.scene.get_handle_by_name(name) is not None, name
         frustums = [n for n in v.server.scene._handle_from_node_name if n.startswith("/frustums/")]
         assert len(frustums) >= 20

@@ -97,7 +97,7 @@ def plot_points(
     cameras: np.ndarray,
     loops: np.ndarray | None = None,
     title: str | None = None,
-    max_points: int = 300_000,
+    max_points: int = 100_000,
     dpi: int = 120,
 ) -> None:
     """Write a bird's-eye PNG of a coloured point cloud with the camera trajectory.

@@ -26,7 +26,8 @@ class PipelineConfig:
     authors use none), ``robust_scale``, ``max_lm_steps``.  Output: ``point_conf_ratio``
     (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
     subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
-    ``colmap_max_points``.
+    ``colmap`` (write the COLMAP model and its frames, ``colmap/``), ``colmap_text`` (its
+    ``.txt`` files beside the ``.bin``), ``colmap_max_points``.
     """
 
     chunk_size: int = 75
@@ -52,6 +53,8 @@ class PipelineConfig:
     point_conf_ratio: float = 0.75
     point_stride: int = 4
     voxel_size: float | None = None
+    colmap: bool = True
+    colmap_text: bool = False
     colmap_max_points: int = 200_000
 
     def __post_init__(self) -> None:

@@ -2,14 +2,36 @@
 
 Each temporal chunk's share of ``points.ply`` is taken while the chunk is in memory
 (:func:`chunk_points`, :func:`export_points`; saved in its chunk file, in the chunk's
-frame), so :func:`run` reads only points and poses from the chunk store -- never the dense
-maps -- and applies the optimised ``S_t``.  Files: ``poses_kitti.txt``, ``poses_tum.txt``,
-``intrinsics.txt``, ``points.ply``, ``colmap/{cameras,images,points3D}.txt``, ``loops.txt``.
+frame, with the pixel each point came from), and so are its frames as PNG for the COLMAP
+model (:func:`write_frames`; the chunk store keeps no images).  :func:`run` then reads only
+points and poses from the chunk store -- never the dense maps -- and applies the optimised
+``S_t``.
+
+Files (every text file starts with ``#`` lines saying what it holds; evo skips them):
+
+* ``poses_kitti.txt``, ``poses_tum.txt``: camera-to-world, with the unit of the poses (up
+  to scale unless the run knows a metric scale) and, for TUM, where the times come from;
+* ``intrinsics.txt``: VGGT's per-frame ``K`` at the model's resolution, and ``K_ref``;
+* ``points.ply``; ``chunk_poses.json`` (``S_t`` with and without loop closure, for the
+  viewer); ``frames.txt`` (frame index -> image name);
+* ``colmap/images/*.png`` + ``colmap/sparse/0/{cameras,images,points3D}.bin`` (``.txt`` too
+  with ``colmap_text``): a model gsplat (``--data_dir RUN/colmap``) and nerfstudio
+  (``--data RUN/colmap --colmap-path sparse/0``) load as is;
+* ``loops.txt``: every loop candidate with the keys its record carries.
+
+**Why one shared camera ``K_ref`` in the COLMAP model** (not VGGT's per-frame ``K``): the
+exported points are unprojected with ``K_ref`` after the depth normalisation (eq. 1), and
+the poses were aligned on those points, so ``K_ref`` is the camera under which every 3-D
+point lands on the pixel it came from (reprojection error ~1e-4 px, float32 rounding).
+Under the per-frame ``K`` the same observations are off by ``|K_f K_ref^-1 p - p|``
+(``bench/bench_colmap_export.py`` measures it on the demo).
 """
 
 from __future__ import annotations
 
+import json
 import pathlib
+import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -18,33 +40,45 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import camera, sim3
-from swiftjax.io.atomic import atomic_write
+from swiftjax.io.atomic import atomic_path, atomic_write
 from swiftjax.prediction import ChunkPrediction
+from swiftjax.sampling import Reservoir
 
 if TYPE_CHECKING:
-    from swiftjax import chunks
-    from swiftjax.io.chunk_store import ChunkStore
-    from swiftjax.pipeline.config import PipelineConfig
     from swiftjax.pipeline.graph import GraphResult
     from swiftjax.pipeline.loop_closure import LoopResult
-    from swiftjax.pipeline.predictors import Predictor
     from swiftjax.pipeline.rundir import RunContext
 
-__all__ = ["run", "chunk_points", "chunk_points_jit", "export_points", "world_cameras"]
+__all__ = [
+    "run", "chunk_points", "chunk_points_jit", "export_points", "write_frames", "world_cameras",
+    "pose_unit", "UP_TO_SCALE",
+]
+
+#: The unit of a run's poses and points unless a metric scale is known (``ctx.unit``).
+UP_TO_SCALE = "up to scale (VGGT's units of the first chunk; align with Sim(3) to compare with metric poses)"
+_CAMERA_AXES = "OpenCV camera axes (x right, y down, z forward)"
+
+
+def pose_unit(ctx: RunContext) -> str:
+    """The unit of the run's world coordinates: ``ctx.unit`` when set (e.g. ``"metres"`` from a
+    metric scale), else :data:`UP_TO_SCALE`."""
+    return getattr(ctx, "unit", None) or UP_TO_SCALE
 
 
 def run(
-    ctx: RunContext, graph: GraphResult, loops: LoopResult, timestamps: Sequence[float] | None = None
+    ctx: RunContext, graph: GraphResult, loops: LoopResult, timestamps: Sequence[float] | None = None,
+    timestamps_note: str | None = None,
 ) -> dict[str, Any]:
-    """Write every output of the run but the metrics (``report``); returns ``cam_to_world``,
-    ``cam_to_world_no_loops`` ``[N, 4, 4]``, ``intrinsics [N, 3, 3]`` and ``num_points``."""
-    assert ctx.K_ref is not None
+    """Write every output of the run but the report's; returns ``cam_to_world``,
+    ``cam_to_world_no_loops`` ``[N, 4, 4]``, ``intrinsics [N, 3, 3]``, ``num_points`` and a
+    uniform sample of the cloud (``sample_points [M, 3]``, ``sample_colors [M, 3]``, M <= 1e5)
+    for ``points.png``.
+
+    ``timestamps`` ``[N]`` seconds for ``poses_tum.txt`` (default: the frame index) and
+    ``timestamps_note`` where they come from (said in the file's header)."""
     with ctx.timer("export"):
-        exported = _export(
-            ctx.predictor, ctx.run_dir, ctx.schedule, ctx.store, ctx.config, ctx.K_ref, graph.chunk_poses,
-            graph.chunk_poses_no_loops, ctx.progress, timestamps,
-        )
-        _write_loops(ctx.run_dir / "loops.txt", loops.records)
+        exported = _export(ctx, graph.chunk_poses, graph.chunk_poses_no_loops, timestamps, timestamps_note)
+        write_loops(ctx.run_dir / "loops.txt", loops.records)
     return exported
 
 
@@ -93,6 +127,8 @@ def export_points(
     while the chunk is in memory, so the export never re-reads the dense maps: it only
     applies the optimised ``S_t``.  Returns ``points_xyz [P, 3]`` float32, ``points_conf
     [P]`` float32, ``points_rgb [P, 3]`` uint8 (if the prediction has images),
+    ``points_pixel [P]`` int32 (the flat index ``(f h + r) w + c`` into the ``[count, h, w]``
+    grid: frame ``f`` of the chunk, pixel ``(c stride, r stride)``; the COLMAP observations),
     ``points_grid`` (subsampled ``h, w``) and ``image_hw``.
     """
     keep = np.asarray(keep)
@@ -101,12 +137,38 @@ def export_points(
     out = {
         "points_xyz": np.asarray(points).reshape(-1, 3)[idx],
         "points_conf": np.asarray(pred.conf[:count, ::stride, ::stride], np.float32).reshape(-1)[idx],
+        "points_pixel": idx.astype(np.int32),
         "points_grid": np.asarray((h, w), np.int64),
         "image_hw": np.asarray(pred.image_hw, np.int64),
     }
     if pred.images is not None:
         out["points_rgb"] = np.asarray(pred.images[:count, ::stride, ::stride]).reshape(-1, 3)[idx]
     return out
+
+
+def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> None:
+    """The frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as PNG in
+    ``colmap/images/`` at the model's resolution -- the images the COLMAP model's cameras
+    describe -- named by :func:`swiftjax.io.colmap.image_names`.
+
+    Called by the temporal stage while the prediction is in memory, for the frames the chunk
+    owns.  Lossless PNG (Pillow, compression level 1): 4.9 ms a 518x154 frame measured on a
+    loaded 2-core machine, ~1 % of a CPU VGGT forward pass per frame; nothing when
+    ``colmap`` is off or the predictor gives no images.
+    """
+    if not ctx.config.colmap or pred.images is None:
+        return
+    from PIL import Image
+
+    from swiftjax.io.colmap import image_names
+
+    names = image_names(ctx.predictor.frame_names())
+    folder = ctx.run_dir / "colmap" / "images"
+    for k, frame in enumerate(np.asarray(frames)):
+        path = folder / names[int(frame)]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            Image.fromarray(np.asarray(pred.images[k])).save(tmp, format="PNG", compress_level=1)
 
 
 _as_matrix = jax.jit(sim3.as_matrix)
@@ -130,17 +192,21 @@ def world_cameras(chunk_pose: jax.Array, extrinsic: jax.Array) -> jax.Array:
     return jnp.concatenate([top, bottom], axis=-2)
 
 
+def _per_frame_sample(frame: np.ndarray, per_frame: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of a uniform sample of at most ``per_frame`` points of each frame (``frame [P]``
+    the points' frames), sorted: every frame with points keeps some (gsplat indexes the
+    points of every image by name)."""
+    key = rng.random(len(frame))
+    order = np.lexsort((key, frame))
+    f = frame[order]
+    start = np.searchsorted(f, f, side="left")
+    rank = np.arange(len(f)) - start
+    return np.sort(order[rank < per_frame])
+
+
 def _export(
-    predictor: Predictor,
-    run_dir: pathlib.Path,
-    schedule: chunks.ChunkSchedule,
-    store: ChunkStore,
-    config: PipelineConfig,
-    K_ref: np.ndarray,
-    chunk_poses: np.ndarray,
-    chunk_poses_no_loops: np.ndarray,
-    progress: bool,
-    timestamps: Sequence[float] | None,
+    ctx: RunContext, chunk_poses: np.ndarray, chunk_poses_no_loops: np.ndarray,
+    timestamps: Sequence[float] | None, timestamps_note: str | None,
 ) -> dict[str, Any]:
     """The final pass over the chunk store: world poses, points, COLMAP model.
 
@@ -148,9 +214,10 @@ def _export(
     never the dense maps), maps the points to the world with the optimised ``S_t`` (float64,
     written as float32) and streams them into ``points.ply``.
     """
-    from swiftjax.io import colmap, ply, trajectory
-    from swiftjax.pipeline.rundir import progress_bar
+    from swiftjax.io import colmap, ply
 
+    run_dir, schedule, store, config, K_ref = ctx.run_dir, ctx.schedule, ctx.store, ctx.config, ctx.K_ref
+    assert K_ref is not None
     n = schedule.n_frames
     T = schedule.num_chunks
     owner = np.searchsorted(schedule.starts, np.arange(n), side="right") - 1  # later chunk wins
@@ -159,19 +226,21 @@ def _export(
     with jax.enable_x64(True):
         world = np.asarray(_as_matrix(jnp.asarray(chunk_poses, jnp.float64)))  # [T, 4, 4] s R | t
     rng = np.random.default_rng(0)
-    colmap_pts: list[np.ndarray] = []
-    colmap_rgb: list[np.ndarray] = []
+    per_frame = max(1, config.colmap_max_points // n)
+    sample: dict[str, list[np.ndarray]] = {"xyz": [], "rgb": [], "frame": [], "uv": []}
+    no_pixels: list[int] = []
+    picture = Reservoir(100_000, seed=1)  # points.png's uniform sample of the cloud
     image_hw: tuple[int, int] | None = None
     total_points = 0
     with ply.PlyStreamWriter(run_dir / "points.ply") as cloud:
-        for t in progress_bar(range(T), progress, desc="export", unit="chunk"):
+        for t in ctx.bar(range(T), desc="export", unit="chunk"):
             frames = schedule.frames(t)
             own = owner[frames] == t
             extrinsics[frames[own]] = store.load_array("chunk", t, "extrinsic")[own]
             intrinsics[frames[own]] = store.load_array("chunk", t, "intrinsic")[own]
             extra = store.load_extra("chunk", t)
             image_hw = (int(extra["image_hw"][0]), int(extra["image_hw"][1]))
-            grid_size = int(np.prod(extra["points_grid"]))
+            gh, gw = (int(v) for v in extra["points_grid"])
             M = world[t]
             # s R x + t in float32 (the precision the points are written in).  einsum, not a
             # BLAS matmul: [P, 3] x [3, 3] through multi-threaded OpenBLAS measured ~60 ms per
@@ -180,59 +249,186 @@ def _export(
             xyz += M[:3, 3].astype(np.float32)
             cf = extra["points_conf"]
             rgb = extra["points_rgb"] if "points_rgb" in extra else np.full((xyz.shape[0], 3), 200, np.uint8)
+            # COLMAP: a uniform sample of each frame's points, each with the pixel it came from.
+            if "points_pixel" in extra:
+                pix = extra["points_pixel"].astype(np.int64)
+                local = pix // (gh * gw)
+                take = _per_frame_sample(local, per_frame, rng)
+                sample["xyz"].append(xyz[take])
+                sample["rgb"].append(rgb[take])
+                sample["frame"].append(frames[local[take]])
+                cell = pix[take] % (gh * gw)
+                sample["uv"].append(np.column_stack([cell % gw, cell // gw]) * config.point_stride)
+            else:
+                no_pixels.append(t)
             if config.voxel_size:
                 down = ply.voxel_downsample(xyz, rgb, cf, config.voxel_size)
                 xyz, rgb, cf = down.points, down.colors, down.conf
             cloud.append(xyz.astype(np.float32), rgb, cf.astype(np.float32))
+            picture.add(t, xyz, rgb, cf)
             total_points += xyz.shape[0]
-            # A uniform sample for COLMAP's points3D.txt (text, slow for millions of points):
-            # twice the budget over all pixels in expectation, cut to the budget at the end.
-            take = rng.random(xyz.shape[0]) < 2.0 * config.colmap_max_points / max(1, n * grid_size)
-            colmap_pts.append(xyz[take])
-            colmap_rgb.append(rgb[take])
 
     with jax.enable_x64(True):
         ext = jnp.asarray(extrinsics, jnp.float64)
         c2w = np.asarray(world_cameras(jnp.asarray(chunk_poses[owner], jnp.float64), ext))
         c2w_no_loops = np.asarray(world_cameras(jnp.asarray(chunk_poses_no_loops[owner], jnp.float64), ext))
-
-    ts = np.arange(n, dtype=np.float64) if timestamps is None else np.asarray(timestamps, np.float64)
-    trajectory.write_kitti(run_dir / "poses_kitti.txt", c2w)
-    trajectory.write_tum(run_dir / "poses_tum.txt", ts, c2w)
-    _write_intrinsics(run_dir / "intrinsics.txt", intrinsics)
-    pts_all = np.concatenate(colmap_pts) if colmap_pts else np.zeros((0, 3))
-    rgb_all = np.concatenate(colmap_rgb) if colmap_rgb else np.zeros((0, 3), np.uint8)
-    if pts_all.shape[0] > config.colmap_max_points:
-        idx = np.sort(rng.choice(pts_all.shape[0], config.colmap_max_points, replace=False))
-        pts_all, rgb_all = pts_all[idx], rgb_all[idx]
     assert image_hw is not None
     h, w = image_hw
-    # After depth normalisation every frame shares K_ref (as the exported points do).
-    colmap.write_colmap_text(
-        run_dir / "colmap", c2w, np.broadcast_to(K_ref, (n, 3, 3)), predictor.frame_names(),
-        image_size=(w, h), points=pts_all, colors=rgb_all,
-    )
+    unit = pose_unit(ctx)
+    if timestamps is None:
+        ts, note = np.arange(n, dtype=np.float64), "frame index (no timestamps given)"
+    else:
+        ts, note = np.asarray(timestamps, np.float64), timestamps_note or "given to the run"
+    _write_trajectories(run_dir, c2w, ts, unit, note)
+    _write_chunk_poses(run_dir / "chunk_poses.json", chunk_poses, chunk_poses_no_loops, unit)
+    names = colmap.image_names(ctx.predictor.frame_names())
+    with atomic_write(run_dir / "frames.txt") as f:
+        f.write("# frame name (colmap/images/<name> when the COLMAP export wrote the frames)\n")
+        f.writelines(f"{k} {name}\n" for k, name in enumerate(names))
+    write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None))
+
+    cat = lambda key, shape, dt: np.concatenate(sample[key]) if sample[key] else np.zeros(shape, dt)  # noqa: E731
+    pts, rgb = cat("xyz", (0, 3), np.float32), cat("rgb", (0, 3), np.uint8)
+    frame, uv = cat("frame", (0,), np.int64), cat("uv", (0, 2), np.int64).astype(np.float64)
+    if config.colmap:
+        if no_pixels:
+            warnings.warn(
+                f"chunks {no_pixels[:5]}{'...' if len(no_pixels) > 5 else ''} were written by an older swiftjax "
+                "without the points' pixels: their COLMAP points are left out (re-run with --overwrite)",
+                RuntimeWarning, stacklevel=2,
+            )
+        missing = [names[k] for k in range(n) if not (run_dir / "colmap" / "images" / names[k]).is_file()]
+        if missing:
+            warnings.warn(
+                f"colmap/images/ lacks {len(missing)} of {n} frames (e.g. {missing[0]}): the predictor gave no "
+                "images, or the chunks were predicted before the COLMAP export was on",
+                RuntimeWarning, stacklevel=2,
+            )
+        err = _reprojection_error(pts, frame, uv, c2w, K_ref)
+        colmap.write_colmap(
+            run_dir / "colmap" / "sparse" / "0", c2w, np.broadcast_to(K_ref, (n, 3, 3)), names,
+            image_size=(w, h), points=pts, colors=rgb, errors=err, observations=(frame, uv),
+            binary=True, text=config.colmap_text,
+        )
     return {
         "cam_to_world": c2w,
         "cam_to_world_no_loops": c2w_no_loops,
         "intrinsics": intrinsics,
         "num_points": total_points,
+        "sample_points": picture.xyz,
+        "sample_colors": picture.rgb,
     }
 
 
-def _write_intrinsics(path: pathlib.Path, intrinsics: np.ndarray) -> None:
-    """One line per frame: ``fx fy cx cy`` (VGGT's predicted intrinsics at the model's resolution)."""
+def _reprojection_error(
+    pts: np.ndarray, frame: np.ndarray, uv: np.ndarray, c2w: np.ndarray, K: np.ndarray
+) -> np.ndarray:
+    """``[M]`` pixel distance between each point projected through its frame's camera (``K``)
+    and the pixel it came from (float64; ~1e-4 px: the points are float32)."""
+    R, c = c2w[frame, :3, :3], c2w[frame, :3, 3]
+    x = np.einsum("nji,nj->ni", R, pts.astype(np.float64) - c)  # R^T (X - c)
+    proj = np.einsum("ij,nj->ni", K, x)
+    return np.linalg.norm(proj[:, :2] / proj[:, 2:] - uv, axis=1)
+
+
+def _write_trajectories(run_dir: pathlib.Path, c2w: np.ndarray, ts: np.ndarray, unit: str, note: str) -> None:
+    from swiftjax.io import trajectory
+
+    common = [
+        f"swiftjax camera-to-world poses of {len(c2w)} frames, {_CAMERA_AXES}",
+        f"unit: {unit}",
+    ]
+    trajectory.write_kitti(run_dir / "poses_kitti.txt", c2w, header=[
+        *common, "each line: the top 3x4 of the 4x4 matrix, row-major (frame order)"])
+    trajectory.write_tum(run_dir / "poses_tum.txt", ts, c2w, header=[
+        *common, f"timestamps (s): {note}", "timestamp tx ty tz qx qy qz qw"])
+
+
+def _write_chunk_poses(path: pathlib.Path, poses: np.ndarray, poses_no_loops: np.ndarray, unit: str) -> None:
+    head = {
+        "description": "chunk-to-world Sim(3) S_t of every temporal chunk as (tx, ty, tz, qx, qy, qz, qw, s): "
+                       "x_world = s R x_chunk + t",
+        "unit": unit,
+    }
+    rows = lambda p: ",\n".join("  " + json.dumps(r) for r in np.asarray(p, np.float64).tolist())  # noqa: E731
+    with atomic_write(path) as f:  # one pose a line
+        f.write(json.dumps(head, indent=1)[:-2] + ",\n")
+        f.write(f' "loop closure": [\n{rows(poses)}\n ],\n "no loop closure": [\n{rows(poses_no_loops)}\n ]\n}}\n')
+
+
+def write_intrinsics(
+    path: pathlib.Path, intrinsics: np.ndarray, K_ref: np.ndarray, size_wh: tuple[int, int], mode: str | None = None,
+) -> None:
+    """``intrinsics.txt``: a header (resolution, pixel convention, which ``K`` the point cloud
+    and the COLMAP model use), then one line per frame: ``frame fx fy cx cy``."""
+    w, h = size_wh
+    fx, fy, cx, cy = K_ref[0, 0], K_ref[1, 1], K_ref[0, 2], K_ref[1, 2]
+    lines = [
+        "swiftjax intrinsics: VGGT's predicted pinhole K of every frame (no distortion)",
+        f"resolution: {w} x {h} pixels (width x height), the model's input"
+        + (f" (preprocessing mode '{mode}')" if mode else ""),
+        "convention: OpenCV, u = fx X/Z + cx, v = fy Y/Z + cy; pixel centres at integers "
+        "(the top-left pixel's centre is (0, 0))",
+        f"K_ref = frame 0's K: fx {fx:.6f} fy {fy:.6f} cx {cx:.6f} cy {cy:.6f}; points.ply is unprojected "
+        "with K_ref after normalising each frame's depth to it (SwiftVGGT eq. 1)",
+        f"colmap/sparse/0: one shared PINHOLE camera = K_ref with cx + 0.5, cy + 0.5 "
+        f"({cx + 0.5:.6f}, {cy + 0.5:.6f}: COLMAP puts the image corner at (0, 0)), size {w} x {h}",
+        "frame fx fy cx cy",
+    ]
     with atomic_write(path) as f:
-        f.write("# frame fx fy cx cy (pixels; principal point with integer pixel centres)\n")
+        f.writelines(f"# {line}\n" for line in lines)
         for k, K in enumerate(intrinsics):
             f.write(f"{k} {K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
 
 
-def _write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
+#: loops.txt's leading columns (when the records carry them); the other keys follow.
+_LOOP_FIRST = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason")
+
+
+def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Scalars of a (nested) record as ``a.b`` keys; lists and arrays (the edge ``Z``) left out."""
+    out: dict[str, Any] = {}
+    for k, v in record.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        elif isinstance(v, (bool, int, float, str, np.generic)) or v is None:
+            out[prefix + k] = v
+    return out
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.6g}"
+    text = str(v)
+    return "_".join(text.split()) or "-"
+
+
+def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
+    """``loops.txt``: a header naming every column, then one line per loop candidate.
+
+    Columns are the scalar keys the records carry (nested dicts flattened as ``align_i.rms``;
+    the edge ``Z`` is in ``manifest.json``), ``i j score chunk_i chunk_j accepted reason``
+    first; a value a record lacks is ``-``, text has its spaces replaced by ``_``.  Records
+    without ``accepted`` predate loop verification: every such loop entered the pose graph.
+    """
+    rows = [_flatten(r) for r in records]
+    keys: list[str] = [k for k in _LOOP_FIRST if any(k in r for r in rows)]
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    accepted = sum(1 for r in rows if r.get("accepted", True))
+    lines = [
+        "swiftjax loop candidates: frames i and j (0-based) look at the same place; score = cosine of "
+        "their whitened descriptors",
+        f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), {len(rows) - accepted} rejected"
+        + ("" if any("accepted" in r for r in rows) else "; no verification verdicts recorded: all were used"),
+        "align_i / align_j: the loop chunk's alignment to chunk_i / chunk_j (num_points = reliable points used)",
+        " ".join(keys) if keys else "i j score chunk_i chunk_j",
+    ]
     with atomic_write(path) as f:
-        f.write("# i j score chunk_i chunk_j points_i points_j\n")
-        for r in records:
-            f.write(
-                f"{r['i']} {r['j']} {r['score']:.6f} {r['chunk_i']} {r['chunk_j']} "
-                f"{r['align_i']['num_points']} {r['align_j']['num_points']}\n"
-            )
+        f.writelines(f"# {line}\n" for line in lines)
+        for r in rows:
+            f.write(" ".join(_cell(r.get(k)) for k in keys) + "\n")

@@ -1,4 +1,5 @@
-"""The run's report: ``metrics.json``, the trajectory plot and the end-of-run summary table."""
+"""The run's report: ``metrics.json``, ``trajectory.png``, ``points.png``, the ground truth the
+run was given (``ground_truth_kitti.txt``) and the end-of-run summary table."""
 
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ def write(
     ctx: RunContext, temporal: TemporalResult, loops: LoopResult, graph: GraphResult,
     exported: dict[str, Any], ground_truth: np.ndarray | None,
 ) -> dict[str, Any]:
-    """Write ``metrics.json`` and ``trajectory.png``; returns the metrics."""
+    """Write ``metrics.json``, ``trajectory.png``, ``points.png`` and, with a ground truth,
+    ``ground_truth_kitti.txt`` (for the viewer); returns the metrics."""
     metrics = _metrics(
         ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
         ctx.timer.seconds, exported, ground_truth,
@@ -32,6 +34,13 @@ def write(
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)
     _plot(ctx.run_dir / "trajectory.png", exported, ground_truth, loops.records)
+    _plot_points(ctx.run_dir / "points.png", exported, loops.records)
+    if ground_truth is not None:
+        from swiftjax.io import trajectory
+
+        trajectory.write_kitti(ctx.run_dir / "ground_truth_kitti.txt", ground_truth, header=[
+            "the ground truth given to this run: camera-to-world poses as given (metres, its own frame)",
+        ])
     return metrics
 
 
@@ -86,6 +95,16 @@ def _plot(
         title = f"ATE {result.rmse:.3g} m (Sim(3)-aligned)"
     pairs = np.array([(r["i"], r["j"]) for r in loop_records], dtype=np.int64).reshape(-1, 2)
     plot.plot_trajectory(path, estimate, reference=reference, loops=pairs, title=title)
+
+
+def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]]) -> None:
+    """Bird's-eye view of a uniform sample of the cloud with the cameras."""
+    from swiftjax.io import plot
+
+    pairs = np.array([(r["i"], r["j"]) for r in loop_records if r.get("accepted", True)], np.int64).reshape(-1, 2)
+    plot.plot_points(path, exported["sample_points"], exported["sample_colors"], exported["cam_to_world"],
+                     loops=pairs, title=f"swiftjax: {len(exported['sample_points']):,} of "
+                     f"{exported['num_points']:,} points, {len(exported['cam_to_world'])} cameras")
 
 
 def summary_table(result: RunResult) -> str:

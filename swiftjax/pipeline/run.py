@@ -42,6 +42,7 @@ def reconstruct(
     overwrite: bool = False,
     progress: bool = True,
     timestamps: Sequence[float] | None = None,
+    timestamps_note: str | None = None,
     log: Callable[[str], None] = print,
 ) -> RunResult:
     """Run SwiftVGGT over every frame of ``predictor`` and write the outputs to ``run_dir``.
@@ -56,12 +57,14 @@ def reconstruct(
         overwrite: replace a run directory that belongs to another input/configuration.
         progress: show tqdm progress bars.
         timestamps: ``[N]`` times for ``poses_tum.txt`` (default: the frame index).
+        timestamps_note: where the times come from (``poses_tum.txt``'s header says it).
         log: where one-line messages go.
 
     Returns:
         :class:`RunResult`; the files are ``poses_kitti.txt``, ``poses_tum.txt``,
-        ``intrinsics.txt``, ``points.ply``, ``loops.txt``, ``trajectory.png``,
-        ``metrics.json``, ``colmap/{cameras,images,points3D}.txt`` and the chunk store.
+        ``intrinsics.txt``, ``points.ply``, ``loops.txt``, ``trajectory.png``, ``points.png``,
+        ``metrics.json``, ``chunk_poses.json``, ``frames.txt``, ``colmap/images/*.png`` +
+        ``colmap/sparse/0/*.bin`` (see :mod:`swiftjax.pipeline.export`) and the chunk store.
     """
     run_dir = pathlib.Path(run_dir)
     n = int(predictor.num_frames)
@@ -76,7 +79,7 @@ def reconstruct(
     chain = temporal.run(ctx)
     loops = loop_closure.run(ctx, chain)
     poses = graph.run(ctx, chain, loops)
-    exported = export.run(ctx, poses, loops, timestamps)
+    exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
     metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
 
     return RunResult(

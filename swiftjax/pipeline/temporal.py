@@ -32,7 +32,7 @@ import numpy as np
 from swiftjax import align, loops, sim3
 from swiftjax.io.chunk_store import ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
-from swiftjax.pipeline.export import chunk_points_jit, export_points
+from swiftjax.pipeline.export import chunk_points_jit, export_points, write_frames
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext
 from swiftjax.prediction import ChunkPrediction
 
@@ -109,13 +109,14 @@ def run(ctx: RunContext) -> TemporalResult:
                         jnp.float32(config.point_conf_ratio), count=count, stride=config.point_stride,
                     )
                     points = export_points(pred, pts, keep, config.point_stride)
+                    write_frames(ctx, frames[:count], pred)  # the frames it owns, for colmap/images/
 
                 with timer("chunk store"):
                     depth, conf = (
                         np.asarray(half) if _fits_half(x) else half_if_fits(x)
                         for half, x in zip(halves, (pred.depth, pred.conf))
                     )
-                    # Images only feed the export points' colours (taken above): not stored.
+                    # Images feed the export points' colours and colmap/images/ (above): not stored.
                     stored = dataclasses.replace(pred, depth=depth, conf=conf, images=None)
                     dirty = records.commit(writer.submit(t, "chunk", t, stored, {"frames": frames, **points}))
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
