@@ -143,12 +143,14 @@ def run(ctx: RunContext) -> TemporalResult:
                 with timer("chunk store"):
                     manifest.save_soon()
         with timer("chunk store"):
-            records.commit(writer.finished(wait=True))
+            if records.commit(writer.finished(wait=True)):
+                manifest.save_soon()  # marks the change for flush() (an earlier save may be recent)
             manifest.flush()
     finally:
         writer.close()
         with contextlib.suppress(Exception):  # interrupted: keep every complete chunk file
-            records.commit(writer.finished(wait=True))
+            if records.commit(writer.finished(wait=True)):
+                manifest.save_soon()
         manifest.flush()
     assert descriptors is not None and K_ref is not None
     ctx.K_ref = K_ref
