@@ -88,6 +88,7 @@ __all__ = [
     "cross_chunk_consistency",
     "LoopQuality",
     "loop_chunk_quality",
+    "candidate_numbers",
     "odometry_covariance",
     "loop_covariance",
     "pairwise_consistency",
@@ -345,15 +346,60 @@ class LoopQuality(NamedTuple):
     valid: jax.Array
 
 
-@jax.jit
-def loop_chunk_quality(info_i: align.AlignInfo, info_j: align.AlignInfo) -> LoopQuality:
-    """:class:`LoopQuality` from the two halves' :class:`~swiftjax.align.AlignInfo` (any batch shape)."""
+def loop_chunk_quality(info_i: Any, info_j: Any) -> LoopQuality:
+    """:class:`LoopQuality` of the two halves' alignments (any batch shape; jit-able).
+
+    ``info_i``, ``info_j``: :class:`~swiftjax.align.AlignInfo`, or anything with its fields
+    ``num_points``, ``fraction_used``, ``rms``, ``valid``, ``pose_fallback`` (e.g. the
+    pipeline's per-half record dicts, whose keys are those names).
+    """
+    get = lambda x, k: jnp.asarray(x[k] if isinstance(x, dict) else getattr(x, k))  # noqa: E731
     return LoopQuality(
-        min_points=jnp.minimum(info_i.num_points, info_j.num_points),
-        min_fraction=jnp.minimum(info_i.fraction_used, info_j.fraction_used),
-        max_rms=jnp.maximum(info_i.rms, info_j.rms),
-        valid=info_i.valid & info_j.valid & ~info_i.pose_fallback & ~info_j.pose_fallback,
+        min_points=jnp.minimum(get(info_i, "num_points"), get(info_j, "num_points")),
+        min_fraction=jnp.minimum(get(info_i, "fraction_used"), get(info_j, "fraction_used")),
+        max_rms=jnp.maximum(get(info_i, "rms"), get(info_j, "rms")),
+        valid=(get(info_i, "valid") & get(info_j, "valid")
+               & ~get(info_i, "pose_fallback") & ~get(info_j, "pose_fallback")),
     )
+
+
+def candidate_numbers(
+    side_i: align.ChunkFrames,
+    side_j: align.ChunkFrames,
+    Z: np.ndarray,
+    K_ref: np.ndarray,
+    info_i: Any,
+    info_j: Any,
+    config: "VerificationConfig | None" = None,
+) -> dict[str, Any]:
+    """The verification numbers of one candidate as a plain dict (host level, for records).
+
+    ``side_i``/``side_j``: ``[F, H, W]`` frames of the temporal chunks around both ends (as
+    :func:`cross_chunk_consistency`, without the candidate axis); ``Z [8]`` maps c_i into
+    c_j; ``info_i``/``info_j`` the halves' alignment diagnostics (:func:`loop_chunk_quality`).
+    Keys: ``dense_agreement``, ``dense_overlap`` (the smaller direction's), ``dense_i_to_j``
+    and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
+    ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``.
+    """
+    config = config or VerificationConfig()
+    one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))  # noqa: E731
+    cc = cross_chunk_consistency(
+        one(side_i), one(side_j), np.asarray(Z, np.float32)[None], K_ref, stride=config.stride,
+        depth_tolerance=config.depth_tolerance, neighbours=config.neighbours,
+    )
+    plain = lambda info: {k: float(np.asarray(v)[0]) if np.asarray(v).dtype.kind == "f" else int(np.asarray(v)[0])  # noqa: E731
+                          for k, v in info._asdict().items()}
+    q = loop_chunk_quality(info_i, info_j)
+    return {
+        "dense_agreement": float(np.asarray(cc.score)[0]),
+        "dense_overlap": float(min(np.asarray(cc.i_to_j.overlap)[0], np.asarray(cc.j_to_i.overlap)[0])),
+        "dense_i_to_j": plain(cc.i_to_j),
+        "dense_j_to_i": plain(cc.j_to_i),
+        "quality_valid": bool(q.valid),
+        "quality_min_points": int(q.min_points),
+        "quality_min_fraction": float(q.min_fraction),
+        "quality_max_rms": float(q.max_rms),
+    }
 
 
 # ------------------------------------------------------------------- pairwise (PCM)

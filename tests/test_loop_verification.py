@@ -361,3 +361,16 @@ def test_verify_candidates_rules_and_pcm(x64):
     assert single[0].accepted and single[0].reason == "verified"
     off = V.verify_candidates(recs[:5], X, rel, V.VerificationConfig(pcm=False))
     assert all(d.accepted for d in off)
+
+
+def test_candidate_numbers_from_record_dicts():
+    src, dst, S = scene(seed=7)
+    half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
+    out = V.candidate_numbers(src, dst, S, K, half, dict(half, fraction_used=0.3, rms=0.05))
+    cc = V.cross_chunk_consistency(*(align.ChunkFrames(*(np.asarray(a)[None] for a in f)) for f in (src, dst)),
+                                   S[None], K)
+    assert out["dense_agreement"] == pytest.approx(float(cc.score[0]))
+    assert out["dense_i_to_j"]["pairs_agree"] == int(cc.i_to_j.pairs_agree[0])
+    assert out["quality_valid"] and out["quality_min_fraction"] == pytest.approx(0.3)
+    assert out["quality_max_rms"] == pytest.approx(0.05) and out["quality_min_points"] == 900
+    assert not V.candidate_numbers(src, dst, S, K, half, dict(half, pose_fallback=True))["quality_valid"]
