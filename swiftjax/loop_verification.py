@@ -653,6 +653,11 @@ def verify_candidates(
                 Z = np.asarray(sim3.inverse(jnp.asarray(Z)))
         nodes.append((min(ci, cj), max(ci, cj)))
         Zs.append(Z)
+    # padded to a power of two (>= 8) so that one compile serves many candidate counts
+    n = len(alive)
+    size = max(8, 1 << (n - 1).bit_length())
+    nodes += [(0, 1)] * (size - n)
+    Zs += [np.array([0, 0, 0, 0, 0, 0, 1, 1.0])] * (size - n)
     with jax.enable_x64(True):
         Zj = jnp.asarray(np.stack(Zs))
         odo = odometry_covariance(
@@ -662,7 +667,7 @@ def verify_candidates(
         lc = loop_covariance(Zj, config.loop_sigma_rot, config.loop_sigma_trans, config.loop_sigma_scale)
         m = np.asarray(pairwise_consistency(
             jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc
-        ))
+        ))[:n, :n]
     clique = set(max_consistent_set(
         m <= config.pcm_threshold, [float(records[k]["dense_agreement"]) for k in alive]
     ))

@@ -374,3 +374,65 @@ def test_candidate_numbers_from_record_dicts():
     assert out["quality_valid"] and out["quality_min_fraction"] == pytest.approx(0.3)
     assert out["quality_max_rms"] == pytest.approx(0.05) and out["quality_min_points"] == 900
     assert not V.candidate_numbers(src, dst, S, K, half, dict(half, pose_fallback=True))["quality_valid"]
+
+
+# ------------------------------------------------------------------ pipeline hooks
+
+
+class _Ctx:
+    """The parts of a RunContext the loop-closure decisions use."""
+
+    def __init__(self, **config):
+        from swiftjax.pipeline import PipelineConfig
+        from swiftjax.pipeline.rundir import StageTimer
+
+        self.config = PipelineConfig(**config)
+        self.timer = StageTimer()
+        self.lines = []
+        self.log = self.lines.append
+
+
+def test_pipeline_decisions_all_rejected_none_option_and_empty(x64):
+    from swiftjax.pipeline import loop_closure
+    from swiftjax.pipeline.temporal import TemporalResult
+
+    rel, X, nodes, Z = chain_problem(5)
+    temporal = TemporalResult(np.zeros((12, 4)), rel, [], K)
+    bad = [record(int(q), int(p), z, agreement=0.1) for (p, q), z in zip(nodes, Z)]
+    ctx = _Ctx()
+    loop_closure._decide(ctx, temporal, bad)
+    loop_closure._log_decisions(ctx, bad)
+    assert not any(r["accepted"] for r in bad)
+    assert "every candidate was rejected" in ctx.lines[-1] and "without loop closure" in ctx.lines[-1]
+    ctx = _Ctx(loop_verification="none")
+    loop_closure._decide(ctx, temporal, bad)
+    assert all(r["accepted"] and "without verification" in r["reason"] for r in bad)
+    loop_closure._log_decisions(ctx, [])
+    assert "no loop candidates" in ctx.lines[-1]
+    with pytest.raises(ValueError, match="loop_verification"):
+        _Ctx(loop_verification="maybe")
+
+
+def test_loops_txt_and_plot_with_rejected_candidates(tmp_path):
+    from swiftjax.io import plot
+    from swiftjax.pipeline import export
+
+    recs = [
+        {"i": 150, "j": 20, "score": 0.7, "chunk_i": 5, "chunk_j": 0, "align_i": {"num_points": 10},
+         "align_j": {"num_points": 12}, "dense_agreement": 0.8, "dense_overlap": 0.9, "accepted": True,
+         "reason": "verified"},
+        {"i": 60, "j": 30, "score": 0.5, "chunk_i": 2, "chunk_j": 1, "accepted": False,
+         "reason": "chunks 1 and 2 are neighbours (their temporal edge)"},
+    ]
+    export.write_loops(tmp_path / "loops.txt", recs)
+    lines = (tmp_path / "loops.txt").read_text().splitlines()
+    keys = [x for x in lines if x.startswith("#")][-1][2:].split()
+    rows = [dict(zip(keys, x.split())) for x in lines if not x.startswith("#")]
+    assert rows[0]["accepted"] == "yes" and rows[0]["dense_agreement"] == "0.8" and rows[0]["align_i.num_points"] == "10"
+    assert rows[1]["accepted"] == "no" and rows[1]["dense_agreement"] == "-"
+    assert rows[1]["reason"] == "chunks_1_and_2_are_neighbours_(their_temporal_edge)"
+    est = np.cumsum(np.ones((200, 3)), axis=0)
+    plot.plot_trajectory(tmp_path / "t.png", est, loops=[[150, 20]], rejected=[[60, 30]])
+    assert (tmp_path / "t.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="rejected"):
+        plot.plot_trajectory(tmp_path / "u.png", est, rejected=[[260, 30]])

@@ -43,10 +43,20 @@ class CountingPredictor:
         return self.inner.frame_names()
 
 
+#: A look-alike pair planted in the small route's place tokens (frames 187-206 resemble
+#: 86-105, ~60 m apart): the detector proposes a false loop, verification must reject it.
+ALIASING = ((187, 86, 20),)
+
+
 @pytest.fixture(scope="module")
 def small_run():
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
-    return demo.trajectory_run(poses, seed=3, image_hw=IMAGE_HW)
+    return demo.trajectory_run(poses, seed=3, image_hw=IMAGE_HW, aliasing=ALIASING)
+
+
+def loop_chunks_predicted(result):
+    """Candidates that got a loop chunk (all but those between neighbouring chunks)."""
+    return sum("align_i" in r for r in result.loop_candidates)
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +73,7 @@ def result(small_run, tmp_path_factory):
 def test_every_chunk_and_loop_chunk_was_predicted_once(result):
     schedule = chunks.chunk_schedule(result.num_frames, CONFIG.chunk_size, CONFIG.overlap)
     assert result.num_chunks == schedule.num_chunks
-    assert result.calls == schedule.num_chunks + len(result.loops)
+    assert result.calls == schedule.num_chunks + loop_chunks_predicted(result)
 
 
 def test_loop_closure_finds_the_revisit_and_reduces_drift(result, small_run):
@@ -78,6 +88,31 @@ def test_loop_closure_finds_the_revisit_and_reduces_drift(result, small_run):
     assert m["ate_rmse"] < m["ate_rmse_no_loops"]
     extent = np.ptp(small_run.ground_truth[:, :3, 3], axis=0).max()
     assert m["ate_rmse"] < 0.02 * extent
+
+
+def test_loop_candidates_are_verified_and_recorded(result, small_run):
+    """The planted look-alike is proposed and rejected; every candidate is in loops.txt,
+    metrics.json and the manifest with its verdict."""
+    gt = small_run.ground_truth[:, :3, 3]
+    cands = result.loop_candidates
+    gap = {(r["i"], r["j"]): np.linalg.norm(gt[r["i"]] - gt[r["j"]]) for r in cands}
+    false = [r for r in cands if gap[r["i"], r["j"]] > 20.0]
+    assert false and not any(r["accepted"] for r in false)
+    assert all("disagree" in r["reason"] or "do not see" in r["reason"] or "pairwise" in r["reason"] for r in false)
+    assert [r for r in cands if r["accepted"]] == result.loops and len(result.loops) >= 1
+    lines = (result.run_dir / "loops.txt").read_text().splitlines()
+    keys = [x for x in lines if x.startswith("#")][-1][2:].split()
+    rows = [dict(zip(keys, x.split())) for x in lines if not x.startswith("#")]
+    assert [(int(x["i"]), int(x["j"]), x["accepted"] == "yes", x["reason"]) for x in rows] == [
+        (r["i"], r["j"], r["accepted"], "_".join(r["reason"].split())) for r in cands]
+    metrics = json.loads((result.run_dir / "metrics.json").read_text())
+    assert [(c["i"], c["j"], c["accepted"]) for c in metrics["loop_candidates"]] == [
+        (r["i"], r["j"], r["accepted"]) for r in cands]
+    manifest = json.loads((result.run_dir / "manifest.json").read_text())
+    for r in cands:
+        if "align_i" in r:
+            stored = manifest["loop_edges"][f"{r['i']}-{r['j']}"]
+            assert stored["accepted"] == r["accepted"] and stored["dense_agreement"] == r["dense_agreement"]
 
 
 def test_trajectory_files_round_trip_with_orthonormal_rotations(result):
@@ -212,7 +247,7 @@ def test_interrupted_run_resumes_after_the_last_complete_chunk(small_run, result
     assert sorted(manifest["chunks"]) == ["0", "1", "2"] and sorted(manifest["edges"]) == ["0", "1"]
     again = CountingPredictor(small_run.predictor)
     out = pipeline.reconstruct(again, run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False)
-    assert again.calls == result.num_chunks - 3 + len(result.loops)
+    assert again.calls == result.num_chunks - 3 + loop_chunks_predicted(result)
     extent = np.abs(result.cam_to_world[:, :3, 3]).max()
     np.testing.assert_allclose(out.cam_to_world, result.cam_to_world, atol=1e-4 * extent)
     assert not np.array_equal(out.cam_to_world, result.cam_to_world)  # really re-aligned

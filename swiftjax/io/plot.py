@@ -42,6 +42,7 @@ def plot_trajectory(
     title: str | None = None,
     axes: tuple[int, int] | None = None,
     dpi: int = 120,
+    rejected: np.ndarray | None = None,
 ) -> None:
     """Write a top-view PNG of ``estimate`` (and ``reference``) to ``path``.
 
@@ -53,6 +54,7 @@ def plot_trajectory(
         loops: optional ``[M, 2]`` frame-index pairs; each is drawn as a segment between the
             two estimated positions.
         title: figure title.
+        rejected: optional ``[R, 2]`` rejected loop candidates, drawn as dotted grey segments.
         axes: the two coordinate axes to plot (default: :func:`top_view_axes` of the reference,
             or of the estimate).
         dpi: resolution.
@@ -65,9 +67,11 @@ def plot_trajectory(
 
     est = _positions(estimate, "estimate")
     ref = None if reference is None else _positions(reference, "reference")
-    lp = np.zeros((0, 2), np.int64) if loops is None else np.asarray(loops, np.int64).reshape(-1, 2)
-    if lp.size and (lp.min() < 0 or lp.max() >= len(est)):
-        raise ValueError(f"loops index frames outside [0, {len(est)})")
+    pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)  # noqa: E731
+    lp, rj = pairs(loops), pairs(rejected)
+    for name, p in (("loops", lp), ("rejected", rj)):
+        if p.size and (p.min() < 0 or p.max() >= len(est)):
+            raise ValueError(f"{name} index frames outside [0, {len(est)})")
     a, b = axes if axes is not None else top_view_axes(ref if ref is not None else est)
     fig = Figure(figsize=(7, 7))
     FigureCanvasAgg(fig)
@@ -76,6 +80,9 @@ def plot_trajectory(
         ax.plot(ref[:, a], ref[:, b], "-", color="0.55", lw=1.5, label="reference")
     ax.plot(est[:, a], est[:, b], "-", color="tab:blue", lw=1.0, label="estimate")
     ax.plot(est[:1, a], est[:1, b], "o", color="tab:green", ms=6, label="start")
+    for k, (i, j) in enumerate(rj):
+        ax.plot(est[[i, j], a], est[[i, j], b], ":", color="0.35", lw=0.9,
+                label="rejected loop candidates" if k == 0 else None)
     for k, (i, j) in enumerate(lp):
         ax.plot(est[[i, j], a], est[[i, j], b], "-", color="tab:red", lw=0.8,
                 label="loop closures" if k == 0 else None)
@@ -125,9 +132,11 @@ def plot_points(
     if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)) or len(c2w) == 0:
         raise ValueError(f"cameras must be camera-to-world poses [N, 4, 4], got shape {c2w.shape}")
     est = c2w[:, :3, 3]
-    lp = np.zeros((0, 2), np.int64) if loops is None else np.asarray(loops, np.int64).reshape(-1, 2)
-    if lp.size and (lp.min() < 0 or lp.max() >= len(est)):
-        raise ValueError(f"loops index frames outside [0, {len(est)})")
+    pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)  # noqa: E731
+    lp, rj = pairs(loops), pairs(rejected)
+    for name, p in (("loops", lp), ("rejected", rj)):
+        if p.size and (p.min() < 0 or p.max() >= len(est)):
+            raise ValueError(f"{name} index frames outside [0, {len(est)})")
     a, b = top_view_axes(est) if len(est) > 1 else (0, 2)
     vertical = 3 - a - b
     up = -c2w[:, :3, 1].mean(axis=0)  # OpenCV: the camera's y axis points down
@@ -146,6 +155,9 @@ def plot_points(
                rasterized=True)
     ax.plot(x(est), est[:, b], "-", color="tab:blue", lw=1.2, label="cameras")
     ax.plot(x(est[:1]), est[:1, b], "o", color="tab:green", ms=6, label="start")
+    for k, (i, j) in enumerate(rj):
+        ax.plot(est[[i, j], a], est[[i, j], b], ":", color="0.35", lw=0.9,
+                label="rejected loop candidates" if k == 0 else None)
     for k, (i, j) in enumerate(lp):
         ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color="tab:red", lw=1.0,
                 label="loop closures" if k == 0 else None)

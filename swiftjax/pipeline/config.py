@@ -21,7 +21,12 @@ class PipelineConfig:
     ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
     (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold`` (cosine of the
     whitened descriptors), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
-    ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Pose
+    ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Loop
+    verification (:mod:`swiftjax.loop_verification`): ``loop_verification`` (``"geometric"``:
+    every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
+    pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
+    candidate above the threshold is an edge), ``loop_min_agreement`` (the dense test's
+    bound), ``loop_pcm`` (the pairwise test).  Pose
     graph: ``robust_loops`` (``None``, ``"huber"`` or ``"cauchy"`` on loop edges; the
     authors use none), ``robust_scale``, ``max_lm_steps``.  Output: ``point_conf_ratio``
     (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
@@ -47,6 +52,9 @@ class PipelineConfig:
     whitening_remove: int = 1
     power_beta: float = 0.5
     loop_half_window: int = 10
+    loop_verification: str = "geometric"
+    loop_min_agreement: float = 0.55
+    loop_pcm: bool = True
     robust_loops: str | None = None
     robust_scale: float = 1.0
     max_lm_steps: int = 100
@@ -68,6 +76,12 @@ class PipelineConfig:
             raise ValueError(f"alignment must be 'umeyama' or 'irls', got {self.alignment!r}")
         if self.robust_loops not in (None, "huber", "cauchy"):
             raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
+        if self.loop_verification not in ("geometric", "none"):
+            raise ValueError(
+                f"loop_verification must be 'geometric' or 'none', got {self.loop_verification!r}"
+            )
+        if not 0.0 <= self.loop_min_agreement <= 1.0:
+            raise ValueError(f"loop_min_agreement must be in [0, 1], got {self.loop_min_agreement}")
         if self.point_stride < 1:
             raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
         if self.loop_closure and (self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size):

@@ -6,6 +6,13 @@ between neighbouring chunks duplicates their temporal edge and is dropped.  Each
 ``j``; each half is aligned with the temporal chunk it overlaps, reading only those frames
 from the chunk's file (memory-mapped), and the two alignments give the loop edge
 (:func:`swiftjax.loops.loop_edge`).  Finished loop edges are recorded in the manifest.
+
+Every candidate is a hypothesis (``loop_verification = "geometric"``, the default): its
+temporal chunks' own frames around both ends are checked against each other under the
+candidate edge, its loop chunk's alignments are checked, and the survivors must be pairwise
+consistent (:mod:`swiftjax.loop_verification`).  Each candidate, accepted or not, is a record
+with its numbers, ``accepted`` and a one-line ``reason``; only accepted ones become edges.
+``loop_verification = "none"`` is the authors' rule: every candidate is an edge.
 """
 
 from __future__ import annotations
@@ -17,8 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align, loops
+from swiftjax import loop_verification as lv
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult, align_pair
+from swiftjax.posegraph import chain_poses
 
 __all__ = ["LoopEdge", "LoopResult", "run"]
 
@@ -64,6 +73,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
             half_window=config.loop_half_window,
         )
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
+        neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
 
     hw2 = 2 * config.loop_half_window
@@ -93,9 +103,74 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
                     }
                     manifest.data["loop_edges"][key] = record
                     manifest.save_soon()
+                if config.loop_verification == "geometric" and "dense_agreement" not in record:
+                    record.update(_verification_numbers(ctx, lp, record, K_ref))
+                    manifest.save_soon()
                 loop_records.append(record)
-                # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
-                loop_edges.append(LoopEdge(record["chunk_j"], record["chunk_i"], np.asarray(record["Z"])))
         finally:
             manifest.flush()  # also when interrupted: keep the finished loop edges
+    # The decisions depend on all candidates: recomputed every run, written beside the numbers.
+    _decide(ctx, temporal, loop_records)
+    for r in loop_records:
+        if r["accepted"]:
+            # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
+            loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])))
+    loop_records += [
+        {"i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i, "chunk_j": lp.chunk_j,
+         "accepted": False, "reason": f"chunks {lp.chunk_j} and {lp.chunk_i} are neighbours (their temporal edge)"}
+        for lp in neighbours
+    ]
+    # Every candidate's verdict, also those without a loop chunk (the viewer reads this list).
+    manifest.data["loops"] = [
+        {k: r[k] for k in ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason")} for r in loop_records
+    ]
+    manifest.save_soon()
+    manifest.flush()
+    _log_decisions(ctx, loop_records)
     return LoopResult(loop_records, loop_edges)
+
+
+def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any], K_ref: np.ndarray) -> dict[str, Any]:
+    """:func:`swiftjax.loop_verification.candidate_numbers` of one candidate: the temporal
+    chunks' own frames around ``i`` (chunk ``c_i``) and ``j`` (chunk ``c_j``), read from the
+    store (the frames the loop chunk's halves overlap)."""
+    hw2 = 2 * ctx.config.loop_half_window
+    sides = []
+    for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
+        local = lp.frames[half] - ctx.schedule.starts[c]
+        sides.append(align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=())))
+    with ctx.timer("loop verification"):
+        return lv.candidate_numbers(
+            sides[0], sides[1], np.asarray(record["Z"]), K_ref, record["align_i"], record["align_j"],
+            _verification_config(ctx.config),
+        )
+
+
+def _verification_config(config) -> lv.VerificationConfig:
+    return lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm)
+
+
+def _decide(ctx: RunContext, temporal: TemporalResult, records: list[dict[str, Any]]) -> None:
+    """Set ``accepted``, ``reason`` (and ``pcm_residual``) on every record, in place."""
+    if ctx.config.loop_verification == "none":
+        for r in records:
+            r.update(accepted=True, reason="accepted without verification (loop_verification = none)")
+        return
+    with ctx.timer("loop verification"):
+        decisions = lv.verify_candidates(
+            records, chain_poses(temporal.relative), temporal.relative, _verification_config(ctx.config)
+        )
+    for r, d in zip(records, decisions):
+        r.update(accepted=d.accepted, reason=d.reason, pcm_residual=d.pcm_residual)
+
+
+def _log_decisions(ctx: RunContext, records: list[dict[str, Any]]) -> None:
+    """One line per run: candidates, accepted, and what happens when none is accepted."""
+    if not records:
+        ctx.log("loop closure: no loop candidates; the run continues without loop closure")
+        return
+    accepted = sum(r["accepted"] for r in records)
+    line = f"loop closure: {len(records)} candidate(s), {accepted} accepted"
+    if accepted == 0:
+        line += "; every candidate was rejected (see loops.txt), the run continues without loop closure"
+    ctx.log(line)

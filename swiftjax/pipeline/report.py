@@ -57,7 +57,8 @@ def _metrics(
     out: dict[str, Any] = {
         "frames": n,
         "chunks": T,
-        "loops": len(loop_records),
+        "loops": sum(bool(r.get("accepted", True)) for r in loop_records),
+        "loop_candidates": [_candidate(r) for r in loop_records],
         "points": int(exported["num_points"]),
         "timings_seconds": timings,
         "alignment": {
@@ -77,6 +78,14 @@ def _metrics(
     return out
 
 
+def _candidate(r: dict[str, Any]) -> dict[str, Any]:
+    """A loop candidate's numbers for ``metrics.json`` (NaN as null)."""
+    keys = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason", "dense_agreement",
+            "dense_overlap", "quality_min_fraction", "quality_max_rms", "pcm_residual")
+    finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v  # noqa: E731
+    return {k: finite(r[k]) for k in keys if k in r}
+
+
 def _plot(
     path: pathlib.Path, exported: dict[str, Any], ground_truth: np.ndarray | None,
     loop_records: list[dict[str, Any]],
@@ -93,8 +102,13 @@ def _plot(
         result = evaluation.ate(estimate, reference)
         estimate = result.aligned
         title = f"ATE {result.rmse:.3g} m (Sim(3)-aligned)"
-    pairs = np.array([(r["i"], r["j"]) for r in loop_records], dtype=np.int64).reshape(-1, 2)
-    plot.plot_trajectory(path, estimate, reference=reference, loops=pairs, title=title)
+    pairs = {
+        ok: np.array([(r["i"], r["j"]) for r in loop_records if bool(r.get("accepted", True)) == ok],
+                     dtype=np.int64).reshape(-1, 2)
+        for ok in (True, False)
+    }
+    plot.plot_trajectory(path, estimate, reference=reference, loops=pairs[True], rejected=pairs[False],
+                         title=title)
 
 
 def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]]) -> None:
@@ -115,7 +129,8 @@ def summary_table(result: RunResult) -> str:
     rows: list[list[Any]] = [
         ["frames", m["frames"]],
         ["chunks", m["chunks"]],
-        ["loops closed", m["loops"]],
+        ["loop candidates", len(m.get("loop_candidates", []))],
+        ["loops closed (verified)", m["loops"]],
         ["points written", m["points"]],
     ]
     rows += [[f"time: {k} (s)", float(v)] for k, v in m["timings_seconds"].items()]

@@ -23,7 +23,7 @@ class RunResult:
     run_dir: pathlib.Path
     num_frames: int
     num_chunks: int
-    loops: list[dict[str, Any]]
+    loops: list[dict[str, Any]]  # the accepted loop candidates (loop edges)
     chunk_poses: np.ndarray  # [T, 8] optimised chunk-to-world
     chunk_poses_no_loops: np.ndarray  # [T, 8] chained alignment only
     cam_to_world: np.ndarray  # [N, 4, 4] (rotation orthonormal)
@@ -31,6 +31,7 @@ class RunResult:
     intrinsics: np.ndarray  # [N, 3, 3]
     timings: dict[str, float]
     metrics: dict[str, Any]
+    loop_candidates: list[dict[str, Any]] = dataclasses.field(default_factory=list)  # every one, with its verdict
 
 
 def reconstruct(
@@ -86,7 +87,7 @@ def reconstruct(
         run_dir=run_dir,
         num_frames=n,
         num_chunks=ctx.schedule.num_chunks,
-        loops=loops.records,
+        loops=[r for r in loops.records if r["accepted"]],
         chunk_poses=poses.chunk_poses,
         chunk_poses_no_loops=poses.chunk_poses_no_loops,
         cam_to_world=exported["cam_to_world"],
@@ -94,4 +95,5 @@ def reconstruct(
         intrinsics=exported["intrinsics"],
         timings=dict(ctx.timer.seconds),
         metrics=metrics,
+        loop_candidates=loops.records,
     )
