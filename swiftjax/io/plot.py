@@ -132,11 +132,9 @@ def plot_points(
     if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)) or len(c2w) == 0:
         raise ValueError(f"cameras must be camera-to-world poses [N, 4, 4], got shape {c2w.shape}")
     est = c2w[:, :3, 3]
-    pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)  # noqa: E731
-    lp, rj = pairs(loops), pairs(rejected)
-    for name, p in (("loops", lp), ("rejected", rj)):
-        if p.size and (p.min() < 0 or p.max() >= len(est)):
-            raise ValueError(f"{name} index frames outside [0, {len(est)})")
+    lp = np.zeros((0, 2), np.int64) if loops is None else np.asarray(loops, np.int64).reshape(-1, 2)
+    if lp.size and (lp.min() < 0 or lp.max() >= len(est)):
+        raise ValueError(f"loops index frames outside [0, {len(est)})")
     a, b = top_view_axes(est) if len(est) > 1 else (0, 2)
     vertical = 3 - a - b
     up = -c2w[:, :3, 1].mean(axis=0)  # OpenCV: the camera's y axis points down
@@ -155,9 +153,6 @@ def plot_points(
                rasterized=True)
     ax.plot(x(est), est[:, b], "-", color="tab:blue", lw=1.2, label="cameras")
     ax.plot(x(est[:1]), est[:1, b], "o", color="tab:green", ms=6, label="start")
-    for k, (i, j) in enumerate(rj):
-        ax.plot(est[[i, j], a], est[[i, j], b], ":", color="0.35", lw=0.9,
-                label="rejected loop candidates" if k == 0 else None)
     for k, (i, j) in enumerate(lp):
         ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color="tab:red", lw=1.0,
                 label="loop closures" if k == 0 else None)
