@@ -22,7 +22,7 @@ import numpy as np
 
 from common import best_of, markdown_table, write_results
 from swiftjax.io.chunk_store import ChunkStore
-from swiftjax.io.colmap import _write_points3d
+from swiftjax.io.colmap import write_colmap
 from swiftjax.io.images import list_frames
 from swiftjax.io.ply import PlyStreamWriter, ply_dtype, read_ply, write_ply
 from swiftjax.prediction import ChunkPrediction
@@ -104,7 +104,8 @@ def main() -> None:
         # ---------------------------------------------------------------- COLMAP points3D.txt
         mc = min(n, 200_000)
         err = np.zeros(mc)
-        t_c = best_of(lambda: _write_points3d(d / "p3.txt", p[:mc], c[:mc], err), rep)
+        one = (np.eye(4)[None], np.array([[[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]]), ["a.png"], (100, 100))
+        t_c = best_of(lambda: write_colmap(d / "m", *one, p[:mc], c[:mc], err, binary=False, text=True), rep)
         table = np.column_stack([np.arange(1, mc + 1), p[:mc].astype(np.float64), c[:mc], err])
         t_s = best_of(lambda: np.savetxt(d / "q3.txt", table, fmt="%d %.9g %.9g %.9g %d %d %d %.9g"), rep)
         rows += [

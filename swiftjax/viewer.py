@@ -283,6 +283,7 @@ class Viewer:
         self.max_frustums = max_frustums
         self.reservoir = Reservoir(max_points)
         self.cache: dict[int, _Chunk] = {}
+        self._thumbs: dict[int, np.ndarray | None] = {}
         self._signature: tuple[Any, ...] | None = None
         self._lock = threading.RLock()
         self.view: RunView | None = None
@@ -424,19 +425,26 @@ class Viewer:
             )
 
     def _thumbnail(self, view: RunView, frame: int) -> np.ndarray | None:
-        """The frame from ``colmap/images/`` (written when COLMAP export is on), 1/4 size."""
+        """The frame from ``colmap/images/`` (written when COLMAP export is on), 160 pixels wide."""
         if view.names is None or frame >= len(view.names):
             return None
+        if frame in self._thumbs:
+            return self._thumbs[frame]
         path = view.run_dir / "colmap" / "images" / view.names[frame]
-        if not path.is_file():
-            return None
-        import cv2
+        thumb = None
+        if path.is_file():
+            from PIL import Image
 
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
-            return None
-        img = cv2.resize(img, (max(1, img.shape[1] // 4), max(1, img.shape[0] // 4)), interpolation=cv2.INTER_AREA)
-        return np.ascontiguousarray(img[..., ::-1])
+            try:
+                with Image.open(path) as img:
+                    rgb = img.convert("RGB")
+                height = max(1, round(rgb.height * 160.0 / rgb.width))
+                thumb = np.asarray(rgb.resize((160, height), Image.Resampling.BOX))
+            except OSError:
+                thumb = None
+        if thumb is not None or view.final:  # a running run may write the frame later
+            self._thumbs[frame] = thumb
+        return thumb
 
     def _draw_loops(self, view: RunView, centres: np.ndarray) -> None:
         scene = self.server.scene

@@ -79,3 +79,22 @@ def test_atomic_save_npz_exact_name(tmp_path, compress):
     with np.load(p) as z:
         np.testing.assert_array_equal(z["a"], a)
         assert z["b"].dtype == np.uint8
+
+
+def test_atomic_paths_replace_all_or_none(tmp_path):
+    from swiftjax.io.atomic import atomic_paths
+
+    targets = [tmp_path / "a.png", tmp_path / "b.png"]
+    targets[0].write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with atomic_paths(targets) as tmps:
+            tmps[0].write_bytes(b"new a")
+            raise RuntimeError("interrupted")
+    assert targets[0].read_bytes() == b"old" and not targets[1].exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]  # no temp file left
+    with atomic_paths(targets) as tmps:
+        assert all(t.suffix == ".png" for t in tmps)
+        for t, data in zip(tmps, (b"A", b"B")):
+            t.write_bytes(data)
+    assert [t.read_bytes() for t in targets] == [b"A", b"B"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]

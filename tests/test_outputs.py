@@ -199,3 +199,53 @@ def test_trajectory_headers_carry_unit_and_time_source(tmp_path):
     ts, poses = trajectory.read_tum(tmp_path / "poses_tum.txt")
     np.testing.assert_array_equal(ts, [0.0, 0.4, 0.8])
     np.testing.assert_allclose(poses, c2w)
+
+
+@pytest.mark.parametrize("mode,size", [("crop", (600, 1036)), ("pad", (300, 700))])  # portrait: rows cropped
+def test_original_resolution_undoes_the_preprocessing(tmp_path, mode, size):
+    """--colmap-original-resolution: K at the original size and the observations moved with it,
+    so a point still projects onto its observation; the camera module's forward map takes the
+    observations back to the model's pixels; pad pixels are dropped; the originals are copied."""
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from swiftjax.intrinsics import map_points, preprocess_geometry
+    from swiftjax.pipeline import export
+
+    w0, h0 = size
+    for k in range(2):
+        Image.new("RGB", (w0, h0), (10 * k, 20, 30)).save(tmp_path / f"f{k}.jpg")
+    source = images.list_frames(tmp_path)
+    geom = preprocess_geometry(h0, w0, mode)
+    ctx = SimpleNamespace(predictor=SimpleNamespace(source=source, mode=mode, frame_names=lambda: source.names),
+                          run_dir=tmp_path / "run", config=SimpleNamespace(colmap_original_resolution=True))
+    h, w = geom.model_hw
+    K_ref = np.array([[0.9 * w, 0, w / 2 - 3.0], [0, 0.9 * w, h / 2 + 2.0], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    pix = np.column_stack([rng.uniform(-0.5, w - 0.5, 500), rng.uniform(-0.5, h - 0.5, 500), np.ones(500)])
+    x = rng.uniform(2, 5, (500, 1)) * (pix @ np.linalg.inv(K_ref).T)  # points seen in the model's image
+    proj = lambda K: (x @ K.T)[:, :2] / x[:, 2:]  # noqa: E731
+    uv = proj(K_ref)
+    K0, size0, uv0, keep = export._to_original_resolution(ctx, K_ref, (h, w), uv)
+    assert size0 == (w0, h0)
+    np.testing.assert_allclose(proj(K0), uv0, atol=1e-9)
+    np.testing.assert_allclose(map_points(uv0, geom), uv, atol=1e-9)
+    inside = (uv0[:, 0] >= -0.5) & (uv0[:, 0] < w0 - 0.5) & (uv0[:, 1] >= -0.5) & (uv0[:, 1] < h0 - 0.5)
+    np.testing.assert_array_equal(keep, inside)
+    assert keep.all() if mode == "crop" else 0 < keep.sum() < len(keep)  # pad mode: points on the pad go
+    if mode == "crop":
+        assert geom.top < 0 and (uv0[:, 1] > -geom.top).any()  # rows were cropped: v shifts down
+    assert export.frame_image_names(ctx) == ["f0.jpg", "f1.jpg"]
+    export._copy_originals(ctx, export.frame_image_names(ctx))
+    assert (ctx.run_dir / "colmap" / "images" / "f1.jpg").read_bytes() == (tmp_path / "f1.jpg").read_bytes()
+
+
+def test_original_resolution_needs_input_images(tmp_path):
+    from swiftjax import demo, pipeline
+
+    run = demo.loop_route_run(20)
+    with pytest.raises(ValueError, match="needs the input images"):
+        pipeline.reconstruct(run.predictor, tmp_path, pipeline.PipelineConfig(colmap_original_resolution=True),
+                             progress=False)
+    assert not (tmp_path / "chunks").exists() or not any((tmp_path / "chunks").iterdir())  # no work done

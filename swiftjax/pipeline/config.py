@@ -32,7 +32,9 @@ class PipelineConfig:
     (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
     subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
     ``colmap`` (write the COLMAP model and its frames, ``colmap/``), ``colmap_text`` (its
-    ``.txt`` files beside the ``.bin``), ``colmap_max_points``.
+    ``.txt`` files beside the ``.bin``), ``colmap_original_resolution`` (the model at the
+    original image size, with the original files, as VGGT's own COLMAP export),
+    ``colmap_max_points``.
     """
 
     chunk_size: int = 75
@@ -63,6 +65,7 @@ class PipelineConfig:
     voxel_size: float | None = None
     colmap: bool = True
     colmap_text: bool = False
+    colmap_original_resolution: bool = False
     colmap_max_points: int = 200_000
 
     def __post_init__(self) -> None:

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import camera, sim3
-from swiftjax.io.atomic import atomic_path, atomic_write
+from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
 
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from swiftjax.pipeline.rundir import RunContext
 
 __all__ = [
-    "run", "chunk_points", "chunk_points_jit", "export_points", "write_frames", "world_cameras",
+    "check", "run", "chunk_points", "chunk_points_jit", "export_points", "write_frames", "world_cameras",
     "pose_unit", "UP_TO_SCALE",
 ]
 
@@ -63,6 +63,12 @@ def pose_unit(ctx: RunContext) -> str:
     """The unit of the run's world coordinates: ``ctx.unit`` when set (e.g. ``"metres"`` from a
     metric scale), else :data:`UP_TO_SCALE`."""
     return getattr(ctx, "unit", None) or UP_TO_SCALE
+
+
+def check(ctx: RunContext) -> None:
+    """Refuse, before any work, output options the input cannot satisfy (``ValueError``)."""
+    if ctx.config.colmap and ctx.config.colmap_original_resolution:
+        original_source(ctx)
 
 
 def run(
@@ -146,28 +152,92 @@ def export_points(
     return out
 
 
+def frame_image_names(ctx: RunContext) -> list[str]:
+    """The image file name of every frame in ``colmap/images/``: the input's own names with
+    ``colmap_original_resolution`` (the original files are copied), else PNG names
+    (:func:`swiftjax.io.colmap.image_names`) of the frames at the model's resolution."""
+    from swiftjax.io.colmap import image_names
+
+    names = ctx.predictor.frame_names()
+    return list(names) if ctx.config.colmap_original_resolution else image_names(names)
+
+
+def original_source(ctx: RunContext) -> Any:
+    """The predictor's frame source (:class:`swiftjax.io.images.FrameSource`) for
+    ``colmap_original_resolution``; :class:`ValueError` if it has none (the synthetic oracle)."""
+    source = getattr(ctx.predictor, "source", None)
+    if source is None or not hasattr(source, "image_hw"):
+        raise ValueError(
+            "colmap_original_resolution needs the input images (an image folder, glob or video); "
+            f"{type(ctx.predictor).__name__} has none"
+        )
+    return source
+
+
+def _to_original_resolution(
+    ctx: RunContext, K_ref: np.ndarray, model_hw: tuple[int, int], uv: np.ndarray,
+) -> tuple[np.ndarray, tuple[int, int], np.ndarray, np.ndarray]:
+    """``K_ref`` and the observations ``uv [M, 2]`` (model pixels) at the original image size,
+    undoing VGGT's preprocessing (:func:`swiftjax.intrinsics.preprocess_geometry`: resize, then
+    a centre crop or a white pad): ``u0 = (u - left + 1/2) / s_x - 1/2``.  Returns ``(K0,
+    (W0, H0), uv0, keep)``; ``keep`` drops observations on the pad (outside the original)."""
+    from swiftjax.intrinsics import preprocess_geometry, unmap_intrinsics
+
+    h0, w0 = original_source(ctx).image_hw
+    geom = preprocess_geometry(h0, w0, getattr(ctx.predictor, "mode", "crop"))
+    if tuple(geom.model_hw) != tuple(model_hw):
+        raise ValueError(
+            f"colmap_original_resolution: the model saw {model_hw[1]}x{model_hw[0]} images, but preprocessing "
+            f"{w0}x{h0} gives {geom.model_hw[1]}x{geom.model_hw[0]}"
+        )
+    sx, sy = geom.scale_xy
+    uv0 = np.column_stack([(uv[:, 0] - geom.left + 0.5) / sx - 0.5, (uv[:, 1] - geom.top + 0.5) / sy - 0.5])
+    keep = (uv0[:, 0] >= -0.5) & (uv0[:, 0] < w0 - 0.5) & (uv0[:, 1] >= -0.5) & (uv0[:, 1] < h0 - 0.5)
+    return unmap_intrinsics(K_ref, geom), (int(w0), int(h0)), uv0, keep
+
+
+def _copy_originals(ctx: RunContext, names: list[str]) -> None:
+    """The original frames into ``colmap/images/<name>``: image files copied as they are, video
+    frames decoded and written as PNG."""
+    import shutil
+
+    from PIL import Image
+
+    source = original_source(ctx)
+    folder = ctx.run_dir / "colmap" / "images"
+    paths = getattr(source, "paths", None)
+    for k, name in enumerate(names):
+        target = folder / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            if paths is not None:
+                shutil.copyfile(paths[k], tmp)
+            else:
+                Image.fromarray(source.read(k)).save(tmp, format="PNG", compress_level=1)
+
+
 def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> None:
     """The frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as PNG in
     ``colmap/images/`` at the model's resolution -- the images the COLMAP model's cameras
     describe -- named by :func:`swiftjax.io.colmap.image_names`.
 
     Called by the temporal stage while the prediction is in memory, for the frames the chunk
-    owns.  Lossless PNG (Pillow, compression level 1): 4.9 ms a 518x154 frame measured on a
-    loaded 2-core machine, ~1 % of a CPU VGGT forward pass per frame; nothing when
+    owns (with ``colmap_original_resolution`` the export copies the originals instead).
+    Lossless PNG (Pillow, compression level 1), the chunk's files synced as one batch
+    (:func:`~swiftjax.io.atomic.atomic_paths`): ~11 ms a 518x154 frame on a loaded 2-core
+    machine, of which 7 ms encoding (``bench/bench_colmap_export.py``); nothing when
     ``colmap`` is off or the predictor gives no images.
     """
-    if not ctx.config.colmap or pred.images is None:
+    if not ctx.config.colmap or ctx.config.colmap_original_resolution or pred.images is None:
         return
     from PIL import Image
 
-    from swiftjax.io.colmap import image_names
-
-    names = image_names(ctx.predictor.frame_names())
-    folder = ctx.run_dir / "colmap" / "images"
-    for k, frame in enumerate(np.asarray(frames)):
-        path = folder / names[int(frame)]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
+    names = frame_image_names(ctx)
+    targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
+    for target in targets:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_paths(targets) as tmps:  # one batch of syncs per chunk
+        for k, tmp in enumerate(tmps):
             Image.fromarray(np.asarray(pred.images[k])).save(tmp, format="PNG", compress_level=1)
 
 
@@ -281,15 +351,20 @@ def _export(
         ts, note = np.asarray(timestamps, np.float64), timestamps_note or "given to the run"
     _write_trajectories(run_dir, c2w, ts, unit, note)
     _write_chunk_poses(run_dir / "chunk_poses.json", chunk_poses, chunk_poses_no_loops, unit)
-    names = colmap.image_names(ctx.predictor.frame_names())
+    names = frame_image_names(ctx)
     with atomic_write(run_dir / "frames.txt") as f:
         f.write("# frame name (colmap/images/<name> when the COLMAP export wrote the frames)\n")
         f.writelines(f"{k} {name}\n" for k, name in enumerate(names))
-    write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None))
 
     cat = lambda key, shape, dt: np.concatenate(sample[key]) if sample[key] else np.zeros(shape, dt)  # noqa: E731
     pts, rgb = cat("xyz", (0, 3), np.float32), cat("rgb", (0, 3), np.uint8)
     frame, uv = cat("frame", (0,), np.int64), cat("uv", (0, 2), np.int64).astype(np.float64)
+    K, size = K_ref, (w, h)  # the COLMAP model's camera
+    if config.colmap and config.colmap_original_resolution:
+        K, size, uv, keep = _to_original_resolution(ctx, K_ref, (h, w), uv)
+        pts, rgb, frame, uv = pts[keep], rgb[keep], frame[keep], uv[keep]
+    write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None),
+                     colmap_camera=(K, size) if config.colmap else None)
     if config.colmap:
         if no_pixels:
             warnings.warn(
@@ -297,6 +372,8 @@ def _export(
                 "without the points' pixels: their COLMAP points are left out (re-run with --overwrite)",
                 RuntimeWarning, stacklevel=2,
             )
+        if config.colmap_original_resolution:
+            _copy_originals(ctx, names)
         missing = [names[k] for k in range(n) if not (run_dir / "colmap" / "images" / names[k]).is_file()]
         if missing:
             warnings.warn(
@@ -304,10 +381,10 @@ def _export(
                 "images, or the chunks were predicted before the COLMAP export was on",
                 RuntimeWarning, stacklevel=2,
             )
-        err = _reprojection_error(pts, frame, uv, c2w, K_ref)
+        err = _reprojection_error(pts, frame, uv, c2w, K)
         colmap.write_colmap(
-            run_dir / "colmap" / "sparse" / "0", c2w, np.broadcast_to(K_ref, (n, 3, 3)), names,
-            image_size=(w, h), points=pts, colors=rgb, errors=err, observations=(frame, uv),
+            run_dir / "colmap" / "sparse" / "0", c2w, np.broadcast_to(K, (n, 3, 3)), names,
+            image_size=size, points=pts, colors=rgb, errors=err, observations=(frame, uv),
             binary=True, text=config.colmap_text,
         )
     return {
@@ -358,11 +435,25 @@ def _write_chunk_poses(path: pathlib.Path, poses: np.ndarray, poses_no_loops: np
 
 def write_intrinsics(
     path: pathlib.Path, intrinsics: np.ndarray, K_ref: np.ndarray, size_wh: tuple[int, int], mode: str | None = None,
+    colmap_camera: tuple[np.ndarray, tuple[int, int]] | None = None,
 ) -> None:
     """``intrinsics.txt``: a header (resolution, pixel convention, which ``K`` the point cloud
-    and the COLMAP model use), then one line per frame: ``frame fx fy cx cy``."""
+    and the COLMAP model use -- ``colmap_camera`` ``(K, (width, height))``, None when no model
+    is written), then one line per frame: ``frame fx fy cx cy``."""
     w, h = size_wh
     fx, fy, cx, cy = K_ref[0, 0], K_ref[1, 1], K_ref[0, 2], K_ref[1, 2]
+    if colmap_camera is None:
+        colmap_line = "no COLMAP model written (--no-colmap)"
+    else:
+        Kc, (wc, hc) = colmap_camera
+        same = (wc, hc) == (w, h) and np.array_equal(Kc, K_ref)
+        colmap_line = (
+            f"colmap/sparse/0: one shared PINHOLE camera = "
+            + ("K_ref" if same else f"K_ref at the original {wc} x {hc} images (fx {Kc[0, 0]:.6f} fy {Kc[1, 1]:.6f} "
+               f"cx {Kc[0, 2]:.6f} cy {Kc[1, 2]:.6f}, preprocessing undone)")
+            + f" with cx + 0.5, cy + 0.5 ({Kc[0, 2] + 0.5:.6f}, {Kc[1, 2] + 0.5:.6f}: COLMAP puts the image corner "
+            f"at (0, 0)), size {wc} x {hc}"
+        )
     lines = [
         "swiftjax intrinsics: VGGT's predicted pinhole K of every frame (no distortion)",
         f"resolution: {w} x {h} pixels (width x height), the model's input"
@@ -371,8 +462,7 @@ def write_intrinsics(
         "(the top-left pixel's centre is (0, 0))",
         f"K_ref = frame 0's K: fx {fx:.6f} fy {fy:.6f} cx {cx:.6f} cy {cy:.6f}; points.ply is unprojected "
         "with K_ref after normalising each frame's depth to it (SwiftVGGT eq. 1)",
-        f"colmap/sparse/0: one shared PINHOLE camera = K_ref with cx + 0.5, cy + 0.5 "
-        f"({cx + 0.5:.6f}, {cy + 0.5:.6f}: COLMAP puts the image corner at (0, 0)), size {w} x {h}",
+        colmap_line,
         "frame fx fy cx cy",
     ]
     with atomic_write(path) as f:

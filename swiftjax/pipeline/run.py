@@ -76,6 +76,7 @@ def reconstruct(
         if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
             raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
     ctx = rundir.open_run(predictor, run_dir, config, overwrite=overwrite, progress=progress, log=log)
+    export.check(ctx)
 
     chain = temporal.run(ctx)
     loops = loop_closure.run(ctx, chain)
