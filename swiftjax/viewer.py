@@ -130,20 +130,20 @@ def open_manifest(run_dir: pathlib.Path) -> dict[str, Any]:
 def loop_candidates(manifest: dict[str, Any]) -> list[tuple[int, int, bool]]:
     """``(i, j, accepted)`` of every loop candidate recorded in the manifest.
 
-    Candidates come from ``manifest["loop_edges"]`` (one record per loop chunk; ``accepted``
-    defaults to True there: before loop verification every recorded edge entered the graph)
-    and ``manifest["loops"]`` when it is a list of candidate records (``accepted`` defaults
-    to False there: a candidate without a loop edge was not used).
+    ``manifest["loops"]``, when it is a list, holds every candidate's verdict (loop
+    verification); it wins.  Otherwise the loop chunks' records in ``manifest["loop_edges"]``
+    are the candidates, ``accepted`` defaulting to True there (before verification every
+    recorded loop edge entered the pose graph).
     """
     out: dict[tuple[int, int], bool] = {}
+    for r in (manifest.get("loop_edges") or {}).values():
+        if isinstance(r, dict) and "i" in r and "j" in r:
+            out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", True))
     candidates = manifest.get("loops")
     if isinstance(candidates, list):
         for r in candidates:
             if isinstance(r, dict) and "i" in r and "j" in r:
                 out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", False))
-    for r in (manifest.get("loop_edges") or {}).values():
-        if isinstance(r, dict) and "i" in r and "j" in r:
-            out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", True))
     return [(i, j, a) for (i, j), a in sorted(out.items())]
 
 

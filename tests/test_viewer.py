@@ -57,11 +57,14 @@ def test_reservoir_is_uniform_and_bounded():
 
 
 def test_loop_candidates_accepted_and_rejected():
-    manifest = {
+    manifest = {  # before verification: every loop edge was used
         "loop_edges": {"5-300": {"i": 5, "j": 300}, "9-400": {"i": 9, "j": 400, "accepted": False}},
-        "loops": [{"i": 5, "j": 300, "accepted": True}, {"i": 7, "j": 350}, {"i": 8, "j": 390, "accepted": True}],
     }
-    assert viewer.loop_candidates(manifest) == [(5, 300, True), (7, 350, False), (8, 390, True), (9, 400, False)]
+    assert viewer.loop_candidates(manifest) == [(5, 300, True), (9, 400, False)]
+    manifest["loops"] = [  # verified: the candidates' list has the verdicts
+        {"i": 5, "j": 300, "accepted": False}, {"i": 7, "j": 350}, {"i": 8, "j": 390, "accepted": True},
+    ]
+    assert viewer.loop_candidates(manifest) == [(5, 300, False), (7, 350, False), (8, 390, True), (9, 400, False)]
     assert viewer.loop_candidates({"loops": None, "loop_edges": {}}) == []
 
 
