@@ -41,3 +41,10 @@ class ImagePredictor:
 
     def frame_names(self) -> list[str]:
         return list(self.source.names)
+
+    def preprocess_geometry(self) -> Any:
+        """Where the original pixels land in the model's images
+        (:func:`swiftjax.intrinsics.preprocess_geometry` of the frames' common size and ``mode``)."""
+        from swiftjax.intrinsics import preprocess_geometry
+
+        return preprocess_geometry(*self.source.image_hw, self.mode)

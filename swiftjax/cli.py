@@ -49,15 +49,17 @@ def _add_method_options(parser: argparse.ArgumentParser) -> None:
     for field in dataclasses.fields(PipelineConfig):
         flag = "--" + field.name.replace("_", "-")
         default = field.default
+        note = field.metadata.get("help", "")
+        note = f"{note} " if note else ""
         if isinstance(default, bool):
             group.add_argument(flag, dest=field.name, action=argparse.BooleanOptionalAction, default=None,
-                               help=f"(default {default})")
+                               help=f"{note}(default {default})")
         else:
             kind = {int: int, float: float}.get(type(default), str)
             if field.name == "voxel_size":
                 kind = float
             group.add_argument(flag, dest=field.name, type=kind, default=None, metavar=field.name.upper(),
-                               help=f"(default {default})")
+                               help=f"{note}(default {default})")
     parser.add_argument("--config", type=pathlib.Path, help="TOML file of method parameters (options override it)")
 
 

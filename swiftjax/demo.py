@@ -49,6 +49,7 @@ def trajectory_run(
     aliasing: float | tuple[tuple[int, int, int], ...] = 0.0,
     alias_strength: float | None = None,
     hallucination: object | None = "default",
+    moving_cars: int = 0,
 ) -> SyntheticRun:
     """The oracle driving along ``cam_to_world [N, 4, 4]`` (e.g. KITTI 00's ground truth).
 
@@ -57,7 +58,9 @@ def trajectory_run(
     their ``lambda`` (default :data:`~swiftjax.synthetic.places.DEFAULT_ALIAS_STRENGTH`).
     ``hallucination``: a :class:`~swiftjax.synthetic.oracle.Hallucination`, ``"default"``, or
     ``None`` (honest loop chunks, the first wave's oracle).  The planted pairs are in
-    ``run.aliasing`` and in the predictor's fingerprint.
+    ``run.aliasing`` and in the predictor's fingerprint.  ``moving_cars``: cars driving along
+    the road (:mod:`swiftjax.synthetic.world`; their true masks are the oracle's semantic
+    label :data:`~swiftjax.synthetic.world.CAR`).
     """
     from swiftjax.synthetic import places
     from swiftjax.synthetic.oracle import Hallucination, OracleNoise, VGGTOracle
@@ -69,7 +72,7 @@ def trajectory_run(
     else:
         segs = tuple(tuple(int(v) for v in seg) for seg in aliasing)
     strength = places.DEFAULT_ALIAS_STRENGTH if alias_strength is None else float(alias_strength)
-    world = build_world(poses, WorldConfig(seed=seed))
+    world = build_world(poses, WorldConfig(seed=seed, num_movers=moving_cars))
     oracle = VGGTOracle(
         world, poses, image_hw=image_hw, seed=seed, noise=noise if noise is not None else OracleNoise(),
         place_config=places.PlaceTokenConfig(seed=seed, aliasing=segs, alias_strength=strength),
@@ -80,6 +83,8 @@ def trajectory_run(
         desc["aliasing"] = {"segments": [list(x) for x in segs], "strength": strength}
     if oracle.hallucination is None:
         desc["hallucination"] = None
+    if moving_cars:
+        desc["moving_cars"] = int(moving_cars)
     return SyntheticRun(OraclePredictor(oracle, desc), poses, segs)
 
 

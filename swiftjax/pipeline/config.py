@@ -34,7 +34,10 @@ class PipelineConfig:
     ``colmap`` (write the COLMAP model and its frames, ``colmap/``), ``colmap_text`` (its
     ``.txt`` files beside the ``.bin``), ``colmap_original_resolution`` (the model at the
     original image size, with the original files, as VGGT's own COLMAP export),
-    ``colmap_max_points``.
+    ``colmap_max_points``.  The user's camera (:mod:`swiftjax.pipeline.user_camera`):
+    ``intrinsics`` (a file: ``fx fy cx cy``, KITTI ``calib.txt`` or COLMAP ``cameras.txt``, at
+    the original image size), ``metric`` (``"camera-height=H"`` in metres or ``"gt"``: every
+    output in metres), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
     chunk_size: int = 75
@@ -67,6 +70,15 @@ class PipelineConfig:
     colmap_text: bool = False
     colmap_original_resolution: bool = False
     colmap_max_points: int = 200_000
+    intrinsics: str | None = dataclasses.field(default=None, metadata={
+        "help": "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
+                "or a COLMAP cameras.txt (PINHOLE / SIMPLE_PINHOLE / undistorted OPENCV)"})
+    metric: str | None = dataclasses.field(default=None, metadata={
+        "help": "metric scale: 'camera-height=H' (metres above the road) or 'gt' (from --gt)"})
+    mask_dir: str | None = dataclasses.field(default=None, metadata={
+        "help": "one PNG per frame, named like the frame, at the image size; white = keep"})
+    drop_sky: bool = dataclasses.field(default=False, metadata={
+        "help": "leave out sky pixels (far and unsure: depth > 5x the frame median, confidence < 0.3x)"})
 
     def __post_init__(self) -> None:
         if self.chunk_size < 2:
@@ -87,6 +99,9 @@ class PipelineConfig:
             raise ValueError(f"loop_min_agreement must be in [0, 1], got {self.loop_min_agreement}")
         if self.point_stride < 1:
             raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
+        from swiftjax.metric import parse_metric
+
+        parse_metric(self.metric)  # ValueError naming the option
         if self.loop_closure and (self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size):
             raise ValueError(
                 f"loop_half_window must be in [1, chunk_size / 2], got {self.loop_half_window}"

@@ -90,7 +90,7 @@ def run(
 
 def chunk_points(
     depth: jax.Array, conf: jax.Array, K: jax.Array, K_ref: jax.Array, extrinsic: jax.Array,
-    conf_ratio: jax.Array, *, count: int, stride: int,
+    conf_ratio: jax.Array, mask: jax.Array | None = None, *, count: int, stride: int,
 ) -> tuple[jax.Array, jax.Array]:
     """Chunk-frame points ``[count, h, w, 3]`` and keep-mask ``[count, h, w]`` of the first
     ``count`` frames of a chunk, pixel grid subsampled by ``stride`` (``h = ceil(H / stride)``).
@@ -99,7 +99,8 @@ def chunk_points(
     the chunk frame), ``K_ref [3, 3]``.  Depth is normalised to ``K_ref`` (eq. 1) and
     unprojected with ``K_ref`` (the subsampled grid's intrinsics ``diag(1/stride, 1/stride,
     1) K``) as in the alignment; pixels are kept when finite and ``conf >= conf_ratio x frame
-    mean`` (mean over the subsampled grid).  The points stay in the chunk's frame: the export
+    mean`` (mean over the subsampled grid) and kept by ``mask [S, H, W]`` (user / sky masks;
+    ``None``: every pixel).  The points stay in the chunk's frame: the export
     applies the optimised ``S_t``.  Jitted as :data:`chunk_points_jit`: recompiles per
     ``(S, H, W)``, ``count`` and ``stride`` (two shapes per run: full chunks and the last).
     (Separate dispatches for this, :func:`_to_half` and :func:`_overlap_slices` measured
@@ -116,6 +117,8 @@ def chunk_points(
         jnp.sum(finite, axis=(-2, -1), keepdims=True), 1
     )
     keep = finite & (conf >= conf_ratio * mean) & jnp.all(jnp.isfinite(pts), axis=-1)
+    if mask is not None:
+        keep = keep & mask[:count, ::stride, ::stride]
     return pts, keep
 
 
@@ -363,8 +366,11 @@ def _export(
     if config.colmap and config.colmap_original_resolution:
         K, size, uv, keep = _to_original_resolution(ctx, K_ref, (h, w), uv)
         pts, rgb, frame, uv = pts[keep], rgb[keep], frame[keep], uv[keep]
+    cam = getattr(ctx, "camera", None)
+    ref = "frame 0's K" if cam is None or cam.intrinsics is None else (
+        f"the given intrinsics ({cam.intrinsics.kind} file {cam.intrinsics.source}) mapped to the model's resolution")
     write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None),
-                     colmap_camera=(K, size) if config.colmap else None)
+                     colmap_camera=(K, size) if config.colmap else None, ref=ref)
     if config.colmap:
         if no_pixels:
             warnings.warn(
@@ -436,10 +442,12 @@ def _write_chunk_poses(path: pathlib.Path, poses: np.ndarray, poses_no_loops: np
 def write_intrinsics(
     path: pathlib.Path, intrinsics: np.ndarray, K_ref: np.ndarray, size_wh: tuple[int, int], mode: str | None = None,
     colmap_camera: tuple[np.ndarray, tuple[int, int]] | None = None,
+    ref: str = "frame 0's K",
 ) -> None:
     """``intrinsics.txt``: a header (resolution, pixel convention, which ``K`` the point cloud
     and the COLMAP model use -- ``colmap_camera`` ``(K, (width, height))``, None when no model
-    is written), then one line per frame: ``frame fx fy cx cy``."""
+    is written; ``ref`` says where ``K_ref`` comes from), then one line per frame: ``frame fx
+    fy cx cy``."""
     w, h = size_wh
     fx, fy, cx, cy = K_ref[0, 0], K_ref[1, 1], K_ref[0, 2], K_ref[1, 2]
     if colmap_camera is None:
@@ -460,7 +468,7 @@ def write_intrinsics(
         + (f" (preprocessing mode '{mode}')" if mode else ""),
         "convention: OpenCV, u = fx X/Z + cx, v = fy Y/Z + cy; pixel centres at integers "
         "(the top-left pixel's centre is (0, 0))",
-        f"K_ref = frame 0's K: fx {fx:.6f} fy {fy:.6f} cx {cx:.6f} cy {cy:.6f}; points.ply is unprojected "
+        f"K_ref = {ref}: fx {fx:.6f} fy {fy:.6f} cx {cx:.6f} cy {cy:.6f}; points.ply is unprojected "
         "with K_ref after normalising each frame's depth to it (SwiftVGGT eq. 1)",
         colmap_line,
         "frame fx fy cx cy",

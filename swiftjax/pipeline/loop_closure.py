@@ -26,7 +26,8 @@ import numpy as np
 from swiftjax import align, loops
 from swiftjax import loop_verification as lv
 from swiftjax.pipeline.rundir import RunContext
-from swiftjax.pipeline.temporal import TemporalResult, align_pair
+from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
+from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.posegraph import chain_poses
 
 __all__ = ["LoopEdge", "LoopResult", "run"]
@@ -55,6 +56,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
     is off or there are fewer than three chunks)."""
     config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
     K_ref = temporal.K_ref
+    cam = ctx.camera if ctx.camera is not None else UserCamera()
     loop_records: list[dict[str, Any]] = []
     loop_edges: list[LoopEdge] = []
     if not (config.loop_closure and schedule.num_chunks > 2):
@@ -90,9 +92,12 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
                         # Only the 2 x half_window frames of chunk c that the loop chunk overlaps.
                         local = lp.frames[half] - schedule.starts[c]
                         chunk_frames = store.load("chunk", c, frames=local, fields=())
+                        # keep-masks (user / sky) of those frames, as each chunk saw them
+                        mask = both(cam.keep(lp.frames[half], chunk_frames.depth, chunk_frames.conf),
+                                    cam.keep(lp.frames[half], pred.depth[half], pred.conf[half]))
                         halves.append(align_pair(
                             align.ChunkFrames.from_prediction(chunk_frames), align.ChunkFrames.from_prediction(pred, half),
-                            K_ref, config, True, f"loop ({lp.i}, {lp.j}) to chunk {c}",
+                            K_ref, config, True, f"loop ({lp.i}, {lp.j}) to chunk {c}", mask=mask,
                         ))
                     with jax.enable_x64(True):
                         Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
@@ -138,7 +143,11 @@ def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any
     sides = []
     for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
         local = lp.frames[half] - ctx.schedule.starts[c]
-        sides.append(align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=())))
+        side = align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=()))
+        keep = None if ctx.camera is None else ctx.camera.keep(lp.frames[half], side.depth, side.conf)
+        if keep is not None:  # masked pixels (user / sky) count as missing depth
+            side = side._replace(depth=np.where(np.asarray(keep), np.asarray(side.depth, np.float32), np.nan))
+        sides.append(side)
     with ctx.timer("loop verification"):
         return lv.candidate_numbers(
             sides[0], sides[1], np.asarray(record["Z"]), K_ref, record["align_i"], record["align_j"],

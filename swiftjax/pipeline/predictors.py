@@ -49,3 +49,11 @@ class OraclePredictor:
 
     def frame_names(self) -> list[str]:
         return [f"{k:06d}.png" for k in range(self.num_frames)]
+
+    def preprocess_geometry(self) -> Any:
+        """The oracle renders at the model's resolution: the identity map (its frames, e.g.
+        the demo's 518 x 154, are the original images)."""
+        from swiftjax.intrinsics import PreprocessGeometry
+
+        hw = tuple(int(v) for v in self.oracle.image_hw)
+        return PreprocessGeometry(hw, hw, 0, 0, hw)

@@ -29,7 +29,7 @@ def write(
     ``ground_truth_kitti.txt`` (for the viewer); returns the metrics."""
     metrics = _metrics(
         ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-        ctx.timer.seconds, exported, ground_truth,
+        ctx.timer.seconds, exported, ground_truth, ctx.scale,
     )
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)
@@ -53,8 +53,12 @@ def _metrics(
     timings: dict[str, float],
     exported: dict[str, Any],
     ground_truth: np.ndarray | None,
+    scale: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
+    scale = scale or {"unit": "up to scale"}
     out: dict[str, Any] = {
+        "unit": scale["unit"],
+        "metric_scale": scale,
         "frames": n,
         "chunks": T,
         "loops": sum(bool(r.get("accepted", True)) for r in loop_records),
@@ -75,6 +79,14 @@ def _metrics(
         gt = ground_truth[:, :3, 3]
         out["ate_rmse"] = evaluation.ate(exported["cam_to_world"][:, :3, 3], gt).rmse
         out["ate_rmse_no_loops"] = evaluation.ate(exported["cam_to_world_no_loops"][:, :3, 3], gt).rmse
+        if scale["unit"] == "metres":
+            # metric outputs: ATE with rotation + translation only (no alignment scale), and
+            # the scale error = 1 / (the Sim(3) alignment's scale) - 1
+            a = evaluation.ate(exported["cam_to_world"][:, :3, 3], gt)
+            out["scale_error"] = 1.0 / a.scale - 1.0
+            out["ate_rmse_se3"] = evaluation.ate(exported["cam_to_world"][:, :3, 3], gt, align="se3").rmse
+            out["ate_rmse_se3_no_loops"] = evaluation.ate(
+                exported["cam_to_world_no_loops"][:, :3, 3], gt, align="se3").rmse
     return out
 
 

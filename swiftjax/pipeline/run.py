@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from swiftjax.pipeline import export, graph, loop_closure, report, rundir, temporal
+from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale, temporal
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.predictors import Predictor
 
@@ -75,12 +75,15 @@ def reconstruct(
         ground_truth = np.asarray(ground_truth, np.float64)
         if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
             raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
+    if config.metric == "gt" and ground_truth is None:
+        raise ValueError("--metric gt needs the ground-truth poses (--gt)")
     ctx = rundir.open_run(predictor, run_dir, config, overwrite=overwrite, progress=progress, log=log)
     export.check(ctx)
 
     chain = temporal.run(ctx)
     loops = loop_closure.run(ctx, chain)
     poses = graph.run(ctx, chain, loops)
+    poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
     exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
     metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
 

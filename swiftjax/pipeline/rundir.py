@@ -25,6 +25,7 @@ import numpy as np
 from swiftjax import chunks
 from swiftjax.io.atomic import atomic_write
 from swiftjax.io.chunk_store import ChunkStore
+from swiftjax.pipeline.user_camera import UserCamera
 
 if TYPE_CHECKING:
     from swiftjax.pipeline.config import PipelineConfig
@@ -211,6 +212,9 @@ class RunContext:
     progress: bool = True
     log: Callable[[str], None] = print
     K_ref: np.ndarray | None = None
+    camera: UserCamera | None = None
+    scale: dict[str, Any] | None = None  # the metric-scale step's record (unit, factor, votes)
+    unit: str | None = None  # the world's unit once known ("metres" with --metric; export headers)
 
     @property
     def num_frames(self) -> int:
@@ -247,8 +251,9 @@ def open_run(
     if not _writable(run_dir):
         raise RunDirError(f"output directory {run_dir} is not writable")
     schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
-    manifest = Manifest.open(run_dir, config.to_dict(), predictor.fingerprint(), overwrite)
+    camera = UserCamera.from_config(config, predictor)  # validated before any work
+    manifest = Manifest.open(run_dir, config.to_dict(), predictor.fingerprint() + camera.fingerprint(), overwrite)
     return RunContext(
         run_dir=run_dir, config=config, predictor=predictor, schedule=schedule, manifest=manifest,
-        store=ChunkStore(run_dir), timer=StageTimer(), progress=progress, log=log,
+        store=ChunkStore(run_dir), timer=StageTimer(), progress=progress, log=log, camera=camera,
     )

@@ -29,14 +29,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align, loops, sim3
+from swiftjax import align, loops, metric, sim3
 from swiftjax.io.chunk_store import ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.export import chunk_points_jit, export_points, write_frames
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext
+from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["TemporalResult", "run", "align_pair"]
+__all__ = ["TemporalResult", "run", "align_pair", "both"]
 
 
 class TemporalResult(NamedTuple):
@@ -44,13 +45,17 @@ class TemporalResult(NamedTuple):
 
     ``descriptors [N, d]`` float32 (per frame), ``relative [T-1, 8]`` float64 (edge ``t``
     maps chunk ``t+1`` into chunk ``t``), ``edges``: one record per edge (``S`` and the
-    alignment diagnostics, as in the manifest), ``K_ref [3, 3]`` float64.
+    alignment diagnostics, as in the manifest), ``K_ref [3, 3]`` float64 (the user's
+    intrinsics at the model's resolution, else the first frame's prediction),
+    ``ground_heights [T]`` (``--metric camera-height``: the camera's height above the road
+    in each chunk's units, NaN where no road was found; else ``None``).
     """
 
     descriptors: np.ndarray
     relative: np.ndarray
     edges: list[dict[str, Any]]
     K_ref: np.ndarray
+    ground_heights: np.ndarray | None = None
 
 
 def run(ctx: RunContext) -> TemporalResult:
@@ -61,11 +66,14 @@ def run(ctx: RunContext) -> TemporalResult:
     descriptors: np.ndarray | None = None
     relative = np.zeros((max(T - 1, 0), 8))
     align_infos: list[dict[str, Any]] = []
-    K_ref: np.ndarray | None = None
     prev_tail: align.ChunkFrames | None = None
     O = config.overlap
     writer = _BackgroundWriter(store)
     records = ChunkRecords(manifest)
+    cam = ctx.camera if ctx.camera is not None else UserCamera()
+    K_ref = cam.K_ref  # known intrinsics; else the first prediction's (below)
+    heights = np.full(T, np.nan) if cam.metric is not None and cam.metric[0] == "camera-height" else None
+    prev_tail_mask = None
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
@@ -73,6 +81,7 @@ def run(ctx: RunContext) -> TemporalResult:
             S = len(frames)
             edge = records.edge(t)
             head: align.ChunkFrames | None = None
+            head_mask = None
             if records.chunk_done(t) and store.exists("chunk", t):
                 # Resume: read back only what the rest of the run needs from this chunk.
                 with timer("chunk store"):
@@ -81,7 +90,11 @@ def run(ctx: RunContext) -> TemporalResult:
                         K_ref = np.asarray(store.load_array("chunk", t, "intrinsic")[0], np.float64)
                     if t > 0 and edge is None:
                         head = align.ChunkFrames.from_prediction(store.load("chunk", t, frames=slice(0, O), fields=()))
+                        head_mask = cam.keep(frames[:O], head.depth, head.conf)
                     tail = align.ChunkFrames.from_prediction(store.load("chunk", t, frames=slice(S - O, S), fields=()))
+                    tail_mask = cam.keep(frames[S - O:], tail.depth, tail.conf)
+                    if heights is not None:
+                        heights[t] = float(store.load_extra("chunk", t)["ground_height"])
                 dirty = records.commit(writer.finished())
             else:
                 with timer("predict"):
@@ -103,13 +116,21 @@ def run(ctx: RunContext) -> TemporalResult:
                     depth_d, conf_d = f32(pred.depth), f32(pred.conf)
                     halves = _to_half(depth_d), _to_half(conf_d)
                     head_d, head_c, tail_d, tail_c = _overlap_slices(depth_d, conf_d, overlap=O)
+                    # masks from the stored (float16) maps, as a resumed run recomputes them
+                    mask_d = cam.keep(frames, *halves)
                     count = int(schedule.starts[t + 1] - schedule.starts[t]) if t + 1 < T else S
                     pts, keep = chunk_points_jit(
                         depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), f32(pred.extrinsic),
-                        jnp.float32(config.point_conf_ratio), count=count, stride=config.point_stride,
+                        jnp.float32(config.point_conf_ratio), mask_d, count=count, stride=config.point_stride,
                     )
                     points = export_points(pred, pts, keep, config.point_stride)
                     write_frames(ctx, frames[:count], pred)  # the frames it owns, for colmap/images/
+                if heights is not None:
+                    with timer("metric scale"):
+                        gh = metric.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
+                                                        conf_ratio=config.conf_ratio)
+                        heights[t] = float(gh.height)
+                        points["ground_height"] = np.asarray(heights[t])
 
                 with timer("chunk store"):
                     depth, conf = (
@@ -121,7 +142,9 @@ def run(ctx: RunContext) -> TemporalResult:
                     dirty = records.commit(writer.submit(t, "chunk", t, stored, {"frames": frames, **points}))
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
                 tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O:], pred.extrinsic[S - O:])
-                del pred, stored, depth, conf, depth_d, conf_d, halves, pts, keep
+                head_mask = None if mask_d is None else mask_d[:O]
+                tail_mask = None if mask_d is None else mask_d[S - O:]
+                del pred, stored, depth, conf, depth_d, conf_d, halves, pts, keep, mask_d
 
             if descriptors is None:
                 descriptors = np.zeros((n, desc.shape[1]), np.float32)
@@ -131,13 +154,14 @@ def run(ctx: RunContext) -> TemporalResult:
                 if t > 0:
                     if edge is None:
                         assert head is not None and prev_tail is not None
-                        S_rel, diag = align_pair(prev_tail, head, K_ref, config, False, f"chunks {t - 1}/{t}")
+                        S_rel, diag = align_pair(prev_tail, head, K_ref, config, False, f"chunks {t - 1}/{t}",
+                                                 mask=both(prev_tail_mask, head_mask))
                         edge = {"S": S_rel.tolist(), **diag}
                         dirty = records.add_edge(t, edge) or dirty
                     relative[t - 1] = edge["S"]
                     align_infos.append(edge)
-                prev_tail = tail
-                del head
+                prev_tail, prev_tail_mask = tail, tail_mask
+                del head, head_mask
 
             if dirty:
                 with timer("chunk store"):
@@ -154,7 +178,12 @@ def run(ctx: RunContext) -> TemporalResult:
         manifest.flush()
     assert descriptors is not None and K_ref is not None
     ctx.K_ref = K_ref
-    return TemporalResult(descriptors, relative, align_infos, K_ref)
+    return TemporalResult(descriptors, relative, align_infos, K_ref, heights)
+
+
+def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
+    """The pixels both keep-masks keep (``None``: no mask)."""
+    return a if b is None else b if a is None else a & b
 
 
 @jax.jit
@@ -241,11 +270,15 @@ def _with_descriptors(pred: ChunkPrediction) -> ChunkPrediction:
 
 def align_pair(
     prev: align.ChunkFrames, cur: align.ChunkFrames, K_ref: np.ndarray, config: PipelineConfig,
-    loop: bool, name: str,
+    loop: bool, name: str, mask: jax.Array | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """``S`` mapping ``cur``'s chunk into ``prev``'s, with the configured method, and diagnostics."""
+    """``S`` mapping ``cur``'s chunk into ``prev``'s, with the configured method, and diagnostics.
+
+    ``mask``: keep-mask ``[O, H, W]`` of the overlap frames (masked pixels are never reliable)."""
     options = _align_options(config, loop)
     if config.alignment == "irls":
+        if mask is not None:  # a masked pixel is a non-finite one (never reliable)
+            prev, cur = (f._replace(depth=jnp.where(mask, jnp.asarray(f.depth, jnp.float32), jnp.nan)) for f in (prev, cur))
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         S, info, count = align.irls_chunk_pair(
             align.ChunkFrames(*map(f32, prev)), align.ChunkFrames(*map(f32, cur)), f32(K_ref),
@@ -257,7 +290,7 @@ def align_pair(
         diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
                 "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok}
         return np.asarray(S, np.float64), diag
-    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, **options)
+    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, **options)
     return np.asarray(S, np.float64), _info_dict(info)
 
 
