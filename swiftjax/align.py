@@ -515,6 +515,10 @@ class AlignInfo(NamedTuple):
         depth_threshold: the ``lambda_D`` finally used.
         pose_fallback: ``S`` comes from :func:`pose_based_estimate` (Umeyama invalid).
         umeyama: the :class:`UmeyamaInfo` of the solve.
+        src_mean, src_covariance: ``[3]``, ``[3, 3]`` weighted mean and covariance of the source
+            points (chunk ``t+1``'s reliable overlap points, in chunk ``t+1`` units): with ``S``'s
+            scale, ``num_points`` and ``rms`` they give the edge's information matrix
+            (:func:`swiftjax.align_covariance.alignment_information`).  Zeros if no point is used.
     """
 
     num_points: Array
@@ -525,6 +529,8 @@ class AlignInfo(NamedTuple):
     depth_threshold: Array
     pose_fallback: Array
     umeyama: UmeyamaInfo
+    src_mean: Array
+    src_covariance: Array
 
 
 def _chunk_geometry(frames: ChunkFrames, K_ref: Array):
@@ -647,10 +653,13 @@ def _affine_maps(B: Array, c: Array, e: Array, centre: Array, T: Array) -> Array
     return jnp.concatenate([Bt, e[:, None, None] * Bt[:, :, :2], last[:, :, None]], -1)
 
 
-def _moments_from_pixels(S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy: Array) -> _Moments:
-    """Combine per-frame pixel moments with the per-frame affine maps into global moments."""
+def _moments_from_pixels(
+    S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy: Array
+) -> tuple[_Moments, Array]:
+    """Combine per-frame pixel moments with the per-frame affine maps into global moments, and the
+    source scatter ``sum w (x - cx)(x - cx)^T`` ``[3, 3]`` (whose trace is ``sxx``)."""
     Gyx, Gxx, Gyy = (S[:, i, k, l] for i, k, l in (_G_YX, _G_XX, _G_YY))  # [O, 6, 6]
-    return _Moments(
+    moments = _Moments(
         w=jnp.sum(S[:, 0, 0, 0]),
         n=n,
         sx=jnp.einsum("fia,fa->i", Mx, Gxx[:, :, 5]),
@@ -661,6 +670,16 @@ def _moments_from_pixels(S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy
         cx=cx,
         cy=cy,
     )
+    return moments, jnp.einsum("fia,fab,fjb->ij", Mx, Gxx, Mx)
+
+
+def _source_moments(m: _Moments, sxx3: Array) -> tuple[Array, Array]:
+    """Weighted mean ``[3]`` and covariance ``[3, 3]`` of the source points (zeros if ``W = 0``)."""
+    W = jnp.where(m.w > 0, m.w, 1)
+    mx = m.sx / W
+    cov = sxx3 / W - mx[:, None] * mx[None, :]
+    ok = m.w > 0
+    return jnp.where(ok, mx + m.cx, 0), jnp.where(ok, cov, 0)
 
 
 def _frame_depth_centre(depth: Array, r: Array, sub: tuple) -> Array:
@@ -741,7 +760,9 @@ def _align_core(
     few = n < min_points
     S_pix, n = jax.lax.cond(few, lambda: moments(fallback_depth_threshold), lambda: (S_pix, n))
     lam_used = jnp.where(few, fallback_depth_threshold, depth_threshold).astype(dtype)
-    S, uinfo = _solve(_moments_from_pixels(S_pix, n, My, Mx, cx, cy))
+    m, sxx3 = _moments_from_pixels(S_pix, n, My, Mx, cx, cy)
+    S, uinfo = _solve(m)
+    src_mean, src_cov = _source_moments(m, sxx3)
     S_pose, _ = pose_based_estimate(prev.extrinsic.astype(dtype), cur.extrinsic.astype(dtype))
     S = jnp.where(uinfo.valid, S, S_pose)
     info = AlignInfo(
@@ -753,6 +774,8 @@ def _align_core(
         depth_threshold=lam_used,
         pose_fallback=~uinfo.valid,
         umeyama=uinfo,
+        src_mean=src_mean,
+        src_covariance=src_cov,
     )
     return S, info
 

@@ -108,10 +108,10 @@ def _matrix(p):
 
 
 def _expm(a):
-    """Matrix exponential by scaling and squaring of a 20-term Taylor series (NumPy)."""
-    k = max(0, int(np.ceil(np.log2(max(np.abs(a).sum(axis=1).max(), 1e-300) / 0.25))))
+    """Matrix exponential by scaling and squaring of a 20-term Taylor series (NumPy; ``[..., 4, 4]``)."""
+    k = max(0, int(np.ceil(np.log2(max(np.abs(a).sum(axis=-1).max(), 1e-300) / 0.25))))
     a = a / 2.0**k
-    out, term = np.eye(4), np.eye(4)
+    out = term = np.broadcast_to(np.eye(4), a.shape)
     for n in range(1, 21):
         term = term @ a / n
         out = out + term

@@ -3,6 +3,8 @@
     from swiftjax import posegraph
     problem = posegraph.Problem(poses0, edges, measurements, information=w, fixed=None)
     result = posegraph.optimize(problem)          # -> Result(poses, cost_initial, cost_final, ...)
+    result = posegraph.optimize(problem, kernel="gnc")   # GNC-TLS on the robust edges
+    result.inlier_weights                         # [E]: 0 for rejected edges
 
 Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, robust kernels, size buckets),
 :mod:`~swiftjax.posegraph.factors` (residuals and exact Jacobians),
@@ -10,6 +12,7 @@ Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, robust kernels, s
 :mod:`~swiftjax.posegraph.sparse_direct` (host CHOLMOD/SuperLU with the symbolic analysis cached),
 :mod:`~swiftjax.posegraph.initialization` (chordal initialisation: three linear least squares),
 :mod:`~swiftjax.posegraph.solver` (the optimistix-compatible LM solver),
+:mod:`~swiftjax.posegraph.gnc` (graduated non-convexity with truncated least squares),
 :mod:`~swiftjax.posegraph.driver` (host entry point ``optimize``).
 """
 
@@ -32,6 +35,7 @@ from swiftjax.posegraph.factors import (
     right_jacobian_inverse_at,
 )
 from swiftjax.posegraph.initialization import chain_poses, chordal_initialization
+from swiftjax.posegraph import gnc
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, linearize, retract
 
 __all__ = [
@@ -47,6 +51,7 @@ __all__ = [
     "chordal_initialization",
     "cost",
     "edge_costs",
+    "gnc",
     "kernel_code",
     "linearize",
     "optimize",

@@ -12,7 +12,10 @@ dtype, or a change of the static options (``linear_solver`` as resolved, ``max_s
 ``max_linear_iterations``, ``damping``, ``initialization``; the dense/PCG solve program does not
 depend on ``initialization``, so the persistent cache serves it to both starts).
 Tolerances, ``lambda0``, the robust ``kernel`` and ``kernel_scale`` are traced values and never
-recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
+recompile.  ``kernel="gnc"`` (:mod:`swiftjax.posegraph.gnc`) runs GNC's continuation on the host
+around the same LM program (GNC's solves are weighted least squares, kernel code 0), plus one
+small weight-update program per bucket: ``mu``, the weights and the threshold are traced values, so the outer
+iterations never recompile.  With JAX's persistent compilation cache enabled (the CLI and the test
 suite enable it) a bucket compiled by an earlier process is loaded from disk.
 """
 
@@ -38,7 +41,7 @@ from swiftjax.posegraph.problem import (
     pad_problem,
     validate,
 )
-from swiftjax.posegraph import sparse_direct
+from swiftjax.posegraph import gnc, sparse_direct
 from swiftjax.posegraph.factors import cost
 from swiftjax.posegraph.initialization import chordal_initialization
 from swiftjax.posegraph.solver import STATUS, SparseSim3LM, residual_fn
@@ -70,6 +73,16 @@ class Result:
     ``converged`` is True when a stopping test (``status``) was met; False when ``max_steps``
     ran out or the damping stalled.  ``compile_seconds`` is 0 when the bucket was already
     compiled in this process.
+
+    ``inlier_weights`` ``[E]`` (NumPy float64): with ``kernel="gnc"`` the GNC-TLS weights of the
+    final solve (1 inlier, 0 outlier, in between only if the continuation stopped early); with
+    Huber/Cauchy the IRLS weight ``rho'(s_e)`` at the result; 1 for every edge not flagged
+    ``robust`` and for ``kernel=None``.  ``gnc_iterations``: GNC outer iterations (weighted LM
+    solves after the first, unweighted one); 0 otherwise.  With GNC, ``num_steps``,
+    ``num_accepted``, ``num_rejected`` and ``linear_iterations`` are summed over every LM solve,
+    ``cost_start`` is the first (unweighted) solve's start cost and ``cost_final`` the last solve's
+    weighted cost ``1/2 sum w_e s_e`` (binary weights: the TLS cost without its constant
+    ``c^2 / 2`` per rejected edge).
     """
 
     poses: Array
@@ -87,6 +100,8 @@ class Result:
     bucket: tuple[int, int]
     compile_seconds: float
     solve_seconds: float
+    inlier_weights: np.ndarray
+    gnc_iterations: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,6 +150,7 @@ def _report(y: Array, st, num_steps: Array, cost_given: Array) -> dict[str, Arra
         "num_accepted": st.num_accepted,
         "num_rejected": st.num_rejected,
         "linear_iterations": st.linear_iterations,
+        "edge_weights": st.lin.edge_weights,
     }
 
 
@@ -191,10 +207,10 @@ def _host_advance(problem: Problem, params: dict[str, Array], y, state, delta, o
     return y, state, solver.damping_vector(state)
 
 
-def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
-    """Run the LM iterations with :func:`swiftjax.posegraph.sparse_direct.solve` on the host."""
-    begin_c, advance_c = compiled
-    problem, y, state, damping, given = begin_c(problem, params)
+def _host_solve(advance_c, problem: Problem, params, y, state, damping, static: _Static) -> dict:
+    """Run the LM iterations from ``y`` with :func:`swiftjax.posegraph.sparse_direct.solve` on the
+    host.  ``state``/``damping`` are LM's initial state from the begin program (it does not depend
+    on the start poses, so GNC's outer iterations reuse it)."""
     edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
     dtype = np.dtype(y.dtype)
     # The first advance is step 0: it only linearises (its delta is ignored, so nothing is solved).
@@ -207,7 +223,24 @@ def _host_loop(compiled, problem: Problem, params, static: _Static) -> dict:
         )
         y, state, damping = advance_c(problem, params, y, state, delta.astype(dtype), np.asarray(ok))
         steps += 1
-    return _report(y, state, steps, state.cost_initial if given is None else given)
+    return _report(y, state, steps, state.cost_initial)
+
+
+def _prepare(compiled, padded: Problem, params, static: _Static):
+    """Run a bucket's first program: ``(normalised problem, LM start, cost at the given poses | None,
+    lm)`` where ``lm(problem, y, params)`` runs LM from ``y`` (same graph structure, any
+    information: GNC's weighted graphs) and returns :func:`_report`'s dict."""
+    if static.linear_solver == "sparse":
+        begin_c, advance_c = compiled
+        problem_n, start, state0, damping0, given = begin_c(padded, params)
+
+        def lm(problem, y, prm):
+            return _host_solve(advance_c, problem, prm, y, state0, damping0, static)
+
+        return problem_n, start, given, lm
+    begin_c, solve_c = compiled
+    problem_n, start, given = begin_c(padded, params)
+    return problem_n, start, given, solve_c
 
 
 def _normalized(problem: Problem) -> Problem:
@@ -221,6 +254,54 @@ def _normalized(problem: Problem) -> Problem:
         robust=problem.robust,
         edge_mask=problem.edge_mask,
     )
+
+
+def _gnc_program(problem: Problem, poses: Array, mu: Array, c2: Array):
+    """At ``poses``: ``(GNC weights, weighted problem, mu_0)`` (one compile per bucket; all traced)."""
+    sq, w, weighted = gnc.weight_update(problem, poses, mu, c2)
+    return w, weighted, gnc.initial_mu(sq, problem.robust & problem.edge_mask, c2)
+
+
+_SUMMED = ("num_steps", "num_accepted", "num_rejected", "linear_iterations")
+
+
+def _gnc_continuation(lm, update_c, problem: Problem, out: dict, params, scale: float, options: dict):
+    """GTSAM's GNC-TLS loop (:mod:`swiftjax.posegraph.gnc`) around the bucket's LM program.
+
+    ``out`` is the unweighted LM solve.  Returns ``(last solve's report with step counts summed,
+    weights [E_bucket], outer iterations, converged)``.
+    """
+    dtype = out["poses"].dtype
+    c2 = jnp.asarray(scale * scale, dtype)
+    y = out["poses"]
+    _, _, mu0 = update_c(problem, y, jnp.asarray(1.0, dtype), c2)
+    weights = np.where(np.asarray(problem.edge_mask), 1.0, 0.0)
+    mu = float(mu0)
+    if mu <= 0:  # every robust edge is an inlier of the least-squares solution
+        return out, weights, 0, True
+    totals = {k: int(out[k]) for k in _SUMMED}
+    prev_cost = float(out["cost_final"])
+    cost_initial = out["cost_initial"]
+    for it in range(1, options["max_iterations"] + 1):
+        w, weighted, _ = update_c(problem, y, jnp.asarray(mu, dtype), c2)
+        out = lm(weighted, y, params)
+        y = out["poses"]
+        for k in _SUMMED:
+            totals[k] += int(out[k])
+        weights = np.asarray(w, np.float64)
+        cost = float(out["cost_final"])
+        binary = np.max(np.abs(weights - np.round(weights)), initial=0.0) <= options["weights_tol"]
+        flat = abs(cost - prev_cost) / max(prev_cost, 1e-7) < options["cost_tol"]
+        if binary or flat:
+            break
+        mu *= options["mu_step"]
+        prev_cost = cost
+    else:
+        it = options["max_iterations"]
+        out = {**out, **totals, "cost_initial": cost_initial}
+        return out, weights, it, False
+    out = {**out, **totals, "cost_initial": cost_initial}
+    return out, weights, it, True
 
 
 _COMPILED: dict[tuple, object] = {}
@@ -304,8 +385,12 @@ def optimize(
     linear_solver: LinearSolver = "auto",
     max_linear_iterations: int = 1000,
     eta_max: float = 1e-4,
-    kernel: RobustKernel | None = None,
-    kernel_scale: float = 1.0,
+    kernel: RobustKernel | Literal["gnc"] | None = None,
+    kernel_scale: float | None = None,
+    gnc_max_iterations: int = 100,
+    gnc_mu_step: float = 1.4,
+    gnc_weights_tol: float = 1e-4,
+    gnc_cost_tol: float = 1e-5,
     pad: bool = True,
     check: bool = True,
 ) -> Result:
@@ -340,8 +425,22 @@ def optimize(
             sqrt(|g|/|g0|))``).  Measured on the N = 5,000 circle from dead reckoning: 1e-2
             and 1e-3 stall (99 LM steps, cost 1.2e7 / 1.4e7), 1e-4 converges in 31 steps; from
             the chordal start 1e-3 would save 20 % (1,061 vs 1,333 PCG iterations).
-        kernel, kernel_scale: robust kernel (``"huber"``/``"cauchy"``) for the edges flagged
-            ``problem.robust``, scale in whitened units (``sqrt(r^T Omega r)``).
+        kernel, kernel_scale: robust treatment of the edges flagged ``problem.robust``, scale in
+            whitened units (``sqrt(r^T Omega r)``): ``"huber"``/``"cauchy"`` (IRLS inside LM; scale
+            default 1) or ``"gnc"``: graduated non-convexity with truncated least squares
+            (:mod:`swiftjax.posegraph.gnc`), ``kernel_scale`` the inlier threshold ``c`` (an
+            edge with ``r^T Omega r > c^2`` is rejected), default :data:`~swiftjax.posegraph.gnc.DEFAULT_SCALE`
+            ``= sqrt(chi2_7^-1(0.99))``, right when the information matches the noise.  Edges not
+            flagged robust are never down-weighted.
+        gnc_max_iterations, gnc_mu_step, gnc_weights_tol, gnc_cost_tol: GNC's outer loop (GTSAM's
+            ``maxIterations``, ``muStep``, ``weightsTol``, ``relativeCostTol``; same defaults): stop
+            when every weight is within ``weights_tol`` of 0 or 1 or the weighted cost changes by
+            less than ``cost_tol`` relative; ``converged`` is False if neither happens in
+            ``gnc_max_iterations``.  GNC runs the bucket's LM program (the very program of
+            ``kernel=None``: nothing more to compile for LM) once unweighted and then once per
+            outer iteration, warm-started, plus one small compiled weight-update program per
+            bucket; ``mu``, the weights and ``kernel_scale`` are traced, so no outer iteration
+            and no new threshold recompiles.
         pad: pad to the size bucket (compile once per bucket); False compiles for the exact size.
         check: validate the problem on the host first (:func:`~swiftjax.posegraph.validate`).
 
@@ -357,8 +456,21 @@ def optimize(
         raise ValueError(f"initialization must be 'none' or 'chordal', not {initialization!r}")
     if damping not in ("identity", "marquardt"):
         raise ValueError(f"damping must be 'identity' or 'marquardt', not {damping!r}")
-    if kernel not in (None, "huber", "cauchy"):
-        raise ValueError(f"kernel must be None, 'huber' or 'cauchy', not {kernel!r}")
+    if kernel not in (None, "huber", "cauchy", "gnc"):
+        raise ValueError(f"kernel must be None, 'huber', 'cauchy' or 'gnc', not {kernel!r}")
+    if kernel_scale is None:
+        kernel_scale = gnc.DEFAULT_SCALE if kernel == "gnc" else 1.0
+    scale = float(kernel_scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"kernel_scale must be a positive finite number, not {kernel_scale!r}")
+    gnc_options = dict(
+        max_iterations=int(gnc_max_iterations), mu_step=float(gnc_mu_step),
+        weights_tol=float(gnc_weights_tol), cost_tol=float(gnc_cost_tol),
+    )
+    if kernel == "gnc" and not (gnc_options["mu_step"] > 1 and gnc_options["max_iterations"] >= 1):
+        raise ValueError(
+            f"GNC needs gnc_mu_step > 1 and gnc_max_iterations >= 1, got {gnc_mu_step!r}, {gnc_max_iterations!r}"
+        )
     n, e = problem.num_nodes, problem.num_edges
     nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)
     padded = pad_problem(problem, nb, eb)
@@ -378,10 +490,11 @@ def optimize(
     params = {
         k: jnp.asarray(v, dtype)
         for k, v in dict(
-            rtol=rtol, atol=atol, gtol=gtol, lambda0=lambda0, eta_max=eta_max, kernel_scale=kernel_scale
+            rtol=rtol, atol=atol, gtol=gtol, lambda0=lambda0, eta_max=eta_max, kernel_scale=scale
         ).items()
     }
-    params["kernel"] = jnp.asarray(kernel_code(kernel), jnp.int32)
+    # GNC's LM solves are weighted least squares: kernel code 0 (the kernel=None program).
+    params["kernel"] = jnp.asarray(kernel_code(None if kernel == "gnc" else kernel), jnp.int32)
     key = (nb, eb, str(dtype), static)
     compile_seconds = 0.0
     compiled = _COMPILED.get(key)
@@ -390,26 +503,42 @@ def optimize(
         compiled = _compile(padded, params, static)
         compile_seconds = time.perf_counter() - t0
         _COMPILED[key] = compiled
+    if kernel == "gnc":
+        ukey = ("gnc", nb, eb, str(dtype))
+        update_c = _COMPILED.get(ukey)
+        if update_c is None:
+            t0 = time.perf_counter()
+            c2 = jnp.asarray(1.0, dtype)
+            update_c = jax.jit(_gnc_program).lower(padded, padded.poses, c2, c2).compile()
+            compile_seconds += time.perf_counter() - t0
+            _COMPILED[ukey] = update_c
     t0 = time.perf_counter()
-    if static.linear_solver == "sparse":
-        out = _host_loop(compiled, padded, params, static)
-    else:
-        begin_c, solve_c = compiled
-        problem_n, start, given = begin_c(padded, params)
-        out = solve_c(problem_n, start, params)
-        if given is not None:
-            out["cost_given"] = given
+    problem_n, start, given, lm = _prepare(compiled, padded, params, static)
+    out = lm(problem_n, start, params)
+    gnc_iterations, gnc_converged = 0, True
+    if kernel == "gnc":
+        out, weights, gnc_iterations, gnc_converged = _gnc_continuation(
+            lm, update_c, problem_n, out, params, scale, gnc_options
+        )
+    else:  # LM's IRLS weights at its last accepted iterate (1 for kernel=None)
+        weights = np.asarray(out["edge_weights"])
+    if given is not None:
+        out["cost_given"] = given
     out = jax.block_until_ready(out)
     solve_seconds = time.perf_counter() - t0
     status_code = int(out["status"])
     status = STATUS[status_code] if status_code else "max_steps reached"
+    converged = status_code in (1, 2, 3, 4)
+    if not gnc_converged:
+        status = f"GNC: {gnc_options['max_iterations']} outer iterations without converged weights or cost"
+        converged = False
     return Result(
         poses=out["poses"][:n],
         cost_initial=float(out["cost_given"]),
         cost_start=float(out["cost_initial"]),
         cost_final=float(out["cost_final"]),
         num_steps=int(out["num_steps"]),
-        converged=status_code in (1, 2, 3, 4),
+        converged=converged,
         status=status,
         gradient_max=float(out["gradient_max"]),
         num_accepted=int(out["num_accepted"]),
@@ -419,4 +548,6 @@ def optimize(
         bucket=(nb, eb),
         compile_seconds=compile_seconds,
         solve_seconds=solve_seconds,
+        inlier_weights=np.asarray(weights, np.float64)[:e],
+        gnc_iterations=gnc_iterations,
     )

@@ -73,10 +73,11 @@ _LAMBDA_MIN = 1e-14
 
 
 class Linearization(eqx.Module):
-    """Cost and normal equations at one iterate."""
+    """Cost, per-edge IRLS weights ``rho'_e`` ``[E]`` and normal equations at one iterate."""
 
     cost: Array
     ne: linear.NormalEquations
+    edge_weights: Array
 
 
 def linearize(
@@ -86,7 +87,7 @@ def linearize(
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)
     rho, w = edge_costs(r, problem, kernel, kernel_scale)
     ne = linear.assemble(r, jr_inv, adj, w, problem.information, problem.edges, problem.fixed)
-    return Linearization(cost=0.5 * jnp.sum(rho), ne=ne)
+    return Linearization(cost=0.5 * jnp.sum(rho), ne=ne, edge_weights=w)
 
 
 def retract(poses: Array, delta: Array, fixed: Array) -> Array:
@@ -161,7 +162,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
             edges=problem.edges,
         )
         return LMState(
-            lin=Linearization(cost=zero, ne=ne),
+            lin=Linearization(cost=zero, ne=ne, edge_weights=jnp.zeros((e,), dtype)),
             lam=jnp.asarray(self.lambda0, dtype),
             nu=jnp.asarray(2.0, dtype),
             cost_initial=zero,
