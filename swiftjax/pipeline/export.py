@@ -67,6 +67,7 @@ def pose_unit(ctx: RunContext) -> str:
 
 def check(ctx: RunContext) -> None:
     """Refuse, before any work, output options the input cannot satisfy (``ValueError``)."""
+    _finish_frames(ctx)  # writes an interrupted run in this process left queued
     if ctx.config.colmap and ctx.config.colmap_original_resolution:
         original_source(ctx)
 
@@ -220,28 +221,71 @@ def _copy_originals(ctx: RunContext, names: list[str]) -> None:
 
 
 def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> None:
-    """The frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as PNG in
-    ``colmap/images/`` at the model's resolution -- the images the COLMAP model's cameras
-    describe -- named by :func:`swiftjax.io.colmap.image_names`.
+    """Queue the frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as
+    PNG in ``colmap/images/`` at the model's resolution -- the images the COLMAP model's
+    cameras describe -- named by :func:`frame_image_names`.
 
     Called by the temporal stage while the prediction is in memory, for the frames the chunk
-    owns (with ``colmap_original_resolution`` the export copies the originals instead).
-    Lossless PNG (Pillow, compression level 1), the chunk's files synced as one batch
-    (:func:`~swiftjax.io.atomic.atomic_paths`): ~11 ms a 518x154 frame on a loaded 2-core
-    machine, of which 7 ms encoding (``bench/bench_colmap_export.py``); nothing when
-    ``colmap`` is off or the predictor gives no images.
+    owns (with ``colmap_original_resolution`` the export copies the originals instead).  The
+    files are written by one background thread (at most two chunks queued) while the next
+    chunk is predicted; :func:`run` waits for them.  Lossless PNG (Pillow, compression level
+    1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`):
+    ~11 ms a 518x154 frame on a loaded 2-core machine, of which 7 ms encoding
+    (``bench/bench_colmap_export.py``); nothing when ``colmap`` is off or the predictor gives
+    no images.
     """
     if not ctx.config.colmap or ctx.config.colmap_original_resolution or pred.images is None:
         return
-    from PIL import Image
-
     names = frame_image_names(ctx)
     targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
+    writer = _FRAME_WRITERS.setdefault(str(ctx.run_dir), _FrameWriter())
+    writer.submit(targets, np.asarray(pred.images)[: len(targets)])
+
+
+def _save_pngs(targets: list[pathlib.Path], images: np.ndarray) -> None:
+    from PIL import Image
+
     for target in targets:
         target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_paths(targets) as tmps:  # one batch of syncs per chunk
-        for k, tmp in enumerate(tmps):
-            Image.fromarray(np.asarray(pred.images[k])).save(tmp, format="PNG", compress_level=1)
+        for tmp, image in zip(tmps, images):
+            Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
+
+
+class _FrameWriter:
+    """One background thread writing frame PNGs (Pillow releases the GIL while encoding);
+    :meth:`submit` blocks while two chunks are queued, so memory stays bounded."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swiftjax-frames")
+        self.pending: list[Any] = []
+
+    def submit(self, targets: list[pathlib.Path], images: np.ndarray) -> None:
+        while len(self.pending) >= 2:
+            self.pending.pop(0).result()
+        self.pending.append(self.pool.submit(_save_pngs, targets, images))
+
+    def close(self) -> None:
+        """Wait for every queued write (re-raising a failed one), stop the thread."""
+        try:
+            for future in self.pending:
+                future.result()
+        finally:
+            self.pending = []
+            self.pool.shutdown(wait=True)
+
+
+#: The frame writer of each run directory being written (created by :func:`write_frames`).
+_FRAME_WRITERS: dict[str, _FrameWriter] = {}
+
+
+def _finish_frames(ctx: RunContext) -> None:
+    """Wait for the run's queued frame writes (also those an interrupted run left)."""
+    writer = _FRAME_WRITERS.pop(str(ctx.run_dir), None)
+    if writer is not None:
+        writer.close()
 
 
 _as_matrix = jax.jit(sim3.as_matrix)
@@ -291,6 +335,7 @@ def _export(
 
     run_dir, schedule, store, config, K_ref = ctx.run_dir, ctx.schedule, ctx.store, ctx.config, ctx.K_ref
     assert K_ref is not None
+    _finish_frames(ctx)
     n = schedule.n_frames
     T = schedule.num_chunks
     owner = np.searchsorted(schedule.starts, np.arange(n), side="right") - 1  # later chunk wins
