@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from swiftjax import metric, sim3
+from swiftjax import metric
 
 
 def _road_scene(rng, n_road=2500, n_wall=600, n_junk=400, h=1.65, tilt=(0.04, 0.08), noise=0.01):
@@ -127,7 +127,7 @@ def test_chunk_height_on_the_exact_oracle_is_the_true_gauge():
                         tokens=False)
     frames = np.arange(10, 30)
     pred = oracle.predict_chunk(frames)
-    gh = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, stride=2)
+    gh = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, stride=2, frame_stride=1)
     s_true = oracle.true_chunk_gauge(frames)[7]
     pl = ground_planes(world, poses[frames, :3, 3])
     h_true = np.sum(pl[:, :3] * poses[frames, :3, 3], 1) - pl[:, 3]  # ~1.65 m
@@ -137,7 +137,7 @@ def test_chunk_height_on_the_exact_oracle_is_the_true_gauge():
     # a keep-mask removing the bottom half of every frame leaves no road
     keep = np.ones(pred.depth.shape, bool)
     keep[:, 28:] = False
-    gh0 = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, keep, stride=2)
+    gh0 = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, keep, stride=2, frame_stride=1)
     assert int(gh0.num_valid) == 0 and np.isnan(float(gh0.height))
 
 
@@ -152,12 +152,21 @@ def test_combine_scales_median_ignores_bad_chunks():
         metric.combine_scales([np.nan, np.nan], [1.0, 1.0], 1.65)
 
 
-def test_apply_scale_stretches_the_world(x64):
+def test_apply_scale_stretches_the_world():
+    """x' = s R x + t (NumPy, scipy's quaternion convention xyzw): M_m o S acts as m S(x)."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(6)
-    S = np.asarray(sim3.exp(rng.normal(size=(4, 7))))
+    q = Rotation.random(4, random_state=7).as_quat()
+    S = np.concatenate([rng.normal(size=(4, 3)), q, rng.uniform(0.5, 2, (4, 1))], 1)
     x = rng.normal(size=(4, 3))
+
+    def act(S, x):
+        return S[:, 7:8] * Rotation.from_quat(S[:, 3:7]).apply(x) + S[:, :3]
+
     S2 = metric.apply_scale(S, 2.5)
-    np.testing.assert_allclose(np.asarray(sim3.act(S2, x)), 2.5 * np.asarray(sim3.act(S, x)), rtol=1e-12)
+    np.testing.assert_allclose(act(S2, x), 2.5 * act(S, x), rtol=1e-12)
+    np.testing.assert_array_equal(S2[:, 3:7], S[:, 3:7])
 
 
 @pytest.mark.parametrize("value, expect", [(None, None), ("gt", ("gt", None)), ("camera-height=1.65", ("camera-height", 1.65))])
