@@ -356,11 +356,14 @@ class Viewer:
                 return
             self.loop_toggle.disabled = "loop closure" not in view.poses
             c2w = view.cam_to_world(name)
-            self._c2w = c2w
-            self._draw_cloud()
             scene = self.server.scene
             centres = c2w[:, :3, 3]
             extent = self._scale(centres)
+            if not getattr(self, "_camera_set", False) and len(centres):
+                # First in the message log, so that a connecting page applies it before it
+                # has replayed the (large) cloud.
+                self._initial_camera(centres, extent)
+            self._draw_cloud()
             if len(centres) >= 2:
                 seg = np.stack([centres[:-1], centres[1:]], axis=1)
                 scene.add_line_segments("/trajectory", seg, _TRAJECTORY, thickness=3.0, thickness_units="screen")
@@ -374,8 +377,6 @@ class Viewer:
                 f"{len(self.reservoir):,} of {self.reservoir.seen:,} points shown  \n"
                 f"loop candidates: {n_acc} accepted, {len(view.loops) - n_acc} rejected  \nposes: {name}"
             )
-            if not getattr(self, "_camera_set", False) and len(centres):
-                self._initial_camera(centres, extent)
 
     def _initial_camera(self, centres: np.ndarray, extent: float) -> None:
         """Look at the trajectory's centre from above and behind (y is down in the world)."""

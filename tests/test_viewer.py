@@ -206,20 +206,31 @@ def test_browser_shows_the_run(demo_run, tmp_path):
             assert v.server.scene.get_handle_by_name(name) is not None, name
         frustums = [n for n in v.server.scene._handle_from_node_name if n.startswith("/frustums/")]
         assert len(frustums) >= 20
-        first = _screenshot(v.url, str(tmp_path / "first.png"))
-        assert connected, "the page never connected to the viewer's websocket"
-        canvas = _canvas(first)
-        drawn = np.abs(canvas - 255).max(axis=-1) > 40  # not background
-        assert drawn.mean() > 0.03 and canvas.std() > 20, (drawn.mean(), canvas.std())
-        # The cloud's colours are on the canvas: most drawn pixels are near a colour of the sample.
         palette = v.reservoir.rgb[:: max(1, len(v.reservoir) // 3000)].astype(np.int32)
-        pixels = canvas[drawn][:: max(1, int(drawn.sum()) // 4000)]
-        nearest = np.min(np.abs(pixels[:, None, :] - palette[None, :, :]).max(-1), axis=1)
-        assert np.mean(nearest < 30) > 0.5, np.mean(nearest < 30)
+
+        def look(name: str) -> tuple[np.ndarray, np.ndarray, float]:
+            """Screenshot, drawn-pixel mask, share of drawn pixels near a colour of the cloud.
+            Software WebGL on a loaded machine can capture before the scene has arrived: up
+            to 3 tries until the cloud's colours are on the canvas (stated in the failure)."""
+            for attempt in range(3):
+                img = _screenshot(v.url, str(tmp_path / f"{name}{attempt}.png"))
+                canvas = _canvas(img)
+                drawn = np.abs(canvas - 255).max(axis=-1) > 40  # not background
+                pixels = canvas[drawn][:: max(1, int(drawn.sum()) // 4000)]
+                near = np.min(np.abs(pixels[:, None, :] - palette[None]).max(-1), axis=1) if len(pixels) else [0]
+                share = float(np.mean(np.asarray(near) < 30))
+                if drawn.mean() > 0.003 and share > 0.5:
+                    break
+            return img, drawn, share
+
+        first, drawn, share = look("first")
+        assert connected, "the page never connected to the viewer's websocket"
+        assert drawn.mean() > 0.03 and _canvas(first).std() > 20, (drawn.mean(), _canvas(first).std())
+        assert share > 0.5, share  # most drawn pixels have a colour of the cloud's sample
 
         v.conf_slider.value = 95  # server-side GUI handle: the cloud keeps its top 5 %
-        second = _screenshot(v.url, str(tmp_path / "second.png"))
-        drawn2 = np.abs(_canvas(second) - 255).max(axis=-1) > 40
+        second, drawn2, share2 = look("second")
+        assert share2 > 0.5, share2  # the cloud is still drawn, thinner
         assert np.abs(second.astype(int) - first.astype(int)).max(-1).astype(bool).mean() > 0.02
         assert drawn2.mean() < 0.8 * drawn.mean(), (drawn.mean(), drawn2.mean())
     finally:
