@@ -8,6 +8,7 @@ loops are cosine-similarity matches far apart in time.  The steps (DESIGN.md def
     {g¹} ──PCA: drop top r, keep d′, W = Q (Λ + ε)^-½──► Whitening       fit_whitening
     g¹ ──(g − μ) W──► ℓ2 ──► ẑ [d′]                                       whiten
     ẑ ──cos sim, top-k per frame, > τ, |i−j| > sep, NMS ±r──► pairs       detect_loops
+      (τ per sequence from the frames' best scores, or fixed)             calibrate_threshold
     pairs ──drop pairs inside one chunk, best per chunk pair──► loops     filter_by_chunks
     loop ──20 + 20 frames around both ends──► loop-centric chunk          loop_chunk_frames
     S_{i,loop}, S_{j,loop} ──► S_{j,loop} S_{i,loop}⁻¹                    loop_edge
@@ -41,6 +42,8 @@ __all__ = [
     "fit_whitening",
     "whiten",
     "LoopCandidates",
+    "ThresholdCalibration",
+    "calibrate_threshold",
     "detect_loops",
     "LoopChunk",
     "loop_chunk_frames",
@@ -49,6 +52,9 @@ __all__ = [
     "Loop",
     "find_loops",
     "DEFAULT_THRESHOLD",
+    "AUTHORS_THRESHOLD",
+    "DEFAULT_FALSE_ALARMS",
+    "THRESHOLD_RULES",
 ]
 
 #: Cosine threshold on *whitened* descriptors ẑ (d′ = 512).  The authors' 0.98 does not
@@ -57,6 +63,18 @@ __all__ = [
 #: 16, 32) every threshold in (0.41, 0.443) gives precision 1.0 with all 5 loop regions found.
 #: Re-measure on real VGGT tokens.
 DEFAULT_THRESHOLD = 0.43
+
+#: The authors' cosine threshold, on descriptors whitened by a PCA fitted on g⁰ and applied to
+#: g¹ (their code's quirk); ``find_loops(rule="authors")``.
+AUTHORS_THRESHOLD = 0.98
+
+#: ``α`` of :func:`calibrate_threshold`: the expected number of frames WITHOUT a revisit whose
+#: best match still passes the threshold, per sequence.
+DEFAULT_FALSE_ALARMS = 1e-3
+
+#: ``find_loops(rule=...)``: ``"adaptive"`` (default, :func:`calibrate_threshold`), ``"fixed"``
+#: (``threshold``), ``"authors"`` (0.98, whitening fitted on g⁰).
+THRESHOLD_RULES = ("adaptive", "fixed", "authors")
 
 _NORM_EPS = 1e-12  # as torch.nn.functional.normalize
 
@@ -236,12 +254,15 @@ class LoopCandidates(NamedTuple):
         count: int32 scalar, number of valid rows.
         truncated: bool scalar, ``True`` when NMS stopped because ``M`` pairs were accepted
             (more loops may exist; raise ``max_loops``).
+        threshold: float scalar, the threshold the candidates passed (the calibrated one
+            for ``rule="adaptive"``).
     """
 
     pairs: jax.Array
     scores: jax.Array
     count: jax.Array
     truncated: jax.Array
+    threshold: jax.Array | None = None
 
     def to_list(self) -> list[tuple[int, int, float]]:
         """Host-side trimmed list ``[(i, j, score), ...]`` sorted by score."""
@@ -267,6 +288,82 @@ def _default_block_rows(n: int) -> int:
     return min(n, 128 if n <= 8192 else 256)
 
 
+class ThresholdCalibration(NamedTuple):
+    """A per-sequence threshold from the frames' best scores (:func:`calibrate_threshold`).
+
+    Attributes (float32 scalars): ``threshold`` ``τ = μ + k σ``; ``mu``, ``sigma`` of the
+    Gaussian null fitted to the lower quantiles; ``k = Φ̄⁻¹(α / n)``; ``n`` frames with a
+    temporally separated partner (``τ = +inf`` when ``n < 2``: no candidate).
+    """
+
+    threshold: jax.Array
+    mu: jax.Array
+    sigma: jax.Array
+    k: jax.Array
+    n: jax.Array
+
+
+def _quantile_sorted(x_sorted: jax.Array, n: jax.Array, p: float) -> jax.Array:
+    """Linear-interpolation quantile (NumPy's default) of the first ``n`` entries of a sorted array."""
+    pos = p * (n - 1).astype(x_sorted.dtype)
+    lo = jnp.floor(pos).astype(jnp.int32)
+    hi = jnp.minimum(lo + 1, jnp.maximum(n - 1, 0))
+    frac = pos - lo
+    return x_sorted[lo] * (1.0 - frac) + x_sorted[hi] * frac
+
+
+@functools.partial(jax.jit, static_argnames=("quantiles",))
+def calibrate_threshold(
+    best: jax.Array,
+    false_alarms: float | jax.Array = DEFAULT_FALSE_ALARMS,
+    quantiles: tuple[float, float] = (0.1, 0.4),
+) -> ThresholdCalibration:
+    """The loop threshold of one sequence from ``best [N]``, each frame's best similarity
+    among temporally separated frames (``-inf``: no such frame; ignored).
+
+    Derivation.  A frame without a revisit has a best score ``b`` drawn from a null
+    distribution that depends on the descriptors (dimension, hubness, noise, sequence length
+    -- the reason one constant does not transfer); a false candidate is exactly such a
+    frame with ``b > τ``.  Model the null as ``N(μ, σ²)`` and estimate it robustly from the
+    lower part of the observed ``b``, which frames with a revisit (high ``b``) do not reach
+    (``q`` the empirical quantile, ``z = Φ⁻¹``, ``p = quantiles``)::
+
+        σ = (q(p₂) − q(p₁)) / (z(p₂) − z(p₁)),   μ = q(p₂) − z(p₂) σ
+
+    then choose ``τ`` so that the expected number of null frames above it is ``α``
+    (``false_alarms``) among the ``n`` frames: ``n Φ̄((τ − μ)/σ) = α``, i.e.
+    ``τ = μ + Φ̄⁻¹(α / n) σ`` (``k = 5.05`` for KITTI 00's 4,541 frames at ``α = 10⁻³``,
+    4.66 for the 618-frame demo route).
+
+    Two biases, both measured in ``bench/bench_loop_threshold.py``: with a fraction ``r`` of
+    frames on a revisit, the overall quantile ``p`` is the null's ``p / (1 − r)`` (KITTI 00:
+    ``r = 0.44``), which inflates ``μ`` and ``σ`` (a higher, conservative ``τ``); and best-of-
+    many scores are right-skewed (Gumbel-like: a shorter lower tail than the Gaussian's), which
+    shrinks the lower-quantile ``σ``.  Correcting the first alone (refitting at ``p (1 − r̂)``)
+    lowered ``τ`` below false best matches on the demo route (precision 0.33); the plain fit
+    above keeps precision 1 and every region on 16 of the 20 separable generator cases of our
+    whitening, where the constant 0.43 manages 8 (the 4 misses: strong hubness and d = 256,
+    whose windows sit at ``k`` = 2.8-4.2).  It assumes that fewer than ``1 − p₂`` (60 %) of the
+    frames revisit.
+
+    Pure and jit-compiled (``quantiles`` static; ``false_alarms`` traced); ``q`` is NumPy's
+    linear-interpolation quantile over the finite entries.  Recompiles per ``N`` and dtype.
+    """
+    b = jnp.asarray(best)
+    b = b.astype(jnp.promote_types(b.dtype, jnp.float32))
+    finite = jnp.isfinite(b)
+    n = jnp.sum(finite).astype(jnp.int32)
+    srt = jnp.sort(jnp.where(finite, b, jnp.inf))
+    p1, p2 = quantiles
+    z1, z2 = jax.scipy.special.ndtri(p1), jax.scipy.special.ndtri(p2)
+    q1, q2 = _quantile_sorted(srt, n, p1), _quantile_sorted(srt, n, p2)
+    sigma = (q2 - q1) / (z2 - z1)
+    mu = q2 - z2 * sigma
+    k = -jax.scipy.special.ndtri(jnp.asarray(false_alarms, b.dtype) / jnp.maximum(n, 1).astype(b.dtype))
+    tau = jnp.where(n >= 2, mu + k * sigma, jnp.inf)
+    return ThresholdCalibration(tau, mu, sigma, k, n)
+
+
 def detect_loops(
     Z: jax.Array,
     threshold: float | jax.Array = DEFAULT_THRESHOLD,
@@ -276,8 +373,14 @@ def detect_loops(
     max_loops: int | None = None,
     block_rows: int | None = None,
     nms: str = "pair",
+    calibrate: bool = False,
+    false_alarms: float = DEFAULT_FALSE_ALARMS,
 ) -> LoopCandidates:
     """Loop candidates from descriptors ``Z [N, d′]`` (rows ℓ2-normalised here again).
+
+    ``calibrate=True`` replaces ``threshold`` by :func:`calibrate_threshold` of the rows'
+    best masked similarities (the first column of step 2's top-k: no extra pass) with
+    ``false_alarms``; the threshold used is returned in ``LoopCandidates.threshold``.
 
     1. similarity ``s_ij = ẑ_i · ẑ_j``, masked to ``|i − j| > min_separation``;
     2. per frame ``i`` its ``top_k`` most similar (unmasked) frames; each ``(i, j)`` with
@@ -309,6 +412,7 @@ def detect_loops(
             ``ceil(N / (nms_radius + 1)) / 2 + 1`` (never truncates); for ``"pair"``
             ``min(N·top_k, 2048)`` (``truncated`` reports when it was reached).
         nms: ``"pair"`` or ``"frame"`` (static).
+        calibrate: static bool; false_alarms: traced ``α`` in ``(0, 1)``.
 
     Returns:
         :class:`LoopCandidates` with ``max_loops`` rows.  ``N = 1`` or ``N <= min_separation + 1``
@@ -340,9 +444,12 @@ def detect_loops(
         _check_finite(Z, "detect_loops: descriptors Z")
         if not np.isfinite(np.asarray(threshold)):
             raise ValueError(f"detect_loops: threshold must be finite, got {threshold}")
+    if _is_concrete(false_alarms) and not 0.0 < float(false_alarms) < 1.0:
+        raise ValueError(f"detect_loops: false_alarms must be in (0, 1), got {false_alarms}")
     return _detect_loops(
-        jnp.asarray(Z), jnp.asarray(threshold, jnp.float32), min_separation, nms_radius,
-        min(top_k, n), max_loops, min(max(1, block_rows), n), nms,
+        jnp.asarray(Z), jnp.asarray(threshold, jnp.float32), jnp.asarray(false_alarms, jnp.float32),
+        min_separation, nms_radius, min(top_k, n), max_loops, min(max(1, block_rows), n), nms,
+        bool(calibrate),
     )
 
 
@@ -368,12 +475,15 @@ def _row_topk(Z: jax.Array, min_separation: int, top_k: int, block_rows: int):
 
 @functools.partial(
     jax.jit,
-    static_argnames=("min_separation", "nms_radius", "top_k", "max_loops", "block_rows", "nms"),
+    static_argnames=("min_separation", "nms_radius", "top_k", "max_loops", "block_rows", "nms", "calibrate"),
 )
-def _detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, block_rows, nms):
+def _detect_loops(Z, threshold, false_alarms, min_separation, nms_radius, top_k, max_loops, block_rows, nms,
+                  calibrate):
     n = Z.shape[0]
     Z = _l2(Z.astype(jnp.promote_types(Z.dtype, jnp.float32)))
     vals, idx = _row_topk(Z, min_separation, top_k, block_rows)
+    if calibrate:
+        threshold = calibrate_threshold(vals[:, 0], false_alarms).threshold.astype(threshold.dtype)
     rows = jnp.broadcast_to(jnp.arange(n)[:, None], idx.shape)
     a, b = rows.reshape(-1), idx.reshape(-1)
     hi, lo = jnp.maximum(a, b), jnp.minimum(a, b)
@@ -417,7 +527,7 @@ def _detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, bl
     )
     pos, count, _, out_p, out_s = lax.while_loop(cond, body, init)
     truncated = (count >= max_loops) & (pos < n_valid)
-    return LoopCandidates(out_p, out_s, count, truncated)
+    return LoopCandidates(out_p, out_s, count, truncated, threshold)
 
 
 # ------------------------------------------------------------------- chunks and loop edges
@@ -526,7 +636,7 @@ def filter_by_chunks(
     rowok = jnp.arange(m) < count
     pairs = jnp.where(rowok[:, None], candidates.pairs[order], -1)
     scores = jnp.where(rowok, candidates.scores[order], -jnp.inf)
-    return LoopCandidates(pairs, scores, count, candidates.truncated)
+    return LoopCandidates(pairs, scores, count, candidates.truncated, candidates.threshold)
 
 
 @functools.partial(jax.jit, static_argnames=("chunk_size", "n_frames", "half_window"))
@@ -578,7 +688,9 @@ def find_loops(
     descriptors,
     schedule,
     *,
+    rule: str = "adaptive",
     threshold: float = DEFAULT_THRESHOLD,
+    false_alarms: float = DEFAULT_FALSE_ALARMS,
     beta: float = 0.5,
     remove: int = 1,
     dim: int = 512,
@@ -596,13 +708,21 @@ def find_loops(
 ):
     """All loops of a sequence from its per-frame descriptors ``g⁰ [N, d]``, in one call.
 
+    The threshold (``rule``): ``"adaptive"`` (default) calibrates it per sequence from the
+    frames' own best scores (:func:`calibrate_threshold`, ``false_alarms`` = ``α``);
+    ``"fixed"`` uses ``threshold`` (the constant :data:`DEFAULT_THRESHOLD`, tuned on one
+    generator); ``"authors"`` is the authors' rule, :data:`AUTHORS_THRESHOLD` on descriptors
+    whitened by a PCA fitted on ``g⁰`` (``fit_on="raw"`` forced, no length adaptation of the
+    threshold).  Whatever the rule, the threshold used is ``details["threshold"]``.
+
     Short sequences (``adapt_to_length``): PCA whitening of ``N`` samples into ``d' >~ N/4``
     dimensions whitens the sampling noise too and flattens every cosine (measured: ``N = 238``,
     ``d' = 236`` -> best far-apart similarity 0.03; ``d' = 59`` -> true revisits at 0.85-0.92),
     so ``d' <= max(8, N // 4)``.  With few dimensions the cosine of two unrelated whitened
     descriptors spreads as ``1/sqrt(d')``, so the threshold is raised to at least five such
     standard deviations, ``5/sqrt(d')`` (0.65 at ``d' = 59``; at ``d' = 512`` the default 0.43
-    is already ten).  Neither changes anything for ``N >= 4 dim`` (KITTI 00: none).
+    is already ten; the floor applies to ``rule="fixed"`` only: the adaptive rule measures
+    the spread itself).  Neither changes anything for ``N >= 4 dim`` (KITTI 00: none).
 
     ``power_normalize`` → ``fit_whitening`` (on ``g¹`` when ``fit_on="power"``, the default,
     consistent: fitted on what it is applied to; ``fit_on="raw"`` fits on ``g⁰`` as the
@@ -622,7 +742,7 @@ def find_loops(
 
     Raises:
         ValueError: non-finite descriptors, wrong shapes, mismatched schedule, unknown
-            ``fit_on``.
+            ``fit_on`` or ``rule``, ``false_alarms`` outside ``(0, 1)``.
     """
     import warnings
 
@@ -637,16 +757,25 @@ def find_loops(
     _check_finite(G, "find_loops: descriptors")
     if fit_on not in ("power", "raw"):
         raise ValueError(f"find_loops: fit_on must be 'power' or 'raw', got {fit_on!r}")
+    if rule not in THRESHOLD_RULES:
+        raise ValueError(f"find_loops: rule must be one of {THRESHOLD_RULES}, got {rule!r}")
+    if not 0.0 < false_alarms < 1.0:
+        raise ValueError(f"find_loops: false_alarms must be in (0, 1), got {false_alarms}")
+    if rule == "authors":
+        threshold, fit_on = AUTHORS_THRESHOLD, "raw"
     if adapt_to_length:
         dim = min(dim, max(8, n // 4))
-        threshold = max(threshold, 5.0 / float(np.sqrt(dim)))
+        if rule == "fixed":
+            threshold = max(threshold, 5.0 / float(np.sqrt(dim)))
     g1 = power_normalize(G, beta)
-    details = {"g1": g1}
+    details = {"g1": g1, "rule": rule, "threshold": float("inf") if rule == "adaptive" else float(threshold)}
     if n <= min_separation + 1 or n < 3:
         return ([], details) if return_details else []
     w = fit_whitening(G if fit_on == "raw" else g1, remove, dim, eps, max_samples)
     Z = whiten(w, g1)
-    cand = detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, nms=nms)
+    cand = detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, nms=nms,
+                        calibrate=rule == "adaptive", false_alarms=false_alarms)
+    details["threshold"] = float(cand.threshold)
     if bool(cand.truncated):
         warnings.warn(
             f"find_loops: NMS stopped at max_loops={max_loops}; more loops may exist", stacklevel=2

@@ -19,8 +19,10 @@ class PipelineConfig:
     iterative baseline on the same reliable points, for comparison), ``depth_threshold``
     (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
     ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
-    (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold`` (cosine of the
-    whitened descriptors), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
+    (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold_rule``
+    (``"adaptive"``: calibrated per sequence, :func:`swiftjax.loops.calibrate_threshold`, with
+    ``loop_false_alarms``; ``"fixed"``: ``loop_threshold``, the cosine of the whitened
+    descriptors; ``"authors"``: 0.98 with the whitening fitted on g0), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
     ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Loop
     verification (:mod:`swiftjax.loop_verification`): ``loop_verification`` (``"geometric"``:
     every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
@@ -49,7 +51,9 @@ class PipelineConfig:
     fallback_depth_threshold: float = 0.25
     loop_depth_threshold: float = 0.4
     loop_closure: bool = True
+    loop_threshold_rule: str = "adaptive"
     loop_threshold: float = loops.DEFAULT_THRESHOLD
+    loop_false_alarms: float = loops.DEFAULT_FALSE_ALARMS
     loop_min_separation: int = 100
     loop_nms_radius: int = 25
     loop_top_k: int = 8
@@ -97,6 +101,12 @@ class PipelineConfig:
             )
         if not 0.0 <= self.loop_min_agreement <= 1.0:
             raise ValueError(f"loop_min_agreement must be in [0, 1], got {self.loop_min_agreement}")
+        if self.loop_threshold_rule not in loops.THRESHOLD_RULES:
+            raise ValueError(
+                f"loop_threshold_rule must be one of {', '.join(loops.THRESHOLD_RULES)}, got {self.loop_threshold_rule!r}"
+            )
+        if not 0.0 < self.loop_false_alarms < 1.0:
+            raise ValueError(f"loop_false_alarms must be in (0, 1), got {self.loop_false_alarms}")
         if self.point_stride < 1:
             raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
         from swiftjax.metric import parse_metric

@@ -65,7 +65,9 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
         found = loops.find_loops(
             temporal.descriptors,
             schedule,
+            rule=config.loop_threshold_rule,
             threshold=config.loop_threshold,
+            false_alarms=config.loop_false_alarms,
             beta=config.power_beta,
             remove=config.whitening_remove,
             dim=config.whitening_dim,
