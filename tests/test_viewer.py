@@ -254,3 +254,28 @@ def test_import_swiftjax_does_not_import_viser():
     code = "import sys, swiftjax, swiftjax.viewer, swiftjax.cli; print('viser' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_live_viewer_and_host_warning(demo_run):
+    """``--view``'s LiveViewer serves once the manifest is there and stops cleanly; binding
+    anything but loopback prints a warning."""
+    import threading
+    import time as _time
+
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    out, _ = demo_run
+    lines: list[str] = []
+    live = viewer.LiveViewer(out, host="127.0.0.1", port=0, max_points=1000, log=lines.append, interval=0.1)
+    deadline = _time.monotonic() + 60
+    while live.viewer is None and _time.monotonic() < deadline:
+        _time.sleep(0.1)
+    assert live.viewer is not None and live.viewer.view.final
+    live.refresh_now()
+    assert any("127.0.0.1" in ln for ln in lines) and not any("warning" in ln for ln in lines)
+    live.close()
+    assert not any(t.name == "swiftjax-view" and t.is_alive() for t in threading.enumerate())
+    shared = viewer.serve(out, host="0.0.0.0", port=0, max_points=1000, log=lines.append)
+    try:
+        assert any("warning: serving on 0.0.0.0" in ln for ln in lines)
+    finally:
+        shared.close()
