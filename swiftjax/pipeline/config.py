@@ -29,8 +29,13 @@ class PipelineConfig:
     pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
     candidate above the threshold is an edge), ``loop_min_agreement`` (the dense test's
     bound), ``loop_pcm`` (the pairwise test).  Pose
-    graph: ``robust_loops`` (``None``, ``"huber"`` or ``"cauchy"`` on loop edges; the
-    authors use none), ``robust_scale``, ``max_lm_steps``.  Output: ``point_conf_ratio``
+    graph: ``robust_loops`` (``"gnc"``: graduated non-convexity with truncated least squares on
+    the loop edges, :mod:`swiftjax.posegraph.gnc`; ``"huber"``, ``"cauchy"``, or ``None``, the
+    authors' plain least squares), ``robust_scale`` (the kernel's scale / GNC's inlier threshold
+    in whitened units; default ``sqrt(chi2_7^-1(0.99))``), ``edge_information`` (``"data"``: every
+    edge's information from its own alignment, :func:`swiftjax.pipeline.graph.edge_information`;
+    ``"equal"``: identity for every edge, the authors' choice), ``edge_pixels_per_sample`` (the
+    pixels per independent residual in that information: one 14 x 14 ViT patch), ``max_lm_steps``.  Output: ``point_conf_ratio``
     (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
     subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
     ``colmap`` (write the COLMAP model and its frames, ``colmap/``), ``colmap_text`` (its
@@ -64,8 +69,10 @@ class PipelineConfig:
     loop_verification: str = "geometric"
     loop_min_agreement: float = 0.55
     loop_pcm: bool = True
-    robust_loops: str | None = None
-    robust_scale: float = 1.0
+    robust_loops: str | None = "gnc"
+    robust_scale: float = 4.298287  # swiftjax.posegraph.gnc.DEFAULT_SCALE (sqrt(chi2_7^-1(0.99)))
+    edge_information: str = "data"
+    edge_pixels_per_sample: float = 196.0
     max_lm_steps: int = 100
     point_conf_ratio: float = 0.75
     point_stride: int = 4
@@ -93,8 +100,14 @@ class PipelineConfig:
             )
         if self.alignment not in ("umeyama", "irls"):
             raise ValueError(f"alignment must be 'umeyama' or 'irls', got {self.alignment!r}")
-        if self.robust_loops not in (None, "huber", "cauchy"):
-            raise ValueError(f"robust_loops must be none, 'huber' or 'cauchy', got {self.robust_loops!r}")
+        if self.robust_loops not in (None, "huber", "cauchy", "gnc"):
+            raise ValueError(f"robust_loops must be none, 'huber', 'cauchy' or 'gnc', got {self.robust_loops!r}")
+        if not self.robust_scale > 0:
+            raise ValueError(f"robust_scale must be > 0, got {self.robust_scale}")
+        if self.edge_information not in ("data", "equal"):
+            raise ValueError(f"edge_information must be 'data' or 'equal', got {self.edge_information!r}")
+        if not self.edge_pixels_per_sample >= 1:
+            raise ValueError(f"edge_pixels_per_sample must be >= 1, got {self.edge_pixels_per_sample}")
         if self.loop_verification not in ("geometric", "none"):
             raise ValueError(
                 f"loop_verification must be 'geometric' or 'none', got {self.loop_verification!r}"

@@ -291,7 +291,10 @@ def align_pair(
                 "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok}
         return np.asarray(S, np.float64), diag
     S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, **options)
-    return np.asarray(S, np.float64), _info_dict(info)
+    S = np.asarray(S, np.float64)
+    # S and the source moments with the diagnostics: what the edge information is formed from
+    # (swiftjax.pipeline.graph.edge_information), also for loop-chunk halves.
+    return S, {**_info_dict(info), "S": S.tolist()}
 
 
 def _align_options(config: PipelineConfig, loop: bool) -> dict[str, Any]:
@@ -313,4 +316,6 @@ def _info_dict(info: align.AlignInfo) -> dict[str, Any]:
         "valid": bool(info.valid),
         "used_fallback_threshold": bool(info.used_fallback_threshold),
         "pose_fallback": bool(info.pose_fallback),
+        "src_mean": np.asarray(info.src_mean, np.float64).tolist(),
+        "src_covariance": np.asarray(info.src_covariance, np.float64).tolist(),
     }
