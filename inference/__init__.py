@@ -21,6 +21,8 @@ _NAMES = {
     "TorchRunner": "runners",
     "OnnxRunner": "runners",
     "ImagePredictor": "predictor",
+    "ImageSpec": "predictor",
+    "build_runner": "predictor",
     "export_onnx": "onnx_export",
 }
 _SUBMODULES = (

@@ -1,19 +1,24 @@
-"""The pipeline's predictor over image files or a video, through a runner.
+"""The pipeline's predictor over image files or a video, through a runner, and its recipe.
 
-Implements :class:`swiftjax.pipeline.predictors.Predictor` (structurally: ``num_frames``,
-``predict``, ``fingerprint``, ``frame_names``), so that ``swiftjax`` never imports this
-package; only the CLI joins the two.
+:class:`ImagePredictor` implements :class:`swiftjax.pipeline.predictors.Predictor`
+(structurally: ``num_frames``, ``predict``, ``fingerprint``, ``frame_names``), so that
+``swiftjax`` never imports this package; only the CLI joins the two.  :class:`ImageSpec` is
+what a worker process (``swiftjax.pipeline.executors.RayExecutor``) builds the same
+predictor from: the input, the weights, the backend, device and dtype.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ImagePredictor"]
+__all__ = ["ImagePredictor", "ImageSpec", "build_runner"]
 
 
 class ImagePredictor:
@@ -22,13 +27,23 @@ class ImagePredictor:
     Frames are read with :mod:`swiftjax.io.images`, preprocessed as VGGT's loader does
     (:func:`inference.preprocess.preprocess`, ``mode``) and passed to ``runner.predict``
     (:class:`inference.runners.TorchRunner` or :class:`inference.runners.OnnxRunner`).
+    ``runner`` may be a zero-argument factory, called at the first prediction (a driver
+    whose predictions run on workers never loads the model).  ``spec``: the recipe
+    returned by :meth:`spec` (for workers).
     """
 
-    def __init__(self, source: Any, runner: Any, mode: str = "crop") -> None:
+    def __init__(self, source: Any, runner: Any, mode: str = "crop", spec: ImageSpec | None = None) -> None:
         self.source = source
-        self.runner = runner
+        self._runner = runner
         self.mode = mode
         self.num_frames = len(source)
+        self._spec = spec
+
+    @property
+    def runner(self) -> Any:
+        if not hasattr(self._runner, "predict") and callable(self._runner):
+            self._runner = self._runner()
+        return self._runner
 
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
         from inference.preprocess import preprocess
@@ -48,3 +63,80 @@ class ImagePredictor:
         from swiftjax.intrinsics import preprocess_geometry
 
         return preprocess_geometry(*self.source.image_hw, self.mode)
+
+    def spec(self) -> Any:
+        if self._spec is None:
+            raise ValueError("this ImagePredictor has no ImageSpec: it cannot be rebuilt on a worker")
+        return self._spec
+
+
+def build_runner(
+    weights: str | os.PathLike[str], backend: str = "torch", device: str = "cpu", dtype: str = "float32",
+    model_config: dict[str, Any] | None = None,
+) -> Any:
+    """A :class:`~inference.runners.TorchRunner` (VGGT-1B, or ``model_config``) or an
+    :class:`~inference.runners.OnnxRunner` for ``weights``.  ``dtype``: ``float32``,
+    ``bfloat16`` or ``float16`` (torch)."""
+    weights = os.fspath(weights)
+    if backend == "onnx":
+        from inference.runners import OnnxRunner
+
+        if not weights.endswith(".onnx"):
+            raise ValueError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device.startswith("cuda") else None
+        return OnnxRunner(weights, providers=providers)
+    if backend != "torch":
+        raise ValueError(f"backend must be 'torch' or 'onnx', got {backend!r}")
+    import torch
+
+    from inference import VGGT, VGGTConfig, load_checkpoint
+    from inference.runners import TorchRunner
+
+    config = VGGTConfig(**model_config) if model_config else VGGTConfig()
+    with torch.device("meta"):  # no 5 GB allocation: load_checkpoint assigns the (mmapped) tensors
+        model = VGGT(config)
+    load_checkpoint(model, weights)
+    torch_dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[dtype]
+    return TorchRunner(model, device=device, dtype=torch_dtype)
+
+
+_RUNNERS: dict[tuple, Any] = {}  # ImageSpec.runner_factory's models, per process
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageSpec:
+    """The recipe of an :class:`ImagePredictor`: frames from ``input`` (folder, glob or
+    video; every ``stride``-th; ``skip_bad`` as :func:`swiftjax.io.images.validate`), a
+    runner from :func:`build_runner`'s arguments, preprocessing ``mode``."""
+
+    input: str
+    weights: str
+    backend: str = "torch"
+    device: str = "cpu"
+    dtype: str = "float32"
+    model_config: dict[str, Any] | None = None
+    mode: str = "crop"
+    stride: int = 1
+    skip_bad: bool = False
+
+    def source(self) -> Any:
+        from swiftjax.io import images
+
+        return images.validate(images.list_frames(self.input, stride=self.stride), skip_bad=self.skip_bad)
+
+    def runner_factory(self) -> Callable[[], Any]:
+        """Loads the runner when called; one per process for the same weights, backend,
+        device, dtype and model (a worker running many sequences loads the model once)."""
+        key = (self.weights, self.backend, self.device, self.dtype, repr(sorted((self.model_config or {}).items())))
+
+        def load() -> Any:
+            if key not in _RUNNERS:
+                _RUNNERS[key] = build_runner(self.weights, self.backend, self.device, self.dtype, self.model_config)
+            return _RUNNERS[key]
+
+        return load
+
+    def build(self, source: Any = None) -> ImagePredictor:
+        """The predictor (the model is loaded at its first prediction)."""
+        return ImagePredictor(source if source is not None else self.source(), self.runner_factory(),
+                              mode=self.mode, spec=self)

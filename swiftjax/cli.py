@@ -9,6 +9,7 @@ given shape pays for XLA compilation.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import pathlib
@@ -89,6 +90,78 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace a run directory of another input/config")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    group = parser.add_argument_group("execution (where the VGGT predictions run)")
+    group.add_argument("--executor", choices=("local", "ray"), default="local",
+                       help="local: this process, predicting the next chunk while the host aligns (default); "
+                            "ray: a pool of Ray actors (pip install 'swiftjax[ray]')")
+    group.add_argument("--workers", type=int, default=1, metavar="N", help="Ray actors, each with one model (default 1)")
+    group.add_argument("--gpus-per-worker", type=float, default=0.0, metavar="G",
+                       help="GPUs per Ray actor (default 0; 1 = one GPU each)")
+    group.add_argument("--ray-address", default=None, metavar="ADDR",
+                       help="join this Ray cluster (from 'ray start --head'); default: a local cluster on loopback")
+
+
+def _check_executor_args(args: argparse.Namespace) -> float:
+    """Validate the execution options; returns the CPUs per Ray worker."""
+    if args.workers < 1:
+        raise CliError(f"--workers must be >= 1, got {args.workers}")
+    if args.gpus_per_worker < 0:
+        raise CliError(f"--gpus-per-worker must be >= 0, got {args.gpus_per_worker:g}")
+    if args.executor == "local":
+        ray_only = [flag for flag, used in (("--workers", args.workers != 1), ("--gpus-per-worker", args.gpus_per_worker),
+                                            ("--ray-address", args.ray_address is not None)) if used]
+        if ray_only:
+            raise CliError(f"{', '.join(ray_only)} need --executor ray")
+    return 1.0 if args.gpus_per_worker == 0 else 0.0  # a GPU worker mostly waits for its GPU
+
+
+def _make_executor(args: argparse.Namespace) -> Any:
+    """The executor of ``--executor`` (validated before any work)."""
+    from swiftjax.pipeline.executors import LocalExecutor, RayExecutor
+
+    cpus = _check_executor_args(args)
+    if args.executor == "local":
+        return LocalExecutor()
+    return RayExecutor(args.workers, gpus_per_worker=args.gpus_per_worker, cpus_per_worker=cpus,
+                       address=args.ray_address)
+
+
+def _run_batch(args: argparse.Namespace, jobs: list[Any]) -> int:
+    """``jobs`` through :func:`swiftjax.pipeline.batch.run_batch`; exit 1 if a sequence failed."""
+    from swiftjax.pipeline import batch
+
+    cpus = _check_executor_args(args)
+    config = _pipeline_config(args)
+    rows = batch.run_batch(
+        jobs, args.out, config, executor=args.executor, workers=args.workers, gpus_per_worker=args.gpus_per_worker,
+        cpus_per_worker=cpus, ray_address=args.ray_address, overwrite=args.overwrite,
+    )
+    print(batch.batch_table(rows))
+    print(f"{args.out / 'batch.json'}")
+    failed = [r["sequence"] for r in rows if r["status"] != "ok"]
+    if failed:
+        print(f"swiftjax: {len(failed)} of {len(rows)} sequences failed: {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from swiftjax.pipeline import batch
+
+    if args.list.is_dir():
+        items = batch.sequence_folders(args.list)
+    elif args.list.is_file():
+        items = batch.read_list(args.list)
+    else:
+        raise CliError(f"batch list {args.list} does not exist (a text file of inputs or a folder of sequences)")
+    args.input = "."  # _image_spec's input: replaced per sequence below
+    spec = _image_spec(args)
+    names = batch.unique_names([inp for inp, _ in items])
+    jobs = [
+        batch.Sequence(name, dataclasses.replace(spec, input=os.path.abspath(inp)),
+                       os.path.abspath(gt) if gt else None, args.gt_format)
+        for name, (inp, gt) in zip(names, items)
+    ]
+    return _run_batch(args, jobs)
 
 
 # ---------------------------------------------------------------------------- commands
@@ -103,16 +176,35 @@ def _print_summary(result: Any) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from swiftjax import demo, pipeline
 
-    run = demo.loop_route_run(args.frames, seed=args.seed)
+    if args.batch is not None:
+        return _demo_batch(args)
     config = _pipeline_config(args)
-    with _LiveView(args) as live:
+    with contextlib.closing(_make_executor(args)) as executor, _LiveView(args) as live:
+        run = demo.loop_route_run(args.frames, seed=args.seed)
         result = pipeline.reconstruct(
             run.predictor, args.out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
-            progress=not args.no_progress,
+            progress=not args.no_progress, executor=executor,
         )
         _print_summary(result)
         live.wait()
     return 0
+
+
+def _demo_batch(args: argparse.Namespace) -> int:
+    """``demo --batch K``: K synthetic routes (seeds ``seed .. seed + K - 1``) as a batch."""
+    from swiftjax import demo
+    from swiftjax.pipeline import batch
+
+    if args.batch < 1:
+        raise CliError(f"--batch must be >= 1, got {args.batch}")
+    if getattr(args, "view", False):
+        raise CliError("--view shows one run: it does not combine with --batch")
+    _check_executor_args(args)
+    jobs = []
+    for k in range(args.batch):
+        run = demo.loop_route_run(args.frames, seed=args.seed + k)
+        jobs.append(batch.Sequence(f"route_{args.seed + k:02d}", run.predictor.spec(), run.ground_truth))
+    return _run_batch(args, jobs)
 
 
 class _LiveView:
@@ -189,27 +281,25 @@ def _load_ground_truth(path: pathlib.Path, fmt: str) -> Any:
     return trajectory.read_kitti(path) if fmt == "kitti" else trajectory.read_tum(path)[1]
 
 
-def _make_runner(args: argparse.Namespace) -> Any:
+def _image_spec(args: argparse.Namespace) -> Any:
+    from inference.predictor import ImageSpec
+
     weights = pathlib.Path(args.weights)
     if not weights.exists():
         raise CliError(f"weights file {weights} does not exist")
-    if args.backend == "onnx":
-        from inference.runners import OnnxRunner
+    if args.backend == "onnx" and weights.suffix != ".onnx":
+        raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+    return ImageSpec(  # absolute paths: a worker may run elsewhere
+        input=os.path.abspath(args.input), weights=os.path.abspath(weights), backend=args.backend, device=args.device, dtype=args.dtype,
+        mode=args.mode, stride=args.stride, skip_bad=args.skip_bad,
+    )
 
-        if weights.suffix != ".onnx":
-            raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
-        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if args.device.startswith("cuda") else None
-        return OnnxRunner(weights, providers=providers)
-    import torch
 
-    from inference import VGGT, VGGTConfig, load_checkpoint
-    from inference.runners import TorchRunner
+def _make_runner(args: argparse.Namespace) -> Any:
+    from inference.predictor import build_runner
 
-    with torch.device("meta"):  # no 5 GB allocation: load_checkpoint assigns the (mmapped) tensors
-        model = VGGT(VGGTConfig())
-    load_checkpoint(model, weights)
-    dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[args.dtype]
-    return TorchRunner(model, device=args.device, dtype=dtype)
+    spec = _image_spec(args)
+    return build_runner(spec.weights, spec.backend, spec.device, spec.dtype)
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -230,15 +320,21 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
 
-    runner = _make_runner(args)
-    predictor = ImagePredictor(source, runner, mode=args.mode)
-    with _LiveView(args) as live:
-        result = pipeline.reconstruct(
-            predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
-            timestamps=timestamps, timestamps_note=note,
-        )
-        _print_summary(result)
-        live.wait()
+    spec = _image_spec(args)
+    executor = _make_executor(args)
+    with contextlib.closing(executor):
+        if args.executor == "local":  # load the model now: a bad checkpoint fails before any work
+            runner: Any = _make_runner(args)
+        else:  # each worker loads its own (ImageSpec)
+            runner = spec.runner_factory()
+        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec)
+        with _LiveView(args) as live:
+            result = pipeline.reconstruct(
+                predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
+                timestamps=timestamps, timestamps_note=note, executor=executor,
+            )
+            _print_summary(result)
+            live.wait()
     return 0
 
 
@@ -285,6 +381,19 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------ parser
 
 
+def _image_options(parser: argparse.ArgumentParser) -> None:
+    """The model and the frames' preprocessing (reconstruct, batch)."""
+    parser.add_argument("--weights", required=True,
+                        help="VGGT-1B weights (.pt/.pth/.safetensors; .onnx with --backend onnx)")
+    parser.add_argument("--backend", choices=("torch", "onnx"), default="torch")
+    parser.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
+    parser.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32")
+    parser.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
+    parser.add_argument("--stride", type=int, default=1, help="use every k-th frame")
+    parser.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
+    parser.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti", help="ground-truth file format")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="swiftjax", description="SwiftVGGT large-scale reconstruction (JAX geometry core)."
@@ -296,23 +405,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="frames of the route (default: all, ~620)")
     p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=int, default=None, metavar="K",
+                   help="K routes (seeds SEED..SEED+K-1) as a batch of runs in OUT/route_NN (see 'swiftjax batch')")
     _common_run_options(p)
     _view_options(p)
     _add_method_options(p)
     p.set_defaults(func=_cmd_demo)
 
+    p = sub.add_parser("batch", help="many sequences, each its own resumable run, spread over the workers")
+    p.add_argument("list", type=pathlib.Path,
+                   help="text file with one 'INPUT [GROUND_TRUTH]' per line, or a folder of sequence folders "
+                        "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)")
+    p.add_argument("--out", type=pathlib.Path, required=True, help="one run directory per sequence, and batch.json")
+    _image_options(p)
+    _common_run_options(p)
+    _add_method_options(p)
+    p.set_defaults(func=_cmd_batch)
+
     p = sub.add_parser("reconstruct", help="images (folder, glob or video) -> trajectory and point cloud")
     p.add_argument("input", help="image folder, glob pattern or video file")
-    p.add_argument("--weights", required=True, help="VGGT-1B weights (.pt/.pth/.safetensors; .onnx with --backend onnx)")
     p.add_argument("--out", type=pathlib.Path, required=True)
-    p.add_argument("--backend", choices=("torch", "onnx"), default="torch")
-    p.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
-    p.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32")
-    p.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
-    p.add_argument("--stride", type=int, default=1, help="use every k-th frame")
-    p.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
+    _image_options(p)
     p.add_argument("--gt", type=pathlib.Path, help="ground-truth poses for ATE")
-    p.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti")
     p.add_argument("--timestamps", type=pathlib.Path,
                    help="per-frame times for poses_tum.txt: 'time name' lines (TUM rgb.txt) or one time per image "
                         "(default: a video's own times, else the frame index)")
@@ -357,13 +471,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     from swiftjax.io.trajectory import TrajectoryFormatError
     from swiftjax.pipeline import RunDirError
 
-    user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ValueError, OSError)
+    from swiftjax.pipeline.batch import BatchError
+    from swiftjax.pipeline.executors import ExecutorError
+
+    user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ExecutorError, BatchError, ValueError,
+                   OSError)
     try:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             code = args.func(args)
-        if args.command in ("demo", "reconstruct"):
+        if args.command in ("demo", "reconstruct", "batch"):
             print(f"done in {time.perf_counter() - t0:.1f} s")
         return code
     except KeyboardInterrupt:

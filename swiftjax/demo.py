@@ -22,7 +22,10 @@ import numpy as np
 
 from swiftjax.pipeline import OraclePredictor
 
-__all__ = ["DEMO_ALIASING", "KITTI00_ALIASING", "SyntheticRun", "kitti00_run", "loop_route_run", "trajectory_run"]
+__all__ = [
+    "DEMO_ALIASING", "KITTI00_ALIASING", "OracleSpec", "SyntheticRun", "kitti00_run", "loop_route_run",
+    "trajectory_run",
+]
 
 #: Look-alike pairs planted in the demo route by default (rate; :func:`loop_route_run`).
 DEMO_ALIASING = 0.3
@@ -37,6 +40,19 @@ class SyntheticRun:
     predictor: OraclePredictor
     ground_truth: np.ndarray  # [N, 4, 4] camera-to-world, metres
     aliasing: tuple[tuple[int, int, int], ...] = ()  # planted look-alike pairs (s_a, s_b, L)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class OracleSpec:
+    """The recipe of a :func:`trajectory_run` predictor: a worker process rebuilds the world
+    and the oracle from it (kilobytes to send instead of the world's geometry).
+    ``options``: :func:`trajectory_run`'s keyword arguments."""
+
+    cam_to_world: np.ndarray
+    options: dict = dataclasses.field(default_factory=dict)
+
+    def build(self) -> OraclePredictor:
+        return trajectory_run(self.cam_to_world, **self.options).predictor
 
 
 def trajectory_run(
@@ -62,6 +78,7 @@ def trajectory_run(
     the road (:mod:`swiftjax.synthetic.world`; their true masks are the oracle's semantic
     label :data:`~swiftjax.synthetic.world.CAR`).
     """
+    options = {k: v for k, v in locals().items() if k != "cam_to_world"}  # OracleSpec: every keyword
     from swiftjax.synthetic import places
     from swiftjax.synthetic.oracle import Hallucination, OracleNoise, VGGTOracle
     from swiftjax.synthetic.world import WorldConfig, build_world
@@ -85,7 +102,7 @@ def trajectory_run(
         desc["hallucination"] = None
     if moving_cars:
         desc["moving_cars"] = int(moving_cars)
-    return SyntheticRun(OraclePredictor(oracle, desc), poses, segs)
+    return SyntheticRun(OraclePredictor(oracle, desc, spec=OracleSpec(poses, options)), poses, segs)
 
 
 def loop_route_run(

@@ -81,6 +81,12 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
 
     hw2 = 2 * config.loop_half_window
+    # The loop chunks not recorded yet, predicted in order by the executor (fanned out on a pool).
+    todo: dict[str, np.ndarray] = {}  # insertion-ordered: the first occurrence of each loop
+    for lp in found:
+        if f"{lp.i}-{lp.j}" not in manifest.data["loop_edges"]:
+            todo.setdefault(f"{lp.i}-{lp.j}", lp.frames)
+    predictions = ctx.executor.map(ctx.predictor, list(todo.values()))
     with timer("loop chunks"):
         try:
             for lp in ctx.bar(found, desc="loop chunks", unit="loop"):
@@ -88,7 +94,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
                 record = manifest.data["loop_edges"].get(key)
                 if record is None:
                     with timer("predict (loop chunks)"):
-                        pred = ctx.predictor.predict(lp.frames)
+                        pred = next(predictions)
                     halves = []
                     for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
                         # Only the 2 x half_window frames of chunk c that the loop chunk overlaps.
@@ -115,6 +121,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
                     manifest.save_soon()
                 loop_records.append(record)
         finally:
+            predictions.close()
             manifest.flush()  # also when interrupted: keep the finished loop edges
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     _decide(ctx, temporal, loop_records)

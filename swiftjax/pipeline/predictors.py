@@ -36,10 +36,20 @@ class Predictor(Protocol):
 class OraclePredictor:
     """:class:`Predictor` over a :class:`swiftjax.synthetic.oracle.VGGTOracle`."""
 
-    def __init__(self, oracle: Any, description: dict[str, Any] | None = None) -> None:
+    def __init__(self, oracle: Any, description: dict[str, Any] | None = None, spec: Any = None) -> None:
         self.oracle = oracle
         self.num_frames = int(oracle.num_frames)
         self._description = description or {}
+        self._spec = spec
+
+    def spec(self) -> Any:
+        """What a worker rebuilds this predictor from (:mod:`~swiftjax.pipeline.executors`):
+        the recipe given (e.g. :class:`swiftjax.demo.OracleSpec`), else this predictor."""
+        if self._spec is not None:
+            return self._spec
+        from swiftjax.pipeline.executors import SelfSpec
+
+        return SelfSpec(self)
 
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
         return self.oracle.predict_chunk(np.asarray(frames))

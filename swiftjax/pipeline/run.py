@@ -11,6 +11,7 @@ import numpy as np
 
 from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale, temporal
 from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.executors import Executor, LocalExecutor
 from swiftjax.pipeline.predictors import Predictor
 
 __all__ = ["RunResult", "reconstruct"]
@@ -45,6 +46,7 @@ def reconstruct(
     timestamps: Sequence[float] | None = None,
     timestamps_note: str | None = None,
     log: Callable[[str], None] = print,
+    executor: Executor | None = None,
 ) -> RunResult:
     """Run SwiftVGGT over every frame of ``predictor`` and write the outputs to ``run_dir``.
 
@@ -60,6 +62,9 @@ def reconstruct(
         timestamps: ``[N]`` times for ``poses_tum.txt`` (default: the frame index).
         timestamps_note: where the times come from (``poses_tum.txt``'s header says it).
         log: where one-line messages go.
+        executor: where the predictions are computed (default: a
+            :class:`~swiftjax.pipeline.executors.LocalExecutor` with prefetch); the caller
+            closes an executor it passes.
 
     Returns:
         :class:`RunResult`; the files are ``poses_kitti.txt``, ``poses_tum.txt``,
@@ -77,7 +82,8 @@ def reconstruct(
             raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
     if config.metric == "gt" and ground_truth is None:
         raise ValueError("--metric gt needs the ground-truth poses (--gt)")
-    ctx = rundir.open_run(predictor, run_dir, config, overwrite=overwrite, progress=progress, log=log)
+    executor = executor if executor is not None else LocalExecutor()
+    ctx = rundir.open_run(predictor, run_dir, config, executor, overwrite=overwrite, progress=progress, log=log)
     export.check(ctx)
 
     chain = temporal.run(ctx)

@@ -29,6 +29,7 @@ from swiftjax.pipeline.user_camera import UserCamera
 
 if TYPE_CHECKING:
     from swiftjax.pipeline.config import PipelineConfig
+    from swiftjax.pipeline.executors import Executor
     from swiftjax.pipeline.predictors import Predictor
 
 __all__ = [
@@ -199,8 +200,9 @@ def progress_bar(iterable: Iterable, enabled: bool, **kwargs: Any) -> Iterable:
 
 @dataclasses.dataclass
 class RunContext:
-    """What every stage receives.  ``K_ref`` (the first frame's intrinsics, the reference of
-    the depth normalisation) is set by the temporal stage."""
+    """What every stage receives.  Stages get predictions from ``executor.map(predictor,
+    ...)``, never from the predictor directly.  ``K_ref`` (the first frame's intrinsics, the
+    reference of the depth normalisation) is set by the temporal stage."""
 
     run_dir: pathlib.Path
     config: PipelineConfig
@@ -209,6 +211,7 @@ class RunContext:
     manifest: Manifest
     store: ChunkStore
     timer: StageTimer
+    executor: Executor
     progress: bool = True
     log: Callable[[str], None] = print
     K_ref: np.ndarray | None = None
@@ -238,6 +241,7 @@ def open_run(
     predictor: Predictor,
     run_dir: pathlib.Path,
     config: PipelineConfig,
+    executor: Executor,
     *,
     overwrite: bool,
     progress: bool,
@@ -255,5 +259,6 @@ def open_run(
     manifest = Manifest.open(run_dir, config.to_dict(), predictor.fingerprint() + camera.fingerprint(), overwrite)
     return RunContext(
         run_dir=run_dir, config=config, predictor=predictor, schedule=schedule, manifest=manifest,
-        store=ChunkStore(run_dir), timer=StageTimer(), progress=progress, log=log, camera=camera,
+        store=ChunkStore(run_dir), timer=StageTimer(), executor=executor, progress=progress, log=log,
+        camera=camera,
     )

@@ -10,9 +10,11 @@ sequence length: one chunk's dense arrays are in memory at a time, plus the prev
 chunk's overlap frames and at most one chunk waiting for the writer.
 
 Resume: a chunk recorded in the manifest is read back (descriptors, overlap frames) instead
-of predicted; a recorded edge is reused.
+of predicted; a recorded edge is reused.  The other chunks are requested from the run's
+executor at the start, in schedule order (a local one predicts the next chunk while this one
+is stored and aligned; a Ray pool predicts several ahead).
 
-Stage clocks: the predictor's calls are booked as "predict", everything else as geometry:
+Stage clocks: the wait for the predictions is booked as "predict", everything else as geometry:
 descriptors under "loop detection"; the float16 conversion, chunk-file and manifest writes
 (and waits for the background writer) under "chunk store"; the chunk-frame export points
 under "export".
@@ -74,6 +76,9 @@ def run(ctx: RunContext) -> TemporalResult:
     K_ref = cam.K_ref  # known intrinsics; else the first prediction's (below)
     heights = np.full(T, np.nan) if cam.metric is not None and cam.metric[0] == "camera-height" else None
     prev_tail_mask = None
+    # Recorded chunks are read back, the others predicted (in schedule order, by the executor).
+    stored_chunks = {t for t in range(T) if records.chunk_done(t) and store.exists("chunk", t)}
+    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in stored_chunks])
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
@@ -82,7 +87,7 @@ def run(ctx: RunContext) -> TemporalResult:
             edge = records.edge(t)
             head: align.ChunkFrames | None = None
             head_mask = None
-            if records.chunk_done(t) and store.exists("chunk", t):
+            if t in stored_chunks:
                 # Resume: read back only what the rest of the run needs from this chunk.
                 with timer("chunk store"):
                     desc = store.load_array("chunk", t, "descriptors")
@@ -98,7 +103,7 @@ def run(ctx: RunContext) -> TemporalResult:
                 dirty = records.commit(writer.finished())
             else:
                 with timer("predict"):
-                    pred = ctx.predictor.predict(frames)
+                    pred = next(predictions)
                 if pred.num_frames != len(frames):
                     raise ValueError(
                         f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}"
@@ -171,6 +176,7 @@ def run(ctx: RunContext) -> TemporalResult:
                 manifest.save_soon()  # marks the change for flush() (an earlier save may be recent)
             manifest.flush()
     finally:
+        predictions.close()  # interrupted: release the chunks in flight
         writer.close()
         with contextlib.suppress(Exception):  # interrupted: keep every complete chunk file
             if records.commit(writer.finished(wait=True)):
