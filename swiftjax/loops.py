@@ -776,6 +776,14 @@ def find_loops(
     cand = detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, nms=nms,
                         calibrate=rule == "adaptive", false_alarms=false_alarms)
     details["threshold"] = float(cand.threshold)
+    if rule == "adaptive" and n > min_separation + 1 and details["threshold"] >= 1.0:
+        warnings.warn(
+            f"find_loops: the calibrated loop threshold is {details['threshold']:.3f} >= 1 (false_alarms="
+            f"{false_alarms:g}): the frames' best scores show no revisit standing out of their own null, so "
+            "there is no loop candidate; rule='fixed' with a chosen threshold (and loop verification) "
+            "forces candidates",
+            stacklevel=2,
+        )
     if bool(cand.truncated):
         warnings.warn(
             f"find_loops: NMS stopped at max_loops={max_loops}; more loops may exist", stacklevel=2

@@ -87,16 +87,20 @@ def test_detect_loops_calibrated_equals_the_dense_reference():
     np.testing.assert_array_equal(np.asarray(fixed.pairs), np.asarray(cand.pairs))
 
 
-@pytest.fixture(scope="module")
-def demo_descriptors():
-    poses = loop_route()
-    params = places.make_place_params(places.PlaceTokenConfig())
+def _route_descriptors(poses, config):
+    params = places.make_place_params(config)
     n = len(poses)
     out = []
     for s in range(0, n, 75):
         idx = np.minimum(np.arange(s, s + 75), n - 1)
         out.append(np.asarray(L.frame_descriptor(places.place_tokens(params, poses[idx].astype(np.float32), idx))))
-    return poses, np.concatenate(out)[:n]
+    return np.concatenate(out)[:n]
+
+
+@pytest.fixture(scope="module")
+def demo_descriptors():
+    poses = loop_route()
+    return poses, _route_descriptors(poses, places.PlaceTokenConfig())
 
 
 def test_demo_route_false_loop_fixed_vs_adaptive(demo_descriptors):
@@ -151,3 +155,13 @@ def test_bad_input_is_named(demo_descriptors):
         PipelineConfig(loop_threshold_rule="auto")
     with pytest.raises(ValueError, match="loop_false_alarms"):
         PipelineConfig(loop_false_alarms=2.0)
+
+
+def test_a_calibrated_threshold_above_one_says_so():
+    """d = 512, K = 8 tokens with the whitening fitted on g0 (the authors' quirk): no revisit
+    stands out of the frames' own null (bench: tau = 1.16), so no candidate, loudly."""
+    poses = loop_route()
+    G = _route_descriptors(poses, places.PlaceTokenConfig(dim=512, tokens_per_frame=8))
+    with pytest.warns(UserWarning, match="calibrated loop threshold is 1.1"):
+        found, det = L.find_loops(G, chunk_schedule(len(G)), fit_on="raw", return_details=True)
+    assert found == [] and det["threshold"] > 1.0
