@@ -402,7 +402,9 @@ class Viewer:
                 keep = conf >= np.percentile(conf, pct)
                 xyz, rgb = xyz[keep], rgb[keep]
             size = self._point_size or 0.002 * self._scale(xyz if len(xyz) else np.zeros((1, 3)))
-            self.server.scene.add_point_cloud("/cloud", xyz, rgb, point_size=size, point_shape="circle")
+            # float32: float16 would quantise a 500-unit route to 0.25-unit steps.
+            self.server.scene.add_point_cloud("/cloud", xyz, rgb, point_size=size, point_shape="circle",
+                                              precision="float32")
 
     def _draw_frustums(self, view: RunView, c2w: np.ndarray, extent: float) -> None:
         from swiftjax.io.trajectory import matrix_to_quaternion

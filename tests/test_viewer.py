@@ -272,6 +272,16 @@ def test_live_viewer_and_host_warning(demo_run):
     assert live.viewer is not None and live.viewer.view.final
     live.refresh_now()
     assert any("127.0.0.1" in ln for ln in lines) and not any("warning" in ln for ln in lines)
+    v = live.viewer
+    cloud = lambda: v.server.scene.get_handle_by_name("/cloud")  # noqa: E731
+    with_loops = np.asarray(cloud().points, np.float64)
+    v.loop_toggle.value = False  # the chained poses: the same points, placed without loop closure
+    assert v.pose_set() == "no loop closure"
+    xyz, _ = viewer.world_points(v.view, v.reservoir, "no loop closure")
+    np.testing.assert_allclose(np.asarray(cloud().points, np.float64), xyz, rtol=1e-6, atol=1e-6)
+    assert np.abs(with_loops - xyz).max() > 1e-2
+    v.colour.value = "chunk"
+    assert len(np.unique(np.asarray(cloud().colors).reshape(-1, 3), axis=0)) == min(10, len(v.view.chunks))
     live.close()
     assert not any(t.name == "swiftjax-view" and t.is_alive() for t in threading.enumerate())
     shared = viewer.serve(out, host="0.0.0.0", port=0, max_points=1000, log=lines.append)
