@@ -290,8 +290,14 @@ def place_tokens(params: PlaceTokenParams, cam_to_world: jax.Array, frame_ids: j
     signal = place_signal(params, cam_to_world)
     if params.alias_segments.shape[0]:  # static: no aliasing, no extra work
         lam, virtual = _alias_share(params, frame_ids)
-        signal = (jnp.sqrt(1.0 - lam)[:, None, None] * signal
-                  + jnp.sqrt(lam)[:, None, None] * place_signal(params, virtual))
+        # a second field evaluation only for a batch that holds a look-alike frame
+        signal = jax.lax.cond(
+            jnp.any(lam > 0.0),
+            lambda sig: (jnp.sqrt(1.0 - lam)[:, None, None] * sig
+                         + jnp.sqrt(lam)[:, None, None] * place_signal(params, virtual)),
+            lambda sig: sig,
+            signal,
+        )
     shared, noise = jax.vmap(_frame_extras, in_axes=(None, 0))(params, frame_ids)
     return a_place * signal + shared[:, None, :] + noise
 
