@@ -6,6 +6,7 @@ import dataclasses
 from typing import Any
 
 from swiftjax import loops
+from swiftjax.posegraph.gnc import DEFAULT_SCALE as _GNC_SCALE
 
 __all__ = ["PipelineConfig"]
 
@@ -69,10 +70,16 @@ class PipelineConfig:
     loop_verification: str = "geometric"
     loop_min_agreement: float = 0.55
     loop_pcm: bool = True
-    robust_loops: str | None = "gnc"
-    robust_scale: float = 4.298287  # swiftjax.posegraph.gnc.DEFAULT_SCALE (sqrt(chi2_7^-1(0.99)))
-    edge_information: str = "data"
-    edge_pixels_per_sample: float = 196.0
+    robust_loops: str | None = dataclasses.field(default="gnc", metadata={
+        "help": "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
+                "or none (the authors' plain least squares)"})
+    robust_scale: float = dataclasses.field(default=_GNC_SCALE, metadata={
+        "help": "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default"})
+    edge_information: str = dataclasses.field(default="data", metadata={
+        "help": "edge information: data (drift model + each alignment's own statistics) or equal "
+                "(identity, the authors')"})
+    edge_pixels_per_sample: float = dataclasses.field(default=196.0, metadata={
+        "help": "pixels per independent residual in an alignment's information (one 14x14 ViT patch)"})
     max_lm_steps: int = 100
     point_conf_ratio: float = 0.75
     point_stride: int = 4
