@@ -9,7 +9,7 @@ chunk whose halves share no view comes back superimposed.  Perceptual aliasing
 whose place tokens share a component: ``aliasing=rate`` asks for ``rate`` false candidates per
 true loop chunk pair.  The demo route and synthetic KITTI 00 turn it on by default at
 :data:`DEMO_ALIASING` / :data:`KITTI00_ALIASING` (0.3: 30 % extra false candidates; the demo
-route has room for one look-alike pair, KITTI 00 gets 12), so their headline numbers include
+route gets one look-alike pair, KITTI 00 nine), so their headline numbers include
 false candidates; ``aliasing=0`` is the alias-free run.
 """
 
