@@ -249,3 +249,48 @@ def test_original_resolution_needs_input_images(tmp_path):
         pipeline.reconstruct(run.predictor, tmp_path, pipeline.PipelineConfig(colmap_original_resolution=True),
                              progress=False)
     assert not (tmp_path / "chunks").exists() or not any((tmp_path / "chunks").iterdir())  # no work done
+
+
+@pytest.mark.filterwarnings("ignore:.*ill-posed:RuntimeWarning")  # random weights: expected fallback
+def test_original_resolution_end_to_end_with_tiny_vggt(tmp_path, golden_dir):
+    """Image files -> tiny VGGT (pad mode: portrait frames padded to 518 x 518) ->
+    ``colmap_original_resolution``: the original files under their names, a camera of the
+    original size, observations inside the original image and reprojecting onto their points.
+    (The crop geometry is checked in ``test_original_resolution_undoes_the_preprocessing``.)"""
+    mode = "pad"
+    pytest.importorskip("torch")
+    pycolmap = pytest.importorskip("pycolmap")
+    from PIL import Image
+
+    from inference import VGGT, VGGTConfig, load_checkpoint
+    from inference.predictor import ImagePredictor
+    from inference.runners import TorchRunner
+    from swiftjax import pipeline
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 255, (90, 60, 3), np.uint8)  # portrait: pad mode pads the sides
+    for k in range(4):
+        Image.fromarray(np.roll(base, 2 * k, axis=0)).save(folder / f"img_{k}.jpg", quality=95)
+    model = VGGT(VGGTConfig.from_json(golden_dir / "tiny_config.json"))
+    load_checkpoint(model, golden_dir / "tiny_weights.safetensors")
+    predictor = ImagePredictor(images.validate(images.list_frames(folder)), TorchRunner(model), mode=mode)
+    config = pipeline.PipelineConfig(chunk_size=4, overlap=1, min_points=10, loop_closure=False, point_stride=2,
+                                     colmap_original_resolution=True)
+    pipeline.reconstruct(predictor, tmp_path / "run", config, progress=False)
+
+    data = tmp_path / "run" / "colmap"
+    assert sorted(p.name for p in (data / "images").iterdir()) == [f"img_{k}.jpg" for k in range(4)]
+    assert (data / "images" / "img_3.jpg").read_bytes() == (folder / "img_3.jpg").read_bytes()
+    rec = pycolmap.Reconstruction(str(data / "sparse" / "0"))
+    (cam,) = rec.cameras.values()
+    assert (cam.width, cam.height) == (60, 90) and rec.num_points3D() > 0
+    for p in list(rec.points3D.values())[::7]:
+        el = p.track.elements[0]
+        image = rec.images[el.image_id]
+        xy = image.points2D[el.point2D_idx].xy
+        assert 0 <= xy[0] <= 60 and 0 <= xy[1] <= 90
+        proj = cam.img_from_cam(np.asarray(image.cam_from_world() * p.xyz)[None])[0]
+        assert np.abs(proj - xy).max() < 1e-2
+    assert "K_ref at the original 60 x 90 images" in (tmp_path / "run" / "intrinsics.txt").read_text()
