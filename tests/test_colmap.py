@@ -234,3 +234,12 @@ def test_bad_observations_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"image indices must be integers in \[0, 5\)"):
         write_colmap(tmp_path / "b", c2w, ks, names, (W, H), pts, cols, errs, observations=(img + 1, uv))
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_image_names_are_png_unique_and_without_white_space():
+    from swiftjax.io.colmap import image_names
+
+    names = ["a.jpg", "a.png", "b.JPG", "sub/c.tif", "000001.png", "noext", "IMG 7.jpg", "tab\tx.png"]
+    assert image_names(names) == [
+        "a.jpg.png", "a.png", "b.png", "sub/c.png", "000001.png", "noext.png", "IMG_7.png", "tab_x.png",
+    ]

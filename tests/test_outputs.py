@@ -294,3 +294,18 @@ def test_original_resolution_end_to_end_with_tiny_vggt(tmp_path, golden_dir):
         proj = cam.img_from_cam(np.asarray(image.cam_from_world() * p.xyz)[None])[0]
         assert np.abs(proj - xy).max() < 1e-2
     assert "K_ref at the original 60 x 90 images" in (tmp_path / "run" / "intrinsics.txt").read_text()
+
+
+def test_original_resolution_refuses_names_with_spaces_before_work(tmp_path):
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from swiftjax.pipeline import export
+
+    Image.new("RGB", (40, 30)).save(tmp_path / "IMG 1.jpg")
+    source = images.list_frames(tmp_path)
+    ctx = SimpleNamespace(run_dir=tmp_path / "run", predictor=SimpleNamespace(source=source, frame_names=lambda: source.names),
+                          config=SimpleNamespace(colmap=True, colmap_original_resolution=True))
+    with pytest.raises(ValueError, match="cannot hold white space: 'IMG 1.jpg'"):
+        export.check(ctx)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import re
 import struct
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -67,13 +68,15 @@ class Observations(NamedTuple):
 
 def image_names(names: Sequence[str]) -> list[str]:
     """The PNG file names of frames ``names`` in ``colmap/images/``: the name with its suffix
-    replaced by ``.png`` (``a.jpg -> a.png``; subfolders kept), or ``.png`` appended to the
-    whole name where two frames would collide (``a.jpg`` and ``a.png`` in one folder)."""
-    out = [str(pathlib.PurePosixPath(str(n)).with_suffix(".png")) for n in names]
+    replaced by ``.png`` (``a.jpg -> a.png``; subfolders kept; white space, which COLMAP's
+    text format cannot hold, replaced by ``_``), or ``.png`` appended to the whole name where
+    two frames would collide (``a.jpg`` and ``a.png`` in one folder)."""
+    clean = [re.sub(r"\s", "_", str(n)) for n in names]
+    out = [str(pathlib.PurePosixPath(n).with_suffix(".png")) for n in clean]
     seen: dict[str, int] = {}
     for name in out:
         seen[name] = seen.get(name, 0) + 1
-    return [o if seen[o] == 1 or str(n) == o else f"{n}.png" for n, o in zip(names, out)]
+    return [o if seen[o] == 1 or n == o else f"{n}.png" for n, o in zip(clean, out)]
 
 
 def _float_format(dtype: np.dtype) -> str:

@@ -70,6 +70,13 @@ def check(ctx: RunContext) -> None:
     _finish_frames(ctx)  # writes an interrupted run in this process left queued
     if ctx.config.colmap and ctx.config.colmap_original_resolution:
         original_source(ctx)
+        spaced = [n for n in ctx.predictor.frame_names() if any(c.isspace() for c in n)]
+        if spaced:
+            raise ValueError(
+                f"colmap_original_resolution keeps the input's file names, and COLMAP's names cannot hold "
+                f"white space: {spaced[0]!r} ({len(spaced)} such files); rename them or export at the "
+                "model's resolution (PNG names with '_')"
+            )
 
 
 def run(
