@@ -76,6 +76,9 @@ def test_metric_outputs_are_in_metres(camera_run, small_run):
     # without any alignment scale the trajectory is metric: the SE(3)-aligned ATE is small
     assert m["ate_rmse_se3"] == pytest.approx(evaluation.ate(camera_run.cam_to_world[:, :3, 3], gt, "se3").rmse)
     assert m["ate_rmse_se3"] < 1.0
+    for name in ("poses_kitti.txt", "poses_tum.txt"):  # the headers say so
+        head = [ln for ln in (camera_run.run_dir / name).read_text().splitlines() if ln.startswith("#")]
+        assert any("metres" in ln for ln in head) and not any("up to scale" in ln for ln in head)
     on_disk = json.loads((camera_run.run_dir / "metrics.json").read_text())
     assert on_disk["unit"] == "metres" and on_disk["metric_scale"]["metres_per_unit"] == pytest.approx(
         m["metric_scale"]["metres_per_unit"])
