@@ -161,7 +161,7 @@ def test_points_png_shows_the_cloud(small_loop_run):
 
     out, _ = small_loop_run
     img = np.asarray(Image.open(out / "points.png").convert("RGB")).astype(int)
-    assert img.shape[0] >= 600 and img.shape[1] >= 600
+    assert min(img.shape[:2]) >= 300 and max(img.shape[:2]) >= 600
     coloured = (img.max(-1) - img.min(-1)) > 40  # the synthetic facades, trees and the trajectory
     grey = (np.abs(img - 255).max(-1) > 60) & ~coloured  # grey road / facades
     assert coloured.mean() > 0.005 and grey.mean() > 0.02, (coloured.mean(), grey.mean())

@@ -146,7 +146,14 @@ def plot_points(
     flip = sign * np.cross(np.eye(3)[a], np.eye(3)[b])[vertical] < 0
     x = lambda p: -p[..., a] if flip else p[..., a]  # noqa: E731
 
-    fig = Figure(figsize=(8, 8))
+    # Frame the cloud without its farthest 0.5 % (sky, stray depth) and the whole trajectory.
+    uv_cam = np.stack([x(est), est[:, b]], axis=1)
+    uv = np.stack([x(pts), pts[:, b]], axis=1) if len(pts) else uv_cam
+    lo = np.minimum(np.percentile(uv, 0.5, axis=0), uv_cam.min(axis=0))
+    hi = np.maximum(np.percentile(uv, 99.5, axis=0), uv_cam.max(axis=0))
+    pad = 0.03 * (hi - lo).max()
+    aspect = (hi[1] - lo[1] + 2 * pad) / max(hi[0] - lo[0] + 2 * pad, 1e-12)
+    fig = Figure(figsize=(8, float(np.clip(8 * aspect, 3, 12))))  # the figure takes the map's shape
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     ax.scatter(x(pts[order]), pts[order, b], c=rgb[order] / 255.0, s=0.6, marker="s", linewidths=0,
@@ -159,16 +166,10 @@ def plot_points(
     ax.set_xlabel(f"{'-' if flip else ''}{_AXIS[a]}")
     ax.set_ylabel(_AXIS[b])
     ax.set_aspect("equal", adjustable="box")
-    # Frame the cloud without its farthest 0.5 % (sky, stray depth) and the whole trajectory.
-    uv_cam = np.stack([x(est), est[:, b]], axis=1)
-    uv = np.stack([x(pts), pts[:, b]], axis=1) if len(pts) else uv_cam
-    lo = np.minimum(np.percentile(uv, 0.5, axis=0), uv_cam.min(axis=0))
-    hi = np.maximum(np.percentile(uv, 99.5, axis=0), uv_cam.max(axis=0))
-    pad = 0.03 * (hi - lo).max()
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.legend(loc="best", fontsize=8)
     if title:
         ax.set_title(title)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")
