@@ -280,3 +280,35 @@ def test_batch_list_parsing(tmp_path):
         (str(tmp_path / "folders/a/images"), str(tmp_path / "folders/a/gt.txt")),
         (str(tmp_path / "folders/b/images"), None),
     ]
+
+
+def test_batch_cli_builds_one_image_sequence_per_line(tmp_path, monkeypatch, capsys):
+    """``swiftjax batch LIST``: one ImageSpec job per line (absolute paths, ground truth), the
+    execution options passed through, the table printed, exit 1 when a sequence failed."""
+    from inference.predictor import ImageSpec
+
+    from swiftjax import cli
+    from swiftjax.pipeline import batch
+
+    (tmp_path / "w.pt").write_bytes(b"")
+    (tmp_path / "list.txt").write_text("a/images gt/a.txt\nb\n")
+    seen = {}
+
+    def fake_run_batch(jobs, out, config, **kwargs):
+        seen.update(jobs=jobs, out=out, **kwargs)
+        return [{"sequence": "a", "status": "ok", "frames": 10, "loops": 0, "ate_rmse": 0.5, "seconds": 1.0},
+                {"sequence": "b", "status": "failed", "error": "InputError: no frames", "seconds": 0.1}]
+
+    monkeypatch.setattr(batch, "run_batch", fake_run_batch)
+    code = cli.main(["batch", str(tmp_path / "list.txt"), "--weights", str(tmp_path / "w.pt"), "--out",
+                     str(tmp_path / "out"), "--device", "cuda", "--dtype", "bfloat16", "--stride", "2"])
+    assert code == 1
+    out, err = capsys.readouterr()
+    assert "| a | ok | 10 | 0 | 0.5 |" in out and "InputError: no frames" in out
+    assert "1 of 2 sequences failed: b" in err
+    jobs = seen["jobs"]
+    assert [j.name for j in jobs] == ["a", "b"]
+    assert jobs[0].ground_truth == str(tmp_path / "gt/a.txt") and jobs[1].ground_truth is None
+    assert jobs[0].spec == ImageSpec(input=str(tmp_path / "a/images"), weights=str(tmp_path / "w.pt"), device="cuda",
+                                     dtype="bfloat16", stride=2)
+    assert seen["executor"] == "local" and seen["workers"] == 1
