@@ -81,10 +81,27 @@ def _pickle_reason(e: Exception) -> str:
     return lines[0] if lines else type(e).__name__
 
 
+def _is_unsafe(e: Exception) -> bool:
+    """Whether torch's weights-only unpickler refused a global (code that would run), as
+    opposed to bytes that are not a valid pickle at all (e.g. 'Unsupported operand 64')."""
+    return "global" in str(e).lower()
+
+
 def _torch_load(p: Path) -> object:
+    with open(p, "rb") as f:
+        head = f.read(4)
+    if head[:4] != b"PK\x03\x04" and head[:1] != b"\x80":
+        raise CheckpointError(
+            f"cannot read torch checkpoint {p}: not a torch file (neither the zip format nor a pickle; "
+            f"starts with {head!r}; corrupt or another format?)"
+        )
     try:
         return torch.load(p, map_location="cpu", weights_only=True, mmap=True)
     except pickle.UnpicklingError as e:
+        if not _is_unsafe(e):
+            raise CheckpointError(
+                f"cannot read torch checkpoint {p} (truncated or corrupt?): {_pickle_reason(e)}"
+            ) from e
         raise CheckpointError(
             f"refused to load {p}: torch.load(weights_only=True) found something other than tensors "
             f"in the pickle, which could run code when unpickled ({_pickle_reason(e)}). VGGT "
@@ -95,6 +112,10 @@ def _torch_load(p: Path) -> object:
             try:
                 return torch.load(p, map_location="cpu", weights_only=True)
             except pickle.UnpicklingError as e2:
+                if not _is_unsafe(e2):
+                    raise CheckpointError(
+                        f"cannot read torch checkpoint {p} (truncated or corrupt?): {_pickle_reason(e2)}"
+                    ) from e2
                 raise CheckpointError(f"refused to load {p} (unsafe pickle: {_pickle_reason(e2)})") from e2
             except Exception as e2:  # noqa: BLE001 - report any reader failure uniformly
                 raise CheckpointError(f"cannot read torch checkpoint {p}: {e2}") from e2

@@ -299,6 +299,11 @@ def umeyama(
     src = jnp.asarray(src)
     if not jnp.issubdtype(src.dtype, jnp.floating):
         src = src.astype(jnp.float32)
+    if src.dtype not in (jnp.float32, jnp.float64):
+        raise TypeError(
+            f"umeyama: points must be float32 or float64, got {src.dtype} (the 3x3 SVD has no "
+            f"{src.dtype} kernel and half precision cannot hold the moments): cast them, e.g. .astype(float32)"
+        )
     dst = jnp.asarray(dst, dtype=src.dtype)
     if src.shape[-1] != 3 or src.shape != dst.shape:
         raise ValueError(f"umeyama: src {src.shape} and dst {dst.shape} must both be [..., N, 3]")

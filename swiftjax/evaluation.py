@@ -19,6 +19,14 @@ Definitions (evo 1.38's, checked number for number in ``tests/test_evaluation.py
   translation error ``|t(E_i)|``, rotation error = the angle of ``R(E_i)`` in degrees
   (evo's ``rotation_angle_deg``).  Alignment as for ATE (default ``"sim3"``, i.e.
   ``evo_rpe --align --correct_scale``; ``"none"`` is evo_rpe's own default).
+* **Rotations** must be rotations: :func:`rpe` refuses a pose whose ``R`` is not orthonormal
+  with positive determinant within ``rotation_tol`` (``max |R^T R - I|``, default 1e-4; the
+  KITTI 00 ground truth, written with 7 significant digits, is orthonormal to 2.3e-7), naming
+  the pose -- a scaled or sheared "rotation" would silently inflate RPE.
+  :func:`orthonormalize` projects onto SO(3) (nearest rotation, SVD) when the user asks.
+* **Association** (TUM files): :func:`associate` pairs poses by timestamp exactly as evo's
+  ``sync.associate_trajectories`` (nearest time within ``max_diff`` seconds, the estimate
+  shifted by ``offset``, the shorter trajectory driving), never by row.
 * **Point clouds**: accuracy = mean distance from each predicted point to its nearest
   ground-truth point, completeness = mean distance from each ground-truth point to its
   nearest predicted point, Chamfer = their average (the DTU "overall" convention the VGGT
@@ -45,12 +53,19 @@ __all__ = [
     "RPEResult",
     "ChamferResult",
     "umeyama_alignment",
+    "ROTATION_TOLERANCE",
+    "check_rotations",
+    "orthonormalize",
+    "associate",
     "ate",
     "rpe",
     "chamfer",
 ]
 
 Alignment = Literal["sim3", "se3", "none"]
+
+#: Largest ``max |R^T R - I|`` accepted as a rotation (see the module docstring).
+ROTATION_TOLERANCE = 1e-4
 
 
 class ErrorStats(NamedTuple):
@@ -204,6 +219,88 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, align: Alignment = "sim3
     return R, t, float(s)
 
 
+def check_rotations(poses: np.ndarray, name: str = "poses", tol: float = ROTATION_TOLERANCE) -> float:
+    """Raise ``ValueError`` naming the first pose of ``poses [N, 3|4, 4]`` whose rotation block is
+    not orthonormal within ``tol`` (``max |R^T R - I|``) or has ``det R <= 0``; returns the
+    largest deviation found."""
+    R = np.asarray(poses, np.float64)[:, :3, :3]
+    if R.shape[0] == 0:
+        return 0.0
+    dev = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
+    det = np.linalg.det(R)
+    bad = np.flatnonzero((dev > tol) | (det <= 0) | ~np.isfinite(dev))
+    if bad.size:
+        k = int(bad[0])
+        raise ValueError(
+            f"{name}: pose {k} (of {R.shape[0]}) has a rotation that is not orthonormal "
+            f"(max |R^T R - I| = {dev[k]:.3g} > {tol:g}, det {det[k]:.6g}; {bad.size} such poses)"
+        )
+    return float(dev.max())
+
+
+def orthonormalize(poses: np.ndarray) -> tuple[np.ndarray, float]:
+    """Each rotation block replaced by its nearest rotation (Frobenius norm: ``U diag(1, 1,
+    det(U V^T)) V^T`` of its SVD): ``(poses [N, 4, 4] float64, largest change max |R' - R|)``."""
+    P = np.asarray(poses, np.float64)
+    out = np.tile(np.eye(4), (P.shape[0], 1, 1))
+    out[:, :3, :] = P[:, :3, :]
+    U, _, Vt = np.linalg.svd(out[:, :3, :3])
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    R = U @ (np.concatenate([np.ones((len(d), 2)), d[:, None]], axis=1)[:, :, None] * Vt)
+    change = float(np.abs(R - out[:, :3, :3]).max()) if len(d) else 0.0
+    out[:, :3, :3] = R
+    return out, change
+
+
+def _matching_time_indices(
+    stamps_1: np.ndarray, stamps_2: np.ndarray, max_diff: float, offset_2: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each stamp of ``stamps_1``, the nearest of ``stamps_2 + offset_2`` if within
+    ``max_diff`` (evo's ``matching_time_indices``, ties included: on sorted stamps the earlier of
+    two equidistant neighbours, else the first minimum)."""
+    s2 = np.asarray(stamps_2, np.float64) + offset_2
+    s1 = np.asarray(stamps_1, np.float64)
+    if s2.size == 0 or s1.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if not np.all(np.diff(s2) >= 0):
+        diffs = np.abs(s2[None, :] - s1[:, None])
+        j = np.argmin(diffs, axis=1)
+        ok = diffs[np.arange(len(s1)), j] <= max_diff
+        return np.flatnonzero(ok), j[ok]
+    j = np.minimum(np.searchsorted(s2, s1, side="right"), len(s2) - 1)
+    ub = s2[j] - s1
+    lb = np.where(j > 0, s1 - s2[np.maximum(j - 1, 0)], np.inf)
+    inside = (s1 >= s2[0] - max_diff) & (s1 <= s2[-1] + max_diff)
+    take_ub = (ub <= max_diff) & (ub < lb)
+    take_lb = ~take_ub & (lb <= max_diff) & (lb <= ub)
+    ok = inside & (take_ub | take_lb)
+    best = np.where(take_ub, j, j - 1)
+    return np.flatnonzero(ok), best[ok]
+
+
+def associate(
+    stamps_ref: np.ndarray, stamps_est: np.ndarray, max_diff: float = 0.01, offset: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs ``(ref_idx [M], est_idx [M])`` of poses at matching times, as evo's
+    ``sync.associate_trajectories(ref, est, max_diff=max_diff, offset_2=offset)``: the
+    trajectory with fewer poses drives, each of its stamps taking the nearest stamp of the
+    other within ``max_diff`` seconds, the estimate's stamps shifted by ``offset``.
+
+    Raises:
+        ValueError: ``max_diff < 0`` or non-finite arguments.
+    """
+    if not (np.isfinite(max_diff) and max_diff >= 0 and np.isfinite(offset)):
+        raise ValueError(f"max_diff must be finite and >= 0 and offset finite, got {max_diff}, {offset}")
+    ref = np.asarray(stamps_ref, np.float64)
+    est = np.asarray(stamps_est, np.float64)
+    if len(est) > len(ref):  # the reference is the shorter one and drives
+        i, j = _matching_time_indices(ref, est, max_diff, offset)
+        return i, j
+    j, i = _matching_time_indices(est, ref, max_diff, -offset)
+    return i, j
+
+
 # ----------------------------------------------------------------------------------- ATE
 
 
@@ -263,6 +360,7 @@ def rpe(
     delta: int = 1,
     all_pairs: bool = False,
     align: Alignment = "sim3",
+    rotation_tol: float = ROTATION_TOLERANCE,
 ) -> RPEResult:
     """Relative pose error (module docstring): translation and rotation per ``delta`` frames.
 
@@ -271,9 +369,11 @@ def rpe(
         delta: frame distance of the pairs (>= 1).
         all_pairs: every ``(i, i + delta)`` instead of consecutive ``(k delta, (k+1) delta)``.
         align: alignment applied to the estimate first (as for :func:`ate`).
+        rotation_tol: largest ``max |R^T R - I|`` accepted (:func:`check_rotations`).
 
     Raises:
-        ValueError: bad shapes/lengths, ``delta < 1``, or no pair fits in ``N`` frames.
+        ValueError: bad shapes/lengths, ``delta < 1``, no pair fits in ``N`` frames, or a
+            rotation block that is not a rotation.
     """
     _check_align(align)
     if int(delta) != delta or delta < 1:
@@ -283,6 +383,8 @@ def rpe(
     q, Q = _as_poses_or_positions(reference, "reference")
     if P is None or Q is None:
         raise ValueError("rpe needs full poses [N, 4, 4], not positions")
+    check_rotations(P, "estimated", rotation_tol)
+    check_rotations(Q, "reference", rotation_tol)
     n = P.shape[0]
     if Q.shape[0] != n:
         raise ValueError(f"estimated has {n} poses but reference has {Q.shape[0]}")

@@ -33,6 +33,17 @@ Named special cases, each with its own branch and test:
 ``1 - e^sigma cos(theta)`` is evaluated as ``2 sin^2(theta/2) - expm1(sigma) cos(theta)``, which
 keeps ``A`` accurate in float32 where ``cos(theta)`` rounds to 1.
 
+Validity (the element set): finite, ``s > 0`` and ``q != 0``.  A non-unit ``q`` stands for
+``q / |q|`` in every function (see :mod:`swiftjax.so3`), so :func:`act`, :func:`compose`,
+:func:`as_matrix` and :func:`log` agree on it.  An invalid element is never silently turned
+into a plausible number: :func:`log` returns an all-NaN tangent for ``s <= 0``, ``q = 0`` or
+a non-finite value,
+the others propagate NaN for ``q = 0``; :func:`is_valid` is the flag for jitted code and
+:func:`check` the host-side refusal.  :func:`from_rst` and :func:`from_matrix` refuse, when
+called on concrete (host) values, a matrix that is not a rotation (``3 I``, a reflection) or a
+scale ``<= 0``; under ``jit`` they cannot raise, and callers check the result with
+:func:`is_valid` or their own flags.
+
 Logarithm: ``omega = log_SO3(q)``, ``sigma = log s`` and ``rho = W^-1 t`` with the closed form
 ``W^-1 = x I + y K + z K^2`` (``K^3 = -theta^2 K``)::
 
@@ -70,7 +81,13 @@ __all__ = [
     "quaternion",
     "scale",
     "right_jacobian_inverse",
+    "is_valid",
+    "check",
+    "ROTATION_TOLERANCE",
 ]
+
+#: Largest ``max |R^T R - I|`` :func:`from_rst` accepts as a rotation on the host.
+ROTATION_TOLERANCE = 1e-4
 
 
 # ----------------------------------------------------------------------------- accessors
@@ -256,7 +273,9 @@ def exp(xi: ArrayLike) -> Array:
 def log(S: ArrayLike) -> Array:
     """Logarithm ``[..., 8] -> [..., 7]`` with ``|omega| <= pi``; ``log(exp(xi)) = xi`` for ``|omega| < pi``.
 
-    ``S`` and ``S`` with its quaternion negated give the same tangent.
+    ``S`` and ``S`` with its quaternion negated give the same tangent; a non-unit quaternion
+    gives its unit version's.  Invalid elements (``s <= 0``, ``q = 0``, non-finite) give all-NaN
+    tangents.
     """
     t, q, s = _split(S)
     omega, half = so3.log_components(q)  # W reuses the quaternion's half angle: no sin/cos
@@ -268,7 +287,9 @@ def log(S: ArrayLike) -> Array:
     d = c - theta_sq * b
     det = d * d + theta_sq * a * a
     rho = _apply_poly(1.0 / c, -a / det, (a * a - b * d) / (c * det), omega, t)
-    return so3.join((*rho, *omega, sigma))
+    out = so3.join((*rho, *omega, sigma))
+    # s <= 0, q = 0 or a non-finite value is no similarity: all seven components NaN.
+    return jnp.where(is_valid(S)[..., None], out, jnp.nan)
 
 
 # ---------------------------------------------------------------- matrices and adjoint
@@ -285,10 +306,69 @@ def as_matrix(S: ArrayLike) -> Array:
     return jnp.concatenate([top, bottom], axis=-2)
 
 
+def _is_concrete(*xs: ArrayLike) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _check_rotation_scale(R: ArrayLike, s: ArrayLike, what: str) -> None:
+    """Host-side refusal of non-rotations and scales ``<= 0`` (see the module docstring)."""
+    import numpy as np
+
+    Rn = np.asarray(R, np.float64)
+    sn = np.asarray(s, np.float64)
+    if Rn.shape[-2:] != (3, 3):
+        raise ValueError(f"{what}: R must be [..., 3, 3], got shape {Rn.shape}")
+    dev = np.abs(np.swapaxes(Rn, -1, -2) @ Rn - np.eye(3)).max(axis=(-2, -1), initial=0.0)
+    det = np.linalg.det(Rn) if Rn.size else np.ones(Rn.shape[:-2])
+    bad = ~(dev <= ROTATION_TOLERANCE) | ~(det > 0)
+    if np.any(bad):
+        k = np.unravel_index(int(np.flatnonzero(bad)[0]), bad.shape) if bad.ndim else ()
+        raise ValueError(
+            f"{what}: R{list(k) if k else ''} is not a rotation (max |R^T R - I| = {np.asarray(dev)[k]:.3g}, "
+            f"det {np.asarray(det)[k]:.6g}; {int(np.sum(bad))} of {bad.size}): a scaled matrix or a reflection"
+        )
+    if np.any(~(sn > 0)):
+        raise ValueError(f"{what}: scale must be > 0 and finite, got {sn.reshape(-1)[np.flatnonzero(~(sn > 0))[0]]!r}")
+
+
 def from_rst(R: ArrayLike, t: ArrayLike, s: ArrayLike) -> Array:
-    """Element from rotation ``[..., 3, 3]``, translation ``[..., 3]`` and scale ``[...]``."""
+    """Element from rotation ``[..., 3, 3]``, translation ``[..., 3]`` and scale ``[...]``.
+
+    On concrete (host) values, ``R`` must be a rotation (``max |R^T R - I| <= 1e-4``,
+    ``det R > 0``) and ``s > 0``, else ``ValueError``; under ``jit`` nothing is checked.
+    """
+    if _is_concrete(R, s):
+        _check_rotation_scale(R, s, "sim3.from_rst")
     R, t, s = jnp.asarray(R), jnp.asarray(t), jnp.asarray(s)
     return _pack(t, so3.from_matrix(R), s)
+
+
+def is_valid(S: ArrayLike) -> Array:
+    """``[..., 8] -> [...]`` bool: finite, ``s > 0`` and ``q != 0`` (jit-able flag)."""
+    S = jnp.asarray(S)
+    q = quaternion(S)
+    return jnp.all(jnp.isfinite(S), axis=-1) & (scale(S) > 0) & (jnp.sum(q * q, axis=-1) > 0)
+
+
+def check(S: ArrayLike, name: str = "S", unit_tol: float | None = None) -> None:
+    """Host-side: ``ValueError`` naming ``name`` and the first bad element unless every element
+    of ``S [..., 8]`` is valid (:func:`is_valid`) and, with ``unit_tol``, ``| |q| - 1 | <= unit_tol``."""
+    import numpy as np
+
+    a = np.asarray(S, np.float64)
+    if a.shape[-1:] != (8,):
+        raise ValueError(f"{name}: a Sim(3) array must be [..., 8], got shape {a.shape}")
+    norm = np.linalg.norm(a[..., 3:7], axis=-1)
+    bad = ~np.all(np.isfinite(a), axis=-1) | ~(a[..., 7] > 0) | ~(norm > 0)
+    if unit_tol is not None:
+        bad |= ~(np.abs(norm - 1.0) <= unit_tol)
+    if np.any(bad):
+        k = int(np.flatnonzero(bad.reshape(-1))[0])
+        raise ValueError(
+            f"{name}: element {k} (of {bad.size}) is not a valid Sim(3) element {a.reshape(-1, 8)[k].tolist()} "
+            f"(needs finite values, scale > 0, a non-zero{' unit' if unit_tol is not None else ''} quaternion; "
+            f"{int(bad.sum())} bad)"
+        )
 
 
 def to_rst(S: ArrayLike) -> tuple[Array, Array, Array]:
@@ -301,8 +381,18 @@ def from_matrix(M: ArrayLike) -> Array:
     """Element from a ``[..., 4, 4]`` (or ``[..., 3, 4]``) similarity matrix ``[[s R, t], ...]``.
 
     ``s = det(sR)^(1/3)``; the rotation is read from ``sR / s``.  ``M`` must be a similarity
-    with positive determinant (the result is meaningless otherwise).
+    with positive determinant: on concrete values anything else is a ``ValueError``
+    (:func:`from_rst`); under ``jit`` the result is then meaningless.
     """
+    if _is_concrete(M):
+        import numpy as np
+
+        det = np.linalg.det(np.asarray(M, np.float64)[..., :3, :3])
+        if np.any(~(det > 0)):
+            raise ValueError(
+                f"sim3.from_matrix: the 3x3 block has determinant {det.reshape(-1)[np.flatnonzero(~(det > 0))[0]]:.6g}; "
+                "a similarity needs a positive determinant (a reflection or a singular matrix is none)"
+            )
     M = jnp.asarray(M)
     sr = M[..., :3, :3]
     s = jnp.cbrt(jnp.linalg.det(sr))

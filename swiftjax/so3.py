@@ -13,6 +13,11 @@ Maths (Sola, "A micro Lie theory", 2018, eqs. 101-106; Sophus ``so3.hpp``):
   in ``[0, pi]``; for ``|v| -> 0``: ``2 atan2(n, w)/n = 2/w (1 - n^2/(3 w^2))``.
   At exactly ``pi`` (``w = 0``) both ``w`` and ``-w`` are valid logs; we return the one
   along ``v`` of the given sign.
+
+Non-unit quaternions: every function that reads a rotation from ``q`` (:func:`rotate`,
+:func:`as_matrix`, :func:`log`) reads the rotation of ``q / |q|``, so a quaternion that has
+drifted from unit norm means the same rotation everywhere (the products of
+:func:`multiply` keep the norms' product).  A zero quaternion is no rotation: it gives NaN.
 """
 
 from __future__ import annotations
@@ -136,11 +141,15 @@ def conjugate_components(q: Quat) -> Quat:
 
 
 def rotate_components(q: Quat, x: Vec3) -> Vec3:
-    """``x + 2w (v x x) + 2 v x (v x x)`` (15 multiplies fewer than building ``R``)."""
+    """``R(q / |q|) x = x + (2 / |q|^2) (w (v x x) + v x (v x x))`` (15 multiplies fewer than
+    building ``R``).  Any non-zero ``q`` rotates as its unit version (as :func:`log` reads it);
+    the factor ``2 / |q|^2`` has ``q``'s shape, so broadcasting one ``q`` over many points
+    costs one division.  A zero quaternion gives NaN."""
     v, w = q[:3], q[3]
+    two_over_n = 2.0 / (dot(v, v) + w * w)
     uv = cross(v, x)
     uuv = cross(v, uv)
-    return tuple(x[k] + 2.0 * (w * uv[k] + uuv[k]) for k in range(3))  # type: ignore[return-value]
+    return tuple(x[k] + two_over_n * (w * uv[k] + uuv[k]) for k in range(3))  # type: ignore[return-value]
 
 
 # ------------------------------------------------------------------------- public API
@@ -202,17 +211,19 @@ def rotate(q: ArrayLike, x: ArrayLike) -> Array:
 
 
 def as_matrix(q: ArrayLike) -> Array:
-    """Rotation matrix of a unit quaternion: ``[..., 4] -> [..., 3, 3]``."""
+    """Rotation matrix of ``q / |q|``: ``[..., 4] -> [..., 3, 3]`` (always a rotation, as
+    :func:`rotate` and :func:`log` read any non-zero quaternion; NaN for a zero one)."""
     q = jnp.asarray(q)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
+    c = 2.0 / (xx + yy + zz + w * w)
     return jnp.stack(
         [
-            jnp.stack([1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)], -1),
-            jnp.stack([2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)], -1),
-            jnp.stack([2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)], -1),
+            jnp.stack([1 - c * (yy + zz), c * (xy - wz), c * (xz + wy)], -1),
+            jnp.stack([c * (xy + wz), 1 - c * (xx + zz), c * (yz - wx)], -1),
+            jnp.stack([c * (xz - wy), c * (yz + wx), 1 - c * (xx + yy)], -1),
         ],
         axis=-2,
     )

@@ -129,10 +129,10 @@ def test_errors_name_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"chunk_00007\.npz: no saved chunk 7"):
         store.load("chunk", 7)
     store.path("loop", 0).write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match=r"loop_00000\.npz: unreadable chunk file"):
+    with pytest.raises(cs.ChunkCorruptError, match=r"loop_00000\.npz: corrupt chunk file: not a \.npz"):
         store.load("loop", 0)
     np.savez(store.path("loop", 1), depth=np.zeros((1, 2, 2)))
-    with pytest.raises(ValueError, match=r"loop_00001\.npz: chunk file format None"):
+    with pytest.raises(cs.ChunkCorruptError, match=r"loop_00001\.npz: corrupt chunk file: no format_version"):
         store.load("loop", 1)
     with pytest.raises(ValueError, match=r"extra\['bad'\]"):
         store.save("chunk", 0, _pred(), extra={"bad": np.array([{}, 1], dtype=object)})
@@ -177,10 +177,11 @@ def test_partial_loads_match_full_load(tmp_path, compress):
         store.load("chunk", 0, frames=[S])
 
 
-def test_partial_load_reads_only_the_selected_frames(tmp_path):
-    """A memory-mapped read touches only the selected rows: a corrupted byte of frame 0 is
-    invisible to a read of frames 1-2 and seen by a read of frame 0; a full read checks the
-    zip CRC and names the file (partial reads skip the CRC)."""
+def test_partial_load_reads_and_checks_only_the_selected_frames(tmp_path):
+    """A memory-mapped read touches only the selected rows and verifies their CRC32s: a
+    corrupted byte of frame 0 is invisible to a read of frames 1-2 (their bytes are intact)
+    and named by a read of frame 0, as by a full read (defect 4: partial reads skipped the zip
+    CRC and returned the flipped value)."""
     store = ChunkStore(tmp_path, half=False)
     pred = _pred()
     path = store.save("chunk", 0, pred)
@@ -190,9 +191,89 @@ def test_partial_load_reads_only_the_selected_frames(tmp_path):
     raw[start:start + 4] = np.float32(-7.0).tobytes()
     path.write_bytes(bytes(raw))
     np.testing.assert_array_equal(store.load("chunk", 0, frames=[1, 2]).depth, pred.depth[1:3])
-    assert store.load("chunk", 0, frames=[0]).depth[0, 0, 0] == -7.0
-    with pytest.raises(ValueError, match=r"chunk_00000\.npz: corrupt chunk file"):
+    with pytest.raises(cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file: depth frame 0 fails its CRC32"):
+        store.load("chunk", 0, frames=[0])
+    for read in (lambda: store.load("chunk", 0), lambda: store.load_array("chunk", 0, "depth", frames=slice(0, 2)),
+                 lambda: store.verify("chunk", 0)):
+        with pytest.raises(cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file: depth") as info:
+            read()
+        assert info.value.field == "depth" and info.value.path == path
+
+
+def _flip(path, offset):
+    raw = bytearray(path.read_bytes())
+    raw[offset] ^= 0x10
+    path.write_bytes(bytes(raw))
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_a_flipped_byte_in_any_stored_array_is_named(tmp_path, compress):
+    """Every member of a chunk file (prediction fields, extras, the checksums themselves): one
+    flipped bit in its data is reported as ChunkCorruptError naming the field, by a full read
+    and, for per-frame fields, by a partial read of the damaged frame (uncompressed files) --
+    never read back silently, never another exception type."""
+    import zipfile
+
+    store = ChunkStore(tmp_path, compress=compress)
+    pred = _pred(tokens=True)
+    extra = {"frames": np.arange(4), "points_xyz": np.random.default_rng(1).standard_normal((50, 3)).astype(np.float32)}
+    path = store.save("chunk", 0, pred, extra=extra)
+    clean = path.read_bytes()
+    with zipfile.ZipFile(path) as zf:
+        members = [(i.filename[:-4], i.header_offset, i.compress_size) for i in zf.infolist()]
+    assert {m for m, _, _ in members} >= {"depth", "conf", "extrinsic", "intrinsic", "descriptors", "patch_tokens",
+                                            "images", "extra__frames", "extra__points_xyz", "crc32__depth"}
+    for name, header, size in members:
+        path.write_bytes(clean)
+        local = clean[header:header + 30]
+        data_start = header + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
+        # Inside the member's data: its last frame (uncompressed), the middle of the deflate stream.
+        _flip(path, data_start + (size // 2 if compress else size - 3))
+        field = name[len("crc32__"):] if name.startswith("crc32__") else name
+        with pytest.raises(cs.ChunkCorruptError) as info:
+            store.verify("chunk", 0)
+        assert info.value.path == path and f"{path}: corrupt chunk file" in str(info.value)
+        if not compress:  # a compressed member may fail to inflate before its CRC is checked
+            assert info.value.field in (field, name), (name, str(info.value))
+        if name in ("depth", "conf", "images", "descriptors") and not compress:
+            assert info.value.frame == S - 1
+            with pytest.raises(cs.ChunkCorruptError, match=f"{name} frame {S - 1}"):
+                store.load("chunk", 0, frames=[S - 1])
+            part = store.load("chunk", 0, frames=[0, 1])  # intact frames read fine
+            np.testing.assert_array_equal(part.extrinsic, pred.extrinsic[:2])
+        if name.startswith("extra__"):
+            with pytest.raises(cs.ChunkCorruptError, match=name):
+                store.load_extra("chunk", 0)
+    path.write_bytes(clean)
+    store.verify("chunk", 0)
+
+
+def test_truncated_or_scrambled_container_is_corrupt_not_a_traceback(tmp_path):
+    store = ChunkStore(tmp_path)
+    path = store.save("chunk", 0, _pred())
+    clean = path.read_bytes()
+    for damaged in (clean[: len(clean) // 2], clean[:-10], clean[:100] + bytes(50) + clean[150:]):
+        path.write_bytes(damaged)
+        with pytest.raises(cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file"):
+            store.verify("chunk", 0)
+        with pytest.raises(cs.ChunkCorruptError):
+            store.load("chunk", 0, frames=[0], fields=())
+
+
+def test_files_without_checksums_are_refused(tmp_path):
+    store = ChunkStore(tmp_path)
+    np.savez(store.path("chunk", 0), format_version=np.asarray(cs.FORMAT_VERSION), depth=np.zeros((1, 2, 2)))
+    with pytest.raises(cs.ChunkCorruptError, match="no checksum"):
         store.load("chunk", 0)
+
+
+def test_tail_kind_keeps_float32(tmp_path):
+    store = ChunkStore(tmp_path)
+    pred = _pred(descriptors=False, images=False)
+    store.save("tail", 2, pred, half=False)
+    out = store.load("tail", 2)
+    np.testing.assert_array_equal(out.depth, pred.depth)
+    assert store.indices("tail") == [2] and store.indices("chunk") == []
 
 
 def test_missing_optional_field_is_none(tmp_path):
@@ -200,3 +281,32 @@ def test_missing_optional_field_is_none(tmp_path):
     store.save("chunk", 0, _pred(descriptors=False, images=False))
     assert store.load_array("chunk", 0, "descriptors") is None
     assert store.load("chunk", 0, frames=[0]).images is None
+
+
+def test_random_byte_flips_are_detected_or_harmless(tmp_path):
+    """Anywhere in the file: a flipped byte either raises ChunkCorruptError or leaves every
+    array read back bit-identical (e.g. a zip timestamp); never different data, never another
+    exception."""
+    store = ChunkStore(tmp_path)
+    pred = _pred()
+    path = store.save("chunk", 0, pred, extra={"frames": np.arange(4)})
+    clean = path.read_bytes()
+    want = store.load("chunk", 0)
+    rng = np.random.default_rng(0)
+    detected = 0
+    for offset in rng.integers(0, len(clean), 60):
+        raw = bytearray(clean)
+        raw[offset] ^= 1 << int(rng.integers(8))
+        path.write_bytes(bytes(raw))
+        try:
+            got = store.load("chunk", 0)
+            part = store.load("chunk", 0, frames=[1, 3])
+            frames = store.load_extra("chunk", 0)["frames"]
+        except cs.ChunkCorruptError:
+            detected += 1
+            continue
+        for name in ("depth", "conf", "extrinsic", "intrinsic", "descriptors", "images"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+            np.testing.assert_array_equal(getattr(part, name), getattr(want, name)[[1, 3]])
+        np.testing.assert_array_equal(frames, np.arange(4))
+    assert detected > 40  # the data dominates the file

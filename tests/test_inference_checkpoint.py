@@ -142,3 +142,15 @@ def test_unknown_suffix(tmp_path: pathlib.Path) -> None:
     np.savez(path, a=np.zeros(2))
     with pytest.raises(CheckpointError, match="unknown checkpoint format"):
         load_checkpoint(_model(), path)
+
+
+@pytest.mark.parametrize("head", [b"", b"\x80\x02", b"PK\x03\x04"])
+def test_random_bytes_are_corrupt_not_unsafe(tmp_path: pathlib.Path, head: bytes) -> None:
+    """Defect 6: a .pt of random bytes was reported as an 'unsafe pickle'."""
+    path = tmp_path / "model.pt"
+    path.write_bytes(head + np.random.default_rng(0).bytes(4000))
+    with pytest.raises(CheckpointError) as err:
+        read_state_dict(path)
+    text = str(err.value)
+    assert str(path) in text and "unsafe" not in text and "refused" not in text
+    assert "corrupt" in text

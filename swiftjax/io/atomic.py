@@ -22,7 +22,10 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_paths", "atomic_write", "atomic_save_npz"]
+__all__ = ["atomic_path", "atomic_paths", "atomic_write", "atomic_save_npz", "temp_files", "TEMP_MARK"]
+
+#: Temp files are ``.<name>.<random>.tmp<suffix>`` beside their target (see :func:`temp_files`).
+TEMP_MARK = ".tmp"
 
 _UMASK: int | None = None
 
@@ -62,7 +65,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     parent = target.parent
     if not parent.is_dir():
         raise FileNotFoundError(f"cannot write {target}: directory {parent} does not exist")
-    fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{target.name}.", suffix=f".tmp{target.suffix}")
+    fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{target.name}.", suffix=f"{TEMP_MARK}{target.suffix}")
     os.close(fd)
     tmp = pathlib.Path(tmp_name)
     try:
@@ -71,9 +74,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
             os.fsync(f.fileno())
         os.chmod(tmp, _file_mode())
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        if isinstance(e, OSError) and e.filename is None and e.errno is not None:
+            # e.g. ENOSPC from a write: name the file being written (the temp file is gone).
+            raise OSError(e.errno, f"{e.strerror or e} (writing {target})", os.fspath(target)) from e
         raise
     _fsync_dir(parent)
 
@@ -142,3 +148,15 @@ def atomic_save_npz(path: str | os.PathLike[str], compress: bool = False, **arra
     save = np.savez_compressed if compress else np.savez
     with atomic_write(path, "wb") as f:
         save(f, **arrays)
+
+
+def temp_files(directory: str | os.PathLike[str]) -> list[pathlib.Path]:
+    """The temp files :func:`atomic_path` leaves behind when its process is killed, in ``directory``
+    (not recursive): ``.<target name>.<8 random characters>.tmp<target suffix>``."""
+    import re
+
+    pattern = re.compile(r"^\..+\.[A-Za-z0-9_]{8}" + re.escape(TEMP_MARK) + r"(\.[^.]*)?$")
+    d = pathlib.Path(directory)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if p.is_file() and pattern.match(p.name))

@@ -27,6 +27,7 @@ evo's ``PoseTrajectory3D.poses_se3``.  Matrix -> quaternion uses Shepperd's meth
 
 from __future__ import annotations
 
+import io
 import os
 import pathlib
 from collections.abc import Sequence
@@ -62,28 +63,37 @@ def _parse_rows(path: PathLike, width: int, fmt: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{fmt} trajectory file not found: {path}")
     rows: list[list[float]] = []
-    with open(path, encoding="utf-8-sig") as f:  # utf-8-sig: tolerate a BOM like evo
-        for lineno, line in enumerate(f, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = text.replace(",", " ").split()
-            if len(fields) != width:
-                raise TrajectoryFormatError(
-                    f"{path}:{lineno}: a {fmt} line must have {width} numbers, got "
-                    f"{len(fields)}: {text[:80]!r}"
-                )
-            try:
-                values = [float(v) for v in fields]
-            except ValueError:
-                raise TrajectoryFormatError(
-                    f"{path}:{lineno}: a {fmt} line must hold numbers only: {text[:80]!r}"
-                ) from None
-            if not all(np.isfinite(values)):
-                raise TrajectoryFormatError(
-                    f"{path}:{lineno}: non-finite value (nan/inf) in {fmt} line: {text[:80]!r}"
-                )
-            rows.append(values)
+    raw = path.read_bytes()
+    if b"\x00" in raw[:4096]:
+        raise TrajectoryFormatError(f"{path}: not a text {fmt} trajectory file (binary data, {len(raw)} bytes)")
+    try:
+        text_all = raw.decode("utf-8-sig")  # utf-8-sig: tolerate a BOM like evo
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise TrajectoryFormatError(
+            f"{path}:{line}: not a text {fmt} trajectory file (byte {e.start} is not UTF-8)"
+        ) from None
+    for lineno, line in enumerate(io.StringIO(text_all, newline=None), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.replace(",", " ").split()
+        if len(fields) != width:
+            raise TrajectoryFormatError(
+                f"{path}:{lineno}: a {fmt} line must have {width} numbers, got "
+                f"{len(fields)}: {text[:80]!r}"
+            )
+        try:
+            values = [float(v) for v in fields]
+        except ValueError:
+            raise TrajectoryFormatError(
+                f"{path}:{lineno}: a {fmt} line must hold numbers only: {text[:80]!r}"
+            ) from None
+        if not all(np.isfinite(values)):
+            raise TrajectoryFormatError(
+                f"{path}:{lineno}: non-finite value (nan/inf) in {fmt} line: {text[:80]!r}"
+            )
+        rows.append(values)
     if not rows:
         raise TrajectoryFormatError(f"{path}: no {fmt} poses in file (empty or only comments)")
     return np.asarray(rows, dtype=np.float64)

@@ -173,11 +173,12 @@ def _solve(problem: Problem, start: Array, params: dict[str, Array], *, static: 
     """Dense/PCG path, second program: ``optimistix.least_squares`` with :class:`SparseSim3LM` from
     ``start``.  It does not depend on the initialisation, so both starts share it (and its cache
     entry), and each program compiles in less time than the two together."""
+    # optimistix's step 0 only linearises (cost at the start, no move), so max_steps LM steps
+    # are max_steps + 1 optimistix steps: max_steps = 0 still reports the true initial cost.
     sol = optx.least_squares(
-        residual_fn, _solver(params, static), start, args=problem, max_steps=static.max_steps, throw=False
+        residual_fn, _solver(params, static), start, args=problem, max_steps=static.max_steps + 1, throw=False
     )
     st = sol.state
-    # step 0 only linearises
     return _report(sol.value, st, sol.stats["num_steps"] - 1, st.cost_initial)
 
 
@@ -470,6 +471,8 @@ def optimize(
     """
     if check:
         validate(problem)
+    if int(max_steps) != max_steps or max_steps < 0:
+        raise ValueError(f"max_steps must be an integer >= 0, not {max_steps!r}")
     if initialization not in ("none", "chordal"):
         raise ValueError(f"initialization must be 'none' or 'chordal', not {initialization!r}")
     if damping not in ("identity", "marquardt"):
