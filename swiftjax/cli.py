@@ -43,28 +43,23 @@ def _enable_compilation_cache() -> None:
 
 
 def _add_method_options(parser: argparse.ArgumentParser) -> None:
-    """One ``--option`` per :class:`PipelineConfig` field (default: the config file's, else the paper's)."""
+    """One ``--option`` per :class:`PipelineConfig` field, from its schema (:mod:`swiftjax.options`)."""
+    from swiftjax import options
     from swiftjax.pipeline import PipelineConfig
 
-    group = parser.add_argument_group("method parameters (paper defaults)")
-    for field in dataclasses.fields(PipelineConfig):
-        flag = "--" + field.name.replace("_", "-")
-        default = field.default
-        note = field.metadata.get("help", "")
-        note = f"{note} " if note else ""
-        if isinstance(default, bool):
-            group.add_argument(flag, dest=field.name, action=argparse.BooleanOptionalAction, default=None,
-                               help=f"{note}(default {default})")
-        else:
-            kind = {int: int, float: float}.get(type(default), str)
-            if field.name == "voxel_size":
-                kind = float
-            group.add_argument(flag, dest=field.name, type=kind, default=None, metavar=field.name.upper(),
-                               help=f"{note}(default {default})")
-    parser.add_argument("--config", type=pathlib.Path, help="TOML file of method parameters (options override it)")
+    group = parser.add_argument_group(
+        "method parameters (paper defaults; a flag overrides the --config file, which overrides the default)"
+    )
+    options.add_arguments(group, PipelineConfig)
+    parser.add_argument(
+        "--config", type=pathlib.Path, metavar="FILE",
+        help="TOML file of method parameters (top level or a [swiftjax] table; keys as the flags, with _)",
+    )
 
 
 def _pipeline_config(args: argparse.Namespace) -> Any:
+    """The configuration from ``--config`` and the flags, validated by the schema before any work."""
+    from swiftjax import options
     from swiftjax.pipeline import PipelineConfig
 
     values: dict[str, Any] = {}
@@ -74,21 +69,24 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
                 data = tomllib.load(f)
         except FileNotFoundError as err:
             raise CliError(f"config file {args.config} does not exist") from err
-        except tomllib.TOMLDecodeError as err:
+        except IsADirectoryError as err:
+            raise CliError(f"config file {args.config} is a directory") from err
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
             raise CliError(f"config file {args.config} is not valid TOML: {err}") from err
-        values.update(data.get("swiftjax", data))
-    for field in dataclasses.fields(PipelineConfig):
-        v = getattr(args, field.name, None)
-        if v is not None:
-            values[field.name] = None if (field.name == "robust_loops" and v == "none") else v
+        table = data.get("swiftjax", data)
+        if not isinstance(table, dict):
+            raise CliError(f"config file {args.config}: [swiftjax] must be a table")
+        values.update(table)
+    flags = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(PipelineConfig)}
     try:
-        return PipelineConfig.from_dict(values)
+        return options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
     except (TypeError, ValueError) as err:
         raise CliError(f"invalid configuration: {err}") from err
 
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--overwrite", action="store_true", help="replace a run directory of another input/config")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a run directory that holds another input, model or configuration")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     group = parser.add_argument_group("execution (where the VGGT predictions run)")
     group.add_argument("--executor", choices=("local", "ray"), default="local",
@@ -164,6 +162,25 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     return _run_batch(args, jobs)
 
 
+def _out_dir(text: str) -> pathlib.Path:
+    """``--out``: a non-empty path (``--out ""`` would write into the current directory)."""
+    if not text.strip():
+        raise CliError("--out is empty: give the output directory")
+    return pathlib.Path(text)
+
+
+def _check_out_not_in_input(out: pathlib.Path, source: Any) -> None:
+    """Refuse an output directory inside the input folder (outputs would mix with, and on the
+    next run be read as, frames)."""
+    roots = {pathlib.Path(p).parent.resolve() for p in getattr(source, "paths", [])}
+    target = out.resolve()
+    for root in roots:
+        if target == root or target.is_relative_to(root):
+            raise CliError(
+                f"--out {out} is inside the input folder {root}: choose a directory outside the frames"
+            )
+
+
 # ---------------------------------------------------------------------------- commands
 
 
@@ -176,13 +193,24 @@ def _print_summary(result: Any) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from swiftjax import demo, pipeline
 
+    out = args.out = _out_dir(args.out)
     if args.batch is not None:
         return _demo_batch(args)
     config = _pipeline_config(args)
+    if args.frames is not None and args.frames < 1:
+        raise CliError(f"--frames must be >= 1, got {args.frames}")
+    try:
+        h, w = (int(v) for v in args.image_size.lower().split("x"))
+    except ValueError:
+        raise CliError(f"--image-size must be HEIGHTxWIDTH, e.g. 154x518, got {args.image_size!r}") from None
+    if h < 14 or w < 14:
+        raise CliError(f"--image-size {args.image_size}: height and width must be >= 14")
+    if not (args.frame_spacing > 0 and args.frame_spacing < 1e3):
+        raise CliError(f"--frame-spacing must be in (0, 1000) metres, got {args.frame_spacing}")
     with contextlib.closing(_make_executor(args)) as executor, _LiveView(args) as live:
-        run = demo.loop_route_run(args.frames, seed=args.seed)
+        run = demo.loop_route_run(args.frames, seed=args.seed, image_hw=(h, w), spacing_m=args.frame_spacing)
         result = pipeline.reconstruct(
-            run.predictor, args.out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
+            run.predictor, out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
             progress=not args.no_progress, executor=executor,
         )
         _print_summary(result)
@@ -268,9 +296,9 @@ def _cmd_view(args: argparse.Namespace) -> int:
 def _view_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("live viewer (the 'view' extra)")
     group.add_argument("--view", action="store_true", help="watch the run in a web viewer as chunks arrive")
-    group.add_argument("--view-port", type=int, default=8080)
+    group.add_argument("--view-port", type=int, default=8080, help="port of the viewer")
     group.add_argument("--view-host", default="127.0.0.1", help="0.0.0.0 shares the viewer on the network")
-    group.add_argument("--view-max-points", type=int, default=1_000_000)
+    group.add_argument("--view-max-points", type=int, default=1_000_000, help="point budget of the viewer")
 
 
 def _load_ground_truth(path: pathlib.Path, fmt: str) -> Any:
@@ -281,33 +309,125 @@ def _load_ground_truth(path: pathlib.Path, fmt: str) -> Any:
     return trajectory.read_kitti(path) if fmt == "kitti" else trajectory.read_tum(path)[1]
 
 
-def _image_spec(args: argparse.Namespace) -> Any:
-    from inference.predictor import ImageSpec
+def _torch_device(text: str) -> Any:
+    """``--device`` as a ``torch.device`` that exists here; :class:`CliError` otherwise."""
+    import torch
 
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError, TypeError):
+        raise CliError(f"--device {text!r} is not a torch device (cpu, cuda, cuda:N, mps)") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise CliError(f"--device {text}: {why} (torch {torch.__version__}); use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise CliError(f"--device {text}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise CliError(f"--device {text}: this torch build or machine has no MPS support; use --device cpu")
+    elif device.type != "cpu":
+        raise CliError(f"--device {text}: device type {device.type!r} is not supported (cpu, cuda, mps)")
+    return device
+
+
+def _model_config(args: argparse.Namespace) -> Any:
+    from inference import VGGTConfig
+
+    if args.model_config is None:
+        return VGGTConfig()
+    try:
+        return VGGTConfig.from_json(args.model_config)
+    except FileNotFoundError:
+        raise CliError(f"--model-config {args.model_config} does not exist") from None
+    except (OSError, ValueError, TypeError, KeyError) as err:  # JSONDecodeError is a ValueError
+        raise CliError(f"--model-config {args.model_config} is not a VGGT config: {_one_line(err)}") from None
+
+
+def _check_weights(args: argparse.Namespace) -> pathlib.Path:
     weights = pathlib.Path(args.weights)
     if not weights.exists():
         raise CliError(f"weights file {weights} does not exist")
-    if args.backend == "onnx" and weights.suffix != ".onnx":
-        raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+    if not weights.is_file():
+        raise CliError(f"weights file {weights} is not a file")
+    return weights
+
+
+def _check_runner_options(args: argparse.Namespace) -> None:
+    """Device, backend and dtype checked before any input is read or weights loaded."""
+    weights = _check_weights(args)
+    if args.backend == "onnx":
+        if weights.suffix.lower() != ".onnx":
+            raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+        if args.dtype != "float32":
+            raise CliError(f"--dtype {args.dtype} needs --backend torch (an ONNX graph's precision is fixed at export)")
+        if args.model_config is not None:
+            raise CliError("--model-config needs --backend torch (an ONNX graph holds its own architecture)")
+        if args.device != "cpu":
+            import onnxruntime as ort
+
+            if not args.device.startswith("cuda"):
+                raise CliError(f"--device {args.device}: the ONNX backend runs on cpu or cuda")
+            if "CUDAExecutionProvider" not in ort.get_available_providers():
+                raise CliError(
+                    f"--device {args.device}: onnxruntime has no CUDA provider here "
+                    f"(has {', '.join(ort.get_available_providers())}; install onnxruntime-gpu)"
+                )
+    else:
+        if weights.suffix.lower() == ".onnx":
+            raise CliError(f"{weights} is an ONNX graph: pass --backend onnx")
+        _torch_device(args.device)
+        _model_config(args)
+
+
+def _image_spec(args: argparse.Namespace) -> Any:
+    from inference.predictor import ImageSpec
+
+    _check_runner_options(args)
+    model_config = None if args.backend == "onnx" or args.model_config is None else _model_config(args).to_dict()
     return ImageSpec(  # absolute paths: a worker may run elsewhere
-        input=os.path.abspath(args.input), weights=os.path.abspath(weights), backend=args.backend, device=args.device, dtype=args.dtype,
-        mode=args.mode, stride=args.stride, skip_bad=args.skip_bad,
+        input=os.path.abspath(args.input), weights=os.path.abspath(args.weights), backend=args.backend,
+        device=args.device, dtype=args.dtype, model_config=model_config, mode=args.mode, stride=args.stride,
+        skip_bad=args.skip_bad,
     )
 
 
 def _make_runner(args: argparse.Namespace) -> Any:
+    """The runner, loaded now: a bad checkpoint or graph is a one-line error before any work."""
     from inference.predictor import build_runner
 
     spec = _image_spec(args)
-    return build_runner(spec.weights, spec.backend, spec.device, spec.dtype)
+    try:
+        return build_runner(spec.weights, spec.backend, spec.device, spec.dtype, spec.model_config)
+    except Exception as err:  # noqa: BLE001 - checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
+        if _is_user_error(err):
+            raise CliError(_one_line(err)) from None
+        if args.backend == "onnx":
+            raise CliError(f"cannot load the ONNX graph {args.weights}: {_one_line(err)}") from None
+        raise
+
+
+def _is_user_error(err: BaseException) -> bool:
+    """A checkpoint error (without importing torch to name its class) or a value error."""
+    checkpoint = sys.modules.get("inference.checkpoint")
+    return isinstance(err, ValueError) or (
+        checkpoint is not None and isinstance(err, getattr(checkpoint, "CheckpointError", ()))
+    )
+
+
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from swiftjax import pipeline
     from swiftjax.io import images
 
+    # Everything is checked before the first prediction: options, output, input, GT, runner.
     config = _pipeline_config(args)
+    out = _out_dir(args.out)
+    if args.stride < 1:
+        raise CliError(f"--stride must be >= 1, got {args.stride}")
     source = images.validate(images.list_frames(args.input, stride=args.stride), skip_bad=args.skip_bad)
+    _check_out_not_in_input(out, source)
     gt = _load_ground_truth(args.gt, args.gt_format) if args.gt is not None else None
     if gt is not None and len(gt) != len(source):
         raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
@@ -316,21 +436,29 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         note = f"from {args.timestamps}"
     else:
         timestamps, note = source.timestamps()
+    _check_runner_options(args)
     if len(source) < config.chunk_size:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
 
+    from inference.predictor import model_identity
+
     spec = _image_spec(args)
+    identity = model_identity(
+        args.weights, backend=args.backend, dtype=args.dtype,
+        device_class=args.device.split(":")[0] if args.backend == "onnx" else _torch_device(args.device).type,
+        config=None if args.backend == "onnx" else _model_config(args).to_dict(),
+    )
     executor = _make_executor(args)
     with contextlib.closing(executor):
         if args.executor == "local":  # load the model now: a bad checkpoint fails before any work
             runner: Any = _make_runner(args)
         else:  # each worker loads its own (ImageSpec)
             runner = spec.runner_factory()
-        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec)
+        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec, identity=identity)
         with _LiveView(args) as live:
             result = pipeline.reconstruct(
-                predictor, args.out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
+                predictor, out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
                 timestamps=timestamps, timestamps_note=note, executor=executor,
             )
             _print_summary(result)
@@ -338,16 +466,79 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_trajectory(path: pathlib.Path, fmt: str) -> tuple[Any, Any]:
+    """``(timestamps | None, poses [N, 4, 4])``; TUM quaternions must be non-zero."""
+    import numpy as np
+
+    from swiftjax.io import trajectory
+
+    if not path.exists():
+        raise CliError(f"trajectory file {path} does not exist")
+    if fmt == "kitti":
+        return None, trajectory.read_kitti(path)
+    stamps, rows = trajectory.read_tum_raw(path)
+    norms = np.linalg.norm(rows[:, 3:], axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
+    if bad.size:
+        k = int(bad[0])
+        raise _RotationError(
+            f"{path}: pose {k} (of {len(rows)}, time {stamps[k]!r}) has a quaternion of norm {norms[k]:.6g}, "
+            f"not a unit quaternion ({bad.size} such poses)", zero=bool(np.any(norms[bad] < 1e-6)),
+        )
+    return trajectory.read_tum(path)
+
+
+class _RotationError(CliError):
+    def __init__(self, text: str, zero: bool = False) -> None:
+        super().__init__(text)
+        self.zero = zero
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from swiftjax import evaluation
+    from swiftjax.io import trajectory
     from swiftjax.report import markdown_table
 
-    est = _load_ground_truth(args.estimate, args.format)
-    ref = _load_ground_truth(args.reference, args.format)
-    if len(est) != len(ref):
-        raise CliError(f"{args.estimate} has {len(est)} poses but {args.reference} has {len(ref)}")
-    a = evaluation.ate(est, ref, align=args.align)
-    r = evaluation.rpe(est, ref, delta=args.delta, align=args.align)
+    est_path, ref_path = args.estimate, args.reference
+    loaded = []
+    fixes = []
+    for path in (est_path, ref_path):
+        try:
+            stamps, poses = _read_trajectory(path, args.format)
+        except _RotationError as err:
+            if not args.fix_rotations or err.zero:
+                hint = "" if err.zero else "; --fix-rotations normalises them"
+                raise CliError(f"{err}{hint}") from None
+            stamps, poses = trajectory.read_tum(path)  # normalised quaternions
+            fixes.append(f"{path}: quaternions normalised")
+        try:
+            evaluation.check_rotations(poses, str(path))
+        except ValueError as err:
+            if not args.fix_rotations:
+                raise CliError(f"{err}; --fix-rotations re-orthonormalises them (nearest rotation)") from None
+            poses, change = evaluation.orthonormalize(poses)
+            fixes.append(f"{path}: rotations re-orthonormalised (largest entry change {change:.3g})")
+        loaded.append((stamps, poses))
+    (t_est, est), (t_ref, ref) = loaded
+    for line in fixes:
+        print(f"swiftjax: {line}")
+    if args.format == "tum":
+        i_ref, i_est = evaluation.associate(t_ref, t_est, max_diff=args.max_diff, offset=args.offset)
+        if len(i_ref) < 3:
+            raise CliError(
+                f"only {len(i_ref)} of the {len(est)} poses of {est_path} match one of the {len(ref)} poses of "
+                f"{ref_path} within --max-diff {args.max_diff} s (--offset {args.offset} s); 3 are needed"
+            )
+        print(f"associated {len(i_ref)} poses by timestamp ({est_path}: {len(est)}, {ref_path}: {len(ref)}; "
+              f"max diff {args.max_diff} s, offset {args.offset} s)")
+        est, ref = est[i_est], ref[i_ref]
+    elif len(est) != len(ref):
+        raise CliError(f"{est_path} has {len(est)} poses but {ref_path} has {len(ref)} (KITTI files pair by row)")
+    try:
+        a = evaluation.ate(est, ref, align=args.align)
+        r = evaluation.rpe(est, ref, delta=args.delta, align=args.align)
+    except ValueError as err:
+        raise CliError(f"evaluating {est_path} against {ref_path} ({len(est)} poses): {_one_line(err)}") from None
     rows = [
         ["ATE translation (m)", a.rmse, a.mean, a.median, a.max],
         [f"RPE translation, delta {args.delta} (m)", *_stats(r.translation)],
@@ -365,14 +556,20 @@ def _stats(s: Any) -> list[float]:
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
     import torch
 
-    from inference import VGGT, VGGTConfig, export_onnx, load_checkpoint
+    from inference import VGGT, export_onnx, load_checkpoint
+    from inference.checkpoint import CheckpointError
 
-    weights = pathlib.Path(args.weights)
-    if not weights.exists():
-        raise CliError(f"weights file {weights} does not exist")
+    weights = _check_weights(args)
+    for name in ("frames", "height", "width"):
+        if getattr(args, name) < 1:
+            raise CliError(f"--{name} must be >= 1, got {getattr(args, name)}")
+    config = _model_config(args)
     with torch.device("meta"):
-        model = VGGT(VGGTConfig())
-    load_checkpoint(model, weights)
+        model = VGGT(config)
+    try:
+        load_checkpoint(model, weights)
+    except CheckpointError as err:
+        raise CliError(_one_line(err)) from None
     report = export_onnx(model, args.out, frames=args.frames, height=args.height, width=args.width)
     print(report.summary())
     return 0
@@ -384,27 +581,50 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 def _image_options(parser: argparse.ArgumentParser) -> None:
     """The model and the frames' preprocessing (reconstruct, batch)."""
     parser.add_argument("--weights", required=True,
-                        help="VGGT-1B weights (.pt/.pth/.safetensors; .onnx with --backend onnx)")
-    parser.add_argument("--backend", choices=("torch", "onnx"), default="torch")
-    parser.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
-    parser.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32")
+                        help="VGGT weights (.pt/.pth/.safetensors; .onnx with --backend onnx); required")
+    parser.add_argument("--model-config", type=pathlib.Path, default=None, metavar="FILE",
+                        help="VGGT architecture as JSON (the layout VGGTConfig.from_json reads, e.g. the tiny "
+                             "golden tiny_config.json; default: VGGT-1B)")
+    parser.add_argument("--backend", choices=("torch", "onnx"), default="torch", help="inference engine")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N, mps")
+    parser.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
+                        help="aggregator compute dtype (torch autocast; the heads stay float32)")
     parser.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
     parser.add_argument("--stride", type=int, default=1, help="use every k-th frame")
     parser.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     parser.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti", help="ground-truth file format")
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Shows every option's default (method options write theirs into the help text)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or not action.option_strings or action.default in (None, argparse.SUPPRESS):
+            return text
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):  # noqa: SLF001
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="swiftjax", description="SwiftVGGT large-scale reconstruction (JAX geometry core)."
+        prog="swiftjax", description="SwiftVGGT large-scale reconstruction (JAX geometry core).",
+        formatter_class=_HelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("demo", help="synthetic loop route through the full pipeline (no weights needed)")
+    def add(name: str, **kw: Any) -> argparse.ArgumentParser:
+        return sub.add_parser(name, formatter_class=_HelpFormatter, **kw)
+
+    p = add("demo", help="synthetic loop route through the full pipeline (no weights needed)")
     p.add_argument("--frames", type=int, default=None, help="frames of the route (default: all, ~620)")
-    p.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/demo"))
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/demo", metavar="DIR", help="run directory")
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world and oracle")
+    p.add_argument("--image-size", default="154x518", metavar="HxW", help="synthetic camera image size")
+    p.add_argument("--frame-spacing", type=float, default=1.0, metavar="METRES",
+                   help="distance between frames along the route (4: the whole route in ~155 frames)")
     p.add_argument("--batch", type=int, default=None, metavar="K",
                    help="K routes (seeds SEED..SEED+K-1) as a batch of runs in OUT/route_NN (see 'swiftjax batch')")
     _common_run_options(p)
@@ -412,22 +632,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("batch", help="many sequences, each its own resumable run, spread over the workers")
+    p = add("batch", help="many sequences, each its own resumable run, spread over the workers")
     p.add_argument("list", type=pathlib.Path,
                    help="text file with one 'INPUT [GROUND_TRUTH]' per line, or a folder of sequence folders "
                         "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)")
-    p.add_argument("--out", type=pathlib.Path, required=True, help="one run directory per sequence, and batch.json")
+    p.add_argument("--out", type=pathlib.Path, required=True, metavar="DIR",
+                   help="one run directory per sequence, and batch.json; required")
     _image_options(p)
     _common_run_options(p)
     _add_method_options(p)
     p.set_defaults(func=_cmd_batch)
 
-    p = sub.add_parser("reconstruct", help="images (folder, glob or video) -> trajectory and point cloud")
+    p = add("reconstruct", help="images (folder, glob or video) -> trajectory and point cloud")
     p.add_argument("input", help="image folder, glob pattern or video file")
-    p.add_argument("--out", type=pathlib.Path, required=True)
+    p.add_argument("--out", required=True, metavar="DIR", help="run directory (resumable); required")
     _image_options(p)
-    p.add_argument("--gt", type=pathlib.Path, help="ground-truth poses for ATE")
-    p.add_argument("--timestamps", type=pathlib.Path,
+    p.add_argument("--gt", type=pathlib.Path, metavar="FILE", help="ground-truth poses for ATE (default: none)")
+    p.add_argument("--timestamps", type=pathlib.Path, metavar="FILE",
                    help="per-frame times for poses_tum.txt: 'time name' lines (TUM rgb.txt) or one time per image "
                         "(default: a video's own times, else the frame index)")
     _common_run_options(p)
@@ -435,27 +656,37 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method_options(p)
     p.set_defaults(func=_cmd_reconstruct)
 
-    p = sub.add_parser("view", help="web viewer (viser) of a run directory, finished or running")
+    p = add("view", help="web viewer (viser) of a run directory, finished or running")
     p.add_argument("run_dir", type=pathlib.Path, help="the --out folder of a run")
-    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--port", type=int, default=8080, help="port to serve on")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (0.0.0.0 shares it on the network)")
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
 
-    p = sub.add_parser("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
-    p.add_argument("estimate", type=pathlib.Path)
-    p.add_argument("reference", type=pathlib.Path)
-    p.add_argument("--format", choices=("kitti", "tum"), default="kitti")
-    p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3")
+    p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
+    p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses")
+    p.add_argument("reference", type=pathlib.Path, help="reference (ground-truth) poses")
+    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
+                   help="file format (KITTI pairs poses by row, TUM by timestamp)")
+    p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
+                   help="alignment of the estimate before the errors (evo --align [--correct_scale])")
     p.add_argument("--delta", type=int, default=1, help="RPE frame offset")
+    p.add_argument("--max-diff", type=float, default=0.01, metavar="SECONDS",
+                   help="TUM: largest time difference of associated poses (evo's --t_max_diff)")
+    p.add_argument("--offset", type=float, default=0.0, metavar="SECONDS",
+                   help="TUM: time offset added to the estimate's timestamps (evo's --t_offset)")
+    p.add_argument("--fix-rotations", action="store_true",
+                   help="re-orthonormalise rotations that are not (reported), instead of an error")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("export-onnx", help="export VGGT-1B to ONNX for onnxruntime")
-    p.add_argument("--weights", required=True)
-    p.add_argument("--out", type=pathlib.Path, required=True)
-    p.add_argument("--frames", type=int, default=75)
-    p.add_argument("--height", type=int, default=154)
-    p.add_argument("--width", type=int, default=518)
+    p = add("export-onnx", help="export VGGT to ONNX for onnxruntime")
+    p.add_argument("--weights", required=True, help="VGGT weights (.pt/.pth/.safetensors); required")
+    p.add_argument("--model-config", type=pathlib.Path, default=None, metavar="FILE",
+                   help="VGGT architecture as JSON (default: VGGT-1B)")
+    p.add_argument("--out", type=pathlib.Path, required=True, metavar="FILE", help="the .onnx file; required")
+    p.add_argument("--frames", type=int, default=75, help="frames of the example input (the frame axis stays dynamic)")
+    p.add_argument("--height", type=int, default=154, help="image height the graph is exported for")
+    p.add_argument("--width", type=int, default=518, help="image width the graph is exported for")
     p.set_defaults(func=_cmd_export_onnx)
     return parser
 
@@ -474,6 +705,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from swiftjax.pipeline.batch import BatchError
     from swiftjax.pipeline.executors import ExecutorError
 
+    # Errors that stay user errors wherever they arise (checkpoint errors are recognised by
+    # _is_user_error without importing torch here).
     user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ExecutorError, BatchError, ValueError,
                    OSError)
     try:

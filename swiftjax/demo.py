@@ -107,22 +107,23 @@ def trajectory_run(
 
 def loop_route_run(
     frames: int | None = None, *, seed: int = 0, image_hw: tuple[int, int] = (154, 518),
-    aliasing: float | tuple[tuple[int, int, int], ...] = DEMO_ALIASING, **options,
+    aliasing: float | tuple[tuple[int, int, int], ...] = DEMO_ALIASING, spacing_m: float = 1.0, **options,
 ) -> SyntheticRun:
     """The demo: a generated rounded-rectangle route driven ~1.25 times (a revisit to close).
 
-    ``frames`` truncates the route (default: the whole route, about 620 frames at 1 m).
+    ``frames`` truncates the route (default: the whole route, about 620 frames at 1 m);
+    ``spacing_m`` is the distance between frames (4 m: the same route in ~155 frames).
     ``aliasing`` and ``options`` (``alias_strength``, ``hallucination``, ``noise``) as
     :func:`trajectory_run`; a truncated route without a revisit gets no look-alike pair.
     """
     from swiftjax.synthetic.routes import loop_route
 
-    poses = loop_route()
+    poses = loop_route(spacing_m=spacing_m)
     if frames is not None:
         if frames < 1:
             raise ValueError(f"--frames must be >= 1, got {frames}")
         if frames > poses.shape[0]:
-            poses = loop_route(laps=1.25 * frames / poses.shape[0] + 0.01)
+            poses = loop_route(laps=1.25 * frames / poses.shape[0] + 0.01, spacing_m=spacing_m)
         poses = poses[:frames]
     return trajectory_run(poses, seed=seed, image_hw=image_hw, name="loop_route", aliasing=aliasing, **options)
 

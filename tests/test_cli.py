@@ -115,3 +115,161 @@ def test_entry_point_help_runs():
     out = subprocess.run([sys.executable, "-m", "swiftjax.cli", "--help"], capture_output=True, text=True, check=True)
     for command in ("demo", "reconstruct", "evaluate", "export-onnx"):
         assert command in out.stdout
+
+
+# ------------------------------------------------- issue 16: one line, exit 2, before work
+
+
+def _frames(tmp_path, n=3):
+    cv2 = pytest.importorskip("cv2")
+    folder = tmp_path / "imgs"
+    folder.mkdir(exist_ok=True)
+    for k in range(n):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), np.full((28, 42, 3), 40 * k, np.uint8))
+    return folder
+
+
+@pytest.mark.parametrize(
+    "extra, fragments",
+    [
+        (["--device", "banana"], ["--device 'banana' is not a torch device"]),
+        (["--device", "cuda"], ["--device cuda:", "use --device cpu"]),
+        (["--backend", "onnx"], ["--backend onnx needs an .onnx file"]),
+        (["--dtype", "bfloat16", "--backend", "onnx", "--weights", "W.onnx"], ["--dtype bfloat16 needs --backend torch"]),
+    ],
+)
+def test_device_and_backend_errors_are_one_line(capsys, tmp_path, extra, fragments):
+    pytest.importorskip("torch")
+    folder = _frames(tmp_path)
+    (tmp_path / "w.pt").write_bytes(b"\x80\x02junk")
+    (tmp_path / "W.onnx").write_bytes(b"junk")
+    argv = ["reconstruct", str(folder), "--weights", str(tmp_path / "w.pt"), "--out", str(tmp_path / "o"), *extra]
+    argv = [a if a != "W.onnx" else str(tmp_path / "W.onnx") for a in argv]
+    code, _, err = run_cli(capsys, *argv)
+    if "cuda" in extra:
+        import torch
+
+        if torch.cuda.is_available():
+            pytest.skip("a CUDA device is present here")
+    _assert_one_line_error(code, err, *fragments)
+    assert not (tmp_path / "o").exists()  # refused before the run directory was made
+
+
+@pytest.mark.parametrize(
+    "name, payload, fragments",
+    [
+        ("w.pt", np.random.default_rng(0).bytes(5000), ["w.pt", "corrupt"]),
+        ("w.pt", b"\x80\x02" + np.random.default_rng(1).bytes(5000), ["w.pt", "corrupt"]),
+        ("w.safetensors", b"\x00" * 3, ["w.safetensors"]),
+        ("w.onnx", np.random.default_rng(2).bytes(5000), ["cannot load the ONNX graph", "w.onnx"]),
+    ],
+)
+def test_corrupt_weights_are_one_line_and_not_called_unsafe(capsys, tmp_path, name, payload, fragments):
+    pytest.importorskip("torch")
+    folder = _frames(tmp_path)
+    (tmp_path / name).write_bytes(payload)
+    backend = ["--backend", "onnx"] if name.endswith(".onnx") else []
+    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / name),
+                           "--out", str(tmp_path / "o"), *backend)
+    _assert_one_line_error(code, err, *fragments)
+    assert "unsafe" not in err and "refused" not in err
+
+
+def test_model_config_errors(capsys, tmp_path):
+    pytest.importorskip("torch")
+    folder = _frames(tmp_path)
+    (tmp_path / "w.safetensors").write_bytes(b"\x00" * 3)
+    (tmp_path / "cfg.json").write_text("{not json")
+    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "w.safetensors"),
+                           "--out", str(tmp_path / "o"), "--model-config", str(tmp_path / "cfg.json"))
+    _assert_one_line_error(code, err, "--model-config", "cfg.json", "is not a VGGT config")
+
+
+@pytest.mark.parametrize(
+    "toml, fragments",
+    [
+        ("min_points = 1e400\n", ["min_points", "inf", "an integer >= 3"]),
+        ("loop_closure = \"no\"\n", ["loop_closure", "'no' is not a boolean"]),
+        ("overlap = true\n", ["overlap", "True is not a number"]),
+        ("chunk_size = 60.7\n", ["chunk_size", "60.7 is not an integer"]),
+        ("robust_loops = \"nope\"\n", ["robust_loops", "one of huber, cauchy (or none)"]),
+        ("\x00\x01binary", ["not valid TOML"]),
+    ],
+)
+def test_config_file_errors_name_the_key(capsys, tmp_path, toml, fragments):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(toml)
+    code, _, err = run_cli(capsys, "demo", "--frames", "10", "--out", str(tmp_path / "o"), "--config", str(cfg))
+    _assert_one_line_error(code, err, *fragments)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "flags, fragments",
+    [
+        (["--voxel-size", "-1"], ["--voxel-size", "-1.0 is out of range", "> 0"]),
+        (["--colmap-max-points", "-1"], ["--colmap-max-points", "out of range"]),
+        (["--conf-ratio", "-1"], ["--conf-ratio", "out of range"]),
+        (["--depth-threshold", "nan"], ["--depth-threshold", "not finite"]),
+        (["--point-conf-ratio", "1e9"], ["--point-conf-ratio", "out of range"]),
+        (["--chunk-size", "60.7"], ["--chunk-size", "'60.7' is not a number"]),
+        (["--robust-loops", "none", "--alignment", "nope"], ["--alignment", "one of umeyama, irls"]),
+        (["--out", ""], ["--out is empty"]),
+    ],
+)
+def test_bad_options_are_refused_before_any_prediction(capsys, tmp_path, flags, fragments):
+    """Defect 5: --voxel-size -1 used to fail at export, after every chunk was predicted."""
+    argv = ["demo", "--frames", "10", "--out", str(tmp_path / "o"), "--no-progress", *flags]
+    code, _, err = run_cli(capsys, *argv)
+    _assert_one_line_error(code, err, *fragments)
+    assert not (tmp_path / "o").exists()
+
+
+def test_out_inside_the_input_is_refused(capsys, tmp_path):
+    folder = _frames(tmp_path)
+    for out in (folder, folder / "run"):
+        code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", "w.pt", "--out", str(out))
+        _assert_one_line_error(code, err, "inside the input folder")
+    assert sorted(p.name for p in folder.iterdir()) == ["000.png", "001.png", "002.png"]
+
+
+def test_evaluate_binary_and_bad_rotation_files(capsys, tmp_path):
+    (tmp_path / "bin.txt").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    (tmp_path / "ref.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 5)
+    code, _, err = run_cli(capsys, "evaluate", str(tmp_path / "bin.txt"), str(tmp_path / "ref.txt"))
+    _assert_one_line_error(code, err, "bin.txt", "not a text KITTI trajectory file")
+    rng = np.random.default_rng(0)
+    ref = np.tile(np.eye(4), (40, 1, 1))
+    ref[:, :3, 3] = np.cumsum(rng.normal(size=(40, 3)), axis=0)
+    scaled = ref.copy()
+    scaled[10:, :3, :3] *= 1.1
+    trajectory.write_kitti(tmp_path / "ref.txt", ref)
+    trajectory.write_kitti(tmp_path / "scaled.txt", scaled)
+    code, _, err = run_cli(capsys, "evaluate", str(tmp_path / "scaled.txt"), str(tmp_path / "ref.txt"))
+    _assert_one_line_error(code, err, "scaled.txt", "pose 10 (of 40)", "--fix-rotations")
+    code, out, err = run_cli(capsys, "evaluate", str(tmp_path / "scaled.txt"), str(tmp_path / "ref.txt"),
+                             "--fix-rotations")
+    assert code == 0 and "rotations re-orthonormalised" in out and "scaled.txt" in out
+    (tmp_path / "zeroq.txt").write_text("".join(f"{k} 0 0 {k} 0 0 0 {0 if k == 3 else 1}\n" for k in range(6)))
+    code, _, err = run_cli(capsys, "evaluate", str(tmp_path / "zeroq.txt"), str(tmp_path / "zeroq.txt"),
+                           "--format", "tum", "--fix-rotations")
+    _assert_one_line_error(code, err, "zeroq.txt", "pose 3", "norm 0")
+
+
+def test_help_shows_defaults_choices_and_descriptions():
+    parser = cli.build_parser()
+    sub = parser._subparsers._group_actions[0].choices  # noqa: SLF001
+    texts = {name: p.format_help() for name, p in sub.items()}
+    for name, p in sub.items():
+        for action in p._actions:  # noqa: SLF001
+            if action.option_strings and action.dest != "help":
+                assert action.help, (name, action.option_strings)
+    for command, flags in {
+        "demo": ["--out", "--seed"], "reconstruct": ["--backend", "--dtype", "--mode", "--gt-format"],
+        "evaluate": ["--format", "--align", "--delta", "--max-diff", "--offset"],
+        "export-onnx": ["--frames", "--height", "--width"],
+    }.items():
+        for flag in flags:
+            action = next(a for a in sub[command]._actions if flag in a.option_strings)  # noqa: SLF001
+            assert "default" in sub[command]._get_formatter()._expand_help(action), (command, flag)  # noqa: SLF001
+    assert "{umeyama,irls}" in texts["demo"] and "{huber,cauchy,none}" in texts["reconstruct"]

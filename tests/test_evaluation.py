@@ -194,3 +194,100 @@ def test_chamfer_subsampling_and_edge_cases():
         chamfer(np.full((3, 3), np.nan), a)
     with pytest.raises(ValueError, match=r"gt_points must be \[N, 3\]"):
         chamfer(a, a[:, :2])
+
+
+# ------------------------------------------------------------- issue 16: defect 8
+
+
+def test_non_orthonormal_rotations_are_refused_or_fixed(kitti):
+    """A scaled 'rotation' inflated RPE silently (3.19 instead of 0.238): now refused, naming the
+    pose; orthonormalize() recovers the rotation (and the original RPE)."""
+    from swiftjax.evaluation import check_rotations, orthonormalize
+
+    ref = kitti[0][:200]
+    est = _perturbed(ref)
+    good = rpe(est, ref).translation.rmse
+    bad = est.copy()
+    bad[50:, :3, :3] *= 1.05
+    with pytest.raises(ValueError, match=r"estimated: pose 50 \(of 200\) has a rotation that is not orthonormal"):
+        rpe(bad, ref)
+    reflect = est.copy()
+    reflect[7, :3, 0] *= -1
+    with pytest.raises(ValueError, match="pose 7 .*det -1"):
+        check_rotations(reflect, "estimated")
+    fixed, change = orthonormalize(bad)
+    assert change == pytest.approx(0.05, rel=0.05)
+    assert rpe(fixed, ref).translation.rmse == pytest.approx(good, rel=1e-6)  # KITTI itself is orthonormal to ~1e-7
+    assert check_rotations(ref, "reference") < 1e-6  # the real KITTI file passes
+
+
+def _evo_associate(t_ref, t_est, max_diff, offset):
+    n_ref, n_est = len(t_ref), len(t_est)
+    ref = PoseTrajectory3D(positions_xyz=np.c_[np.arange(n_ref), np.zeros((n_ref, 2))],
+                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_ref, 1)), timestamps=t_ref)
+    est = PoseTrajectory3D(positions_xyz=np.c_[np.arange(n_est), np.zeros((n_est, 2))],
+                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_est, 1)), timestamps=t_est)
+    r, e = sync.associate_trajectories(ref, est, max_diff=max_diff, offset_2=offset)
+    return r.positions_xyz[:, 0].astype(int), e.positions_xyz[:, 0].astype(int)
+
+
+@pytest.mark.parametrize("case", ["same", "shuffled", "subsampled", "offset", "jitter", "longer_est", "ties"])
+def test_associate_matches_evo(case):
+    from swiftjax.evaluation import associate
+
+    rng = np.random.default_rng(hash(case) % 2**32)
+    t_ref = np.round(1000.0 + np.cumsum(rng.uniform(0.02, 0.05, 120)), 4)
+    t_est, max_diff, offset = t_ref.copy(), 0.01, 0.0
+    if case == "shuffled":
+        t_est = t_ref[rng.permutation(len(t_ref))]
+    elif case == "subsampled":
+        t_est = t_ref[::3] + rng.uniform(-0.008, 0.008, len(t_ref[::3]))
+    elif case == "offset":
+        t_est, offset = t_ref - 1000.0, 1000.0
+    elif case == "jitter":
+        t_est = t_ref + rng.normal(scale=0.01, size=len(t_ref))
+        max_diff = 0.015
+    elif case == "longer_est":
+        t_est = np.sort(np.r_[t_ref, t_ref[:-1] + 0.013])
+    elif case == "ties":
+        t_ref = np.arange(0.0, 10.0, 0.5)
+        t_est = np.arange(0.25, 10.0, 0.5)[:12]
+        max_diff = 0.25
+    want = _evo_associate(t_ref, t_est, max_diff, offset)
+    got = associate(t_ref, t_est, max_diff=max_diff, offset=offset)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_tum_files_are_associated_by_timestamp_in_the_cli(tmp_path, capsys, shared_dir):
+    """A shuffled TUM estimate gave ATE 0.249 instead of 0.161 (rows paired), and a +1000 s
+    offset was a perfect match: now both are associated by time as evo does."""
+    from swiftjax import cli
+    from swiftjax.io.trajectory import read_tum_raw, write_tum
+
+    d = shared_dir / "data/trajectories"
+    ref_file, est_file = d / "freiburg1_xyz-groundtruth.txt", d / "freiburg1_xyz-rgbdslam.txt"
+    t_ref, P_ref = read_tum(ref_file)
+    t_est, P_est = read_tum(est_file)
+    ref_a, est_a = sync.associate_trajectories(
+        PoseTrajectory3D(poses_se3=list(P_ref), timestamps=t_ref),
+        PoseTrajectory3D(poses_se3=list(P_est), timestamps=t_est), max_diff=0.01,
+    )
+    want = f"{ate(np.array(est_a.poses_se3), np.array(ref_a.poses_se3)).rmse:.3g}"
+    stamps, rows = read_tum_raw(est_file)
+    perm = np.random.default_rng(0).permutation(len(stamps))
+    write_tum(tmp_path / "shuffled.txt", stamps[perm], rows[perm])
+    write_tum(tmp_path / "late.txt", stamps + 1000.0, rows)
+
+    def run(est, *extra):
+        code = cli.main(["evaluate", str(est), str(ref_file), "--format", "tum", *extra])
+        return code, capsys.readouterr()
+
+    code, out = run(est_file)
+    assert code == 0 and want in out.out and f"associated {len(ref_a.timestamps)} poses" in out.out
+    code, out = run(tmp_path / "shuffled.txt")
+    assert code == 0 and want in out.out
+    code, out = run(tmp_path / "late.txt")
+    assert code == 2 and "only 0 of the" in out.err and "late.txt" in out.err and ref_file.name in out.err
+    code, out = run(tmp_path / "late.txt", "--offset=-1000")
+    assert code == 0 and want in out.out

@@ -1,11 +1,18 @@
-"""Method parameters of a run: :class:`PipelineConfig`."""
+"""Method parameters of a run: :class:`PipelineConfig`, one typed schema (:mod:`swiftjax.options`).
+
+Every field is declared with :func:`swiftjax.options.option`: type, range, choices, help and
+the stage it belongs to.  The CLI flags, the TOML keys, validation and the run directory's
+per-stage fingerprints all derive from these declarations.  To add an option, add one field
+in the same style (its flag ``--name-with-dashes`` appears by itself).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from typing import Any
 
-from swiftjax import loops
+from swiftjax import loops, options
+from swiftjax.options import option
 from swiftjax.posegraph.gnc import DEFAULT_SCALE as _GNC_SCALE
 
 __all__ = ["PipelineConfig"]
@@ -48,93 +55,137 @@ class PipelineConfig:
     output in metres), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
-    chunk_size: int = 75
-    overlap: int = 30
-    alignment: str = "umeyama"
-    depth_threshold: float = 0.2
-    conf_ratio: float = 0.5
-    min_points: int = 20_000
-    fallback_depth_threshold: float = 0.25
-    loop_depth_threshold: float = 0.4
-    loop_closure: bool = True
-    loop_threshold_rule: str = "adaptive"
-    loop_threshold: float = loops.DEFAULT_THRESHOLD
-    loop_false_alarms: float = loops.DEFAULT_FALSE_ALARMS
-    loop_min_separation: int = 100
-    loop_nms_radius: int = 25
-    loop_top_k: int = 8
-    whitening_dim: int = 512
-    whitening_remove: int = 1
-    power_beta: float = 0.5
-    loop_half_window: int = 10
-    loop_verification: str = "geometric"
-    loop_min_agreement: float = 0.55
-    loop_pcm: bool = True
-    robust_loops: str | None = dataclasses.field(default="gnc", metadata={
-        "help": "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
-                "or none (the authors' plain least squares)"})
-    robust_scale: float = dataclasses.field(default=_GNC_SCALE, metadata={
-        "help": "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default"})
-    edge_information: str = dataclasses.field(default="data", metadata={
-        "help": "edge information: data (drift model + each alignment's own statistics) or equal "
-                "(identity, the authors')"})
-    edge_pixels_per_sample: float = dataclasses.field(default=196.0, metadata={
-        "help": "pixels per independent residual in an alignment's information (one 14x14 ViT patch)"})
-    max_lm_steps: int = 100
-    point_conf_ratio: float = 0.75
-    point_stride: int = 4
-    voxel_size: float | None = None
-    colmap: bool = True
-    colmap_text: bool = False
-    colmap_original_resolution: bool = False
-    colmap_max_points: int = 200_000
-    intrinsics: str | None = dataclasses.field(default=None, metadata={
-        "help": "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
-                "or a COLMAP cameras.txt (PINHOLE / SIMPLE_PINHOLE / undistorted OPENCV)"})
-    metric: str | None = dataclasses.field(default=None, metadata={
-        "help": "metric scale: 'camera-height=H' (metres above the road) or 'gt' (from --gt)"})
-    mask_dir: str | None = dataclasses.field(default=None, metadata={
-        "help": "one PNG per frame, named like the frame, at the image size; white = keep"})
-    drop_sky: bool = dataclasses.field(default=False, metadata={
-        "help": "leave out sky pixels (far and unsure: depth > 5x the frame median, confidence < 0.3x)"})
+    chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")
+    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size", low=1, stage="temporal")
+    alignment: str = option(
+        "umeyama", "chunk alignment: the method's single weighted Umeyama solve, or VGGT-Long's IRLS baseline",
+        choices=("umeyama", "irls"), stage="temporal",
+    )
+    depth_threshold: float = option(
+        0.2, "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
+        low=0.0, low_open=True, stage="temporal",
+    )
+    conf_ratio: float = option(
+        0.5, "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
+        low=0.0, high=10.0, stage="temporal",
+    )
+    min_points: int = option(
+        20_000, "fewest reliable points before the one-time retry with fallback_depth_threshold",
+        low=3, stage="temporal",
+    )
+    fallback_depth_threshold: float = option(
+        0.25, "depth threshold of the retry when fewer than min_points are reliable",
+        low=0.0, low_open=True, stage="temporal",
+    )
+    loop_depth_threshold: float = option(
+        0.4, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True,
+        stage="loops",
+    )
+    loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")
+    loop_threshold_rule: str = option(
+        "adaptive", "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
+        "own similarity distribution), fixed (loop_threshold) or authors", choices=tuple(loops.THRESHOLD_RULES), stage="loops",
+    )
+    loop_threshold: float = option(
+        loops.DEFAULT_THRESHOLD, "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
+        low=-1.0, high=1.0, stage="loops",
+    )
+    loop_false_alarms: float = option(
+        loops.DEFAULT_FALSE_ALARMS, "adaptive threshold: accepted rate of false loop candidates",
+        low=0.0, high=1.0, low_open=True, high_open=True, stage="loops",
+    )
+    loop_min_separation: int = option(100, "fewest frames between the two frames of a loop", low=1, stage="loops")
+    loop_nms_radius: int = option(25, "non-maximum suppression radius of loop candidates (frames)", low=0, stage="loops")
+    loop_top_k: int = option(8, "most loop candidates kept per frame before suppression", low=1, stage="loops")
+    whitening_dim: int = option(512, "descriptor dimension kept by the PCA whitening (d')", low=1, stage="loops")
+    whitening_remove: int = option(1, "leading PCA components dropped by the whitening (r)", low=0, stage="loops")
+    power_beta: float = option(
+        0.5, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True, stage="loops",
+    )
+    loop_half_window: int = option(
+        10, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2)",
+        low=1, stage="loops",
+    )
+    loop_verification: str = option(
+        "geometric", "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
+        "and pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
+        choices=("geometric", "none"), stage="loops",
+    )
+    loop_min_agreement: float = option(
+        0.55, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0,
+        stage="loops",
+    )
+    loop_pcm: bool = option(True, "loop verification: the pairwise consistency test", stage="loops")
+    robust_loops: str | None = option(
+        "gnc", "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
+        "or none (the authors' plain least squares)", kind=str, choices=("gnc", "cauchy", "huber"),
+        optional=True, stage="graph",
+    )
+    robust_scale: float = option(
+        _GNC_SCALE, "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
+        low=0.0, low_open=True, stage="graph",
+    )
+    edge_information: str = option(
+        "data", "edge information: data (drift model + each alignment's own statistics) or equal "
+        "(identity, the authors')", choices=("data", "equal"), stage="graph",
+    )
+    edge_pixels_per_sample: float = option(
+        196.0, "pixels per independent residual in an alignment's information (one 14x14 ViT patch)",
+        low=1.0, stage="graph",
+    )
+    max_lm_steps: int = option(100, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, stage="graph")
+    point_conf_ratio: float = option(
+        0.75, "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
+        low=0.0, high=10.0, stage="temporal",
+    )
+    point_stride: int = option(4, "point cloud: keep every k-th pixel in each direction (stored with the chunks)", low=1, stage="temporal")
+    voxel_size: float | None = option(
+        None, "point cloud: voxel edge for per-chunk downsampling (none: no downsampling)",
+        kind=float, low=0.0, low_open=True, optional=True, stage="export",
+    )
+    colmap: bool = option(
+        True, "write the COLMAP model and its frames (colmap/; the frames are written while each chunk is "
+        "predicted, hence a temporal-stage option)", stage="temporal",
+    )
+    colmap_text: bool = option(False, "also write the COLMAP model's .txt files beside the .bin", stage="export")
+    colmap_original_resolution: bool = option(
+        False, "the COLMAP model at the original image size, with the original files, as VGGT's own export "
+        "(decides whether the temporal stage writes the model-resolution frames)", stage="temporal",
+    )
+    colmap_max_points: int = option(200_000, "most points written to the COLMAP model", low=0, stage="export")
+    intrinsics: str | None = option(
+        None, "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
+        "or a COLMAP cameras.txt (PINHOLE / SIMPLE_PINHOLE / undistorted OPENCV)",
+        kind=str, optional=True, stage="temporal",
+    )
+    metric: str | None = option(
+        None, "metric scale: 'camera-height=H' (metres above the road) or 'gt' (from --gt)",
+        kind=str, optional=True, stage="temporal",
+    )
+    mask_dir: str | None = option(
+        None, "one PNG per frame, named like the frame, at the image size; white = keep",
+        kind=str, optional=True, stage="temporal",
+    )
+    drop_sky: bool = option(
+        False, "leave out sky pixels (far and unsure: depth > 5x the frame median, confidence < 0.3x)",
+        stage="temporal",
+    )
 
     def __post_init__(self) -> None:
-        if self.chunk_size < 2:
-            raise ValueError(f"chunk_size must be >= 2, got {self.chunk_size}")
-        if not 1 <= self.overlap < self.chunk_size:
-            raise ValueError(
-                f"overlap must satisfy 1 <= overlap < chunk_size ({self.chunk_size}), got {self.overlap}"
+        # Each field against its schema (type, range, finiteness, choices), then the rules
+        # that involve two fields.  A PipelineConfig that exists is valid.
+        options.validate(self)
+        if not self.overlap < self.chunk_size:
+            raise options.OptionError(
+                f"invalid option overlap: {self.overlap}; allowed: 1 <= overlap < chunk_size ({self.chunk_size})"
             )
-        if self.alignment not in ("umeyama", "irls"):
-            raise ValueError(f"alignment must be 'umeyama' or 'irls', got {self.alignment!r}")
-        if self.robust_loops not in (None, "huber", "cauchy", "gnc"):
-            raise ValueError(f"robust_loops must be none, 'huber', 'cauchy' or 'gnc', got {self.robust_loops!r}")
-        if not self.robust_scale > 0:
-            raise ValueError(f"robust_scale must be > 0, got {self.robust_scale}")
-        if self.edge_information not in ("data", "equal"):
-            raise ValueError(f"edge_information must be 'data' or 'equal', got {self.edge_information!r}")
-        if not self.edge_pixels_per_sample >= 1:
-            raise ValueError(f"edge_pixels_per_sample must be >= 1, got {self.edge_pixels_per_sample}")
-        if self.loop_verification not in ("geometric", "none"):
-            raise ValueError(
-                f"loop_verification must be 'geometric' or 'none', got {self.loop_verification!r}"
-            )
-        if not 0.0 <= self.loop_min_agreement <= 1.0:
-            raise ValueError(f"loop_min_agreement must be in [0, 1], got {self.loop_min_agreement}")
-        if self.loop_threshold_rule not in loops.THRESHOLD_RULES:
-            raise ValueError(
-                f"loop_threshold_rule must be one of {', '.join(loops.THRESHOLD_RULES)}, got {self.loop_threshold_rule!r}"
-            )
-        if not 0.0 < self.loop_false_alarms < 1.0:
-            raise ValueError(f"loop_false_alarms must be in (0, 1), got {self.loop_false_alarms}")
-        if self.point_stride < 1:
-            raise ValueError(f"point_stride must be >= 1, got {self.point_stride}")
         from swiftjax.metric import parse_metric
 
         parse_metric(self.metric)  # ValueError naming the option
-        if self.loop_closure and (self.loop_half_window < 1 or 2 * self.loop_half_window > self.chunk_size):
-            raise ValueError(
-                f"loop_half_window must be in [1, chunk_size / 2], got {self.loop_half_window}"
+        if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
+            raise options.OptionError(
+                f"invalid option loop_half_window: {self.loop_half_window}; allowed: "
+                f"1 <= loop_half_window <= chunk_size / 2 ({self.chunk_size / 2:g}) with loop closure on"
             )
 
     def to_dict(self) -> dict[str, Any]:
@@ -142,9 +193,10 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> PipelineConfig:
-        """Build from a dict (e.g. a TOML table); unknown keys are an error naming them."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - names)
-        if unknown:
-            raise ValueError(f"unknown configuration keys: {', '.join(unknown)}")
-        return cls(**values)
+        """Build from a dict (e.g. a TOML table) through the schema: unknown keys and values of
+        the wrong type or range are an :class:`~swiftjax.options.OptionError` naming them."""
+        return options.from_sources(cls, values)
+
+    def stage_options(self, stage: str) -> dict[str, Any]:
+        """The options of one stage (:data:`swiftjax.options.STAGES`), as JSON-able values."""
+        return options.stage_options(type(self), self.to_dict(), stage)

@@ -1,0 +1,315 @@
+"""One typed schema for every method option: dataclass fields carry their own type, range and help.
+
+The pipeline's :class:`~swiftjax.pipeline.PipelineConfig` declares each field with
+:func:`option`; from that single declaration come
+
+* validation (:func:`validate`, called by the dataclass's ``__post_init__``: a config that
+  exists is a valid config, whether it was built in Python, from TOML or from flags),
+* the command-line flags (:func:`add_arguments`: ``--chunk-size``, ``--[no-]loop-closure``,
+  with the default, the allowed range or choices and a description in ``--help``),
+* TOML parsing (:func:`from_sources`: typed values only -- no truthy strings),
+* the stage each option belongs to (``metadata["stage"]``), from which the run directory
+  derives per-stage fingerprints (an export-only option never invalidates predictions).
+
+Adding an option is one line in the dataclass::
+
+    voxel_size: float | None = option(None, "voxel edge for per-chunk downsampling of the cloud",
+                                      low=0.0, low_open=True, optional=True, stage="export")
+
+Rules (every violation is an :class:`OptionError`, one line naming the option, the value and
+what is allowed; the CLI prints it and exits with status 2):
+
+* ``bool`` options take ``true``/``false`` (TOML booleans, or the ``--x``/``--no-x`` flags):
+  the string ``"no"`` or the number ``1`` is refused, never read as truthy;
+* ``int`` options take integers only: ``60.7``, ``60.0``, ``true`` and ``1e400`` are refused;
+* ``float`` options take integers or floats, finite unless ``finite=False`` (``nan``, ``inf``,
+  ``1e400`` refused), converted to ``float`` (so ``1`` and ``1.0`` are the same configuration);
+* ``str`` options with ``choices`` take one of them, exactly;
+* ``optional=True`` options also take ``None``, spelt ``none`` on the command line and
+  ``"none"`` in TOML (which has no null);
+* ranges are ``low <= x <= high`` (``low_open``/``high_open`` make them strict).
+
+Cross-option rules (``overlap < chunk_size``, ...) stay in the dataclass's ``__post_init__``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import difflib
+import math
+import numbers
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+__all__ = [
+    "OptionError",
+    "Spec",
+    "STAGES",
+    "option",
+    "spec",
+    "specs",
+    "validate",
+    "coerce",
+    "from_sources",
+    "add_arguments",
+    "flag",
+    "stage_options",
+]
+
+#: The stages of a run in order; an option's stage is the first one whose result it changes.
+#: "temporal": chunk predictions, their stored export points and the temporal edges;
+#: "loops": loop detection, loop chunks and loop edges; "graph": the pose graph;
+#: "export": output files only.
+STAGES = ("temporal", "loops", "graph", "export")
+
+_KEY = "swiftjax.option"
+
+
+class OptionError(ValueError):
+    """An option value that the schema refuses; the message is one line naming the option."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """The schema of one option (see the module docstring)."""
+
+    kind: type
+    help: str
+    stage: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[str, ...] | None = None
+    optional: bool = False
+    finite: bool = True
+
+    def allowed(self, name: str) -> str:
+        """What the option accepts, in words: ``"an integer >= 2"``, ``"one of umeyama, irls"``."""
+        if self.kind is bool:
+            text = "true or false"
+        elif self.choices is not None:
+            text = "one of " + ", ".join(self.choices)
+        else:
+            text = {int: "an integer", float: "a finite number" if self.finite else "a number", str: "a string"}[
+                self.kind
+            ]
+            if self.low is not None and self.high is not None:
+                lo = "<" if self.low_open else "<="
+                hi = "<" if self.high_open else "<="
+                text += f" with {_num(self.low)} {lo} value {hi} {_num(self.high)}"
+            elif self.low is not None:
+                text += f" {'>' if self.low_open else '>='} {_num(self.low)}"
+            elif self.high is not None:
+                text += f" {'<' if self.high_open else '<='} {_num(self.high)}"
+        if self.optional:
+            text += " (or none)"
+        return text
+
+
+def _num(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else repr(float(x))
+
+
+def option(
+    default: Any,
+    help: str,
+    *,
+    stage: str,
+    kind: type | None = None,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    choices: Iterable[str] | None = None,
+    optional: bool = False,
+    finite: bool = True,
+) -> Any:
+    """A dataclass field with its schema: ``chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")``.
+
+    ``kind`` defaults to the type of ``default`` (give it when the default is ``None``).
+    ``stage`` is one of :data:`STAGES`: the first stage whose stored result the option changes.
+    """
+    if kind is None:
+        if default is None:
+            raise TypeError("option(None, ...) needs kind=")
+        kind = type(default)
+    if kind not in (bool, int, float, str):
+        raise TypeError(f"option kind must be bool, int, float or str, got {kind}")
+    if stage not in STAGES:
+        raise ValueError(f"option stage must be one of {STAGES}, got {stage!r}")
+    s = Spec(
+        kind=kind, help=help, stage=stage, low=low, high=high, low_open=low_open, high_open=high_open,
+        choices=tuple(choices) if choices is not None else None, optional=optional, finite=finite,
+    )
+    if default is not None or not optional:
+        coerce(s, "default", default)  # a default outside its own schema is a programming error
+    return dataclasses.field(default=default, metadata={_KEY: s})
+
+
+def spec(field: dataclasses.Field) -> Spec:
+    """The :class:`Spec` of a dataclass field declared with :func:`option`."""
+    try:
+        return field.metadata[_KEY]
+    except KeyError:
+        raise TypeError(
+            f"field {field.name!r} has no option schema: declare it with swiftjax.options.option(...)"
+        ) from None
+
+
+def specs(cls: Any) -> dict[str, Spec]:
+    """``{field name: Spec}`` of every field of the dataclass ``cls`` (all must use :func:`option`)."""
+    return {f.name: spec(f) for f in dataclasses.fields(cls)}
+
+
+def stage_options(cls: Any, values: Mapping[str, Any], stage: str) -> dict[str, Any]:
+    """The options of ``values`` that belong to ``stage`` (one of :data:`STAGES`)."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    return {k: values[k] for k, s in specs(cls).items() if s.stage == stage}
+
+
+def flag(name: str) -> str:
+    """The command-line flag of an option: ``chunk_size -> --chunk-size``."""
+    return "--" + name.replace("_", "-")
+
+
+def coerce(s: Spec, name: str, value: Any, source: str | None = None) -> Any:
+    """``value`` checked against ``s`` and normalised (ints to float for float options);
+    :class:`OptionError` naming ``name`` (and ``source``, e.g. the TOML file) otherwise."""
+    where = f"{name}" if source is None else f"{name} ({source})"
+    given = value
+
+    def fail(why: str = "") -> OptionError:
+        shown = repr(given) if isinstance(given, str) else _show(given)
+        return OptionError(f"invalid option {where}: {shown}{why}; allowed: {s.allowed(name)}")
+
+    if value is None or (s.optional and isinstance(value, str) and value == "none"):
+        if s.optional:
+            return None
+        raise fail()
+    if s.kind is bool:
+        if isinstance(value, bool):
+            return value
+        try:
+            import numpy as np
+
+            if isinstance(value, np.bool_):
+                return bool(value)
+        except ImportError:  # pragma: no cover
+            pass
+        raise fail(" is not a boolean")
+    if s.kind is str:
+        if not isinstance(value, str):
+            raise fail(" is not a string")
+        if s.choices is not None and value not in s.choices:
+            raise fail()
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise fail(" is not a number")
+    if s.kind is int:
+        if not isinstance(value, numbers.Integral):
+            raise fail(" is not an integer")
+        value = int(value)
+    else:
+        value = float(value)
+        if s.finite and not math.isfinite(value):
+            raise fail(" is not finite")
+    if s.low is not None and (value < s.low or (s.low_open and value == s.low)):
+        raise fail(" is out of range")
+    if s.high is not None and (value > s.high or (s.high_open and value == s.high)):
+        raise fail(" is out of range")
+    return value
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, float) and math.isinf(value):
+        return "inf (a number too large to represent?)" if value > 0 else "-inf"
+    return repr(value)
+
+
+def validate(instance: Any) -> None:
+    """Check and normalise every field of a (frozen) dataclass instance in place (its
+    ``__post_init__`` calls this)."""
+    for f in dataclasses.fields(instance):
+        value = coerce(spec(f), f.name, getattr(instance, f.name))
+        object.__setattr__(instance, f.name, value)
+
+
+def _parse_cli(s: Spec, text: str) -> Any:
+    """A command-line string as the option's type (validation happens in :func:`coerce`)."""
+    if s.optional and text == "none":
+        return None
+    if s.kind is int:
+        try:
+            return int(text, 10)
+        except ValueError:
+            return text  # coerce names the option and says "not a number"/"not an integer"
+    if s.kind is float:
+        try:
+            return float(text)
+        except ValueError:
+            return text
+    return text
+
+
+def from_sources(
+    cls: Any,
+    file_values: Mapping[str, Any] | None = None,
+    cli_values: Mapping[str, Any] | None = None,
+    *,
+    file_name: str | None = None,
+) -> Any:
+    """Build ``cls`` from a config file's table (TOML values as parsed) and command-line values
+    (strings, or booleans for flags; ``None`` = not given), the command line winning.
+
+    Raises:
+        OptionError: an unknown key (with the closest known one), or a value the schema refuses
+            (naming the flag or the file's key).
+    """
+    table = specs(cls)
+    values: dict[str, Any] = {}
+    for key, raw in (file_values or {}).items():
+        if key not in table:
+            close = difflib.get_close_matches(key, table, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            where = f" in {file_name}" if file_name else ""
+            raise OptionError(f"unknown configuration key {key!r}{where}{hint}")
+        values[key] = coerce(table[key], key, raw, source=file_name)
+    for key, raw in (cli_values or {}).items():
+        if raw is None:
+            continue
+        if key not in table:
+            raise OptionError(f"unknown option {flag(key)}")
+        parsed = _parse_cli(table[key], raw) if isinstance(raw, str) else raw
+        values[key] = coerce(table[key], flag(key), parsed)
+    return cls(**values)
+
+
+def _metavar(name: str, s: Spec) -> str:
+    if s.choices is not None:
+        return "{" + ",".join(s.choices + (("none",) if s.optional else ())) + "}"
+    return {int: "INT", float: "FLOAT", str: "TEXT"}[s.kind]
+
+
+def add_arguments(parser: argparse.ArgumentParser | Any, cls: Any) -> None:
+    """One flag per field of ``cls``: ``--x``/``--no-x`` for booleans, else a typed value.
+
+    Flags default to ``None`` (= not given: the config file's value, else the field's default);
+    the help shows the description, what is allowed and the default.  Values are checked by
+    :func:`from_sources`, so a bad one is the same one-line error as in a config file.
+    """
+    for f in dataclasses.fields(cls):
+        s = spec(f)
+        default = "none" if f.default is None else (str(f.default).lower() if s.kind is bool else f.default)
+        if s.kind is bool:
+            parser.add_argument(
+                flag(f.name), dest=f.name, action=argparse.BooleanOptionalAction, default=None,
+                help=f"{s.help} (default: {default})",
+            )
+        else:
+            parser.add_argument(
+                flag(f.name), dest=f.name, default=None, metavar=_metavar(f.name, s),
+                help=f"{s.help}; {s.allowed(f.name)} (default: {default})",
+            )
