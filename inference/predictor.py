@@ -18,7 +18,7 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ImagePredictor", "ImageSpec", "build_runner"]
+__all__ = ["ImagePredictor", "ImageSpec", "build_runner", "model_identity", "weights_identity"]
 
 
 class ImagePredictor:
@@ -32,10 +32,14 @@ class ImagePredictor:
     returned by :meth:`spec` (for workers).
     """
 
-    def __init__(self, source: Any, runner: Any, mode: str = "crop", spec: ImageSpec | None = None) -> None:
+    def __init__(
+        self, source: Any, runner: Any, mode: str = "crop", spec: ImageSpec | None = None,
+        identity: dict[str, Any] | None = None,
+    ) -> None:
         self.source = source
         self._runner = runner
         self.mode = mode
+        self.identity = identity or {}
         self.num_frames = len(source)
         self._spec = spec
 
@@ -51,8 +55,22 @@ class ImagePredictor:
         images = preprocess([self.source.read(int(k)) for k in frames], mode=self.mode)
         return self.runner.predict(images)
 
-    def fingerprint(self) -> list[Any]:
-        return [list(item) for item in self.source.fingerprint()] + [["mode", self.mode]]
+    def fingerprint(self) -> dict[str, Any]:
+        """Everything that determines a chunk's prediction: each frame's file (name, size,
+        modification time; a video is one entry per frame naming the file), the model
+        (``identity``, else :func:`model_identity` of the ``spec``: weights file, architecture,
+        backend, dtype, device class) and the preprocessing."""
+        files = [list(item) for item in self.source.fingerprint()]
+        if len(files) == self.num_frames:
+            frames = files
+        else:  # a video: one file for every frame
+            frames = [[name] + files[0][1:] for name in self.source.names]
+        model = self.identity
+        if not model and self._spec is not None:
+            sp = self._spec
+            model = model_identity(sp.weights, backend=sp.backend, dtype=sp.dtype,
+                                   device_class=sp.device.split(":")[0], config=sp.model_config)
+        return {"frames": frames, "model": model, "preprocessing": {"mode": self.mode}}
 
     def frame_names(self) -> list[str]:
         return list(self.source.names)
@@ -140,3 +158,26 @@ class ImageSpec:
         """The predictor (the model is loaded at its first prediction)."""
         return ImagePredictor(source if source is not None else self.source(), self.runner_factory(),
                               mode=self.mode, spec=self)
+
+
+def weights_identity(path: Any) -> dict[str, Any]:
+    """A weights file's identity without reading it all: name, size, modification time and
+    the SHA-256 of its first MiB (a re-saved or different checkpoint changes at least one)."""
+    import hashlib
+    import os
+
+    p = os.fspath(path)
+    st = os.stat(p)
+    with open(p, "rb") as f:
+        head = hashlib.sha256(f.read(1 << 20)).hexdigest()
+    return {"file": os.path.basename(p), "size": int(st.st_size), "mtime_ns": int(st.st_mtime_ns), "sha256_first_mib": head}
+
+
+def model_identity(
+    weights: Any, *, backend: str, dtype: str, device_class: str, config: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The model part of :meth:`ImagePredictor.fingerprint`."""
+    return {
+        "weights": weights_identity(weights), "config": config, "backend": backend, "dtype": dtype,
+        "device_class": device_class,
+    }

@@ -441,21 +441,14 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
 
-    from inference.predictor import model_identity
-
-    spec = _image_spec(args)
-    identity = model_identity(
-        args.weights, backend=args.backend, dtype=args.dtype,
-        device_class=args.device.split(":")[0] if args.backend == "onnx" else _torch_device(args.device).type,
-        config=None if args.backend == "onnx" else _model_config(args).to_dict(),
-    )
+    spec = _image_spec(args)  # its model identity is part of the run directory's fingerprint
     executor = _make_executor(args)
     with contextlib.closing(executor):
         if args.executor == "local":  # load the model now: a bad checkpoint fails before any work
             runner: Any = _make_runner(args)
         else:  # each worker loads its own (ImageSpec)
             runner = spec.runner_factory()
-        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec, identity=identity)
+        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec)
         with _LiveView(args) as live:
             result = pipeline.reconstruct(
                 predictor, out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,

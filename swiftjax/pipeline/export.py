@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import camera, sim3
+from swiftjax import _faults, camera, sim3
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
@@ -391,6 +391,7 @@ def _export(
                 xyz, rgb, cf = down.points, down.colors, down.conf
             cloud.append(xyz.astype(np.float32), rgb, cf.astype(np.float32))
             picture.add(t, xyz, rgb, cf)
+            _faults.point("export-chunk", t)
             total_points += xyz.shape[0]
 
     with jax.enable_x64(True):

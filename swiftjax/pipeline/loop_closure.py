@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align, loops
+from swiftjax import _faults, align, loops
 from swiftjax import loop_verification as lv
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
@@ -115,10 +115,11 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
                         "align_i": halves[0][1], "align_j": halves[1][1],
                     }
                     manifest.data["loop_edges"][key] = record
-                    manifest.save_soon()
+                    manifest.save()  # recorded (fsync'd) before the next loop chunk
+                    _faults.point("loop-recorded", len(loop_records))
                 if config.loop_verification == "geometric" and "dense_agreement" not in record:
                     record.update(_verification_numbers(ctx, lp, record, K_ref))
-                    manifest.save_soon()
+                    manifest.save()
                 loop_records.append(record)
         finally:
             predictions.close()

@@ -24,8 +24,12 @@ class Predictor(Protocol):
         """One forward pass over the given global frame indices."""
         ...
 
-    def fingerprint(self) -> list[Any]:
-        """JSON-able identity of the input (names, sizes, modification times, ...)."""
+    def fingerprint(self) -> dict[str, Any] | list[Any]:
+        """JSON-able identity of everything that determines a prediction: ``{"frames": [one
+        item per frame, e.g. name, size, mtime] or None, **rest}`` (model, preprocessing, ...).
+        A changed frame re-predicts only its chunks; any other change refuses the run
+        directory (:func:`swiftjax.pipeline.rundir.fingerprints`).  A plain list is one opaque
+        identity of the whole input."""
         ...
 
     def frame_names(self) -> list[str]:
@@ -54,8 +58,8 @@ class OraclePredictor:
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
         return self.oracle.predict_chunk(np.asarray(frames))
 
-    def fingerprint(self) -> list[Any]:
-        return [["synthetic", self.num_frames, self.oracle.seed, self._description]]
+    def fingerprint(self) -> dict[str, Any]:
+        return {"frames": None, "model": ["synthetic", self.num_frames, self.oracle.seed, self._description]}
 
     def frame_names(self) -> list[str]:
         return [f"{k:06d}.png" for k in range(self.num_frames)]

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax import _faults
+from swiftjax.io.chunk_store import ChunkCorruptError
 from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale, temporal
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import Executor, LocalExecutor
@@ -84,14 +86,31 @@ def reconstruct(
         raise ValueError("--metric gt needs the ground-truth poses (--gt)")
     executor = executor if executor is not None else LocalExecutor()
     ctx = rundir.open_run(predictor, run_dir, config, executor, overwrite=overwrite, progress=progress, log=log)
-    export.check(ctx)
-
-    chain = temporal.run(ctx)
-    loops = loop_closure.run(ctx, chain)
-    poses = graph.run(ctx, chain, loops)
-    poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
-    exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
-    metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
+    try:
+        export.check(ctx)
+        # A chunk file found corrupt by a later stage is forgotten and the stages restart: the
+        # temporal stage predicts it again (every other chunk is read back), at most once per chunk.
+        for _attempt in range(ctx.schedule.num_chunks + 1):
+            try:
+                chain = temporal.run(ctx)
+                _faults.point("temporal-done")
+                loops = loop_closure.run(ctx, chain)
+                _faults.point("loops-done")
+                poses = graph.run(ctx, chain, loops)
+                poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
+                _faults.point("graph-done")
+                exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
+                _faults.point("export-done")
+                break
+            except ChunkCorruptError as err:
+                t = _corrupt_chunk_index(ctx, err)
+                log(f"swiftjax: {err}; predicting chunk {t} again")
+                rundir.forget_chunk(ctx.manifest, ctx.store, t)
+        else:  # pragma: no cover - every chunk re-predicted and still corrupt: the disk is failing
+            raise rundir.RunDirError(f"chunk files in {ctx.store.root} keep failing their checksums")
+        metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
+    finally:
+        ctx.close()
 
     return RunResult(
         run_dir=run_dir,
@@ -107,3 +126,11 @@ def reconstruct(
         metrics=metrics,
         loop_candidates=loops.records,
     )
+
+
+def _corrupt_chunk_index(ctx: rundir.RunContext, err: ChunkCorruptError) -> int:
+    """The temporal chunk whose file ``err`` names; re-raised if it is not a chunk file."""
+    m = ctx.store.parse_name(err.path.name)
+    if m is None or m[0] != "chunk":
+        raise err
+    return m[1]

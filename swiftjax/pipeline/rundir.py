@@ -1,10 +1,36 @@
-"""The run directory's records: manifest, input fingerprint, resume records, stage clock.
+"""The run directory's records: lock, fingerprints, manifest, resume records, stage clock.
 
-``run_dir/manifest.json`` records the configuration, the input fingerprint (the
-predictor's :meth:`~swiftjax.pipeline.predictors.Predictor.fingerprint`) and every finished
-chunk, edge and loop edge.  Re-running the same command skips finished work; a changed
-input or configuration is refused (:class:`RunDirError`) unless ``overwrite=True``.  Every
-file is written atomically (temp file + rename).
+A run directory is a promise: what it holds came from this input, this model and this
+configuration, and re-running finishes the job without redoing or corrupting finished work.
+
+* **Lock.** ``run_dir/.swiftjax.lock`` is held with an advisory ``fcntl.flock`` for the
+  whole run and names its holder (pid, host, start time); a second writer is refused in one
+  line naming the holder.  The kernel drops the lock of a dead process, so a stale lock
+  (a killed run) is simply taken over, and said so.
+* **Fingerprints, per stage** (:func:`fingerprints`).  The temporal stage's -- every input
+  frame (name, size, modification time), the predictor's model identity (weights file size,
+  modification time and SHA-256 of its first MiB, the model configuration, backend, dtype,
+  device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
+  the chunk file format -- decides whether the stored chunks can be used: a change is refused
+  with the overwrite message, except a change of some frames' files (same count), which
+  re-predicts only the chunks that hold them (and their neighbours, whose edges need the
+  float32 overlap).  The loop stage's options decide whether the recorded loop edges are kept
+  (else the loop stage alone re-runs); the pose graph and the export always run, so a changed
+  export-only option re-runs only the export.
+* **Records.** Every finished chunk is recorded together with its edge ``(t-1, t)`` once its
+  file is complete, and the manifest is written (temp file, fsync, rename) at once, before the
+  next chunk is recorded or the next stage starts.  An edge is always computed from float32
+  data: a chunk's last ``overlap`` frames are kept in float32 (``tail_<t>`` in the chunk store)
+  until edge ``(t, t+1)`` is recorded, so a resumed run aligns exactly as an uninterrupted one
+  (bit for bit), never from the float16 copies.
+* **Checked storage.** Every chunk file carries CRC32s verified on every read
+  (:class:`~swiftjax.io.chunk_store.ChunkCorruptError`); a corrupt chunk is reported by name
+  and predicted again (:func:`forget_chunk`; :func:`swiftjax.pipeline.run.reconstruct`
+  restarts the stages after it).
+* **Hygiene.** Temp files left by a killed run (``.<name>.<random>.tmp*``) are removed when
+  the directory is opened; the output directory may not be empty text; a manifest that is not
+  a swiftjax manifest (``[]``, ``null``, another version) is refused with ``--overwrite``
+  suggested.
 
 :class:`RunContext` is what every stage receives: the records above, the chunk store, the
 schedule, the configuration, the stage clock and the log.
@@ -14,16 +40,20 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import datetime
 import json
+import os
 import pathlib
+import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from swiftjax import chunks
-from swiftjax.io.atomic import atomic_write
+from swiftjax import _faults, chunks, options
+from swiftjax.io import chunk_store as _chunk_store
+from swiftjax.io.atomic import atomic_write, temp_files
 from swiftjax.io.chunk_store import ChunkStore
 from swiftjax.pipeline.user_camera import UserCamera
 
@@ -34,24 +64,167 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MANIFEST_VERSION",
+    "LOCK_NAME",
     "RunDirError",
+    "RunLock",
     "Manifest",
     "ChunkRecords",
     "StageTimer",
     "RunContext",
+    "fingerprints",
+    "forget_chunk",
     "open_run",
     "progress_bar",
 ]
 
-MANIFEST_VERSION = 2  # 2: chunk files carry their chunk-frame export points
+MANIFEST_VERSION = 3  # 3: per-stage fingerprints, checksummed chunk files, exact-resume records
+LOCK_NAME = ".swiftjax.lock"
 
 
 class RunDirError(RuntimeError):
     """The run directory belongs to a different input or configuration (or is unusable)."""
 
 
+_OVERWRITE = "overwrite it (--overwrite) or choose another output directory"
+
+
+# ----------------------------------------------------------------------------------- lock
+
+
+class RunLock:
+    """An advisory ``fcntl.flock`` on ``run_dir/.swiftjax.lock`` naming its holder.
+
+    :meth:`acquire` refuses (:class:`RunDirError`, one line naming the holder's pid and host)
+    while another process holds it.  The file is never deleted (deleting a lock file races
+    with a process about to lock it); releasing empties it.
+    """
+
+    def __init__(self, run_dir: pathlib.Path) -> None:
+        self.path = run_dir / LOCK_NAME
+        self._fd: int | None = None
+        self.previous: dict[str, Any] | None = None
+
+    def acquire(self) -> RunLock:
+        import fcntl
+
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            who = (
+                f"pid {holder.get('pid')} on {holder.get('host')}, since {holder.get('since')}"
+                if holder else "another process"
+            )
+            raise RunDirError(
+                f"{self.path.parent} is in use by another swiftjax run ({who}; lock file {self.path}): "
+                "wait for it to finish or choose another output directory"
+            ) from None
+        self.previous = _read_holder(fd) or None
+        me = {"pid": os.getpid(), "host": socket.gethostname(),
+              "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(me) + "\n").encode(), 0)
+        os.fsync(fd)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        import fcntl
+
+        with contextlib.suppress(OSError):
+            os.ftruncate(self._fd, 0)
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+
+def _read_holder(fd: int) -> dict[str, Any]:
+    try:
+        data = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+        return data if isinstance(data, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+# --------------------------------------------------------------------------- fingerprints
+
+
+def _jsonable(x: Any) -> Any:
+    return json.loads(json.dumps(x))
+
+
+def fingerprints(predictor: Predictor, config: PipelineConfig, camera: Any = None) -> dict[str, Any]:
+    """What determines each stage's stored result (see the module docstring), JSON-able.
+
+    ``predictor.fingerprint()`` is either a dict ``{"frames": [one item per frame],
+    **identity}`` (model, preprocessing, ...: everything else that determines a prediction),
+    or a list (the legacy form: one opaque identity of the whole input).  ``camera`` is the
+    user camera's fingerprint (intrinsics values, mask files), part of the identity.
+    """
+    fp = predictor.fingerprint()
+    if isinstance(fp, dict):
+        frames = fp.get("frames")
+        identity = {k: v for k, v in fp.items() if k != "frames"}
+    else:
+        frames, identity = None, {"input": fp}
+    if camera:
+        identity["camera"] = camera
+    n = int(predictor.num_frames)
+    if frames is not None and len(frames) != n:
+        raise ValueError(f"the predictor's fingerprint lists {len(frames)} frames for {n}")
+    out = {
+        "frames": frames,
+        "temporal": {
+            "num_frames": n,
+            "identity": identity,
+            "options": config.stage_options("temporal"),
+            "chunk_format": _chunk_store.FORMAT_VERSION,
+        },
+    }
+    for stage in options.STAGES[1:]:
+        out[stage] = {"options": config.stage_options(stage)}
+    return _jsonable(out)
+
+
+def _changed(old: Any, new: Any) -> list[str]:
+    """Keys of two dicts whose values differ (sorted)."""
+    if not isinstance(old, dict) or not isinstance(new, dict):
+        return [] if old == new else ["(all)"]
+    return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+
+
+def _describe_identity_change(old: dict[str, Any], new: dict[str, Any]) -> str:
+    parts = []
+    if old.get("num_frames") != new.get("num_frames"):
+        parts.append(f"input frames ({old.get('num_frames')} -> {new.get('num_frames')})")
+    ident = _changed(old.get("identity"), new.get("identity"))
+    for key in ident:
+        o = (old.get("identity") or {}).get(key)
+        n = (new.get("identity") or {}).get(key)
+        sub = _changed(o, n) if isinstance(o, dict) and isinstance(n, dict) else []
+        parts.append(f"{key}" + (f" ({', '.join(sub)})" if sub and sub != ["(all)"] else ""))
+    opts = _changed(old.get("options"), new.get("options"))
+    if opts:
+        parts.append("options " + ", ".join(opts))
+    if old.get("chunk_format") != new.get("chunk_format"):
+        parts.append(f"chunk file format ({old.get('chunk_format')} -> {new.get('chunk_format')})")
+    return "; ".join(parts) or "fingerprint"
+
+
+# ------------------------------------------------------------------------------- manifest
+
+
 class Manifest:
-    """``run_dir/manifest.json``: configuration, input fingerprint and finished work."""
+    """``run_dir/manifest.json``: fingerprints, configuration and finished work.
+
+    Keys: ``version``, ``fingerprint`` (:func:`fingerprints`), ``config`` (for information),
+    ``chunks`` (``{t: true}``), ``edges`` (``{t-1: record}`` for edge ``(t-1, t)``),
+    ``loop_edges`` (``{"i-j": record}``).
+    """
 
     def __init__(self, path: pathlib.Path, data: dict[str, Any]) -> None:
         self.path = path
@@ -59,43 +232,98 @@ class Manifest:
 
     @classmethod
     def open(
-        cls, run_dir: pathlib.Path, config: dict[str, Any], inputs: list[Any], overwrite: bool
+        cls,
+        run_dir: pathlib.Path,
+        config: dict[str, Any],
+        fingerprint: dict[str, Any],
+        schedule: chunks.ChunkSchedule,
+        overwrite: bool,
+        log: Callable[[str], None] = print,
     ) -> Manifest:
         path = run_dir / "manifest.json"
         fresh = {
             "version": MANIFEST_VERSION,
+            "fingerprint": fingerprint,
             "config": config,
-            "inputs": inputs,
             "chunks": {},
             "edges": {},
             "loops": None,
             "loop_edges": {},
         }
         if path.exists() and not overwrite:
-            try:
-                data = json.loads(path.read_text())
-            except (OSError, json.JSONDecodeError) as err:
-                raise RunDirError(f"{path} is unreadable ({err}); overwrite it (--overwrite) to start afresh") from err
-            if data.get("version") != MANIFEST_VERSION:
-                raise RunDirError(f"{path} has manifest version {data.get('version')}; overwrite it (--overwrite)")
-            if data.get("config") != config:
-                changed = sorted(
-                    k for k in set(config) | set(data.get("config", {}))
-                    if config.get(k) != data.get("config", {}).get(k)
-                )
-                raise RunDirError(
-                    f"{run_dir} holds a run with a different configuration ({', '.join(changed)}); "
-                    "overwrite it (--overwrite) or choose another output directory"
-                )
-            if data.get("inputs") != json.loads(json.dumps(inputs)):
-                raise RunDirError(
-                    f"{run_dir} holds a run of different input frames (names, sizes or modification "
-                    "times changed); overwrite it (--overwrite) or choose another output directory"
-                )
-            return cls(path, data)
+            data = cls._read(path)
+            old = data["fingerprint"]
+            if old["temporal"] != fingerprint["temporal"]:
+                what = _describe_identity_change(old["temporal"], fingerprint["temporal"])
+                raise RunDirError(f"{run_dir} holds a run with a different {what}; {_OVERWRITE}")
+            manifest = cls(path, data)
+            manifest._reconcile_frames(old.get("frames"), fingerprint.get("frames"), schedule, log)
+            if old.get("loops") != fingerprint["loops"]:
+                changed = _changed((old.get("loops") or {}).get("options"), fingerprint["loops"]["options"])
+                if data["loop_edges"]:
+                    log(f"swiftjax: loop options changed ({', '.join(changed)}): the loop stage runs again")
+                data["loop_edges"] = {}
+                data["loops"] = None
+            data["fingerprint"] = fingerprint
+            data["config"] = config
+            manifest.save()
+            return manifest
         manifest = cls(path, fresh)
         manifest.save()
         return manifest
+
+    @staticmethod
+    def _read(path: pathlib.Path) -> dict[str, Any]:
+        """The manifest's JSON, checked for shape; :class:`RunDirError` otherwise."""
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise RunDirError(f"{path} is unreadable ({err}); {_OVERWRITE}") from err
+        if not isinstance(data, dict):
+            raise RunDirError(
+                f"{path} is not a swiftjax manifest (it holds a JSON {type(data).__name__}); {_OVERWRITE}"
+            )
+        if data.get("version") != MANIFEST_VERSION:
+            raise RunDirError(
+                f"{path} has manifest version {data.get('version')!r} (this swiftjax writes {MANIFEST_VERSION}); "
+                f"{_OVERWRITE}"
+            )
+        shape = {"fingerprint": dict, "chunks": dict, "edges": dict, "loop_edges": dict}
+        bad = [k for k, kind in shape.items() if not isinstance(data.get(k), kind)]
+        fp = data.get("fingerprint")
+        if not bad and not (isinstance(fp.get("temporal"), dict) and isinstance(fp.get("loops"), dict)):
+            bad = ["fingerprint"]
+        if bad:
+            raise RunDirError(f"{path} is damaged (bad or missing {', '.join(bad)}); {_OVERWRITE}")
+        return data
+
+    def _reconcile_frames(
+        self, old: list[Any] | None, new: list[Any] | None, schedule: chunks.ChunkSchedule,
+        log: Callable[[str], None],
+    ) -> None:
+        """Forget the chunks (and edges) that hold input frames whose files changed."""
+        if old == new:
+            return
+        if old is None or new is None or len(old) != len(new):
+            raise RunDirError(f"{self.path.parent} holds a run of different input frames; {_OVERWRITE}")
+        changed = [k for k, (a, b) in enumerate(zip(old, new)) if a != b]
+        hit = sorted({int(c) for k in changed for c in np.flatnonzero(
+            (schedule.starts <= k) & (k < schedule.ends))})
+        # A re-predicted chunk's edges need its neighbours' float32 overlaps: predict them too.
+        redo = sorted({c + d for c in hit for d in (-1, 0, 1) if 0 <= c + d < schedule.num_chunks})
+        for c in redo:
+            self.data["chunks"].pop(str(c), None)
+        for c in hit:
+            self.data["edges"].pop(str(c - 1), None)
+            self.data["edges"].pop(str(c), None)
+        self.data["loop_edges"] = {}  # the descriptors change
+        self.data["loops"] = None
+        names = ", ".join(str(new[k][0]) if isinstance(new[k], list) and new[k] else str(k) for k in changed[:5])
+        more = f" and {len(changed) - 5} more" if len(changed) > 5 else ""
+        log(
+            f"swiftjax: {len(changed)} input frame(s) changed since the last run ({names}{more}): "
+            f"predicting chunk(s) {', '.join(map(str, redo))} again"
+        )
 
     #: :meth:`save_soon` writes at most this often (seconds).  Each write is a JSON dump and
     #: two fsyncs (~16 ms measured); an interrupted run redoes at most this much finished work.
@@ -125,37 +353,61 @@ class Manifest:
 class ChunkRecords:
     """The manifest's temporal records: finished chunks and edges ``(t-1, t)``.
 
-    An edge ``(t-1, t)`` enters the manifest once chunk ``t``'s file is complete (a resumed
-    run never pairs a stored edge with a re-predicted chunk): until then it waits in
-    :attr:`pending_edges`.
+    Chunk ``t`` counts as finished (:meth:`chunk_done`) when it is recorded *and*, for
+    ``t > 0``, so is its edge ``(t-1, t)``: an edge enters the manifest once chunk ``t``'s
+    file is complete (until then it waits in :attr:`pending_edges`), so a resumed run never
+    pairs a stored edge with a re-predicted chunk.  Every record is saved (fsync'd) at once.
     """
 
-    def __init__(self, manifest: Manifest) -> None:
+    def __init__(self, manifest: Manifest, store: ChunkStore | None = None) -> None:
         self.manifest = manifest
+        self.store = store
         self.pending_edges: dict[int, dict[str, Any]] = {}
 
     def chunk_done(self, t: int) -> bool:
-        return bool(self.manifest.data["chunks"].get(str(t)))
+        data = self.manifest.data
+        return bool(data["chunks"].get(str(t))) and (t == 0 or str(t - 1) in data["edges"])
 
     def edge(self, t: int) -> dict[str, Any] | None:
         """The recorded edge ``(t-1, t)``, or None."""
         return self.manifest.data["edges"].get(str(t - 1)) if t > 0 else None
 
     def commit(self, done: list[int]) -> bool:
-        """Record the chunks whose files are complete (and their waiting edges); True if any."""
+        """Record the chunks whose files are complete (and their waiting edges), saved at once;
+        True if any."""
         for c in done:
             self.manifest.data["chunks"][str(c)] = True
             if c in self.pending_edges:
                 self.manifest.data["edges"][str(c - 1)] = self.pending_edges.pop(c)
+        if done:
+            self._saved(done)
         return bool(done)
 
     def add_edge(self, t: int, edge: dict[str, Any]) -> bool:
-        """Record edge ``(t-1, t)`` now if chunk ``t`` is recorded (returns True), else later."""
-        if self.chunk_done(t):
+        """Record edge ``(t-1, t)`` now if chunk ``t``'s file is recorded (returns True), else
+        with the chunk."""
+        if self.manifest.data["chunks"].get(str(t)):
             self.manifest.data["edges"][str(t - 1)] = edge
+            self._saved([t])
             return True
         self.pending_edges[t] = edge
         return False
+
+    def _saved(self, chunks_: list[int]) -> None:
+        self.manifest.save()
+        for c in chunks_:
+            if self.chunk_done(c):
+                _faults.point("chunk-recorded", c)
+                if self.store is not None and c > 0:
+                    self.store.remove("tail", c - 1)  # edge (c-1, c) is recorded: not needed
+
+
+def forget_chunk(manifest: Manifest, store: ChunkStore, t: int) -> None:
+    """Forget chunk ``t`` (its file is corrupt): it is predicted again on the next pass.  Its
+    edges stay recorded (they were computed from its original prediction)."""
+    manifest.data["chunks"].pop(str(t), None)
+    store.remove("chunk", t)
+    manifest.save()
 
 
 class StageTimer:
@@ -218,6 +470,7 @@ class RunContext:
     camera: UserCamera | None = None
     scale: dict[str, Any] | None = None  # the metric-scale step's record (unit, factor, votes)
     unit: str | None = None  # the world's unit once known ("metres" with --metric; export headers)
+    lock: RunLock | None = None
 
     @property
     def num_frames(self) -> int:
@@ -225,6 +478,12 @@ class RunContext:
 
     def bar(self, iterable: Iterable, **kwargs: Any) -> Iterable:
         return progress_bar(iterable, self.progress, **kwargs)
+
+    def close(self) -> None:
+        """Release the run directory's lock."""
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
 
 def _writable(path: pathlib.Path) -> bool:
@@ -237,6 +496,17 @@ def _writable(path: pathlib.Path) -> bool:
         return False
 
 
+def _clean_temp_files(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
+    """Remove the temp files a killed run left (we hold the lock: no writer is running)."""
+    dirs = [run_dir, *(p for p in run_dir.rglob("*") if p.is_dir())]
+    left = [p for d in dirs for p in temp_files(d)]
+    for p in left:
+        with contextlib.suppress(OSError):
+            p.unlink()
+    if left:
+        log(f"swiftjax: removed {len(left)} temp file(s) of an interrupted run in {run_dir}")
+
+
 def open_run(
     predictor: Predictor,
     run_dir: pathlib.Path,
@@ -247,18 +517,37 @@ def open_run(
     progress: bool,
     log: Callable[[str], None],
 ) -> RunContext:
-    """Create (or reopen, for a resume) ``run_dir`` and its records for ``predictor``'s frames."""
+    """Create (or reopen, for a resume) ``run_dir``: lock it, clean it, check its fingerprints
+    against ``predictor`` and ``config`` and open its records (the caller closes the context)."""
+    if not str(run_dir).strip():
+        raise RunDirError("the output directory is empty text: give a directory")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise RunDirError(f"output directory {run_dir} exists and is not a directory")
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise RunDirError(f"cannot create output directory {run_dir}: {err.strerror}") from err
     if not _writable(run_dir):
         raise RunDirError(f"output directory {run_dir} is not writable")
-    schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
-    camera = UserCamera.from_config(config, predictor)  # validated before any work
-    manifest = Manifest.open(run_dir, config.to_dict(), predictor.fingerprint() + camera.fingerprint(), overwrite)
+    lock = RunLock(run_dir).acquire()
+    try:
+        if lock.previous and lock.previous.get("pid"):
+            log(f"swiftjax: taking over the lock of an interrupted run (pid {lock.previous.get('pid')} on "
+                f"{lock.previous.get('host')}, no longer running)")
+        _clean_temp_files(run_dir, log)
+        schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
+        camera = UserCamera.from_config(config, predictor)  # validated before any work
+        fp = fingerprints(predictor, config, camera.fingerprint())
+        store = ChunkStore(run_dir)
+        manifest = Manifest.open(run_dir, config.to_dict(), fp, schedule, overwrite, log)
+        if overwrite:
+            for kind in _chunk_store.KINDS:
+                for t in store.indices(kind):
+                    store.remove(kind, t)
+    except BaseException:
+        lock.release()
+        raise
     return RunContext(
         run_dir=run_dir, config=config, predictor=predictor, schedule=schedule, manifest=manifest,
-        store=ChunkStore(run_dir), timer=StageTimer(), executor=executor, progress=progress, log=log,
-        camera=camera,
+        store=store, timer=StageTimer(), executor=executor, progress=progress, log=log, camera=camera, lock=lock,
     )

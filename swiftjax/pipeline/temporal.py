@@ -9,10 +9,14 @@ one background thread while the next chunk is predicted.  Memory stays flat in t
 sequence length: one chunk's dense arrays are in memory at a time, plus the previous
 chunk's overlap frames and at most one chunk waiting for the writer.
 
-Resume: a chunk recorded in the manifest is read back (descriptors, overlap frames) instead
-of predicted; a recorded edge is reused.  The other chunks are requested from the run's
-executor at the start, in schedule order (a local one predicts the next chunk while this one
-is stored and aligned; a Ray pool predicts several ahead).
+Resume: a chunk recorded in the manifest is read back (descriptors, K_ref) instead of
+predicted, and its recorded edge reused.  When the next edge is not recorded yet, the chunk's
+last ``overlap`` frames are read back in float32 from its ``tail`` file (kept until that edge
+is recorded), so a resumed run computes exactly the edges an uninterrupted one does, never
+from the chunk store's float16 copies.  A chunk whose file fails its checksums is reported
+and predicted again.  The other chunks are requested from the run's executor at the start, in
+schedule order (a local one predicts the next chunk while this one is stored and aligned; a
+Ray pool predicts several ahead).
 
 Stage clocks: the wait for the predictions is booked as "predict", everything else as geometry:
 descriptors under "loop detection"; the float16 conversion, chunk-file and manifest writes
@@ -31,11 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align, loops, metric, sim3
-from swiftjax.io.chunk_store import ChunkStore, half_if_fits
+from swiftjax import _faults, align, loops, metric, sim3
+from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.export import chunk_points_jit, export_points, write_frames
-from swiftjax.pipeline.rundir import ChunkRecords, RunContext
+from swiftjax.pipeline.rundir import ChunkRecords, RunContext, forget_chunk
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
 
@@ -71,14 +75,20 @@ def run(ctx: RunContext) -> TemporalResult:
     prev_tail: align.ChunkFrames | None = None
     O = config.overlap
     writer = _BackgroundWriter(store)
-    records = ChunkRecords(manifest)
+    records = ChunkRecords(manifest, store, T)
     cam = ctx.camera if ctx.camera is not None else UserCamera()
     K_ref = cam.K_ref  # known intrinsics; else the first prediction's (below)
     heights = np.full(T, np.nan) if cam.metric is not None and cam.metric[0] == "camera-height" else None
     prev_tail_mask = None
-    # Recorded chunks are read back, the others predicted (in schedule order, by the executor).
-    stored_chunks = {t for t in range(T) if records.chunk_done(t) and store.exists("chunk", t)}
-    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in stored_chunks])
+    # Recorded chunks are read back (checked; a corrupt one is forgotten), the others predicted
+    # (in schedule order, by the executor).
+    resumed = {}
+    for t in range(T):
+        if records.chunk_done(t):
+            r = _resume_chunk(ctx, records, t)
+            if r is not None:
+                resumed[t] = r
+    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed])
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
@@ -87,23 +97,22 @@ def run(ctx: RunContext) -> TemporalResult:
             edge = records.edge(t)
             head: align.ChunkFrames | None = None
             head_mask = None
-            if t in stored_chunks:
-                # Resume: read back only what the rest of the run needs from this chunk.
-                with timer("chunk store"):
-                    desc = store.load_array("chunk", t, "descriptors")
-                    if K_ref is None:
-                        K_ref = np.asarray(store.load_array("chunk", t, "intrinsic")[0], np.float64)
-                    if t > 0 and edge is None:
-                        head = align.ChunkFrames.from_prediction(store.load("chunk", t, frames=slice(0, O), fields=()))
-                        head_mask = cam.keep(frames[:O], head.depth, head.conf)
-                    tail = align.ChunkFrames.from_prediction(store.load("chunk", t, frames=slice(S - O, S), fields=()))
-                    tail_mask = cam.keep(frames[S - O:], tail.depth, tail.conf)
-                    if heights is not None:
+            if t in resumed:
+                desc, intrinsic0, tail = resumed.pop(t)
+                if K_ref is None:
+                    K_ref = np.asarray(intrinsic0, np.float64)
+                # masks from the stored (float16) maps, as the uninterrupted run computed them
+                tail_mask = None if tail is None else cam.keep(
+                    frames[S - O:], jnp.asarray(tail.depth, jnp.float16), jnp.asarray(tail.conf, jnp.float16)
+                )
+                if heights is not None:
+                    with timer("chunk store"):
                         heights[t] = float(store.load_extra("chunk", t)["ground_height"])
                 dirty = records.commit(writer.finished())
             else:
                 with timer("predict"):
                     pred = next(predictions)
+                _faults.point("chunk-predicted", t)
                 if pred.num_frames != len(frames):
                     raise ValueError(
                         f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}"
@@ -144,7 +153,14 @@ def run(ctx: RunContext) -> TemporalResult:
                     )
                     # Images feed the export points' colours and colmap/images/ (above): not stored.
                     stored = dataclasses.replace(pred, depth=depth, conf=conf, images=None)
-                    dirty = records.commit(writer.submit(t, "chunk", t, stored, {"frames": frames, **points}))
+                    # The float32 overlap for edge (t, t+1), should it be computed after a resume.
+                    exact_tail = None if t + 1 == T else ChunkPrediction(
+                        np.asarray(pred.depth[S - O:], np.float32), np.asarray(pred.conf[S - O:], np.float32),
+                        np.asarray(pred.extrinsic[S - O:]), np.asarray(pred.intrinsic[S - O:]),
+                    )
+                    dirty = records.commit(
+                        writer.submit(t, _save_chunk, store, t, stored, {"frames": frames, **points}, exact_tail)
+                    )
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
                 tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O:], pred.extrinsic[S - O:])
                 head_mask = None if mask_d is None else mask_d[:O]
@@ -175,12 +191,13 @@ def run(ctx: RunContext) -> TemporalResult:
             if records.commit(writer.finished(wait=True)):
                 manifest.save_soon()  # marks the change for flush() (an earlier save may be recent)
             manifest.flush()
+            for c in store.indices("tail"):  # every edge is recorded
+                store.remove("tail", c)
     finally:
         predictions.close()  # interrupted: release the chunks in flight
         writer.close()
-        with contextlib.suppress(Exception):  # interrupted: keep every complete chunk file
-            if records.commit(writer.finished(wait=True)):
-                manifest.save_soon()
+        with contextlib.suppress(Exception):  # interrupted: record every complete chunk file
+            records.commit(writer.finished(wait=True))
         manifest.flush()
     assert descriptors is not None and K_ref is not None
     ctx.K_ref = K_ref
@@ -190,6 +207,47 @@ def run(ctx: RunContext) -> TemporalResult:
 def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
     """The pixels both keep-masks keep (``None``: no mask)."""
     return a if b is None else b if a is None else a & b
+
+
+def _save_chunk(
+    store: ChunkStore, t: int, stored: ChunkPrediction, extra: dict[str, Any], tail: ChunkPrediction | None
+) -> None:
+    """Chunk ``t``'s files: the float32 tail first, so that a complete chunk file implies it."""
+    if tail is not None:
+        store.save("tail", t, tail, half=False)
+    store.save("chunk", t, stored, extra)
+
+
+def _resume_chunk(
+    ctx: RunContext, records: ChunkRecords, t: int
+) -> tuple[np.ndarray, np.ndarray, align.ChunkFrames | None] | None:
+    """A recorded chunk read back: ``(descriptors, intrinsic of its first frame, float32 tail
+    or None when edge (t, t+1) is recorded)``; None when it must be predicted again (its file
+    or its tail is missing or fails its checksums, which is reported)."""
+    store = ctx.store
+    need_tail = t + 1 < ctx.schedule.num_chunks and records.edge(t + 1) is None
+    try:
+        with ctx.timer("chunk store"):
+            if not store.exists("chunk", t):
+                raise FileNotFoundError(store.path("chunk", t))
+            desc = store.load_array("chunk", t, "descriptors")
+            intrinsic0 = store.load_array("chunk", t, "intrinsic", frames=[0])[0]
+            tail = None
+            if need_tail:
+                if not store.exists("tail", t):
+                    raise FileNotFoundError(store.path("tail", t))
+                tail = align.ChunkFrames.from_prediction(store.load("tail", t, fields=()))
+    except ChunkCorruptError as err:
+        ctx.log(f"swiftjax: {err}; predicting chunk {t} again")
+        forget_chunk(ctx.manifest, store, t)
+        return None
+    except FileNotFoundError as err:
+        ctx.log(f"swiftjax: {err.args[0]} is missing; predicting chunk {t} again")
+        forget_chunk(ctx.manifest, store, t)
+        return None
+    if desc is None:
+        raise ValueError(f"{store.path('chunk', t)} has no descriptors")
+    return desc, intrinsic0, tail
 
 
 @jax.jit
@@ -237,15 +295,15 @@ class _BackgroundWriter:
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swiftjax-chunk-store")
         self.pending: list[tuple[Any, Any]] = []
 
-    def submit(self, key: Any, *args: Any) -> list[Any]:
-        """Queue ``store.save(*args)``; returns the keys finished meanwhile (see :meth:`finished`)."""
+    def submit(self, key: Any, fn: Any, *args: Any) -> list[Any]:
+        """Queue ``fn(*args)`` (a write); returns the keys finished meanwhile (see :meth:`finished`)."""
         done = []
         while len(self.pending) >= self.depth:
             done += self._pop()
         if self.synchronous:
-            self.store.save(*args)
+            fn(*args)
             return done + [key]
-        self.pending.append((key, self.pool.submit(self.store.save, *args)))
+        self.pending.append((key, self.pool.submit(fn, *args)))
         return done + self.finished()
 
     def finished(self, wait: bool = False) -> list[Any]:

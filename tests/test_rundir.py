@@ -1,0 +1,187 @@
+"""The run directory's promise (issue 16): lock, per-stage fingerprints, records, hygiene.
+
+In-process checks on a small synthetic route (the fault-injection suite drives the real CLI
+in subprocesses: tests/test_faults.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from swiftjax import demo, pipeline
+from swiftjax.io.atomic import temp_files
+from swiftjax.pipeline import rundir
+from swiftjax.synthetic.routes import loop_route
+from test_pipeline import CountingPredictor
+from test_pipeline_stages import assert_same_outputs
+
+CONFIG = pipeline.PipelineConfig(
+    chunk_size=30, overlap=10, loop_min_separation=50, loop_nms_radius=10, loop_half_window=8,
+    point_stride=3, colmap_max_points=2_000,
+)
+IMAGE_HW = (28, 98)
+
+
+class FramePredictor(CountingPredictor):
+    """A predictor whose input frames carry a file identity (as image files do): bumping
+    ``version[k]`` is 'frame k's file changed' (its prediction does not: the oracle)."""
+
+    def __init__(self, inner, version=None):
+        super().__init__(inner)
+        self.version = version if version is not None else [0] * inner.num_frames
+        self.predicted: list[int] = []
+
+    def predict(self, frames):
+        self.predicted.append(tuple(int(f) for f in frames))
+        return super().predict(frames)
+
+    def fingerprint(self):
+        return {"frames": [[f"{k:06d}.png", v] for k, v in enumerate(self.version)], "model": "oracle"}
+
+
+@pytest.fixture(scope="module")
+def route():
+    poses = loop_route(width=60.0, length=30.0, corner_radius=8.0, laps=1.3, spacing_m=1.5)
+    return demo.trajectory_run(poses, seed=5, image_hw=IMAGE_HW)
+
+
+@pytest.fixture(scope="module")
+def reference(route, tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("ref")
+    p = FramePredictor(route.predictor)
+    res = pipeline.reconstruct(p, run_dir, CONFIG, progress=False, log=lambda s: None)
+    assert res.loops, "the route must close a loop"
+    return run_dir, res, p
+
+
+def _copy(reference, tmp_path, name="copy"):
+    dst = tmp_path / name
+    shutil.copytree(reference[0], dst)
+    return dst
+
+
+def test_lock_refuses_a_second_writer_and_names_the_holder(tmp_path):
+    first = rundir.RunLock(tmp_path).acquire()
+    try:
+        with pytest.raises(rundir.RunDirError, match=rf"in use by another swiftjax run \(pid {os.getpid()} on "):
+            rundir.RunLock(tmp_path).acquire()
+    finally:
+        first.release()
+    again = rundir.RunLock(tmp_path).acquire()  # released: free again
+    again.release()
+
+
+def test_stale_lock_is_taken_over(route, reference, tmp_path):
+    run_dir = _copy(reference, tmp_path)
+    (run_dir / rundir.LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "gone", "since": "x"}))
+    logs: list[str] = []
+    pipeline.reconstruct(FramePredictor(route.predictor), run_dir, CONFIG, progress=False, log=logs.append)
+    assert any("taking over the lock" in line and "999999" in line for line in logs)
+    assert (run_dir / rundir.LOCK_NAME).read_text() == ""  # released at the end
+
+
+@pytest.mark.parametrize("content, fragment", [("[]", "holds a JSON list"), ("null", "holds a JSON NoneType"),
+                                               ("{", "is unreadable"), ('{"version": 3}', "is damaged"),
+                                               ('{"version": 1}', "manifest version 1")])
+def test_bad_manifest_is_named_with_overwrite_suggested(route, tmp_path, content, fragment):
+    (tmp_path / "manifest.json").write_text(content)
+    with pytest.raises(rundir.RunDirError, match=fragment) as err:
+        pipeline.reconstruct(route.predictor, tmp_path, CONFIG, progress=False)
+    assert "--overwrite" in str(err.value) and "manifest.json" in str(err.value)
+
+
+def test_temp_files_of_a_killed_run_are_removed(route, reference, tmp_path):
+    run_dir = _copy(reference, tmp_path)
+    for d, name in ((run_dir, ".points.ply.abcd1234.tmp.ply"), (run_dir / "chunks", ".chunk_00002.npz.zz99yy88.tmp.npz"),
+                    (run_dir / "colmap", ".images.txt.q1w2e3r4.tmp.txt")):
+        (d / name).write_bytes(b"partial")
+    logs: list[str] = []
+    pipeline.reconstruct(FramePredictor(route.predictor), run_dir, CONFIG, progress=False, log=logs.append)
+    assert any("removed 3 temp file(s)" in line for line in logs)
+    assert not any(temp_files(d) for d in (run_dir, run_dir / "chunks", run_dir / "colmap"))
+
+
+def test_export_only_option_change_reruns_only_the_export(route, reference, tmp_path):
+    """Defect 5: fixing an export option forced a full redo ('different configuration')."""
+    run_dir = _copy(reference, tmp_path)
+    p = FramePredictor(route.predictor)
+    cfg = dataclasses.replace(CONFIG, voxel_size=0.5, colmap_max_points=500)
+    res = pipeline.reconstruct(p, run_dir, cfg, progress=False, log=lambda s: None)
+    assert p.calls == 0
+    np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
+    assert res.metrics["points"] < reference[1].metrics["points"]  # the export did re-run
+
+
+def test_loop_option_change_reruns_only_the_loop_stage(route, reference, tmp_path):
+    run_dir = _copy(reference, tmp_path)
+    p = FramePredictor(route.predictor)
+    logs: list[str] = []
+    cfg = dataclasses.replace(CONFIG, loop_depth_threshold=0.5)
+    res = pipeline.reconstruct(p, run_dir, cfg, progress=False, log=logs.append)
+    assert p.calls == len(res.loops)  # the loop chunks only
+    assert any("loop options changed (loop_depth_threshold)" in line for line in logs)
+    fresh = pipeline.reconstruct(route.predictor, tmp_path / "fresh", cfg, progress=False, log=lambda s: None)
+    np.testing.assert_array_equal(res.cam_to_world, fresh.cam_to_world)
+
+
+@pytest.mark.parametrize("change, fragment", [
+    ({"depth_threshold": 0.3}, "options depth_threshold"),
+    ({"point_stride": 2}, "options point_stride"),
+    ({"chunk_size": 32}, "options chunk_size"),
+])
+def test_temporal_option_change_is_refused(route, reference, tmp_path, change, fragment):
+    with pytest.raises(rundir.RunDirError, match=fragment):
+        pipeline.reconstruct(route.predictor, reference[0], dataclasses.replace(CONFIG, **change), progress=False)
+
+
+def test_model_identity_change_is_refused(route, reference):
+    """Defect 1: another model's run directory was reused without a word."""
+
+    class OtherModel(FramePredictor):
+        def fingerprint(self):
+            return {**super().fingerprint(), "model": "another oracle"}
+
+    with pytest.raises(rundir.RunDirError, match="different model"):
+        pipeline.reconstruct(OtherModel(route.predictor), reference[0], CONFIG, progress=False)
+
+
+def test_changed_frame_files_repredict_only_their_chunks(route, reference, tmp_path):
+    """Defect 7's second half: a repaired (changed) image forced every chunk to be redone.
+    Frame 45 lies in chunks 2 (40-69) and 1 (20-49): those and their neighbours are predicted
+    again; the result equals a fresh run."""
+    run_dir = _copy(reference, tmp_path)
+    version = [0] * route.predictor.num_frames
+    version[45] = 1
+    p = FramePredictor(route.predictor, version)
+    logs: list[str] = []
+    res = pipeline.reconstruct(p, run_dir, CONFIG, progress=False, log=logs.append)
+    from swiftjax import chunks
+
+    schedule = chunks.chunk_schedule(route.predictor.num_frames, CONFIG.chunk_size, CONFIG.overlap)
+    chunk_of = {tuple(schedule.frames(t).tolist()): t for t in range(schedule.num_chunks)}
+    redone = sorted(chunk_of[f] for f in p.predicted if f in chunk_of)
+    assert redone == [0, 1, 2, 3] and p.calls == 4 + len(res.loops)
+    assert any("1 input frame(s) changed" in line and "000045.png" in line for line in logs)
+    np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)  # same predictions: same result
+
+
+def test_overwrite_starts_afresh_and_removes_old_chunks(route, reference, tmp_path):
+    run_dir = _copy(reference, tmp_path)
+    res = pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, chunk_size=40), overwrite=True,
+                               progress=False, log=lambda s: None)
+    assert sorted(int(p.stem.split("_")[1]) for p in (run_dir / "chunks").glob("chunk_*")) == list(range(res.num_chunks))
+
+
+def test_rerun_of_a_finished_run_changes_nothing(route, reference, tmp_path):
+    run_dir = _copy(reference, tmp_path)
+    before = {p.name: p.stat().st_ino for p in (run_dir / "chunks").iterdir()}
+    p = FramePredictor(route.predictor)
+    pipeline.reconstruct(p, run_dir, CONFIG, progress=False, log=lambda s: None)
+    assert p.calls == 0
+    assert {q.name: q.stat().st_ino for q in (run_dir / "chunks").iterdir()} == before
+    assert_same_outputs(run_dir, reference[0])
