@@ -310,3 +310,23 @@ def test_random_byte_flips_are_detected_or_harmless(tmp_path):
             np.testing.assert_array_equal(getattr(part, name), getattr(want, name)[[1, 3]])
         np.testing.assert_array_equal(frames, np.arange(4))
     assert detected > 40  # the data dominates the file
+
+
+def test_disk_full_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
+    """Defect 9: a disk-full error was '[Errno 28]' with no file name."""
+    import errno
+
+    from swiftjax.cli import _one_line
+
+    store = ChunkStore(tmp_path)
+
+    def full(f, **arrays):
+        f.write(b"PK\x03\x04 partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez", full)
+    with pytest.raises(OSError) as err:
+        store.save("chunk", 4, _pred())
+    assert err.value.errno == errno.ENOSPC and err.value.filename == str(store.path("chunk", 4))
+    assert "chunk_00004.npz" in _one_line(err.value) and "No space left" in _one_line(err.value)
+    assert list(store.root.iterdir()) == []

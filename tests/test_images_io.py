@@ -169,13 +169,14 @@ def test_validate_corrupt_skip_and_mixed_sizes(tmp_path):
 
 
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
-def test_truncated_file_needs_decode(tmp_path, ext):
+def test_truncated_file_is_caught_by_its_end_marker_or_a_decode(tmp_path, ext):
     img = cv2.GaussianBlur(_rgb(200, 300, seed=3), (9, 9), 3)
     _save(tmp_path / f"a{ext}", img)
     data = (tmp_path / f"a{ext}").read_bytes()
     (tmp_path / f"a{ext}").write_bytes(data[: len(data) // 3])
     src = list_frames(tmp_path)
-    assert validate(src).sizes == [(200, 300)]  # the header alone is intact
+    with pytest.raises(InputError, match=rf"a\{ext}: image file is truncated"):
+        validate(src)  # the header alone is intact: the missing end marker gives it away
     with pytest.raises(InputError, match=rf"a\{ext}: cannot decode image"):
         validate(src, decode=True)
 
@@ -230,3 +231,19 @@ def test_missing_opencv_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "cv2", None)
     with pytest.raises(ImportError, match="opencv-python-headless"):
         src.read(0)
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_truncated_image_is_refused_before_the_run(tmp_path, ext):
+    """Issue 16, defect 7: a truncated image passed the header check and aborted the run
+    mid-way; --skip-bad did not catch it.  The end marker is now checked up front."""
+    img = (np.random.default_rng(0).random((40, 60, 3)) * 255).astype(np.uint8)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"{k}{ext}"), img)
+    raw = (tmp_path / f"1{ext}").read_bytes()
+    (tmp_path / f"1{ext}").write_bytes(raw[: len(raw) * 3 // 4])
+    with pytest.raises(InputError, match=rf"1\{ext}: image file is truncated"):
+        validate(list_frames(tmp_path))
+    with pytest.warns(UserWarning, match="truncated"):
+        src = validate(list_frames(tmp_path), skip_bad=True)
+    assert src.names == [f"0{ext}", f"2{ext}"]

@@ -185,3 +185,22 @@ def test_rerun_of_a_finished_run_changes_nothing(route, reference, tmp_path):
     assert p.calls == 0
     assert {q.name: q.stat().st_ino for q in (run_dir / "chunks").iterdir()} == before
     assert_same_outputs(run_dir, reference[0])
+
+
+def test_a_disk_too_small_is_refused_after_the_first_chunk(route, tmp_path, monkeypatch):
+    """Defect 9: --frames 100000 wrote 24 GB before it was stopped; now the first chunk file
+    gives the estimate and the run stops with what it needs (finished chunks kept)."""
+    import shutil as sh
+
+    real = sh.disk_usage
+
+    def small(path):
+        u = real(path)
+        return type(u)(u.total, u.used, 10 << 20)  # 10 MB free
+
+    monkeypatch.setattr(sh, "disk_usage", small)
+    p = FramePredictor(route.predictor)
+    with pytest.raises(rundir.RunDirError, match=r"not enough free space .*remaining chunks need about .* MB each"):
+        pipeline.reconstruct(p, tmp_path / "run", CONFIG, progress=False, log=lambda s: None)
+    assert p.calls <= 2  # stopped at once (the background write of chunk 0 overlaps chunk 1)
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["chunks"]  # chunk 0 kept
