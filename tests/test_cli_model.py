@@ -13,6 +13,7 @@ from test_faults import _env
 
 torch = pytest.importorskip("torch")
 cv2 = pytest.importorskip("cv2")
+pytestmark = pytest.mark.slow
 
 
 def _reconstruct(frames, out, weights, config, *extra, fault=None):

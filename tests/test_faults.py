@@ -37,6 +37,8 @@ from swiftjax import chunks
 from swiftjax.io.atomic import temp_files
 from test_pipeline_stages import assert_same_outputs
 
+pytestmark = pytest.mark.slow
+
 REPO = pathlib.Path(__file__).resolve().parents[1]
 DEMO = [
     "demo", "--image-size", "28x98", "--frame-spacing", "4", "--chunk-size", "30", "--overlap", "10",

@@ -181,7 +181,10 @@ class PipelineConfig:
             )
         from swiftjax.metric import parse_metric
 
-        parse_metric(self.metric)  # ValueError naming the option
+        try:
+            parse_metric(self.metric)
+        except ValueError as err:
+            raise options.OptionError(f"invalid option metric: {err}") from None
         if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
             raise options.OptionError(
                 f"invalid option loop_half_window: {self.loop_half_window}; allowed: "

@@ -205,8 +205,11 @@ def _describe_identity_change(old: dict[str, Any], new: dict[str, Any]) -> str:
     for key in ident:
         o = (old.get("identity") or {}).get(key)
         n = (new.get("identity") or {}).get(key)
+        if isinstance(o, list) and isinstance(n, list):  # [[name, value], ...] (the user camera's)
+            o, n = ({str(x[0]): x for x in v if isinstance(x, list) and x} for v in (o, n))
         sub = _changed(o, n) if isinstance(o, dict) and isinstance(n, dict) else []
-        parts.append(f"{key}" + (f" ({', '.join(sub)})" if sub and sub != ["(all)"] else ""))
+        label = "input camera" if key == "camera" else key
+        parts.append(f"{label}" + (f" ({', '.join(sub)})" if sub and sub != ["(all)"] else ""))
     opts = _changed(old.get("options"), new.get("options"))
     if opts:
         parts.append("options " + ", ".join(opts))
