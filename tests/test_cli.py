@@ -192,7 +192,7 @@ def test_model_config_errors(capsys, tmp_path):
         ("loop_closure = \"no\"\n", ["loop_closure", "'no' is not a boolean"]),
         ("overlap = true\n", ["overlap", "True is not a number"]),
         ("chunk_size = 60.7\n", ["chunk_size", "60.7 is not an integer"]),
-        ("robust_loops = \"nope\"\n", ["robust_loops", "one of huber, cauchy (or none)"]),
+        ("robust_loops = \"nope\"\n", ["robust_loops", "one of gnc, cauchy, huber (or none)"]),
         ("\x00\x01binary", ["not valid TOML"]),
     ],
 )
@@ -272,4 +272,4 @@ def test_help_shows_defaults_choices_and_descriptions():
         for flag in flags:
             action = next(a for a in sub[command]._actions if flag in a.option_strings)  # noqa: SLF001
             assert "default" in sub[command]._get_formatter()._expand_help(action), (command, flag)  # noqa: SLF001
-    assert "{umeyama,irls}" in texts["demo"] and "{huber,cauchy,none}" in texts["reconstruct"]
+    assert "{umeyama,irls}" in texts["demo"] and "{gnc,cauchy,huber,none}" in texts["reconstruct"]

@@ -51,7 +51,7 @@ def test_every_field_has_a_schema_a_flag_and_a_description():
         ({"point_conf_ratio": 1e9}, "point_conf_ratio (c.toml): 1000000000.0 is out of range"),
         ({"voxel_size": -1.0}, "voxel_size (c.toml): -1.0 is out of range; allowed: a finite number > 0 (or none)"),
         ({"colmap_max_points": -1}, "colmap_max_points (c.toml): -1 is out of range"),
-        ({"robust_loops": "tukey"}, "robust_loops (c.toml): 'tukey'; allowed: one of huber, cauchy"),
+        ({"robust_loops": "tukey"}, "robust_loops (c.toml): 'tukey'; allowed: one of gnc, cauchy, huber"),
         ({"alignment": "UMEYAMA"}, "alignment (c.toml): 'UMEYAMA'; allowed: one of umeyama, irls"),
         ({"chunk_sise": 60}, "unknown configuration key 'chunk_sise' in c.toml (did you mean chunk_size?)"),
     ],
@@ -65,7 +65,7 @@ def test_toml_values_are_typed_never_truthy(table, fragment):
 def test_none_spelling_and_int_to_float():
     cfg = options.from_sources(PipelineConfig, {"robust_loops": "none", "voxel_size": "none", "depth_threshold": 1})
     assert cfg.robust_loops is None and cfg.voxel_size is None
-    assert isinstance(cfg.depth_threshold, float) and cfg == PipelineConfig(depth_threshold=1.0)
+    assert isinstance(cfg.depth_threshold, float) and cfg == PipelineConfig(depth_threshold=1.0, robust_loops=None)
     assert PipelineConfig(depth_threshold=1).to_dict() == PipelineConfig(depth_threshold=1.0).to_dict()
     cfg = options.from_sources(PipelineConfig, {"chunk_size": 60}, {"chunk_size": "50", "robust_loops": "huber"})
     assert cfg.chunk_size == 50 and cfg.robust_loops == "huber"  # the flag wins
