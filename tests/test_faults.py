@@ -43,7 +43,7 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 DEMO = [
     "demo", "--image-size", "28x98", "--frame-spacing", "4", "--chunk-size", "30", "--overlap", "10",
     "--loop-min-separation", "50", "--loop-nms-radius", "10", "--loop-half-window", "8", "--point-stride", "3",
-    "--colmap-max-points", "2000", "--no-progress",
+    "--colmap-max-points", "2000", "--loop-threshold-rule", "fixed", "--no-progress",
 ]
 N_FRAMES, CHUNK, OVERLAP = 155, 30, 10
 

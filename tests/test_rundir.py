@@ -202,5 +202,5 @@ def test_a_disk_too_small_is_refused_after_the_first_chunk(route, tmp_path, monk
     p = FramePredictor(route.predictor)
     with pytest.raises(rundir.RunDirError, match=r"not enough free space .*remaining chunks need about .* MB each"):
         pipeline.reconstruct(p, tmp_path / "run", CONFIG, progress=False, log=lambda s: None)
-    assert p.calls <= 2  # stopped at once (the background write of chunk 0 overlaps chunk 1)
+    assert p.calls <= 3  # stopped at once (the executor predicts ahead while chunk 0 is written)
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["chunks"]  # chunk 0 kept
