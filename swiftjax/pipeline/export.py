@@ -227,7 +227,7 @@ def _copy_originals(ctx: RunContext, names: list[str]) -> None:
                 Image.fromarray(source.read(k)).save(tmp, format="PNG", compress_level=1)
 
 
-def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> None:
+def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> Any:
     """Queue the frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as
     PNG in ``colmap/images/`` at the model's resolution -- the images the COLMAP model's
     cameras describe -- named by :func:`frame_image_names`.
@@ -239,14 +239,16 @@ def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> 
     1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`):
     ~11 ms a 518x154 frame on a loaded 2-core machine, of which 7 ms encoding
     (``bench/bench_colmap_export.py``); nothing when ``colmap`` is off or the predictor gives
-    no images.
+    no images.  Returns the write's future (``None`` when nothing is written): the temporal
+    stage's chunk write waits for it, so a chunk is recorded only once its frames are on disk
+    (a resumed run never lacks the frames of a recorded chunk).
     """
     if not ctx.config.colmap or ctx.config.colmap_original_resolution or pred.images is None:
-        return
+        return None
     names = frame_image_names(ctx)
     targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
     writer = _FRAME_WRITERS.setdefault(str(ctx.run_dir), _FrameWriter())
-    writer.submit(targets, np.asarray(pred.images)[: len(targets)])
+    return writer.submit(targets, np.asarray(pred.images)[: len(targets)])
 
 
 def _save_pngs(targets: list[pathlib.Path], images: np.ndarray) -> None:
@@ -269,10 +271,12 @@ class _FrameWriter:
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swiftjax-frames")
         self.pending: list[Any] = []
 
-    def submit(self, targets: list[pathlib.Path], images: np.ndarray) -> None:
+    def submit(self, targets: list[pathlib.Path], images: np.ndarray) -> Any:
         while len(self.pending) >= 2:
             self.pending.pop(0).result()
-        self.pending.append(self.pool.submit(_save_pngs, targets, images))
+        future = self.pool.submit(_save_pngs, targets, images)
+        self.pending.append(future)
+        return future
 
     def close(self) -> None:
         """Wait for every queued write (re-raising a failed one), stop the thread."""
@@ -286,6 +290,12 @@ class _FrameWriter:
 
 #: The frame writer of each run directory being written (created by :func:`write_frames`).
 _FRAME_WRITERS: dict[str, _FrameWriter] = {}
+
+
+def finish_frames(ctx: RunContext) -> None:
+    """Wait for the run's queued frame writes and stop their thread (the temporal stage calls it
+    when interrupted, so that no write outlives the run)."""
+    _finish_frames(ctx)
 
 
 def _finish_frames(ctx: RunContext) -> None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import sys
 from typing import Any, NamedTuple
 
 import jax
@@ -38,7 +39,7 @@ import numpy as np
 from swiftjax import _faults, align, loops, metric, sim3
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
-from swiftjax.pipeline.export import chunk_points_jit, export_points, write_frames
+from swiftjax.pipeline.export import chunk_points_jit, export_points, finish_frames, write_frames
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext, forget_chunk
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
@@ -138,7 +139,7 @@ def run(ctx: RunContext) -> TemporalResult:
                         jnp.float32(config.point_conf_ratio), mask_d, count=count, stride=config.point_stride,
                     )
                     points = export_points(pred, pts, keep, config.point_stride)
-                    write_frames(ctx, frames[:count], pred)  # the frames it owns, for colmap/images/
+                    frames_written = write_frames(ctx, frames[:count], pred)  # the frames it owns, colmap/images/
                 if heights is not None:
                     with timer("metric scale"):
                         gh = metric.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
@@ -159,7 +160,9 @@ def run(ctx: RunContext) -> TemporalResult:
                         np.asarray(pred.extrinsic[S - O:]), np.asarray(pred.intrinsic[S - O:]),
                     )
                     dirty = records.commit(
-                        writer.submit(t, _save_chunk, store, t, stored, {"frames": frames, **points}, exact_tail)
+                        writer.submit(
+                            t, _save_chunk, store, t, stored, {"frames": frames, **points}, exact_tail, frames_written
+                        )
                     )
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
                 tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O:], pred.extrinsic[S - O:])
@@ -196,6 +199,9 @@ def run(ctx: RunContext) -> TemporalResult:
     finally:
         predictions.close()  # interrupted: release the chunks in flight
         writer.close()
+        if sys.exc_info()[0] is not None:  # interrupted: no frame write outlives the run
+            with contextlib.suppress(Exception):
+                finish_frames(ctx)
         with contextlib.suppress(Exception):  # interrupted: record every complete chunk file
             records.commit(writer.finished(wait=True))
         manifest.flush()
@@ -210,9 +216,13 @@ def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
 
 
 def _save_chunk(
-    store: ChunkStore, t: int, stored: ChunkPrediction, extra: dict[str, Any], tail: ChunkPrediction | None
+    store: ChunkStore, t: int, stored: ChunkPrediction, extra: dict[str, Any], tail: ChunkPrediction | None,
+    frames_written: Any = None,
 ) -> None:
-    """Chunk ``t``'s files: the float32 tail first, so that a complete chunk file implies it."""
+    """Chunk ``t``'s files: its frame PNGs (``frames_written``, the export's future) and the
+    float32 tail first, so that a complete chunk file implies both."""
+    if frames_written is not None:
+        frames_written.result()
     if tail is not None:
         store.save("tail", t, tail, half=False)
     store.save("chunk", t, stored, extra)
