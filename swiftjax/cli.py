@@ -353,8 +353,9 @@ def _check_weights(args: argparse.Namespace) -> pathlib.Path:
     return weights
 
 
-def _check_runner_options(args: argparse.Namespace) -> None:
-    """Device, backend and dtype checked before any input is read or weights loaded."""
+def _check_runner_options(args: argparse.Namespace, check_device: bool = True) -> None:
+    """Device, backend and dtype checked before any input is read or weights loaded
+    (``check_device=False`` where the model runs on workers, whose devices are theirs)."""
     weights = _check_weights(args)
     if args.backend == "onnx":
         if weights.suffix.lower() != ".onnx":
@@ -363,7 +364,7 @@ def _check_runner_options(args: argparse.Namespace) -> None:
             raise CliError(f"--dtype {args.dtype} needs --backend torch (an ONNX graph's precision is fixed at export)")
         if args.model_config is not None:
             raise CliError("--model-config needs --backend torch (an ONNX graph holds its own architecture)")
-        if args.device != "cpu":
+        if args.device != "cpu" and check_device:
             import onnxruntime as ort
 
             if not args.device.startswith("cuda"):
@@ -376,14 +377,15 @@ def _check_runner_options(args: argparse.Namespace) -> None:
     else:
         if weights.suffix.lower() == ".onnx":
             raise CliError(f"{weights} is an ONNX graph: pass --backend onnx")
-        _torch_device(args.device)
+        if check_device:
+            _torch_device(args.device)
         _model_config(args)
 
 
 def _image_spec(args: argparse.Namespace) -> Any:
     from inference.predictor import ImageSpec
 
-    _check_runner_options(args)
+    _check_runner_options(args, check_device=False)  # a worker checks its own device
     model_config = None if args.backend == "onnx" or args.model_config is None else _model_config(args).to_dict()
     return ImageSpec(  # absolute paths: a worker may run elsewhere
         input=os.path.abspath(args.input), weights=os.path.abspath(args.weights), backend=args.backend,
@@ -436,7 +438,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         note = f"from {args.timestamps}"
     else:
         timestamps, note = source.timestamps()
-    _check_runner_options(args)
+    _check_runner_options(args, check_device=getattr(args, "executor", "local") == "local")
     if len(source) < config.chunk_size:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
