@@ -24,7 +24,8 @@ loop regions (:func:`~swiftjax.synthetic.places.ground_truth_loops`, 5 m / 30°)
 (Sim(3)-aligned, metres).  The ATE ratio is against the same arm's alias-free run.  Every
 candidate's dense numbers are written with its truth label (the distributions the
 verification thresholds were chosen from).  The pose-graph-level section comes from
-``bench/_robust_graph.py`` when present (its ``run(quick)`` returns ``{"table": str, ...}``).
+``bench/_robust_graph.py`` when present (``run(repeat=...)``, rendered by its ``markdown``;
+the candidate-level JSON is written first).
 
     python bench/bench_loop_robustness.py [--routes demo kitti00] [--levels 0 0.1 0.3 0.5]
         [--kitti-levels 0 0.3]   # KITTI 00 at fewer levels on a loaded machine
@@ -151,7 +152,8 @@ def main() -> None:
     parser.add_argument("--levels", type=float, nargs="+", default=[0.0, 0.1, 0.3, 0.5])
     parser.add_argument("--kitti-levels", type=float, nargs="+", default=None,
                         help="levels for KITTI 00 (default: --levels)")
-    parser.add_argument("--quick-graph", action="store_true", help="quick settings for the pose-graph section")
+    parser.add_argument("--quick-graph", action="store_true", help="one repetition in the pose-graph section")
+    parser.add_argument("--skip-graph", action="store_true", help="no pose-graph section (bench/_robust_graph.py)")
     args = parser.parse_args()
 
     jax.config.update("jax_compilation_cache_dir",
@@ -192,16 +194,17 @@ def main() -> None:
     summary = {k: ({"n": len(v), "min": min(v), "max": max(v)} if v else {"n": 0}) for k, v in dist.items()}
     print("dense agreement of candidates:", summary)
     payload = {"records": records, "table": table, "dense_agreement": summary}
-    graph_path = HERE / "_robust_graph.py"
-    if graph_path.exists():
+    path = write_results("loop_robustness", payload)
+    print(f"wrote {path}")
+    if (HERE / "_robust_graph.py").exists() and not args.skip_graph:
         sys.path.insert(0, str(HERE))
         import _robust_graph
 
-        graph = _robust_graph.run(quick=args.quick_graph)
-        print(graph["table"])
+        graph = _robust_graph.run(repeat=1 if args.quick_graph else 3)
+        print(_robust_graph.markdown(graph))
         payload["pose_graph"] = graph
-    path = write_results("loop_robustness", payload)
-    print(f"wrote {path}")
+        path = write_results("loop_robustness", payload)
+        print(f"wrote {path} (with the pose-graph section)")
 
 
 if __name__ == "__main__":
