@@ -151,7 +151,7 @@ def test_bad_input_is_named(demo_descriptors):
     assert int(cand.count) == 0 and np.isinf(float(cand.threshold))
     from swiftjax.pipeline import PipelineConfig
 
-    with pytest.raises(ValueError, match="loop_threshold_rule must be one of"):
+    with pytest.raises(ValueError, match=r"loop_threshold_rule: 'auto'; allowed: one of adaptive, fixed, authors"):
         PipelineConfig(loop_threshold_rule="auto")
     with pytest.raises(ValueError, match="loop_false_alarms"):
         PipelineConfig(loop_false_alarms=2.0)
