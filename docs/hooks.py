@@ -1,0 +1,112 @@
+"""MkDocs hooks: the API reference is generated from the source tree, and the benchmark pages
+are whatever ``docs/performance/*.md`` holds.
+
+Nothing here imports swiftjax (the API pages are read by griffe's static analysis), so the
+documentation build never imports torch or JAX except inside the executed notebooks.
+
+* ``api/<module>.md`` for every public module and package of ``swiftjax`` and ``inference``
+  (names starting with ``_`` are private and skipped); a package's page documents the
+  package and then each of its public submodules, so a module split into a package keeps
+  one page and needs no edit here.  ``api/index.md`` lists them with their one-line summaries.
+* The "Benchmarks" section lists ``performance/index.md``, then the pages in
+  ``PERFORMANCE_ORDER`` that exist, then any other page found there (alphabetical).
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+from mkdocs.structure.files import File
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PACKAGES = ("swiftjax", "inference")
+PERFORMANCE_ORDER = ("sim3", "align", "loops", "posegraph", "coldstart", "pipeline", "io", "inference")
+
+_pages: dict[str, str] = {}
+
+
+def _summary(path: pathlib.Path) -> str:
+    doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
+    return doc.strip().splitlines()[0] if doc.strip() else ""
+
+
+def _public(name: str) -> bool:
+    return not name.startswith("_")
+
+
+def _modules(package_dir: pathlib.Path, dotted: str) -> list[tuple[str, pathlib.Path, bool]]:
+    """(dotted name, file, is_package) of the public direct children of a package, sorted."""
+    out = []
+    for child in sorted(package_dir.iterdir()):
+        if child.is_dir() and (child / "__init__.py").exists() and _public(child.name):
+            out.append((f"{dotted}.{child.name}", child / "__init__.py", True))
+        elif child.suffix == ".py" and child.stem != "__init__" and _public(child.stem):
+            out.append((f"{dotted}.{child.stem}", child, False))
+    return out
+
+
+def _package_page(dotted: str, init: pathlib.Path) -> str:
+    lines = [f"# `{dotted}`", "", f"::: {dotted}", "    options:", "      members: false", "      show_root_heading: false", ""]
+    for sub, path, is_pkg in _modules(init.parent, dotted):
+        if is_pkg:  # a nested package: its docstring and its modules, one level deeper
+            lines += [f"::: {sub}", "    options:", "      members: false", ""]
+            for sub2, _, _ in _modules(path.parent, sub):
+                lines += [f"::: {sub2}", "    options:", "      heading_level: 3", ""]
+        else:
+            lines += [f"::: {sub}", ""]
+    return "\n".join(lines)
+
+
+def _module_page(dotted: str) -> str:
+    return f"# `{dotted}`\n\n::: {dotted}\n    options:\n      show_root_heading: false\n"
+
+
+def _api() -> tuple[dict[str, str], list]:
+    pages: dict[str, str] = {}
+    nav: list = [{"Overview": "api/index.md"}]
+    rows = ["# API reference", "", "Generated from the docstrings (static analysis: nothing is imported).", ""]
+    for package in PACKAGES:
+        pdir = ROOT / package
+        section: list = []
+        rows += [f"## `{package}`", "", f"{_summary(pdir / '__init__.py')}", "", "| module | what |", "| --- | --- |"]
+        entries = [(package, pdir / "__init__.py", True)] if package == "inference" else _modules(pdir, package)
+        for dotted, path, is_pkg in entries:
+            uri = f"api/{dotted}.md"
+            pages[uri] = _package_page(dotted, path) if is_pkg else _module_page(dotted)
+            section.append({dotted: uri})
+            summary = _summary(path).replace("|", "\\|")
+            rows.append(f"| [`{dotted}`]({dotted}.md) | {summary} |")
+        rows.append("")
+        nav.append({package: section})
+    pages["api/index.md"] = "\n".join(rows)
+    return pages, nav
+
+
+def _performance_nav(docs_dir: pathlib.Path) -> list:
+    perf = docs_dir / "performance"
+    found = {p.stem for p in perf.glob("*.md")} - {"index"}
+    ordered = [s for s in PERFORMANCE_ORDER if s in found] + sorted(found - set(PERFORMANCE_ORDER))
+    return ["performance/index.md"] + [f"performance/{s}.md" for s in ordered]
+
+
+def _replace(nav: list, title: str, entries: list) -> None:
+    for item in nav:
+        if isinstance(item, dict) and title in item:
+            item[title] = entries
+            return
+    nav.append({title: entries})
+
+
+def on_config(config):
+    global _pages
+    _pages, api_nav = _api()
+    _replace(config["nav"], "API reference", api_nav)
+    _replace(config["nav"], "Benchmarks", _performance_nav(pathlib.Path(config["docs_dir"])))
+    return config
+
+
+def on_files(files, config):
+    for uri, text in _pages.items():
+        files.append(File.generated(config, uri, content=text))
+    return files
