@@ -43,6 +43,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from bench.bench_place_recognition import load_kitti00, synthetic_descriptors  # noqa: E402
 from bench.common import markdown_table, write_results  # noqa: E402
 from swiftjax import loops as L  # noqa: E402
+from swiftjax.loops import descriptors, detection, loop_chunk  # noqa: E402
 from swiftjax.chunks import chunk_schedule  # noqa: E402
 from swiftjax.synthetic import places  # noqa: E402
 from swiftjax.synthetic.routes import loop_route  # noqa: E402
@@ -56,7 +57,7 @@ GENERATORS = {
 }
 
 
-_best = jax.jit(L._row_topk, static_argnums=(1, 2, 3))  # each frame's best separated score
+_best = jax.jit(detection._row_topk, static_argnums=(1, 2, 3))  # each frame's best separated score
 
 
 def evaluate(found, gt, regions):
@@ -71,7 +72,7 @@ def every_candidate(Z, sched):
     n = len(Z)
     kept = L.filter_by_chunks(L.detect_loops(Z, -1.0, max_loops=4096), sched.starts, sched.chunk_size, n)
     c = int(kept.count)
-    lc = L._loop_chunks(np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts), sched.chunk_size, n, 10)
+    lc = loop_chunk._loop_chunks(np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts), sched.chunk_size, n, 10)
     ok = (np.abs(np.asarray(lc.chunk_i) - np.asarray(lc.chunk_j)) >= 2)[:c] & np.asarray(lc.valid)[:c]
     return np.asarray(kept.pairs)[:c][ok], np.asarray(kept.scores)[:c][ok]
 
@@ -109,7 +110,7 @@ def run(name, poses, config, fit_on, sched, gt, regions):
     # the safe window and the fitted null, on the descriptors the rules saw
     Z = np.asarray(det["z"])
     hi, lo = safe_window(*every_candidate(Z, sched), gt, regions)
-    best = np.asarray(_best(L._l2(Z), 100, 1, L._default_block_rows(len(Z)))[0])[:, 0]
+    best = np.asarray(_best(descriptors._l2(Z), 100, 1, detection._default_block_rows(len(Z)))[0])[:, 0]
     cal = L.calibrate_threshold(best)
     mu, sigma = float(cal.mu), float(cal.sigma)
     out["window"] = {"hi": hi, "lo": lo, "k_hi": (hi - mu) / sigma, "k_lo": (lo - mu) / sigma,

@@ -43,6 +43,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from bench.bench_place_recognition import load_kitti00, synthetic_descriptors  # noqa: E402
 from bench.common import best_of, markdown_table, write_results  # noqa: E402
 from swiftjax import loops as L  # noqa: E402
+from swiftjax.loops import detection  # noqa: E402
 from swiftjax.chunks import chunk_schedule  # noqa: E402
 from swiftjax.synthetic import places  # noqa: E402
 
@@ -122,7 +123,7 @@ def main() -> None:
         t_gemm = best_of(lambda: gemm(Z), rep)
         # the same GEMM in the detector's row tiles with the cheapest epilogue (row max):
         # the compute roofline without writing N*N floats to memory
-        T = L._default_block_rows(n)
+        T = detection._default_block_rows(n)
 
         @jax.jit
         def gemm_tiles(z):

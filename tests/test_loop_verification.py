@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from swiftjax import align, camera, sim3
-from swiftjax import loop_verification as V
+from swiftjax.loops import verification as V
 
 # ------------------------------------------------------------------------------ scenes
 

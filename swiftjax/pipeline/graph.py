@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align_covariance, posegraph, sim3
-from swiftjax import loop_verification as lv
+from swiftjax.loops import verification as lv
 from swiftjax.pipeline.loop_closure import LoopResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult

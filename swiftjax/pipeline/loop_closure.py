@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import _faults, align, loops
-from swiftjax import loop_verification as lv
+from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
 from swiftjax.pipeline.user_camera import UserCamera
