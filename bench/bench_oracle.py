@@ -1,4 +1,4 @@
-"""Synthetic VGGT oracle throughput at 518 x 154 (issue 7): the whole KITTI 00 pass.
+"""Synthetic VGGT oracle throughput at 518 x 154: the whole KITTI 00 pass.
 
 Measured in one run, the current implementation against the previous one (renderer + oracle
 at the commit pinned in ``bench/_baseline.py``, loaded from git; skipped when unavailable):
@@ -9,7 +9,7 @@ at the commit pinned in ``bench/_baseline.py``, loaded from git; skipped when un
 * one pixel block (noise, confidence, colour of 15 frames), current vs previous;
 * a partial oracle pass (the first ``--ab-chunks`` chunks, both implementations, best of
   ``--ab-repeats``, alternating) -> speed-up of the whole ``predict_chunk``;
-* the full oracle pass: ``predict_chunk`` over the DESIGN.md chunk schedule (B = 75,
+* the full oracle pass: ``predict_chunk`` over the default chunk schedule (B = 75,
   O = 30: 101 chunks, 7,566 chunk-frames) with depth, confidence, images and place tokens,
   after one warm-up chunk (compiles excluded; caches cleared), best of ``--repeats`` ->
   seconds and frames/s; XLA compilations during the pass are counted (must be 0).

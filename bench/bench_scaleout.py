@@ -12,7 +12,7 @@ is the driver's own):
   while the host aligns and stores chunk t);
 * ``ray W``: the sleeping predictor on a local Ray cluster of W actors.
 
-Targets (issue 14): local prefetch wall <= 1.1 x max(predict total, geometry); Ray with W
+Targets: local prefetch wall <= 1.1 x max(predict total, geometry); Ray with W
 workers <= 1.2 x predict total / W + the final stages; the driver's peak RSS flat in frames
 (Ray with 2 workers at ``--rss-frames`` and ``--frames``).  Ray's overhead per chunk is
 measured apart: one actor, one request in flight, zero cost: round trip minus the actor's

@@ -21,7 +21,7 @@ from mkdocs.structure.files import File
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGES = ("swiftjax", "inference")
-PERFORMANCE_ORDER = ("sim3", "align", "loops", "posegraph", "coldstart", "pipeline", "io", "inference")
+PERFORMANCE_ORDER = ("sim3", "align", "loops", "posegraph", "coldstart", "pipeline", "io", "synthetic", "inference")
 
 _pages: dict[str, str] = {}
 

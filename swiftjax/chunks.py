@@ -1,4 +1,4 @@
-"""The chunk schedule: which frames each VGGT call sees (DESIGN.md, "chunk t frames").
+"""The chunk schedule: which frames each VGGT call sees.
 
 Chunk ``t`` covers frames ``[t (B - O), min(t (B - O) + B, N))``; the schedule stops at the
 first chunk that reaches ``N``, so only the last chunk can be short, and it always has more

@@ -687,8 +687,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # NumPy's LAPACK (the whitening fit's eigh) measured ~10x slower multi-threaded on a busy
-    # 2-core machine; XLA does not use OpenBLAS.  Must be set before numpy is imported.
+    # NumPy's LAPACK (the whitening fit's eigh) is much slower multi-threaded on a small, busy
+    # machine (docs/performance/pipeline.md); XLA does not use OpenBLAS.  Must be set before
+    # numpy is imported.
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -73,7 +73,7 @@ def trajectory_run(
     as fit, seed ``seed``) or explicit ``(s_a, s_b, L)`` segment pairs; ``alias_strength``:
     their ``lambda`` (default :data:`~swiftjax.synthetic.places.DEFAULT_ALIAS_STRENGTH`).
     ``hallucination``: a :class:`~swiftjax.synthetic.oracle.Hallucination`, ``"default"``, or
-    ``None`` (honest loop chunks, the first wave's oracle).  The planted pairs are in
+    ``None`` (honest loop chunks).  The planted pairs are in
     ``run.aliasing`` and in the predictor's fingerprint.  ``moving_cars``: cars driving along
     the road (:mod:`swiftjax.synthetic.world`; their true masks are the oracle's semantic
     label :data:`~swiftjax.synthetic.world.CAR`).

@@ -1,4 +1,4 @@
-"""Issue 16, defect 9: the sim3 / align / posegraph API edges are flagged or refused, never
+"""The sim3 / align / posegraph API edges are flagged or refused, never
 silent NaN or a silent difference.
 
 * ``sim3``: a non-unit quaternion means its unit version in every function (act, compose,

@@ -117,7 +117,7 @@ def test_entry_point_help_runs():
         assert command in out.stdout
 
 
-# ------------------------------------------------- issue 16: one line, exit 2, before work
+# ------------------------------------------------- bad input: one line, exit 2, before work
 
 
 def _frames(tmp_path, n=3):

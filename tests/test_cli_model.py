@@ -1,4 +1,4 @@
-"""Issue 16, defect 1 through the real CLI on the tiny golden VGGT (``--model-config``): a run
+"""Model identity through the real CLI on the tiny golden VGGT (``--model-config``): a run
 directory made with one model is never reused with another (weights, dtype)."""
 
 from __future__ import annotations

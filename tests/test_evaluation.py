@@ -196,7 +196,7 @@ def test_chamfer_subsampling_and_edge_cases():
         chamfer(a, a[:, :2])
 
 
-# ------------------------------------------------------------- issue 16: defect 8
+# ------------------------------------------------------------- rotations and timestamps
 
 
 def test_non_orthonormal_rotations_are_refused_or_fixed(kitti):

@@ -235,8 +235,8 @@ def test_missing_opencv_is_a_clear_error(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_truncated_image_is_refused_before_the_run(tmp_path, ext):
-    """Issue 16, defect 7: a truncated image passed the header check and aborted the run
-    mid-way; --skip-bad did not catch it.  The end marker is now checked up front."""
+    """A truncated image passes a header check alone and would abort the run mid-way, past
+    --skip-bad: the end marker is checked up front."""
     img = (np.random.default_rng(0).random((40, 60, 3)) * 255).astype(np.uint8)
     for k in range(3):
         cv2.imwrite(str(tmp_path / f"{k}{ext}"), img)

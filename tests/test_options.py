@@ -1,5 +1,5 @@
 """The typed option schema (swiftjax.options): one declaration per PipelineConfig field gives
-validation, the CLI flags and TOML parsing (issue 16, defects 5 and 6)."""
+validation, the CLI flags and TOML parsing."""
 
 from __future__ import annotations
 

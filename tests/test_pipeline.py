@@ -237,9 +237,9 @@ class FailingPredictor(CountingPredictor):
 def test_interrupted_run_resumes_after_the_last_complete_chunk(small_run, result, tmp_path):
     """Chunk files are written in the background and recorded in the manifest (fsync'd) as
     each completes: an interruption keeps every complete chunk, and the re-run predicts only
-    the rest.  The outputs are bit-identical to the uninterrupted run's (issue 16, defect 3:
-    the edge (2, 3) used to be re-aligned from chunk 2's float16 copy; now from its float32
-    tail, which is removed once that edge is recorded)."""
+    the rest.  The outputs are bit-identical to the uninterrupted run's (the edge (2, 3) is
+    re-aligned from chunk 2's float32 tail, not its float16 copy; the tail is removed once
+    that edge is recorded)."""
     run_dir = tmp_path / "interrupted"
     failing = FailingPredictor(small_run.predictor, fail_at=4)
     with pytest.raises(Interrupted):

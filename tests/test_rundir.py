@@ -1,4 +1,4 @@
-"""The run directory's promise (issue 16): lock, per-stage fingerprints, records, hygiene.
+"""The run directory's promise: lock, per-stage fingerprints, records, hygiene.
 
 In-process checks on a small synthetic route (the fault-injection suite drives the real CLI
 in subprocesses: tests/test_faults.py)."""

@@ -39,9 +39,8 @@ frame for the per-frame prediction fields (``depth``, ``conf``, ``extrinsic``, `
 member ``crc32__<name>``, and verified on every read, partial reads included (a memory-mapped
 read of some frames checks exactly those frames' bytes).  A mismatch, or any unreadable
 member, raises :class:`ChunkCorruptError` naming the file, the field and the frame, so that
-the pipeline can report it and predict the chunk again.  Cost, measured on a KITTI chunk
-(75x154x518 float16 depth and confidence, 1024-D descriptors): see ``bench/bench_io.py``
-(CRC32 runs at ~1.5 GB/s here: ~15 ms for a 27 MB chunk, against ~60 ms for the write).
+the pipeline can report it and predict the chunk again.  The checksums cost a fraction of
+the write itself (``bench/bench_io.py``, docs/performance/io.md).
 
 float16 halves the biggest arrays (a KITTI chunk, 75x154x518 with images and 1024-D
 descriptors: 42 MB instead of 66 MB).  Rounding moves a depth ``d`` by at most
@@ -134,8 +133,8 @@ class ChunkStore:
     Args:
         run_dir: the run's output folder (created if missing).
         subdir: folder inside ``run_dir`` for the chunk files.
-        compress: zlib-compress the ``.npz`` files (measured on a KITTI-sized chunk,
-            75x154x518: 17 % smaller, 10x slower to write; off by default).
+        compress: zlib-compress the ``.npz`` files (somewhat smaller, much slower to write,
+            and partial reads then read whole members; off by default).
         half: store depth and confidence as float16 (default); ``False`` keeps float32 exactly.
     """
 

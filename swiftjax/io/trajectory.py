@@ -1,7 +1,7 @@
 """Trajectory files: KITTI (3x4 per line) and TUM (``t tx ty tz qx qy qz qw``).
 
-Poses are camera-to-world ``[N, 4, 4]`` float64 matrices (DESIGN.md: the trajectories we
-write are camera-to-world).  Host-side NumPy code: files are small (KITTI 00 is 4,541
+Poses are camera-to-world ``[N, 4, 4]`` float64 matrices (every trajectory swiftjax writes is
+camera-to-world).  Host-side NumPy code: files are small (KITTI 00 is 4,541
 lines) and this runs once per run.
 
 Parsing rules (a superset of what evo reads, so every file evo reads, we read too):

@@ -20,7 +20,7 @@ __all__ = ["PipelineConfig"]
 
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
-    """Every method parameter, with the paper's / authors' defaults (DESIGN.md).
+    """Every method parameter, with the paper's / authors' defaults (explained in docs/method.md).
 
     Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
     (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's

@@ -262,8 +262,8 @@ def _resume_chunk(
 
 @jax.jit
 def _to_half(x: jax.Array) -> jax.Array:
-    """``x`` as float16 on the device (vectorised; NumPy's float16 cast is a scalar loop,
-    measured 8x slower on a KITTI chunk).  Recompiles per shape."""
+    """``x`` as float16 on the device (vectorised; NumPy's float16 cast is a scalar loop and
+    several times slower, docs/performance/pipeline.md).  Recompiles per shape."""
     return x.astype(jnp.float16)
 
 
@@ -273,8 +273,8 @@ def _fits_half(x: np.ndarray) -> bool:
     The fast path of the chunk store's rule (:func:`~swiftjax.io.chunk_store.half_if_fits`):
     float16's largest finite value is 65504 and values below 65520 round down to it; NaN
     fails both comparisons.  ``False`` sends the caller to the exact rule.  Two vectorised
-    NumPy reductions (~2 ms for a KITTI chunk's depth; on the device the same test measured
-    3-6 ms on top of the cast).
+    NumPy reductions on the host (cheaper than the same test on the device on top of the cast;
+    docs/performance/pipeline.md).
     """
     return bool(np.max(x) < 65520) and bool(np.min(x) > -65520)
 

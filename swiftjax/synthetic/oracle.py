@@ -63,10 +63,8 @@ shared view) gives ``H_1``: ``B``'s points in the chunk frame are the chunk gaug
 ``H_1 x_world`` -- the loop edge derived from this chunk is off by ``H_1`` (superimposed at
 ``a``), not by VGGT's usual noise.  :meth:`VGGTOracle.loop_chunk_truth` returns ``(c, w, H(w))``
 for any frame list; :class:`Hallucination` holds the constants (``hallucination=None``: honest
-for every chunk, the first wave's oracle).  Measured on the demo route (20 + 20 frames,
-stride 8): true revisits ``c = 0.76-0.99``, the false candidate (563, 139) 62.6 m apart
-``c = 0.000``; sliding ``B`` along the road away from a revisit, ``c`` = 0.75 at 9 m, 0.31 at
-18 m, 0.06 at 27 m.
+for every chunk).  The co-visibility of true revisits and of false candidates on the demo
+route is on docs/performance/synthetic.md.
 
 **Determinism.**  Every random quantity of a FRAME (its focal error, its share of the pixel
 noise, its gross-error pixels) is keyed by ``(seed, frame)``; every quantity of a CHUNK
@@ -80,12 +78,12 @@ so a block's render does not depend on which chunk asked for it), kept on the de
 small LRU cache with each frame's sum and count of finite depths (the chunk's mean depth
 needs no pass over its pixels): the 30 overlap frames of consecutive chunks are rendered
 once.  Two jitted functions run per block (render, then noise/confidence/colour), each
-compiled once per image size; a chunk block that IS a cached render block (the DESIGN.md
-schedule: chunk starts are multiples of 45 = 3 blocks) goes to the second without a host
+compiled once per image size; a chunk block that IS a cached render block (the default
+schedule, B = 75, O = 30: chunk starts are multiples of 45 = 3 blocks) goes to the second without a host
 copy, other frame lists are gathered on the host.  Place tokens come from
 :func:`swiftjax.synthetic.places.place_tokens` (a function of the frame alone), computed
-once per frame while it stays in a per-frame cache.  KITTI 00 (101 chunks, 7,566
-chunk-frames at 518x154) takes about 30 CPU seconds (``bench/bench_oracle.py``).
+once per frame while it stays in a per-frame cache.  The cost of a whole KITTI 00 pass is
+measured by ``bench/bench_oracle.py`` (docs/performance/synthetic.md).
 """
 
 from __future__ import annotations
@@ -162,7 +160,7 @@ class Hallucination:
 
     Attributes:
         covis_low: mutual co-visibility at or below which the second half is fully re-based.
-        covis_high: at or above which the chunk is honest (bit-identical to the first wave).
+        covis_high: at or above which the chunk is honest (bit-identical to ``hallucination=None``).
         rot: standard deviation per axis of the offset ``Delta``'s rotation, radians.
         trans_m: standard deviation per axis of its translation, metres.
         conf_factor: factor on ``conf - 1`` at full hallucination (``w = 1``).

@@ -1,7 +1,7 @@
 """Synthetic DINO-like patch tokens that carry a place signal, for loop-detection benchmarks.
 
-No VGGT weights exist on the development machines, so the loop detector (``swiftjax.loops``)
-is measured on tokens with the properties the SwiftVGGT paper relies on and fights against:
+Tokens that let the loop detector (``swiftjax.loops``) be measured without VGGT weights:
+they have the properties the SwiftVGGT paper relies on and fights against:
 
 * a **place signal** that depends smoothly on the camera's position *and* heading, so a
   revisit in the same direction matches and distant places (or the same street driven the
@@ -447,12 +447,11 @@ def plant_aliasing(
     candidates the detector returns: the :func:`ground_truth_loops` pairs thinned as the
     detector's pair NMS does (closest cameras first, suppressing pairs within ``nms_radius``
     frames at both ends), then counted once per chunk pair ``(c_i, c_j)``, ``|c_i - c_j| >= 2``
-    (frame ``f`` in chunk ``round((f - 37) / chunk_stride)``, DESIGN.md's schedule B = 75,
+    (frame ``f`` in chunk ``round((f - 37) / chunk_stride)``, the default schedule B = 75,
     O = 30).  A look-alike pair of ``length = 20`` frames yields about one candidate, so
     ``rate`` is the planted false candidates relative to the true ones (0.1, 0.3, 0.5: 10, 30,
-    50 % extra).  Measured with ``alias_strength = 0.9`` on KITTI 00 (``C_true = 29``; the
-    detector finds 23 true candidates): rate 0.1 / 0.3 / 0.5 -> 3 / 9 / 14 pairs; report the
-    realised count (NMS, the chunk filter and the threshold decide it).
+    50 % extra).  The realised count of false candidates is decided by NMS, the chunk filter
+    and the threshold, so report it (KITTI 00's numbers: docs/performance/synthetic.md).
     Each pair ``(s_a, s_b, length)``: ``s_a > s_b``, more than
     ``min_separation + length`` frames apart, every camera of one segment more than
     ``min_distance_m`` from every camera of the other (a false loop), every pair
