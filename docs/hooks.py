@@ -5,7 +5,8 @@ Nothing here imports swiftjax (the API pages are read by griffe's static analysi
 documentation build never imports torch or JAX except inside the executed notebooks.
 
 * ``api/<module>.md`` for every public module and package of ``swiftjax`` and ``inference``
-  (names starting with ``_`` are private and skipped); a package's page documents the
+  (names starting with ``_`` are private and skipped, and so is a module whose docstring
+  starts with "Deprecated": a moved module's alias, named on the index page); a package's page documents the
   package and then each of its public submodules, so a module split into a package keeps
   one page and needs no edit here.  ``api/index.md`` lists them with their one-line summaries.
 * The "Benchmarks" section lists ``performance/index.md``, then the pages in
@@ -71,13 +72,19 @@ def _api() -> tuple[dict[str, str], list]:
         section: list = []
         rows += [f"## `{package}`", "", f"{_summary(pdir / '__init__.py')}", "", "| module | what |", "| --- | --- |"]
         entries = [(package, pdir / "__init__.py", True)] if package == "inference" else _modules(pdir, package)
+        deprecated = []
         for dotted, path, is_pkg in entries:
+            if _summary(path).startswith("Deprecated"):  # a moved module's alias: no page
+                deprecated.append(f"`{dotted}` ({_summary(path)[len('Deprecated'):].lstrip(': ')})")
+                continue
             uri = f"api/{dotted}.md"
             pages[uri] = _package_page(dotted, path) if is_pkg else _module_page(dotted)
             section.append({dotted: uri})
             summary = _summary(path).replace("|", "\\|")
             rows.append(f"| [`{dotted}`]({dotted}.md) | {summary} |")
         rows.append("")
+        if deprecated:
+            rows += ["Deprecated aliases, kept for one release: " + "; ".join(deprecated) + ".", ""]
         nav.append({package: section})
     pages["api/index.md"] = "\n".join(rows)
     return pages, nav
