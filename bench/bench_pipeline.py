@@ -14,9 +14,13 @@ Stage clocks (``metrics.json`` ``timings_seconds``): the predictor's calls are b
 loop detection (with the descriptor reduction), loop chunks, pose graph, chunk store
 (float16 conversion, chunk-file and manifest writes), export -- counts as geometry.  The
 child runs with ``OPENBLAS_NUM_THREADS=1`` as the ``swiftjax`` CLI does (unless already set);
-the load average before each run is recorded.
+the load average before each run is recorded.  ``--prefetch`` is the local executor's
+prefetch depth; the default 0 predicts each chunk when it is asked for, because the oracle
+is CPU-bound and a prefetching thread would share the machine's cores with the geometry
+stages it is meant to hide behind (``bench_scaleout.py`` measures prefetch with a
+predictor that waits like a GPU).
 
-    python bench/bench_pipeline.py [--frames 600 4541] [--irls-frames 0] [--skip-warmup]
+    python bench/bench_pipeline.py [--frames 600 4541] [--irls-frames 0] [--skip-warmup] [--prefetch 0]
 """
 
 from __future__ import annotations
@@ -38,7 +42,9 @@ import jax
 jax.config.update("jax_compilation_cache_dir", os.environ["SWIFTJAX_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 from swiftjax import demo, pipeline
+from swiftjax.pipeline.executors import LocalExecutor
 shared, frames, out, method = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
+prefetch = int(sys.argv[5])
 run = demo.kitti00_run(shared, frames=frames)
 
 class Timed:  # the predictor's own calls, clocked outside the pipeline's stage accounting
@@ -59,7 +65,7 @@ predictor = Timed(run.predictor)
 t0 = time.perf_counter()
 config = pipeline.PipelineConfig(alignment=method)
 res = pipeline.reconstruct(predictor, out, config, ground_truth=run.ground_truth,
-                           progress=False, overwrite=True)
+                           progress=False, overwrite=True, executor=LocalExecutor(prefetch=prefetch))
 wall = time.perf_counter() - t0
 peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"metrics": res.metrics, "wall": wall, "peak_rss_mb": peak_mb,
@@ -75,12 +81,12 @@ def _shared() -> pathlib.Path:
     return path
 
 
-def run_child(frames: int, cache: str, out: str, method: str = "umeyama") -> dict:
+def run_child(frames: int, cache: str, out: str, method: str = "umeyama", prefetch: int = 0) -> dict:
     env = dict(os.environ, SWIFTJAX_CACHE_DIR=cache)
     env.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI (swiftjax.cli.main)
     load = os.getloadavg()
     proc = subprocess.run(
-        [sys.executable, "-c", CHILD, str(_shared()), str(frames), out, method],
+        [sys.executable, "-c", CHILD, str(_shared()), str(frames), out, method, str(prefetch)],
         capture_output=True, text=True, env=env, cwd=HERE,
     )
     if proc.returncode != 0:
@@ -97,25 +103,27 @@ def main() -> None:
     parser.add_argument("--irls-frames", type=int, default=4541,
                         help="also run this many frames with VGGT-Long's IRLS alignment (0: skip)")
     parser.add_argument("--skip-warmup", action="store_true", help="do not fill the compile cache first")
+    parser.add_argument("--prefetch", type=int, default=0,
+                        help="local executor prefetch depth (0: predict each chunk when it is asked for)")
     args = parser.parse_args()
 
     cache = os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax"))
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_warmup:
-            run_child(min(args.frames), cache, os.path.join(tmp, "warmup"))
+            run_child(min(args.frames), cache, os.path.join(tmp, "warmup"), prefetch=args.prefetch)
         runs = [(f, "umeyama") for f in args.frames] + ([(args.irls_frames, "irls")] if args.irls_frames else [])
         for frames, method in runs:
-            rec = run_child(frames, cache, os.path.join(tmp, f"run{frames}{method}"), method)
-            rec["frames"], rec["alignment"] = frames, method
+            rec = run_child(frames, cache, os.path.join(tmp, f"run{frames}{method}"), method, args.prefetch)
+            rec["frames"], rec["alignment"], rec["prefetch"] = frames, method, args.prefetch
             records.append(rec)
             m = rec["metrics"]
             print(f"{frames} frames, {method}: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
                   f"loops {m['loops']}, ATE {m['ate_rmse']:.2f} m (no loops {m['ate_rmse_no_loops']:.2f} m), "
                   f"load average {rec['load_average_before'][0]:.2f}", flush=True)
 
-    stages = ["predict", "predict (loop chunks)", "align", "loop detection", "loop chunks", "pose graph",
-              "chunk store", "export"]
+    stages = ["predict", "predict (loop chunks)", "align", "loop detection", "loop chunks", "loop verification",
+              "pose graph", "chunk store", "export"]
     rows = []
     for rec in records:
         t = rec["metrics"]["timings_seconds"]
