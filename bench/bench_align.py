@@ -41,6 +41,7 @@ import jax.numpy as jnp  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from swiftjax import align, camera, sim3  # noqa: E402
+from swiftjax.align import chunk_pair  # noqa: E402
 
 H, W = 154, 518
 
@@ -185,12 +186,12 @@ def run_case(o: int, repeats: int, slow_repeats: int) -> dict:
     prev = jax.device_put(align.ChunkFrames(*map(jnp.asarray, prev_np)))
     cur = jax.device_put(align.ChunkFrames(*map(jnp.asarray, cur_np)))
     K_ref = jax.device_put(jnp.asarray(K_ref_np))
-    opts = tuple(jnp.asarray(v, t) for v, t in ((0.2, jnp.float32), (0.5, jnp.float32), (20_000, jnp.int32), (0.25, jnp.float32)))
+    opts = tuple(chunk_pair._core_arguments(prev, cur, K_ref, align.AlignOptions())[3:])
     n = o * H * W
     res: dict = {"O": o, "H": H, "W": W, "point_pairs": n}
 
     # --- full chunk-pair alignment
-    c_align, f_align = timed_compile(align._align_core_jit, prev, cur, K_ref, *opts)
+    c_align, f_align = timed_compile(chunk_pair._align_core_jit, prev, cur, K_ref, *opts)
     S_al, info = f_align(prev, cur, K_ref, *opts)
     res["align_compile_s"] = c_align
     res["align_s"] = best_of(lambda: f_align(prev, cur, K_ref, *opts), repeats)

@@ -415,6 +415,50 @@ def test_align_chunk_pair_checked_rejects_bad_inputs():
         align.align_chunk_pair_checked(prev, cur, K_nan)
 
 
+def test_align_options_written_once_and_taken_everywhere():
+    import dataclasses
+    import inspect
+
+    from swiftjax.pipeline import PipelineConfig
+
+    opts = align.AlignOptions()
+    cfg = PipelineConfig()
+    for f in dataclasses.fields(align.AlignOptions):  # the pipeline's defaults are AlignOptions'
+        assert getattr(cfg, f.name) == getattr(opts, f.name), f.name
+    assert align.AlignOptions.from_config(cfg) == opts
+    sig = inspect.signature(align.reliability_mask)
+    assert sig.parameters["depth_threshold"].default == opts.depth_threshold
+    assert sig.parameters["conf_ratio"].default == opts.conf_ratio
+    loop = opts.for_loop()
+    assert loop.depth_threshold == opts.loop_depth_threshold
+    assert loop.fallback_depth_threshold == max(opts.fallback_depth_threshold, opts.loop_depth_threshold)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        opts.min_points = 3  # type: ignore[misc]
+    # An options object and the same keywords give the same alignment.
+    prev, cur, K_ref, _ = make_pair(seed=8, o=2, h=16, w=24, dtype=np.float32)
+    S_kw, i_kw = align.align_chunk_pair(prev, cur, K_ref, min_points=100, depth_threshold=0.3)
+    S_op, i_op = align.align_chunk_pair(prev, cur, K_ref, options=opts.replace(min_points=100, depth_threshold=0.3))
+    np.testing.assert_array_equal(np.asarray(S_kw), np.asarray(S_op))
+    assert float(i_op.depth_threshold) == pytest.approx(0.3)
+    with pytest.raises(TypeError):
+        align.align_chunk_pairs(prev, cur, K_ref, no_such_option=1)
+
+
+def test_align_chunk_pair_checked_throw_false_reports_flags_only():
+    prev, cur, K_ref, _ = make_pair(seed=6, o=2, h=16, w=24, outliers=0.0, dtype=np.float32)
+    cur_bad = cur._replace(depth=cur.depth + 10.0)  # no pixel passes either threshold
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning with throw=False
+        S, info = align.align_chunk_pair_checked(prev, cur_bad, K_ref, throw=False)
+    assert bool(info.pose_fallback) and np.all(np.isfinite(np.asarray(S)))
+    K_nan = K_ref.copy()
+    K_nan[0, 2] = np.nan
+    _, info2 = align.align_chunk_pair_checked(prev, cur, K_nan, throw=False)  # no host check
+    assert not bool(info2.valid)
+
+
 # ------------------------------------------------------------------------ IRLS baseline
 
 

@@ -12,6 +12,7 @@ import dataclasses
 from typing import Any
 
 from swiftjax import loops, options
+from swiftjax.align import AlignOptions as _ALIGN
 from swiftjax.options import option
 from swiftjax.posegraph.gnc import DEFAULT_SCALE as _GNC_SCALE
 
@@ -62,23 +63,23 @@ class PipelineConfig:
         choices=("umeyama", "irls"), stage="temporal",
     )
     depth_threshold: float = option(
-        0.2, "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
+        _ALIGN.depth_threshold, "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
         low=0.0, low_open=True, stage="temporal",
     )
     conf_ratio: float = option(
-        0.5, "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
+        _ALIGN.conf_ratio, "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
         low=0.0, high=10.0, stage="temporal",
     )
     min_points: int = option(
-        20_000, "fewest reliable points before the one-time retry with fallback_depth_threshold",
+        _ALIGN.min_points, "fewest reliable points before the one-time retry with fallback_depth_threshold",
         low=3, stage="temporal",
     )
     fallback_depth_threshold: float = option(
-        0.25, "depth threshold of the retry when fewer than min_points are reliable",
+        _ALIGN.fallback_depth_threshold, "depth threshold of the retry when fewer than min_points are reliable",
         low=0.0, low_open=True, stage="temporal",
     )
     loop_depth_threshold: float = option(
-        0.4, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True,
+        _ALIGN.loop_depth_threshold, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True,
         stage="loops",
     )
     loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import _faults, camera, sim3
+from swiftjax.align import frame_conf_mean
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
@@ -121,9 +122,7 @@ def chunk_points(
     d = camera.normalize_depth(depth, scale_px @ K[:count], scale_px @ K_ref)
     pts = camera.unproject(d, scale_px @ K_ref, camera.camera_to_world(extrinsic[:count]))
     finite = jnp.isfinite(conf)
-    mean = jnp.sum(jnp.where(finite, conf, 0), axis=(-2, -1), keepdims=True) / jnp.maximum(
-        jnp.sum(finite, axis=(-2, -1), keepdims=True), 1
-    )
+    mean = frame_conf_mean(conf)[:, None, None]  # NaN for a frame without finite pixel: none kept
     keep = finite & (conf >= conf_ratio * mean) & jnp.all(jnp.isfinite(pts), axis=-1)
     if mask is not None:
         keep = keep & mask[:count, ::stride, ::stride]

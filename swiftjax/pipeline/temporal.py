@@ -356,7 +356,7 @@ def align_pair(
         f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
         S, info, count = align.irls_chunk_pair(
             align.ChunkFrames(*map(f32, prev)), align.ChunkFrames(*map(f32, cur)), f32(K_ref),
-            f32(options["depth_threshold"]), f32(options["conf_ratio"]),
+            f32(options.depth_threshold), f32(options.conf_ratio),
         )
         ok = bool(np.all(np.isfinite(np.asarray(S)))) and int(count) >= 3
         if not ok:
@@ -364,22 +364,16 @@ def align_pair(
         diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
                 "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok}
         return np.asarray(S, np.float64), diag
-    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, **options)
+    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, options=options)
     S = np.asarray(S, np.float64)
     # S and the source moments with the diagnostics: what the edge information is formed from
     # (swiftjax.pipeline.graph.edge_information), also for loop-chunk halves.
     return S, {**_info_dict(info), "S": S.tolist()}
 
 
-def _align_options(config: PipelineConfig, loop: bool) -> dict[str, Any]:
-    return dict(
-        depth_threshold=config.loop_depth_threshold if loop else config.depth_threshold,
-        conf_ratio=config.conf_ratio,
-        min_points=config.min_points,
-        fallback_depth_threshold=max(
-            config.fallback_depth_threshold, config.loop_depth_threshold if loop else 0.0
-        ),
-    )
+def _align_options(config: PipelineConfig, loop: bool) -> align.AlignOptions:
+    options = align.AlignOptions.from_config(config)
+    return options.for_loop() if loop else options
 
 
 def _info_dict(info: align.AlignInfo) -> dict[str, Any]:

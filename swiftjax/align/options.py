@@ -1,0 +1,57 @@
+"""The alignment stage's options, with their defaults written once.
+
+:class:`AlignOptions` is taken by :func:`~swiftjax.align.align_chunk_pair`,
+:func:`~swiftjax.align.align_chunk_pairs`, :func:`~swiftjax.align.align_chunk_pair_checked`,
+:func:`~swiftjax.align.reliability_mask` (its defaults) and
+:class:`~swiftjax.pipeline.PipelineConfig` (and so the CLI flags and the TOML keys).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+__all__ = ["AlignOptions"]
+
+
+@dataclasses.dataclass(frozen=True)
+class AlignOptions:
+    """Options of one chunk-pair alignment (paper eq. 1-2 and the authors' retry rule).
+
+    Attributes:
+        depth_threshold: ``lambda_D``: a pixel is reliable when the two chunks' normalised
+            depths differ by less than this (absolute, in the chunks' units).
+        conf_ratio: ``lambda_gamma``: and both confidences exceed this times their frame's mean.
+        min_points: fewest reliable points before the mask is recomputed once with
+            ``fallback_depth_threshold``.
+        fallback_depth_threshold: the depth threshold of that one-time retry.
+        loop_depth_threshold: ``depth_threshold`` when a loop chunk is aligned to its temporal
+            chunks (:meth:`for_loop`).
+
+    Every field is a traced argument of the jitted alignment: changing one never recompiles.
+    """
+
+    depth_threshold: float = 0.2
+    conf_ratio: float = 0.5
+    min_points: int = 20_000
+    fallback_depth_threshold: float = 0.25
+    loop_depth_threshold: float = 0.4
+
+    def replace(self, **changes: Any) -> "AlignOptions":
+        """A copy with ``changes`` applied (``None`` values are ignored)."""
+        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def for_loop(self) -> "AlignOptions":
+        """The options of a loop-chunk alignment: ``depth_threshold = loop_depth_threshold``,
+        and the retry threshold never tighter than it."""
+        return dataclasses.replace(
+            self,
+            depth_threshold=self.loop_depth_threshold,
+            fallback_depth_threshold=max(self.fallback_depth_threshold, self.loop_depth_threshold),
+        )
+
+    @classmethod
+    def from_config(cls, config: Any) -> "AlignOptions":
+        """The fields of ``config`` (e.g. a :class:`~swiftjax.pipeline.PipelineConfig`) that
+        share their names with this class's."""
+        return cls(**{f.name: getattr(config, f.name) for f in dataclasses.fields(cls)})
