@@ -80,6 +80,7 @@ __all__ = [
     "translation",
     "quaternion",
     "scale",
+    "jlog",
     "right_jacobian_inverse",
     "is_valid",
     "check",
@@ -420,9 +421,80 @@ def adjoint(S: ArrayLike) -> Array:
     return jnp.concatenate([row0, row1, row2], axis=-2)
 
 
+def _winv_coefficients(theta_sq: Array, sigma: Array) -> tuple[Array, Array, Array]:
+    """``(x, y, z)`` of ``W^-1 = x I + y K + z K^2`` (the formula of :func:`log`)."""
+    a, b, c = _w_coefficients(theta_sq, sigma)
+    d = c - theta_sq * b
+    det = d * d + theta_sq * a * a
+    return 1.0 / c, -a / det, (a * a - b * d) / (c * det)
+
+
+def _mat3(a: Array, b: Array) -> Array:
+    """``a @ b`` for ``[..., 3, 3]`` as elementwise multiply-adds (XLA:CPU runs a batched dot
+    as one library call per matrix)."""
+    return a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :] + a[..., :, 2, None] * b[..., None, 2, :]
+
+
+def jlog(xi: ArrayLike, S: ArrayLike | None = None) -> Array:
+    """Inverse right Jacobian ``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``, closed form:
+    ``[..., 7] -> [..., 7, 7]``.
+
+    ``S`` is ``exp(xi)`` when the caller already has it (a residual ``xi = log(E)`` passes
+    ``S = E``); otherwise it is computed.  With ``xi = (rho, omega, sigma)``,
+    ``rho = W^-1(omega, sigma) t`` and ``S exp(d) = (t + s R rho_d + O(d^2), R exp(omega_d), s e^sigma_d)``::
+
+        Jr^-1 = [[ s W^-1 R,  M Jr_SO3^-1(omega),  m ],
+                 [ 0,         Jr_SO3^-1(omega),    0 ],
+                 [ 0,         0,                   1 ]]
+
+        M = d(W^-1 t)/d omega = y [-t]x + z ((omega.t) I + omega t^T - 2 t omega^T)
+            + 2 (x_q t + y_q (omega x t) + z_q omega x (omega x t)) omega^T
+        m = d(W^-1 t)/d sigma = x_s t + y_s (omega x t) + z_s omega x (omega x t)
+
+    where ``(x, y, z)(theta^2, sigma)`` are the ``W^-1`` coefficients of :func:`log` and
+    ``_q``/``_s`` their partial derivatives in ``theta^2`` and ``sigma`` (two scalar JVPs through
+    the same branches as :func:`log`), and ``Jr_SO3^-1`` is :func:`swiftjax.so3.jlog`.  Valid for
+    ``|omega| < pi``.  :func:`right_jacobian_inverse` is the autodiff reference it is tested against.
+    """
+    r = jnp.asarray(xi)
+    E = exp(r) if S is None else jnp.asarray(S)
+    dtype = E.dtype
+    t, s = E[..., 0:3], E[..., 7]
+    w, sigma = r[..., 3:6], r[..., 6]
+    theta_sq = jnp.sum(w * w, -1)
+
+    # Partial derivatives of (x, y, z) in theta^2 and sigma: two scalar JVPs.
+    f = lambda a, b: jnp.stack(_winv_coefficients(a, b))  # noqa: E731
+    ones, zeros = jnp.ones_like(theta_sq), jnp.zeros_like(theta_sq)
+    coeffs, d_q = jax.jvp(f, (theta_sq, sigma), (ones, zeros))
+    _, d_s = jax.jvp(f, (theta_sq, sigma), (zeros, ones))
+    x, y, z = (v[..., None, None] for v in coeffs)
+    xq, yq, zq = (v[..., None] for v in d_q)
+    xs, ys, zs = (v[..., None] for v in d_s)
+
+    eye = jnp.eye(3, dtype=dtype)
+    outer = lambda a, b: a[..., :, None] * b[..., None, :]  # noqa: E731
+    k = so3.hat(w)
+    k2 = outer(w, w) - theta_sq[..., None, None] * eye  # K^2 = w w^T - theta^2 I
+    winv = x * eye + y * k + z * k2
+    wt = jnp.cross(w, t)
+    wwt = jnp.cross(w, wt)
+    wdt = jnp.sum(w * t, -1)[..., None, None]
+    g_q = xq * t + yq * wt + zq * wwt
+    big_m = -y * so3.hat(t) + z * (wdt * eye + outer(w, t) - 2.0 * outer(t, w)) + 2.0 * outer(g_q, w)
+    m = xs * t + ys * wt + zs * wwt
+    jso3 = so3._jlog_from(theta_sq, k, k2, eye)  # noqa: SLF001 - one formula for both groups
+
+    top = jnp.concatenate([s[..., None, None] * _mat3(winv, so3.as_matrix(E[..., 3:7])), _mat3(big_m, jso3), m[..., None]], -1)
+    middle = jnp.concatenate([jnp.zeros_like(jso3), jso3, jnp.zeros(s.shape + (3, 1), dtype)], -1)
+    bottom = jnp.broadcast_to(jnp.eye(7, dtype=dtype)[6], s.shape + (1, 7))
+    return jnp.concatenate([top, middle, bottom], -2)
+
+
 def right_jacobian_inverse(xi: ArrayLike) -> Array:
     """``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``: ``[..., 7] -> [..., 7, 7]``.
 
+    The autodiff reference for :func:`jlog` (prefer :func:`jlog`, which is closed form).
     Evaluated exactly (to rounding) by forward-mode differentiation of the closed-form
     ``log o compose o exp`` above: seven JVPs per element, no series truncation, valid for
     every ``|omega| < pi``.  It is what makes a log-residual pose graph reach its true

@@ -41,6 +41,8 @@ __all__ = [
     "rotate",
     "as_matrix",
     "from_matrix",
+    "project",
+    "jlog",
     "identity",
 ]
 
@@ -258,3 +260,66 @@ def from_matrix(r: ArrayLike) -> Array:
     p = jnp.take_along_axis(pivots, best[..., None], axis=-1)
     q = q * (0.5 / jnp.sqrt(p))
     return jnp.where(q[..., 3:4] < 0, -q, q)
+
+
+def _det3(m: Array) -> Array:
+    """Determinant of ``[..., 3, 3]`` by cofactors (elementwise: no LU call per matrix)."""
+    return (
+        m[..., 0, 0] * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
+        - m[..., 0, 1] * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
+        + m[..., 0, 2] * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0])
+    )
+
+
+def project(m: ArrayLike) -> Array:
+    """Quaternion of the rotation nearest to ``m`` in the Frobenius norm: ``[..., 3, 3] -> [..., 4]``.
+
+    With ``m = U diag(d) V^T`` (singular values ``d1 >= d2 >= d3 >= 0``), the nearest rotation
+    is ``R = U diag(1, 1, det(U V^T)) V^T`` (Umeyama 1991, eq. 39 with unit weights; Horn 1987):
+    when ``det m < 0`` the axis of the smallest singular value is flipped, so the result is a
+    rotation, never a reflection.  ``R`` is unique when ``d2 + d3 * det(U V^T) > 0``: always for
+    ``det m > 0`` and for rank 2, not for a rank ``<= 1`` matrix nor for a reflection with
+    ``d2 = d3`` (e.g. an exact reflection ``diag(1, 1, -1)``), where one of the minimisers is
+    returned.  The quaternion is read by :func:`from_matrix`
+    (``qw >= 0``).  Differentiable where the singular values are distinct.
+    """
+    m = jnp.asarray(m)
+    u, _, vt = jnp.linalg.svd(m)
+    d = jnp.where(_det3(u) * _det3(vt) < 0, -1.0, 1.0).astype(m.dtype)
+    # R_ij = sum_k U_ik D_k V^T_kj, D = (1, 1, d), elementwise over the batch.
+    u = u.at[..., :, 2].multiply(d[..., None])
+    r = u[..., :, 0, None] * vt[..., None, 0, :] + u[..., :, 1, None] * vt[..., None, 1, :] + u[..., :, 2, None] * vt[..., None, 2, :]
+    return from_matrix(r)
+
+
+def jlog(w: ArrayLike) -> Array:
+    """Inverse right Jacobian ``Jr^-1(w) = d log(exp(w) exp(d)) / d d`` at ``d = 0``:
+    ``[..., 3] -> [..., 3, 3]``.
+
+    Closed form (Sola et al. 2018, eq. 144; Sophus ``SO3::leftJacobianInverse(-w)``)::
+
+        Jr^-1(w) = I + K/2 + c K^2,   K = [w]x,   c = 1/theta^2 - cot(theta/2) / (2 theta)
+
+    with ``c -> 1/12 + theta^2/720 + theta^4/30240`` for ``theta -> 0``.  Valid for
+    ``|w| < 2 pi`` (``cot(theta/2)`` has its pole at ``2 pi``).
+    """
+    w = jnp.asarray(w)
+    dtype = w.dtype
+    theta_sq = jnp.sum(w * w, -1)
+    eye = jnp.eye(3, dtype=dtype)
+    k = hat(w)
+    k2 = w[..., :, None] * w[..., None, :] - theta_sq[..., None, None] * eye  # K^2 = w w^T - theta^2 I
+    return _jlog_from(theta_sq, k, k2, eye)
+
+
+def _jlog_from(theta_sq: Array, k: Array, k2: Array, eye: Array) -> Array:
+    """:func:`jlog` from ``theta^2``, ``K`` and ``K^2`` (shared with :func:`swiftjax.sim3.jlog`)."""
+    small = theta_sq < (1e-6 if theta_sq.dtype == jnp.float32 else 1e-8)
+    tsq = jnp.where(small, 1.0, theta_sq)
+    theta = jnp.sqrt(tsq)
+    c = jnp.where(
+        small,
+        1.0 / 12.0 + theta_sq / 720.0 + theta_sq * theta_sq / 30240.0,
+        1.0 / tsq - 0.5 / (theta * jnp.tan(0.5 * theta)),
+    )
+    return eye + 0.5 * k + c[..., None, None] * k2

@@ -337,3 +337,11 @@ def test_jitted_log_exp_with_tiny_log_scale_is_finite(dtype):
             back = jax.jit(lambda x: sim3.log(sim3.exp(x)))(xi)
             np.testing.assert_allclose(back, xi, rtol=0, atol=50 * _tol(dtype))
             assert np.all(np.isfinite(jax.jit(sim3.right_jacobian_inverse)(xi)))
+
+
+def test_jlog_closed_form_matches_forward_mode(x64):
+    xi = _tangents(5, 1.2, 0.3, n=8)
+    ref = np.asarray(jax.jit(sim3.right_jacobian_inverse)(xi))
+    np.testing.assert_allclose(np.asarray(jax.jit(sim3.jlog)(xi)), ref, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(jax.jit(sim3.jlog)(xi, sim3.exp(xi))), ref, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(jax.jit(so3.jlog)(xi[:, 3:6])), ref[:, 3:6, 3:6], atol=1e-9)
