@@ -1,4 +1,4 @@
-"""The ``swiftjax`` command: ``demo``, ``reconstruct``, ``view``, ``evaluate``, ``export-onnx``.
+"""The ``swiftjax`` command: ``demo``, ``reconstruct``, ``batch``, ``view``, ``evaluate``, ``export-onnx``.
 
 Bad input ends with a one-line ``swiftjax: error: ...`` and exit status 2, never a
 traceback (``--debug`` shows it).  JAX's persistent compilation cache is enabled
