@@ -1,14 +1,17 @@
 """MkDocs hooks: the API reference is generated from the source tree, and the benchmark pages
 are whatever ``docs/performance/*.md`` holds.
 
-Nothing here imports swiftjax (the API pages are read by griffe's static analysis), so the
-documentation build never imports torch or JAX except inside the executed notebooks.
+The API pages are read by griffe's static analysis (nothing imported); the options page imports
+the option schema.
 
 * ``api/<module>.md`` for every public module and package of ``swiftjax`` and ``inference``
   (names starting with ``_`` are private and skipped, and so is a module whose docstring
   starts with "Deprecated": a moved module's alias, named on the index page); a package's page documents the
   package and then each of its public submodules, so a module split into a package keeps
   one page and needs no edit here.  ``api/index.md`` lists them with their one-line summaries.
+* ``options.md``: every method option of ``PipelineConfig`` (flag, TOML key, default, what it
+  accepts, what it does), from the option schema itself.  This imports
+  ``swiftjax.pipeline.config`` (JAX, never torch: the hook fails the build if torch was pulled in).
 * The "Benchmarks" section lists ``performance/index.md``, then the pages in
   ``PERFORMANCE_ORDER`` that exist, then any other page found there (alphabetical).
 """
@@ -16,7 +19,9 @@ documentation build never imports torch or JAX except inside the executed notebo
 from __future__ import annotations
 
 import ast
+import dataclasses
 import pathlib
+import sys
 
 from mkdocs.structure.files import File
 
@@ -90,6 +95,47 @@ def _api() -> tuple[dict[str, str], list]:
     return pages, nav
 
 
+def _options_page() -> str:
+    sys.path.insert(0, str(ROOT))
+    try:
+        from swiftjax import options
+        from swiftjax.pipeline.config import PipelineConfig
+    finally:
+        sys.path.pop(0)
+    if "torch" in sys.modules:
+        raise RuntimeError("importing swiftjax's option schema imported torch: swiftjax must never import it")
+    fields = {f.name: f for f in dataclasses.fields(PipelineConfig)}
+    specs = options.specs(PipelineConfig)
+    lines = [
+        "# Options",
+        "",
+        "Every method parameter is an option of `swiftjax.pipeline.PipelineConfig`, with the paper's",
+        "(or the authors' code's) default. The same declaration gives the Python field, the",
+        "command-line flag of `swiftjax reconstruct` and `swiftjax demo`, and the key of a",
+        "`--config file.toml`; values are checked against it before any work (`swiftjax.options`).",
+        "An option's *stage* is the first stage of a run whose stored result it changes: a",
+        "resumed run redoes that stage and the ones after it.",
+        "",
+        "This page is generated from the schema when the documentation is built.",
+        "",
+    ]
+    for stage in options.STAGES:
+        names = [n for n, sp in specs.items() if sp.stage == stage]
+        if not names:
+            continue
+        lines += [f"## Stage `{stage}`", "", "| option (TOML key) | flag | default | accepts | what |", "| --- | --- | --- | --- | --- |"]
+        for n in names:
+            sp, default = specs[n], fields[n].default
+            flag = options.flag(n)
+            if sp.kind is bool:
+                flag = f"{flag}, --no-{flag[2:]}"
+            shown = "none" if default is None else str(default).lower() if isinstance(default, bool) else str(default)
+            cells = [f"`{n}`", f"`{flag}`", f"`{shown}`", sp.allowed(n), sp.help]
+            lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _performance_nav(docs_dir: pathlib.Path) -> list:
     perf = docs_dir / "performance"
     found = {p.stem for p in perf.glob("*.md")} - {"index"}
@@ -108,6 +154,7 @@ def _replace(nav: list, title: str, entries: list) -> None:
 def on_config(config):
     global _pages
     _pages, api_nav = _api()
+    _pages["options.md"] = _options_page()
     _replace(config["nav"], "API reference", api_nav)
     _replace(config["nav"], "Benchmarks", _performance_nav(pathlib.Path(config["docs_dir"])))
     return config
