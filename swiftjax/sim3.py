@@ -124,25 +124,25 @@ def _join(t: so3.Vec3, q: so3.Quat, s: Array) -> Array:
 
 def _compose_c(a: _Elem, b: _Elem) -> _Elem:
     (ta, qa, sa), (tb, qb, sb) = a, b
-    rt = so3.rotate_components(qa, tb)
+    rt = so3.act_components(qa, tb)
     return (
         (sa * rt[0] + ta[0], sa * rt[1] + ta[1], sa * rt[2] + ta[2]),
-        so3.multiply_components(qa, qb),
+        so3.compose_components(qa, qb),
         sa * sb,
     )
 
 
 def _inverse_c(a: _Elem) -> _Elem:
     t, q, s = a
-    q_inv = so3.conjugate_components(q)
+    q_inv = so3.inverse_components(q)
     s_inv = 1.0 / s
-    rt = so3.rotate_components(q_inv, t)
+    rt = so3.act_components(q_inv, t)
     return (-s_inv * rt[0], -s_inv * rt[1], -s_inv * rt[2]), q_inv, s_inv
 
 
 def _act_c(a: _Elem, x: so3.Vec3) -> so3.Vec3:
     t, q, s = a
-    rx = so3.rotate_components(q, x)
+    rx = so3.act_components(q, x)
     return s * rx[0] + t[0], s * rx[1] + t[1], s * rx[2] + t[2]
 
 

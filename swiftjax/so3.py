@@ -14,10 +14,10 @@ Maths (Sola, "A micro Lie theory", 2018, eqs. 101-106; Sophus ``so3.hpp``):
   At exactly ``pi`` (``w = 0``) both ``w`` and ``-w`` are valid logs; we return the one
   along ``v`` of the given sign.
 
-Non-unit quaternions: every function that reads a rotation from ``q`` (:func:`rotate`,
+Non-unit quaternions: every function that reads a rotation from ``q`` (:func:`act`,
 :func:`as_matrix`, :func:`log`) reads the rotation of ``q / |q|``, so a quaternion that has
 drifted from unit norm means the same rotation everywhere (the products of
-:func:`multiply` keep the norms' product).  A zero quaternion is no rotation: it gives NaN.
+:func:`compose` keep the norms' product).  A zero quaternion is no rotation: it gives NaN.
 """
 
 from __future__ import annotations
@@ -32,19 +32,43 @@ from jax.typing import ArrayLike
 from swiftjax._elementary import arctan2_nonneg, sincos
 
 __all__ = [
-    "hat",
-    "vee",
+    "identity",
     "exp",
     "log",
-    "multiply",
-    "conjugate",
-    "rotate",
+    "jlog",
+    "compose",
+    "inverse",
+    "between",
+    "act",
+    "adjoint",
+    "normalize",
+    "canonical",
+    "hat",
+    "vee",
     "as_matrix",
     "from_matrix",
     "project",
-    "jlog",
-    "identity",
 ]
+
+#: Old names kept for one release: ``name -> new name`` (module ``__getattr__`` warns).
+_DEPRECATED = {
+    "multiply": "compose",
+    "conjugate": "inverse",
+    "rotate": "act",
+    "multiply_components": "compose_components",
+    "conjugate_components": "inverse_components",
+    "rotate_components": "act_components",
+}
+
+
+def __getattr__(name: str):
+    if name in _DEPRECATED:
+        import warnings
+
+        new = _DEPRECATED[name]
+        warnings.warn(f"swiftjax.so3.{name} is deprecated; use swiftjax.so3.{new}", DeprecationWarning, stacklevel=2)
+        return globals()[new]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _small_angle_eps(dtype: jnp.dtype) -> float:
@@ -72,6 +96,12 @@ def split(x: Array) -> tuple[Array, ...]:
 def join(components: tuple[Array, ...]) -> Array:
     """Inverse of :func:`split`: broadcast the components and stack them on a last axis."""
     return jnp.moveaxis(jnp.stack(jnp.broadcast_arrays(*components), axis=0), 0, -1)
+
+
+def hemisphere_sign(w: Array) -> Array:
+    """``-1`` where ``w < 0``, else ``+1`` (in ``w``'s dtype): the factor that moves a quaternion
+    with real part ``w`` to the ``w >= 0`` hemisphere (the one sign convention of this module)."""
+    return jnp.where(w < 0, -1.0, 1.0).astype(w.dtype)
 
 
 def cross(a: Vec3, b: Vec3) -> Vec3:
@@ -110,7 +140,7 @@ def exp_components(w: Vec3) -> tuple[Quat, HalfAngle]:
 
 def log_components(q: Quat) -> tuple[Vec3, HalfAngle]:
     """:func:`log` on components, also returning the half-angle trigonometry."""
-    sign = jnp.where(q[3] < 0, -1.0, 1.0).astype(q[3].dtype)
+    sign = hemisphere_sign(q[3])
     v = (sign * q[0], sign * q[1], sign * q[2])
     w = sign * q[3]
     n_sq = dot(v, v)
@@ -127,7 +157,7 @@ def log_components(q: Quat) -> tuple[Vec3, HalfAngle]:
     return omega, half
 
 
-def multiply_components(a: Quat, b: Quat) -> Quat:
+def compose_components(a: Quat, b: Quat) -> Quat:
     av, bv = a[:3], b[:3]
     c = cross(av, bv)
     return (
@@ -138,13 +168,13 @@ def multiply_components(a: Quat, b: Quat) -> Quat:
     )
 
 
-def conjugate_components(q: Quat) -> Quat:
+def inverse_components(q: Quat) -> Quat:
     return (-q[0], -q[1], -q[2], q[3])
 
 
-def rotate_components(q: Quat, x: Vec3) -> Vec3:
+def act_components(q: Quat, x: Vec3) -> Vec3:
     """``R(q / |q|) x = x + (2 / |q|^2) (w (v x x) + v x (v x x))`` (15 multiplies fewer than
-    building ``R``).  Any non-zero ``q`` rotates as its unit version (as :func:`log` reads it);
+    building ``R``).  Any non-zero ``q`` acts as its unit version (as :func:`log` reads it);
     the factor ``2 / |q|^2`` has ``q``'s shape, so broadcasting one ``q`` over many points
     costs one division.  A zero quaternion gives NaN."""
     v, w = q[:3], q[3]
@@ -196,25 +226,49 @@ def log(q: ArrayLike) -> Array:
     return join(log_components(split(jnp.asarray(q)))[0])
 
 
-def multiply(a: ArrayLike, b: ArrayLike) -> Array:
+def compose(a: ArrayLike, b: ArrayLike) -> Array:
     """Hamilton product ``a * b`` (rotation ``b`` first, then ``a``): ``[..., 4]``."""
-    return join(multiply_components(split(jnp.asarray(a)), split(jnp.asarray(b))))
+    return join(compose_components(split(jnp.asarray(a)), split(jnp.asarray(b))))
 
 
-def conjugate(q: ArrayLike) -> Array:
-    """Conjugate (= inverse for unit quaternions): ``(-v, w)``."""
+def inverse(q: ArrayLike) -> Array:
+    """Conjugate ``(-v, w)``, the inverse of a unit quaternion (of ``q / |q|`` up to the norm)."""
     q = jnp.asarray(q)
     return q * jnp.array([-1, -1, -1, 1], dtype=q.dtype)
 
 
-def rotate(q: ArrayLike, x: ArrayLike) -> Array:
+def between(a: ArrayLike, b: ArrayLike) -> Array:
+    """``a^-1 * b``, the rotation from ``b``'s frame into ``a``'s: ``[..., 4]``."""
+    return join(compose_components(inverse_components(split(jnp.asarray(a))), split(jnp.asarray(b))))
+
+
+def act(q: ArrayLike, x: ArrayLike) -> Array:
     """Rotate points: ``R(q) x`` for ``q [..., 4]``, ``x [..., 3]`` (broadcast)."""
-    return join(rotate_components(split(jnp.asarray(q)), split(jnp.asarray(x))))
+    return join(act_components(split(jnp.asarray(q)), split(jnp.asarray(x))))
+
+
+def adjoint(q: ArrayLike) -> Array:
+    """Adjoint ``[..., 4] -> [..., 3, 3]``: ``q exp(w) q^-1 = exp(Ad(q) w)`` with ``Ad(q) = R(q)``."""
+    return as_matrix(q)
+
+
+def normalize(q: ArrayLike) -> Array:
+    """``q / |q|`` (e.g. after many compositions); the sign is kept."""
+    c = split(jnp.asarray(q))
+    inv = jax.lax.rsqrt(c[0] ** 2 + c[1] ** 2 + c[2] ** 2 + c[3] ** 2)
+    return join(tuple(x * inv for x in c))
+
+
+def canonical(q: ArrayLike) -> Array:
+    """``q`` or ``-q``, whichever has ``qw >= 0`` (the same rotation; the form :func:`from_matrix`
+    returns and :func:`log` reads)."""
+    q = jnp.asarray(q)
+    return q * hemisphere_sign(q[..., 3:4])
 
 
 def as_matrix(q: ArrayLike) -> Array:
     """Rotation matrix of ``q / |q|``: ``[..., 4] -> [..., 3, 3]`` (always a rotation, as
-    :func:`rotate` and :func:`log` read any non-zero quaternion; NaN for a zero one)."""
+    :func:`act` and :func:`log` read any non-zero quaternion; NaN for a zero one)."""
     q = jnp.asarray(q)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
@@ -258,8 +312,7 @@ def from_matrix(r: ArrayLike) -> Array:
     best = jnp.argmax(pivots, axis=-1)
     q = jnp.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
     p = jnp.take_along_axis(pivots, best[..., None], axis=-1)
-    q = q * (0.5 / jnp.sqrt(p))
-    return jnp.where(q[..., 3:4] < 0, -q, q)
+    return canonical(q * (0.5 / jnp.sqrt(p)))
 
 
 def _det3(m: Array) -> Array:
