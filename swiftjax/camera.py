@@ -120,9 +120,9 @@ def extrinsic_to_sim3(extrinsic: ArrayLike) -> Array:
     """
     E = jnp.asarray(extrinsic)
     R, t = E[..., :3, :3], E[..., :3, 3]
-    q_c2w = so3.conjugate(so3.from_matrix(R))
+    q_c2w = so3.inverse(so3.from_matrix(R))
     q_c2w = q_c2w / jnp.linalg.norm(q_c2w, axis=-1, keepdims=True)
-    c = -so3.rotate(q_c2w, t)  # camera centre -R^T t
+    c = -so3.act(q_c2w, t)  # camera centre -R^T t
     return sim3._pack(c, q_c2w, jnp.ones(E.shape[:-2], E.dtype))
 
 

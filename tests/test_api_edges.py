@@ -47,7 +47,7 @@ def test_non_unit_quaternion_means_its_unit_version_everywhere(x64):
     np.testing.assert_allclose(sim3.as_matrix(sim3.compose(scaled, B)), ref @ _matrix(B), atol=1e-12)
     np.testing.assert_allclose(sim3.as_matrix(sim3.inverse(scaled)), np.linalg.inv(ref), atol=1e-11)
     np.testing.assert_allclose(sim3.log(scaled), sim3.log(S), atol=1e-12)
-    np.testing.assert_allclose(so3.rotate(scaled[:, 3:7], x), so3.rotate(S[:, 3:7], x), atol=1e-12)
+    np.testing.assert_allclose(so3.act(scaled[:, 3:7], x), so3.act(S[:, 3:7], x), atol=1e-12)
     assert np.all(np.asarray(sim3.is_valid(scaled)))
 
 
