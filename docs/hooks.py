@@ -21,6 +21,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import pathlib
+import re
 import sys
 
 from mkdocs.structure.files import File
@@ -32,9 +33,13 @@ PERFORMANCE_ORDER = ("sim3", "align", "loops", "posegraph", "coldstart", "pipeli
 _pages: dict[str, str] = {}
 
 
+_ROLE = re.compile(r":(?:py:)?[a-z]+:`~?([^`]+)`")
+
+
 def _summary(path: pathlib.Path) -> str:
+    """The first line of a module's docstring, its reST roles as inline code."""
     doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
-    return doc.strip().splitlines()[0] if doc.strip() else ""
+    return _ROLE.sub(r"`\1`", doc.strip().splitlines()[0]) if doc.strip() else ""
 
 
 def _public(name: str) -> bool:
@@ -140,7 +145,7 @@ def _performance_nav(docs_dir: pathlib.Path) -> list:
     perf = docs_dir / "performance"
     found = {p.stem for p in perf.glob("*.md")} - {"index"}
     ordered = [s for s in PERFORMANCE_ORDER if s in found] + sorted(found - set(PERFORMANCE_ORDER))
-    return ["performance/index.md"] + [f"performance/{s}.md" for s in ordered]
+    return [{"Overview": "performance/index.md"}] + [f"performance/{s}.md" for s in ordered]
 
 
 def _replace(nav: list, title: str, entries: list) -> None:
