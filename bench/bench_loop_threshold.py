@@ -69,10 +69,10 @@ def evaluate(found, gt, regions):
 def every_candidate(Z, sched):
     """All candidates at any threshold (NMS and the chunk filter are prefix-consistent in the
     threshold), loops between neighbouring chunks dropped: ``(pairs [M, 2], scores [M])``."""
-    n = len(Z)
-    kept = L.filter_by_chunks(L.detect_loops(Z, -1.0, max_loops=4096), sched.starts, sched.chunk_size, n)
+    kept = L.filter_by_chunks(L.detect_loops(Z, -1.0, max_loops=4096), sched)
     c = int(kept.count)
-    lc = loop_chunk._loop_chunks(np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts), sched.chunk_size, n, 10)
+    lc = loop_chunk._loop_chunks(np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts, np.int32),
+                                 np.asarray(sched.ends, np.int32), 10)
     ok = (np.abs(np.asarray(lc.chunk_i) - np.asarray(lc.chunk_j)) >= 2)[:c] & np.asarray(lc.valid)[:c]
     return np.asarray(kept.pairs)[:c][ok], np.asarray(kept.scores)[:c][ok]
 

@@ -88,7 +88,7 @@ def score_variant(Z, nms, gt, regions, sched, n_pairs_std=200_000, seed=0):
     in the threshold: raising it keeps a prefix of the accepted list)."""
     n = len(Z)
     cand = L.detect_loops(Z, -1.0, nms=nms, max_loops=4096 if nms == "pair" else None)
-    kept = L.filter_by_chunks(cand, sched.starts, sched.chunk_size, n)
+    kept = L.filter_by_chunks(cand, sched)
     c = int(kept.count)
     pairs, scores = np.asarray(kept.pairs)[:c], np.asarray(kept.scores)[:c]
     ev = places.evaluate_loops(pairs, gt, regions=regions)

@@ -45,9 +45,11 @@ class ChunkSchedule:
         """Frames shared by chunks ``t`` and ``t + 1`` (``O`` frames)."""
         return np.arange(self.starts[t + 1], self.ends[t])
 
-    def chunk_of(self, frame: int) -> int:
-        """The last chunk that contains ``frame`` (later chunks win in overlaps)."""
-        return int(np.searchsorted(self.starts, frame, side="right") - 1)
+    def chunk_of(self, frame: int | np.ndarray) -> int | np.ndarray:
+        """The last chunk that contains ``frame`` (later chunks win in overlaps); an array of
+        frames gives the array of their chunks."""
+        chunk = np.searchsorted(self.starts, frame, side="right") - 1
+        return int(chunk) if np.ndim(chunk) == 0 else chunk
 
 
 def chunk_schedule(n_frames: int, chunk_size: int = 75, overlap: int = 30) -> ChunkSchedule:

@@ -37,9 +37,17 @@ from swiftjax.loops.descriptors import Whitening, fit_whitening, frame_descripto
 from swiftjax.loops.detection import LoopCandidates, ThresholdCalibration, calibrate_threshold, detect_loops
 from swiftjax.loops.find import Loop, find_loops
 from swiftjax.loops.loop_chunk import LoopChunk, filter_by_chunks, loop_chunk_frames, loop_edge
-from swiftjax.loops.options import AUTHORS_THRESHOLD, DEFAULT_FALSE_ALARMS, DEFAULT_THRESHOLD, THRESHOLD_RULES
+from swiftjax.loops.options import (
+    AUTHORS_THRESHOLD,
+    DEFAULT_FALSE_ALARMS,
+    DEFAULT_THRESHOLD,
+    THRESHOLD_RULES,
+    VERIFICATION_RULES,
+    LoopOptions,
+)
 
 __all__ = [
+    "LoopOptions",
     "frame_descriptor",
     "power_normalize",
     "Whitening",
@@ -59,4 +67,5 @@ __all__ = [
     "AUTHORS_THRESHOLD",
     "DEFAULT_FALSE_ALARMS",
     "THRESHOLD_RULES",
+    "VERIFICATION_RULES",
 ]

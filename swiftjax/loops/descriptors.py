@@ -20,7 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxtyping import Array, ArrayLike, Float
+
 from swiftjax.loops._checks import _check_finite, _is_concrete
+from swiftjax.loops.options import LoopOptions
+
+_DEFAULTS = LoopOptions()
 
 __all__ = ["frame_descriptor", "power_normalize", "Whitening", "fit_whitening", "whiten"]
 
@@ -35,7 +40,7 @@ def _l2(x: jax.Array, axis: int = -1) -> jax.Array:
 
 
 @jax.jit
-def frame_descriptor(tokens: jax.Array) -> jax.Array:
+def frame_descriptor(tokens: Float[ArrayLike, "*batch K d"]) -> Float[Array, "*batch d"]:
     """Place descriptor ``g⁰`` of each frame: ``[..., K, d]`` → ``[..., d]``.
 
     ``g⁰ = ℓ2( (1/K) Σ_k ℓ2(x_k) )`` (each patch token ℓ2-normalised, averaged, ℓ2 again).
@@ -48,7 +53,9 @@ def frame_descriptor(tokens: jax.Array) -> jax.Array:
 
 
 @jax.jit
-def power_normalize(g: jax.Array, beta: float | jax.Array = 0.5) -> jax.Array:
+def power_normalize(
+    g: Float[ArrayLike, "*batch d"], beta: float | Float[ArrayLike, ""] = _DEFAULTS.beta
+) -> Float[Array, "*batch d"]:
     """Signed power normalisation ``g¹ = ℓ2(sign(g) |g|^β)``, ``[..., d]`` → ``[..., d]``.
 
     ``beta`` is traced (changing it does not recompile); ``β = 1`` is the identity on unit
@@ -107,13 +114,15 @@ def _whitening_dims(n: int, d: int, remove: int, dim: int, max_samples: int) -> 
 
 
 def fit_whitening(
-    G: jax.Array,
-    remove: int = 1,
-    dim: int = 512,
-    eps: float = 1e-6,
-    max_samples: int = 50_000,
+    G: Float[ArrayLike, "N d"],
+    remove: int = _DEFAULTS.remove,
+    dim: int = _DEFAULTS.dim,
+    eps: float = _DEFAULTS.eps,
+    max_samples: int = _DEFAULTS.max_samples,
+    *,
+    throw: bool = True,
 ) -> Whitening:
-    """PCA whitening of descriptors ``G [N, d]`` (DESIGN.md "whitening").
+    """PCA whitening of descriptors ``G [N, d]``.
 
     ``μ = mean(G)``, ``C = (G − μ)ᵀ(G − μ) / M`` (biased covariance) over ``M = min(N,
     max_samples)`` descriptors (evenly spaced rows when ``N > max_samples``, deterministic),
@@ -125,16 +134,19 @@ def fit_whitening(
     ``d′ = min(dim, d − remove, M − 1 − remove)``: a request larger than the available rank
     is clamped and ``clamped`` says so.  The eigen-decomposition runs in the input dtype.
     Jit-able (``remove``, ``dim``, ``max_samples`` static; ``eps`` traced); recompiles per
-    ``G`` shape.  Called with a concrete array it first rejects NaN/Inf rows (host boundary).
+    ``G`` shape.  Called with a concrete array and ``throw=True`` it first rejects NaN/Inf
+    rows (host boundary); with ``throw=False`` that check is skipped and non-finite rows make
+    the whitening non-finite (test ``jnp.isfinite(w.projection).all()``).
 
     Raises:
-        ValueError: ``G`` not 2-D, non-finite values, or nothing left after ``remove``.
+        ValueError: ``G`` not 2-D, nothing left after ``remove``, or (``throw=True``)
+            non-finite values.
     """
     if jnp.ndim(G) != 2:
         raise ValueError(f"fit_whitening: G must be [N, d], got shape {jnp.shape(G)}")
     n, d = jnp.shape(G)
     _whitening_dims(n, d, remove, dim, max_samples)
-    if _is_concrete(G):
+    if throw and _is_concrete(G):
         _check_finite(G, "fit_whitening: descriptors G")
     return _fit_whitening(jnp.asarray(G), jnp.asarray(eps), remove, dim, max_samples)
 
@@ -168,7 +180,7 @@ def _fit_whitening(G, eps, remove: int, dim: int, max_samples: int) -> Whitening
 
 
 @jax.jit
-def whiten(w: Whitening, G: jax.Array) -> jax.Array:
+def whiten(w: Whitening, G: Float[ArrayLike, "*batch d"]) -> Float[Array, "*batch dk"]:
     """Whitened descriptors ``ẑ = ℓ2((G − μ) W)``: ``[..., d]`` → ``[..., d′]``."""
     return _l2((jnp.asarray(G) - w.mean) @ w.projection)
 

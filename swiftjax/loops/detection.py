@@ -16,9 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxtyping import ArrayLike, Float
+
 from swiftjax.loops._checks import _check_finite, _is_concrete
 from swiftjax.loops.descriptors import _l2
-from swiftjax.loops.options import DEFAULT_FALSE_ALARMS, DEFAULT_THRESHOLD
+from swiftjax.loops.options import LoopOptions, check_values
+
+_DEFAULTS = LoopOptions()
 
 __all__ = ["LoopCandidates", "ThresholdCalibration", "calibrate_threshold", "detect_loops"]
 
@@ -62,8 +66,7 @@ def _default_max_loops(n: int, nms_radius: int, top_k: int, nms: str) -> int:
 
 def _default_block_rows(n: int) -> int:
     # Small tiles keep the masked [T, N] similarity cache-resident between the GEMM, the mask
-    # and top-k; measured on the 2-core dev CPU (bench/bench_loops.py): at N = 4,541 tiles of
-    # 128 rows run ~2x faster than one dense tile, at N = 20,000 tiles of 256 rows are best.
+    # and top-k (the tile sizes: docs/performance/loops.md).
     return min(n, 128 if n <= 8192 else 256)
 
 
@@ -93,8 +96,8 @@ def _quantile_sorted(x_sorted: jax.Array, n: jax.Array, p: float) -> jax.Array:
 
 @functools.partial(jax.jit, static_argnames=("quantiles",))
 def calibrate_threshold(
-    best: jax.Array,
-    false_alarms: float | jax.Array = DEFAULT_FALSE_ALARMS,
+    best: Float[ArrayLike, " N"],
+    false_alarms: float | Float[ArrayLike, ""] = _DEFAULTS.false_alarms,
     quantiles: tuple[float, float] = (0.1, 0.4),
 ) -> ThresholdCalibration:
     """The loop threshold of one sequence from ``best [N]``, each frame's best similarity
@@ -111,19 +114,14 @@ def calibrate_threshold(
 
     then choose ``τ`` so that the expected number of null frames above it is ``α``
     (``false_alarms``) among the ``n`` frames: ``n Φ̄((τ − μ)/σ) = α``, i.e.
-    ``τ = μ + Φ̄⁻¹(α / n) σ`` (``k = 5.05`` for KITTI 00's 4,541 frames at ``α = 10⁻³``,
-    4.66 for the 618-frame demo route).
+    ``τ = μ + Φ̄⁻¹(α / n) σ``.
 
-    Two biases, both measured in ``bench/bench_loop_threshold.py``: with a fraction ``r`` of
-    frames on a revisit, the overall quantile ``p`` is the null's ``p / (1 − r)`` (KITTI 00:
-    ``r = 0.44``), which inflates ``μ`` and ``σ`` (a higher, conservative ``τ``); and best-of-
-    many scores are right-skewed (Gumbel-like: a shorter lower tail than the Gaussian's), which
-    shrinks the lower-quantile ``σ``.  Correcting the first alone (refitting at ``p (1 − r̂)``)
-    lowered ``τ`` below false best matches on the demo route (precision 0.33); the plain fit
-    above keeps precision 1 and every region on 16 of the 20 separable generator cases of our
-    whitening, where the constant 0.43 manages 8 (the 4 misses: strong hubness and d = 256,
-    whose windows sit at ``k`` = 2.8-4.2).  It assumes that fewer than ``1 − p₂`` (60 %) of the
-    frames revisit.
+    Two biases: with a fraction ``r`` of frames on a revisit, the overall quantile ``p`` is
+    the null's ``p / (1 − r)``, which inflates ``μ`` and ``σ`` (a higher, conservative
+    ``τ``); and best-of-many scores are right-skewed (Gumbel-like: a shorter lower tail than
+    the Gaussian's), which shrinks the lower-quantile ``σ``.  The plain fit above is kept
+    (why, and how it compares with the fixed threshold: ``docs/performance/loops.md``).  It
+    assumes that fewer than ``1 − p₂`` (60 %) of the frames revisit.
 
     Pure and jit-compiled (``quantiles`` static; ``false_alarms`` traced); ``q`` is NumPy's
     linear-interpolation quantile over the finite entries.  Recompiles per ``N`` and dtype.
@@ -144,16 +142,18 @@ def calibrate_threshold(
 
 
 def detect_loops(
-    Z: jax.Array,
-    threshold: float | jax.Array = DEFAULT_THRESHOLD,
-    min_separation: int = 100,
-    nms_radius: int = 25,
-    top_k: int = 8,
-    max_loops: int | None = None,
+    Z: Float[ArrayLike, "N dk"],
+    threshold: float | Float[ArrayLike, ""] = _DEFAULTS.threshold,
+    min_separation: int = _DEFAULTS.min_separation,
+    nms_radius: int = _DEFAULTS.nms_radius,
+    top_k: int = _DEFAULTS.top_k,
+    max_loops: int | None = _DEFAULTS.max_loops,
     block_rows: int | None = None,
-    nms: str = "pair",
+    nms: str = _DEFAULTS.nms,
     calibrate: bool = False,
-    false_alarms: float = DEFAULT_FALSE_ALARMS,
+    false_alarms: float = _DEFAULTS.false_alarms,
+    *,
+    throw: bool = True,
 ) -> LoopCandidates:
     """Loop candidates from descriptors ``Z [N, d′]`` (rows ℓ2-normalised here again).
 
@@ -172,8 +172,7 @@ def detect_loops(
          ends in the similarity matrix);
        * ``nms="frame"`` (VGGT-Long style): accepting ``(a, b)`` suppresses every frame in
          ``[a − r, a + r]`` and ``[b − r, b + r]``; a candidate touching a suppressed frame is
-         dropped.  A place visited three times (KITTI 00: frames ~400, ~2450, ~3400) then
-         yields only two of its three loops -- see bench/bench_loops.py.
+         dropped.  A place visited three times then yields only two of its three loops.
 
     The separation mask is applied *before* the per-row top-k (otherwise a frame's top-k are
     its temporal neighbours and no loop survives).  The ``N × N`` matrix is never built:
@@ -197,9 +196,10 @@ def detect_loops(
         :class:`LoopCandidates` with ``max_loops`` rows.  ``N = 1`` or ``N <= min_separation + 1``
         give ``count = 0``.
 
-    Recompiles per ``(N, d′)``, dtype and static option.  Called with a concrete ``Z`` it
-    first rejects NaN/Inf rows with a ``ValueError`` (host boundary); under an outer ``jit``
-    a non-finite similarity simply never becomes a candidate.
+    Recompiles per ``(N, d′)``, dtype and static option.  Called with a concrete ``Z`` and
+    ``throw=True`` it first rejects NaN/Inf rows (and a non-finite threshold) with a
+    ``ValueError`` (host boundary); with ``throw=False``, or under an outer ``jit``, a
+    non-finite similarity simply never becomes a candidate.
     """
     if jnp.ndim(Z) != 2:
         raise ValueError(f"detect_loops: Z must be [N, d'], got shape {jnp.shape(Z)}")
@@ -211,15 +211,14 @@ def detect_loops(
     n = jnp.shape(Z)[0]
     if n < 1:
         raise ValueError("detect_loops: Z has no rows")
-    if nms not in ("frame", "pair"):
-        raise ValueError(f"detect_loops: nms must be 'frame' or 'pair', got {nms!r}")
+    check_values({"nms": nms}, "detect_loops")
     if max_loops is None:
         max_loops = _default_max_loops(n, nms_radius, top_k, nms)
     if max_loops < 1:
         raise ValueError(f"detect_loops: max_loops must be >= 1, got {max_loops}")
     if block_rows is None:
         block_rows = _default_block_rows(n)
-    if _is_concrete(Z, threshold):
+    if throw and _is_concrete(Z, threshold):
         _check_finite(Z, "detect_loops: descriptors Z")
         if not np.isfinite(np.asarray(threshold)):
             raise ValueError(f"detect_loops: threshold must be finite, got {threshold}")

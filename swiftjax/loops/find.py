@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
+from swiftjax.chunks import ChunkSchedule
 from swiftjax.loops._checks import _check_finite
 from swiftjax.loops.descriptors import fit_whitening, power_normalize, whiten
 from swiftjax.loops.detection import detect_loops
 from swiftjax.loops.loop_chunk import _loop_chunks, filter_by_chunks
-from swiftjax.loops.options import AUTHORS_THRESHOLD, DEFAULT_FALSE_ALARMS, DEFAULT_THRESHOLD, THRESHOLD_RULES
+from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions, check_values
 
 __all__ = ["Loop", "find_loops"]
 
@@ -39,26 +43,28 @@ class Loop(NamedTuple):
 
 
 def find_loops(
-    descriptors,
-    schedule,
+    descriptors: Float[ArrayLike, "N d"],
+    schedule: ChunkSchedule,
+    options: LoopOptions | None = None,
     *,
-    rule: str = "adaptive",
-    threshold: float = DEFAULT_THRESHOLD,
-    false_alarms: float = DEFAULT_FALSE_ALARMS,
-    beta: float = 0.5,
-    remove: int = 1,
-    dim: int = 512,
-    eps: float = 1e-6,
-    max_samples: int = 50_000,
-    fit_on: str = "power",
-    min_separation: int = 100,
-    nms_radius: int = 25,
-    top_k: int = 8,
-    max_loops: int | None = None,
-    nms: str = "pair",
-    half_window: int = 10,
-    adapt_to_length: bool = True,
+    throw: bool = True,
     return_details: bool = False,
+    rule: str | None = None,
+    threshold: float | None = None,
+    false_alarms: float | None = None,
+    beta: float | None = None,
+    remove: int | None = None,
+    dim: int | None = None,
+    eps: float | None = None,
+    max_samples: int | None = None,
+    fit_on: str | None = None,
+    min_separation: int | None = None,
+    nms_radius: int | None = None,
+    top_k: int | None = None,
+    max_loops: int | None = None,
+    nms: str | None = None,
+    half_window: int | None = None,
+    adapt_to_length: bool | None = None,
 ):
     """All loops of a sequence from its per-frame descriptors ``g⁰ [N, d]``, in one call.
 
@@ -70,13 +76,11 @@ def find_loops(
     threshold).  Whatever the rule, the threshold used is ``details["threshold"]``.
 
     Short sequences (``adapt_to_length``): PCA whitening of ``N`` samples into ``d' >~ N/4``
-    dimensions whitens the sampling noise too and flattens every cosine (measured: ``N = 238``,
-    ``d' = 236`` -> best far-apart similarity 0.03; ``d' = 59`` -> true revisits at 0.85-0.92),
-    so ``d' <= max(8, N // 4)``.  With few dimensions the cosine of two unrelated whitened
-    descriptors spreads as ``1/sqrt(d')``, so the threshold is raised to at least five such
-    standard deviations, ``5/sqrt(d')`` (0.65 at ``d' = 59``; at ``d' = 512`` the default 0.43
-    is already ten; the floor applies to ``rule="fixed"`` only: the adaptive rule measures
-    the spread itself).  Neither changes anything for ``N >= 4 dim`` (KITTI 00: none).
+    dimensions whitens the sampling noise too and flattens every cosine, so ``d' <= max(8,
+    N // 4)``.  With few dimensions the cosine of two unrelated whitened descriptors spreads
+    as ``1/sqrt(d')``, so the threshold is raised to at least five such standard deviations,
+    ``5/sqrt(d')`` (the floor applies to ``rule="fixed"`` only: the adaptive rule measures
+    the spread itself).  Neither changes anything for ``N >= 4 dim``.
 
     ``power_normalize`` → ``fit_whitening`` (on ``g¹`` when ``fit_on="power"``, the default,
     consistent: fitted on what it is applied to; ``fit_on="raw"`` fits on ``g⁰`` as the
@@ -87,7 +91,13 @@ def find_loops(
         descriptors: ``[N, d]`` per-frame ``g⁰`` (:func:`frame_descriptor` of each chunk's
             tokens, rows of the frames in order; in overlaps any copy, they are per-frame).
         schedule: :class:`swiftjax.chunks.ChunkSchedule` of the sequence (``n_frames == N``).
+        options: :class:`~swiftjax.loops.options.LoopOptions` (default ``LoopOptions()``).
+        throw: ``True``: non-finite descriptors are a ``ValueError``.  ``False``: their rows
+            are left out of the whitening fit and never match (a warning names them;
+            ``details["nonfinite_rows"]`` lists them).
         return_details: also return a dict with the intermediate arrays.
+        rule, threshold, ..., adapt_to_length: override the field of the same name of
+            ``options`` (``None``: the options' value).
 
     Returns:
         ``list[Loop]`` sorted by score (and the details dict if asked).  Loops whose
@@ -95,11 +105,9 @@ def find_loops(
         dropped with a warning.
 
     Raises:
-        ValueError: non-finite descriptors, wrong shapes, mismatched schedule, unknown
-            ``fit_on`` or ``rule``, ``false_alarms`` outside ``(0, 1)``.
+        ValueError: non-finite descriptors (``throw=True``), wrong shapes, mismatched
+            schedule, unknown ``fit_on`` or ``rule``, ``false_alarms`` outside ``(0, 1)``.
     """
-    import warnings
-
     G = np.asarray(descriptors)
     if G.ndim != 2:
         raise ValueError(f"find_loops: descriptors must be [N, d], got shape {G.shape}")
@@ -108,48 +116,69 @@ def find_loops(
         raise ValueError(
             f"find_loops: schedule is for {schedule.n_frames} frames but descriptors has {n} rows"
         )
-    _check_finite(G, "find_loops: descriptors")
-    if fit_on not in ("power", "raw"):
-        raise ValueError(f"find_loops: fit_on must be 'power' or 'raw', got {fit_on!r}")
-    if rule not in THRESHOLD_RULES:
-        raise ValueError(f"find_loops: rule must be one of {THRESHOLD_RULES}, got {rule!r}")
-    if not 0.0 < false_alarms < 1.0:
-        raise ValueError(f"find_loops: false_alarms must be in (0, 1), got {false_alarms}")
-    if rule == "authors":
+    finite = np.all(np.isfinite(G), axis=1)
+    if throw:
+        _check_finite(G, "find_loops: descriptors")
+    elif not finite.all():
+        bad = np.flatnonzero(~finite)
+        warnings.warn(
+            f"find_loops: {len(bad)} descriptor row(s) contain NaN or Inf (first at row {int(bad[0])}); "
+            "those frames are left out of the whitening and never match",
+            stacklevel=2,
+        )
+    given = dict(
+        rule=rule, threshold=threshold, false_alarms=false_alarms, beta=beta, remove=remove, dim=dim,
+        eps=eps, max_samples=max_samples, fit_on=fit_on, min_separation=min_separation,
+        nms_radius=nms_radius, top_k=top_k, max_loops=max_loops, nms=nms, half_window=half_window,
+        adapt_to_length=adapt_to_length,
+    )
+    given = {k: v for k, v in given.items() if v is not None}
+    check_values(given, "find_loops")
+    o = dataclasses.replace(LoopOptions() if options is None else options, **given)
+    threshold, fit_on, dim = o.threshold, o.fit_on, o.dim
+    if o.rule == "authors":
         threshold, fit_on = AUTHORS_THRESHOLD, "raw"
-    if adapt_to_length:
-        dim = min(dim, max(8, n // 4))
-        if rule == "fixed":
+    n_fit = int(finite.sum())
+    if o.adapt_to_length:
+        dim = min(dim, max(8, n_fit // 4))
+        if o.rule == "fixed":
             threshold = max(threshold, 5.0 / float(np.sqrt(dim)))
-    g1 = power_normalize(G, beta)
-    details = {"g1": g1, "rule": rule, "threshold": float("inf") if rule == "adaptive" else float(threshold)}
-    if n <= min_separation + 1 or n < 3:
+    g1 = power_normalize(G, o.beta)
+    details = {
+        "g1": g1, "rule": o.rule, "threshold": float("inf") if o.rule == "adaptive" else float(threshold),
+        "nonfinite_rows": np.flatnonzero(~finite),
+    }
+    if n <= o.min_separation + 1 or n < 3:
         return ([], details) if return_details else []
-    w = fit_whitening(G if fit_on == "raw" else g1, remove, dim, eps, max_samples)
+    fit = G if fit_on == "raw" else g1
+    if n_fit < n:
+        fit = np.asarray(fit)[finite]
+    w = fit_whitening(fit, o.remove, dim, o.eps, o.max_samples)
     Z = whiten(w, g1)
-    cand = detect_loops(Z, threshold, min_separation, nms_radius, top_k, max_loops, nms=nms,
-                        calibrate=rule == "adaptive", false_alarms=false_alarms)
+    cand = detect_loops(Z, threshold, o.min_separation, o.nms_radius, o.top_k, o.max_loops, nms=o.nms,
+                        calibrate=o.rule == "adaptive", false_alarms=o.false_alarms, throw=n_fit == n)
     details["threshold"] = float(cand.threshold)
-    if rule == "adaptive" and n > min_separation + 1 and details["threshold"] >= 1.0:
+    if o.rule == "adaptive" and n > o.min_separation + 1 and details["threshold"] >= 1.0:
         warnings.warn(
             f"find_loops: the calibrated loop threshold is {details['threshold']:.3f} >= 1 (false_alarms="
-            f"{false_alarms:g}): the frames' best scores show no revisit standing out of their own null, so "
+            f"{o.false_alarms:g}): the frames' best scores show no revisit standing out of their own null, so "
             "there is no loop candidate; rule='fixed' with a chosen threshold (and loop verification) "
             "forces candidates",
             stacklevel=2,
         )
     if bool(cand.truncated):
         warnings.warn(
-            f"find_loops: NMS stopped at max_loops={max_loops}; more loops may exist", stacklevel=2
+            f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist", stacklevel=2
         )
-    kept = filter_by_chunks(cand, schedule.starts, schedule.chunk_size, n)
+    kept = filter_by_chunks(cand, schedule)
     c = int(kept.count)
     loops: list[Loop] = []
+    hw = o.half_window
     if c:
         # all M buffer rows at once (one compile per buffer size, not per loop count)
         lc = jax.tree.map(np.asarray, _loop_chunks(
-            jnp.maximum(kept.pairs, 0), jnp.asarray(schedule.starts), schedule.chunk_size, n,
-            half_window,
+            jnp.maximum(kept.pairs, 0), jnp.asarray(schedule.starts, jnp.int32),
+            jnp.asarray(schedule.ends, jnp.int32), hw,
         ))
         pairs = np.asarray(kept.pairs)
         scores = np.asarray(kept.scores)
@@ -157,8 +186,7 @@ def find_loops(
             if not lc.valid[k]:
                 warnings.warn(
                     f"find_loops: loop ({pairs[k, 0]}, {pairs[k, 1]}) has no well-formed "
-                    f"{4 * half_window}-frame loop chunk (a chunk is shorter than {2 * half_window} "
-                    "frames); dropped",
+                    f"{4 * hw}-frame loop chunk (a chunk is shorter than {2 * hw} frames); dropped",
                     stacklevel=2,
                 )
                 continue
@@ -169,4 +197,3 @@ def find_loops(
             )
     details.update(whitening=w, z=Z, candidates=cand, filtered=kept)
     return (loops, details) if return_details else loops
-

@@ -10,13 +10,19 @@
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+import warnings
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from swiftjax import sim3
+from swiftjax.chunks import ChunkSchedule
 from swiftjax.loops.detection import LoopCandidates
+from swiftjax.loops.options import LoopOptions
+
+_DEFAULTS = LoopOptions()
 
 __all__ = ["LoopChunk", "loop_chunk_frames", "filter_by_chunks", "loop_edge"]
 
@@ -54,32 +60,46 @@ def _chunk_window(f, starts, ends, half_window: int):
     return c.astype(jnp.int32), w0, ok
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size", "n_frames", "half_window"))
-def loop_chunk_frames(
-    i: jax.Array,
-    j: jax.Array,
-    chunk_starts: jax.Array,
-    chunk_size: int,
-    n_frames: int,
-    half_window: int = 10,
-) -> LoopChunk:
-    """Frames of the loop-centric chunk of loop ``(i, j)`` (DESIGN.md: 20 + 20 = 40 frames).
+def _schedule_args(
+    fn: str, schedule: Any, args: tuple, kwargs: dict[str, Any], names: tuple[str, ...], defaults: tuple
+) -> tuple[jax.Array, jax.Array, tuple]:
+    """``(starts, ends, the values of names)`` from ``fn(..., schedule, *args, **kwargs)``.
 
-    For each end ``f`` (``i`` first, then ``j``) the window ``[f − h, f + h)`` is placed
-    inside the temporal chunk ``[s, e)`` holding ``f`` with the most room around it, shifted
-    inward at chunk borders: its start is ``clip(f − h, s, e − 2h)``.  Chunk ends are
-    ``min(s + chunk_size, n_frames)`` (:func:`swiftjax.chunks.chunk_schedule`).  The pair is
-    taken as given (call with ``i > j`` to get the later range first).
-
-    Args:
-        i, j: int scalars (or batch with ``jax.vmap``).
-        chunk_starts: ``[T]`` int chunk starts (``ChunkSchedule.starts``).
-        chunk_size, n_frames, half_window: static ints.
-
-    Recompiles per ``T`` and static argument.
+    ``schedule`` is a :class:`~swiftjax.chunks.ChunkSchedule`; the deprecated form passes
+    ``chunk_starts, chunk_size, n_frames`` instead (the ends are then ``min(start + chunk_size,
+    n_frames)``, what the schedule stores).
     """
-    starts = jnp.asarray(chunk_starts, jnp.int32)
-    ends = jnp.minimum(starts + chunk_size, n_frames)
+    legacy = not isinstance(schedule, ChunkSchedule)
+    params = (("chunk_size", "n_frames") if legacy else ()) + names
+    if len(args) > len(params):
+        raise TypeError(f"{fn}() takes at most {len(params) + 3 - (fn == 'filter_by_chunks')} positional arguments")
+    values = dict(zip(params, args))
+    for key, value in kwargs.items():
+        if key not in params:
+            raise TypeError(f"{fn}() got an unexpected keyword argument {key!r}")
+        if key in values:
+            raise TypeError(f"{fn}() got multiple values for argument {key!r}")
+        values[key] = value
+    for key, value in zip(names, defaults):
+        values.setdefault(key, value)
+    if not legacy:
+        starts, ends = jnp.asarray(schedule.starts, jnp.int32), jnp.asarray(schedule.ends, jnp.int32)
+    else:
+        missing = [k for k in ("chunk_size", "n_frames") if k not in values]
+        if missing:
+            raise TypeError(f"{fn}() needs a ChunkSchedule (or the deprecated chunk_starts, chunk_size, n_frames)")
+        warnings.warn(
+            f"{fn}(..., chunk_starts, chunk_size, n_frames) is deprecated: pass the ChunkSchedule",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        starts = jnp.asarray(schedule, jnp.int32)
+        ends = jnp.minimum(starts + values["chunk_size"], values["n_frames"])
+    return starts, ends, tuple(values[k] for k in names)
+
+
+@functools.partial(jax.jit, static_argnames=("half_window",))
+def _loop_chunk_frames(i, j, starts, ends, half_window: int) -> LoopChunk:
     i = jnp.asarray(i, jnp.int32)
     j = jnp.asarray(j, jnp.int32)
     ci, wi, oki = _chunk_window(i, starts, ends, half_window)
@@ -91,18 +111,34 @@ def loop_chunk_frames(
     return LoopChunk(frames, ci, cj, i - wi, h2 + j - wj, oki & okj & disjoint)
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size", "n_frames"))
-def filter_by_chunks(
-    candidates: LoopCandidates, chunk_starts: jax.Array, chunk_size: int, n_frames: int
-) -> LoopCandidates:
-    """The authors' post-processing of NMS output: drop pairs whose two frames lie in one
-    temporal chunk, and keep only the best-scoring loop per pair of chunks ``(c_i, c_j)``
-    (chunks assigned as in :func:`loop_chunk_frames`).  Order (by score) is preserved.
+def loop_chunk_frames(
+    i: Int[ArrayLike, ""], j: Int[ArrayLike, ""], schedule: ChunkSchedule | Int[ArrayLike, " T"], *args, **kwargs
+) -> LoopChunk:
+    """Frames of the loop-centric chunk of loop ``(i, j)``: ``loop_chunk_frames(i, j, schedule,
+    half_window=10)`` (20 + 20 = 40 frames).
 
-    ``O(M²)`` comparisons over the ``M`` candidate rows (``M`` is a few hundred).
+    For each end ``f`` (``i`` first, then ``j``) the window ``[f − h, f + h)`` is placed
+    inside the temporal chunk ``[s, e)`` holding ``f`` with the most room around it, shifted
+    inward at chunk borders: its start is ``clip(f − h, s, e − 2h)``, with ``s, e`` the
+    schedule's ``starts`` and ``ends``.  The pair is taken as given (call with ``i > j`` to
+    get the later range first).
+
+    Args:
+        i, j: int scalars (or batch with ``jax.vmap``).
+        schedule: the :class:`~swiftjax.chunks.ChunkSchedule` of the sequence.  Deprecated:
+            ``chunk_starts, chunk_size, n_frames`` in its place.
+        half_window: static int ``h`` (default ``LoopOptions().half_window``).
+
+    Recompiles per number of chunks ``T`` and ``half_window``.
     """
-    starts = jnp.asarray(chunk_starts, jnp.int32)
-    ends = jnp.minimum(starts + chunk_size, n_frames)
+    starts, ends, (half_window,) = _schedule_args(
+        "loop_chunk_frames", schedule, args, kwargs, ("half_window",), (_DEFAULTS.half_window,)
+    )
+    return _loop_chunk_frames(i, j, starts, ends, half_window)
+
+
+@jax.jit
+def _filter_by_chunks(candidates: LoopCandidates, starts, ends) -> LoopCandidates:
     m = candidates.pairs.shape[0]
     valid = jnp.arange(m) < candidates.count
     i = jnp.where(valid, candidates.pairs[:, 0], 0)
@@ -127,17 +163,31 @@ def filter_by_chunks(
     return LoopCandidates(pairs, scores, count, candidates.truncated, candidates.threshold)
 
 
-@functools.partial(jax.jit, static_argnames=("chunk_size", "n_frames", "half_window"))
-def _loop_chunks(pairs, chunk_starts, chunk_size, n_frames, half_window):
+def filter_by_chunks(
+    candidates: LoopCandidates, schedule: ChunkSchedule | Int[ArrayLike, " T"], *args, **kwargs
+) -> LoopCandidates:
+    """The authors' post-processing of NMS output: drop pairs whose two frames lie in one
+    temporal chunk of ``schedule`` (a :class:`~swiftjax.chunks.ChunkSchedule`; deprecated:
+    ``chunk_starts, chunk_size, n_frames``), and keep only the best-scoring loop per pair of
+    chunks ``(c_i, c_j)`` (chunks assigned as in :func:`loop_chunk_frames`).  Order (by score)
+    is preserved.
+
+    ``O(M²)`` comparisons over the ``M`` candidate rows (``M`` is a few hundred).  One jitted
+    call; recompiles per ``M`` and number of chunks.
+    """
+    starts, ends, () = _schedule_args("filter_by_chunks", schedule, args, kwargs, (), ())
+    return _filter_by_chunks(candidates, starts, ends)
+
+
+@functools.partial(jax.jit, static_argnames=("half_window",))
+def _loop_chunks(pairs, starts, ends, half_window):
     """:func:`loop_chunk_frames` for every row of ``pairs [M, 2]``."""
-    return jax.vmap(
-        lambda a, b: loop_chunk_frames(a, b, chunk_starts, chunk_size, n_frames, half_window)
-    )(pairs[:, 0], pairs[:, 1])
+    return jax.vmap(lambda a, b: _loop_chunk_frames(a, b, starts, ends, half_window))(pairs[:, 0], pairs[:, 1])
 
 
 @jax.jit
-def loop_edge(S_i_loop: jax.Array, S_j_loop: jax.Array) -> jax.Array:
-    """Loop edge ``S_{j,loop} · S_{i,loop}⁻¹`` (DESIGN.md "loop edge"), Sim(3) ``[..., 8]``.
+def loop_edge(S_i_loop: Float[ArrayLike, "*batch 8"], S_j_loop: Float[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
+    """Loop edge ``S_{j,loop} · S_{i,loop}⁻¹``, Sim(3) ``[..., 8]``.
 
     ``S_{x,loop}`` maps loop-chunk coordinates into temporal chunk ``c_x``'s coordinates
     (the alignment of the loop chunk's ``x`` half to its temporal chunk).  The result maps

@@ -1,25 +1,180 @@
-"""The loop stage's constants: thresholds and the threshold rules."""
+"""The loop stage's options: every default of detection, loop chunks and verification, once.
+
+:class:`LoopOptions` is the one place the loop defaults are written.  The array functions
+(:func:`~swiftjax.loops.power_normalize`, :func:`~swiftjax.loops.fit_whitening`,
+:func:`~swiftjax.loops.calibrate_threshold`, :func:`~swiftjax.loops.detect_loops`,
+:func:`~swiftjax.loops.loop_chunk_frames`, the dense tests of
+:mod:`swiftjax.loops.verification`) take their keyword defaults from ``LoopOptions()``;
+:func:`~swiftjax.loops.find_loops` takes a whole ``LoopOptions``; the pipeline's
+``PipelineConfig`` loop fields (and so the CLI flags and TOML keys, which derive from them)
+take their defaults from it too.  Where each number comes from is documented in
+``docs/performance/loops.md``.
+"""
 
 from __future__ import annotations
 
-__all__ = ["DEFAULT_THRESHOLD", "AUTHORS_THRESHOLD", "DEFAULT_FALSE_ALARMS", "THRESHOLD_RULES"]
+import dataclasses
+from typing import Any
 
-#: Cosine threshold on *whitened* descriptors ẑ (d′ = 512).  The authors' 0.98 does not
-#: transfer: whitened similarities of true revisits are ~0.4-0.8.  Chosen on the synthetic
-#: KITTI 00 benchmark (bench/bench_place_recognition.py): over 9 generator draws (seeds, K = 8,
-#: 16, 32) every threshold in (0.41, 0.443) gives precision 1.0 with all 5 loop regions found.
-#: Re-measure on real VGGT tokens.
+__all__ = [
+    "LoopOptions",
+    "VerificationConfig",
+    "DEFAULT_THRESHOLD",
+    "AUTHORS_THRESHOLD",
+    "DEFAULT_FALSE_ALARMS",
+    "THRESHOLD_RULES",
+    "FIT_ON",
+    "NMS_RULES",
+    "VERIFICATION_RULES",
+]
+
+#: Cosine threshold on *whitened* descriptors ẑ (d′ = 512) for ``rule="fixed"``.  The
+#: authors' 0.98 does not transfer: whitened similarities of true revisits are ~0.4-0.8.
+#: Chosen on the synthetic KITTI 00 benchmark (bench/bench_place_recognition.py); re-measure
+#: on real VGGT tokens.
 DEFAULT_THRESHOLD = 0.43
 
 #: The authors' cosine threshold, on descriptors whitened by a PCA fitted on g⁰ and applied to
 #: g¹ (their code's quirk); ``find_loops(rule="authors")``.
 AUTHORS_THRESHOLD = 0.98
 
-#: ``α`` of :func:`calibrate_threshold`: the expected number of frames WITHOUT a revisit whose
-#: best match still passes the threshold, per sequence.
+#: ``α`` of :func:`~swiftjax.loops.calibrate_threshold`: the expected number of frames
+#: WITHOUT a revisit whose best match still passes the threshold, per sequence.
 DEFAULT_FALSE_ALARMS = 1e-3
 
-#: ``find_loops(rule=...)``: ``"adaptive"`` (default, :func:`calibrate_threshold`), ``"fixed"``
-#: (``threshold``), ``"authors"`` (0.98, whitening fitted on g⁰).
+#: ``find_loops(rule=...)``: ``"adaptive"`` (default, :func:`~swiftjax.loops.calibrate_threshold`),
+#: ``"fixed"`` (``threshold``), ``"authors"`` (0.98, whitening fitted on g⁰).
 THRESHOLD_RULES = ("adaptive", "fixed", "authors")
 
+#: What the whitening is fitted on: ``"power"`` (g¹, what it is applied to) or ``"raw"`` (g⁰).
+FIT_ON = ("power", "raw")
+
+#: Non-maximum suppression of :func:`~swiftjax.loops.detect_loops`.
+NMS_RULES = ("pair", "frame")
+
+#: ``"geometric"``: every candidate is verified (:mod:`swiftjax.loops.verification`);
+#: ``"none"``: every candidate above the threshold is a loop edge (the authors' rule).
+VERIFICATION_RULES = ("geometric", "none")
+
+
+@dataclasses.dataclass(frozen=True)
+class VerificationConfig:
+    """Thresholds of :func:`~swiftjax.loops.verification.verify_candidates`.
+
+    Chosen from measured distributions of true and false candidates (the numbers and the
+    benchmarks behind them: ``docs/performance/loops.md``).  ``min_agreement = 0.55`` sits
+    in the gap between the true and false candidates' dense scores, on the precision side;
+    ``pcm_threshold`` is ``sqrt(χ²_7(0.999))``; the drift sigmas are of the order of the
+    measured temporal-edge and loop-edge errors of the synthetic routes (real VGGT's drift is
+    not measured here: they are options).
+
+    Attributes:
+        min_agreement: the smaller direction's ``agreement`` (pairs in view whose depth
+            agrees) must reach this.
+        min_overlap: the smaller direction's ``overlap`` (reliable points seen at all).
+        depth_tolerance: relative depth agreement ``τ``.
+        stride: source pixel subsampling of the dense test.
+        neighbours: nearest target frames each source frame is compared with.
+        min_fraction: each half alignment's ``fraction_used`` must reach this.
+        pcm: run the pairwise test (with two or more candidates left).
+        pcm_threshold: whitened cycle residual bound, ``sqrt(χ²_7(0.999)) = 4.93``.
+        odo_sigma_rot, odo_sigma_trans, odo_sigma_scale: drift model of a temporal edge
+            (:func:`~swiftjax.loops.verification.odometry_covariance`).
+        loop_sigma_rot, loop_sigma_trans, loop_sigma_scale: of a loop edge
+            (:func:`~swiftjax.loops.verification.loop_covariance`).
+    """
+
+    min_agreement: float = 0.55
+    min_overlap: float = 0.2
+    depth_tolerance: float = 0.05
+    stride: int = 4
+    neighbours: int = 3
+    min_fraction: float = 0.05
+    pcm: bool = True
+    pcm_threshold: float = 4.93
+    odo_sigma_rot: float = 0.01
+    odo_sigma_trans: float = 0.05
+    odo_sigma_scale: float = 0.04
+    loop_sigma_rot: float = 0.015
+    loop_sigma_trans: float = 0.05
+    loop_sigma_scale: float = 0.03
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopOptions:
+    """Every option of the loop stage, with its default (frozen; ``dataclasses.replace`` to vary).
+
+    Descriptors (:mod:`swiftjax.loops.descriptors`):
+        beta: signed power ``β`` of :func:`~swiftjax.loops.power_normalize`.
+        remove: leading PCA components dropped by the whitening (``r``).
+        dim: descriptor dimension kept by the whitening (``d′``).
+        eps: whitening regulariser ``ε`` in ``W = Q (Λ + ε)^-½``.
+        max_samples: most descriptors the whitening's covariance is computed from.
+        fit_on: ``"power"`` (fit on g¹, what it is applied to) or ``"raw"`` (g⁰, the
+            authors' code).
+        adapt_to_length: cap ``d′`` at ``max(8, N // 4)`` on short sequences and floor the
+            fixed threshold at ``5/sqrt(d′)`` (:func:`~swiftjax.loops.find_loops`).
+
+    Detection (:mod:`swiftjax.loops.detection`):
+        rule: :data:`THRESHOLD_RULES`.
+        threshold: cosine threshold of ``rule="fixed"``.
+        false_alarms: ``α`` of ``rule="adaptive"``, in ``(0, 1)``.
+        min_separation: fewest frames between the two frames of a loop.
+        nms_radius: non-maximum suppression radius ``r`` (frames).
+        top_k: most candidates per frame before suppression.
+        max_loops: NMS buffer size (``None``: the bound of
+            :func:`~swiftjax.loops.detect_loops`).
+        nms: :data:`NMS_RULES`.
+
+    Loop chunks (:mod:`swiftjax.loops.loop_chunk`):
+        half_window: ``h``; the loop-centric chunk holds ``2h`` frames around each end (the
+            depth threshold of its alignment is an alignment option, ``AlignOptions``).
+
+    Verification (:mod:`swiftjax.loops.verification`):
+        verification: :data:`VERIFICATION_RULES`.
+        verification_config: the thresholds of the geometric tests.
+
+    Raises:
+        ValueError: an unknown rule / ``fit_on`` / ``nms`` or a value out of range.
+    """
+
+    beta: float = 0.5
+    remove: int = 1
+    dim: int = 512
+    eps: float = 1e-6
+    max_samples: int = 50_000
+    fit_on: str = "power"
+    adapt_to_length: bool = True
+    rule: str = "adaptive"
+    threshold: float = DEFAULT_THRESHOLD
+    false_alarms: float = DEFAULT_FALSE_ALARMS
+    min_separation: int = 100
+    nms_radius: int = 25
+    top_k: int = 8
+    max_loops: int | None = None
+    nms: str = "pair"
+    half_window: int = 10
+    verification: str = "geometric"
+    verification_config: VerificationConfig = VerificationConfig()
+
+    def __post_init__(self) -> None:
+        check_values(dataclasses.asdict(self), "LoopOptions")
+
+
+def check_values(values: dict[str, Any], where: str) -> None:
+    """Reject the entries of ``values`` (``LoopOptions`` field names; others are ignored)
+    that no ``LoopOptions`` accepts, naming ``where`` in the error."""
+    choices = {"rule": THRESHOLD_RULES, "fit_on": FIT_ON, "nms": NMS_RULES, "verification": VERIFICATION_RULES}
+    for key, allowed in choices.items():
+        if key in values and values[key] not in allowed:
+            if key == "rule":
+                raise ValueError(f"{where}: rule must be one of {allowed}, got {values[key]!r}")
+            raise ValueError(f"{where}: {key} must be " + " or ".join(map(repr, allowed)) + f", got {values[key]!r}")
+    if "false_alarms" in values and not 0.0 < float(values["false_alarms"]) < 1.0:
+        raise ValueError(f"{where}: false_alarms must be in (0, 1), got {values['false_alarms']}")
+    for key, low in (("remove", 0), ("dim", 1), ("max_samples", 2), ("min_separation", 0), ("nms_radius", 0),
+                     ("top_k", 1), ("half_window", 1)):
+        if key in values and values[key] < low:
+            raise ValueError(f"{where}: {key} must be >= {low}, got {values[key]}")
+    if values.get("max_loops") is not None and values["max_loops"] < 1:
+        raise ValueError(f"{where}: max_loops must be >= 1, got {values['max_loops']}")

@@ -61,14 +61,12 @@ reconstruction, so ``Z`` alone proves nothing.  Three tests that do not trust th
 Everything is pure and jit-compiled with static shapes (masks, never boolean indexing);
 :func:`cross_chunk_consistency` is batched over candidates with ``vmap`` and loops over the
 target frames with ``lax.scan``.  The decision rule and its thresholds live in
-:class:`VerificationConfig` / :func:`verify_candidates` (host level).  Thresholds were chosen
-from measured distributions of true and false candidates (bench/bench_loop_robustness.py,
-see :class:`VerificationConfig`).
+:class:`VerificationConfig` / :func:`verify_candidates` (host level).  The thresholds were
+chosen from measured distributions of true and false candidates (docs/performance/loops.md).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from collections.abc import Sequence
@@ -79,7 +77,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
 from swiftjax import align, camera, sim3
+from swiftjax.loops.options import VerificationConfig
+
+_DEFAULTS = VerificationConfig()
 
 __all__ = [
     "ConsistencyInfo",
@@ -227,13 +230,13 @@ def _dense_consistency_jit(src, dst, S, K_ref, conf_ratio, depth_tolerance, stri
 def dense_consistency(
     src: align.ChunkFrames,
     dst: align.ChunkFrames,
-    S_dst_src: jax.Array,
-    K_ref: jax.Array,
+    S_dst_src: Float[ArrayLike, "8"],
+    K_ref: Float[ArrayLike, "3 3"],
     *,
-    stride: int = 4,
+    stride: int = _DEFAULTS.stride,
     conf_ratio: float = 0.5,
-    depth_tolerance: float = 0.05,
-    neighbours: int = 3,
+    depth_tolerance: float = _DEFAULTS.depth_tolerance,
+    neighbours: int = _DEFAULTS.neighbours,
 ) -> ConsistencyInfo:
     """How many reliable points of ``src`` land on agreeing depth in ``dst`` under ``S``.
 
@@ -296,13 +299,13 @@ def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, ne
 def cross_chunk_consistency(
     side_i: align.ChunkFrames,
     side_j: align.ChunkFrames,
-    Z: jax.Array,
-    K_ref: jax.Array,
+    Z: Float[ArrayLike, "M 8"],
+    K_ref: Float[ArrayLike, "3 3"],
     *,
-    stride: int = 4,
+    stride: int = _DEFAULTS.stride,
     conf_ratio: float = 0.5,
-    depth_tolerance: float = 0.05,
-    neighbours: int = 3,
+    depth_tolerance: float = _DEFAULTS.depth_tolerance,
+    neighbours: int = _DEFAULTS.neighbours,
 ) -> CrossCheck:
     """Both directions of :func:`dense_consistency` for ``M`` loop candidates at once (vmap).
 
@@ -366,11 +369,11 @@ def loop_chunk_quality(info_i: Any, info_j: Any) -> LoopQuality:
 def candidate_numbers(
     side_i: align.ChunkFrames,
     side_j: align.ChunkFrames,
-    Z: np.ndarray,
-    K_ref: np.ndarray,
+    Z: Float[ArrayLike, "8"],
+    K_ref: Float[ArrayLike, "3 3"],
     info_i: Any,
     info_j: Any,
-    config: "VerificationConfig | None" = None,
+    config: VerificationConfig | None = None,
 ) -> dict[str, Any]:
     """The verification numbers of one candidate as a plain dict (host level, for records).
 
@@ -407,9 +410,9 @@ def candidate_numbers(
 
 @jax.jit
 def odometry_covariance(
-    relative: jax.Array, sigma_rot: float | jax.Array, sigma_trans: float | jax.Array,
-    sigma_scale: float | jax.Array,
-) -> jax.Array:
+    relative: Float[ArrayLike, "*batch 8"], sigma_rot: float | Float[ArrayLike, ""],
+    sigma_trans: float | Float[ArrayLike, ""], sigma_scale: float | Float[ArrayLike, ""],
+) -> Float[Array, "*batch 7 7"]:
     """Drift model of the temporal edges: diagonal covariances ``[E, 7, 7]`` in ``(ρ, ω, σ)``.
 
     For edge ``Z_e = (t, R, s)`` (right perturbation ``Z_e exp(δ)``): ``std(ρ) = sigma_trans ·
@@ -426,9 +429,9 @@ def odometry_covariance(
 
 @jax.jit
 def loop_covariance(
-    Z: jax.Array, sigma_rot: float | jax.Array, sigma_trans: float | jax.Array,
-    sigma_scale: float | jax.Array,
-) -> jax.Array:
+    Z: Float[ArrayLike, "*batch 8"], sigma_rot: float | Float[ArrayLike, ""],
+    sigma_trans: float | Float[ArrayLike, ""], sigma_scale: float | Float[ArrayLike, ""],
+) -> Float[Array, "*batch 7 7"]:
     """Covariance ``[M, 7, 7]`` of loop edges ``Z [M, 8]``: ``std(ρ) = sigma_trans`` in the
     source chunk's units (VGGT normalises each chunk's scene scale), ``sigma_rot``, ``sigma_scale``."""
     Z = jnp.asarray(Z)
@@ -439,12 +442,12 @@ def loop_covariance(
 
 @jax.jit
 def pairwise_consistency(
-    chain_poses: jax.Array,
-    odometry_cov: jax.Array,
-    loop_nodes: jax.Array,
-    Z: jax.Array,
-    loop_cov: jax.Array,
-) -> jax.Array:
+    chain_poses: Float[ArrayLike, "T 8"],
+    odometry_cov: Float[ArrayLike, "T-1 7 7"],
+    loop_nodes: Int[ArrayLike, "M 2"],
+    Z: Float[ArrayLike, "M 8"],
+    loop_cov: Float[ArrayLike, "M 7 7"],
+) -> Float[Array, "M M"]:
     """Whitened cycle residuals ``m_ab`` of every pair of loop edges (PCM): ``[M, M]``.
 
     Args:
@@ -486,7 +489,9 @@ def pairwise_consistency(
     return jnp.where(eye, 0, 0.5 * (m + m.T))
 
 
-def max_consistent_set(consistent: np.ndarray, weights: Sequence[float] | None = None) -> list[int]:
+def max_consistent_set(
+    consistent: Bool[ArrayLike, "M M"], weights: Sequence[float] | Float[ArrayLike, " M"] | None = None
+) -> list[int]:
     """A maximum clique of the boolean consistency graph ``consistent [M, M]`` (host).
 
     Exact: Bron–Kerbosch with pivoting (Tomita et al. 2006), exponential in the worst case
@@ -525,65 +530,6 @@ def max_consistent_set(consistent: np.ndarray, weights: Sequence[float] | None =
 # ----------------------------------------------------------------------- decisions
 
 
-@dataclasses.dataclass(frozen=True)
-class VerificationConfig:
-    """Thresholds of :func:`verify_candidates`, chosen from measured distributions.
-
-    Dense score (the smaller direction's ``agreement``, ``depth_tolerance = 0.05``, 3 nearest
-    frames), measured:
-
-    * honest oracle (a loop chunk whose halves share no view comes back superimposed), demo
-      route at aliasing 0-50 % (bench/bench_loop_robustness.py): 16 true candidates 0.70-0.84,
-      10 false 0.06-0.18; synthetic KITTI 00 at 0-50 %: 85 true 0.54-0.88, 43 false 0.01-0.30;
-    * before that oracle existed, hallucination-like edges made by hand (a camera around
-      ``i`` put onto a camera around ``j`` for far-apart pairs, the worst case: the road plane
-      then agrees exactly): demo 4 true 0.71-0.85 vs 14 false 0.01-0.42; KITTI 00 23 true
-      0.54-0.88 vs 24 false 0.00-0.51.  A far-apart candidate with its *true* edge (the
-      first-wave demo's (563, 139), 62.6 m) sees nothing (overlap 0).
-
-    ``min_agreement = 0.55`` sits in the gap of the honest oracle's distributions, on the
-    precision side, and above every hand-made false edge but one (0.514, KITTI 00), which PCM
-    rejects (whitened cycle residual >= 13 against every true loop, true loops mutually
-    <= 2.6).  One true KITTI 00 candidate, (3798, 881) at 0.538, falls below it; its loop
-    region keeps a dozen other candidates (region recall stays 5/5 at every level).
-    PCM drift model
-    (:func:`odometry_covariance`): measured temporal-edge errors against the oracle's true
-    chunk gauges on the demo route, rms per axis: rotation 0.011 rad, log-scale 0.042,
-    translation 1.2 % of the edge; loop edges: rotation <= 0.022 rad, translation <= 0.13
-    chunk units, log-scale <= 0.04.  Real VGGT's drift is not measured here: the sigmas are
-    options.
-
-    Attributes:
-        min_agreement: the smaller direction's ``agreement`` (pairs in view whose depth
-            agrees) must reach this.
-        min_overlap: the smaller direction's ``overlap`` (reliable points seen at all).
-        depth_tolerance: relative depth agreement ``τ``.
-        stride: source pixel subsampling of the dense test.
-        neighbours: nearest target frames each source frame is compared with.
-        min_fraction: each half alignment's ``fraction_used`` must reach this.
-        pcm: run the pairwise test (with two or more candidates left).
-        pcm_threshold: whitened cycle residual bound, ``sqrt(χ²_7(0.999)) = 4.93``.
-        odo_sigma_rot, odo_sigma_trans, odo_sigma_scale: drift model of a temporal edge
-            (:func:`odometry_covariance`).
-        loop_sigma_rot, loop_sigma_trans, loop_sigma_scale: of a loop edge (:func:`loop_covariance`).
-    """
-
-    min_agreement: float = 0.55
-    min_overlap: float = 0.2
-    depth_tolerance: float = 0.05
-    stride: int = 4
-    neighbours: int = 3
-    min_fraction: float = 0.05
-    pcm: bool = True
-    pcm_threshold: float = 4.93
-    odo_sigma_rot: float = 0.01
-    odo_sigma_trans: float = 0.05
-    odo_sigma_scale: float = 0.04
-    loop_sigma_rot: float = 0.015
-    loop_sigma_trans: float = 0.05
-    loop_sigma_scale: float = 0.03
-
-
 class Decision(NamedTuple):
     """Outcome for one candidate.
 
@@ -615,8 +561,8 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
 
 def verify_candidates(
     records: Sequence[dict[str, Any]],
-    chain_poses: np.ndarray,
-    relative: np.ndarray,
+    chain_poses: Float[ArrayLike, "T 8"],
+    relative: Float[ArrayLike, "T-1 8"],
     config: VerificationConfig = VerificationConfig(),
 ) -> list[Decision]:
     """Accept or reject every candidate (host level), from the numbers in its record.

@@ -16,6 +16,8 @@ from swiftjax.align import AlignOptions as _ALIGN
 from swiftjax.options import option
 from swiftjax.posegraph.gnc import DEFAULT_SCALE as _GNC_SCALE
 
+_LOOPS = loops.LoopOptions()  # the loop fields' defaults
+
 __all__ = ["PipelineConfig"]
 
 
@@ -84,39 +86,39 @@ class PipelineConfig:
     )
     loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")
     loop_threshold_rule: str = option(
-        "adaptive", "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
+        _LOOPS.rule, "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
         "own similarity distribution), fixed (loop_threshold) or authors", choices=tuple(loops.THRESHOLD_RULES), stage="loops",
     )
     loop_threshold: float = option(
-        loops.DEFAULT_THRESHOLD, "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
+        _LOOPS.threshold, "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
         low=-1.0, high=1.0, stage="loops",
     )
     loop_false_alarms: float = option(
-        loops.DEFAULT_FALSE_ALARMS, "adaptive threshold: accepted rate of false loop candidates",
+        _LOOPS.false_alarms, "adaptive threshold: accepted rate of false loop candidates",
         low=0.0, high=1.0, low_open=True, high_open=True, stage="loops",
     )
-    loop_min_separation: int = option(100, "fewest frames between the two frames of a loop", low=1, stage="loops")
-    loop_nms_radius: int = option(25, "non-maximum suppression radius of loop candidates (frames)", low=0, stage="loops")
-    loop_top_k: int = option(8, "most loop candidates kept per frame before suppression", low=1, stage="loops")
-    whitening_dim: int = option(512, "descriptor dimension kept by the PCA whitening (d')", low=1, stage="loops")
-    whitening_remove: int = option(1, "leading PCA components dropped by the whitening (r)", low=0, stage="loops")
+    loop_min_separation: int = option(_LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, stage="loops")
+    loop_nms_radius: int = option(_LOOPS.nms_radius, "non-maximum suppression radius of loop candidates (frames)", low=0, stage="loops")
+    loop_top_k: int = option(_LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, stage="loops")
+    whitening_dim: int = option(_LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, stage="loops")
+    whitening_remove: int = option(_LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, stage="loops")
     power_beta: float = option(
-        0.5, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True, stage="loops",
+        _LOOPS.beta, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True, stage="loops",
     )
     loop_half_window: int = option(
-        10, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2)",
+        _LOOPS.half_window, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2)",
         low=1, stage="loops",
     )
     loop_verification: str = option(
-        "geometric", "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
+        _LOOPS.verification, "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
         "and pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
-        choices=("geometric", "none"), stage="loops",
+        choices=loops.VERIFICATION_RULES, stage="loops",
     )
     loop_min_agreement: float = option(
-        0.55, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0,
+        _LOOPS.verification_config.min_agreement, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0,
         stage="loops",
     )
-    loop_pcm: bool = option(True, "loop verification: the pairwise consistency test", stage="loops")
+    loop_pcm: bool = option(_LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops")
     robust_loops: str | None = option(
         "gnc", "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
         "or none (the authors' plain least squares)", kind=str, choices=("gnc", "cauchy", "huber"),

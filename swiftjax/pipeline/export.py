@@ -354,7 +354,7 @@ def _export(
     _finish_frames(ctx)
     n = schedule.n_frames
     T = schedule.num_chunks
-    owner = np.searchsorted(schedule.starts, np.arange(n), side="right") - 1  # later chunk wins
+    owner = schedule.chunk_of(np.arange(n))  # later chunk wins
     extrinsics = np.zeros((n, 3, 4))
     intrinsics = np.zeros((n, 3, 3))
     with jax.enable_x64(True):

@@ -10,7 +10,7 @@ from the chunk's file (memory-mapped), and the two alignments give the loop edge
 Every candidate is a hypothesis (``loop_verification = "geometric"``, the default): its
 temporal chunks' own frames around both ends are checked against each other under the
 candidate edge, its loop chunk's alignments are checked, and the survivors must be pairwise
-consistent (:mod:`swiftjax.loop_verification`).  Each candidate, accepted or not, is a record
+consistent (:mod:`swiftjax.loops.verification`).  Each candidate, accepted or not, is a record
 with its numbers, ``accepted`` and a one-line ``reason``; only accepted ones become edges.
 ``loop_verification = "none"`` is the authors' rule: every candidate is an edge.
 """
@@ -25,12 +25,13 @@ import numpy as np
 
 from swiftjax import _faults, align, loops
 from swiftjax.loops import verification as lv
+from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["LoopEdge", "LoopResult", "run"]
+__all__ = ["LoopEdge", "LoopResult", "loop_options", "run"]
 
 
 class LoopEdge(NamedTuple):
@@ -62,20 +63,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
     if not (config.loop_closure and schedule.num_chunks > 2):
         return LoopResult(loop_records, loop_edges)
     with timer("loop detection"):
-        found = loops.find_loops(
-            temporal.descriptors,
-            schedule,
-            rule=config.loop_threshold_rule,
-            threshold=config.loop_threshold,
-            false_alarms=config.loop_false_alarms,
-            beta=config.power_beta,
-            remove=config.whitening_remove,
-            dim=config.whitening_dim,
-            min_separation=config.loop_min_separation,
-            nms_radius=config.loop_nms_radius,
-            top_k=config.loop_top_k,
-            half_window=config.loop_half_window,
-        )
+        found = loops.find_loops(temporal.descriptors, schedule, loop_options(config))
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
         neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
@@ -146,7 +134,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
 
 
 def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any], K_ref: np.ndarray) -> dict[str, Any]:
-    """:func:`swiftjax.loop_verification.candidate_numbers` of one candidate: the temporal
+    """:func:`swiftjax.loops.verification.candidate_numbers` of one candidate: the temporal
     chunks' own frames around ``i`` (chunk ``c_i``) and ``j`` (chunk ``c_j``), read from the
     store (the frames the loop chunk's halves overlap)."""
     hw2 = 2 * ctx.config.loop_half_window
@@ -165,8 +153,21 @@ def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any
         )
 
 
-def _verification_config(config) -> lv.VerificationConfig:
-    return lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm)
+def loop_options(config: PipelineConfig) -> loops.LoopOptions:
+    """The run's :class:`~swiftjax.loops.LoopOptions`: ``config``'s loop fields, the rest at
+    their defaults."""
+    return loops.LoopOptions(
+        rule=config.loop_threshold_rule, threshold=config.loop_threshold, false_alarms=config.loop_false_alarms,
+        beta=config.power_beta, remove=config.whitening_remove, dim=config.whitening_dim,
+        min_separation=config.loop_min_separation, nms_radius=config.loop_nms_radius, top_k=config.loop_top_k,
+        half_window=config.loop_half_window,
+        verification=config.loop_verification,
+        verification_config=lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm),
+    )
+
+
+def _verification_config(config: PipelineConfig) -> lv.VerificationConfig:
+    return loop_options(config).verification_config
 
 
 def _decide(ctx: RunContext, temporal: TemporalResult, records: list[dict[str, Any]]) -> None:

@@ -1,0 +1,155 @@
+"""LoopOptions (defaults written once), the schedule-taking loop-chunk API, ``throw=`` and the
+deprecated spellings of swiftjax.loops."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+from swiftjax import loops as L
+from swiftjax.chunks import chunk_schedule
+from swiftjax.loops import verification as V
+from swiftjax.loops.options import LoopOptions, VerificationConfig
+from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.loop_closure import loop_options
+
+from test_loops import planted
+
+
+def test_pipeline_config_takes_the_loop_defaults():
+    o = loop_options(PipelineConfig())
+    assert o == LoopOptions()  # every PipelineConfig loop default is LoopOptions's
+    cfg = PipelineConfig(loop_top_k=3, loop_min_agreement=0.6, loop_pcm=False, whitening_dim=64)
+    o = loop_options(cfg)
+    assert (o.top_k, o.dim, o.verification_config.min_agreement, o.verification_config.pcm) == (3, 64, 0.6, False)
+
+
+def test_function_defaults_come_from_loop_options():
+    import inspect
+
+    d = LoopOptions()
+    sig = inspect.signature(L.detect_loops).parameters
+    assert (sig["threshold"].default, sig["min_separation"].default, sig["nms_radius"].default,
+            sig["top_k"].default, sig["nms"].default, sig["false_alarms"].default) == (
+        d.threshold, d.min_separation, d.nms_radius, d.top_k, d.nms, d.false_alarms)
+    sig = inspect.signature(L.fit_whitening).parameters
+    assert (sig["remove"].default, sig["dim"].default, sig["eps"].default) == (d.remove, d.dim, d.eps)
+    sig = inspect.signature(V.dense_consistency).parameters
+    vc = VerificationConfig()
+    assert (sig["stride"].default, sig["depth_tolerance"].default, sig["neighbours"].default) == (
+        vc.stride, vc.depth_tolerance, vc.neighbours)
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [({"rule": "auto"}, "rule must be one of"), ({"fit_on": "g0"}, "fit_on must be"),
+     ({"nms": "box"}, "nms must be"), ({"false_alarms": 1.0}, "false_alarms must be in"),
+     ({"top_k": 0}, "top_k must be >= 1"), ({"verification": "maybe"}, "verification must be")],
+)
+def test_loop_options_reject_bad_values(bad, match):
+    with pytest.raises(ValueError, match="LoopOptions: " + match):
+        LoopOptions(**bad)
+
+
+def test_find_loops_options_and_overrides_agree():
+    G = planted(n=600, d=256, seed=19, loops=((400, 50, 30), (560, 300, 20)), noise=0.05)
+    sched = chunk_schedule(600)
+    a = L.find_loops(G, sched, dim=128, rule="fixed", threshold=0.7)
+    b = L.find_loops(G, sched, LoopOptions(dim=128, rule="fixed", threshold=0.7))
+    c = L.find_loops(G, sched, LoopOptions(dim=128), rule="fixed", threshold=0.7)  # keyword wins
+    key = lambda loops: [(lp.i, lp.j, lp.score, lp.frames.tolist()) for lp in loops]  # noqa: E731
+    assert key(a) == key(b) == key(c) and len(a) == 2
+
+
+def test_find_loops_throw_false_leaves_nonfinite_rows_out():
+    G = planted(n=600, d=256, seed=19, loops=((400, 50, 30), (560, 300, 20)), noise=0.05)
+    sched = chunk_schedule(600)
+    bad = G.copy()
+    bad[3, 0] = np.nan
+    bad[410] = np.inf  # inside the first planted loop region
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        L.find_loops(bad, sched, dim=128)
+    with pytest.warns(UserWarning, match="2 descriptor row"):
+        loops, details = L.find_loops(bad, sched, dim=128, rule="fixed", threshold=0.7, throw=False,
+                                      return_details=True)
+    np.testing.assert_array_equal(details["nonfinite_rows"], [3, 410])
+    assert {(lp.i - lp.j) for lp in loops} == {350, 260}
+    assert all(410 != lp.i and 3 != lp.j for lp in loops)
+    # the adaptive rule too: the non-finite rows never become candidates
+    with pytest.warns(UserWarning, match="2 descriptor row"):
+        _, details = L.find_loops(bad, sched, dim=128, throw=False, return_details=True)
+    c = details["candidates"]
+    assert not np.isin(np.asarray(c.pairs)[: int(c.count)], [3, 410]).any()
+
+
+def test_detect_and_fit_throw_false_skip_the_host_check():
+    rng = np.random.default_rng(0)
+    Z = rng.normal(size=(300, 16)).astype(np.float32)
+    Z[17] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        L.detect_loops(Z, 0.5)
+    cand = L.detect_loops(Z, 0.5, throw=False)
+    assert not np.any(np.asarray(cand.pairs)[: int(cand.count)] == 17)
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        L.fit_whitening(Z, dim=8)
+    w = L.fit_whitening(Z, dim=8, throw=False)
+    assert not np.all(np.isfinite(np.asarray(w.projection)))
+
+
+def test_schedule_api_and_its_deprecated_spelling_agree():
+    sched = chunk_schedule(400)
+    new = L.loop_chunk_frames(250, 72, sched)
+    with pytest.warns(DeprecationWarning, match="pass the ChunkSchedule"):
+        old = L.loop_chunk_frames(250, 72, sched.starts, 75, 400, 10)
+    with pytest.warns(DeprecationWarning):
+        kw = L.loop_chunk_frames(250, 72, sched.starts, chunk_size=75, n_frames=400, half_window=10)
+    for a, b in zip(new, old):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(new, kw):
+        np.testing.assert_array_equal(a, b)
+    pairs = np.array([[300, 100], [310, 95], [390, 20], [-1, -1]], np.int32)
+    cand = L.LoopCandidates(pairs, np.array([0.9, 0.8, 0.6, -np.inf], np.float32), np.int32(3), np.bool_(False))
+    with pytest.warns(DeprecationWarning):
+        old = L.filter_by_chunks(cand, sched.starts, 75, 400)
+    assert L.filter_by_chunks(cand, sched).to_list() == old.to_list()
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        L.loop_chunk_frames(1, 2, sched, chunk_size=75)
+    # vmap over the ends, schedule closed over
+    lc = jax.vmap(lambda a, b: L.loop_chunk_frames(a, b, sched))(np.array([399, 250]), np.array([0, 50]))
+    assert lc.frames.shape == (2, 40)
+
+
+def test_chunk_of_arrays():
+    sched = chunk_schedule(400)
+    frames = np.arange(400)
+    np.testing.assert_array_equal(sched.chunk_of(frames), [sched.chunk_of(int(f)) for f in frames])
+    assert isinstance(sched.chunk_of(5), int)
+
+
+def test_loop_verification_is_a_deprecated_alias():
+    lv = importlib.import_module("swiftjax.loop_verification")
+    with pytest.warns(DeprecationWarning, match="swiftjax.loops.verification"):
+        assert lv.verify_candidates is V.verify_candidates
+    with pytest.warns(DeprecationWarning):
+        assert lv.VerificationConfig is VerificationConfig
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(AttributeError):
+            lv.no_such_name  # noqa: B018
+    assert set(lv.__all__) == set(V.__all__)
+
+
+def test_loops_keeps_its_public_names():
+    before = ["frame_descriptor", "power_normalize", "Whitening", "fit_whitening", "whiten", "LoopCandidates",
+              "ThresholdCalibration", "calibrate_threshold", "detect_loops", "LoopChunk", "loop_chunk_frames",
+              "filter_by_chunks", "loop_edge", "Loop", "find_loops", "DEFAULT_THRESHOLD", "AUTHORS_THRESHOLD",
+              "DEFAULT_FALSE_ALARMS", "THRESHOLD_RULES"]
+    assert set(before) <= set(L.__all__)
+    for name in L.__all__:
+        assert getattr(L, name) is not None
+    assert dataclasses.is_dataclass(L.LoopOptions) and L.LoopOptions.__dataclass_params__.frozen
