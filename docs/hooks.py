@@ -12,6 +12,7 @@ the option schema.
 * ``options.md``: every method option of ``PipelineConfig`` (flag, TOML key, default, what it
   accepts, what it does), from the option schema itself.  This imports
   ``swiftjax.pipeline.config`` (JAX, never torch: the hook fails the build if torch was pulled in).
+* ``commands.md``: each ``swiftjax`` subcommand's ``--help``, from the CLI's own parser.
 * The "Benchmarks" section lists ``performance/index.md``, then the pages in
   ``PERFORMANCE_ORDER`` that exist, then any other page found there (alphabetical).
 """
@@ -141,6 +142,44 @@ def _options_page() -> str:
     return "\n".join(lines)
 
 
+def _commands_page() -> str:
+    import argparse
+    import os
+
+    sys.path.insert(0, str(ROOT))
+    try:
+        from swiftjax import cli
+    finally:
+        sys.path.pop(0)
+    if "torch" in sys.modules:
+        raise RuntimeError("importing swiftjax.cli imported torch: swiftjax must never import it")
+    columns = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal width; a fixed width here
+    try:
+        parser = cli.build_parser()
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        lines = [
+            "# Command reference",
+            "",
+            "`swiftjax --help` and each subcommand's `--help`, generated from the CLI's own parser when",
+            "the documentation is built. The method options of `reconstruct` and `demo` are explained,",
+            "by stage, on [Options](options.md); the commands in context on [CLI and outputs](cli.md).",
+            "",
+            "```text",
+            parser.format_help().rstrip(),
+            "```",
+            "",
+        ]
+        for name, p in sub.choices.items():
+            lines += [f"## `swiftjax {name}`", "", "```text", p.format_help().rstrip(), "```", ""]
+    finally:
+        if columns is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = columns
+    return "\n".join(lines)
+
+
 def _performance_nav(docs_dir: pathlib.Path) -> list:
     perf = docs_dir / "performance"
     found = {p.stem for p in perf.glob("*.md")} - {"index"}
@@ -160,6 +199,7 @@ def on_config(config):
     global _pages
     _pages, api_nav = _api()
     _pages["options.md"] = _options_page()
+    _pages["commands.md"] = _commands_page()
     _replace(config["nav"], "API reference", api_nav)
     _replace(config["nav"], "Benchmarks", _performance_nav(pathlib.Path(config["docs_dir"])))
     return config
