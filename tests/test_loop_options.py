@@ -43,6 +43,9 @@ def test_function_defaults_come_from_loop_options():
     vc = VerificationConfig()
     assert (sig["stride"].default, sig["depth_tolerance"].default, sig["neighbours"].default) == (
         vc.stride, vc.depth_tolerance, vc.neighbours)
+    from swiftjax.align import AlignOptions
+
+    assert sig["conf_ratio"].default == AlignOptions().conf_ratio  # λ_γ, the alignment's
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,9 @@ Modules, one idea each:
 * :mod:`swiftjax.loops.loop_chunk`: loop-centric chunks, the chunk filter, the loop edge;
 * :mod:`swiftjax.loops.find`: :func:`find_loops`, the one host-level call from descriptors
   to the final loop list;
-* :mod:`swiftjax.loops.verification`: geometric verification of the candidates.
+* :mod:`swiftjax.loops.verification`: geometric verification of the candidates, the
+  decision rule (:mod:`swiftjax.loops.cross_chunk`: the dense cross-chunk test;
+  :mod:`swiftjax.loops.pcm`: pairwise consistency of loop edges).
 
 ``frame_descriptor`` runs per chunk as tokens arrive (the pipeline never holds all tokens:
 4,500 frames × 407 tokens × 1024 floats is 7.5 GB); only ``[N, d]`` descriptors are kept.
