@@ -150,7 +150,7 @@ def _gtsam(g, edges, meas, info, kind, repeat, c=None):
     """GTSAM LM (``c`` None) or GncLMOptimizer (TLS, threshold ``c``, odometry known inliers)."""
     import gtsam
 
-    from swiftjax.posegraph.gtsam_baseline import build_graph, from_gtsam
+    from _gtsam_baseline import build_graph, from_gtsam
 
     n = len(g["initial"])
     fixed = np.arange(n) == 0

@@ -36,7 +36,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 from swiftjax import posegraph  # noqa: E402
 from swiftjax.io.g2o import read_g2o  # noqa: E402
-from swiftjax.posegraph.synthetic import chain_graph, circle_graph  # noqa: E402
+from swiftjax.synthetic.pose_graphs import chain_graph, circle_graph  # noqa: E402
 
 
 def _graphs(quick: bool, shared: pathlib.Path | None):
@@ -119,7 +119,7 @@ def _bench_graph(args, name, prob, init):
     )
     with_gtsam = n <= args.gtsam_max_nodes
     if with_gtsam:
-        from swiftjax.posegraph.gtsam_baseline import solve_gtsam
+        from _gtsam_baseline import solve_gtsam
         from swiftjax.posegraph.initialization import chordal_initialization
 
         start, init_fn = prob.poses, None

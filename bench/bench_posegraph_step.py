@@ -19,6 +19,7 @@ Writes ``bench/results/posegraph_step-<stamp>.json``.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import pathlib
 import sys
@@ -57,20 +58,21 @@ def main() -> None:
     import cvxopt.cholmod as cholmod
     import gtsam
 
-    from swiftjax.posegraph.gtsam_baseline import build_graph
+    from _gtsam_baseline import build_graph
 
     with jax.enable_x64(True):
         prob = posegraph.Problem(g.poses, g.edges, g.measurements, g.information, g.fixed)
         padded = pad_problem(prob, bucket_size(prob.num_nodes), bucket_size(prob.num_edges))
-        static = driver._Static(max_steps=100, linear_solver="sparse", max_linear_iterations=1000,  # noqa: SLF001
-                                damping="identity", initialization="none")
+        static = driver._Static(damping="identity", initialization="none")  # noqa: SLF001
         params = {k: jax.numpy.asarray(v, jax.numpy.float64) for k, v in dict(
-            rtol=1e-5, atol=0.0, gtol=1e-10, lambda0=1e-5, eta_max=1e-4, kernel_scale=1.0).items()}
+            rtol=1e-5, atol=0.0, gtol=1e-10, lambda0=1e-5, kernel_scale=1.0).items()}
         params["kernel"] = jax.numpy.asarray(0, jax.numpy.int32)
-        begin_c, advance_c = driver._compile(padded, params, static)  # noqa: SLF001
-        problem, y, state, damping, _ = begin_c(padded, params)
+        solver = posegraph.HostSparse()
+        bucket = driver._Bucket(padded, params, solver, static)  # noqa: SLF001
+        problem, y, state, _ = bucket.begin(padded, params, solver)
         zero = np.zeros((padded.num_nodes, 7))
-        y, state, damping = jax.block_until_ready(advance_c(problem, params, y, state, zero, np.asarray(True)))
+        advance_c = functools.partial(bucket.step, problem, params, solver)
+        y, state, damping = jax.block_until_ready(advance_c(y, state, zero, np.asarray(True)))
         edges, mask, fixed = (np.asarray(a) for a in (problem.edges, problem.edge_mask, problem.fixed))
         ne = state.lin.ne
         diag, off, grad, damp = (np.asarray(a) for a in (ne.diag, ne.off, ne.grad, damping))
@@ -89,7 +91,7 @@ def main() -> None:
             return np.asarray(x)
 
         ours = {
-            "advance (XLA)": lambda: advance_c(problem, params, y, state, zero, np.asarray(True)),
+            "advance (XLA)": lambda: advance_c(y, state, zero, np.asarray(True)),
             "gather CSC values": lambda: pat.values(diag, off, damp),
             "CHOLMOD numeric": lambda: cholmod.numeric(pat._matrix, pat._symbolic),  # noqa: SLF001
             "CHOLMOD solve": rhs_solve,

@@ -18,7 +18,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from swiftjax import align, posegraph, sim3, so3
-from swiftjax.posegraph.synthetic import circle_graph
+from swiftjax.synthetic.pose_graphs import circle_graph
 
 
 def _element(rng, n):
@@ -115,12 +115,12 @@ def test_max_steps_zero_and_one_report_the_true_initial_cost(x64, linear_solver)
     prob = posegraph.Problem(g.initial, g.edges, g.measurements, information=g.information)
     true_cost = float(posegraph.cost(prob.poses, prob))
     assert true_cost > 1.0
-    r0 = posegraph.optimize(prob, max_steps=0, linear_solver=linear_solver)
+    r0 = posegraph.optimize(prob, max_steps=0, linear_solver=linear_solver, throw=False)
     assert r0.cost_initial == pytest.approx(true_cost, rel=1e-12)
     assert r0.num_steps == 0 and r0.cost_final == pytest.approx(true_cost, rel=1e-12)
     np.testing.assert_allclose(np.asarray(r0.poses), np.asarray(sim3.normalize(prob.poses)), atol=1e-15)
     assert not r0.converged and r0.status == "max_steps reached"
-    r1 = posegraph.optimize(prob, max_steps=1, linear_solver=linear_solver)
+    r1 = posegraph.optimize(prob, max_steps=1, linear_solver=linear_solver, throw=False)
     assert r1.num_steps == 1 and r1.cost_initial == pytest.approx(true_cost, rel=1e-12)
     assert r1.num_accepted + r1.num_rejected == 1  # one LM step, accepted or rejected
     assert r1.cost_final < true_cost  # one real LM step was made

@@ -13,7 +13,7 @@ import scipy.optimize
 from swiftjax import posegraph, sim3
 from swiftjax.posegraph import ProblemError, sparse_direct
 from swiftjax.posegraph.solver import SparseSim3LM, residual_fn
-from swiftjax.posegraph.synthetic import chain_graph, circle_graph
+from swiftjax.synthetic.pose_graphs import chain_graph, circle_graph
 
 
 def _problem(g, **kw):
@@ -389,3 +389,96 @@ def test_constructor_shape_errors():
         posegraph.Problem(poses, edges, meas, information=info[:, :6, :6])
     with pytest.raises(ProblemError, match="edges has dtype"):
         posegraph.Problem(poses, edges.astype(float), meas)
+
+
+# ------------------------------------------------------------ results, options, solver objects
+
+
+def test_lm_result_drives_converged_and_throw(x64):
+    g = circle_graph(10, noise=(0.2, 0.1, 0.05), seed=4)
+    prob = _problem(g)
+    res = posegraph.optimize(prob)
+    assert res.converged and res.result == posegraph.LMResult.relative_decrease
+    assert res.status == posegraph.LMResult[res.result]
+    short = posegraph.optimize(prob, max_steps=1, throw=False)
+    assert not short.converged and short.result == posegraph.LMResult.nonlinear_max_steps_reached
+    with pytest.raises(posegraph.SolveError, match="max_steps reached after 1 steps") as err:
+        posegraph.optimize(prob, max_steps=1)
+    assert err.value.result.num_steps == 1
+
+
+def test_optimistix_throw_fails_on_a_stalled_solve(x64):
+    g = circle_graph(8, seed=2)
+    prob = _problem(g)
+    from swiftjax.posegraph.linear_solvers import AbstractLinearSolver
+
+    class Failing(AbstractLinearSolver):  # every step rejected: the damping grows past 1e16
+        def solve(self, ne, damping, *, rtol=None, fixed=None, active=None):
+            return jnp.zeros_like(ne.grad), jnp.zeros((), jnp.int32), jnp.asarray(False)
+
+    solver = SparseSim3LM(linear_solver=Failing())
+    sol = optx.least_squares(residual_fn, solver, prob.poses, args=prob, max_steps=30, throw=False)
+    assert sol.state.result == posegraph.LMResult.stalled
+    assert sol.result == optx.RESULTS.nonlinear_divergence
+    with pytest.raises(Exception, match="diverged"):
+        optx.least_squares(residual_fn, solver, prob.poses, args=prob, max_steps=30, throw=True)
+    ok = optx.least_squares(residual_fn, SparseSim3LM(), prob.poses, args=prob, max_steps=50, throw=True)
+    assert ok.result == optx.RESULTS.successful and bool(posegraph.solver.is_converged(ok.state.result))
+
+
+def test_graph_options_are_validated_once_and_override():
+    with pytest.raises(ValueError, match="max_steps must be an integer >= 0"):
+        posegraph.GraphOptions(max_steps=-1)
+    with pytest.raises(ValueError, match="kernel must be None or one of 'gnc', 'cauchy', 'huber'"):
+        posegraph.GraphOptions(kernel="tukey")
+    with pytest.raises(ValueError, match="linear_solver must be"):
+        posegraph.GraphOptions(linear_solver="qr")
+    with pytest.raises(ValueError, match="kernel must be"):
+        posegraph.robust_rho(jnp.ones(2), "tukey", 1.0)
+    assert posegraph.GraphOptions(kernel="gnc").scale == posegraph.gnc.DEFAULT_SCALE
+    assert posegraph.GraphOptions(kernel="huber").scale == 1.0
+    g = circle_graph(6, seed=1)
+    with pytest.raises(TypeError, match="max_step"):
+        posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements), max_step=3)
+
+
+def test_pipeline_defaults_come_from_graph_options():
+    from swiftjax.pipeline import PipelineConfig
+    from swiftjax.posegraph.options import PIPELINE
+
+    cfg = PipelineConfig()
+    assert cfg.robust_loops == PIPELINE.kernel and cfg.robust_scale == PIPELINE.scale
+    assert cfg.max_lm_steps == PIPELINE.max_steps == posegraph.GraphOptions().max_steps
+
+
+def test_linear_solver_objects_agree(x64):
+    from swiftjax.posegraph import linear
+
+    g = circle_graph(12, seed=3)
+    prob = _problem(g)
+    lin = posegraph.linearize(prob.poses, prob, None, 1.0)
+    damping = jnp.full((12, 7), 1e-3)
+    x_dense, _, ok = posegraph.DenseCholesky().solve(lin.ne, damping)
+    x_pcg, k, ok2 = posegraph.BlockJacobiPCG(max_iterations=500).solve(lin.ne, damping, rtol=1e-12)
+    x_sp, _, ok3 = posegraph.HostSparse().solve(lin.ne, damping, fixed=prob.fixed, active=prob.edge_mask)
+    assert bool(ok & ok2 & ok3) and int(k) > 0
+    np.testing.assert_allclose(x_pcg, x_dense, atol=1e-8)
+    np.testing.assert_allclose(x_sp, x_dense, atol=1e-10)
+    np.testing.assert_array_equal(x_dense, linear.solve_dense(lin.ne, damping)[0])
+
+
+def test_deprecated_names_warn():
+    import importlib
+    import sys
+
+    with pytest.warns(DeprecationWarning, match="LMResult"):
+        status = posegraph.STATUS
+    assert status[1] == "relative cost decrease <= rtol" and status[5].startswith("stalled")
+    sys.modules.pop("swiftjax.posegraph.synthetic", None)
+    with pytest.warns(DeprecationWarning, match="swiftjax.synthetic.pose_graphs"):
+        mod = importlib.import_module("swiftjax.posegraph.synthetic")
+    assert mod.circle_graph is circle_graph
+    g = circle_graph(6, seed=1)
+    with pytest.warns(DeprecationWarning, match="throw="):
+        res = posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements), check=True, max_steps=0)
+    assert not res.converged  # check= keeps the old contract: never raises on a failed solve

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from swiftjax import posegraph, sim3
 from swiftjax.posegraph import gnc
-from swiftjax.posegraph.synthetic import circle_graph
+from swiftjax.synthetic.pose_graphs import circle_graph
 
 from test_posegraph import _expm, _hat, _matrix, _vee  # batched float64 NumPy Sim(3) helpers  # float64 NumPy Sim(3), no swiftjax code
 
@@ -231,8 +231,13 @@ def test_a_bad_odometry_edge_is_never_down_weighted(x64, gnc_case):
 def test_max_iterations_is_reported_not_raised(x64, gnc_case):
     g, edges, meas, info, robust, *_ = gnc_case
     res = posegraph.optimize(posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
-                             kernel="gnc", gnc_max_iterations=1)
+                             kernel="gnc", gnc_max_iterations=1, throw=False)
     assert not res.converged and res.status.startswith("GNC") and res.gnc_iterations == 1
+    assert res.result == posegraph.LMResult.gnc_not_converged
+    with pytest.raises(posegraph.SolveError, match="GNC: 1 outer iterations") as err:
+        posegraph.optimize(posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
+                           kernel="gnc", gnc_max_iterations=1)
+    assert err.value.result.gnc_iterations == 1
     assert np.all(np.isfinite(np.asarray(res.poses)))
 
 

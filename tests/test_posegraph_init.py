@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from swiftjax import posegraph
 from swiftjax.posegraph.initialization import chordal_initialization
-from swiftjax.posegraph.synthetic import circle_graph
+from swiftjax.synthetic.pose_graphs import circle_graph
 
 
 def _problem(g, poses=None, **kw):

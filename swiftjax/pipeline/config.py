@@ -14,7 +14,8 @@ from typing import Any
 from swiftjax import loops, options
 from swiftjax.align import AlignOptions as _ALIGN
 from swiftjax.options import option
-from swiftjax.posegraph.gnc import DEFAULT_SCALE as _GNC_SCALE
+from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
+from swiftjax.posegraph.options import PIPELINE as _GRAPH
 
 _LOOPS = loops.LoopOptions()  # the loop fields' defaults
 
@@ -120,12 +121,12 @@ class PipelineConfig:
     )
     loop_pcm: bool = option(_LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops")
     robust_loops: str | None = option(
-        "gnc", "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
-        "or none (the authors' plain least squares)", kind=str, choices=("gnc", "cauchy", "huber"),
+        _GRAPH.kernel, "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
+        "or none (the authors' plain least squares)", kind=str, choices=_ROBUST_CHOICES,
         optional=True, stage="graph",
     )
     robust_scale: float = option(
-        _GNC_SCALE, "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
+        _GRAPH.scale, "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
         low=0.0, low_open=True, stage="graph",
     )
     edge_information: str = option(
@@ -136,7 +137,7 @@ class PipelineConfig:
         196.0, "pixels per independent residual in an alignment's information (one 14x14 ViT patch)",
         low=1.0, stage="graph",
     )
-    max_lm_steps: int = option(100, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, stage="graph")
+    max_lm_steps: int = option(_GRAPH.max_steps, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, stage="graph")
     point_conf_ratio: float = option(
         0.75, "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
         low=0.0, high=10.0, stage="temporal",

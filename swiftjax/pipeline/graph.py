@@ -149,12 +149,13 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> GraphRe
                     jnp.asarray(chunk_poses_no_loops), np.asarray(edges, np.int32), jnp.asarray(meas),
                     information=information, robust=robust,
                 )
+                posegraph.validate(problem)
                 res = posegraph.optimize(
                     problem, max_steps=config.max_lm_steps, kernel=config.robust_loops,
-                    kernel_scale=config.robust_scale,
+                    kernel_scale=config.robust_scale, throw=False,  # not converged: a warning below
                 )
                 chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
-                r = np.asarray(posegraph.residuals(res.poses, problem), np.float64)[T - 1:]
+                r = np.asarray(res.residuals, np.float64)[T - 1:]
             om = np.asarray(problem.information, np.float64)[T - 1:]
             inlier_weights = res.inlier_weights[T - 1:]
             graph_metrics = {

@@ -1,12 +1,10 @@
 """Products of batches of small matrices (``[..., b, b]``, ``b <= 9``) as unrolled multiply-adds.
 
 XLA:CPU lowers a batched ``dot_general`` (``a @ b``, ``einsum``) on ``[E, 7, 7]`` operands to one
-Eigen call per matrix, dispatched through its thread pool: on a 2-core machine a batch of 7,168
-products of ``7 x 7`` matrices takes 2.9 ms that way (0.47 ms with ``--xla_cpu_multi_thread_eigen=false``),
-against 0.33 ms written as ``sum_k a[..., :, k, None] * b[..., None, k, :]``: a single elementwise
-loop fusion that vectorises over the batch and fuses with its neighbours.  Four chained products
-(the normal-equation blocks of one edge): 11.7 ms vs 1.25 ms; matrix-vector products 0.17 ms vs
-0.10 ms.  Each function below is that sum over the (static, small) contracted dimension.
+Eigen call per matrix, dispatched through its thread pool, several times slower than
+``sum_k a[..., :, k, None] * b[..., None, k, :]``: a single elementwise loop fusion that
+vectorises over the batch and fuses with its neighbours.  Each function below is that sum over
+the (static, small) contracted dimension (timings in ``docs/performance/posegraph.md``).
 
 Chained products need :func:`unfused`: XLA:CPU fuses a cheap elementwise producer into every
 consumer that reads it, so ``c = (a @ b) @ d`` written as sums recomputes each entry of ``a @ b``
@@ -67,8 +65,7 @@ def unfused(fn: Callable[..., T], *args: Array) -> T:
     The body of a ``lax.while_loop`` whose trip count XLA cannot know at compile time is never
     fused with the code around it.  The count is ``1 + (x != x)`` for ``x = args[0].flat[0]``:
     it is 1, and were it 2 the (pure) body would only recompute the same value.  Overhead: one loop
-    iteration (~10 us).  Measured on the parking-garage normal equations (7,168 edges, four
-    chained products): 7.0-9.7 ms -> 3.5-4.6 ms per assembly (XLA profiler, same process).
+    iteration (~10 us); on chained products it halves an assembly (``docs/performance/posegraph.md``).
     Forward-mode differentiable and vmappable; not reverse-mode (a ``while_loop``).
     """
     first = jnp.ravel(args[0])[0]

@@ -38,21 +38,26 @@ freedom, so ``c = sqrt(chi2_7^-1(p))`` accepts a fraction ``p`` of inliers:
 error is ``s / 2``).  With unit (equal) weights the threshold must be given in the residuals'
 own units (``c`` ~ a few times their spread).
 
-The functions here are pure and jit-able; the continuation loop lives in
-:func:`swiftjax.posegraph.driver.optimize` (host), which calls the bucket's compiled LM program
-once per outer iteration and :func:`weight_update` through one small compiled program per bucket.
+The functions here are pure: :func:`tls_weights`, :func:`initial_mu` and :func:`tls_cost` take
+JAX arrays (jit-able) or NumPy arrays (evaluated by NumPy, no XLA program), :func:`weight_update`
+is the jit-able update of a whole problem.  The continuation loop lives in
+:func:`swiftjax.posegraph.optimize` (host): it runs the bucket's compiled LM step program for
+every solve and computes the weights in NumPy from the residuals that program returns
+(:func:`squared_residuals`), so GNC adds no compiled program.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
+from jaxtyping import Bool, Float
 
 from swiftjax.posegraph.blockmat import quadratic
 from swiftjax.posegraph.factors import residuals
 from swiftjax.posegraph.problem import Problem
 
-__all__ = ["DEFAULT_SCALE", "MU_MIN", "tls_weights", "initial_mu", "weight_update", "tls_cost"]
+__all__ = ["DEFAULT_SCALE", "MU_MIN", "tls_weights", "initial_mu", "weight_update", "tls_cost", "squared_residuals"]
 
 #: ``sqrt(chi2_7^-1(0.99))``: the inlier threshold on ``sqrt(r^T Omega r)`` at probability 0.99
 #: for a 7-D residual whose information matches its noise (``scipy.stats.chi2.ppf(0.99, 7)`` =
@@ -63,35 +68,66 @@ DEFAULT_SCALE = 4.298287
 MU_MIN = 1e-6
 
 
-def tls_weights(sq: Array, mu: Array, c2: Array) -> Array:
+def _xp(*arrays):
+    """NumPy for NumPy inputs (host evaluation, no XLA), else jax.numpy."""
+    return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
+
+
+def tls_weights(sq: Float[Array, "*e"], mu: Float[Array, ""], c2: Float[Array, ""]) -> Float[Array, "*e"]:
     """GNC-TLS weights (module docstring, eq. 14): ``sq [...], mu, c2 -> w [...]`` in ``[0, 1]``.
 
     ``sq`` the squared whitened residuals ``r^T Omega r``, ``c2`` the squared inlier threshold.
     """
+    xp = _xp(sq, mu, c2)
     lower = mu / (mu + 1.0) * c2
     upper = (mu + 1.0) / mu * c2
-    safe = jnp.where(sq > 0, sq, 1.0)
-    w = jnp.sqrt(c2 * mu * (mu + 1.0) / safe) - mu
-    w = jnp.clip(w, 0.0, 1.0)
-    return jnp.where(sq >= upper, 0.0, jnp.where(sq <= lower, 1.0, w))
+    safe = xp.where(sq > 0, sq, 1.0)
+    w = xp.sqrt(c2 * mu * (mu + 1.0) / safe) - mu
+    w = xp.clip(w, 0.0, 1.0)
+    return xp.where(sq >= upper, 0.0, xp.where(sq <= lower, 1.0, w))
 
 
-def initial_mu(sq: Array, robust: Array, c2: Array) -> Array:
+def initial_mu(sq: Float[Array, " e"], robust: Bool[Array, " e"], c2: Float[Array, ""]) -> Float[Array, ""]:
     """``mu_0 = c^2 / (2 s_max - c^2)`` over the ``robust`` edges (floored at :data:`MU_MIN`);
     ``-1`` when ``2 s_max <= c^2`` (every robust edge an inlier: no continuation needed)."""
-    s_max = jnp.max(jnp.where(robust, sq, 0.0))
+    xp = _xp(sq, robust, c2)
+    s_max = xp.max(xp.where(robust, sq, 0.0))
     excess = 2.0 * s_max - c2
-    mu = c2 / jnp.where(excess > 0, excess, 1.0)
-    return jnp.where(excess > 0, jnp.maximum(mu, MU_MIN), -1.0)
+    mu = c2 / xp.where(excess > 0, excess, 1.0)
+    return xp.where(excess > 0, xp.maximum(mu, MU_MIN), -1.0)
 
 
-def tls_cost(sq: Array, robust: Array, mask: Array, c2: Array) -> Array:
+def tls_cost(
+    sq: Float[Array, " e"], robust: Bool[Array, " e"], mask: Bool[Array, " e"], c2: Float[Array, ""]
+) -> Float[Array, ""]:
     """``1/2 sum_e rho_e(s_e)`` with ``rho = min(s, c^2)`` on robust edges, ``s`` elsewhere."""
-    rho = jnp.where(robust, jnp.minimum(sq, c2), sq)
-    return 0.5 * jnp.sum(jnp.where(mask, rho, 0.0))
+    xp = _xp(sq, robust, mask, c2)
+    rho = xp.where(robust, xp.minimum(sq, c2), sq)
+    return 0.5 * xp.sum(xp.where(mask, rho, 0.0))
 
 
-def weight_update(problem: Problem, poses: Array, mu: Array, c2: Array) -> tuple[Array, Array, Problem]:
+def squared_residuals(r: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """``s_e = r_e^T Omega_e r_e`` on the host: ``[E, 7], [E, 7, 7] -> [E]`` (NumPy), summed in the
+    order of :func:`swiftjax.posegraph.blockmat.quadratic`."""
+    r = np.asarray(r)
+    a = np.asarray(information)
+    k = r.shape[-1]
+    av = [sum_in_order(a[:, m, l] * r[:, l] for l in range(k)) for m in range(k)]
+    return sum_in_order(r[:, m] * av[m] for m in range(k))
+
+
+def sum_in_order(terms):
+    """``((t0 + t1) + t2) + ...`` (the order of blockmat's unrolled sums)."""
+    terms = iter(terms)
+    total = next(terms)
+    for t in terms:
+        total = total + t
+    return total
+
+
+def weight_update(
+    problem: Problem, poses: Float[Array, "n 8"], mu: Float[Array, ""], c2: Float[Array, ""]
+) -> tuple[Float[Array, " e"], Float[Array, " e"], Problem]:
     """One GNC weight update at ``poses``: ``(s [E], w [E], weighted problem)``.
 
     ``w`` is :func:`tls_weights` on robust edges, 1 on the others, 0 on padding; the weighted

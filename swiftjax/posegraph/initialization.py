@@ -2,9 +2,8 @@
 
 Levenberg–Marquardt converges to the minimum nearest its starting point.  Dead reckoning
 (composing odometry) is a poor start for large graphs with many loops: rotation errors grow
-along the chain and the loop residuals wrap around ``pi`` (measured, synthetic circle, N = 5,000
-nodes + 5,000 random loops: LM from dead reckoning stops at cost 87,536; from the truth it
-reaches 17,500).  The standard remedy (Carlone et al., "Initialization techniques for 3D SLAM",
+along the chain and the loop residuals wrap around ``pi``, and LM stops in a local minimum
+(``docs/performance/posegraph.md`` has the numbers).  The standard remedy (Carlone et al., "Initialization techniques for 3D SLAM",
 ICRA 2015 — GTSAM's ``InitializePose3``; Martinec & Pajdla 2007) relaxes ``SO(3)`` to ``R^{3x3}``,
 which makes every problem linear.  With ``Z_e = S_i^-1 S_j`` for every edge ``e = (i, j)``::
 
@@ -28,24 +27,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import Bool, Float
 
 from swiftjax import sim3
 from swiftjax.posegraph import linear
 from swiftjax.posegraph.blockmat import bmtm, bmtv, bmv
+from swiftjax.posegraph.linear_solvers import AbstractLinearSolver
+from swiftjax.posegraph.linear_solvers import linear_solver as make_linear_solver
 from swiftjax.posegraph.problem import Problem
 
 __all__ = ["chordal_initialization", "solve_difference_system"]
 
 
 def solve_difference_system(
-    x0: Array,
-    a: Array | None,
-    c: Array,
-    weight: Array,
+    x0: Float[Array, "n b"],
+    a: Float[Array, "e b b"] | None,
+    c: Float[Array, "e b"],
+    weight: Float[Array, " e"],
     problem: Problem,
-    linear_solver: str,
+    linear_solver: AbstractLinearSolver | str,
     max_linear_iterations: int = 1000,
-) -> tuple[Array, Array]:
+) -> tuple[Float[Array, "n b"], Bool[Array, ""]]:
     """Minimise ``sum_e w_e |x_j - A_e x_i - c_e|^2`` over the free nodes, fixed nodes at ``x0``.
 
     Args:
@@ -55,11 +57,14 @@ def solve_difference_system(
         c: ``[E, b]``.
         weight: ``[E]`` (zero for masked edges).
         problem: supplies ``edges`` and ``fixed``.
-        linear_solver: ``"dense"``, ``"pcg"`` or ``"sparse"`` (static).
+        linear_solver: a solver object of :mod:`swiftjax.posegraph.linear_solvers` (static
+            settings) or its name (then ``max_linear_iterations`` caps PCG).  PCG runs to a
+            relative residual of ``1e-10``.
 
     Returns:
         ``(x [N, b], ok)``.
     """
+    solver = _as_solver(linear_solver, max_linear_iterations)
     edges, fixed = problem.edges, problem.fixed
     n, b = x0.shape
     dtype = x0.dtype
@@ -78,24 +83,21 @@ def solve_difference_system(
         wb * h_ii, wb * jnp.eye(b, dtype=dtype), -wb * at, -w[:, None] * at_r, w[:, None] * r, edges, fixed
     )
     damping = jnp.zeros((n, b), dtype)
-    if linear_solver == "dense":
-        delta, _, ok = linear.solve_dense(ne, damping)
-    elif linear_solver == "sparse":
-        delta, _, ok = linear.solve_sparse(ne, damping, fixed, problem.edge_mask)
-    elif linear_solver == "pcg":
-        tol = jnp.asarray(1e-10, dtype)
-        delta, _, ok = linear.solve_pcg(ne, damping, tol, max_linear_iterations)
-    else:
-        raise ValueError(f"unknown linear_solver {linear_solver!r}")
+    delta, _, ok = solver.solve(ne, damping, rtol=1e-10, fixed=fixed, active=problem.edge_mask)
     return x0 + delta, ok
+
+
+def _as_solver(linear_solver, max_linear_iterations: int) -> AbstractLinearSolver:
+    if isinstance(linear_solver, AbstractLinearSolver):
+        return linear_solver
+    return make_linear_solver(linear_solver, max_iterations=max_linear_iterations)
 
 
 def _project_to_so3(m: Array) -> Array:
     """Nearest rotation (Frobenius) of each ``[..., 3, 3]``: ``U diag(1, 1, det(U V^T)) V^T``."""
     u, _, vt = jnp.linalg.svd(m)
-    # Batched dots here on purpose, not blockmat's elementwise products: with those, XLA:CPU
-    # (jaxlib 0.10.2, 2 threads) deadlocks the whole chordal + LM program of the N = 20,000 circle
-    # (every thread parked, reproducible); with the dots it runs.  Run time is irrelevant here.
+    # Batched dots here on purpose, not blockmat's elementwise products (an XLA:CPU hang with
+    # those, docs/performance/posegraph.md).
     d = jnp.sign(jnp.linalg.det(u @ vt))
     d = jnp.where(d == 0, 1.0, d)
     u = u.at[..., :, 2].multiply(d[..., None])
@@ -103,13 +105,15 @@ def _project_to_so3(m: Array) -> Array:
 
 
 def chordal_initialization(
-    problem: Problem, linear_solver: str = "sparse", max_linear_iterations: int = 1000
-) -> tuple[Array, Array]:
+    problem: Problem, linear_solver: AbstractLinearSolver | str = "sparse", max_linear_iterations: int = 1000
+) -> tuple[Float[Array, "n 8"], Bool[Array, ""]]:
     """Initial poses ``[N, 8]`` from the three linear problems of the module docstring.
 
-    Pure and jit-able (``linear_solver`` and ``max_linear_iterations`` static).  Returns
-    ``(poses, ok)``; where a linear solve fails (``ok`` False) the given poses are returned.
+    Pure and jit-able (``linear_solver``: a solver object or its name; ``max_linear_iterations``
+    caps PCG when a name is given).  Returns ``(poses, ok)``; where a linear solve fails (``ok``
+    False) the given poses are returned.
     """
+    linear_solver = _as_solver(linear_solver, max_linear_iterations)
     poses = problem.poses
     info = problem.information
     mask = problem.edge_mask.astype(poses.dtype)
@@ -124,14 +128,14 @@ def chordal_initialization(
     # 1. rotations, x = row-major vec(R): row k of R_j is (row k of R_i) R_z, i.e. A = I_3 (x) R_z^T.
     a_rot = jnp.einsum("kl,eab->ekalb", jnp.eye(3, dtype=poses.dtype), jnp.swapaxes(r_z, 1, 2)).reshape(e, 9, 9)
     x_rot, ok_r = solve_difference_system(
-        r0.reshape(-1, 9), a_rot, jnp.zeros((e, 9), poses.dtype), w_r, problem, linear_solver, max_linear_iterations
+        r0.reshape(-1, 9), a_rot, jnp.zeros((e, 9), poses.dtype), w_r, problem, linear_solver
     )
     rot = _project_to_so3(x_rot.reshape(-1, 3, 3))
     rot = jnp.where(problem.fixed[:, None, None], r0, rot)
 
     # 2. log-scales.
     log_s, ok_s = solve_difference_system(
-        jnp.log(s0)[:, None], None, jnp.log(s_z)[:, None], w_s, problem, linear_solver, max_linear_iterations
+        jnp.log(s0)[:, None], None, jnp.log(s_z)[:, None], w_s, problem, linear_solver
     )
     scale = jnp.exp(log_s[:, 0])
 
@@ -139,7 +143,7 @@ def chordal_initialization(
     i = problem.edges[:, 0]
     c_t = scale[i, None] * bmv(rot[i], t_z)
     trans, ok_t = solve_difference_system(
-        t0, None, c_t, w_t / scale[i] ** 2, problem, linear_solver, max_linear_iterations
+        t0, None, c_t, w_t / scale[i] ** 2, problem, linear_solver
     )
     ok = ok_r & ok_s & ok_t
     out = sim3.normalize(sim3.from_rst(rot, trans, scale))

@@ -13,7 +13,7 @@ update is exactly zero.  Every solver takes the Levenberg–Marquardt damping as
 :func:`damping_diagonal`; the choice is the solver's, :mod:`swiftjax.posegraph.solver`).
 The batched ``7 x 7`` products are :mod:`swiftjax.posegraph.blockmat`'s unrolled multiply-adds.
 
-Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "auto" rule):
+Solvers (chosen statically; :func:`swiftjax.posegraph.choose_linear_solver` is the "auto" rule):
 
 * :func:`solve_dense` — assemble the ``7N x 7N`` matrix with scatter-adds and factor it with a
   dense Cholesky.  ``O(N^3)``; the fastest choice for small graphs (one BLAS call).
@@ -21,6 +21,8 @@ Solvers (chosen statically; see :func:`swiftjax.posegraph.optimize` for the "aut
   segment sum per product (``O(E)``), preconditioned by the inverses of the damped ``7 x 7``
   diagonal blocks (block Jacobi), relative-residual tolerance ``eta`` (Eisenstat–Walker
   forcing, set by the caller) and a fixed iteration cap (static).
+The solver objects of :mod:`swiftjax.posegraph.linear_solvers` wrap these functions.
+
 * :func:`solve_sparse` — a sparse direct solve on the host through ``jax.pure_callback``
   (:mod:`swiftjax.posegraph.sparse_direct`: CHOLMOD, or SuperLU without cvxopt; the right tool
   for chains with few loops and meshes, whose conditioning defeats PCG).
@@ -78,7 +80,7 @@ def assemble(
         H_jj = B,  H_ij = -Ad^T B,  H_ii = Ad^T B Ad,  g_j = b,  g_i = -Ad^T b
     """
     # Each product level in kernels of its own (blockmat.unfused); the last one fuses into the
-    # scatter's operand.  Parking-garage, 7,168 edges: 7.0-9.7 ms -> 3.5-4.6 ms.
+    # scatter's operand.
     wj = unfused(lambda a, c, jr: bmm(a * c[:, None, None], jr), information, weight, jr_inv)
     big_b, b = unfused(lambda jr, wj, r: (bmtm(jr, wj), bmtv(wj, r)), jr_inv, wj, r)
     adt_b, g_i = unfused(lambda ad, bb, b: (bmtm(ad, bb), -bmtv(ad, b)), adj, big_b, b)
@@ -111,8 +113,7 @@ def from_edge_blocks(
 def matvec(ne: NormalEquations, v: Array, damping: Array | None = None) -> Array:
     """``(H + diag(damping)) v`` for ``v [N, b]`` (``damping [N, b]`` or None).
 
-    Both off-diagonal products go through one segment sum (measured, 40,960 edges: 5.7 ms vs
-    9.2 ms with one scatter per direction).
+    Both off-diagonal products go through one segment sum (faster than one scatter per direction).
     """
     n = v.shape[0]
     i, j = ne.edges[:, 0], ne.edges[:, 1]

@@ -1,19 +1,16 @@
-"""The Sim(3) pose-graph problem: data, robust kernels, host-side validation and size buckets.
+"""The Sim(3) pose-graph problem: data, host-side validation and size buckets.
 
 A pose graph has ``N`` nodes (chunk-to-world transforms ``S_n``, ``[N, 8]``) and ``E`` edges
-``(i, j)`` with a measurement ``Z_ij ~ S_i^-1 S_j`` (``[E, 8]``, DESIGN.md: the edge maps
-chunk ``j`` coordinates into chunk ``i`` coordinates) and an information matrix
+``(i, j)`` with a measurement ``Z_ij ~ S_i^-1 S_j`` (``[E, 8]``: the edge maps chunk ``j``
+coordinates into chunk ``i`` coordinates) and an information matrix
 ``Omega_ij`` (``[E, 7, 7]``, in our tangent order ``(rho, omega, sigma)``).  The cost is
 (paper sec. 3.4; the same definition as GTSAM's ``graph.error``)::
 
     C(S) = 1/2 sum_e  rho_e( r_e^T Omega_e r_e ),    r_e = log(Z_e^-1 S_i^-1 S_j)   (7-D)
 
-with ``rho_e(s) = s`` for ordinary edges and a robust kernel (Huber or Cauchy, scale ``k`` in
-whitened units) for the edges flagged robust (typically the loop edges: a false loop is the
-method's documented failure mode).
-
-* Huber:  ``rho(s) = s`` for ``s <= k^2``, ``2 k sqrt(s) - k^2`` above  (weight ``min(1, k/sqrt(s))``);
-* Cauchy: ``rho(s) = k^2 log(1 + s / k^2)``                            (weight ``1 / (1 + s/k^2)``).
+with ``rho_e(s) = s`` for ordinary edges and a robust kernel (:mod:`swiftjax.posegraph.kernels`:
+Huber or Cauchy, scale ``k`` in whitened units) for the edges flagged robust (typically the loop
+edges: a false loop is the method's documented failure mode).
 
 Padding (``pad_problem``): the jitted solver compiles once per ``(N_bucket, E_bucket, dtype,
 options)``.  Padded nodes are identity poses marked fixed; padded edges have ``edge_mask``
@@ -24,14 +21,22 @@ per doubling).
 
 from __future__ import annotations
 
-from typing import Literal
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
+
+# The robust kernels live in their own module; their names stay importable from here.
+from swiftjax.posegraph.kernels import (  # noqa: F401
+    KERNEL_CODES,
+    RobustKernel,
+    kernel_code,
+    robust_rho,
+    robust_rho_weight,
+    robust_weight,
+)
 
 __all__ = [
     "Problem",
@@ -45,8 +50,6 @@ __all__ = [
     "pad_problem",
     "ProblemError",
 ]
-
-RobustKernel = Literal["huber", "cauchy"]
 
 
 class ProblemError(ValueError):
@@ -163,59 +166,6 @@ class Problem(eqx.Module):
     @property
     def num_edges(self) -> int:
         return self.edges.shape[0]
-
-
-# ------------------------------------------------------------------------- robust kernels
-
-
-def robust_rho(s: Array, kernel: RobustKernel | None, k: float) -> Array:
-    """``rho(s)`` for squared whitened residuals ``s = r^T Omega r`` (module docstring)."""
-    if kernel is None:
-        return s
-    k2 = k * k
-    if kernel == "huber":
-        safe = jnp.where(s > k2, s, k2)
-        return jnp.where(s > k2, 2.0 * k * jnp.sqrt(safe) - k2, s)
-    if kernel == "cauchy":
-        return k2 * jnp.log1p(s / k2)
-    raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
-
-
-def robust_weight(s: Array, kernel: RobustKernel | None, k: float) -> Array:
-    """``rho'(s)``: the IRLS weight of an edge (1 for ``kernel=None``)."""
-    if kernel is None:
-        return jnp.ones_like(s)
-    k2 = k * k
-    if kernel == "huber":
-        safe = jnp.where(s > k2, s, k2)
-        return jnp.where(s > k2, k / jnp.sqrt(safe), 1.0)
-    if kernel == "cauchy":
-        return 1.0 / (1.0 + s / k2)
-    raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
-
-
-KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
-
-
-def kernel_code(kernel: RobustKernel | None) -> int:
-    """Integer code of a kernel name (0 none, 1 Huber, 2 Cauchy) for the traced variant below."""
-    if kernel not in KERNEL_CODES:
-        raise ValueError(f"unknown robust kernel {kernel!r}; expected 'huber', 'cauchy' or None")
-    return KERNEL_CODES[kernel]
-
-
-def robust_rho_weight(s: Array, code: Array, k: Array) -> tuple[Array, Array]:
-    """``(rho(s), rho'(s))`` with the kernel chosen by a *traced* integer ``code`` (no recompile)."""
-    code = jnp.asarray(code)
-    rho = jnp.select(
-        [code == 1, code == 2], [robust_rho(s, "huber", k), robust_rho(s, "cauchy", k)], s
-    )
-    w = jnp.select(
-        [code == 1, code == 2],
-        [robust_weight(s, "huber", k), robust_weight(s, "cauchy", k)],
-        jnp.ones_like(s),
-    )
-    return rho, w
 
 
 # ----------------------------------------------------------------------- host validation

@@ -1,18 +1,17 @@
 """Levenberg–Marquardt on the Sim(3) manifold with block-sparse linear algebra, as an optimistix solver.
 
 :class:`SparseSim3LM` is an ``optimistix.AbstractLeastSquaresSolver``: it runs inside
-``optimistix.least_squares`` (optimistix's iteration loop, ``max_steps``, ``RESULTS``), but
+``optimistix.least_squares`` (optimistix's iteration loop, ``max_steps``, ``throw``), but
 where optimistix's ``LevenbergMarquardt`` would materialise a dense Jacobian (QR) or go
 matrix-free without a preconditioner, it linearises edge by edge with the exact analytic
 Jacobians of :mod:`swiftjax.posegraph.factors`, assembles the block-sparse normal
-equations with segment sums and solves them with a dense Cholesky (small graphs) or
-block-Jacobi PCG (large graphs with many loops) or a host sparse direct solve (chains and other
-low-fill graphs; see :func:`swiftjax.posegraph.choose_linear_solver`).  Updates are on the manifold, ``S <- S exp(delta)``.
-Inside ``optimistix.least_squares`` the sparse solve is a ``pure_callback``; :func:`swiftjax.posegraph.optimize`
-instead runs that case's loop on the host around :meth:`SparseSim3LM.advance` (two programs that
-JAX's persistent cache can hold: it refuses programs with host callbacks).
+equations with segment sums and solves them with one of the solver objects of
+:mod:`swiftjax.posegraph.linear_solvers` (dense Cholesky, block-Jacobi PCG, host sparse
+direct; :func:`swiftjax.posegraph.choose_linear_solver` picks one).  Updates are on the
+manifold, ``S <- S exp(delta)``.  :func:`swiftjax.posegraph.optimize` runs the same steps from
+a loop on the host (:meth:`SparseSim3LM.advance`), one compiled step program per size bucket.
 
-Step 0 only linearises at the initial guess (so the compiled loop holds one copy of the
+Step 0 only linearises at the initial guess (so a compiled program holds one copy of the
 Jacobian code); every later step::
 
     (H + lambda D) delta = -g
@@ -20,93 +19,131 @@ Jacobian code); every later step::
     accept if actual > 1e-3 predicted:  lambda /= 10, nu = 2
     otherwise:                          lambda *= nu, nu *= 2
 
-The decrease on acceptance is GTSAM's fixed factor 10.  Measured against Nielsen's
-``lambda *= max(1/3, 1 - (2 actual/predicted - 1)^3)`` (and its 1/10-floor variant): the
-KITTI-like chain N = 2,000 from dead reckoning takes 6 steps instead of 9, parking-garage,
-sphere2500 and the circles from the chordal start are unchanged, the N = 5,000 circle from dead
-reckoning takes 41 steps instead of 31 (both end in the same local minimum).
+The decrease on acceptance is GTSAM's fixed factor 10.  ``D = I`` by default (GTSAM's choice,
+in tangent units), or Marquardt's ``D = clip(diag H)`` (``damping="marquardt"``), which along a
+chain damps exactly the weak rigid-rotation directions the step needs (lever arms make the
+rotation entries of ``diag H`` large).
 
-``D = I`` by default (GTSAM's choice, in tangent units), or Marquardt's ``D = clip(diag H)``
-(``damping="marquardt"``).  Marquardt scaling is the textbook choice but measurably wrong for
-pose graphs: along a chain, lever arms make the rotation entries of ``diag H`` ~1e9 while the
-weakest directions of ``H`` are rigid rotations of long sub-chains, so ``lambda diag H`` damps
-exactly the directions the step needs (KITTI-like chain, N = 2,000, from dead reckoning: 54
-steps with ``D = diag H`` vs 9 with ``D = I``; GTSAM takes 7).
-
-Stopping (``status`` codes in :data:`STATUS`): an accepted step with
-``actual <= rtol * C`` (GTSAM's relativeErrorTol) or ``actual <= atol`` (absoluteErrorTol);
-``|g|_inf <= gtol |g_0|_inf`` (the gradient test that certifies a stationary point: the
-Jacobians are exact, so ``g = 0`` is the true optimum); the model predicting a decrease below
-rounding (``predicted <= 16 eps C`` while ``lambda <= 1``) or the cost itself at rounding level
-(``C <= eps E``: whitened residuals of ~1e-8 sigma, e.g. a chain without loops); or ``lambda`` exceeding ``1e16`` (stalled, not converged).
-The robust kernels use IRLS weights in ``H`` and the exact gradient.
+Stopping (:class:`LMResult`): an accepted step with ``actual <= rtol * C`` (GTSAM's
+relativeErrorTol, ``relative_decrease``) or ``actual <= atol`` (absoluteErrorTol,
+``absolute_decrease``); ``|g|_inf <= gtol |g_0|_inf`` (``small_gradient``: the Jacobians are
+exact, so ``g = 0`` is the true optimum); the model predicting a decrease below rounding
+(``predicted <= 16 eps C`` while ``lambda <= 1``) or the cost itself at rounding level
+(``C <= eps E``: whitened residuals of ~1e-8 sigma, e.g. a chain without loops;
+``rounding_level``); or ``lambda`` exceeding ``1e16`` (``stalled``: a failure, so
+``optimistix.least_squares(..., throw=True)`` raises).  The robust kernels use IRLS weights in ``H`` and the
+exact gradient.
 """
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax import Array
+from jaxtyping import Bool, Float
 
 from swiftjax import sim3
 from swiftjax.posegraph import linear
-from swiftjax.posegraph.problem import Problem, RobustKernel
 from swiftjax.posegraph.factors import edge_costs, residual_jacobian_factors, residuals
+from swiftjax.posegraph.linear_solvers import AbstractLinearSolver, DenseCholesky, linear_solver as _linear_solver
+from swiftjax.posegraph.problem import Problem, RobustKernel
 
-__all__ = ["SparseSim3LM", "LMState", "STATUS", "linearize", "retract"]
+__all__ = ["SparseSim3LM", "LMState", "LMResult", "CONVERGED", "is_converged", "result_index", "linearize", "retract"]
 
-STATUS = {
-    0: "running",
-    1: "relative cost decrease <= rtol",
-    2: "absolute cost decrease <= atol",
-    3: "gradient <= gtol * initial gradient",
-    4: "cost or predicted decrease at rounding level",
-    5: "stalled: damping exceeded 1e16 without progress",
-}
+
+class LMResult(optx.RESULTS):
+    """Why an LM solve stopped (optimistix's ``RESULTS`` plus the LM stopping tests).
+
+    The solver's state (:attr:`LMState.result`) and :class:`swiftjax.posegraph.Result` carry the
+    reason itself; ``nonlinear_max_steps_reached`` means no stopping test was met.  Inside
+    ``optimistix.least_squares``, :meth:`SparseSim3LM.terminate` reports the four converged
+    reasons (:data:`CONVERGED`) as ``optimistix.RESULTS.successful`` and ``stalled`` as
+    ``nonlinear_divergence`` (optimistix's loop accepts only its own enumeration), so
+    ``throw=True`` raises on a stalled solve and on ``max_steps``.
+    """
+
+    relative_decrease = "relative cost decrease <= rtol"
+    absolute_decrease = "absolute cost decrease <= atol"
+    small_gradient = "gradient <= gtol * initial gradient"
+    rounding_level = "cost or predicted decrease at rounding level"
+    stalled = "stalled: damping exceeded 1e16 without progress"
+    gnc_not_converged = "GNC: outer iterations without converged weights or cost"
+
+
+#: The reasons that mean a converged solve.
+CONVERGED = (LMResult.relative_decrease, LMResult.absolute_decrease, LMResult.small_gradient, LMResult.rounding_level)
+_RUNNING = LMResult.nonlinear_max_steps_reached
+
+
+def result_index(result: LMResult) -> int:
+    """The host integer of a concrete result (no device op)."""
+    return int(np.asarray(result._value))  # noqa: SLF001 - equinox keeps the index there
+
+
+def is_converged(result: LMResult) -> Bool[Array, ""]:
+    """True where ``result`` is one of :data:`CONVERGED`."""
+    out = result == CONVERGED[0]
+    for r in CONVERGED[1:]:
+        out = out | (result == r)
+    return out
+
 
 _LAMBDA_MAX = 1e16
 _LAMBDA_MIN = 1e-14
 
 
 class Linearization(eqx.Module):
-    """Cost, per-edge IRLS weights ``rho'_e`` ``[E]`` and normal equations at one iterate."""
+    """Cost, per-edge IRLS weights ``rho'_e`` ``[E]``, residuals ``[E, 7]`` and normal equations at one iterate."""
 
     cost: Array
     ne: linear.NormalEquations
     edge_weights: Array
+    residuals: Array
 
 
 def linearize(
-    poses: Array, problem: Problem, kernel: RobustKernel | Array | None, kernel_scale: Array
+    poses: Float[Array, "n 8"], problem: Problem, kernel: RobustKernel | Array | None, kernel_scale: Array | float
 ) -> Linearization:
     """Residuals, exact Jacobians, IRLS weights and the assembled normal equations at ``poses``."""
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)
     rho, w = edge_costs(r, problem, kernel, kernel_scale)
     ne = linear.assemble(r, jr_inv, adj, w, problem.information, problem.edges, problem.fixed)
-    return Linearization(cost=0.5 * jnp.sum(rho), ne=ne, edge_weights=w)
+    return Linearization(cost=0.5 * jnp.sum(rho), ne=ne, edge_weights=w, residuals=r)
 
 
-def retract(poses: Array, delta: Array, fixed: Array) -> Array:
+def retract(poses: Float[Array, "n 8"], delta: Float[Array, "n 7"], fixed: Bool[Array, " n"]) -> Float[Array, "n 8"]:
     """``S_n <- normalize(S_n exp(delta_n))`` for free nodes; fixed nodes unchanged bit for bit."""
     moved = sim3.normalize(sim3.compose(poses, sim3.exp(delta)))
     return jnp.where(fixed[:, None], poses, moved)
 
 
 class LMState(eqx.Module):
+    """LM's state; ``result`` is :data:`LMResult.nonlinear_max_steps_reached` until a stopping test is met."""
+
     lin: Linearization
     lam: Array
     nu: Array
     cost_initial: Array
     grad_initial: Array
     grad_inf: Array
-    status: Array
+    result: LMResult
     num_accepted: Array
     num_rejected: Array
     linear_iterations: Array
+
+    @property
+    def done(self) -> Bool[Array, ""]:
+        return self.result != _RUNNING
+
+
+def _as_linear_solver(value):
+    return _linear_solver(value) if isinstance(value, str) else value
 
 
 class SparseSim3LM(optx.AbstractLeastSquaresSolver):
@@ -115,21 +152,20 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
     Use through ``optimistix.least_squares(fn, solver, problem.poses, args=problem)`` where
     ``fn(y, problem)`` returns the residuals (it is traced only for its output structure; the
     solver linearises with the analytic edge Jacobians).  Float fields may be JAX arrays so
-    that changing them does not recompile; ``linear_solver``, ``kernel`` and
-    ``max_linear_iterations`` are static.
+    that changing them does not recompile; ``damping`` and the linear solver's static settings
+    are static.
 
     Attributes:
         rtol, atol: relative / absolute cost-decrease tolerances (GTSAM semantics).
         gtol: gradient tolerance relative to the initial gradient's max-norm.
         lambda0: initial damping.
         damping: ``"identity"`` (``D = I``) or ``"marquardt"`` (``D = clip(diag H)``); static.
-        linear_solver: ``"dense"``, ``"pcg"`` or ``"sparse"`` (host CHOLMOD/SuperLU through
-            ``pure_callback``, :func:`~swiftjax.posegraph.linear.solve_sparse`).
-        max_linear_iterations: PCG iteration cap per LM step.
-        eta_max: largest PCG relative tolerance (forcing ``eta = min(eta_max, sqrt(|g|/|g0|))``).
+        linear_solver: a solver object of :mod:`swiftjax.posegraph.linear_solvers`
+            (``DenseCholesky()``, ``BlockJacobiPCG(max_iterations, eta_max)``, ``HostSparse()``)
+            or its name.
         kernel, kernel_scale: robust kernel for edges with ``problem.robust`` set: a name
             (``None``/``"huber"``/``"cauchy"``, static) or an integer code array (traced, see
-            :func:`~swiftjax.posegraph.problem.kernel_code`; the driver passes codes so that
+            :func:`~swiftjax.posegraph.kernels.kernel_code`; the driver passes codes so that
             switching kernels never recompiles).
     """
 
@@ -138,10 +174,8 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
     norm: Callable = optx.max_norm
     gtol: Any = 1e-10
     lambda0: Any = 1e-5
-    linear_solver: str = eqx.field(static=True, default="dense")
+    linear_solver: AbstractLinearSolver = eqx.field(default=DenseCholesky(), converter=_as_linear_solver)
     damping: str = eqx.field(static=True, default="identity")
-    max_linear_iterations: int = eqx.field(static=True, default=1000)
-    eta_max: Any = 1e-4
     kernel: Any = 0
     kernel_scale: Any = 1.0
 
@@ -161,14 +195,15 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
             grad=jnp.zeros((n, 7), dtype),
             edges=problem.edges,
         )
+        lin = Linearization(cost=zero, ne=ne, edge_weights=jnp.zeros((e,), dtype), residuals=jnp.zeros((e, 7), dtype))
         return LMState(
-            lin=Linearization(cost=zero, ne=ne, edge_weights=jnp.zeros((e,), dtype)),
+            lin=lin,
             lam=jnp.asarray(self.lambda0, dtype),
             nu=jnp.asarray(2.0, dtype),
             cost_initial=zero,
             grad_initial=zero,
             grad_inf=zero,
-            status=jnp.zeros((), jnp.int32),
+            result=LMResult.where(jnp.asarray(True), _RUNNING, _RUNNING),
             num_accepted=jnp.full((), -1, jnp.int32),
             num_rejected=jnp.zeros((), jnp.int32),
             linear_iterations=jnp.zeros((), jnp.int32),
@@ -185,18 +220,14 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
 
     def solve_linear(self, state: LMState, problem: Problem) -> tuple[Array, Array, Array]:
         """``(H + lambda D) delta = -g`` with the configured linear solver: ``(delta, iterations, ok)``."""
-        ne = state.lin.ne
-        damping = self.damping_vector(state)
-        if self.linear_solver == "dense":
-            return linear.solve_dense(ne, damping)
-        if self.linear_solver == "sparse":
-            return linear.solve_sparse(ne, damping, problem.fixed, problem.edge_mask)
-        if self.linear_solver == "pcg":
-            dtype = ne.grad.dtype
-            ratio = state.grad_inf / jnp.maximum(state.grad_initial, jnp.finfo(dtype).tiny)
-            eta = jnp.clip(jnp.sqrt(ratio), 10 * jnp.finfo(dtype).eps, self.eta_max)
-            return linear.solve_pcg(ne, damping, eta, self.max_linear_iterations)
-        raise ValueError(f"unknown linear_solver {self.linear_solver!r}")
+        solver = self.linear_solver
+        return solver.solve(
+            state.lin.ne,
+            self.damping_vector(state),
+            rtol=solver.forcing(state.grad_inf, state.grad_initial),
+            fixed=problem.fixed,
+            active=problem.edge_mask,
+        )
 
     def step(self, fn, y, args, options, state: LMState, tags):
         delta, iters, ok = self.solve_linear(state, args)
@@ -238,17 +269,18 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         g_inf = jnp.max(jnp.abs(lin_next.ne.grad))
         grad_initial = jnp.where(first, g_inf, state.grad_initial)
 
-        status = jnp.int32(0)
-        status = jnp.where(lam > _LAMBDA_MAX, 5, status)
-        status = jnp.where(ok & (state.lam <= 1.0) & (predicted <= 16 * eps * lin.cost), 4, status)
-        status = jnp.where(accept & (actual <= self.atol), 2, status)
-        status = jnp.where(accept & (actual <= self.rtol * lin.cost), 1, status)
-        status = jnp.where(first, 0, status)
+        # Later tests take precedence (the order of the former status codes).
+        where = LMResult.where
+        result = where(lam > _LAMBDA_MAX, LMResult.stalled, _RUNNING)
+        result = where(ok & (state.lam <= 1.0) & (predicted <= 16 * eps * lin.cost), LMResult.rounding_level, result)
+        result = where(accept & (actual <= self.atol), LMResult.absolute_decrease, result)
+        result = where(accept & (actual <= self.rtol * lin.cost), LMResult.relative_decrease, result)
+        result = where(first, _RUNNING, result)
         # A cost at rounding level in whitened units (e.g. a chain without loops) is the minimum.
         num_edges = jnp.sum(problem.edge_mask)
-        status = jnp.where(lin_next.cost <= eps * num_edges, 4, status)
+        result = where(lin_next.cost <= eps * num_edges, LMResult.rounding_level, result)
         # g == 0 exactly at the start (e.g. a chain without loops) also stops here.
-        status = jnp.where(g_inf <= self.gtol * grad_initial, 3, status)
+        result = where(g_inf <= self.gtol * grad_initial, LMResult.small_gradient, result)
 
         new_state = LMState(
             lin=lin_next,
@@ -257,7 +289,7 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
             cost_initial=jnp.where(first, new_lin.cost, state.cost_initial),
             grad_initial=grad_initial,
             grad_inf=g_inf,
-            status=status.astype(jnp.int32),
+            result=result,
             num_accepted=state.num_accepted + take,
             num_rejected=state.num_rejected + (~take),
             linear_iterations=state.linear_iterations + jnp.where(first, 0, iters),
@@ -265,12 +297,37 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
         return y_next, new_state
 
     def terminate(self, fn, y, args, options, state: LMState, tags):
-        return state.status != 0, optx.RESULTS.successful
+        # optimistix's loop takes its own RESULTS: a converged reason is ``successful``, a stall
+        # is ``nonlinear_divergence`` (so ``throw=True`` raises); the reason stays in the state.
+        stalled = state.result == LMResult.stalled
+        return state.done, optx.RESULTS.where(stalled, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful)
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
 
 
-def residual_fn(poses: Array, problem: Problem) -> Array:
+def residual_fn(poses: Float[Array, "n 8"], problem: Problem) -> Float[Array, "e 7"]:
     """The residual function handed to ``optimistix.least_squares`` (``[E, 7]``)."""
     return residuals(poses, problem)
+
+
+def _status_table() -> dict[int, str]:
+    return {
+        0: "running",
+        1: LMResult[LMResult.relative_decrease],
+        2: LMResult[LMResult.absolute_decrease],
+        3: LMResult[LMResult.small_gradient],
+        4: LMResult[LMResult.rounding_level],
+        5: LMResult[LMResult.stalled],
+    }
+
+
+def __getattr__(name: str):
+    if name == "STATUS":
+        warnings.warn(
+            "swiftjax.posegraph.solver.STATUS is deprecated; use LMResult (Result.result, LMState.result)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return _status_table()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,11 +10,9 @@ supernodal symbolic factorisation.  Each step then costs one gather and one nume
 Backends, picked at import (:data:`BACKEND`):
 
 * ``"cholmod"`` — CHOLMOD's supernodal Cholesky (AMD ordering) through ``cvxopt.cholmod``
-  (install ``swiftjax[sparse]``; cvxopt is GPL-3, hence optional).  Measured per numeric
-  factorisation + solve: KITTI-like chain N = 2,000: 4 ms; parking-garage: 14 ms;
-  sphere2500: 38 ms.
+  (install ``swiftjax[sparse]``; cvxopt is GPL-3, hence optional).
 * ``"superlu"`` — SciPy's SuperLU (COLAMD, symmetric mode) on the full matrix, no cached
-  analysis: 18 ms, 113 ms and 1.24 s on the same three systems.
+  analysis, an order of magnitude slower (timings in ``docs/performance/posegraph.md``).
 
 Blocks touching a fixed node or belonging to an inactive (masked) edge are left out of the
 pattern: their values are zero by construction of the normal equations, and fixed nodes get
@@ -88,7 +86,7 @@ class SparsePattern:
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.cols, minlength=size))])
         self.nnz = ukey.shape[0]
         # values = gather of each entry's first source, plus the (rare) duplicate sources added on
-        # top: parking-garage, 357,602 entries: 0.4 ms vs 1.3 ms for a sparse assembly mat-vec.
+        # top (a third of a sparse assembly mat-vec's time).
         order = np.argsort(pos, kind="stable")
         first = np.ones(order.shape[0], bool)
         first[1:] = pos[order][1:] != pos[order][:-1]

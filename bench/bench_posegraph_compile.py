@@ -1,0 +1,95 @@
+"""Benchmark: the pose graph's cold compile on the demo's shapes, in fresh processes with an empty cache.
+
+The demo's pose graph (14 chunks, 13 odometry + 4 loop edges, float64, GNC on the loop edges,
+full 7 x 7 information) pads to the smallest bucket ``(32, 32)`` and takes the dense path.
+Each run starts a new Python process with an empty ``JAX_COMPILATION_CACHE_DIR`` and reports:
+``compile_seconds`` (what ``metrics.json`` records as ``pose_graph.compile_seconds``), the wall
+time of the first ``optimize`` call, every XLA compilation of that call (program name and
+seconds, from ``jax_log_compiles``), and the solve time of a second, warm call.  The machine's
+load average is recorded with each run.
+
+    .venv/bin/python bench/bench_posegraph_compile.py [--repeat 3] [--kernel gnc|none]
+
+Writes ``bench/results/posegraph_compile-<stamp>.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+CHILD = r"""
+import json, logging, os, re, sys, time
+t_import = time.perf_counter()
+import numpy as np, jax
+records = []
+class _H(logging.Handler):
+    def emit(self, rec):
+        m = re.search(r"Finished XLA compilation of (\S+) in ([0-9.e-]+) sec", rec.getMessage())
+        if m:
+            records.append((m.group(1), float(m.group(2))))
+jax.config.update("jax_log_compiles", True)
+logging.getLogger("jax").addHandler(_H())
+logging.getLogger("jax").setLevel(logging.WARNING)
+from swiftjax import posegraph
+from swiftjax.synthetic.pose_graphs import chain_graph
+kernel = None if sys.argv[1] == "none" else sys.argv[1]
+t_ready = time.perf_counter()
+with jax.enable_x64(True):
+    g = chain_graph(14, loop_every=3, seed=0)
+    info = np.einsum("ek,kl->ekl", g.information, np.eye(7))
+    prob = posegraph.Problem(g.initial, g.edges, g.measurements, information=info, robust=g.is_loop)
+    t0 = time.perf_counter()
+    first = posegraph.optimize(prob, kernel=kernel)
+    t1 = time.perf_counter()
+    n_first = len(records)
+    second = posegraph.optimize(prob, kernel=kernel)
+print(json.dumps(dict(
+    import_seconds=t_ready - t_import, compile_seconds=first.compile_seconds, first_call_seconds=t1 - t0,
+    solve_seconds_warm=second.solve_seconds, bucket=first.bucket, linear_solver=first.linear_solver,
+    status=first.status, num_steps=first.num_steps, cost_final=first.cost_final,
+    compiles=records[:n_first], compiles_second_call=records[n_first:], load=os.getloadavg(),
+)))
+"""
+
+
+def run_once(kernel: str) -> dict:
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(REPO))
+        out = subprocess.run([sys.executable, "-c", CHILD, kernel], capture_output=True, text=True, env=env, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--kernel", default="gnc", choices=("gnc", "cauchy", "none"))
+    args = ap.parse_args()
+    from bench.common import markdown_table, write_results
+
+    runs = [run_once(args.kernel) for _ in range(args.repeat)]
+    rows = []
+    for k, r in enumerate(runs):
+        big = sorted(r["compiles"], key=lambda c: -c[1])[:3]
+        rows.append({
+            "run": k, "compile s": f"{r['compile_seconds']:.2f}", "first call s": f"{r['first_call_seconds']:.2f}",
+            "XLA programs": len(r["compiles"]), "largest": ", ".join(f"{n} {s:.2f}" for n, s in big),
+            "warm solve s": f"{r['solve_seconds_warm']:.3f}", "load": f"{r['load'][0]:.1f}",
+        })
+    print(markdown_table(rows))
+    best = min(runs, key=lambda r: r["compile_seconds"])
+    print(f"best compile_seconds {best['compile_seconds']:.2f} s (load {best['load'][0]:.1f})")
+    write_results("posegraph_compile", {"kernel": args.kernel, "runs": runs,
+                                        "best_compile_seconds": best["compile_seconds"]})
+
+
+if __name__ == "__main__":
+    main()
