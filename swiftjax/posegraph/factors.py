@@ -1,6 +1,6 @@
 """Edge residuals of the Sim(3) pose graph and their exact analytic Jacobians.
 
-For an edge ``e = (i, j)`` with measurement ``Z`` (paper sec. 3.4, DESIGN.md)::
+For an edge ``e = (i, j)`` with measurement ``Z`` (paper sec. 3.4)::
 
     E_e = Z^-1 S_i^-1 S_j,        r_e = log(E_e)  in R^7  (rho, omega, sigma)
 
@@ -28,7 +28,8 @@ from jax import Array
 
 from swiftjax import sim3
 from swiftjax.posegraph.blockmat import bmm, quadratic
-from swiftjax.posegraph.problem import Problem, RobustKernel, kernel_code, robust_rho_weight
+from swiftjax.posegraph.kernels import RobustKernel, kernel_code, robust_rho_weight
+from swiftjax.posegraph.problem import Problem
 
 __all__ = [
     "residuals",

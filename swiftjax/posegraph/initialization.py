@@ -29,7 +29,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Bool, Float
 
-from swiftjax import sim3
+from swiftjax import sim3, so3
 from swiftjax.posegraph import linear
 from swiftjax.posegraph.blockmat import bmtm, bmtv, bmv
 from swiftjax.posegraph.linear_solvers import AbstractLinearSolver
@@ -93,15 +93,10 @@ def _as_solver(linear_solver, max_linear_iterations: int) -> AbstractLinearSolve
     return make_linear_solver(linear_solver, max_iterations=max_linear_iterations)
 
 
-def _project_to_so3(m: Array) -> Array:
-    """Nearest rotation (Frobenius) of each ``[..., 3, 3]``: ``U diag(1, 1, det(U V^T)) V^T``."""
-    u, _, vt = jnp.linalg.svd(m)
-    # Batched dots here on purpose, not blockmat's elementwise products (an XLA:CPU hang with
-    # those, docs/performance/posegraph.md).
-    d = jnp.sign(jnp.linalg.det(u @ vt))
-    d = jnp.where(d == 0, 1.0, d)
-    u = u.at[..., :, 2].multiply(d[..., None])
-    return u @ vt
+def _project_to_so3(m: Float[Array, "*n 3 3"]) -> Float[Array, "*n 3 3"]:
+    """Nearest rotation (Frobenius) of each ``[..., 3, 3]``: ``U diag(1, 1, det(U V^T)) V^T``
+    (:func:`swiftjax.so3.project`)."""
+    return so3.as_matrix(so3.project(m))
 
 
 def chordal_initialization(
