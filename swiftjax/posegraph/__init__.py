@@ -24,8 +24,6 @@ Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, size buckets),
 Synthetic graphs with known truth: :mod:`swiftjax.synthetic.pose_graphs`.
 """
 
-import warnings as _warnings
-
 from swiftjax.posegraph.driver import Result, SolveError, optimize
 from swiftjax.posegraph.solver_choice import DENSE_MAX_NODES, choose_linear_solver
 from swiftjax.posegraph.options import GraphOptions
@@ -80,13 +78,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    if name == "STATUS":
-        _warnings.warn(
-            "swiftjax.posegraph.STATUS is deprecated; use swiftjax.posegraph.LMResult (Result.result)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        from swiftjax.posegraph.solver import _status_table
+    if name == "STATUS":  # deprecated alias
+        from swiftjax.posegraph.solver import deprecated_status
 
-        return _status_table()
+        return deprecated_status()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -322,12 +322,17 @@ def _status_table() -> dict[int, str]:
     }
 
 
+def deprecated_status(stacklevel: int = 3) -> dict[int, str]:
+    """The former ``STATUS`` table (deprecated alias; warns)."""
+    warnings.warn(
+        "STATUS is deprecated; use swiftjax.posegraph.LMResult (Result.result, LMState.result)",
+        DeprecationWarning,
+        stacklevel=stacklevel,
+    )
+    return _status_table()
+
+
 def __getattr__(name: str):
     if name == "STATUS":
-        warnings.warn(
-            "swiftjax.posegraph.solver.STATUS is deprecated; use LMResult (Result.result, LMState.result)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return _status_table()
+        return deprecated_status()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
