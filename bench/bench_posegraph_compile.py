@@ -8,7 +8,10 @@ time of the first ``optimize`` call, every XLA compilation of that call (program
 seconds, from ``jax_log_compiles``), and the solve time of a second, warm call.  The machine's
 load average is recorded with each run.
 
-    .venv/bin/python bench/bench_posegraph_compile.py [--repeat 3] [--kernel gnc|none]
+    .venv/bin/python bench/bench_posegraph_compile.py [--repeat 3] [--kernel gnc|none] [--baseline OTHER_CHECKOUT]
+
+``--baseline`` runs another checkout (e.g. ``git worktree add /tmp/base <commit>``) alternately
+with this one, so both see the same machine load.
 
 Writes ``bench/results/posegraph_compile-<stamp>.json``.
 """
@@ -40,7 +43,10 @@ jax.config.update("jax_log_compiles", True)
 logging.getLogger("jax").addHandler(_H())
 logging.getLogger("jax").setLevel(logging.WARNING)
 from swiftjax import posegraph
-from swiftjax.synthetic.pose_graphs import chain_graph
+try:
+    from swiftjax.synthetic.pose_graphs import chain_graph
+except ImportError:  # a checkout from before the move (for A/B runs with --repo)
+    from swiftjax.posegraph.synthetic import chain_graph
 kernel = None if sys.argv[1] == "none" else sys.argv[1]
 t_ready = time.perf_counter()
 with jax.enable_x64(True):
@@ -61,9 +67,9 @@ print(json.dumps(dict(
 """
 
 
-def run_once(kernel: str) -> dict:
+def run_once(kernel: str, repo: pathlib.Path = REPO) -> dict:
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(REPO))
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(repo))
         out = subprocess.run([sys.executable, "-c", CHILD, kernel], capture_output=True, text=True, env=env, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -72,23 +78,32 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--kernel", default="gnc", choices=("gnc", "cauchy", "none"))
+    ap.add_argument("--baseline", type=pathlib.Path, default=None,
+                    help="another checkout (e.g. an older commit's worktree) run alternately with this one")
     args = ap.parse_args()
     from bench.common import markdown_table, write_results
 
-    runs = [run_once(args.kernel) for _ in range(args.repeat)]
+    checkouts = [("this", REPO)] + ([("baseline", args.baseline.resolve())] if args.baseline else [])
+    runs = []
+    for _ in range(args.repeat):
+        for name, repo in checkouts:
+            runs.append({"checkout": name, **run_once(args.kernel, repo)})
     rows = []
     for k, r in enumerate(runs):
         big = sorted(r["compiles"], key=lambda c: -c[1])[:3]
         rows.append({
-            "run": k, "compile s": f"{r['compile_seconds']:.2f}", "first call s": f"{r['first_call_seconds']:.2f}",
+            "run": k, "checkout": r["checkout"], "compile s": f"{r['compile_seconds']:.2f}", "first call s": f"{r['first_call_seconds']:.2f}",
             "XLA programs": len(r["compiles"]), "largest": ", ".join(f"{n} {s:.2f}" for n, s in big),
             "warm solve s": f"{r['solve_seconds_warm']:.3f}", "load": f"{r['load'][0]:.1f}",
         })
-    print(markdown_table(rows))
-    best = min(runs, key=lambda r: r["compile_seconds"])
-    print(f"best compile_seconds {best['compile_seconds']:.2f} s (load {best['load'][0]:.1f})")
-    write_results("posegraph_compile", {"kernel": args.kernel, "runs": runs,
-                                        "best_compile_seconds": best["compile_seconds"]})
+    print(markdown_table(list(rows[0]), [list(r.values()) for r in rows]))
+    best = {}
+    for name, _ in checkouts:
+        mine = [r for r in runs if r["checkout"] == name]
+        best[name] = min(r["compile_seconds"] for r in mine)
+        print(f"{name}: best compile_seconds {best[name]:.2f} s (load {min(r['load'][0] for r in mine):.1f}-"
+              f"{max(r['load'][0] for r in mine):.1f})")
+    write_results("posegraph_compile", {"kernel": args.kernel, "runs": runs, "best_compile_seconds": best})
 
 
 if __name__ == "__main__":

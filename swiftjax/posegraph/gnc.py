@@ -51,7 +51,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Bool, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from swiftjax.posegraph.blockmat import quadratic
 from swiftjax.posegraph.factors import residuals
@@ -73,7 +73,7 @@ def _xp(*arrays):
     return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
 
 
-def tls_weights(sq: Float[Array, "*e"], mu: Float[Array, ""], c2: Float[Array, ""]) -> Float[Array, "*e"]:
+def tls_weights(sq: Float[ArrayLike, "*e"], mu: Float[ArrayLike, ""], c2: Float[ArrayLike, ""]) -> Float[ArrayLike, "*e"]:
     """GNC-TLS weights (module docstring, eq. 14): ``sq [...], mu, c2 -> w [...]`` in ``[0, 1]``.
 
     ``sq`` the squared whitened residuals ``r^T Omega r``, ``c2`` the squared inlier threshold.
@@ -87,7 +87,7 @@ def tls_weights(sq: Float[Array, "*e"], mu: Float[Array, ""], c2: Float[Array, "
     return xp.where(sq >= upper, 0.0, xp.where(sq <= lower, 1.0, w))
 
 
-def initial_mu(sq: Float[Array, " e"], robust: Bool[Array, " e"], c2: Float[Array, ""]) -> Float[Array, ""]:
+def initial_mu(sq: Float[ArrayLike, " e"], robust: Bool[ArrayLike, " e"], c2: Float[ArrayLike, ""]) -> Float[ArrayLike, ""]:
     """``mu_0 = c^2 / (2 s_max - c^2)`` over the ``robust`` edges (floored at :data:`MU_MIN`);
     ``-1`` when ``2 s_max <= c^2`` (every robust edge an inlier: no continuation needed)."""
     xp = _xp(sq, robust, c2)
@@ -98,8 +98,8 @@ def initial_mu(sq: Float[Array, " e"], robust: Bool[Array, " e"], c2: Float[Arra
 
 
 def tls_cost(
-    sq: Float[Array, " e"], robust: Bool[Array, " e"], mask: Bool[Array, " e"], c2: Float[Array, ""]
-) -> Float[Array, ""]:
+    sq: Float[ArrayLike, " e"], robust: Bool[ArrayLike, " e"], mask: Bool[ArrayLike, " e"], c2: Float[ArrayLike, ""]
+) -> Float[ArrayLike, ""]:
     """``1/2 sum_e rho_e(s_e)`` with ``rho = min(s, c^2)`` on robust edges, ``s`` elsewhere."""
     xp = _xp(sq, robust, mask, c2)
     rho = xp.where(robust, xp.minimum(sq, c2), sq)

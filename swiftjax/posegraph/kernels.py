@@ -21,7 +21,7 @@ from typing import Literal
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float, Int
+from jaxtyping import ArrayLike, Float, Int
 
 __all__ = [
     "RobustKernel",
@@ -61,7 +61,7 @@ def kernel_code(kernel: RobustKernel | None) -> int:
     return KERNEL_CODES[check_kernel(kernel, gnc=False)]
 
 
-def robust_rho(s: Float[Array, "*e"], kernel: RobustKernel | None, k: float) -> Float[Array, "*e"]:
+def robust_rho(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[ArrayLike, ""]) -> Float[Array, "*e"]:
     """``rho(s)`` for squared whitened residuals ``s = r^T Omega r`` (module docstring)."""
     kernel = check_kernel(kernel, gnc=False)
     if kernel is None:
@@ -73,7 +73,7 @@ def robust_rho(s: Float[Array, "*e"], kernel: RobustKernel | None, k: float) -> 
     return k2 * jnp.log1p(s / k2)
 
 
-def robust_weight(s: Float[Array, "*e"], kernel: RobustKernel | None, k: float) -> Float[Array, "*e"]:
+def robust_weight(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[ArrayLike, ""]) -> Float[Array, "*e"]:
     """``rho'(s)``: the IRLS weight of an edge (1 for ``kernel=None``)."""
     kernel = check_kernel(kernel, gnc=False)
     if kernel is None:
@@ -86,7 +86,7 @@ def robust_weight(s: Float[Array, "*e"], kernel: RobustKernel | None, k: float) 
 
 
 def robust_rho_weight(
-    s: Float[Array, "*e"], code: Int[Array, ""] | int, k: Float[Array, ""] | float
+    s: Float[Array, "*e"], code: Int[ArrayLike, ""], k: Float[ArrayLike, ""]
 ) -> tuple[Float[Array, "*e"], Float[Array, "*e"]]:
     """``(rho(s), rho'(s))`` with the kernel chosen by a *traced* integer ``code`` (no recompile)."""
     code = jnp.asarray(code)
