@@ -285,7 +285,7 @@ def _gnc_continuation(lm, problem: Problem, start: Array, params, options: Graph
     def squared(out):
         return gnc.squared_residuals(np.asarray(out["residuals"]), information)
 
-    inner = {**params, "rtol": jnp.maximum(params["rtol"], jnp.asarray(options.gnc_inner_rtol, dtype))}
+    inner = {**params, "rtol": jnp.asarray(max(options.rtol, options.gnc_inner_rtol), dtype)}
     loose = options.gnc_inner_rtol > float(params["rtol"])
     out = lm(problem, start, inner)
     totals = {k: int(out[k]) for k in _SUMMED}
