@@ -10,7 +10,11 @@ process (warm compile cache; the load average before each run is recorded):
    frame's true depth, sky and cars excluded), the cloud mapped by the trajectory's Sim(3)
    alignment.
 2. ``--metric camera-height=1.65`` (same run as known K): the scale error (1 / the Sim(3)
-   alignment's scale - 1), ATE and accuracy with an SE(3) alignment only (metres, no scale).
+   alignment's scale - 1), ATE and accuracy with an SE(3) alignment only (metres, no scale),
+   with the chunks' factors combined by their median (``--metric-combine median``) and as
+   priors on each chunk's scale in the pose graph (``--metric-combine prior``, for each
+   ``--prior-sigmas`` value; the same run directory, so only the pose graph and the export
+   run again on the same predictions), with and without loop closure.
    (``--metric gt`` is that Sim(3) scale itself, error 0 by construction: not run here.)
 3. Masks on a world with ``--cars`` moving cars: none vs the true car masks (PNG folder) vs
    box masks (each car's bounding box) vs ``--drop-sky``; plus the sky rule's precision /
@@ -18,6 +22,7 @@ process (warm compile cache; the load average before each run is recorded):
 
     python bench/bench_camera.py                 # whole KITTI 00 (4,541 frames)
     python bench/bench_camera.py --frames 1500   # a shorter part on a loaded machine
+    python bench/bench_camera.py --only scale    # table 2 alone (median vs prior)
 """
 
 from __future__ import annotations
@@ -78,11 +83,22 @@ def evaluate(res, gt: np.ndarray, surfaces: np.ndarray) -> dict:
     return out
 
 
-def reconstruct(run, out: pathlib.Path, config) -> object:
+def metric_scores(res, gt: np.ndarray) -> dict:
+    """Scale error and SE(3) (no scale) ATE of a metric run, with and without loop closure."""
+    out = {}
+    for name, c2w in (("loops", res.cam_to_world), ("no_loops", res.cam_to_world_no_loops)):
+        a = evaluation.ate(c2w[:, :3, 3], gt[:, :3, 3])
+        out[name] = {"scale_error": 1.0 / a.scale - 1.0, "ate_se3": evaluation.ate(c2w[:, :3, 3], gt[:, :3, 3], "se3").rmse,
+                     "ate_sim3": a.rmse}
+    out["pose_graph_seconds"] = res.timings.get("pose graph")
+    return out
+
+
+def reconstruct(run, out: pathlib.Path, config, overwrite: bool = True) -> object:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     res = pipeline.reconstruct(run.predictor, out, config, ground_truth=run.ground_truth, progress=False,
-                               overwrite=True, log=lambda s: None)
+                               overwrite=overwrite, log=lambda s: None)
     res.wall = time.perf_counter() - t0
     res.load_before = load
     print(f"  {out.name}: {res.wall:.0f} s (load {load:.1f})", flush=True)
@@ -125,7 +141,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="first N frames of KITTI 00 (default: all 4,541)")
     ap.add_argument("--cars", type=int, default=150, help="moving cars in the masks world")
     ap.add_argument("--gt-every", type=int, default=5, help="true surfaces from every k-th frame")
-    ap.add_argument("--only", default="k,masks", help="comma list of: k (tables 1-2), masks (table 3)")
+    ap.add_argument("--only", default="k,masks", help="comma list of: k (tables 1-2), scale (table 2 alone), masks (table 3)")
+    ap.add_argument("--prior-sigmas", default="0.01,0.02,0.05", help="metric_prior_sigma values of table 2's prior runs")
     ap.add_argument("--mask-variants", default="no mask,true car masks,box car masks,drop sky",
                     help="comma list of the masks table's runs")
     ap.add_argument("--work", type=pathlib.Path, default=None, help="run directories (default: a temp folder)")
@@ -136,7 +153,7 @@ def main() -> None:
     config = pipeline.PipelineConfig()
     payload: dict = {"frames": args.frames, "cars": args.cars, "runs": {}}
 
-    if "k" in only:
+    if "k" in only or "scale" in only:
         run = demo.kitti00_run(_shared(), frames=args.frames)
         oracle = run.predictor.oracle
         n = oracle.num_frames
@@ -146,22 +163,37 @@ def main() -> None:
         kfile.write_text(f"{float(K[0, 0])!r} {float(K[1, 1])!r} {float(K[0, 2])!r} {float(K[1, 2])!r}\n")
         print(f"static world, {n} frames: true surfaces ...", flush=True)
         surfaces = true_surfaces(oracle, np.arange(0, n, args.gt_every))
-        variants = {
-            "predicted K": config,
-            "known K + camera-height=1.65": dataclasses.replace(config, intrinsics=str(kfile), metric="camera-height=1.65"),
-        }
+        metric_cfg = dataclasses.replace(config, intrinsics=str(kfile), metric="camera-height=1.65")
+        variants = {"known K + camera-height=1.65": metric_cfg}
+        if "k" in only:
+            variants = {"predicted K": config, **variants}
         for name, cfg in variants.items():
             res = reconstruct(run, work / name.replace(" ", "_").replace("=", ""), cfg)
             payload["runs"][name] = evaluate(res, run.ground_truth, surfaces)
+        r = payload["runs"]["known K + camera-height=1.65"]
+        r["metric"] = metric_scores(res, run.ground_truth)
+        metric_dir = res.run_dir
         rk = payload["runs"]
         rows = [[name, r["sim3"]["ate"], r["ate_no_loops"], r["sim3"]["accuracy"], r["sim3"]["completeness"],
                  r["load_average_before"]] for name, r in rk.items()]
         print(markdown_table(["K_ref", "ATE m (Sim(3))", "ATE no loops m", "accuracy m", "completeness m", "load"], rows))
-        r = rk["known K + camera-height=1.65"]
-        rows = [["camera-height=1.65 (median of chunk votes)", r["scale_error"], r["se3"]["ate"], r["sim3"]["ate"],
-                 r["se3"]["accuracy"], r["se3"]["completeness"], r["metric_scale"]["relative_mad"]]]
-        print(markdown_table(["--metric", "scale error", "ATE m (SE(3), no scale)", "ATE m (Sim(3))",
-                              "accuracy m (SE(3))", "completeness m (SE(3))", "chunk votes MAD/median"], rows))
+        # the same predictions, the chunks' factors as pose-graph priors (only graph + export re-run)
+        payload["scale"] = {"median": {**r["metric"], "accuracy_se3": r["se3"]["accuracy"],
+                                       "metric_scale": r["metric_scale"]}}
+        for sigma in [float(v) for v in args.prior_sigmas.split(",") if v]:
+            cfg = dataclasses.replace(metric_cfg, metric_combine="prior", metric_prior_sigma=sigma)
+            res = reconstruct(run, metric_dir, cfg, overwrite=False)
+            ev = evaluate(res, run.ground_truth, surfaces)
+            payload["scale"][f"prior sigma={sigma:g}"] = {**metric_scores(res, run.ground_truth),
+                                                          "accuracy_se3": ev["se3"]["accuracy"],
+                                                          "metric_scale": res.metrics["metric_scale"],
+                                                          "load_average_before": res.load_before}
+        rows = [[name, v["loops"]["scale_error"], v["loops"]["ate_se3"], v["loops"]["ate_sim3"],
+                 v["no_loops"]["scale_error"], v["no_loops"]["ate_se3"], v["no_loops"]["ate_sim3"], v["accuracy_se3"],
+                 v["pose_graph_seconds"]] for name, v in payload["scale"].items()]
+        print(markdown_table(["--metric-combine", "scale error", "ATE m SE(3) (no scale)", "ATE m Sim(3)",
+                              "no loops: scale error", "no loops: ATE m SE(3)", "no loops: ATE m Sim(3)",
+                              "accuracy m SE(3)", "pose graph s"], rows))
 
     if "masks" in only:
         run = demo.kitti00_run(_shared(), frames=args.frames, moving_cars=args.cars)

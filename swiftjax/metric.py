@@ -10,6 +10,17 @@ chunk lengths by ``s_t``, every chunk votes ``m_t / s_t`` metres per world unit;
 factor is their median (:func:`combine_scales`).  Applying it (:func:`apply_scale`, ``x ->
 m x`` on the world) turns every output into metres.
 
+The alternative combination (:func:`scale_priors`, ``metric_combine = "prior"``) puts each
+chunk's own factor into the pose graph as a prior on its scale: in a metric world the
+chunk-to-world scale of chunk ``t`` should be ``s_t = m_t``, so the pose graph gains the
+cost ``1/2 (log s_t - log m_t)^2 / sigma^2`` per chunk (a Sim(3) edge from a fixed anchor
+whose information weighs only the log-scale entry of the residual, since that entry of
+``log(Z^-1 S_t)`` is exactly ``log s_t - log z``; :func:`swiftjax.pipeline.graph.run`
+assembles it).  A single factor cannot undo the chain's scale drift; per-chunk priors can.
+Chunks whose vote ``m_t / s_t`` lies more than ``gate x max(1.4826 MAD, sigma)`` from the
+median (in log) are left out: the median's robustness for gross failures (a wall taken for
+the road), least squares for the rest.
+
 Why per frame in the camera's own frame: the road bends and climbs over a 75-frame chunk,
 but under one camera it is a plane, and its height needs no pose at all (a pose error
 cannot leak into the scale).  Why a relative inlier band: a depth error ``eps`` moves a road
@@ -46,6 +57,9 @@ __all__ = [
     "GroundHeight",
     "chunk_ground_height",
     "combine_scales",
+    "ScalePriors",
+    "scale_priors",
+    "METRIC_COMBINE",
     "apply_scale",
     "parse_metric",
 ]
@@ -274,6 +288,56 @@ def combine_scales(
     m = float(np.median(v))
     mad = float(np.median(np.abs(v - m)))
     return m, {"chunks_voting": int(ok.sum()), "chunks": int(h.size), "relative_mad": mad / m}
+
+
+#: How the chunks' metric factors are combined (``metric_combine``; module docstring).
+METRIC_COMBINE = ("median", "prior")
+
+
+class ScalePriors(NamedTuple):
+    """Per-chunk scale priors of a metric pose graph (host NumPy, ``[T]`` each).
+
+    Attributes:
+        log_scale: ``log m_t = log(H / h_t)``, the chunk's metres per chunk unit (NaN: unused).
+        weight: ``1 / sigma^2`` on ``log s_t`` (0: unused).
+        used: chunks with a prior (a valid road fit that passed the gate).
+        start_factor: the median vote ``median_t m_t / s_t`` (:func:`combine_scales`): metres per
+            world unit of the given poses, to start the solve from a metric world.
+        stats: ``chunks``, ``chunks_voting``, ``chunks_gated`` (left out as gross outliers),
+            ``relative_mad`` of the votes, ``sigma``, ``gate``.
+    """
+
+    log_scale: np.ndarray
+    weight: np.ndarray
+    used: np.ndarray
+    start_factor: float
+    stats: dict
+
+
+def scale_priors(
+    chunk_heights: ArrayLike, chunk_scales: ArrayLike, camera_height: float, sigma: float, gate: float = 5.0
+) -> ScalePriors:
+    """The pose-graph scale priors of ``metric_combine = "prior"`` (module docstring).
+
+    ``chunk_heights [T]`` ground heights in chunk units (NaN: no road), ``chunk_scales [T]`` the
+    scales ``s_t`` of the poses the solve starts from, ``camera_height`` ``H`` in metres,
+    ``sigma`` the standard deviation of one chunk's ``log m_t`` (> 0), ``gate`` the outlier
+    gate in robust standard deviations.  Raises ``ValueError`` when no chunk saw the road.
+    """
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"scale_priors: sigma must be > 0, got {sigma!r}")
+    h = np.asarray(chunk_heights, np.float64)
+    s = np.asarray(chunk_scales, np.float64)
+    start, stats = combine_scales(h, s, camera_height)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_m = np.log(camera_height / h)
+        dev = np.abs(log_m - np.log(s) - np.log(start))
+    ok = np.isfinite(log_m) & (h > 0)
+    mad = float(np.median(dev[ok]))
+    used = ok & (dev <= gate * max(1.4826 * mad, sigma))
+    weight = np.where(used, 1.0 / sigma**2, 0.0)
+    stats = {**stats, "chunks_gated": int(ok.sum() - used.sum()), "sigma": float(sigma), "gate": float(gate)}
+    return ScalePriors(np.where(used, log_m, np.nan), weight, used, start, stats)
 
 
 def apply_scale(poses: ArrayLike, m: float) -> np.ndarray:

@@ -178,3 +178,18 @@ def test_parse_metric(value, expect):
 def test_parse_metric_refuses(value):
     with pytest.raises(ValueError, match="--metric"):
         metric.parse_metric(value)
+
+
+def test_scale_priors_gate_gross_votes_and_refuse_bad_input():
+    h = np.array([1.0, 1.1, np.nan, 0.9, 3.0, 1.05])  # chunk 2 saw no road, chunk 4 a wall
+    s = np.ones(6)
+    p = metric.scale_priors(h, s, 1.65, sigma=0.02)
+    np.testing.assert_array_equal(p.used, [True, True, False, True, False, True])
+    np.testing.assert_allclose(p.log_scale[p.used], np.log(1.65 / h[p.used]))
+    np.testing.assert_allclose(p.weight, np.where(p.used, 1 / 0.02**2, 0.0))
+    assert p.start_factor == metric.combine_scales(h, s, 1.65)[0]
+    assert p.stats["chunks_gated"] == 1 and p.stats["chunks_voting"] == 5
+    with pytest.raises(ValueError, match="sigma must be > 0"):
+        metric.scale_priors(h, s, 1.65, sigma=0.0)
+    with pytest.raises(ValueError, match="no chunk has a valid road-plane fit"):
+        metric.scale_priors(np.full(3, np.nan), np.ones(3), 1.65, sigma=0.02)

@@ -118,3 +118,136 @@ def test_missing_statistics_fall_back_to_the_drift_model_and_say_so(x64):
 def test_config_validation(field, value, match):
     with pytest.raises(ValueError, match=match):
         PipelineConfig(**{field: value})
+
+
+# ------------------------------------------------------------ metric scale as pose-graph priors
+
+
+def _scale_case(T=6, seed=0):
+    """Chunks all at the origin (so translations never couple to the scales), rotated about z,
+    true chunk scales ``s_t`` (metres per chunk unit); temporal edges with log-scale noise (the
+    chain's scale drift), ground heights ``H / s_t`` with small noise of their own."""
+    rng = np.random.default_rng(seed)
+    with jax.enable_x64(True):
+        log_s = np.log(2.0) + np.cumsum(rng.normal(scale=0.05, size=T))
+        xi = np.zeros((T, 7))
+        xi[:, 5] = np.linspace(0, 1.0, T)
+        xi[:, 6] = log_s
+        truth = np.array(sim3.exp(xi), np.float64)
+        truth[:, :3] = 0.0
+        rel = np.asarray(sim3.between(truth[:-1], truth[1:]), np.float64)
+    edge_noise = rng.normal(scale=0.04, size=T - 1)
+    relative = rel.copy()
+    relative[:, 7] *= np.exp(edge_noise)
+    H = 1.65
+    height_noise = rng.normal(scale=0.01, size=T)
+    heights = H / np.exp(log_s + height_noise)
+    temporal = TemporalResult(np.zeros((1, 4)), relative, [{} for _ in range(T - 1)], np.eye(3), heights)
+    return truth, temporal, H, edge_noise, height_noise
+
+
+def _metric_ctx(T, H, **config):
+    ctx, log = _ctx(T, **config)
+    ctx.camera = types.SimpleNamespace(metric=("camera-height", H))
+    return ctx, log
+
+
+def test_scale_priors_solve_the_log_scale_least_squares_problem(x64):
+    """Known answer: with every chunk at one place the graph's scale part is linear least squares
+    in l_t = log s_t: sum_t (l_t+1 - l_t - log z_t)^2 (identity information) + sum_t (l_t - log m_t)^2 / sigma^2."""
+    truth, temporal, H, _, _ = _scale_case()
+    T = len(truth)
+    sigma = 0.05
+    ctx, _ = _metric_ctx(T, H, edge_information="equal", metric_combine="prior", metric_prior_sigma=sigma,
+                         loop_closure=False)
+    out = graph.run(ctx, temporal, LoopResult([], []))
+    A = np.zeros((2 * T - 1, T))
+    b = np.zeros(2 * T - 1)
+    for t in range(T - 1):
+        A[t, t], A[t, t + 1], b[t] = -1.0, 1.0, np.log(temporal.relative[t, 7])
+    log_m = np.log(H / temporal.ground_heights)
+    A[T - 1:] = np.eye(T) / sigma
+    b[T - 1:] = log_m / sigma
+    want = np.linalg.lstsq(A, b, rcond=None)[0]
+    np.testing.assert_allclose(np.log(out.chunk_poses_no_loops[:, 7]), want, atol=1e-7)
+    np.testing.assert_allclose(out.chunk_poses, out.chunk_poses_no_loops)  # no loops: the same poses
+    # the rotations are the chain's (the priors only touch the scales; chunk 0 pinned at identity)
+    np.testing.assert_allclose(out.chunk_poses[:, :7], graph.chain_poses(temporal.relative)[:, :7], atol=1e-7)
+    m = out.metrics["metric_prior"]
+    assert m["chunks_with_prior"] == T and m["chunks_gated"] == 0 and m["no_loops_solve"]["converged"]
+
+
+def test_scale_priors_undo_the_chain_drift_that_the_median_cannot(x64):
+    truth, temporal, H, _, _ = _scale_case(T=12, seed=2)
+    T = len(truth)
+    true_log_s = np.log(truth[:, 7])
+    ctx, _ = _metric_ctx(T, H, metric_combine="prior", metric_prior_sigma=0.01, loop_closure=False,
+                         edge_information="equal")  # (zero-length edges: the drift model is singular)
+    prior = graph.run(ctx, temporal, LoopResult([], []))
+    chain = graph.chain_poses(temporal.relative)
+    m, _ = __import__("swiftjax.metric", fromlist=["x"]).combine_scales(temporal.ground_heights, chain[:, 7], H)
+    err_prior = np.abs(np.log(prior.chunk_poses_no_loops[:, 7]) - true_log_s).max()
+    err_median = np.abs(np.log(m * chain[:, 7]) - true_log_s).max()
+    assert err_prior < 0.03 < err_median
+
+
+def test_a_gross_scale_vote_is_gated_out(x64):
+    truth, temporal, H, _, _ = _scale_case(T=8, seed=1)
+    T = len(truth)
+    heights = temporal.ground_heights.copy()
+    heights[5] *= 3.0  # a wall taken for the road
+    heights[2] = np.nan  # no road seen
+    ctx, _ = _metric_ctx(T, H, metric_combine="prior", loop_closure=False, edge_information="equal")
+    out = graph.run(ctx, temporal._replace(ground_heights=heights), LoopResult([], []))
+    m = out.metrics["metric_prior"]
+    assert m["chunks_with_prior"] == T - 2 and m["chunks_gated"] == 1 and m["chunks_voting"] == T - 1
+    assert np.abs(np.log(out.chunk_poses_no_loops[:, 7] / truth[:, 7])).max() < 0.1
+
+
+def test_scale_priors_with_loop_edges_keep_the_robust_loop_verdicts(x64):
+    truth, temporal, loop_result = _chain_case()
+    T = len(truth)
+    H = 1.65
+    heights = H / truth[:, 7] * np.exp(np.random.default_rng(0).normal(scale=0.01, size=T))
+    temporal = temporal._replace(ground_heights=heights)
+    ctx, _ = _metric_ctx(T, H, metric_combine="prior")
+    out = graph.run(ctx, temporal, loop_result)
+    np.testing.assert_array_equal(out.inlier_weights, [1.0, 0.0])  # the false loop still rejected
+    assert out.metrics["loops_rejected"] == 1 and out.metrics["converged"]
+    assert np.abs(np.log(out.chunk_poses[:, 7] / truth[:, 7])).max() < 0.03
+    # metric positions, chunk 0 pinned at the origin: the truth's (metric, scale 1 per chunk,
+    # chunk 0 unrotated at (20, 0, 0)) shifted by its first position
+    assert np.abs(out.chunk_poses[:, :3] - (truth[:, :3] - truth[0, :3])).max() < 1.0
+    # the median path is unchanged by the new options (the default)
+    ref = graph.run(_ctx(T)[0], temporal, loop_result)
+    ctx_med, _ = _metric_ctx(T, H, metric_combine="median")
+    np.testing.assert_array_equal(graph.run(ctx_med, temporal, loop_result).chunk_poses, ref.chunk_poses)
+
+
+def test_the_prior_problem_passes_validation_and_singular_information_would_not(x64):
+    """The pose graph refuses positive semi-definite (singular) information: the scale-only prior
+    carries eps = 1e-9 of its weight on the other six entries to stay positive definite."""
+    from swiftjax import metric
+
+    truth, temporal, H, _, _ = _scale_case()
+    T = len(truth)
+    chain = graph.chain_poses(temporal.relative)
+    priors = metric.scale_priors(temporal.ground_heights, chain[:, 7], H, 0.02)
+    edges = np.array([(t, t + 1) for t in range(T - 1)], np.int32)
+    args = (metric.apply_scale(chain, priors.start_factor), edges, temporal.relative, None, np.zeros(T - 1, bool), priors)
+    problem = graph.scale_prior_problem(*args)
+    posegraph.validate(problem)
+    assert problem.num_nodes == T + 1 and bool(problem.fixed[T]) and not np.asarray(problem.fixed[:T]).any()
+    with pytest.raises(posegraph.ProblemError, match="not positive definite"):
+        posegraph.validate(graph.scale_prior_problem(*args, eps=0.0))
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("metric_combine", "mean", "metric_combine"),
+    ("metric_prior_sigma", 0.0, "metric_prior_sigma"),
+    ("metric_prior_sigma", float("nan"), "metric_prior_sigma"),
+    ("metric_prior_sigma", 2.0, "metric_prior_sigma"),
+])
+def test_metric_combine_validation(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        PipelineConfig(**{field: value})

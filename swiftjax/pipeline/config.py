@@ -13,6 +13,7 @@ from typing import Any
 
 from swiftjax import loops, options
 from swiftjax.align import AlignOptions as _ALIGN
+from swiftjax.metric import METRIC_COMBINE
 from swiftjax.options import option
 from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
 from swiftjax.posegraph.options import PIPELINE as _GRAPH
@@ -56,7 +57,10 @@ class PipelineConfig:
     ``colmap_max_points``.  The user's camera (:mod:`swiftjax.pipeline.user_camera`):
     ``intrinsics`` (a file: ``fx fy cx cy``, KITTI ``calib.txt`` or COLMAP ``cameras.txt``, at
     the original image size), ``metric`` (``"camera-height=H"`` in metres or ``"gt"``: every
-    output in metres), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
+    output in metres), ``metric_combine`` (how ``camera-height`` combines the chunks' factors:
+    ``"median"`` of their votes, one factor for the world, or ``"prior"``: a prior on each
+    chunk's scale in the pose graph, :mod:`swiftjax.metric`), ``metric_prior_sigma`` (that
+    prior's standard deviation on one chunk's log-scale), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
     chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")
@@ -165,6 +169,14 @@ class PipelineConfig:
     metric: str | None = option(
         None, "metric scale: 'camera-height=H' (metres above the road) or 'gt' (from --gt)",
         kind=str, optional=True, stage="temporal",
+    )
+    metric_combine: str = option(
+        "median", "--metric camera-height: combine the chunks' scale factors by their median (one factor for "
+        "the world) or as a prior on each chunk's scale in the pose graph", choices=METRIC_COMBINE, stage="graph",
+    )
+    metric_prior_sigma: float = option(
+        0.02, "metric_combine = prior: standard deviation of one chunk's log-scale factor from its road plane",
+        low=0.0, high=1.0, low_open=True, stage="graph",
     )
     mask_dir: str | None = option(
         None, "one PNG per frame, named like the frame, at the image size; white = keep",

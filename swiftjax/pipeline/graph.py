@@ -16,6 +16,20 @@ combines its two half alignments, :func:`swiftjax.align_covariance.loop_edge_inf
 edge whose alignment has no usable statistics (the pose fallback, IRLS alignment, a run
 directory from before these statistics were recorded) keeps the drift model alone, and the run
 says so.  ``edge_information = "equal"``: identity for every edge (the authors' choice).
+
+Metric scale as pose-graph priors (``--metric camera-height=H`` with ``metric_combine =
+"prior"``, :func:`swiftjax.metric.scale_priors`): the graph gains a fixed anchor node ``A``
+(identity, the metric world) and, per chunk ``t`` with a road fit, an edge ``(A, t)`` measuring
+``Z_t = (t_t^0, q_t^0, m_t)`` (the start pose's rotation and translation, the chunk's metric
+factor ``m_t = H / h_t`` as scale) with information ``diag(eps w, ..., eps w, w)``, ``w =
+1 / sigma^2``: the residual's log-scale entry is exactly ``log s_t - log m_t``, and ``eps =
+1e-9`` keeps the matrix positive definite as :func:`swiftjax.posegraph.validate` requires
+(the pull towards the start pose it adds is ``1e-9`` of the scale prior's weight, far below
+every other edge's).  Chunk 0 is no longer fixed: the edge ``(A, 0)`` pins its rotation and
+translation (information ``1 / pin_sigma^2``, the gauge: every other cost is invariant under a
+common rigid motion, so the pin holds exactly) and carries chunk 0's own scale prior.  The
+solve starts from the chain scaled by the median vote; the chain-only poses are solved the
+same way on the temporal edges and the priors (so both outputs are metric).
 """
 
 from __future__ import annotations
@@ -27,14 +41,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align_covariance, posegraph, sim3
+from swiftjax import align_covariance, metric, posegraph, sim3
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.loop_closure import LoopResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["GraphResult", "run", "chain_poses", "edge_information", "loop_information"]
+__all__ = ["GraphResult", "run", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
 
 
 class GraphResult(NamedTuple):
@@ -120,18 +134,84 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
         lc = np.asarray(lv.loop_covariance(
             jnp.asarray(np.stack([e.Z for e in loops.edges])), drift.loop_sigma_rot, drift.loop_sigma_trans,
             drift.loop_sigma_scale,
-        ), np.float64)
+        ), np.float64) if loops.edges else np.zeros((0, 7, 7))
     safe = np.where(valid[:, None, None], info, np.eye(7))
     odo = odo + np.where(valid[:, None, None], _inverse(safe), 0.0)
-    lc = np.stack([c if x is None else c + _inverse(x) for c, x in zip(lc, loop_info)])
+    lc = np.stack([c if x is None else c + _inverse(x) for c, x in zip(lc, loop_info)]) if loops.edges else lc
     missing = int((~valid).sum()) + sum(x is None for x in loop_info)
     if missing:
         ctx.log(f"pose graph: {missing} edge(s) without alignment statistics: drift model alone")
     return _inverse(np.concatenate([odo, lc]))
 
 
+PRIOR_EPS = 1e-9  # the prior edges' weight on the non-scale entries, relative to 1 / sigma^2
+PIN_SIGMA = 1e-3  # the anchor edge's standard deviation on chunk 0's rotation and translation
+
+
+def scale_prior_problem(
+    start: np.ndarray, edges: np.ndarray, measurements: np.ndarray, information: np.ndarray | None,
+    robust: np.ndarray, priors: metric.ScalePriors, *, pin_sigma: float = PIN_SIGMA, eps: float = PRIOR_EPS,
+) -> posegraph.Problem:
+    """The pose graph with per-chunk scale priors (module docstring): nodes ``0 .. T-1`` the
+    chunks (none fixed), node ``T`` the fixed identity anchor; edges: the given ones, then
+    ``(T, 0)`` (the pin, with chunk 0's prior) and ``(T, t)`` for every other chunk with a prior.
+
+    ``start [T, 8]`` the metric start poses, ``edges [E, 2]``, ``measurements [E, 8]``,
+    ``information [E, 7, 7]`` or None (identity), ``robust [E]``.  Host NumPy float64 in, a
+    :class:`~swiftjax.posegraph.Problem` with ``T + 1`` nodes out (float64 under x64)."""
+    start = np.asarray(start, np.float64)
+    T = start.shape[0]
+    E = len(edges)
+    info = np.broadcast_to(np.eye(7), (E, 7, 7)) if information is None else np.asarray(information, np.float64)
+    w = np.asarray(priors.weight, np.float64)
+    pin = 1.0 / pin_sigma**2
+    rows = [0] + [t for t in range(1, T) if priors.used[t]]
+    Z = start[rows].copy()
+    Z[:, 7] = np.where(priors.used[rows], np.exp(np.nan_to_num(priors.log_scale[rows])), start[rows, 7])
+    P = np.zeros((len(rows), 7, 7))
+    diag = np.arange(6)
+    P[:, diag, diag] = eps * w[rows, None]
+    P[0, diag, diag] = pin  # the gauge: chunk 0's rotation and translation
+    P[:, 6, 6] = w[rows]
+    if not priors.used[0]:  # no prior on chunk 0's scale: the pin alone (its scale free)
+        P[0, 6, 6] = eps * pin
+    anchor = np.array([[0, 0, 0, 0, 0, 0, 1, 1.0]])
+    return posegraph.Problem(
+        np.concatenate([start, anchor]),
+        np.concatenate([np.asarray(edges, np.int32).reshape(E, 2), np.array([[T, t] for t in rows], np.int32)]),
+        np.concatenate([np.asarray(measurements, np.float64).reshape(E, 8), Z]),
+        information=np.concatenate([info, P]),
+        fixed=np.arange(T + 1) == T,
+        robust=np.concatenate([np.asarray(robust, bool), np.zeros(len(rows), bool)]),
+    )
+
+
+def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) -> metric.ScalePriors | None:
+    """The scale priors of ``--metric camera-height=H`` with ``metric_combine = "prior"``, else None."""
+    camera = getattr(ctx, "camera", None)
+    spec = None if camera is None else camera.metric
+    if ctx.config.metric_combine != "prior" or spec is None or spec[0] != "camera-height":
+        return None
+    if temporal.ground_heights is None:
+        raise RuntimeError("pose graph: --metric camera-height without the chunks' ground heights")
+    return metric.scale_priors(temporal.ground_heights, chain[:, 7], spec[1], ctx.config.metric_prior_sigma)
+
+
+def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
+    posegraph.validate(problem)
+    res = posegraph.optimize(problem, max_steps=config.max_lm_steps, kernel=kernel, kernel_scale=config.robust_scale,
+                             throw=False)  # not converged: the caller warns
+    return res, np.asarray(sim3.normalize(res.poses), np.float64)
+
+
+def _solve_metrics(res: Any) -> dict[str, Any]:
+    return {"cost_initial": res.cost_initial, "cost_final": res.cost_final, "iterations": res.num_steps,
+            "converged": res.converged, "status": res.status, "compile_seconds": res.compile_seconds,
+            "solve_seconds": res.solve_seconds}
+
+
 def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> GraphResult:
-    """Chain the temporal edges; optimise the pose graph when there are loop edges."""
+    """Chain the temporal edges; optimise the pose graph when there are loop edges (or scale priors)."""
     config = ctx.config
     relative = temporal.relative
     T = ctx.schedule.num_chunks
@@ -139,36 +219,51 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> GraphRe
     graph_metrics: dict[str, Any] = {}
     inlier_weights = None
     with ctx.timer("pose graph"):
+        priors = _scale_priors(ctx, temporal, chunk_poses_no_loops)
+        information = None
+        if loops.edges or priors is not None:
+            information = _graph_information(ctx, temporal, loops)
+        if priors is not None:
+            start = metric.apply_scale(chunk_poses_no_loops, priors.start_factor)
+            tedges = np.array([(t, t + 1) for t in range(T - 1)], np.int32).reshape(-1, 2)
+            with jax.enable_x64(True):
+                res0, poses0 = _solve(scale_prior_problem(
+                    start, tedges, relative, None if information is None else information[:T - 1],
+                    np.zeros(T - 1, bool), priors), config, None)
+            chunk_poses_no_loops = poses0[:T]
+            graph_metrics["metric_prior"] = {**priors.stats, "start_factor": priors.start_factor,
+                                             "chunks_with_prior": int(priors.used.sum()),
+                                             "no_loops_solve": _solve_metrics(res0)}
+            if not res0.converged:
+                warnings.warn(f"pose graph (chain + scale priors) did not converge ({res0.status})", RuntimeWarning,
+                              stacklevel=2)
         if loops.edges:
+            L = len(loops.edges)
             edges = [(t, t + 1) for t in range(T - 1)] + [(e.chunk_a, e.chunk_b) for e in loops.edges]
             meas = np.concatenate([relative, np.stack([e.Z for e in loops.edges])])
             robust = np.arange(len(edges)) >= T - 1
-            information = _graph_information(ctx, temporal, loops)
             with jax.enable_x64(True):
-                problem = posegraph.Problem(
-                    jnp.asarray(chunk_poses_no_loops), np.asarray(edges, np.int32), jnp.asarray(meas),
-                    information=information, robust=robust,
-                )
-                posegraph.validate(problem)
-                res = posegraph.optimize(
-                    problem, max_steps=config.max_lm_steps, kernel=config.robust_loops,
-                    kernel_scale=config.robust_scale, throw=False,  # not converged: a warning below
-                )
-                chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
-                r = np.asarray(res.residuals, np.float64)[T - 1:]
-            om = np.asarray(problem.information, np.float64)[T - 1:]
-            inlier_weights = res.inlier_weights[T - 1:]
-            graph_metrics = {
-                "cost_initial": res.cost_initial, "cost_final": res.cost_final,
-                "iterations": res.num_steps, "converged": res.converged, "status": res.status,
-                "compile_seconds": res.compile_seconds, "solve_seconds": res.solve_seconds,
+                if priors is None:
+                    problem = posegraph.Problem(
+                        jnp.asarray(chunk_poses_no_loops), np.asarray(edges, np.int32), jnp.asarray(meas),
+                        information=information, robust=robust,
+                    )
+                else:
+                    problem = scale_prior_problem(start, np.asarray(edges, np.int32), meas, information, robust, priors)
+                res, chunk_poses = _solve(problem, config, config.robust_loops)
+                chunk_poses = chunk_poses[:T]
+                r = np.asarray(res.residuals, np.float64)[T - 1:T - 1 + L]
+            om = np.asarray(problem.information, np.float64)[T - 1:T - 1 + L]
+            inlier_weights = res.inlier_weights[T - 1:T - 1 + L]
+            graph_metrics.update({
+                **_solve_metrics(res),
                 "robust_loops": config.robust_loops, "robust_scale": config.robust_scale,
                 "edge_information": "equal" if information is None else "data",
                 "gnc_iterations": res.gnc_iterations,
                 "loop_inlier_weights": inlier_weights.tolist(),
                 "loop_whitened_residuals": np.sqrt(np.einsum("ei,eij,ej->e", r, om, r)).tolist(),
                 "loops_rejected": int(np.sum(inlier_weights < 0.5)),
-            }
+            })
             if config.robust_loops is not None and np.any(inlier_weights < 0.5):
                 ctx.log(f"pose graph: {int(np.sum(inlier_weights < 0.5))} of {len(inlier_weights)} loop edge(s) "
                         f"down-weighted as outliers ({config.robust_loops})")

@@ -3,7 +3,9 @@
 * ``camera-height=H``: each temporal chunk's camera height above the road ``h_t`` (chunk
   units, :func:`swiftjax.metric.chunk_ground_height`, measured by the temporal stage) votes
   ``H / (h_t s_t)`` metres per world unit, ``s_t`` the scale of its chunk-to-world pose; the
-  factor is the median vote (:func:`swiftjax.metric.combine_scales`).
+  factor is the median vote (:func:`swiftjax.metric.combine_scales`); with ``metric_combine =
+  "prior"`` the pose graph already put a prior on each chunk's scale and solved in metres
+  (:mod:`swiftjax.pipeline.graph`), so nothing is scaled here.
 * ``gt``: the scale of the Sim(3) (Umeyama) alignment of the camera centres to the given
   ground truth (for evaluation: the trajectory's shape stays the estimate's).
 
@@ -42,11 +44,21 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
         return graph
     kind, height = spec
     with ctx.timer("metric scale"):
+        prior = graph.metrics.get("metric_prior")
+        if kind == "camera-height" and prior is not None:  # the pose graph solved in metres
+            ctx.scale = {"unit": UNIT_METRE, "combine": "prior", "metres_per_unit": float(graph.chunk_poses[0, 7]),
+                         "metres_per_unit_no_loops": float(graph.chunk_poses_no_loops[0, 7]),
+                         "method": f"camera-height={height:g}", **prior,
+                         "chunk_heights": [None if not np.isfinite(h) else float(h) for h in temporal.ground_heights]}
+            ctx.unit = UNIT_METRE
+            ctx.log(f"metric scale (camera-height={height:g}, scale priors in the pose graph): "
+                    f"{ctx.scale['metres_per_unit']:.6g} m per unit of chunk 0")
+            return graph
         if kind == "camera-height":
             assert temporal.ground_heights is not None
             m, stats = metric.combine_scales(temporal.ground_heights, graph.chunk_poses[:, 7], height)
             m0, _ = metric.combine_scales(temporal.ground_heights, graph.chunk_poses_no_loops[:, 7], height)
-            info: dict[str, Any] = {"method": f"camera-height={height:g}", **stats,
+            info: dict[str, Any] = {"method": f"camera-height={height:g}", "combine": "median", **stats,
                                     "chunk_heights": [None if not np.isfinite(h) else float(h)
                                                       for h in temporal.ground_heights]}
         else:
