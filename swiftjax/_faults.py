@@ -31,7 +31,7 @@ POINTS = (
     "loops-done",
     "graph-done",
     "export-chunk",  # export: chunk t's points appended to the (temporary) PLY
-    "export-done",  # every output written, metrics.json excepted
+    "export-done",  # every output written (not yet renamed into place), metrics.json excepted
 )
 
 

@@ -98,3 +98,30 @@ def test_atomic_paths_replace_all_or_none(tmp_path):
             t.write_bytes(data)
     assert [t.read_bytes() for t in targets] == [b"A", b"B"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png"]
+
+
+def test_output_set_renames_together_or_not_at_all(tmp_path):
+    from swiftjax.io.atomic import atomic_paths, output_set, temp_files
+
+    (tmp_path / "a.txt").write_text("old a")
+    with pytest.raises(OSError):
+        with output_set():
+            with atomic_write(tmp_path / "a.txt") as f:
+                f.write("new a")
+            assert (tmp_path / "a.txt").read_text() == "old a"  # not renamed yet
+            with atomic_paths([tmp_path / "b.bin"]) as (tmp,):
+                tmp.write_bytes(b"b")
+            raise OSError(28, "No space left on device")
+    assert (tmp_path / "a.txt").read_text() == "old a" and not (tmp_path / "b.bin").exists()
+    assert temp_files(tmp_path) == []
+    with output_set():
+        with atomic_write(tmp_path / "a.txt") as f:
+            f.write("new a")
+        with output_set():  # nested: joins the outer set
+            with atomic_write(tmp_path / "a.txt") as f:
+                f.write("newer a")
+        with atomic_paths([tmp_path / "b.bin"]) as (tmp,):
+            tmp.write_bytes(b"b")
+        assert not (tmp_path / "b.bin").exists()
+    assert (tmp_path / "a.txt").read_text() == "newer a" and (tmp_path / "b.bin").read_bytes() == b"b"
+    assert temp_files(tmp_path) == []

@@ -170,6 +170,92 @@ def test_changed_frame_files_repredict_only_their_chunks(route, reference, tmp_p
     np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)  # same predictions: same result
 
 
+class SkippingPredictor(FramePredictor):
+    """The input with frame ``skip`` left out (as ``--skip-bad`` leaves out a truncated image):
+    the frames after it shift down by one."""
+
+    def __init__(self, inner, skip):
+        super().__init__(inner)
+        self.skip = skip
+        self.num_frames = inner.num_frames - 1
+
+    def predict(self, frames):
+        frames = np.asarray(frames)
+        return super().predict(np.where(frames < self.skip, frames, frames + 1))
+
+    def fingerprint(self):
+        frames = super().fingerprint()["frames"]
+        return {"frames": frames[:self.skip] + frames[self.skip + 1:], "model": "oracle"}
+
+    def frame_names(self):
+        names = self.inner.frame_names()
+        return names[:self.skip] + names[self.skip + 1:]
+
+
+def test_a_repaired_skipped_frame_repredicts_only_the_chunks_from_it(route, reference, tmp_path):
+    """Defect 7's second half, with --skip-bad: a run without the truncated frame 75, then the
+    repaired image: the input has one frame more.  Chunks 0-2 (frames 0-69) hold the same
+    frames in both runs: 0 and 1 are kept, 2 is predicted again (its edge to chunk 3 needs its
+    float32 overlap), 3 onwards hold other frames.  The result equals an uninterrupted run on
+    the repaired input, and the other direction (a frame removed) works the same way."""
+    from swiftjax import chunks
+
+    run_dir = tmp_path / "run"
+    pipeline.reconstruct(SkippingPredictor(route.predictor, 75), run_dir, CONFIG, progress=False, log=lambda s: None)
+    p = FramePredictor(route.predictor)
+    logs: list[str] = []
+    res = pipeline.reconstruct(p, run_dir, CONFIG, progress=False, log=logs.append)
+    n = route.predictor.num_frames
+    schedule = chunks.chunk_schedule(n, CONFIG.chunk_size, CONFIG.overlap)
+    chunk_of = {tuple(schedule.frames(t).tolist()): t for t in range(schedule.num_chunks)}
+    redone = sorted(chunk_of[f] for f in p.predicted if f in chunk_of)
+    assert redone == list(range(2, schedule.num_chunks))
+    assert any(f"the input has {n} frames instead of {n - 1} (first difference at 000075.png)" in line
+               and f"keeping chunk(s) 0-1, predicting chunk(s) 2-{schedule.num_chunks - 1} again" in line
+               for line in logs), logs
+    np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
+    assert_same_outputs(run_dir, reference[0])
+    # and back: frame 75 left out again (fewer frames): the same chunks kept, the rest redone
+    q = SkippingPredictor(route.predictor, 75)
+    back = pipeline.reconstruct(q, run_dir, CONFIG, progress=False, log=lambda s: None)
+    fresh = pipeline.reconstruct(SkippingPredictor(route.predictor, 75), tmp_path / "fresh", CONFIG, progress=False,
+                                 log=lambda s: None)
+    assert len(q.predicted) - len(back.loops) == chunks.chunk_schedule(n - 1, CONFIG.chunk_size, CONFIG.overlap).num_chunks - 2
+    np.testing.assert_array_equal(back.cam_to_world, fresh.cam_to_world)
+    assert_same_outputs(run_dir, tmp_path / "fresh")
+
+
+def test_a_full_disk_in_the_export_leaves_the_previous_complete_output_set(route, reference, tmp_path, monkeypatch):
+    """Defect 9: a disk-full error left a partial output set (new poses and cloud, no or an old
+    metrics.json).  The outputs are now renamed together at the end: the error names the file
+    and every output is the previous run's, byte for byte; no temp file is left."""
+    import errno
+
+    from swiftjax.pipeline import report
+
+    run_dir = _copy(reference, tmp_path)
+
+    class FullDisk:
+        @staticmethod
+        def dump(*args, **kwargs):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report, "json", FullDisk)  # metrics.json: the set's last file
+    cfg = dataclasses.replace(CONFIG, voxel_size=0.5)  # an export-only change: a different cloud
+    with pytest.raises(OSError, match=r"No space left on device \(writing .*metrics\.json\)"):
+        pipeline.reconstruct(FramePredictor(route.predictor), run_dir, cfg, progress=False, log=lambda s: None)
+    assert_same_outputs(run_dir, reference[0], manifest=False)
+    assert not [p for d in [run_dir, *run_dir.rglob("*")] if d.is_dir() for p in temp_files(d)]
+    # a first run that fails so leaves no outputs at all (the chunks and the manifest stay)
+    fresh = tmp_path / "fresh"
+    with pytest.raises(OSError, match="No space left"):
+        pipeline.reconstruct(FramePredictor(route.predictor), fresh, CONFIG, progress=False, log=lambda s: None)
+    assert sorted(p.name for p in fresh.iterdir() if p.is_file() and not p.name.startswith(".")) == ["manifest.json"]
+    monkeypatch.undo()
+    res = pipeline.reconstruct(FramePredictor(route.predictor), run_dir, cfg, progress=False, log=lambda s: None)
+    assert res.metrics["points"] < reference[1].metrics["points"]  # with space again: the new set, complete
+
+
 def test_overwrite_starts_afresh_and_removes_old_chunks(route, reference, tmp_path):
     run_dir = _copy(reference, tmp_path)
     res = pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, chunk_size=40), overwrite=True,

@@ -9,11 +9,18 @@ left untouched.
     with atomic_path("plot.png") as tmp:          # for tools that want a path (savefig, cv2)
         fig.savefig(tmp)
     atomic_save_npz("chunk_0003.npz", depth=d, conf=c)
+
+A set of files that belong together (a run's outputs) is written with :func:`output_set`:
+inside it every atomic write of this thread's context is fsynced but not yet renamed; the
+renames all happen when the block ends without an error.  An error (a full disk) or a kill
+before that leaves every previous file as it was (the temp files are removed, or cleaned
+later with :func:`temp_files`), so the set on disk is always one complete set.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import pathlib
 import tempfile
@@ -22,7 +29,7 @@ from typing import IO, Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_paths", "atomic_write", "atomic_save_npz", "temp_files", "TEMP_MARK"]
+__all__ = ["atomic_path", "atomic_paths", "atomic_write", "atomic_save_npz", "output_set", "temp_files", "TEMP_MARK"]
 
 #: Temp files are ``.<name>.<random>.tmp<suffix>`` beside their target (see :func:`temp_files`).
 TEMP_MARK = ".tmp"
@@ -53,6 +60,48 @@ def _fsync_dir(directory: pathlib.Path) -> None:
         os.close(fd)
 
 
+#: The open :func:`output_set`'s pending renames ``[(temp, target)]`` (None: rename at once).
+_PENDING: contextvars.ContextVar[list[tuple[pathlib.Path, pathlib.Path]] | None] = contextvars.ContextVar(
+    "swiftjax_output_set", default=None)
+
+
+def _replace(tmp: pathlib.Path, target: pathlib.Path) -> bool:
+    """Rename now (True), or queue the rename in the open :func:`output_set` (False)."""
+    pending = _PENDING.get()
+    if pending is None:
+        os.replace(tmp, target)
+        return True
+    for old in [t for t, g in pending if g == target]:  # rewritten in the set: the last version wins
+        old.unlink(missing_ok=True)
+    pending[:] = [(t, g) for t, g in pending if g != target]
+    pending.append((tmp, target))
+    return False
+
+
+@contextlib.contextmanager
+def output_set() -> Iterator[None]:
+    """Write the atomic files of the block as one set (module docstring): renamed together at
+    the end, none of them on an exception.  Nested sets join the outer one."""
+    if _PENDING.get() is not None:
+        yield
+        return
+    pending: list[tuple[pathlib.Path, pathlib.Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in pending:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        raise
+    finally:
+        _PENDING.reset(token)
+    for tmp, target in pending:
+        os.replace(tmp, target)
+    for directory in dict.fromkeys(t.parent for _, t in pending):
+        _fsync_dir(directory)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
     """Yield a temp path beside ``path``; on success it is fsynced and renamed onto ``path``.
@@ -73,7 +122,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.chmod(tmp, _file_mode())
-        os.replace(tmp, target)
+        renamed = _replace(tmp, target)
     except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -81,7 +130,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[pathlib.Path]:
             # e.g. ENOSPC from a write: name the file being written (the temp file is gone).
             raise OSError(e.errno, f"{e.strerror or e} (writing {target})", os.fspath(target)) from e
         raise
-    _fsync_dir(parent)
+    if renamed:
+        _fsync_dir(parent)
 
 
 @contextlib.contextmanager
@@ -107,15 +157,15 @@ def atomic_paths(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[pathl
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
             os.chmod(tmp, _file_mode())
-        for tmp, target in zip(tmps, targets):
-            os.replace(tmp, target)
+        renamed = [_replace(tmp, target) for tmp, target in zip(tmps, targets)]
     except BaseException:
         for tmp in tmps:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         raise
-    for directory in dict.fromkeys(t.parent for t in targets):
-        _fsync_dir(directory)
+    if all(renamed):
+        for directory in dict.fromkeys(t.parent for t in targets):
+            _fsync_dir(directory)
 
 
 @contextlib.contextmanager

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from swiftjax import _faults
+from swiftjax.io.atomic import output_set
 from swiftjax.io.chunk_store import ChunkCorruptError
 from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale, temporal
 from swiftjax.pipeline.config import PipelineConfig
@@ -99,8 +100,12 @@ def reconstruct(
                 poses = graph.run(ctx, chain, loops)
                 poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
                 _faults.point("graph-done")
-                exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
-                _faults.point("export-done")
+                # The outputs are renamed together at the end: a full disk or a kill mid-way
+                # leaves the previous complete set (or none), never a mix.
+                with output_set():
+                    exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
+                    _faults.point("export-done")
+                    metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
                 break
             except ChunkCorruptError as err:
                 t = _corrupt_chunk_index(ctx, err)
@@ -108,7 +113,6 @@ def reconstruct(
                 rundir.forget_chunk(ctx.manifest, ctx.store, t)
         else:  # pragma: no cover - every chunk re-predicted and still corrupt: the disk is failing
             raise rundir.RunDirError(f"chunk files in {ctx.store.root} keep failing their checksums")
-        metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
     finally:
         ctx.close()
 

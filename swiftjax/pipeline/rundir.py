@@ -14,7 +14,8 @@ configuration, and re-running finishes the job without redoing or corrupting fin
   the chunk file format -- decides whether the stored chunks can be used: a change is refused
   with the overwrite message, except a change of some frames' files (same count), which
   re-predicts only the chunks that hold them (and their neighbours, whose edges need the
-  float32 overlap).  The loop stage's options decide whether the recorded loop edges are kept
+  float32 overlap), and frames added or removed (e.g. an image skipped as bad, then
+  repaired), which keeps the chunks before the first differing frame and predicts the rest.  The loop stage's options decide whether the recorded loop edges are kept
   (else the loop stage alone re-runs); the pose graph and the export always run, so a changed
   export-only option re-runs only the export.
 * **Records.** Every finished chunk is recorded together with its edge ``(t-1, t)`` once its
@@ -197,6 +198,10 @@ def _changed(old: Any, new: Any) -> list[str]:
     return sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
 
 
+def _without_count(temporal: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in temporal.items() if k != "num_frames"}
+
+
 def _describe_identity_change(old: dict[str, Any], new: dict[str, Any]) -> str:
     parts = []
     if old.get("num_frames") != new.get("num_frames"):
@@ -232,6 +237,7 @@ class Manifest:
     def __init__(self, path: pathlib.Path, data: dict[str, Any]) -> None:
         self.path = path
         self.data = data
+        self.previous_names: list[str] | None = None  # the last run's frame names, when the count changed
 
     @classmethod
     def open(
@@ -256,7 +262,11 @@ class Manifest:
         if path.exists() and not overwrite:
             data = cls._read(path)
             old = data["fingerprint"]
-            if old["temporal"] != fingerprint["temporal"]:
+            count_only = (  # frames added or removed (e.g. a repaired image skipped before): reconciled below
+                old.get("frames") is not None and fingerprint.get("frames") is not None
+                and _without_count(old["temporal"]) == _without_count(fingerprint["temporal"])
+            )
+            if old["temporal"] != fingerprint["temporal"] and not count_only:
                 what = _describe_identity_change(old["temporal"], fingerprint["temporal"])
                 raise RunDirError(f"{run_dir} holds a run with a different {what}; {_OVERWRITE}")
             manifest = cls(path, data)
@@ -307,8 +317,11 @@ class Manifest:
         """Forget the chunks (and edges) that hold input frames whose files changed."""
         if old == new:
             return
-        if old is None or new is None or len(old) != len(new):
+        if old is None or new is None:
             raise RunDirError(f"{self.path.parent} holds a run of different input frames; {_OVERWRITE}")
+        if len(old) != len(new):
+            self._reconcile_count(old, new, schedule, log)
+            return
         changed = [k for k, (a, b) in enumerate(zip(old, new)) if a != b]
         hit = sorted({int(c) for k in changed for c in np.flatnonzero(
             (schedule.starts <= k) & (k < schedule.ends))})
@@ -326,6 +339,36 @@ class Manifest:
         log(
             f"swiftjax: {len(changed)} input frame(s) changed since the last run ({names}{more}): "
             f"predicting chunk(s) {', '.join(map(str, redo))} again"
+        )
+
+    def _reconcile_count(
+        self, old: list[Any], new: list[Any], schedule: chunks.ChunkSchedule, log: Callable[[str], None],
+    ) -> None:
+        """Frames inserted or removed (``len(old) != len(new)``): the chunks before the first
+        differing frame hold the same frames in both schedules (chunk starts do not depend on
+        the frame count) and are kept; every later chunk, and the last kept one (its edge to
+        the next needs its float32 overlap), is predicted again."""
+        p = next((k for k, (a, b) in enumerate(zip(old, new)) if a != b), min(len(old), len(new)))
+        prev = chunks.chunk_schedule(len(old), schedule.chunk_size, schedule.overlap)
+        keep = 0  # chunks 0 .. keep-1 hold the same frames as before
+        while (keep < min(prev.num_chunks, schedule.num_chunks) and schedule.ends[keep] <= p
+               and prev.starts[keep] == schedule.starts[keep] and prev.ends[keep] == schedule.ends[keep]):
+            keep += 1
+        reuse = keep - 1 if 0 < keep < schedule.num_chunks else keep
+        data = self.data
+        self.previous_names = [str(f[0]) for f in old if isinstance(f, list) and f]
+        data["chunks"] = {k: v for k, v in data["chunks"].items() if int(k) < reuse}
+        data["edges"] = {k: v for k, v in data["edges"].items() if int(k) + 1 < keep}
+        data["loop_edges"] = {}  # the descriptors change
+        data["loops"] = None
+        redo = range(reuse, schedule.num_chunks)
+        where = str(new[p][0]) if p < len(new) and isinstance(new[p], list) and new[p] else f"frame {p}"
+        log(
+            f"swiftjax: the input has {len(new)} frames instead of {len(old)} (first difference at {where}): "
+            f"keeping chunk(s) 0-{reuse - 1}, predicting chunk(s) {redo.start}-{redo.stop - 1} again"
+            if reuse else
+            f"swiftjax: the input has {len(new)} frames instead of {len(old)} (first difference at {where}): "
+            f"predicting every chunk again"
         )
 
     #: :meth:`save_soon` writes at most this often (seconds).  Each write is a JSON dump and
@@ -573,6 +616,16 @@ def open_run(
             for kind in _chunk_store.KINDS:
                 for t in store.indices(kind):
                     store.remove(kind, t)
+        elif manifest.previous_names is not None:  # frames added or removed: drop what is nobody's now
+            for kind in ("chunk", "tail"):
+                for t in store.indices(kind):
+                    if t >= schedule.num_chunks:
+                        store.remove(kind, t)
+            from swiftjax.io.colmap import image_names
+
+            old, new = manifest.previous_names, list(predictor.frame_names())
+            for name in (set(old) | set(image_names(old))) - (set(new) | set(image_names(new))):
+                (run_dir / "colmap" / "images" / name).unlink(missing_ok=True)
     except BaseException:
         lock.release()
         raise
