@@ -104,6 +104,38 @@ def test_known_intrinsics_are_the_reference_and_the_colmap_camera(camera_run):
     np.testing.assert_allclose([float(v) for v in p], [K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5], rtol=1e-12)
 
 
+def test_scale_priors_in_the_pose_graph_rerun_only_the_graph_and_export(camera_run, small_run):
+    """--metric-combine prior on the same run directory: a pose-graph option, so no chunk is
+    predicted again; the outputs are metric, and the chain's scale follows each chunk's road.
+    (Before the test below, which changes a mask file's time: the run directory is then refused.)"""
+    calls = []
+
+    class Spy:
+        num_frames = small_run.predictor.num_frames
+
+        def predict(self, f):
+            calls.append(f)
+            return small_run.predictor.predict(f)
+
+        def __getattr__(self, name):
+            return getattr(small_run.predictor, name)
+
+    config = dataclasses.replace(camera_run.config, metric_combine="prior")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = pipeline.reconstruct(Spy(), camera_run.run_dir, config, ground_truth=small_run.ground_truth,
+                                   progress=False, log=lambda s: None)
+    assert not calls
+    m = res.metrics
+    assert m["unit"] == "metres" and m["metric_scale"]["combine"] == "prior"
+    assert m["metric_scale"]["chunks_with_prior"] == m["metric_scale"]["chunks_voting"] == res.num_chunks
+    assert m["pose_graph"]["metric_prior"]["no_loops_solve"]["converged"]
+    assert abs(m["scale_error"]) < 0.03 and m["ate_rmse_se3"] < 1.0
+    assert m["metric_scale"]["metres_per_unit"] == pytest.approx(res.chunk_poses[0, 7])
+    head = [ln for ln in (res.run_dir / "poses_kitti.txt").read_text().splitlines() if ln.startswith("#")]
+    assert any("metres" in ln for ln in head)
+
+
 def test_changed_masks_or_intrinsics_refuse_to_resume(camera_run, small_run):
     import os
 
@@ -152,37 +184,6 @@ def test_cli_demo_refuses_a_bad_intrinsics_file_in_one_line(tmp_path, capsys):
                  "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "'RADIAL' is not supported" in err[0]
-
-
-def test_scale_priors_in_the_pose_graph_rerun_only_the_graph_and_export(camera_run, small_run):
-    """--metric-combine prior on the same run directory: a pose-graph option, so no chunk is
-    predicted again; the outputs are metric, and the chain's scale follows each chunk's road."""
-    calls = []
-
-    class Spy:
-        num_frames = small_run.predictor.num_frames
-
-        def predict(self, f):
-            calls.append(f)
-            return small_run.predictor.predict(f)
-
-        def __getattr__(self, name):
-            return getattr(small_run.predictor, name)
-
-    config = dataclasses.replace(camera_run.config, metric_combine="prior")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = pipeline.reconstruct(Spy(), camera_run.run_dir, config, ground_truth=small_run.ground_truth,
-                                   progress=False, log=lambda s: None)
-    assert not calls
-    m = res.metrics
-    assert m["unit"] == "metres" and m["metric_scale"]["combine"] == "prior"
-    assert m["metric_scale"]["chunks_with_prior"] == m["metric_scale"]["chunks_voting"] == res.num_chunks
-    assert m["pose_graph"]["metric_prior"]["no_loops_solve"]["converged"]
-    assert abs(m["scale_error"]) < 0.03 and m["ate_rmse_se3"] < 1.0
-    assert m["metric_scale"]["metres_per_unit"] == pytest.approx(res.chunk_poses[0, 7])
-    head = [ln for ln in (res.run_dir / "poses_kitti.txt").read_text().splitlines() if ln.startswith("#")]
-    assert any("metres" in ln for ln in head)
 
 
 def test_cli_refuses_a_bad_metric_combine_in_one_line(tmp_path, capsys):

@@ -256,6 +256,26 @@ def test_a_full_disk_in_the_export_leaves_the_previous_complete_output_set(route
     assert res.metrics["points"] < reference[1].metrics["points"]  # with space again: the new set, complete
 
 
+@pytest.mark.filterwarnings("ignore:pose graph did not converge")
+def test_max_lm_steps_zero_and_one_in_metrics_json(route, reference, tmp_path):
+    """Defect 9 through the pipeline: --max-lm-steps 0 wrote cost_initial 0.0, iterations -1;
+    --max-lm-steps 1 took no step.  A pose-graph option: only the graph and the export run."""
+    run_dir = _copy(reference, tmp_path)
+    full = reference[1].metrics["pose_graph"]
+    out = {}
+    for steps in (0, 1):
+        p = FramePredictor(route.predictor)
+        res = pipeline.reconstruct(p, run_dir, dataclasses.replace(CONFIG, max_lm_steps=steps), progress=False,
+                                   log=lambda s: None)
+        assert p.calls == 0
+        out[steps] = json.loads((run_dir / "metrics.json").read_text())["pose_graph"]
+        assert {k: out[steps][k] for k in ("cost_initial", "iterations")} == {
+            k: res.metrics["pose_graph"][k] for k in ("cost_initial", "iterations")}
+    assert out[0]["cost_initial"] == pytest.approx(full["cost_initial"]) and full["cost_initial"] > 0
+    assert out[0]["iterations"] == 0 and out[0]["cost_final"] == pytest.approx(out[0]["cost_initial"])
+    assert out[1]["iterations"] >= 1 and out[1]["cost_final"] < out[1]["cost_initial"]
+
+
 def test_overwrite_starts_afresh_and_removes_old_chunks(route, reference, tmp_path):
     run_dir = _copy(reference, tmp_path)
     res = pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, chunk_size=40), overwrite=True,
