@@ -62,6 +62,9 @@ __all__ = [
     "chamfer",
 ]
 
+#: ``sim3.to_rst`` as one program (op by op it compiled a dozen small programs on a first call).
+_to_rst = jax.jit(sim3.to_rst)
+
 Alignment = Literal["sim3", "se3", "none"]
 
 #: Largest ``max |R^T R - I|`` accepted as a rotation (see the module docstring).
@@ -207,7 +210,7 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, align: Alignment = "sim3
         raise ValueError(f"Umeyama alignment needs at least 3 positions, got {src.shape[0]}")
     with jax.enable_x64(True):
         S, info = _align.umeyama(jnp.asarray(src, jnp.float64), jnp.asarray(dst, jnp.float64))
-        R, t, s = (np.asarray(v, np.float64) for v in sim3.to_rst(S))
+        R, t, s = (np.asarray(v, np.float64) for v in _to_rst(S))
         valid = bool(info.valid)
     if not valid:
         raise ValueError(
