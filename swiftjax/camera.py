@@ -1,6 +1,6 @@
 """Pinhole camera helpers: unprojection, VGGT extrinsics, depth normalisation (eq. 1).
 
-Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward); intrinsics ``K`` are
+Conventions: OpenCV axes (x right, y down, z forward); intrinsics ``K`` are
 ``[..., 3, 3]``; VGGT's extrinsic is the world-to-camera ``[R | t]`` ``[..., 3, 4]`` in the
 chunk's own frame.  Pixel ``(u, v)`` = (column, row) sits at *integer* coordinates, as in the
 authors' code: a depth map ``D [H, W]`` unprojects to::
@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jax.typing import ArrayLike
+from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax import sim3, so3
 
@@ -35,7 +35,7 @@ __all__ = [
 ]
 
 
-def pixel_rays(K: ArrayLike, height: int, width: int) -> Array:
+def pixel_rays(K: Real[ArrayLike, "*batch 3 3"], height: int, width: int) -> Float[Array, "*batch {height} {width} 3"]:
     """Rays ``K^-1 (u, v, 1)`` at integer pixel coordinates: ``[..., 3, 3] -> [..., H, W, 3]``.
 
     The third component is exactly 1, so ``depth[..., None] * rays`` are camera-frame points.
@@ -66,7 +66,11 @@ def _as_sim3(T: Array) -> Array:
 
 
 @jax.jit
-def unproject(depth: ArrayLike, K: ArrayLike, cam_to_world: ArrayLike | None = None) -> Array:
+def unproject(
+    depth: Real[ArrayLike, "*d H W"],
+    K: Real[ArrayLike, "*k 3 3"],
+    cam_to_world: Real[ArrayLike, "..."] | None = None,  # [..., 8] or [..., 3|4, 4]: checked below
+) -> Float[Array, "... H W 3"]:
     """Depth maps to 3D points.
 
     Args:
@@ -90,7 +94,7 @@ def unproject(depth: ArrayLike, K: ArrayLike, cam_to_world: ArrayLike | None = N
     return sim3.act(S[..., None, None, :], pts)
 
 
-def invert_extrinsic(extrinsic: ArrayLike) -> Array:
+def invert_extrinsic(extrinsic: Real[ArrayLike, "*batch 3 4"]) -> Float[Array, "*batch 3 4"]:
     """Inverse of a rigid ``[R | t]``: ``[..., 3, 4] -> [..., 3, 4]`` ``[R^T | -R^T t]``.
 
     Maps world-to-camera to camera-to-world and back (it is its own inverse).
@@ -101,17 +105,17 @@ def invert_extrinsic(extrinsic: ArrayLike) -> Array:
     return jnp.concatenate([Rt, -(Rt @ t[..., None])], axis=-1)
 
 
-def camera_to_world(extrinsic: ArrayLike) -> Array:
+def camera_to_world(extrinsic: Real[ArrayLike, "*batch 3 4"]) -> Float[Array, "*batch 3 4"]:
     """VGGT world-to-camera ``[..., 3, 4]`` -> camera-to-world ``[..., 3, 4]`` (pose matrix)."""
     return invert_extrinsic(extrinsic)
 
 
-def world_to_camera(cam_to_world: ArrayLike) -> Array:
+def world_to_camera(cam_to_world: Real[ArrayLike, "*batch 3 4"]) -> Float[Array, "*batch 3 4"]:
     """Camera-to-world ``[..., 3, 4]`` -> VGGT world-to-camera extrinsic ``[..., 3, 4]``."""
     return invert_extrinsic(cam_to_world)
 
 
-def extrinsic_to_sim3(extrinsic: ArrayLike) -> Array:
+def extrinsic_to_sim3(extrinsic: Real[ArrayLike, "*batch 3 4"]) -> Float[Array, "*batch 8"]:
     """VGGT world-to-camera ``[..., 3, 4]`` -> camera-to-world Sim(3) ``[..., 8]`` with ``s = 1``.
 
     ``R`` is converted with Shepperd's method (:func:`swiftjax.so3.from_matrix`); a slightly
@@ -126,7 +130,7 @@ def extrinsic_to_sim3(extrinsic: ArrayLike) -> Array:
     return sim3._pack(c, q_c2w, jnp.ones(E.shape[:-2], E.dtype))
 
 
-def sim3_to_extrinsic(cam_to_world: ArrayLike) -> Array:
+def sim3_to_extrinsic(cam_to_world: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 3 4"]:
     """Camera-to-world Sim(3) ``[..., 8]`` -> world-to-camera ``[R^T | -R^T c]`` ``[..., 3, 4]``.
 
     The scale is dropped on purpose: a camera mapped by a chunk-to-world Sim(3) keeps its
@@ -138,14 +142,16 @@ def sim3_to_extrinsic(cam_to_world: ArrayLike) -> Array:
     return invert_extrinsic(c2w)
 
 
-def focal_ratio(K_src: ArrayLike, K_ref: ArrayLike) -> Array:
+def focal_ratio(K_src: Real[ArrayLike, "*s 3 3"], K_ref: Real[ArrayLike, "*r 3 3"]) -> Float[Array, "..."]:
     """``½ (fx_ref / fx_src + fy_ref / fy_src)``: ``[..., 3, 3], [..., 3, 3] -> [...]`` (eq. 1)."""
     K_src, K_ref = jnp.asarray(K_src), jnp.asarray(K_ref)
     return 0.5 * (K_ref[..., 0, 0] / K_src[..., 0, 0] + K_ref[..., 1, 1] / K_src[..., 1, 1])
 
 
 @jax.jit
-def normalize_depth(depth: ArrayLike, K_src: ArrayLike, K_ref: ArrayLike) -> Array:
+def normalize_depth(
+    depth: Real[ArrayLike, "*d H W"], K_src: Real[ArrayLike, "*s 3 3"], K_ref: Real[ArrayLike, "*r 3 3"]
+) -> Float[Array, "... H W"]:
     """Depth normalised to the reference intrinsics (paper eq. 1).
 
     ``D_reg = ½ (fx_ref / fx_src + fy_ref / fy_src) · D``: a depth map predicted with focal

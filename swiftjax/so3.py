@@ -1,7 +1,7 @@
 """SO(3) as pure functions on unit quaternions.
 
 Quaternions are ``[..., 4]`` arrays ``(qx, qy, qz, qw)`` (scalar last, the layout of
-DESIGN.md, pypose and scipy).  Rotation vectors (tangents) are ``[..., 3]``.  Every function
+pypose and scipy).  Rotation vectors (tangents) are ``[..., 3]``.  Every function
 accepts leading batch axes and broadcasts them; everything is jit-, vmap- and grad-safe:
 small-angle branches use the double-``where`` trick so that no ``0/0`` reaches a gradient.
 
@@ -27,7 +27,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jax.typing import ArrayLike
+from jax.typing import DTypeLike
+from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax._elementary import arctan2_nonneg, sincos
 
@@ -81,8 +82,7 @@ def _small_angle_eps(dtype: jnp.dtype) -> float:
 # XLA on CPU vectorises poorly over a trailing axis of 3 or 4 (every slice and concatenate
 # becomes a strided gather), so the hot paths work on *tuples of component arrays*
 # ("structure of arrays"): ``split`` moves the component axis to the front once, the maths
-# runs on whole arrays, ``join`` stacks and moves it back.  This is 5-6x faster than the
-# same formulas on ``[..., 3]`` slices (bench/bench_sim3.py).
+# runs on whole arrays, ``join`` stacks and moves it back (docs/performance/sim3.md).
 
 Vec3 = tuple[Array, Array, Array]
 Quat = tuple[Array, Array, Array, Array]
@@ -187,12 +187,12 @@ def act_components(q: Quat, x: Vec3) -> Vec3:
 # ------------------------------------------------------------------------- public API
 
 
-def identity(batch_shape: tuple[int, ...] = (), dtype: jnp.dtype = jnp.float32) -> Array:
+def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, "..."]:
     """The identity quaternion ``(0, 0, 0, 1)`` with shape ``[*batch_shape, 4]``."""
     return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dtype), (*batch_shape, 4))
 
 
-def hat(w: ArrayLike) -> Array:
+def hat(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Skew-symmetric matrix ``[w]x`` with ``[w]x v = w x v``: ``[..., 3] -> [..., 3, 3]``."""
     w = jnp.asarray(w)
     x, y, z = w[..., 0], w[..., 1], w[..., 2]
@@ -203,7 +203,7 @@ def hat(w: ArrayLike) -> Array:
     )
 
 
-def vee(m: ArrayLike) -> Array:
+def vee(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """Inverse of :func:`hat` (reads the antisymmetric part): ``[..., 3, 3] -> [..., 3]``."""
     m = jnp.asarray(m)
     return 0.5 * jnp.stack(
@@ -212,12 +212,12 @@ def vee(m: ArrayLike) -> Array:
     )
 
 
-def exp(w: ArrayLike) -> Array:
+def exp(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     """Exponential map, rotation vector ``[..., 3]`` -> unit quaternion ``[..., 4]``."""
     return join(exp_components(split(jnp.asarray(w)))[0])
 
 
-def log(q: ArrayLike) -> Array:
+def log(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     """Logarithm, unit quaternion ``[..., 4]`` -> rotation vector ``[..., 3]`` with ``|w| <= pi``.
 
     ``q`` and ``-q`` give the same result (except at exactly ``pi``, where both ``+-w`` are
@@ -226,47 +226,47 @@ def log(q: ArrayLike) -> Array:
     return join(log_components(split(jnp.asarray(q)))[0])
 
 
-def compose(a: ArrayLike, b: ArrayLike) -> Array:
+def compose(a: Real[ArrayLike, "*a 4"], b: Real[ArrayLike, "*b 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``a * b`` (rotation ``b`` first, then ``a``): ``[..., 4]``."""
     return join(compose_components(split(jnp.asarray(a)), split(jnp.asarray(b))))
 
 
-def inverse(q: ArrayLike) -> Array:
+def inverse(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``(-v, w)``, the inverse of a unit quaternion (of ``q / |q|`` up to the norm)."""
     q = jnp.asarray(q)
     return q * jnp.array([-1, -1, -1, 1], dtype=q.dtype)
 
 
-def between(a: ArrayLike, b: ArrayLike) -> Array:
+def between(a: Real[ArrayLike, "*a 4"], b: Real[ArrayLike, "*b 4"]) -> Float[Array, "... 4"]:
     """``a^-1 * b``, the rotation from ``b``'s frame into ``a``'s: ``[..., 4]``."""
     return join(compose_components(inverse_components(split(jnp.asarray(a))), split(jnp.asarray(b))))
 
 
-def act(q: ArrayLike, x: ArrayLike) -> Array:
+def act(q: Real[ArrayLike, "*a 4"], x: Real[ArrayLike, "*b 3"]) -> Float[Array, "... 3"]:
     """Rotate points: ``R(q) x`` for ``q [..., 4]``, ``x [..., 3]`` (broadcast)."""
     return join(act_components(split(jnp.asarray(q)), split(jnp.asarray(x))))
 
 
-def adjoint(q: ArrayLike) -> Array:
+def adjoint(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Adjoint ``[..., 4] -> [..., 3, 3]``: ``q exp(w) q^-1 = exp(Ad(q) w)`` with ``Ad(q) = R(q)``."""
     return as_matrix(q)
 
 
-def normalize(q: ArrayLike) -> Array:
+def normalize(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """``q / |q|`` (e.g. after many compositions); the sign is kept."""
     c = split(jnp.asarray(q))
     inv = jax.lax.rsqrt(c[0] ** 2 + c[1] ** 2 + c[2] ** 2 + c[3] ** 2)
     return join(tuple(x * inv for x in c))
 
 
-def canonical(q: ArrayLike) -> Array:
+def canonical(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """``q`` or ``-q``, whichever has ``qw >= 0`` (the same rotation; the form :func:`from_matrix`
     returns and :func:`log` reads)."""
     q = jnp.asarray(q)
     return q * hemisphere_sign(q[..., 3:4])
 
 
-def as_matrix(q: ArrayLike) -> Array:
+def as_matrix(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrix of ``q / |q|``: ``[..., 4] -> [..., 3, 3]`` (always a rotation, as
     :func:`act` and :func:`log` read any non-zero quaternion; NaN for a zero one)."""
     q = jnp.asarray(q)
@@ -285,7 +285,7 @@ def as_matrix(q: ArrayLike) -> Array:
     )
 
 
-def from_matrix(r: ArrayLike) -> Array:
+def from_matrix(r: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     """Unit quaternion of a rotation matrix ``[..., 3, 3] -> [..., 4]`` (Shepperd's method).
 
     All four candidate formulas are evaluated and the one with the largest pivot is kept, so
@@ -324,7 +324,7 @@ def _det3(m: Array) -> Array:
     )
 
 
-def project(m: ArrayLike) -> Array:
+def project(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     """Quaternion of the rotation nearest to ``m`` in the Frobenius norm: ``[..., 3, 3] -> [..., 4]``.
 
     With ``m = U diag(d) V^T`` (singular values ``d1 >= d2 >= d3 >= 0``), the nearest rotation
@@ -345,7 +345,7 @@ def project(m: ArrayLike) -> Array:
     return from_matrix(r)
 
 
-def jlog(w: ArrayLike) -> Array:
+def jlog(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Inverse right Jacobian ``Jr^-1(w) = d log(exp(w) exp(d)) / d d`` at ``d = 0``:
     ``[..., 3] -> [..., 3, 3]``.
 

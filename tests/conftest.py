@@ -6,6 +6,8 @@
 * ``shared_dir``: the read-only reference folder (``$SWIFTJAX_SHARED`` or ``../shared``);
   tests that need it skip with a clear reason when it is absent (CI always has it).
 * ``x64``: runs a test with ``jax_enable_x64`` on, for float64 reference checks only.
+* jaxtyping's import hook with beartype over ``JAXTYPED_MODULES``: a call whose shapes do not
+  match the annotations (``Float[Array, "*batch 8"]`` ...) raises.
 * ``small_loop_run``: one finished small run with loop closure and ground truth (the shapes
   of ``test_pipeline.py``'s, so the compile cache serves both), shared by the output tests.
 """
@@ -15,8 +17,20 @@ from __future__ import annotations
 import os
 import pathlib
 
-import jax
-import pytest
+# Shapes in annotations are enforced in the tests: jaxtyping's import hook wraps every function
+# of these modules with a runtime checker.  It must be installed before anything imports
+# swiftjax (this file is imported before any test module).  One module name per line.
+import jaxtyping
+
+JAXTYPED_MODULES = [
+    "swiftjax.sim3",
+    "swiftjax.so3",
+    "swiftjax.camera",
+]
+jaxtyping.install_import_hook(JAXTYPED_MODULES, "beartype.beartype")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 

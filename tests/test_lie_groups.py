@@ -298,3 +298,14 @@ def test_so3_old_names_are_deprecated_aliases(old, new):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         so3.compose(so3.identity(), so3.identity())
+
+
+def test_annotated_shapes_are_enforced():
+    """tests/conftest.py installs jaxtyping's import hook: a wrongly-shaped call raises."""
+    import sys
+
+    assert "swiftjax.sim3" in sys.modules and hasattr(sim3.exp, "__wrapped__")
+    with pytest.raises(Exception, match="(?i)type|shape"):
+        sim3.exp(np.zeros((2, 6), np.float32))  # a tangent is [..., 7]
+    with pytest.raises(Exception, match="(?i)type|shape"):
+        so3.act(np.zeros(4, np.float32), np.zeros(2, np.float32))  # points are [..., 3]
