@@ -2,20 +2,75 @@
 
 Batched exp, log, compose and act on 1e6 float32 elements (act also on 1e7 points under one
 transform), CPU.  Compile time is reported separately from run time (best of N, inputs
-already on the device).  Target: >= 5x NumPy for exp and log.
+already on the device); wall time and process CPU time (all threads) are both recorded, with
+the load average before and after, and every ratio is against NumPy in the same run.
+Target: >= 5x NumPy for exp and log on a quiet machine (load average < 1).
 
-    python bench/bench_sim3.py [--n 1000000] [--points 10000000] [--repeat 10]
+A second table times the layouts tried for exp and log (the same component formulas,
+``sim3._exp_c`` / ``sim3._log_c``, arranged differently; docs/performance/sim3.md).
+
+    python bench/bench_sim3.py [--n 1048576] [--points 10000000] [--repeat 10] [--no-layouts]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from common import best_of, compile_time, markdown_table, write_results
-from swiftjax import sim3
+from swiftjax import sim3, so3
+
+
+def cpu_best_of(fn, repeat: int) -> float:
+    """Best process CPU time (all threads) of ``fn()`` over ``repeat`` calls after one warm-up."""
+    jax.block_until_ready(fn())
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.process_time()
+        jax.block_until_ready(fn())
+        best = min(best, time.process_time() - t0)
+    return best
+
+
+# ------------------------------------------------------------- layouts tried for exp / log
+
+
+def layout_flat(fn):
+    """Components ``[N]``; XLA fuses the formulas into the final ``[N, k]`` interleaving copy."""
+    return jax.jit(lambda x: so3.join(fn(so3.split(x))))
+
+
+def layout_soa(fn):
+    """``[k, N]`` in, ``[m, N]`` out: no interleave at all (the caller holds structure of arrays)."""
+    return jax.jit(lambda x: jnp.stack(fn(tuple(x)), 0))
+
+
+def layout_transpose_once(fn):
+    """``[N, k]`` -> ``[k, N]`` -> kernel -> ``[m, N]`` -> ``[N, m]`` as three programs (interleave once)."""
+    tin, kernel, tout = jax.jit(lambda x: x.T), layout_soa(fn), jax.jit(lambda y: y.T)
+    return lambda x: tout(kernel(tin(x)))
+
+
+def layout_blocked(fn, block):
+    """Components ``[N / block, block]``: the layout change stays inside one block."""
+    def f(x):
+        n, k = x.shape
+        out = jnp.stack(fn(tuple(jnp.moveaxis(x.reshape(n // block, block, k), -1, 0))), -1)
+        return out.reshape(n, -1)
+    return jax.jit(f)
+
+
+def layout_lax_map(fn, block):
+    """``lax.map`` over ``block``-element slices, each transposed to ``[k, block]`` and back."""
+    def f(x):
+        n, k = x.shape
+        return jax.lax.map(lambda b: jnp.stack(fn(tuple(b.T)), -1), x.reshape(n // block, block, k)).reshape(n, -1)
+    return jax.jit(f)
 
 # ----------------------------------------------------------------- NumPy baseline (same maths)
 
@@ -86,10 +141,12 @@ def np_act(s, x):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--n", type=int, default=1 << 20)
     parser.add_argument("--points", type=int, default=10_000_000)
     parser.add_argument("--repeat", type=int, default=10)
+    parser.add_argument("--no-layouts", action="store_true", help="skip the table of layouts tried")
     args = parser.parse_args()
+    load_before = os.getloadavg()
 
     rng = np.random.default_rng(0)
     xi = rng.uniform(-1.0, 1.0, (args.n, 7)).astype(np.float32)
@@ -119,13 +176,43 @@ def main() -> None:
         compiled, t_compile = compile_time(jitted, *jargs)
         t_jax = best_of(lambda: compiled(*jargs), args.repeat)
         t_np = best_of(np_fn, max(3, args.repeat // 3))
-        rows.append([name, count, t_compile, t_jax * 1e3, t_np * 1e3, count / t_jax / 1e6, t_np / t_jax])
+        c_jax = cpu_best_of(lambda: compiled(*jargs), args.repeat)
+        c_np = cpu_best_of(np_fn, max(3, args.repeat // 3))
+        rows.append([name, count, t_compile, t_jax * 1e3, t_np * 1e3, count / t_jax / 1e6, t_np / t_jax, c_np / c_jax])
         records.append(
-            dict(op=name, count=count, compile_s=t_compile, jax_s=t_jax, numpy_s=t_np, speedup=t_np / t_jax)
+            dict(op=name, count=count, compile_s=t_compile, jax_s=t_jax, numpy_s=t_np, speedup=t_np / t_jax,
+                 jax_cpu_s=c_jax, numpy_cpu_s=c_np, cpu_speedup=c_np / c_jax, load=os.getloadavg())
         )
-    headers = ["op (float32)", "elements", "compile s", "swiftjax ms", "NumPy ms", "M elem/s", "× NumPy"]
+    headers = ["op (float32)", "elements", "compile s", "swiftjax ms", "NumPy ms", "M elem/s", "× NumPy", "× NumPy (CPU time)"]
     print(markdown_table(headers, rows))
-    path = write_results("sim3", {"n": args.n, "points": args.points, "results": records})
+
+    layouts = []
+    if not args.no_layouts:
+        if args.n % 8192:
+            parser.error("the layout table needs --n a multiple of 8192 (or pass --no-layouts)")
+        xi_t, s_t = jax.device_put(np.ascontiguousarray(xi.T)), jax.device_put(np.ascontiguousarray(s_np.T))
+        lrows = []
+        for op, fn, x_d, x_t, np_fn in [("exp", sim3._exp_c, xi_d, xi_t, lambda: np_exp(xi)),
+                                          ("log", sim3._log_c, s_d, s_t, lambda: np_log(s_np))]:
+            t_np = best_of(np_fn, max(3, args.repeat // 3))
+            c_np = cpu_best_of(np_fn, max(3, args.repeat // 3))
+            variants = [("flat components, interleaving output fusion", layout_flat(fn), x_d),
+                        ("[k, N] in, [m, N] out (no interleave)", layout_soa(fn), x_t),
+                        ("transpose in, kernel, transpose out (3 programs)", layout_transpose_once(fn), x_d),
+                        *[(f"blocked [N/{b}, {b}] components", layout_blocked(fn, b), x_d) for b in (256, 1024, 4096)],
+                        ("lax.map over 8192-element blocks", layout_lax_map(fn, 8192), x_d),
+                        (f"library sim3.{op}", jax.jit(getattr(sim3, op)), x_d)]
+            for label, f, arg in variants:
+                t = best_of(lambda: f(arg), args.repeat)
+                c = cpu_best_of(lambda: f(arg), args.repeat)
+                lrows.append([op, label, t * 1e3, t_np / t, c * 1e3, c_np / c])
+                layouts.append(dict(op=op, layout=label, jax_s=t, numpy_s=t_np, speedup=t_np / t,
+                                    jax_cpu_s=c, numpy_cpu_s=c_np, cpu_speedup=c_np / c, load=os.getloadavg()))
+        print()
+        print(markdown_table(["op", "layout", "wall ms", "× NumPy", "CPU ms", "× NumPy (CPU)"], lrows))
+
+    path = write_results("sim3", {"n": args.n, "points": args.points, "results": records, "layouts": layouts,
+                                  "load_before": load_before, "load_after": os.getloadavg()})
     print(f"\nwrote {path}")
 
 

@@ -1,8 +1,7 @@
 """Vectorisable sine/cosine and arctangent for the Lie-group hot paths.
 
-XLA's CPU backend lowers ``sin``, ``cos`` and ``atan2`` to scalar libm calls (about 10-25 ns
-per element here, 6-20x slower than NumPy's SIMD loops), while ``+ * / floor select``
-vectorise.  These are the Cephes algorithms (Moshier, "Methods and Programs for Mathematical
+XLA's CPU backend lowers ``sin``, ``cos`` and ``atan2`` to scalar libm calls, while
+``+ * / floor select`` vectorise (measurements in docs/performance/sim3.md).  These are the Cephes algorithms (Moshier, "Methods and Programs for Mathematical
 Functions", 1989: ``sinf/cosf``, ``sin/cos``, ``atanf``, ``atan``) written with ``jnp``
 arithmetic only, so XLA fuses and vectorises them.  Accuracy: a few ulp in float32 and in
 float64 for ``|x| < 2^16`` (tests/test_elementary.py compares with NumPy).  They are smooth

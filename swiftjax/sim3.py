@@ -1,6 +1,6 @@
 """The similarity group Sim(3) as pure functions over arrays.
 
-Layout (DESIGN.md, the same as pypose's ``Sim3``):
+Layout (the same as pypose's ``Sim3``):
 
 * an element is ``[..., 8] = (tx, ty, tz, qx, qy, qz, qw, s)``: translation, unit quaternion
   (scalar last) and positive scale; it acts on points as ``x' = s R x + t``;
@@ -55,10 +55,13 @@ which has no division by ``theta`` at all.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jax.typing import ArrayLike
+from jax.typing import DTypeLike
+from jaxtyping import ArrayLike, Bool, Float, Real
 
 from swiftjax import so3
 from swiftjax._elementary import sincos
@@ -94,17 +97,17 @@ ROTATION_TOLERANCE = 1e-4
 # ----------------------------------------------------------------------------- accessors
 
 
-def translation(S: ArrayLike) -> Array:
+def translation(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 3"]:
     """``t`` of ``S``: ``[..., 8] -> [..., 3]``."""
     return jnp.asarray(S)[..., 0:3]
 
 
-def quaternion(S: ArrayLike) -> Array:
+def quaternion(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 4"]:
     """Unit quaternion ``(qx, qy, qz, qw)`` of ``S``: ``[..., 8] -> [..., 4]``."""
     return jnp.asarray(S)[..., 3:7]
 
 
-def scale(S: ArrayLike) -> Array:
+def scale(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch"]:
     """Scale ``s`` of ``S``: ``[..., 8] -> [...]``."""
     return jnp.asarray(S)[..., 7]
 
@@ -154,28 +157,28 @@ def _pack(t: Array, q: Array, s: Array) -> Array:
 # ----------------------------------------------------------------------- group operations
 
 
-def identity(batch_shape: tuple[int, ...] = (), dtype: jnp.dtype = jnp.float32) -> Array:
+def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, "... 8"]:
     """The identity element ``(0, 0, 0, 0, 0, 0, 1, 1)``, shape ``[*batch_shape, 8]``."""
     e = jnp.array([0, 0, 0, 0, 0, 0, 1, 1], dtype=dtype)
     return jnp.broadcast_to(e, (*batch_shape, 8))
 
 
-def compose(A: ArrayLike, B: ArrayLike) -> Array:
+def compose(A: Real[ArrayLike, "*a 8"], B: Real[ArrayLike, "*b 8"]) -> Float[Array, "... 8"]:
     """``A o B``: ``(s_A R_A t_B + t_A, q_A q_B, s_A s_B)``; ``[..., 8] x [..., 8] -> [..., 8]``."""
     return _join(*_compose_c(_split(A), _split(B)))
 
 
-def inverse(S: ArrayLike) -> Array:
+def inverse(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
     """``S^-1 = (-(1/s) R^T t, q*, 1/s)``: ``[..., 8] -> [..., 8]``."""
     return _join(*_inverse_c(_split(S)))
 
 
-def between(A: ArrayLike, B: ArrayLike) -> Array:
+def between(A: Real[ArrayLike, "*a 8"], B: Real[ArrayLike, "*b 8"]) -> Float[Array, "... 8"]:
     """``A^-1 o B``, the relative transform that maps B's frame into A's."""
     return _join(*_compose_c(_inverse_c(_split(A)), _split(B)))
 
 
-def act(S: ArrayLike, points: ArrayLike) -> Array:
+def act(S: Real[ArrayLike, "*a 8"], points: Real[ArrayLike, "*b 3"]) -> Float[Array, "... 3"]:
     """Apply ``S`` to points: ``s R x + t``.
 
     Args:
@@ -186,7 +189,7 @@ def act(S: ArrayLike, points: ArrayLike) -> Array:
     return so3.join(_act_c(_split(S), so3.split(jnp.asarray(points))))
 
 
-def normalize(S: ArrayLike) -> Array:
+def normalize(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
     """Re-unit the quaternion of ``S`` (e.g. after many compositions)."""
     t, q, s = _split(S)
     inv = jax.lax.rsqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
@@ -261,34 +264,80 @@ def _apply_poly(x: Array, y: Array, z: Array, omega: so3.Vec3, v: so3.Vec3) -> s
     return tuple(x * v[k] + y * wv[k] + z * wwv[k] for k in range(3))  # type: ignore[return-value]
 
 
-def exp(xi: ArrayLike) -> Array:
-    """Exponential map ``[..., 7] (rho, omega, sigma) -> [..., 8]``: ``(W rho, exp(omega), e^sigma)``."""
-    c = so3.split(jnp.asarray(xi))
+#: Elements per block of the ``"blocked"`` layout of :func:`_map_components`.
+_BLOCK = 1024
+#: Elements per step of the ``"map"`` layout of :func:`_map_components`.
+_MAP_BLOCK = 8192
+
+
+def _map_components(fn, x: Array, k_out: int, layout: str = "flat") -> Array:
+    """``fn`` (component tuple -> component tuple) applied to ``x [..., k]``: ``[..., k_out]``.
+
+    Only the arrangement of the work differs between layouts, never the formulas:
+
+    * ``"flat"`` (and any batch below two blocks): ``[...]``-shaped components
+      (:func:`swiftjax.so3.split`), joined at the end;
+    * ``"blocked"``: the batch is flattened, padded to a multiple of ``_BLOCK`` (with copies of
+      its first element) and the components are ``[N / _BLOCK, _BLOCK]`` blocks, so the layout
+      change in and out of the interleaved ``[..., k]`` arrays stays within one block;
+    * ``"map"``: the padded batch is processed ``_MAP_BLOCK`` elements at a time by
+      ``lax.map``, each slice transposed to ``[k, _MAP_BLOCK]`` components and back.
+
+    docs/performance/sim3.md has the measurements behind the choice per function.
+    """
+    batch, k = x.shape[:-1], x.shape[-1]
+    n = math.prod(batch)
+    block = _BLOCK if layout == "blocked" else _MAP_BLOCK
+    if layout == "flat" or n < 2 * block:
+        return so3.join(fn(so3.split(x)))
+    pad = -n % block
+    flat = x.reshape(n, k)
+    if pad:
+        flat = jnp.concatenate([flat, jnp.broadcast_to(flat[:1], (pad, k))])
+    blocks = flat.reshape(-1, block, k)
+    if layout == "blocked":
+        out = jnp.stack(jnp.broadcast_arrays(*fn(tuple(jnp.moveaxis(blocks, -1, 0)))), axis=-1)
+    else:
+        out = jax.lax.map(lambda b: jnp.stack(jnp.broadcast_arrays(*fn(tuple(b.T))), axis=-1), blocks)
+    return out.reshape(-1, k_out)[:n].reshape(*batch, k_out)
+
+
+def _exp_c(c: tuple[Array, ...]) -> tuple[Array, ...]:
     rho, omega, sigma = c[0:3], c[3:6], c[6]
     q, half = so3.exp_components(omega)  # the half-angle trigonometry is shared with W
     exp_sigma = jnp.exp(sigma)
     a, b, cc = _w_from_parts(half, sigma, exp_sigma, jnp.expm1(sigma))
-    return _join(_apply_poly(cc, a, b, omega, rho), q, exp_sigma)
+    return (*_apply_poly(cc, a, b, omega, rho), *q, exp_sigma)
 
 
-def log(S: ArrayLike) -> Array:
+def _log_c(c: tuple[Array, ...]) -> tuple[Array, ...]:
+    t, q, s = c[0:3], c[3:7], c[7]
+    omega, half = so3.log_components(q)  # W reuses the quaternion's half angle: no sin/cos
+    sigma = jnp.log(s)
+    theta_sq = half.theta_sq
+    # expm1 from sigma itself, not s - 1: under jit XLA may fold log(exp(sigma)) back to sigma,
+    # and s - 1 = 0 with sigma = 1e-9 would make C = 0 (a NaN translation).
+    a, b, cc = _w_from_parts(half, sigma, s, jnp.expm1(sigma))
+    d = cc - theta_sq * b
+    det = d * d + theta_sq * a * a
+    rho = _apply_poly(1.0 / cc, -a / det, (a * a - b * d) / (cc * det), omega, t)
+    return (*rho, *omega, sigma)
+
+
+def exp(xi: Real[ArrayLike, "*batch 7"]) -> Float[Array, "*batch 8"]:
+    """Exponential map ``[..., 7] (rho, omega, sigma) -> [..., 8]``: ``(W rho, exp(omega), e^sigma)``."""
+    return _map_components(_exp_c, jnp.asarray(xi), 8, "blocked")
+
+
+def log(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7"]:
     """Logarithm ``[..., 8] -> [..., 7]`` with ``|omega| <= pi``; ``log(exp(xi)) = xi`` for ``|omega| < pi``.
 
     ``S`` and ``S`` with its quaternion negated give the same tangent; a non-unit quaternion
     gives its unit version's.  Invalid elements (``s <= 0``, ``q = 0``, non-finite) give all-NaN
     tangents.
     """
-    t, q, s = _split(S)
-    omega, half = so3.log_components(q)  # W reuses the quaternion's half angle: no sin/cos
-    sigma = jnp.log(s)
-    theta_sq = half.theta_sq
-    # expm1 from sigma itself, not s - 1: under jit XLA may fold log(exp(sigma)) back to sigma,
-    # and s - 1 = 0 with sigma = 1e-9 would make C = 0 (a NaN translation).
-    a, b, c = _w_from_parts(half, sigma, s, jnp.expm1(sigma))
-    d = c - theta_sq * b
-    det = d * d + theta_sq * a * a
-    rho = _apply_poly(1.0 / c, -a / det, (a * a - b * d) / (c * det), omega, t)
-    out = so3.join((*rho, *omega, sigma))
+    S = jnp.asarray(S)
+    out = _map_components(_log_c, S, 7, "map")
     # s <= 0, q = 0 or a non-finite value is no similarity: all seven components NaN.
     return jnp.where(is_valid(S)[..., None], out, jnp.nan)
 
@@ -296,7 +345,7 @@ def log(S: ArrayLike) -> Array:
 # ---------------------------------------------------------------- matrices and adjoint
 
 
-def as_matrix(S: ArrayLike) -> Array:
+def as_matrix(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 4 4"]:
     """Homogeneous matrix ``[[s R, t], [0, 1]]``: ``[..., 8] -> [..., 4, 4]``."""
     S = jnp.asarray(S)
     sr = scale(S)[..., None, None] * so3.as_matrix(quaternion(S))
@@ -332,7 +381,9 @@ def _check_rotation_scale(R: ArrayLike, s: ArrayLike, what: str) -> None:
         raise ValueError(f"{what}: scale must be > 0 and finite, got {sn.reshape(-1)[np.flatnonzero(~(sn > 0))[0]]!r}")
 
 
-def from_rst(R: ArrayLike, t: ArrayLike, s: ArrayLike) -> Array:
+def from_rst(
+    R: Real[ArrayLike, "*r 3 3"], t: Real[ArrayLike, "*t 3"], s: Real[ArrayLike, "*s"]
+) -> Float[Array, "... 8"]:
     """Element from rotation ``[..., 3, 3]``, translation ``[..., 3]`` and scale ``[...]``.
 
     On concrete (host) values, ``R`` must be a rotation (``max |R^T R - I| <= 1e-4``,
@@ -344,7 +395,7 @@ def from_rst(R: ArrayLike, t: ArrayLike, s: ArrayLike) -> Array:
     return _pack(t, so3.from_matrix(R), s)
 
 
-def is_valid(S: ArrayLike) -> Array:
+def is_valid(S: Real[ArrayLike, "*batch 8"]) -> Bool[Array, "*batch"]:
     """``[..., 8] -> [...]`` bool: finite, ``s > 0`` and ``q != 0`` (jit-able flag)."""
     S = jnp.asarray(S)
     q = quaternion(S)
@@ -372,13 +423,13 @@ def check(S: ArrayLike, name: str = "S", unit_tol: float | None = None) -> None:
         )
 
 
-def to_rst(S: ArrayLike) -> tuple[Array, Array, Array]:
+def to_rst(S: Real[ArrayLike, "*batch 8"]) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3"], Float[Array, "*batch"]]:
     """``(R [..., 3, 3], t [..., 3], s [...])`` of ``S``."""
     S = jnp.asarray(S)
     return so3.as_matrix(quaternion(S)), translation(S), scale(S)
 
 
-def from_matrix(M: ArrayLike) -> Array:
+def from_matrix(M: Real[ArrayLike, "*batch _ 4"]) -> Float[Array, "*batch 8"]:
     """Element from a ``[..., 4, 4]`` (or ``[..., 3, 4]``) similarity matrix ``[[s R, t], ...]``.
 
     ``s = det(sR)^(1/3)``; the rotation is read from ``sR / s``.  ``M`` must be a similarity
@@ -400,7 +451,7 @@ def from_matrix(M: ArrayLike) -> Array:
     return from_rst(sr / s[..., None, None], M[..., :3, 3], s)
 
 
-def adjoint(S: ArrayLike) -> Array:
+def adjoint(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7 7"]:
     """Adjoint ``[..., 8] -> [..., 7, 7]`` with ``S o exp(xi) o S^-1 = exp(Ad(S) xi)``::
 
         Ad(S) = [[s R, [t]x R, -t],
@@ -435,7 +486,7 @@ def _mat3(a: Array, b: Array) -> Array:
     return a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :] + a[..., :, 2, None] * b[..., None, 2, :]
 
 
-def jlog(xi: ArrayLike, S: ArrayLike | None = None) -> Array:
+def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None = None) -> Float[Array, "*batch 7 7"]:
     """Inverse right Jacobian ``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``, closed form:
     ``[..., 7] -> [..., 7, 7]``.
 
@@ -491,7 +542,7 @@ def jlog(xi: ArrayLike, S: ArrayLike | None = None) -> Array:
     return jnp.concatenate([top, middle, bottom], -2)
 
 
-def right_jacobian_inverse(xi: ArrayLike) -> Array:
+def right_jacobian_inverse(xi: Real[ArrayLike, "*batch 7"]) -> Float[Array, "*batch 7 7"]:
     """``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``: ``[..., 7] -> [..., 7, 7]``.
 
     The autodiff reference for :func:`jlog` (prefer :func:`jlog`, which is closed form).
