@@ -44,3 +44,45 @@ def test_marked_examples_run():
     assert blocks, "no docs page marks an example as runnable"
     for name, code in blocks:
         exec(compile(code, f"<{name} example>", "exec"), {"__name__": "__docs_example__"})
+
+
+def _layout_entries() -> dict[str, str]:
+    """README's layout block as ``{first column: the entry's whole text}``; an entry is a line
+    plus the continuation lines indented past its first column."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    block = text.split("## Layout", 1)[1].split("```", 2)[1]
+    entries: dict[str, str] = {}
+    key = None
+    for line in block.splitlines():
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        head = re.split(r"\s{2,}", line.strip(), maxsplit=1)[0]
+        if indent <= 2 or key is None:
+            key = ("  " if indent == 2 else "") + head
+            entries[key] = line
+        else:
+            entries[key] += " " + line.strip()
+    return entries
+
+
+def _names(d: pathlib.Path) -> list[str]:
+    out = [p.stem for p in d.glob("*.py") if p.stem != "__init__"]
+    return sorted(out + [p.name for p in d.iterdir() if (p / "__init__.py").exists()])
+
+
+def test_readme_layout_matches_the_tree():
+    entries = _layout_entries()
+    words = lambda s: set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", s))  # noqa: E731
+    # Top-level modules of swiftjax: each is named first on some "  name" line (several per line).
+    listed = {n for k in entries if k.startswith("  ") for n in re.split(r",\s*", k.strip().rstrip("/"))}
+    tree = set(_names(REPO / "swiftjax"))
+    assert listed == tree, f"README layout: missing {sorted(tree - listed)}, not in the tree {sorted(listed - tree)}"
+    # Every package's modules appear in its entry.
+    for pkg in sorted(p for p in (REPO / "swiftjax").iterdir() if (p / "__init__.py").exists()):
+        missing = set(_names(pkg)) - words(entries[f"  {pkg.name}/"])
+        assert not missing, f"README layout: swiftjax/{pkg.name}/ does not name {sorted(missing)}"
+    missing = set(_names(REPO / "inference")) - words(entries["inference/"])
+    assert not missing, f"README layout: inference/ does not name {sorted(missing)}"
+    for top in ("swiftjax/", "inference/", "bench/", "tests/", "docs/", "notebooks/"):
+        assert top in entries, f"README layout has no {top} entry"

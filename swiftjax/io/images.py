@@ -17,8 +17,8 @@ Pixels follow VGGT's loader (PIL, no EXIF rotation): grayscale -> RGB, alpha com
 white (PIL's integer arithmetic), 16-bit -> 8-bit (high byte), float images taken as [0, 1].  Decoding uses
 OpenCV (``opencv-python-headless``, imported lazily); :func:`validate` reads only the image
 headers (Pillow, a matplotlib dependency) and, for PNG and JPEG, the file's last bytes (the
-end marker: a truncated file is refused before the run), about 0.3 ms a file against ~10 ms
-(60 ms on a busy 2-core machine) for decoding a KITTI-sized PNG, unless ``decode=True``.
+end marker: a truncated file is refused before the run), a small fraction of the cost of
+decoding it (docs/performance/io.md), unless ``decode=True``.
 """
 
 from __future__ import annotations
@@ -502,7 +502,7 @@ def validate(source: FrameSource, skip_bad: bool = False, decode: bool = False) 
     Args:
         source: from :func:`list_frames`.
         skip_bad: drop unreadable images with a warning instead of raising.
-        decode: fully decode every image (slower; ~10 ms a KITTI PNG).
+        decode: fully decode every image (slower: a full decode per file).
 
     Raises:
         InputError: no frames; an unreadable image (unless ``skip_bad``); images of

@@ -112,9 +112,9 @@ def chunk_points(
     ``None``: every pixel).  The points stay in the chunk's frame: the export
     applies the optimised ``S_t``.  Jitted as :data:`chunk_points_jit`: recompiles per
     ``(S, H, W)``, ``count`` and ``stride`` (two shapes per run: full chunks and the last).
-    (Separate dispatches for this, :func:`_to_half` and :func:`_overlap_slices` measured
-    ~25 % faster than one jitted function computing all of them: XLA CPU fused the
-    consumers of the same input into a slower loop.)
+    (Separate dispatches for this, :func:`_to_half` and :func:`_overlap_slices`: one jitted
+    function computing all of them was slower, XLA CPU fusing the consumers of the same input
+    into one slower loop; docs/performance/pipeline.md.)
     """
     depth = depth[:count, ::stride, ::stride]
     conf = conf[:count, ::stride, ::stride]
@@ -235,9 +235,8 @@ def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> 
     owns (with ``colmap_original_resolution`` the export copies the originals instead).  The
     files are written by one background thread (at most two chunks queued) while the next
     chunk is predicted; :func:`run` waits for them.  Lossless PNG (Pillow, compression level
-    1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`):
-    ~11 ms a 518x154 frame on a loaded 2-core machine, of which 7 ms encoding
-    (``bench/bench_colmap_export.py``); nothing when ``colmap`` is off or the predictor gives
+    1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`;
+    cost: ``bench/bench_colmap_export.py``, docs/performance/pipeline.md); nothing when ``colmap`` is off or the predictor gives
     no images.  Returns the write's future (``None`` when nothing is written): the temporal
     stage's chunk write waits for it, so a chunk is recorded only once its frames are on disk
     (a resumed run never lacks the frames of a recorded chunk).
@@ -377,8 +376,8 @@ def _export(
             gh, gw = (int(v) for v in extra["points_grid"])
             M = world[t]
             # s R x + t in float32 (the precision the points are written in).  einsum, not a
-            # BLAS matmul: [P, 3] x [3, 3] through multi-threaded OpenBLAS measured ~60 ms per
-            # chunk on a busy 2-core machine, einsum ~5 ms whatever the thread settings.
+            # BLAS matmul: multi-threaded OpenBLAS is an order of magnitude slower on this small
+            # product on a busy machine (docs/performance/pipeline.md).
             xyz = np.einsum("nj,ij->ni", extra["points_xyz"], M[:3, :3].astype(np.float32))
             xyz += M[:3, 3].astype(np.float32)
             cf = extra["points_conf"]

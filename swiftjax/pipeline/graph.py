@@ -109,8 +109,8 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
     """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
 
     ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loop_verification`
-    (VGGT's chunk-to-chunk model error, which an alignment's point statistics cannot see:
-    measured on the demo, the statistics alone put true loops at whitened residuals of 2,000-4,000)
+    (VGGT's chunk-to-chunk model error, which an alignment's point statistics cannot see; see
+    docs/performance/pipeline.md for what the statistics alone give)
     plus the alignment's own estimation covariance (large only for weak alignments: few reliable
     points, a large residual; missing statistics add nothing and are reported).
     """

@@ -372,7 +372,7 @@ class Manifest:
         )
 
     #: :meth:`save_soon` writes at most this often (seconds).  Each write is a JSON dump and
-    #: two fsyncs (~16 ms measured); an interrupted run redoes at most this much finished work.
+    #: two fsyncs; an interrupted run redoes at most this much finished work.
     MIN_INTERVAL = 1.0
 
     _last_save = float("-inf")
@@ -437,8 +437,8 @@ class ChunkRecords:
 
     def _check_space(self, c: int) -> None:
         """After the first chunk file this run wrote: refuse to go on when the disk cannot hold
-        the remaining chunks (measured: ~27 MB per 75 KITTI frames; 100,000 frames would be
-        ~24 GB), before the disk fills up mid-way."""
+        the remaining chunks (estimated from the first chunk's file; sizes in
+        docs/performance/io.md), before the disk fills up mid-way."""
         if self._space_checked or self.store is None or self.num_chunks is None:
             return
         self._space_checked = True
