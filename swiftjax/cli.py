@@ -30,25 +30,6 @@ class CliError(Exception):
 # ------------------------------------------------------------------------------ set-up
 
 
-#: XLA options the command sets unless ``XLA_FLAGS`` already names them (``SWIFTJAX_XLA_DEFAULTS=0``: none).
-#: XLA:CPU's loop emitters (instead of its newer MLIR fusion emitters) compile the run's programs
-#: about a quarter faster and run them as fast (docs/performance/coldstart.md); they round some
-#: element-wise results differently in the last bits (poses move by ~1e-5 of a chunk's units).
-XLA_DEFAULTS = ("--xla_cpu_use_fusion_emitters=false",)
-
-
-def _set_xla_flags() -> None:
-    """Add :data:`XLA_DEFAULTS` to ``XLA_FLAGS`` (read when JAX creates its CPU client, at the first
-    computation; worker processes inherit it)."""
-    if os.environ.get("SWIFTJAX_XLA_DEFAULTS", "1") == "0":
-        return
-    flags = os.environ.get("XLA_FLAGS", "")
-    named = {f.split("=", 1)[0] for f in flags.split()}
-    extra = [f for f in XLA_DEFAULTS if f.split("=", 1)[0] not in named]
-    if extra:
-        os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
-
-
 def _enable_compilation_cache() -> None:
     import jax
 
@@ -713,7 +694,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     parser = build_parser()
     args = parser.parse_args(argv)
-    _set_xla_flags()
     _enable_compilation_cache()
     from swiftjax.io.images import InputError
     from swiftjax.io.trajectory import TrajectoryFormatError
