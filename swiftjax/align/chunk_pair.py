@@ -27,9 +27,9 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Int, Real
 
-from swiftjax import camera, sim3
+from swiftjax import camera, sim3, so3
 from swiftjax._reductions import variadic_sum
-from swiftjax.align import checks
+from swiftjax.align import _kernels, checks
 from swiftjax.align.mask import frame_conf_mean, reliability_mask
 from swiftjax.align.options import AlignOptions
 from swiftjax.align.umeyama import UmeyamaInfo, _Moments, _rough_centre, _solve
@@ -138,9 +138,7 @@ def pose_based_estimate(
     P = jnp.where(ok, P, jnp.eye(3, 4, dtype=P.dtype))
     Q = jnp.where(ok, Q, jnp.eye(3, 4, dtype=P.dtype))
     M = jnp.sum(P[:, :, :3] @ jnp.swapaxes(Q[:, :, :3], -1, -2), axis=0)
-    U, _, Vt = jnp.linalg.svd(M)
-    d = jnp.where(jnp.linalg.det(U @ Vt) < 0, -1.0, 1.0).astype(P.dtype)
-    R = (U * jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ Vt
+    R = so3.as_matrix(so3.project(M))
     cp, cq = P[:, :, 3], Q[:, :, 3]
     mp, mq = cp.mean(0), cq.mean(0)
     vp, vq = jnp.sum((cp - mp) ** 2), jnp.sum((cq - mq) ** 2)
@@ -316,11 +314,21 @@ def _align_core(
     My = _affine_maps(*(keep(a) for a in (B_p, c_p, e_p)), cy, T)
     Mx = _affine_maps(*(keep(a) for a in (B_c, c_c, e_c)), cx, T)
 
-    def moments(lam):
+    def moments_jax(lam):
         ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam, user_keep)
         a = jnp.where(ok, r_p[e] * prev.depth - e_p[e], 0)  # delta_p (dst = prev)
         b = jnp.where(ok, r_c[e] * cur.depth - e_c[e], 0)  # delta_c (src = cur)
         return _pixel_moments(ok, a, b, ut, vt)
+
+    def moments(lam):
+        if not _kernels.available(dtype):
+            return moments_jax(lam)
+        # The same mask (eq. 2) inside the fused kernel: the thresholds are formed here as
+        # reliability_mask forms them; a dropped frame gets lam = -1, a masked pixel a NaN depth.
+        dp = prev.depth if user_keep is None else jnp.where(user_keep, prev.depth, jnp.nan)
+        lam_f = jnp.where(frame_ok, lam, -1).astype(dtype)
+        params = jnp.stack([r_p, r_c, e_p, e_c, conf_ratio * mean_p, conf_ratio * mean_c, lam_f], -1)
+        return _kernels.pixel_moments(dp, cur.depth, prev.conf, cur.conf, params, ut, vt, lambda: moments_jax(lam))
 
     S_pix, n = moments(depth_threshold)
     few = n < min_points

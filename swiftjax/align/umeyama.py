@@ -38,9 +38,9 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Int, Shaped
 
-from swiftjax import sim3
+from swiftjax import sim3, so3
 from swiftjax._reductions import variadic_sum
-from swiftjax.align import checks
+from swiftjax.align import _kernels, checks
 
 __all__ = ["UmeyamaInfo", "umeyama"]
 
@@ -141,8 +141,9 @@ def _add_moments(a: tuple[Array, ...], b: tuple[Array, ...]) -> tuple[Array, ...
 def _moments(src: Array, dst: Array, w: Array) -> _Moments:
     """Sanitise and accumulate the centred moments of ``src``/``dst`` with weights ``w``.
 
-    The point axis is split into rows of ``_ROW`` points (``[..., R, _ROW]``) plus a tail of
-    fewer than ``_ROW`` points; both are reduced with the same variadic reduce.
+    On CPU in float32 the fused kernel (:mod:`swiftjax.align._kernels`) forms the sums;
+    otherwise the point axis is split into rows of ``_ROW`` points (``[..., R, _ROW]``) plus a
+    tail of fewer than ``_ROW`` points, both reduced with the same variadic reduce.
     """
     fin = jnp.isfinite
     ok = (w > 0) & fin(w) & jnp.all(fin(src), axis=-1) & jnp.all(fin(dst), axis=-1)
@@ -158,6 +159,19 @@ def _moments(src: Array, dst: Array, w: Array) -> _Moments:
         yc = tuple(jnp.where(okb, dst[..., sl, i].reshape(shape) - cy[..., i][e], 0) for i in range(3))
         return _moment_terms(xc, yc, wb, okb)
 
+    if not _kernels.available(src.dtype):
+        return _pack_moments(_jax_sums(terms, src), cx, cy)
+
+    def jax_stacked():
+        tot = _jax_sums(terms, src)
+        return jnp.stack(tot[:18], -1), tot[18]
+
+    T, count = _kernels.umeyama_moments(src, dst, w, jnp.concatenate([cx, cy], -1), jax_stacked)
+    return _pack_moments((*(T[..., i] for i in range(18)), count), cx, cy)
+
+
+def _jax_sums(terms, src: Array) -> tuple[Array, ...]:
+    """The 19 sums of :func:`_moments` in pure JAX: rows of ``_ROW`` points, then the rows."""
     n = src.shape[-2]
     lead = src.shape[:-2]
     rows = n // _ROW
@@ -167,7 +181,7 @@ def _moments(src: Array, dst: Array, w: Array) -> _Moments:
             tot = _add_moments(tot, _sum_terms(terms(slice(rows * _ROW, n), (*lead, n - rows * _ROW)), 1))
     else:
         tot = _sum_terms(terms(slice(0, n), (*lead, n)), 1)
-    return _pack_moments(tot, cx, cy)
+    return tot
 
 
 def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:
@@ -186,12 +200,12 @@ def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:
 
     finite = jnp.all(jnp.isfinite(cov), axis=(-2, -1)) & jnp.isfinite(sx2) & jnp.isfinite(sy2)
     cov_safe = jnp.where(finite[..., None, None], cov, jnp.eye(3, dtype=dtype))
-    U, D, Vt = jnp.linalg.svd(cov_safe)
-    d = jnp.sign(jnp.linalg.det(U) * jnp.linalg.det(Vt))
-    d = jnp.where(d == 0, 1, d)
-    e = jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d], axis=-1)
-    R = (U * e[..., None, :]) @ Vt
-    trde = jnp.sum(D * e, axis=-1)
+    # R = U E V^T is the rotation nearest to C (so3.project); tr(D E) flips the smallest
+    # singular value exactly when det C < 0 (when det C = 0 that value is 0 and the sign moot).
+    R = so3.as_matrix(so3.project(cov_safe))
+    D = jnp.linalg.svd(cov_safe, compute_uv=False)
+    d = jnp.where(jnp.linalg.det(cov_safe) < 0, -1, 1).astype(dtype)
+    trde = D[..., 0] + D[..., 1] + d * D[..., 2]
 
     # Spread must stand out of the rounding of the coordinates themselves.
     pos2 = jnp.sum(mu_x * mu_x, axis=-1)

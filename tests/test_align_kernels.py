@@ -1,0 +1,102 @@
+"""The fused FFI kernels of swiftjax.align against the pure-JAX formulation (float32 tolerance)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from swiftjax import align
+from swiftjax.align import _kernels, chunk_pair
+
+from test_align import make_pair
+
+pytestmark = pytest.mark.skipif(
+    _kernels._ffi_kernels is None, reason="the optional compiled extension is not built (setup.py build_ext)"
+)
+
+
+def _both(monkeypatch, fn, *args):
+    """``fn(*args)`` traced once with the fused kernel and once with pure JAX (fresh jits)."""
+    out = {}
+    for mode in ("auto", "jax"):
+        monkeypatch.setenv("SWIFTJAX_ALIGN_KERNEL", mode)
+        out[mode] = jax.jit(lambda *a: fn(*a))(*args)
+    return out["auto"], out["jax"]
+
+
+def _core(prev, cur, K_ref, keep=None, **kw):
+    opts = align.AlignOptions().replace(**kw)
+    args = chunk_pair._core_arguments(prev, cur, K_ref, opts)
+    return lambda *a: chunk_pair._align_core(*a, keep), args
+
+
+def _close(S_k, S_j, atol=2e-5):
+    np.testing.assert_allclose(np.asarray(S_k), np.asarray(S_j), atol=atol)
+
+
+def test_available_only_for_float32(monkeypatch):
+    monkeypatch.delenv("SWIFTJAX_ALIGN_KERNEL", raising=False)
+    assert _kernels.available(jnp.float32) and not _kernels.available(jnp.float64)
+    monkeypatch.setenv("SWIFTJAX_ALIGN_KERNEL", "jax")
+    assert not _kernels.available(jnp.float32)
+
+
+def test_chunk_pair_kernel_matches_jax(monkeypatch):
+    prev, cur, K_ref, _ = make_pair(seed=2, dtype=np.float32)
+    rng = np.random.default_rng(0)
+    dp, cc = prev.depth.copy(), cur.conf.copy()
+    dp[rng.random(dp.shape) < 0.05] = np.nan
+    dp[rng.random(dp.shape) < 0.02] = np.inf
+    cc[rng.random(cc.shape) < 0.02] = np.inf  # an infinite confidence is never reliable
+    ep = prev.extrinsic.copy()
+    ep[1, 0, 3] = np.nan  # a dropped frame
+    prev = prev._replace(depth=dp, extrinsic=ep)
+    cur = cur._replace(conf=cc)
+    keep = rng.random(prev.depth.shape) > 0.1
+    for mask in (None, jnp.asarray(keep)):
+        fn, args = _core(prev, cur, K_ref, mask, min_points=100)
+        (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
+        assert int(i_k.num_points) == int(i_j.num_points) > 100
+        assert bool(i_k.valid) and bool(i_j.valid)
+        _close(S_k, S_j)
+        np.testing.assert_allclose(np.asarray(i_k.src_mean), np.asarray(i_j.src_mean), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(i_k.src_covariance), np.asarray(i_j.src_covariance), rtol=1e-4, atol=1e-5)
+
+
+def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
+    prev, cur, K_ref, _ = make_pair(seed=3, s=1.0, dtype=np.float32)
+    r = 0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1])
+    cur = cur._replace(depth=cur.depth + 0.22 / r[:, None, None])  # only the fallback threshold passes
+    fn, args = _core(prev, cur, K_ref, min_points=100)
+    (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
+    assert bool(i_k.used_fallback_threshold) and int(i_k.num_points) == int(i_j.num_points)
+    _close(S_k, S_j)
+    p2, c2, _, _ = make_pair(seed=4, dtype=np.float32)
+    pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
+    cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
+    monkeypatch.delenv("SWIFTJAX_ALIGN_KERNEL", raising=False)
+    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)  # vmap over the FFI call
+    _close(Sb[0], S_j)
+    assert int(ib.num_points[0]) == int(i_j.num_points)
+
+
+def test_umeyama_kernel_matches_jax_and_float64(monkeypatch):
+    rng = np.random.default_rng(1)
+    x = (rng.normal(size=(2, 7001, 3)) * 5 + 100).astype(np.float32)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R *= np.sign(np.linalg.det(R))
+    y = (1.3 * x @ R.T + np.array([1.0, -2.0, 3.0]) + rng.normal(size=x.shape) * 0.01).astype(np.float32)
+    w = rng.random((2, 7001)).astype(np.float32)
+    w[0, :7] = np.nan
+    w[1, :50] = 0
+    x[1, 3, 1] = np.inf
+    (S_k, i_k), (S_j, i_j) = _both(monkeypatch, align.umeyama.__wrapped__, x, y, w)
+    np.testing.assert_array_equal(np.asarray(i_k.num_points), np.asarray(i_j.num_points))
+    _close(S_k, S_j, atol=5e-4)  # |t| ~ 100: float32 rounding of two summation orders
+    with jax.enable_x64(True):
+        S64, _ = align.umeyama(x.astype(np.float64), y.astype(np.float64), w.astype(np.float64))
+    err_k = np.abs(np.asarray(S_k, np.float64) - np.asarray(S64)).max()
+    err_j = np.abs(np.asarray(S_j, np.float64) - np.asarray(S64)).max()
+    assert err_k <= max(2 * err_j, 1e-4)  # the kernel (lanes + double blocks) is no less accurate
