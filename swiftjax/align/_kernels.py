@@ -1,17 +1,22 @@
 """Dispatch of the alignment's moment passes: the fused FFI kernel on CPU, else pure JAX.
 
-The fused kernels (``swiftjax/align/_ffi_kernels.cc``, built at install by ``setup.py`` when a
-C++ compiler is present) do the one-pass accumulations that XLA:CPU runs as scalar loops; the
-pure-JAX formulations (:mod:`swiftjax.align.umeyama`, :mod:`swiftjax.align.chunk_pair`) are
-used on other platforms, for float64, when the extension is not built, or when
-``SWIFTJAX_ALIGN_KERNEL=jax`` is set (read when a function is traced).  Both give the same
-moments to float32 rounding (the kernel sums in 8 float32 lanes, then in double).  The
-kernels have no derivative rule: differentiate the pure-JAX path.
+The fused kernels (``swiftjax/align/_ffi/kernels.cc``, built at install when a C++ compiler is
+present) do the one-pass accumulations that XLA:CPU runs as scalar loops; the pure-JAX
+formulations (:mod:`swiftjax.align.umeyama`, :mod:`swiftjax.align.chunk_pair`) are used on
+other platforms, for float64, when the extension is not built, or when
+``SWIFTJAX_ALIGN_KERNEL=jax`` is set (read when a function is traced, so it takes effect for
+new shapes or a fresh ``jax.jit``).  Both give the same moments to float32 rounding (the
+kernel sums in 8 float32 lanes, then in double).
+
+Derivatives: a fused call is a ``jax.custom_jvp`` whose tangent is the pure-JAX reference's
+(``jax.jvp(reference, ...)``), so ``jax.grad`` / ``jax.jacfwd`` through the alignment work on
+either path and agree to float32 rounding.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +27,7 @@ try:  # the optional compiled extension
 except ImportError:  # pragma: no cover - depends on the install
     _ffi_kernels = None
 
-__all__ = ["available", "pixel_moments", "umeyama_moments"]
+__all__ = ["available", "fused", "pixel_moments", "umeyama_moments"]
 
 _registered = False
 
@@ -42,35 +47,51 @@ def _register() -> None:
         _registered = True
 
 
-def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array, fallback):
-    """``(S [F, 6, 3, 3], n)`` (``n`` the int32 count of reliable pixels) from the fused kernel
-    on CPU, ``fallback()`` elsewhere.
+def fused(target: str, out_shapes: Callable, reference: Callable, *args: Array):
+    """``reference(*args)``, computed by the FFI ``target`` on CPU when :func:`available`.
 
-    ``dp, dc, cp, cc [F, H, W]`` float32, ``params [F, 7] = (r_p, r_c, e_p, e_c, thr_p, thr_c,
-    lam)``, ``ut [W]``, ``vt [H]``; ``fallback`` returns the same from pure JAX.
+    ``out_shapes(*args)`` gives the outputs' ``jax.ShapeDtypeStruct``s (those of
+    ``reference``).  ``reference`` must depend on ``args`` only (no closed-over arrays that
+    are differentiated): it supplies the other platforms' values and every derivative.
     """
+    if not available(args[0].dtype):
+        return reference(*args)
     _register()
-    f, h, w = dp.shape
-    out = (jax.ShapeDtypeStruct((f, 6, 3, 3), jnp.float32), jax.ShapeDtypeStruct((f,), jnp.int32))
-    call = jax.ffi.ffi_call("swiftjax_pixel_moments", out, vmap_method="broadcast_all")
+    call = jax.ffi.ffi_call(target, out_shapes(*args), vmap_method="broadcast_all")
 
-    def fused(*args):
-        S, n = call(*args)
-        return S, jnp.sum(n)
+    @jax.custom_jvp
+    def f(*a):
+        return jax.lax.platform_dependent(*a, cpu=call, default=reference)
 
-    return jax.lax.platform_dependent(dp, dc, cp, cc, params, ut, vt, cpu=fused, default=lambda *a: fallback())
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        return f(*primals), jax.jvp(reference, primals, tangents)[1]
+
+    return f(*args)
 
 
-def umeyama_moments(src: Array, dst: Array, w: Array, centres: Array, fallback):
-    """``(T [..., 18], n [...])`` centred weighted sums from the fused kernel on CPU, else ``fallback()``.
+def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array,
+                  reference: Callable):
+    """Per-frame pixel moments ``(S [F, 6, 3, 3], n [F])`` (``n`` int32 reliable-pixel counts).
 
-    ``src, dst [..., N, 3]``, ``w [..., N]`` float32 (unsanitised: the kernel drops points with
-    ``w <= 0`` or a non-finite value), ``centres [..., 6] = (cx, cy)``.
+    ``dp, dc, cp, cc [F, H, W]``, ``params [F, 7] = (r_p, r_c, e_p, e_c, thr_p, thr_c, lam)``,
+    ``ut [W]``, ``vt [H]``; ``reference`` takes the same arguments and returns the same.
     """
-    _register()
+    f, h, w = dp.shape[-3:]
+    lead = dp.shape[:-3]
+    shapes = lambda *a: (  # noqa: E731
+        jax.ShapeDtypeStruct((*lead, f, 6, 3, 3), dp.dtype), jax.ShapeDtypeStruct((*lead, f), jnp.int32))
+    return fused("swiftjax_pixel_moments", shapes, reference, dp, dc, cp, cc, params, ut, vt)
+
+
+def umeyama_moments(src: Array, dst: Array, w: Array, centres: Array, reference: Callable):
+    """``(T [..., 18], n [...])``: the centred weighted sums and count of a batched Umeyama problem.
+
+    ``src, dst [..., N, 3]``, ``w [..., N]`` (unsanitised: points with ``w <= 0`` or a
+    non-finite value are dropped), ``centres [..., 6] = (cx, cy)``; ``reference`` takes the
+    same arguments and returns the same.
+    """
     lead = w.shape[:-1]
-    out = (jax.ShapeDtypeStruct((*lead, 18), jnp.float32), jax.ShapeDtypeStruct(lead, jnp.int32))
-    call = jax.ffi.ffi_call("swiftjax_umeyama_moments", out, vmap_method="broadcast_all")
-    return jax.lax.platform_dependent(
-        src, dst, w, centres, cpu=lambda *a: call(*a), default=lambda *a: fallback()
-    )
+    shapes = lambda *a: (  # noqa: E731
+        jax.ShapeDtypeStruct((*lead, 18), src.dtype), jax.ShapeDtypeStruct(lead, jnp.int32))
+    return fused("swiftjax_umeyama_moments", shapes, reference, src, dst, w, centres)

@@ -188,7 +188,7 @@ def _pixel_grid(h: int, w: int, dtype) -> tuple[Array, Array, Array]:
 
 
 def _pixel_moments(ok: Array, a: Array, b: Array, ut: Array, vt: Array) -> tuple[Array, Array]:
-    """Per-frame pixel moments ``S [O, 6, 3, 3]`` and the int32 count of ``ok`` pixels.
+    """Per-frame pixel moments ``S [O, 6, 3, 3]`` and the int32 counts ``[O]`` of ``ok`` pixels.
 
     ``ok`` bool ``[O, H, W]``; ``a = ok * delta_p``, ``b = ok * delta_c`` (zero where not ok).
     One variadic reduce over the pixel rows (18 terms: 6 images x powers of ``u~``), then a
@@ -201,9 +201,22 @@ def _pixel_moments(ok: Array, a: Array, b: Array, ut: Array, vt: Array) -> tuple
     rows = variadic_sum(tuple(t for im in images for t in (im, im * u1, im * u2)), -1)
     R = jnp.stack(rows, -1).reshape(*a.shape[:-1], 6, 3)  # [O, H, 6, 3]
     V = jnp.stack([jnp.ones_like(vt), vt, vt * vt], -1)  # [H, 3]
-    S = jnp.einsum("fhik,hl->fikl", R, V)
-    n = jnp.sum(rows[0].astype(jnp.int32))  # row counts are exact (<= W < 2^24)
+    S = jnp.einsum("...fhik,hl->...fikl", R, V)
+    n = jnp.sum(rows[0].astype(jnp.int32), -1)  # row counts are exact (<= W < 2^24)
     return S, n
+
+
+def _masked_pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array):
+    """:func:`_pixel_moments` of the reliable pixels (eq. 2) of ``[O, H, W]`` depths and
+    confidences, from the per-frame ``params [O, 7] = (r_p, r_c, e_p, e_c, thr_p, thr_c, lam)``:
+    focal ratios, normalised-depth centres, confidence thresholds and depth threshold
+    (the reference of the fused kernel, :func:`swiftjax.align._kernels.pixel_moments`)."""
+    r_p, r_c, e_p, e_c, thr_p, thr_c, lam = (params[..., i] for i in range(7))
+    e = (Ellipsis, None, None)
+    ok = reliability_mask(r_p[e] * dp, r_c[e] * dc, cp, cc, lam, 1, thr_p, thr_c)
+    a = jnp.where(ok, r_p[e] * dp - e_p[e], 0)  # delta_p (dst = prev)
+    b = jnp.where(ok, r_c[e] * dc - e_c[e], 0)  # delta_c (src = cur)
+    return _pixel_moments(ok, a, b, ut, vt)
 
 
 def _affine_maps(B: Array, c: Array, e: Array, centre: Array, T: Array) -> Array:
@@ -308,27 +321,22 @@ def _align_core(
         & jnp.all(jnp.isfinite(B_p), (-2, -1)) & jnp.all(jnp.isfinite(B_c), (-2, -1))
         & jnp.all(jnp.isfinite(c_p), -1) & jnp.all(jnp.isfinite(c_c), -1)
     )
-    fo = frame_ok[:, None, None]
     keep = lambda a: jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0)  # noqa: E731
     ut, vt, T = _pixel_grid(h, w, dtype)
     My = _affine_maps(*(keep(a) for a in (B_p, c_p, e_p)), cy, T)
     Mx = _affine_maps(*(keep(a) for a in (B_c, c_c, e_c)), cx, T)
 
-    def moments_jax(lam):
-        ok = fo & mask(prev.depth, cur.depth, prev.conf, cur.conf, r_p, r_c, mean_p, mean_c, lam, user_keep)
-        a = jnp.where(ok, r_p[e] * prev.depth - e_p[e], 0)  # delta_p (dst = prev)
-        b = jnp.where(ok, r_c[e] * cur.depth - e_c[e], 0)  # delta_c (src = cur)
-        return _pixel_moments(ok, a, b, ut, vt)
+    # The mask (eq. 2) and the deltas of every frame from one [O, 7] table of per-frame
+    # parameters: a dropped frame gets lam = -1 (nothing passes), a pixel the user masks out a
+    # NaN depth (never reliable).  The fused kernel reads the same table.
+    dp = prev.depth if user_keep is None else jnp.where(user_keep, prev.depth, jnp.nan)
+    thr_p, thr_c = conf_ratio * mean_p, conf_ratio * mean_c
 
     def moments(lam):
-        if not _kernels.available(dtype):
-            return moments_jax(lam)
-        # The same mask (eq. 2) inside the fused kernel: the thresholds are formed here as
-        # reliability_mask forms them; a dropped frame gets lam = -1, a masked pixel a NaN depth.
-        dp = prev.depth if user_keep is None else jnp.where(user_keep, prev.depth, jnp.nan)
         lam_f = jnp.where(frame_ok, lam, -1).astype(dtype)
-        params = jnp.stack([r_p, r_c, e_p, e_c, conf_ratio * mean_p, conf_ratio * mean_c, lam_f], -1)
-        return _kernels.pixel_moments(dp, cur.depth, prev.conf, cur.conf, params, ut, vt, lambda: moments_jax(lam))
+        params = jnp.stack([r_p, r_c, e_p, e_c, thr_p, thr_c, lam_f], -1)
+        S, n = _kernels.pixel_moments(dp, cur.depth, prev.conf, cur.conf, params, ut, vt, _masked_pixel_moments)
+        return S, jnp.sum(n)
 
     S_pix, n = moments(depth_threshold)
     few = n < min_points

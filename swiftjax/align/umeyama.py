@@ -138,18 +138,35 @@ def _add_moments(a: tuple[Array, ...], b: tuple[Array, ...]) -> tuple[Array, ...
     return tuple(x + y for x, y in zip(a, b))
 
 
+def _valid_points(src: Array, dst: Array, w: Array) -> Array:
+    """Points that enter the fit: positive finite weight, finite ``src`` and ``dst`` (bool ``[..., N]``)."""
+    fin = jnp.isfinite
+    return (w > 0) & fin(w) & jnp.all(fin(src), axis=-1) & jnp.all(fin(dst), axis=-1)
+
+
 def _moments(src: Array, dst: Array, w: Array) -> _Moments:
     """Sanitise and accumulate the centred moments of ``src``/``dst`` with weights ``w``.
 
-    On CPU in float32 the fused kernel (:mod:`swiftjax.align._kernels`) forms the sums;
-    otherwise the point axis is split into rows of ``_ROW`` points (``[..., R, _ROW]``) plus a
-    tail of fewer than ``_ROW`` points, both reduced with the same variadic reduce.
+    The centres come from :func:`_rough_centre`; the sums from the fused kernel on CPU in
+    float32 (:mod:`swiftjax.align._kernels`), else from :func:`_centred_sums`.
     """
-    fin = jnp.isfinite
-    ok = (w > 0) & fin(w) & jnp.all(fin(src), axis=-1) & jnp.all(fin(dst), axis=-1)
+    ok = _valid_points(src, dst, w)
     w0 = jnp.where(ok, w, 0)
     cx = jax.lax.stop_gradient(_rough_centre(jnp.where(ok[..., None], src, 0), w0))
     cy = jax.lax.stop_gradient(_rough_centre(jnp.where(ok[..., None], dst, 0), w0))
+    T, count = _kernels.umeyama_moments(src, dst, w, jnp.concatenate([cx, cy], -1), _centred_sums)
+    return _pack_moments((*(T[..., i] for i in range(18)), count), cx, cy)
+
+
+def _centred_sums(src: Array, dst: Array, w: Array, centres: Array) -> tuple[Array, Array]:
+    """The 18 weighted sums ``T [..., 18]`` of :func:`_moment_terms` about ``centres [..., 6] =
+    (cx, cy)`` and the int32 count of valid points, in pure JAX.
+
+    The point axis is split into rows of ``_ROW`` points (``[..., R, _ROW]``) plus a tail of
+    fewer than ``_ROW`` points; both are reduced with the same variadic reduce.
+    """
+    ok = _valid_points(src, dst, w)
+    cx, cy = centres[..., :3], centres[..., 3:]
 
     def terms(sl: slice, shape: tuple[int, ...]):
         okb = ok[..., sl].reshape(shape)
@@ -159,19 +176,6 @@ def _moments(src: Array, dst: Array, w: Array) -> _Moments:
         yc = tuple(jnp.where(okb, dst[..., sl, i].reshape(shape) - cy[..., i][e], 0) for i in range(3))
         return _moment_terms(xc, yc, wb, okb)
 
-    if not _kernels.available(src.dtype):
-        return _pack_moments(_jax_sums(terms, src), cx, cy)
-
-    def jax_stacked():
-        tot = _jax_sums(terms, src)
-        return jnp.stack(tot[:18], -1), tot[18]
-
-    T, count = _kernels.umeyama_moments(src, dst, w, jnp.concatenate([cx, cy], -1), jax_stacked)
-    return _pack_moments((*(T[..., i] for i in range(18)), count), cx, cy)
-
-
-def _jax_sums(terms, src: Array) -> tuple[Array, ...]:
-    """The 19 sums of :func:`_moments` in pure JAX: rows of ``_ROW`` points, then the rows."""
     n = src.shape[-2]
     lead = src.shape[:-2]
     rows = n // _ROW
@@ -181,7 +185,7 @@ def _jax_sums(terms, src: Array) -> tuple[Array, ...]:
             tot = _add_moments(tot, _sum_terms(terms(slice(rows * _ROW, n), (*lead, n - rows * _ROW)), 1))
     else:
         tot = _sum_terms(terms(slice(0, n), (*lead, n)), 1)
-    return tot
+    return jnp.stack(tot[:18], -1), tot[18]
 
 
 def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:

@@ -3,8 +3,8 @@
 // XLA:CPU emits a multi-output reduction as a scalar loop; these kernels do the same
 // one-pass accumulation with 8 independent float32 lanes (each lane sums its own sequence,
 // so the compiler vectorises it without fast-math), then add the lane and block partials in
-// double.  Built at install by setup.py (optional: without a C++ compiler the package uses
-// its pure-JAX formulation, swiftjax/align/_kernels.py).
+// double.  Built at install (pyproject.toml's [[tool.setuptools.ext-modules]], optional:
+// without a C++ compiler the package uses its pure-JAX formulation, swiftjax/align/_kernels.py).
 //
 // * swiftjax_pixel_moments: per-frame pixel moments of a chunk-pair overlap, the layout of
 //   swiftjax.align.chunk_pair._pixel_moments.
@@ -30,12 +30,12 @@ namespace {
 #pragma GCC push_options
 #pragma GCC target("avx2,fma")
 namespace avx2 {
-#include "_ffi_kernels_loops.inc"
+#include "kernels_loops.inc"
 }  // namespace avx2
 #pragma GCC pop_options
 #endif
 namespace base {
-#include "_ffi_kernels_loops.inc"
+#include "kernels_loops.inc"
 }  // namespace base
 
 static bool UseAvx2() {
