@@ -187,9 +187,11 @@ def _advance(problem: Problem, params, solver, y, state: LMState, delta, ok, *, 
 
 #: XLA options of the dense path's programs.  Its buckets are small (``N_bucket <=
 #: DENSE_MAX_NODES``): a step runs in about a millisecond and the first call is all compile
-#: time, so LLVM's optimisation passes are skipped (backend optimisation level 0), which halves
-#: the compile for a step that stays within a few milliseconds.
-DENSE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+#: time, so LLVM's optimisation passes are skipped (backend optimisation level 0) and fusions
+#: are emitted by XLA's older loop emitter (``xla_cpu_use_fusion_emitters=False``), each of which
+#: about halves the compile (docs/performance/posegraph.md).  Options given per program, not
+#: through ``XLA_FLAGS``, reach every process (Ray workers included) and no other program.
+DENSE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
 def compiler_options(solver: AbstractLinearSolver) -> dict:
