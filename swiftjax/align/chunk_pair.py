@@ -362,8 +362,8 @@ def _align_core(
     return S, info
 
 
-_align_core_jit = jax.jit(_align_core)
-_align_core_batched = jax.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, 0)))
+_align_core_jit = _kernels.jit(_align_core)
+_align_core_batched = _kernels.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, 0)))
 
 
 def _as_frames(x, dtype=None) -> ChunkFrames:

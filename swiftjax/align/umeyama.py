@@ -241,7 +241,7 @@ def _solve(m: _Moments) -> tuple[Array, UmeyamaInfo]:
     return S, info
 
 
-@jax.jit
+@_kernels.jit
 def umeyama(
     src: Shaped[ArrayLike, "*batch N 3"],
     dst: Shaped[ArrayLike, "*batch N 3"],

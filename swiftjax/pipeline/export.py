@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import _faults, camera, sim3
+from swiftjax._compile import LOOP_EMITTER
 from swiftjax.align import frame_conf_mean
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
 from swiftjax.prediction import ChunkPrediction
@@ -129,7 +130,7 @@ def chunk_points(
     return pts, keep
 
 
-chunk_points_jit = jax.jit(chunk_points, static_argnames=("count", "stride"))
+chunk_points_jit = jax.jit(chunk_points, static_argnames=("count", "stride"), compiler_options=LOOP_EMITTER)
 
 
 def export_points(

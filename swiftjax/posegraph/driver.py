@@ -40,6 +40,7 @@ from jax import Array
 from jaxtyping import Float
 
 from swiftjax import sim3
+from swiftjax._compile import QUICK_COMPILE
 from swiftjax.posegraph import gnc, sparse_direct
 from swiftjax.posegraph.factors import cost
 from swiftjax.posegraph.initialization import chordal_initialization
@@ -185,13 +186,10 @@ def _advance(problem: Problem, params, solver, y, state: LMState, delta, ok, *, 
     return y, state, lm.damping_vector(state)
 
 
-#: XLA options of the dense path's programs.  Its buckets are small (``N_bucket <=
-#: DENSE_MAX_NODES``): a step runs in about a millisecond and the first call is all compile
-#: time, so LLVM's optimisation passes are skipped (backend optimisation level 0) and fusions
-#: are emitted by XLA's older loop emitter (``xla_cpu_use_fusion_emitters=False``), each of which
-#: about halves the compile (docs/performance/posegraph.md).  Options given per program, not
-#: through ``XLA_FLAGS``, reach every process (Ray workers included) and no other program.
-DENSE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+#: XLA options of the dense path's programs: :data:`swiftjax._compile.QUICK_COMPILE`.  Its
+#: buckets are small (``N_bucket <= DENSE_MAX_NODES``): a step runs in about a millisecond and
+#: the first call is all compile time (docs/performance/posegraph.md).
+DENSE_COMPILER_OPTIONS = QUICK_COMPILE
 
 
 def compiler_options(solver: AbstractLinearSolver) -> dict:
