@@ -14,6 +14,8 @@ no other program is affected.  They are part of the compilation-cache key.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 
 __all__ = ["LOOP_EMITTER", "QUICK_COMPILE", "quick_jit"]
@@ -27,10 +29,28 @@ LOOP_EMITTER = {"xla_cpu_use_fusion_emitters": False}
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, **LOOP_EMITTER}
 
 
-def quick_jit(fun=None, **jit_kwargs):
-    """``jax.jit(fun, compiler_options=QUICK_COMPILE, **jit_kwargs)``; usable as a decorator,
-    bare or with ``jit`` keywords (``@quick_jit(static_argnames=...)``).  Recompiles when
-    ``jax.jit`` would (a new shape, dtype or static value)."""
+def quick_jit(fun=None, *, options: dict = QUICK_COMPILE, **jit_kwargs):
+    """``jax.jit(fun, compiler_options=options, **jit_kwargs)`` (default :data:`QUICK_COMPILE`);
+    usable as a decorator, bare or with ``jit`` keywords (``@quick_jit(static_argnames=...)``).
+
+    JAX accepts compiler options only on the outermost ``jit``: called inside another traced
+    function (whose program is compiled with that function's options), this is a plain
+    ``jax.jit``.  Recompiles when ``jax.jit`` would (a new shape, dtype or static value).
+    """
     if fun is None:
-        return lambda f: quick_jit(f, **jit_kwargs)
-    return jax.jit(fun, compiler_options=dict(QUICK_COMPILE), **jit_kwargs)
+        return lambda f: quick_jit(f, options=options, **jit_kwargs)
+    tuned = jax.jit(fun, compiler_options=dict(options), **jit_kwargs)
+    plain = jax.jit(fun, **jit_kwargs)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
+            return plain(*args, **kwargs)
+        try:
+            return tuned(*args, **kwargs)
+        except ValueError as e:  # traced without traced arguments (closed over by an outer jit)
+            if "top-level" not in str(e):
+                raise
+            return plain(*args, **kwargs)
+
+    return call

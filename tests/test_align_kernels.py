@@ -132,3 +132,21 @@ def test_kernel_derivatives_are_the_pure_jax_ones(monkeypatch):
         assert np.all(np.isfinite(np.asarray(g_j))) and np.abs(np.asarray(g_j)).max() > 0
         np.testing.assert_allclose(float(v_k), float(v_j), rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(np.asarray(g_k), np.asarray(g_j), atol=atol, rtol=1e-3)
+
+
+def test_quick_compiled_entry_points_nest_inside_a_users_jit():
+    """umeyama / align_chunk_pair carry compiler options, which JAX takes only on the outermost
+    jit: inside a user's jit (traced arguments, or constants closed over) they are plain jits."""
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(500, 3)).astype(np.float32)
+    y = (1.5 * x + 2.0).astype(np.float32)
+    S_top, _ = align.umeyama(x, y)
+    S_arg, _ = jax.jit(lambda a, b: align.umeyama(a, b))(x, y)
+    S_const, _ = jax.jit(lambda: align.umeyama(jnp.asarray(x), jnp.asarray(y)))()
+    np.testing.assert_allclose(np.asarray(S_arg), np.asarray(S_top), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(S_const), np.asarray(S_top), atol=1e-6)
+    assert abs(float(S_top[7]) - 1.5) < 1e-5
+    prev, cur, K_ref, _ = make_pair(seed=8, dtype=np.float32)
+    S_pair, _ = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    S_in, _ = jax.jit(lambda p, c: align.align_chunk_pair(p, c, K_ref, min_points=100))(prev, cur)
+    np.testing.assert_allclose(np.asarray(S_in), np.asarray(S_pair), atol=1e-5)

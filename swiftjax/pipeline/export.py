@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import _faults, camera, sim3
-from swiftjax._compile import LOOP_EMITTER
+from swiftjax._compile import LOOP_EMITTER, quick_jit
 from swiftjax.align import frame_conf_mean
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
 from swiftjax.prediction import ChunkPrediction
@@ -130,7 +130,7 @@ def chunk_points(
     return pts, keep
 
 
-chunk_points_jit = jax.jit(chunk_points, static_argnames=("count", "stride"), compiler_options=LOOP_EMITTER)
+chunk_points_jit = quick_jit(chunk_points, options=LOOP_EMITTER, static_argnames=("count", "stride"))
 
 
 def export_points(
