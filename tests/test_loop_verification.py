@@ -167,11 +167,14 @@ def ref_dense(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours):
 
 # ------------------------------------------------------------------------ dense tests
 
+ALL_PIXELS = V.VerificationConfig(stride=1, neighbours=0)  # every source pixel, every target frame
+
 
 @pytest.mark.parametrize("stride,neighbours", [(1, 0), (2, 2)])
 def test_dense_consistency_matches_numpy_loops(x64, stride, neighbours):
     src, dst, S = scene(seed=1)
-    got = V.dense_consistency(src, dst, S, K, stride=stride, depth_tolerance=0.05, neighbours=neighbours)
+    got = V.dense_consistency(src, dst, S, K, V.VerificationConfig(stride=stride, depth_tolerance=0.05,
+                                                                   neighbours=neighbours))
     want = ref_dense(src, dst, S, K, stride, 0.5, 0.05, neighbours)
     for k, v in want.items():
         assert int(getattr(got, k)) == v, k
@@ -183,12 +186,26 @@ def test_dense_consistency_matches_numpy_loops(x64, stride, neighbours):
 
 def test_dense_consistency_true_edge_agrees_wrong_edge_does_not():
     src, dst, S = scene(seed=2)
-    good = V.dense_consistency(src, dst, S, K, stride=1, neighbours=0)
+    good = V.dense_consistency(src, dst, S, K, ALL_PIXELS)
     assert float(good.agreement) > 0.6 and float(good.overlap) > 0.8  # 10 % gross depth errors
     with jax.enable_x64(True):  # 1.5 m sideways and 20 degrees of yaw: a different place
         wrong = np.asarray(sim3.compose(jnp.asarray(S), jnp.asarray(sim3_np(rot([0, 0.35, 0]), [1.5, 0, 0], 1.0))))
-    bad = V.dense_consistency(src, dst, wrong, K, stride=1, neighbours=0)
+    bad = V.dense_consistency(src, dst, wrong, K, ALL_PIXELS)
     assert float(bad.agreement) < 0.5 * float(good.agreement)
+
+
+def test_dense_consistency_deprecated_keywords_still_work():
+    src, dst, S = scene(seed=2)
+    new = V.dense_consistency(src, dst, S, K, ALL_PIXELS)
+    with pytest.warns(DeprecationWarning, match=r"stride=\.\.\., neighbours=\.\.\.\) is deprecated: pass config="):
+        old = V.dense_consistency(src, dst, S, K, stride=1, neighbours=0)
+    assert all(np.array_equal(a, b) for a, b in zip(new, old))
+    with pytest.warns(DeprecationWarning):  # a keyword overrides the config's field
+        old = V.cross_chunk_consistency(*(align.ChunkFrames(*(np.asarray(a)[None] for a in f)) for f in (src, dst)),
+                                        S[None], K, V.VerificationConfig(stride=3), stride=1, neighbours=0)
+    assert int(old.i_to_j.pairs_agree[0]) == int(new.pairs_agree)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'strides'"):
+        V.dense_consistency(src, dst, S, K, strides=2)
 
 
 def test_dense_consistency_nonfinite_edge_and_empty_source():
@@ -204,11 +221,11 @@ def test_cross_chunk_consistency_batched_equals_both_directions():
     a, b = scene(seed=4), scene(seed=5)
     stack = lambda x, y: align.ChunkFrames(*(np.stack([p, q]) for p, q in zip(x, y)))  # noqa: E731
     Z = np.stack([a[2], b[2]])
-    cc = V.cross_chunk_consistency(stack(a[0], b[0]), stack(a[1], b[1]), Z, K, stride=2, neighbours=2)
+    cfg = V.VerificationConfig(stride=2, neighbours=2)
+    cc = V.cross_chunk_consistency(stack(a[0], b[0]), stack(a[1], b[1]), Z, K, cfg)
     for m, (src, dst, S) in enumerate((a, b)):
-        fwd = V.dense_consistency(src, dst, S, K, stride=2, neighbours=2)
-        back = V.dense_consistency(dst, src, np.asarray(sim3.inverse(jnp.asarray(S, jnp.float32))), K,
-                                   stride=2, neighbours=2)
+        fwd = V.dense_consistency(src, dst, S, K, cfg)
+        back = V.dense_consistency(dst, src, np.asarray(sim3.inverse(jnp.asarray(S, jnp.float32))), K, cfg)
         assert int(cc.i_to_j.pairs_agree[m]) == int(fwd.pairs_agree)
         assert abs(int(cc.j_to_i.pairs_agree[m]) - int(back.pairs_agree)) <= 1  # float32 inverse
         assert float(cc.score[m]) == pytest.approx(min(float(cc.i_to_j.agreement[m]), float(cc.j_to_i.agreement[m])))

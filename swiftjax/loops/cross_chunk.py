@@ -31,8 +31,10 @@ target frames with ``lax.scan``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-from typing import NamedTuple
+import warnings
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +48,8 @@ __all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_co
 
 _DEFAULTS = VerificationConfig()
 _ALIGN = align.AlignOptions()  # conf_ratio: λ_γ, the alignment's (eq. 2)
+#: The options the dense test reads from its VerificationConfig (keywords of the former signature).
+_DEPRECATED = ("stride", "depth_tolerance", "neighbours")
 
 
 class ConsistencyInfo(NamedTuple):
@@ -170,16 +174,37 @@ def _dense_consistency_jit(src, dst, S, K_ref, conf_ratio, depth_tolerance, stri
     return _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride, neighbours)
 
 
+def _config(config: VerificationConfig | None, deprecated: dict[str, Any], fn: str) -> VerificationConfig:
+    """``config`` (default ``VerificationConfig()``) with the deprecated keyword spellings
+    ``stride=, depth_tolerance=, neighbours=`` folded in (with a ``DeprecationWarning``)."""
+    config = _DEFAULTS if config is None else config
+    if deprecated:
+        unknown = sorted(set(deprecated) - set(_DEPRECATED))
+        if unknown:
+            raise TypeError(f"{fn}() got an unexpected keyword argument {unknown[0]!r}")
+        given = ", ".join(f"{k}=..." for k in deprecated)
+        warnings.warn(
+            f"{fn}(..., {given}) is deprecated: pass config=VerificationConfig({given})",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        config = dataclasses.replace(config, **deprecated)
+    return config
+
+
+def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConfig) -> tuple:
+    """The jitted programs' arguments: frames and numbers in the source's float dtype, then the
+    static ``stride`` and ``neighbours``."""
+    src = _frames(src)
+    dt = src.depth.dtype
+    dst = _frames(dst, dt)
+    return (src, dst, jnp.asarray(S, dt), jnp.asarray(K_ref, dt), jnp.asarray(conf_ratio, dt),
+            jnp.asarray(config.depth_tolerance, dt), config.stride, config.neighbours)
+
+
 def dense_consistency(
-    src: align.ChunkFrames,
-    dst: align.ChunkFrames,
-    S_dst_src: Float[ArrayLike, "8"],
-    K_ref: Float[ArrayLike, "3 3"],
-    *,
-    stride: int = _DEFAULTS.stride,
-    conf_ratio: float = _ALIGN.conf_ratio,
-    depth_tolerance: float = _DEFAULTS.depth_tolerance,
-    neighbours: int = _DEFAULTS.neighbours,
+    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, "8"], K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio, **deprecated: Any,
 ) -> ConsistencyInfo:
     """How many reliable points of ``src`` land on agreeing depth in ``dst`` under ``S``.
 
@@ -190,12 +215,19 @@ def dense_consistency(
         S_dst_src: Sim(3) ``[8]`` mapping source chunk coordinates into target chunk
             coordinates (for a loop edge ``Z`` from c_i's frames into c_j's: ``Z``).
         K_ref: ``[3, 3]`` reference intrinsics (both chunks' depths are normalised to it).
-        stride: static source pixel subsampling (``F · ceil(H/stride) · ceil(W/stride)``
-            points; the targets are looked up at full resolution, nearest pixel).
-        neighbours: static; each source frame is compared with this many target frames,
-            those whose cameras are nearest to its camera mapped by ``S`` (0: all).
-        conf_ratio: ``λ_γ``, as eq. 2 (both sides).
-        depth_tolerance: relative depth agreement ``τ``.
+        config: :class:`~swiftjax.loops.options.VerificationConfig` (default
+            ``VerificationConfig()``); the test reads three of its fields:
+
+            * ``stride``: static source pixel subsampling (``F · ceil(H/stride) ·
+              ceil(W/stride)`` points; the targets are looked up at full resolution, nearest
+              pixel);
+            * ``neighbours``: static; each source frame is compared with this many target
+              frames, those whose cameras are nearest to its camera mapped by ``S`` (0: all);
+            * ``depth_tolerance``: relative depth agreement ``τ``.
+        conf_ratio: ``λ_γ``, as eq. 2 (both sides; default the alignment's,
+            ``AlignOptions().conf_ratio``).
+        **deprecated: ``stride=``, ``depth_tolerance=``, ``neighbours=`` as keywords (the former
+            signature) still work, with a ``DeprecationWarning``; they override ``config``.
 
     Returns:
         :class:`ConsistencyInfo` (module docstring for the equations).  A non-finite ``S``
@@ -205,13 +237,8 @@ def dense_consistency(
     ``stride`` and ``neighbours``; the other options are traced.  Cost: ``G`` passes over the
     ``P`` source points (``lax.scan``), each a projection and one gather.
     """
-    src = _frames(src)
-    dst = _frames(dst, src.depth.dtype)
-    dt = src.depth.dtype
-    return _dense_consistency_jit(
-        src, dst, jnp.asarray(S_dst_src, dt), jnp.asarray(K_ref, dt), jnp.asarray(conf_ratio, dt),
-        jnp.asarray(depth_tolerance, dt), stride, neighbours,
-    )
+    config = _config(config, deprecated, "dense_consistency")
+    return _dense_consistency_jit(*_traced_args(src, dst, S_dst_src, K_ref, conf_ratio, config))
 
 
 class CrossCheck(NamedTuple):
@@ -240,15 +267,8 @@ def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, ne
 
 
 def cross_chunk_consistency(
-    side_i: align.ChunkFrames,
-    side_j: align.ChunkFrames,
-    Z: Float[ArrayLike, "M 8"],
-    K_ref: Float[ArrayLike, "3 3"],
-    *,
-    stride: int = _DEFAULTS.stride,
-    conf_ratio: float = _ALIGN.conf_ratio,
-    depth_tolerance: float = _DEFAULTS.depth_tolerance,
-    neighbours: int = _DEFAULTS.neighbours,
+    side_i: align.ChunkFrames, side_j: align.ChunkFrames, Z: Float[ArrayLike, "M 8"], K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio, **deprecated: Any,
 ) -> CrossCheck:
     """Both directions of :func:`dense_consistency` for ``M`` loop candidates at once (vmap).
 
@@ -258,16 +278,11 @@ def cross_chunk_consistency(
             in the pipeline the ``2h`` frames the loop chunk's first half overlaps.
         side_j: the same for chunk ``c_j`` around ``j``.
         Z: ``[M, 8]`` loop edges mapping ``c_i`` into ``c_j`` (:func:`swiftjax.loops.loop_edge`).
-        K_ref, stride, conf_ratio, depth_tolerance, neighbours: as :func:`dense_consistency`.
+        K_ref, config, conf_ratio, **deprecated: as :func:`dense_consistency`.
 
     Returns:
-        :class:`CrossCheck` with ``[M]`` fields.  Recompiles per ``(M, F, H, W)``, dtype and
-        ``stride``.
+        :class:`CrossCheck` with ``[M]`` fields.  Recompiles per ``(M, F, H, W)``, dtype,
+        ``stride`` and ``neighbours``.
     """
-    si = _frames(side_i)
-    dt = si.depth.dtype
-    sj = _frames(side_j, dt)
-    return _cross_jit(
-        si, sj, jnp.asarray(Z, dt), jnp.asarray(K_ref, dt), jnp.asarray(conf_ratio, dt),
-        jnp.asarray(depth_tolerance, dt), stride, neighbours,
-    )
+    config = _config(config, deprecated, "cross_chunk_consistency")
+    return _cross_jit(*_traced_args(side_i, side_j, Z, K_ref, conf_ratio, config))

@@ -107,10 +107,8 @@ def candidate_numbers(
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))  # noqa: E731
-    cc = cross_chunk_consistency(
-        one(side_i), one(side_j), np.asarray(Z, np.float32)[None], K_ref, stride=config.stride,
-        depth_tolerance=config.depth_tolerance, neighbours=config.neighbours,
-    )
+    Z = np.asarray(Z, np.float32)[None]
+    cc = cross_chunk_consistency(one(side_i), one(side_j), Z, K_ref, config)
     plain = lambda info: {k: float(np.asarray(v)[0]) if np.asarray(v).dtype.kind == "f" else int(np.asarray(v)[0])  # noqa: E731
                           for k, v in info._asdict().items()}
     q = loop_chunk_quality(info_i, info_j)
