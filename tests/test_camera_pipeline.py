@@ -32,6 +32,22 @@ def small_run():
     return demo.trajectory_run(poses, seed=3, image_hw=IMAGE_HW)
 
 
+def _spy(predictor, calls: list):
+    """``predictor`` as the pipeline sees it, appending the frames of each ``predict`` call to ``calls``."""
+
+    class Spy:
+        num_frames = predictor.num_frames
+
+        def predict(self, f):
+            calls.append(f)
+            return predictor.predict(f)
+
+        def __getattr__(self, name):
+            return getattr(predictor, name)
+
+    return Spy()
+
+
 def _write_masks(folder, n, blank):
     from PIL import Image
 
@@ -110,21 +126,11 @@ def test_scale_priors_in_the_pose_graph_rerun_only_the_graph_and_export(camera_r
     (Before the test below, which changes a mask file's time: the run directory is then refused.)"""
     calls = []
 
-    class Spy:
-        num_frames = small_run.predictor.num_frames
-
-        def predict(self, f):
-            calls.append(f)
-            return small_run.predictor.predict(f)
-
-        def __getattr__(self, name):
-            return getattr(small_run.predictor, name)
-
     config = dataclasses.replace(camera_run.config, metric_combine="prior")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = pipeline.reconstruct(Spy(), camera_run.run_dir, config, ground_truth=small_run.ground_truth,
-                                   progress=False, log=lambda s: None)
+        res = pipeline.reconstruct(_spy(small_run.predictor, calls), camera_run.run_dir, config,
+                                   ground_truth=small_run.ground_truth, progress=False, log=lambda s: None)
     assert not calls
     m = res.metrics
     assert m["unit"] == "metres" and m["metric_scale"]["combine"] == "prior"
@@ -151,25 +157,16 @@ def test_changed_masks_or_intrinsics_refuse_to_resume(camera_run, small_run):
 def test_bad_options_fail_before_any_work(small_run, tmp_path):
     (tmp_path / "K.txt").write_text("300 300 900 20\n")  # cx outside the 140-pixel-wide image
     calls = []
-
-    class Spy:
-        num_frames = small_run.predictor.num_frames
-
-        def predict(self, f):
-            calls.append(f)
-            return small_run.predictor.predict(f)
-
-        def __getattr__(self, name):
-            return getattr(small_run.predictor, name)
+    spy = _spy(small_run.predictor, calls)  # every call below must fail before predicting
 
     with pytest.raises(ValueError, match="principal point .* outside the 140x42 image"):
-        pipeline.reconstruct(Spy(), tmp_path / "a", dataclasses.replace(CONFIG, intrinsics=str(tmp_path / "K.txt")),
+        pipeline.reconstruct(spy, tmp_path / "a", dataclasses.replace(CONFIG, intrinsics=str(tmp_path / "K.txt")),
                              progress=False)
     with pytest.raises(ValueError, match="--metric gt needs the ground-truth poses"):
-        pipeline.reconstruct(Spy(), tmp_path / "b", dataclasses.replace(CONFIG, metric="gt"), progress=False)
+        pipeline.reconstruct(spy, tmp_path / "b", dataclasses.replace(CONFIG, metric="gt"), progress=False)
     with pytest.raises(ValueError, match="lacks"):
         (tmp_path / "m").mkdir()
-        pipeline.reconstruct(Spy(), tmp_path / "c", dataclasses.replace(CONFIG, mask_dir=str(tmp_path / "m")),
+        pipeline.reconstruct(spy, tmp_path / "c", dataclasses.replace(CONFIG, mask_dir=str(tmp_path / "m")),
                              progress=False)
     with pytest.raises(ValueError, match="--metric must be"):
         dataclasses.replace(CONFIG, metric="height=2")

@@ -22,6 +22,8 @@ from swiftjax import posegraph, sim3
 from swiftjax.io.g2o import read_g2o
 from swiftjax.synthetic.pose_graphs import circle_graph
 
+from test_posegraph import _canon  # poses with the quaternion sign fixed (q and -q are one rotation)
+
 gtsam = pytest.importorskip("gtsam")
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
 from _gtsam_baseline import (  # noqa: E402
@@ -32,12 +34,6 @@ from _gtsam_baseline import (  # noqa: E402
 )
 
 TOL = dict(rtol=1e-10, atol=0.0)
-
-
-def _canon(p):
-    p = np.array(p, np.float64)
-    p[:, 3:7] *= np.where(p[:, 6:7] < 0, -1.0, 1.0)
-    return p
 
 
 def test_conventions_match_gtsam(x64):
