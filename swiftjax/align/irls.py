@@ -59,9 +59,9 @@ def irls_sim3(
     src: Real[ArrayLike, "N 3"],
     dst: Real[ArrayLike, "N 3"],
     weights: Shaped[ArrayLike, " N"] | None = None,
-    delta: float = 0.1,
-    max_iters: int = 5,
-    tol: float = 1e-9,
+    delta: float | Real[Array, ""] = 0.1,  # traced when given (jit without static arguments)
+    max_iters: int | Int[Array, ""] = 5,
+    tol: float | Real[Array, ""] = 1e-9,
 ) -> tuple[Float[Array, "8"], IRLSInfo]:
     """VGGT-Long's robust IRLS Sim(3) (``robust_weighted_estimate_sim3``), the baseline.
 

@@ -114,7 +114,7 @@ def _whitening_dims(n: int, d: int, remove: int, dim: int, max_samples: int) -> 
 
 
 def fit_whitening(
-    G: Float[ArrayLike, "N d"],
+    G: ArrayLike,  # [N, d]: checked here, with a ValueError naming G (host boundary)
     remove: int = _DEFAULTS.remove,
     dim: int = _DEFAULTS.dim,
     eps: float = _DEFAULTS.eps,

@@ -142,7 +142,7 @@ def calibrate_threshold(
 
 
 def detect_loops(
-    Z: Float[ArrayLike, "N dk"],
+    Z: ArrayLike,  # [N, d']: checked here, with a ValueError naming Z (host boundary)
     threshold: float | Float[ArrayLike, ""] = _DEFAULTS.threshold,
     min_separation: int = _DEFAULTS.min_separation,
     nms_radius: int = _DEFAULTS.nms_radius,

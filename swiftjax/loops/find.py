@@ -9,7 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike
 
 from swiftjax.chunks import ChunkSchedule
 from swiftjax.loops._checks import _check_finite
@@ -43,7 +43,7 @@ class Loop(NamedTuple):
 
 
 def find_loops(
-    descriptors: Float[ArrayLike, "N d"],
+    descriptors: ArrayLike,  # [N, d]: checked here, with a ValueError (host boundary)
     schedule: ChunkSchedule,
     options: LoopOptions | None = None,
     *,

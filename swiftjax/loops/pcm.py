@@ -33,7 +33,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from swiftjax import sim3
 
@@ -122,7 +122,8 @@ def pairwise_consistency(
 
 
 def max_consistent_set(
-    consistent: Bool[ArrayLike, "M M"], weights: Sequence[float] | Float[ArrayLike, " M"] | None = None
+    consistent: ArrayLike,  # bool [M, M]: checked here, with a ValueError (host boundary)
+    weights: Sequence[float] | Float[ArrayLike, " M"] | None = None,
 ) -> list[int]:
     """A maximum clique of the boolean consistency graph ``consistent [M, M]`` (host).
 

@@ -14,11 +14,12 @@ seven times, and a four-product chain ~400 times.  ``optimization_barrier`` does
 
 from __future__ import annotations
 
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
-from jax import Array
+from jaxtyping import ArrayLike, Float
 
 __all__ = ["bmm", "bmtm", "bmv", "bmtv", "quadratic", "unfused"]
 
@@ -33,33 +34,33 @@ def _sum(terms):
     return total
 
 
-def bmm(a: Array, b: Array) -> Array:
+def bmm(a: Float[ArrayLike, "*batch m k"], b: Float[ArrayLike, "*batch k n"]) -> Float[ArrayLike, "*batch m n"]:
     """``a @ b`` for ``[..., m, k] x [..., k, n] -> [..., m, n]``."""
     return _sum(a[..., :, k, None] * b[..., None, k, :] for k in range(a.shape[-1]))
 
 
-def bmtm(a: Array, b: Array) -> Array:
+def bmtm(a: Float[ArrayLike, "*batch k m"], b: Float[ArrayLike, "*batch k n"]) -> Float[ArrayLike, "*batch m n"]:
     """``a^T @ b`` for ``[..., k, m] x [..., k, n] -> [..., m, n]``."""
     return _sum(a[..., k, :, None] * b[..., None, k, :] for k in range(a.shape[-2]))
 
 
-def bmv(a: Array, v: Array) -> Array:
+def bmv(a: Float[ArrayLike, "*batch m k"], v: Float[ArrayLike, "*batch k"]) -> Float[ArrayLike, "*batch m"]:
     """``a @ v`` for ``[..., m, k] x [..., k] -> [..., m]``."""
     return _sum(a[..., :, k] * v[..., k, None] for k in range(a.shape[-1]))
 
 
-def bmtv(a: Array, v: Array) -> Array:
+def bmtv(a: Float[ArrayLike, "*batch k m"], v: Float[ArrayLike, "*batch k"]) -> Float[ArrayLike, "*batch m"]:
     """``a^T @ v`` for ``[..., k, m] x [..., k] -> [..., m]``."""
     return _sum(a[..., k, :] * v[..., k, None] for k in range(a.shape[-2]))
 
 
-def quadratic(v: Array, a: Array) -> Array:
+def quadratic(v: Float[ArrayLike, "*batch k"], a: Float[ArrayLike, "*batch k k"]) -> Float[ArrayLike, "*batch"]:
     """``v^T a v`` for ``[..., k] x [..., k, k] -> [...]``."""
     av = bmv(a, v)
     return _sum(v[..., k] * av[..., k] for k in range(v.shape[-1]))
 
 
-def unfused(fn: Callable[..., T], *args: Array) -> T:
+def unfused(fn: Callable[..., T], *args: ArrayLike) -> T:
     """``fn(*args)``, computed in XLA kernels of its own whose outputs are materialised.
 
     The body of a ``lax.while_loop`` whose trip count XLA cannot know at compile time is never

@@ -94,7 +94,7 @@ class Result:
     ``c^2 / 2`` per rejected edge).  ``residuals`` ``[E, 7]`` (NumPy): ``r_e`` at ``poses``.
     """
 
-    poses: Array
+    poses: Float[Array, "n 8"]
     cost_initial: float
     cost_start: float
     cost_final: float
@@ -109,9 +109,9 @@ class Result:
     bucket: tuple[int, int]
     compile_seconds: float
     solve_seconds: float
-    inlier_weights: np.ndarray
+    inlier_weights: Float[np.ndarray, " e"]
     gnc_iterations: int = 0
-    residuals: np.ndarray | None = None
+    residuals: Float[np.ndarray, "e 7"] | None = None
 
     @property
     def converged(self) -> bool:

@@ -25,10 +25,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
+from jaxtyping import ArrayLike, Float, Int, Real
 
 from swiftjax import sim3
 from swiftjax.posegraph.blockmat import bmm, quadratic
-from swiftjax.posegraph.kernels import RobustKernel, kernel_code, robust_rho_weight
+from swiftjax.posegraph.kernels import kernel_code, robust_rho_weight
 from swiftjax.posegraph.problem import Problem
 
 __all__ = [
@@ -41,7 +42,7 @@ __all__ = [
 ]
 
 
-def right_jacobian_inverse_at(E: Array) -> Array:
+def right_jacobian_inverse_at(E: Float[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7 7"]:
     """``Jr^-1(log E) = d log(E exp(d)) / d d |_{d=0}``: ``[..., 8] -> [..., 7, 7]``.
 
     :func:`swiftjax.sim3.jlog` at ``xi = log E``, reusing ``E`` (closed form derived there).
@@ -50,7 +51,9 @@ def right_jacobian_inverse_at(E: Array) -> Array:
     return sim3.jlog(sim3.log(E), E)
 
 
-def _edge_errors(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
+def _edge_errors(
+    poses: Float[ArrayLike, "n 8"], problem: Problem
+) -> tuple[Float[Array, "e 8"], Float[ArrayLike, "e 8"], Float[ArrayLike, "e 8"]]:
     """``(E_e [E, 8], S_i [E, 8], S_j [E, 8])``."""
     si = poses[problem.edges[:, 0]]
     sj = poses[problem.edges[:, 1]]
@@ -58,31 +61,38 @@ def _edge_errors(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
     return err, si, sj
 
 
-def residuals(poses: Array, problem: Problem) -> Array:
+def residuals(poses: Float[ArrayLike, "n 8"], problem: Problem) -> Float[Array, "e 7"]:
     """``r_e = log(Z_e^-1 S_i^-1 S_j)`` for every edge: ``[N, 8] -> [E, 7]`` (padding edges included)."""
     err, _, _ = _edge_errors(poses, problem)
     return sim3.log(err)
 
 
-def residual_jacobian_factors(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
+def residual_jacobian_factors(
+    poses: Float[ArrayLike, "n 8"], problem: Problem
+) -> tuple[Float[Array, "e 7"], Float[Array, "e 7 7"], Float[Array, "e 7 7"]]:
     """``(r [E, 7], Jr^-1(r) [E, 7, 7], Ad(S_j^-1 S_i) [E, 7, 7])``: ``J_j = Jr^-1``, ``J_i = -Jr^-1 Ad``."""
     err, si, sj = _edge_errors(poses, problem)
     r = sim3.log(err)
     return r, sim3.jlog(r, err), sim3.adjoint(sim3.between(sj, si))
 
 
-def residuals_and_jacobians(poses: Array, problem: Problem) -> tuple[Array, Array, Array]:
+def residuals_and_jacobians(
+    poses: Float[ArrayLike, "n 8"], problem: Problem
+) -> tuple[Float[Array, "e 7"], Float[Array, "e 7 7"], Float[Array, "e 7 7"]]:
     """``(r [E, 7], J_i [E, 7, 7], J_j [E, 7, 7])`` with respect to right perturbations of ``S_i, S_j``."""
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)
     return r, -bmm(jr_inv, adj), jr_inv
 
 
 def edge_costs(
-    r: Array, problem: Problem, kernel: RobustKernel | Array | None = None, kernel_scale: float | Array = 1.0
-) -> tuple[Array, Array]:
+    r: Float[Array, "e 7"],
+    problem: Problem,
+    kernel: str | Int[ArrayLike, ""] | None = None,
+    kernel_scale: Real[ArrayLike, ""] = 1.0,
+) -> tuple[Float[Array, " e"], Float[Array, " e"]]:
     """``(rho_e(r^T Omega r) [E], IRLS weight rho'_e [E])``; zero for masked edges.
 
-    ``kernel`` is a name (``None``, ``"huber"``, ``"cauchy"``) or a traced integer code
+    ``kernel`` is a name (``None``, ``"huber"``, ``"cauchy"``) or an integer code (traced when an array)
     (:func:`~swiftjax.posegraph.problem.kernel_code`); it applies to edges with ``problem.robust``.
     """
     sq = quadratic(r, problem.information)
@@ -95,8 +105,11 @@ def edge_costs(
 
 
 def cost(
-    poses: Array, problem: Problem, kernel: RobustKernel | Array | None = None, kernel_scale: float | Array = 1.0
-) -> Array:
+    poses: Float[ArrayLike, "n 8"],
+    problem: Problem,
+    kernel: str | Int[ArrayLike, ""] | None = None,
+    kernel_scale: Real[ArrayLike, ""] = 1.0,
+) -> Float[Array, ""]:
     """``1/2 sum_e rho_e(r_e^T Omega_e r_e)`` (GTSAM's ``graph.error`` definition)."""
     rho, _ = edge_costs(residuals(poses, problem), problem, kernel, kernel_scale)
     return 0.5 * jnp.sum(rho)

@@ -106,7 +106,7 @@ def tls_cost(
     return 0.5 * xp.sum(xp.where(mask, rho, 0.0))
 
 
-def squared_residuals(r: np.ndarray, information: np.ndarray) -> np.ndarray:
+def squared_residuals(r: Float[ArrayLike, "e 7"], information: Float[ArrayLike, "e 7 7"]) -> Float[np.ndarray, " e"]:
     """``s_e = r_e^T Omega_e r_e`` on the host: ``[E, 7], [E, 7, 7] -> [E]`` (NumPy), summed in the
     order of :func:`swiftjax.posegraph.blockmat.quadratic`."""
     r = np.asarray(r)

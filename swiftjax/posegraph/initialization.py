@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Bool, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from swiftjax import sim3, so3
 from swiftjax.posegraph import linear
@@ -146,7 +146,7 @@ def chordal_initialization(
     return jnp.where(ok, out, poses), ok
 
 
-def chain_poses(relative) -> np.ndarray:
+def chain_poses(relative: Float[ArrayLike, "t 8"]) -> Float[np.ndarray, "t+1 8"]:
     """Dead reckoning along a chain: ``S_0 = I, S_{t+1} = S_t S_{t->t+1}``, renormalised.
 
     ``relative [T-1, 8]`` (edge ``t`` maps node ``t+1`` into node ``t``) -> ``[T, 8]``

@@ -17,11 +17,11 @@ Inside the compiled solver the kernel is a *traced* integer code (:func:`kernel_
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import ArrayLike, Float, Int
+from jaxtyping import ArrayLike, Float, Int, Real
 
 __all__ = [
     "RobustKernel",
@@ -46,7 +46,7 @@ ROBUST_CHOICES: tuple[str, ...] = ("gnc", "cauchy", "huber")
 KERNEL_CODES = {None: 0, "huber": 1, "cauchy": 2}
 
 
-def check_kernel(kernel: str | None, *, gnc: bool = True) -> str | None:
+def check_kernel(kernel: Any, *, gnc: bool = True) -> str | None:
     """Return ``kernel`` if it is a known name (``None``, a kernel of :data:`KERNELS`, or
     ``"gnc"`` when ``gnc`` is True); else raise ``ValueError`` naming the choices."""
     allowed = ROBUST_CHOICES if gnc else tuple(k for k in ROBUST_CHOICES if k in KERNELS)
@@ -56,12 +56,12 @@ def check_kernel(kernel: str | None, *, gnc: bool = True) -> str | None:
     raise ValueError(f"kernel must be None or one of {names}, not {kernel!r}")
 
 
-def kernel_code(kernel: RobustKernel | None) -> int:
+def kernel_code(kernel: str | None) -> int:
     """Integer code of a kernel name (0 none, 1 Huber, 2 Cauchy) for :func:`robust_rho_weight`."""
     return KERNEL_CODES[check_kernel(kernel, gnc=False)]
 
 
-def robust_rho(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[ArrayLike, ""]) -> Float[Array, "*e"]:
+def robust_rho(s: Float[Array, "*e"], kernel: str | None, k: Real[ArrayLike, ""]) -> Float[Array, "*e"]:
     """``rho(s)`` for squared whitened residuals ``s = r^T Omega r`` (module docstring)."""
     kernel = check_kernel(kernel, gnc=False)
     if kernel is None:
@@ -73,7 +73,7 @@ def robust_rho(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[Arra
     return k2 * jnp.log1p(s / k2)
 
 
-def robust_weight(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[ArrayLike, ""]) -> Float[Array, "*e"]:
+def robust_weight(s: Float[Array, "*e"], kernel: str | None, k: Real[ArrayLike, ""]) -> Float[Array, "*e"]:
     """``rho'(s)``: the IRLS weight of an edge (1 for ``kernel=None``)."""
     kernel = check_kernel(kernel, gnc=False)
     if kernel is None:
@@ -86,7 +86,7 @@ def robust_weight(s: Float[Array, "*e"], kernel: RobustKernel | None, k: Float[A
 
 
 def robust_rho_weight(
-    s: Float[Array, "*e"], code: Int[ArrayLike, ""], k: Float[ArrayLike, ""]
+    s: Float[Array, "*e"], code: Int[ArrayLike, ""], k: Real[ArrayLike, ""]
 ) -> tuple[Float[Array, "*e"], Float[Array, "*e"]]:
     """``(rho(s), rho'(s))`` with the kernel chosen by a *traced* integer ``code`` (no recompile)."""
     code = jnp.asarray(code)

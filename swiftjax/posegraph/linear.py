@@ -37,6 +37,7 @@ import numpy as np
 import jax
 import jax.numpy as jnp
 from jax import Array
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from swiftjax.posegraph import sparse_direct
 from swiftjax.posegraph.blockmat import bmm, bmtm, bmtv, bmv, unfused
@@ -63,14 +64,15 @@ class NormalEquations(eqx.Module):
         edges: ``[E, 2]`` int32 ``(i, j)``.
     """
 
-    diag: Array
-    off: Array
-    grad: Array
-    edges: Array
+    diag: Float[Array, "n b b"]
+    off: Float[Array, "e b b"]
+    grad: Float[Array, "n b"]
+    edges: Int[Array, "e 2"]
 
 
 def assemble(
-    r: Array, jr_inv: Array, adj: Array, weight: Array, information: Array, edges: Array, fixed: Array
+    r: Float[Array, "e 7"], jr_inv: Float[Array, "e 7 7"], adj: Float[Array, "e 7 7"], weight: Float[Array, " e"],
+    information: Float[Array, "e 7 7"], edges: Int[Array, "e 2"], fixed: Bool[Array, " n"],
 ) -> NormalEquations:
     """Normal equations from residuals ``[E, 7]`` and Jacobian factors ``[E, 7, 7]``.
 
@@ -88,7 +90,8 @@ def assemble(
 
 
 def from_edge_blocks(
-    h_ii: Array, h_jj: Array, h_ij: Array, g_i: Array, g_j: Array, edges: Array, fixed: Array
+    h_ii: Float[Array, "e b b"], h_jj: Float[Array, "e b b"], h_ij: Float[Array, "e b b"], g_i: Float[Array, "e b"],
+    g_j: Float[Array, "e b"], edges: Int[Array, "e 2"], fixed: Bool[Array, " n"],
 ) -> NormalEquations:
     """Sum per-edge blocks into the normal equations (segment sums over the edge ends).
 
@@ -110,7 +113,9 @@ def from_edge_blocks(
     return NormalEquations(diag=diag, off=h_ij, grad=seg(g_i, g_j), edges=edges)
 
 
-def matvec(ne: NormalEquations, v: Array, damping: Array | None = None) -> Array:
+def matvec(
+    ne: NormalEquations, v: Float[Array, "n b"], damping: Float[Array, "n b"] | None = None
+) -> Float[Array, "n b"]:
     """``(H + diag(damping)) v`` for ``v [N, b]`` (``damping [N, b]`` or None).
 
     Both off-diagonal products go through one segment sum (faster than one scatter per direction).
@@ -124,13 +129,15 @@ def matvec(ne: NormalEquations, v: Array, damping: Array | None = None) -> Array
     return out + jax.ops.segment_sum(coupled, jnp.concatenate([i, j]), num_segments=n)
 
 
-def damping_diagonal(ne: NormalEquations) -> Array:
+def damping_diagonal(ne: NormalEquations) -> Float[Array, "n b"]:
     """Marquardt scaling ``clip(diag(H), 1e-6, 1e32)``: ``[N, 7]``."""
     d = jnp.diagonal(ne.diag, axis1=1, axis2=2)
     return jnp.clip(d, 1e-6, 1e32)
 
 
-def solve_dense(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Array]:
+def solve_dense(
+    ne: NormalEquations, damping: Float[Array, "n b"]
+) -> tuple[Float[Array, "n b"], Int[Array, ""], Bool[Array, ""]]:
     """Solve ``(H + diag(damping)) x = -g`` by dense Cholesky.
 
     Returns ``(x [N, 7], iterations (0), ok)``; ``ok`` is False if the factorisation failed
@@ -151,8 +158,8 @@ def solve_dense(ne: NormalEquations, damping: Array) -> tuple[Array, Array, Arra
 
 
 def solve_pcg(
-    ne: NormalEquations, damping: Array, tol: Array, max_iterations: int
-) -> tuple[Array, Array, Array]:
+    ne: NormalEquations, damping: Float[Array, "n b"], tol: Float[ArrayLike, ""], max_iterations: int
+) -> tuple[Float[Array, "n b"], Int[Array, ""], Bool[Array, ""]]:
     """Block-Jacobi preconditioned CG for ``(H + diag(damping)) x = -g``.
 
     Stops when ``||res||_2 <= tol * ||g||_2`` or after ``max_iterations`` (static) products.
@@ -214,8 +221,11 @@ def _host_sparse_solve(dtype, diag, off, damping, grad, edges, active, fixed):
 
 
 def solve_sparse(
-    ne: NormalEquations, damping: Array, fixed: Array | None = None, active: Array | None = None
-) -> tuple[Array, Array, Array]:
+    ne: NormalEquations,
+    damping: Float[Array, "n b"],
+    fixed: Bool[Array, " n"] | None = None,
+    active: Bool[Array, " e"] | None = None,
+) -> tuple[Float[Array, "n b"], Int[Array, ""], Bool[Array, ""]]:
     """Solve ``(H + diag(damping)) x = -g`` with a sparse direct factorisation on the host.
 
     Through ``jax.pure_callback`` into :func:`swiftjax.posegraph.sparse_direct.solve`: CHOLMOD's

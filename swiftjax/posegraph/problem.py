@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.typing import ArrayLike
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 # The robust kernels live in their own module; their names stay importable from here.
 from swiftjax.posegraph.kernels import (  # noqa: F401
@@ -56,7 +56,7 @@ class ProblemError(ValueError):
     """An invalid pose-graph input, raised on the host before any work starts."""
 
 
-def _as_information(information: ArrayLike | None, num_edges: int, dtype, xp=jnp) -> Array:
+def _as_information(information: ArrayLike | None, num_edges: int, dtype, xp=jnp) -> Float[ArrayLike, "e 7 7"]:
     """Normalise ``information`` to ``[E, 7, 7]`` (``xp``: NumPy for concrete inputs, else jnp).
 
     Accepted: ``None`` (identity), a scalar weight, ``[E]`` per-edge weights, ``[E, 7]``
@@ -100,13 +100,13 @@ class Problem(eqx.Module):
     :func:`validate` checks a concrete problem on the host.
     """
 
-    poses: Array
-    edges: Array
-    measurements: Array
-    information: Array
-    fixed: Array
-    robust: Array
-    edge_mask: Array
+    poses: Float[Array, "n 8"]
+    edges: Int[Array, "e 2"]
+    measurements: Float[Array, "e 8"]
+    information: Float[Array, "e 7 7"]
+    fixed: Bool[Array, " n"]
+    robust: Bool[Array, " e"]
+    edge_mask: Bool[Array, " e"]
 
     def __init__(
         self,

@@ -38,7 +38,8 @@ exact gradient.
 from __future__ import annotations
 
 import warnings
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -46,13 +47,13 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jax import Array
-from jaxtyping import Bool, Float
+from jaxtyping import ArrayLike, Bool, Float, Int, Real
 
 from swiftjax import sim3
 from swiftjax.posegraph import linear
 from swiftjax.posegraph.factors import edge_costs, residual_jacobian_factors, residuals
 from swiftjax.posegraph.linear_solvers import AbstractLinearSolver, DenseCholesky, linear_solver as _linear_solver
-from swiftjax.posegraph.problem import Problem, RobustKernel
+from swiftjax.posegraph.problem import Problem
 
 __all__ = ["SparseSim3LM", "LMState", "LMResult", "CONVERGED", "is_converged", "result_index", "linearize", "retract"]
 
@@ -101,14 +102,17 @@ _LAMBDA_MIN = 1e-14
 class Linearization(eqx.Module):
     """Cost, per-edge IRLS weights ``rho'_e`` ``[E]``, residuals ``[E, 7]`` and normal equations at one iterate."""
 
-    cost: Array
+    cost: Float[Array, ""]
     ne: linear.NormalEquations
-    edge_weights: Array
-    residuals: Array
+    edge_weights: Float[Array, " e"]
+    residuals: Float[Array, "e 7"]
 
 
 def linearize(
-    poses: Float[Array, "n 8"], problem: Problem, kernel: RobustKernel | Array | None, kernel_scale: Array | float
+    poses: Float[Array, "n 8"],
+    problem: Problem,
+    kernel: str | Int[ArrayLike, ""] | None,
+    kernel_scale: Real[ArrayLike, ""],
 ) -> Linearization:
     """Residuals, exact Jacobians, IRLS weights and the assembled normal equations at ``poses``."""
     r, jr_inv, adj = residual_jacobian_factors(poses, problem)

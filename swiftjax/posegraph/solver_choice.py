@@ -12,6 +12,8 @@ measurements behind these numbers are in ``docs/performance/posegraph.md``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from swiftjax.posegraph import sparse_direct
@@ -51,7 +53,7 @@ def node_fill_ratio(num_nodes: int, edges) -> float:
     return (lu.L.nnz + lu.U.nnz) / (num_nodes + 2 * len(e))
 
 
-def check_linear_solver(name: str) -> str:
+def check_linear_solver(name: Any) -> str:
     """``name`` if it is one of :data:`LINEAR_SOLVER_CHOICES`, else ``ValueError``."""
     if name not in LINEAR_SOLVER_CHOICES:
         raise ValueError(f"linear_solver must be 'auto', 'dense', 'pcg' or 'sparse', not {name!r}")

@@ -27,6 +27,7 @@ import threading
 
 import numpy as np
 import scipy.sparse as sp
+from jaxtyping import Bool, Float, Int
 
 __all__ = ["BACKEND", "SparsePattern", "pattern", "solve"]
 
@@ -175,8 +176,10 @@ def pattern(num_nodes: int, block: int, edges, active, fixed) -> SparsePattern:
 
 
 def solve(
-    diag: np.ndarray, off: np.ndarray, damping: np.ndarray, rhs: np.ndarray, edges, active, fixed
-) -> tuple[np.ndarray, bool]:
+    diag: Float[np.ndarray, "n b b"], off: Float[np.ndarray, "e b b"], damping: Float[np.ndarray, "n b"],
+    rhs: Float[np.ndarray, "n b"], edges: Int[np.ndarray, "e 2"], active: Bool[np.ndarray, " e"],
+    fixed: Bool[np.ndarray, " n"],
+) -> tuple[Float[np.ndarray, "n b"], bool]:
     """Solve ``(H + diag(damping)) x = rhs`` (host NumPy, float64 internally).
 
     Args:
