@@ -7,6 +7,9 @@ silent NaN or a silent difference.
   ``3 I``, reflections and ``s <= 0`` on host values; :func:`sim3.check` refuses at the host.
 * ``align.umeyama`` on float16: a TypeError that says what to do.
 * ``posegraph.optimize(max_steps=0 / 1)``: the true initial cost, and exactly the steps asked.
+* The tests' jaxtyping hook (``tests/conftest.py``) enforces the annotated shapes of the loop
+  and pose-graph array functions, while the host-boundary checkers still raise their own
+  ``ValueError`` naming the bad input (not the hook's ``TypeError``).
 """
 
 from __future__ import annotations
@@ -128,3 +131,51 @@ def test_max_steps_zero_and_one_report_the_true_initial_cost(x64, linear_solver)
     assert full.converged and full.cost_final <= r1.cost_final
     with pytest.raises(ValueError, match="max_steps must be an integer >= 0"):
         posegraph.optimize(prob, max_steps=-1)
+
+
+def test_loop_and_posegraph_shapes_are_enforced():
+    import jaxtyping
+
+    from swiftjax import loops
+    from swiftjax.loops import pcm
+    from swiftjax.posegraph import linear
+
+    assert hasattr(loops.loop_edge, "__wrapped__") and hasattr(posegraph.residuals, "__wrapped__")
+    S = np.tile(np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float32), (4, 1))
+    with pytest.raises(jaxtyping.TypeCheckError):
+        loops.loop_edge(S[:, :7], S)  # a Sim(3) element is [..., 8]
+    with pytest.raises(jaxtyping.TypeCheckError):  # M loops: Z [M, 8] and loop_cov [M, 7, 7] must agree
+        pcm.pairwise_consistency(S, np.zeros((3, 7, 7), np.float32), np.array([[0, 2]]), S[:1], np.zeros((2, 7, 7)))
+    g = circle_graph(6, noise=(0.01, 0.01, 0.01), seed=0)
+    prob = posegraph.Problem(g.initial, g.edges, g.measurements, information=g.information)
+    with pytest.raises(jaxtyping.TypeCheckError):
+        posegraph.residuals(np.asarray(g.initial)[:, :7], prob)  # poses are [N, 8]
+    n, e = prob.num_nodes, prob.num_edges
+    with pytest.raises(jaxtyping.TypeCheckError):  # diag [n, b, b] and grad [n, b]: one n
+        linear.NormalEquations(jnp.zeros((n, 7, 7)), jnp.zeros((e, 7, 7)), jnp.zeros((n + 1, 7)), prob.edges)
+    with pytest.raises(jaxtyping.TypeCheckError):
+        posegraph.chain_poses(np.zeros((3, 7)))
+
+
+def test_host_boundary_checkers_raise_their_own_value_error():
+    from swiftjax import loops
+    from swiftjax.chunks import chunk_schedule
+    from swiftjax.loops import pcm
+
+    g = circle_graph(6, noise=(0.01, 0.01, 0.01), seed=0)
+    with pytest.raises(posegraph.ProblemError, match=r"poses has shape \(6, 7\); expected \[N, 8\]"):
+        posegraph.Problem(np.asarray(g.initial)[:, :7], g.edges, g.measurements)
+    with pytest.raises(ValueError, match="kernel must be None or one of"):
+        posegraph.GraphOptions(kernel="tukey")
+    with pytest.raises(ValueError, match="kernel must be None or one of"):
+        posegraph.check_kernel(3)
+    with pytest.raises(ValueError, match="linear_solver must be"):
+        posegraph.GraphOptions(linear_solver="lu")
+    with pytest.raises(ValueError, match="LoopOptions: rule must be one of"):
+        loops.LoopOptions(rule="auto")
+    with pytest.raises(ValueError, match=r"detect_loops: Z must be \[N, d'\]"):
+        loops.detect_loops(np.zeros(5, np.float32))
+    with pytest.raises(ValueError, match=r"find_loops: descriptors must be \[N, d\]"):
+        loops.find_loops(np.zeros(5, np.float32), chunk_schedule(5))
+    with pytest.raises(ValueError, match="consistent must be square"):
+        pcm.max_consistent_set(np.ones((2, 3), bool))
