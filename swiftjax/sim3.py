@@ -336,18 +336,11 @@ def log(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7"]:
     gives its unit version's.  Invalid elements (``s <= 0``, ``q = 0``, non-finite) give all-NaN
     tangents.
     """
-    return _map_components(_log_checked_c, jnp.asarray(S), 7, "map")
-
-
-def _log_checked_c(c: tuple[Array, ...]) -> tuple[Array, ...]:
-    """:func:`_log_c`, all seven components NaN where ``c`` is no similarity (:func:`is_valid`:
-    a non-finite value, ``s <= 0`` or ``q = 0``).  The test runs on the components, inside the
-    same fused loop as the formulas (a separate ``[..., 8]`` pass cost a third of ``log``)."""
-    q = c[3:7]
-    valid = (c[7] > 0) & (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] > 0)
-    for x in c:
-        valid = valid & jnp.isfinite(x)
-    return tuple(jnp.where(valid, y, jnp.nan) for y in _log_c(c))
+    S = jnp.asarray(S)
+    out = _map_components(_log_c, S, 7, "map")
+    # s <= 0, q = 0 or a non-finite value is no similarity: all seven components NaN.  (A
+    # separate pass: the same test inside the map's fused loop measured 85 -> 113 ms on 2^20.)
+    return jnp.where(is_valid(S)[..., None], out, jnp.nan)
 
 
 # ---------------------------------------------------------------- matrices and adjoint
