@@ -47,9 +47,8 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
 
     When the fused kernels do the work (:func:`available` for the dtype of the first floating
     argument, on the CPU backend) the rest of the program is glue that runs in microseconds, so
-    it compiles with :data:`swiftjax._compile.QUICK_COMPILE` (``align_chunk_pair`` at O = 30:
-    5.3 s -> 1.2 s to compile, the same 7.7 ms to run); otherwise the pure-JAX passes are the hot
-    loop and XLA's defaults apply.  Each variant compiles once per shape, dtype and static value.
+    it compiles with :data:`swiftjax._compile.QUICK_COMPILE` (docs/performance/coldstart.md);
+    otherwise the pure-JAX passes are the hot loop and XLA's defaults apply.  Each variant compiles once per shape, dtype and static value.
     """
     quick, full = quick_jit(fun, **jit_kwargs), jax.jit(fun, **jit_kwargs)
 
