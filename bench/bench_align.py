@@ -424,7 +424,7 @@ def formulations(o: int, repeats: int) -> list[dict]:
     }
     if _kernels._ffi_kernels is not None:
         ones = jnp.ones((o,), jnp.float32)
-        params = jnp.stack([ones, ones, e_p, e_c, thr_p, thr_c, jnp.full((o,), lam, jnp.float32)], -1)
+        params = jnp.stack([ones, ones, e_p, e_c, jnp.full((o,), 0.5, jnp.float32), jnp.full((o,), lam, jnp.float32)], -1)
         cands["fused FFI kernel (jax.ffi, C++)"] = lambda *a: _kernels.pixel_moments(
             a[0], a[1], a[2], a[3], params, ut, vt, chunk_pair._masked_pixel_moments)[0]
     roof = jax.jit(lambda *a: sum(jnp.sum(x) for x in a[:4]))

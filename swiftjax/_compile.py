@@ -18,7 +18,7 @@ import functools
 
 import jax
 
-__all__ = ["LOOP_EMITTER", "QUICK_COMPILE", "quick_jit"]
+__all__ = ["LIGHT_COMPILE", "LOOP_EMITTER", "QUICK_COMPILE", "quick_jit"]
 
 #: XLA's loop emitter alone, LLVM optimisation kept: for programs whose run time matters but
 #: whose fusions are simple element-wise loops (``export.chunk_points``).
@@ -26,6 +26,11 @@ LOOP_EMITTER = {"xla_cpu_use_fusion_emitters": False}
 
 #: Compiler options of the programs that run briefly (see the module docstring).
 QUICK_COMPILE = {"xla_backend_optimization_level": 0, **LOOP_EMITTER}
+
+#: Between the two: LLVM at optimisation level 1 with the loop emitter.  For programs of many
+#: small operations that run often (the glue around the fused alignment kernels), where level 0
+#: costs run time on every call and level 2 costs compile time once.
+LIGHT_COMPILE = {"xla_backend_optimization_level": 1, **LOOP_EMITTER}
 
 
 def quick_jit(fun=None, *, options: dict = QUICK_COMPILE, **jit_kwargs):

@@ -23,6 +23,19 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+ISAS = _kernels._ffi_kernels.isas() if _kernels._ffi_kernels is not None else []
+
+
+@pytest.fixture(params=ISAS)
+def isa(request):
+    """Each instruction set this CPU runs the kernels with (AVX-512 / AVX2 / baseline loops)."""
+    kernels = _kernels._ffi_kernels
+    before = kernels.isa()
+    kernels.set_isa(request.param)
+    yield request.param
+    kernels.set_isa(before)
+
+
 def _both(monkeypatch, fn, *args):
     """``fn(*args)`` traced once with the fused kernel and once with pure JAX (fresh jits)."""
     out = {}
@@ -49,16 +62,18 @@ def test_available_only_for_float32(monkeypatch):
     assert not _kernels.available(jnp.float32)
 
 
-def test_chunk_pair_kernel_matches_jax(monkeypatch):
+def test_chunk_pair_kernel_matches_jax(monkeypatch, isa):
     prev, cur, K_ref, _ = make_pair(seed=2, dtype=np.float32)
     rng = np.random.default_rng(0)
-    dp, cc = prev.depth.copy(), cur.conf.copy()
+    dp, cc, cp = prev.depth.copy(), cur.conf.copy(), prev.conf.copy()
     dp[rng.random(dp.shape) < 0.05] = np.nan
     dp[rng.random(dp.shape) < 0.02] = np.inf
     cc[rng.random(cc.shape) < 0.02] = np.inf  # an infinite confidence is never reliable
+    cc[2] = np.nan  # no finite confidence: the frame's mean is NaN, nothing of it is reliable
+    cp[3, ::2] = np.nan  # the mean over the finite half (the kernel's second, masked pass)
     ep = prev.extrinsic.copy()
     ep[1, 0, 3] = np.nan  # a dropped frame
-    prev = prev._replace(depth=dp, extrinsic=ep)
+    prev = prev._replace(depth=dp, extrinsic=ep, conf=cp)
     cur = cur._replace(conf=cc)
     keep = rng.random(prev.depth.shape) > 0.1
     for mask in (None, jnp.asarray(keep)):
@@ -88,7 +103,7 @@ def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
     assert int(ib.num_points[0]) == int(i_j.num_points)
 
 
-def test_umeyama_kernel_matches_jax_and_float64(monkeypatch):
+def test_umeyama_kernel_matches_jax_and_float64(monkeypatch, isa):
     rng = np.random.default_rng(1)
     x = (rng.normal(size=(2, 7001, 3)) * 5 + 100).astype(np.float32)
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
@@ -106,6 +121,35 @@ def test_umeyama_kernel_matches_jax_and_float64(monkeypatch):
     err_k = np.abs(np.asarray(S_k, np.float64) - np.asarray(S64)).max()
     err_j = np.abs(np.asarray(S_j, np.float64) - np.asarray(S64)).max()
     assert err_k <= max(2 * err_j, 1e-4)  # the kernel (lanes + double blocks) is no less accurate
+
+
+def test_kernels_are_deterministic_and_isas_agree():
+    """The kernels split the work over XLA's thread pool; each item writes its own slots, so a
+    call gives the same bits every time.  The instruction sets sum in different lane orders:
+    they agree to float32 rounding."""
+    prev, cur, K_ref, _ = make_pair(seed=9, dtype=np.float32)
+    rng = np.random.default_rng(9)
+    x = (rng.normal(size=(50_001, 3)) * 3).astype(np.float32)
+    y = (0.7 * x + 1.0 + rng.normal(size=x.shape) * 0.01).astype(np.float32)
+    w = rng.random(50_001).astype(np.float32)
+    kernels, before = _kernels._ffi_kernels, _kernels._ffi_kernels.isa()
+    out = {}
+    try:
+        for name in ISAS:
+            kernels.set_isa(name)
+            runs = [(align.align_chunk_pair(prev, cur, K_ref, min_points=100)[0], align.umeyama(x, y, w)[0])
+                    for _ in range(3)]
+            for S_pair, S_um in runs[1:]:
+                np.testing.assert_array_equal(np.asarray(S_pair), np.asarray(runs[0][0]))
+                np.testing.assert_array_equal(np.asarray(S_um), np.asarray(runs[0][1]))
+            out[name] = runs[0]
+    finally:
+        kernels.set_isa(before)
+    for name in ISAS:
+        _close(out[name][0], out[ISAS[0]][0])
+        _close(out[name][1], out[ISAS[0]][1], atol=1e-4)
+    with pytest.raises(ValueError, match="instruction sets"):
+        kernels.set_isa("sse9")
 
 
 def test_kernel_derivatives_are_the_pure_jax_ones(monkeypatch):

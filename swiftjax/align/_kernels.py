@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from swiftjax._compile import quick_jit
+from swiftjax._compile import LIGHT_COMPILE, quick_jit
 
 try:  # the optional compiled extension
     from swiftjax.align import _ffi_kernels
@@ -46,11 +46,12 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
     """``jax.jit(fun)`` whose compile fits the path a call takes.
 
     When the fused kernels do the work (:func:`available` for the dtype of the first floating
-    argument, on the CPU backend) the rest of the program is glue that runs in microseconds, so
-    it compiles with :data:`swiftjax._compile.QUICK_COMPILE` (docs/performance/coldstart.md);
-    otherwise the pure-JAX passes are the hot loop and XLA's defaults apply.  Each variant compiles once per shape, dtype and static value.
+    argument, on the CPU backend) the rest of the program is a few hundred small operations,
+    so it compiles with :data:`swiftjax._compile.LIGHT_COMPILE` (docs/performance/coldstart.md);
+    otherwise the pure-JAX passes are the hot loop and XLA's defaults apply.  Each variant
+    compiles once per shape, dtype and static value.
     """
-    quick, full = quick_jit(fun, **jit_kwargs), jax.jit(fun, **jit_kwargs)
+    quick, full = quick_jit(fun, options=LIGHT_COMPILE, **jit_kwargs), jax.jit(fun, **jit_kwargs)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
@@ -97,8 +98,10 @@ def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut:
                   reference: Callable):
     """Per-frame pixel moments ``(S [F, 6, 3, 3], n [F])`` (``n`` int32 reliable-pixel counts).
 
-    ``dp, dc, cp, cc [F, H, W]``, ``params [F, 7] = (r_p, r_c, e_p, e_c, thr_p, thr_c, lam)``,
-    ``ut [W]``, ``vt [H]``; ``reference`` takes the same arguments and returns the same.
+    ``dp, dc, cp, cc [F, H, W]``, ``params [F, 6] = (r_p, r_c, e_p, e_c, gamma, lam)``,
+    ``ut [W]``, ``vt [H]``; ``reference`` takes the same arguments and returns the same.  The
+    kernel takes each frame's confidence means (the thresholds ``gamma mean(conf)``) in the
+    same pass, while the frame is in cache.
     """
     f, h, w = dp.shape[-3:]
     lead = dp.shape[:-3]

@@ -30,7 +30,7 @@ from jaxtyping import ArrayLike, Bool, Float, Int, Real
 from swiftjax import camera, sim3, so3
 from swiftjax._reductions import variadic_sum
 from swiftjax.align import _kernels, checks
-from swiftjax.align.mask import frame_conf_mean, reliability_mask
+from swiftjax.align.mask import reliability_mask
 from swiftjax.align.options import AlignOptions
 from swiftjax.align.umeyama import UmeyamaInfo, _Moments, _rough_centre, _solve
 
@@ -208,12 +208,14 @@ def _pixel_moments(ok: Array, a: Array, b: Array, ut: Array, vt: Array) -> tuple
 
 def _masked_pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array):
     """:func:`_pixel_moments` of the reliable pixels (eq. 2) of ``[O, H, W]`` depths and
-    confidences, from the per-frame ``params [O, 7] = (r_p, r_c, e_p, e_c, thr_p, thr_c, lam)``:
-    focal ratios, normalised-depth centres, confidence thresholds and depth threshold
-    (the reference of the fused kernel, :func:`swiftjax.align._kernels.pixel_moments`)."""
-    r_p, r_c, e_p, e_c, thr_p, thr_c, lam = (params[..., i] for i in range(7))
+    confidences, from the per-frame ``params [O, 6] = (r_p, r_c, e_p, e_c, gamma, lam)``:
+    focal ratios, normalised-depth centres, confidence ratio (threshold ``gamma`` times the
+    frame's :func:`~swiftjax.align.frame_conf_mean`) and depth threshold (the reference of the fused kernel,
+    :func:`swiftjax.align._kernels.pixel_moments`, which takes the confidence means in the same
+    pass)."""
+    r_p, r_c, e_p, e_c, gamma, lam = (params[..., i] for i in range(6))
     e = (Ellipsis, None, None)
-    ok = reliability_mask(r_p[e] * dp, r_c[e] * dc, cp, cc, lam, 1, thr_p, thr_c)
+    ok = reliability_mask(r_p[e] * dp, r_c[e] * dc, cp, cc, lam, gamma)
     a = jnp.where(ok, r_p[e] * dp - e_p[e], 0)  # delta_p (dst = prev)
     b = jnp.where(ok, r_c[e] * dc - e_c[e], 0)  # delta_c (src = cur)
     return _pixel_moments(ok, a, b, ut, vt)
@@ -283,24 +285,22 @@ def _align_core(
     K_ref = K_ref.astype(dtype)
     r_p, B_p, c_p = _chunk_geometry(prev, K_ref)
     r_c, B_c, c_c = _chunk_geometry(cur, K_ref)
-    mean_p = frame_conf_mean(prev.conf)
-    mean_c = frame_conf_mean(cur.conf)
     e = (slice(None), None, None)
 
-    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, mp, mc, lam, user):
-        m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio, mp, mc)
+    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, lam, user):
+        m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio)
         return m if user is None else m & user
 
     u = jnp.arange(w, dtype=dtype)[None, None, :]
     v = jnp.arange(h, dtype=dtype)[None, :, None]
 
-    # Rough centres from a strided subsample of pixels (about 8 x 8 x 16 of them).
+    # Rough centres from a strided subsample of pixels (about 8 x 8 x 16 of them), masked with
+    # the subsample's own confidence means: any centre is exact, it only conditions the sums.
     fs, hs, ws = max(1, o // 8), max(1, h // 8), max(1, w // 16)
     sub = (slice(None, None, fs), slice(None, None, hs), slice(None, None, ws))
     fsub = slice(None, None, fs)
     m_sub = mask(prev.depth[sub], cur.depth[sub], prev.conf[sub], cur.conf[sub],
-                 r_p[fsub], r_c[fsub], mean_p[fsub], mean_c[fsub], depth_threshold,
-                 None if user_keep is None else user_keep[sub])
+                 r_p[fsub], r_c[fsub], depth_threshold, None if user_keep is None else user_keep[sub])
     zero = jnp.zeros(3, dtype)
     ps = _points_soa(prev.depth[sub], r_p[fsub], B_p[fsub], c_p[fsub], zero, u[sub], v[sub])
     cs = _points_soa(cur.depth[sub], r_c[fsub], B_c[fsub], c_c[fsub], zero, u[sub], v[sub])
@@ -330,11 +330,11 @@ def _align_core(
     # parameters: a dropped frame gets lam = -1 (nothing passes), a pixel the user masks out a
     # NaN depth (never reliable).  The fused kernel reads the same table.
     dp = prev.depth if user_keep is None else jnp.where(user_keep, prev.depth, jnp.nan)
-    thr_p, thr_c = conf_ratio * mean_p, conf_ratio * mean_c
+    gamma = jnp.broadcast_to(jnp.asarray(conf_ratio, dtype), r_p.shape)
 
     def moments(lam):
         lam_f = jnp.where(frame_ok, lam, -1).astype(dtype)
-        params = jnp.stack([r_p, r_c, e_p, e_c, thr_p, thr_c, lam_f], -1)
+        params = jnp.stack([r_p, r_c, e_p, e_c, gamma, lam_f], -1)
         S, n = _kernels.pixel_moments(dp, cur.depth, prev.conf, cur.conf, params, ut, vt, _masked_pixel_moments)
         return S, jnp.sum(n)
 
