@@ -527,11 +527,13 @@ def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None 
     w, sigma = r[..., 3:6], r[..., 6]
     theta_sq = jnp.sum(w * w, -1)
 
-    # Partial derivatives of (x, y, z) in theta^2 and sigma: two scalar JVPs.
+    # Partial derivatives of (x, y, z) in theta^2 and sigma: one JVP whose tangent is batched
+    # over the two directions (the coefficients and their branches are traced once).
     f = lambda a, b: jnp.stack(_winv_coefficients(a, b))  # noqa: E731
     ones, zeros = jnp.ones_like(theta_sq), jnp.zeros_like(theta_sq)
-    coeffs, d_q = jax.jvp(f, (theta_sq, sigma), (ones, zeros))
-    _, d_s = jax.jvp(f, (theta_sq, sigma), (zeros, ones))
+    coeffs, (d_q, d_s) = jax.vmap(
+        lambda u, v: jax.jvp(f, (theta_sq, sigma), (u, v)), in_axes=0, out_axes=(None, 0)
+    )(jnp.stack([ones, zeros]), jnp.stack([zeros, ones]))
     x, y, z = (v[..., None, None] for v in coeffs)
     xq, yq, zq = (v[..., None] for v in d_q)
     xs, ys, zs = (v[..., None] for v in d_s)
