@@ -6,7 +6,10 @@ formulations (:mod:`swiftjax.align.umeyama`, :mod:`swiftjax.align.chunk_pair`) a
 other platforms, for float64, when the extension is not built, or when
 ``SWIFTJAX_ALIGN_KERNEL=jax`` is set (read when a function is traced, so it takes effect for
 new shapes or a fresh ``jax.jit``).  Both give the same moments to float32 rounding (the
-kernel sums in 8 float32 lanes, then in double).
+kernel sums in 16 float32 lanes with AVX-512, 8 otherwise, then in double).  The kernel splits
+its work over XLA's intra-op thread pool and gives the same bits for any thread count; which
+instruction set it runs with is ``_ffi_kernels.isa()`` (``set_isa(name)`` picks another the
+CPU has: read at run time, no recompile).
 
 Derivatives: a fused call is a ``jax.custom_jvp`` whose tangent is the pure-JAX reference's
 (``jax.jvp(reference, ...)``), so ``jax.grad`` / ``jax.jacfwd`` through the alignment work on

@@ -1,9 +1,9 @@
 // Fused CPU kernels of swiftjax.align, called through jax.ffi (XLA's typed FFI).
 //
 // XLA:CPU emits a multi-output reduction as a scalar loop; these kernels do the same
-// one-pass accumulation with 8 independent float32 lanes (each lane sums its own sequence,
-// so the compiler vectorises it without fast-math), then add the lane and block partials in
-// double.  Built at install (pyproject.toml's [[tool.setuptools.ext-modules]], optional:
+// one-pass accumulation with 8 or 16 independent float32 lanes (each lane sums its own
+// sequence, so the compiler vectorises it without fast-math), then add the lane and block
+// partials in double, on the calling thread and XLA's intra-op thread pool (ParallelFor).  Built at install (pyproject.toml's [[tool.setuptools.ext-modules]], optional:
 // without a C++ compiler the package uses its pure-JAX formulation, swiftjax/align/_kernels.py).
 //
 // * swiftjax_pixel_moments: per-frame pixel moments of a chunk-pair overlap, the layout of
@@ -60,6 +60,7 @@ static const char* const kIsaNames[] = {"base", "avx2", "avx512"};
 
 static Isa BestIsa() {
 #ifdef SWIFTJAX_X86_DISPATCH
+  __builtin_cpu_init();  // this may run from a static initialiser, before libgcc's own
   if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
       __builtin_cpu_supports("avx512vl"))
     return kAvx512;
