@@ -11,7 +11,12 @@ Layout (the same as pypose's ``Sim3``):
 Every function accepts leading batch axes and broadcasts them against each other, and is
 safe under ``jax.jit``, ``jax.vmap`` and ``jax.grad`` (double-``where`` small-angle
 branches: no ``0/0`` ever reaches a gradient).  Nothing here is shape-dependent beyond the
-trailing axis, so a jitted caller recompiles only when batch shapes or dtypes change.
+trailing axis, so a jitted caller recompiles only when batch shapes or dtypes change.  The
+group maps are ``jax.jit``-ted themselves: called on concrete arrays (a notebook, host code)
+each compiles one program per shape and dtype instead of one per primitive (``exp`` on
+``[1000, 7]``: 0.19 s for the first call instead of 1.36 s over 36 programs); inside another
+``jit`` they are inlined.  :func:`from_rst`, :func:`from_matrix` and :func:`check` are not
+jitted: they refuse bad concrete input on the host.
 
 Exponential map (Sophus ``sim3.hpp``, ``calcW``; Eade, "Lie groups for computer vision",
 sec. 6).  With ``theta = |omega|``, ``K = [omega]x``::
@@ -163,21 +168,25 @@ def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) 
     return jnp.broadcast_to(e, (*batch_shape, 8))
 
 
+@jax.jit
 def compose(A: Real[ArrayLike, "*a 8"], B: Real[ArrayLike, "*b 8"]) -> Float[Array, "... 8"]:
     """``A o B``: ``(s_A R_A t_B + t_A, q_A q_B, s_A s_B)``; ``[..., 8] x [..., 8] -> [..., 8]``."""
     return _join(*_compose_c(_split(A), _split(B)))
 
 
+@jax.jit
 def inverse(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
     """``S^-1 = (-(1/s) R^T t, q*, 1/s)``: ``[..., 8] -> [..., 8]``."""
     return _join(*_inverse_c(_split(S)))
 
 
+@jax.jit
 def between(A: Real[ArrayLike, "*a 8"], B: Real[ArrayLike, "*b 8"]) -> Float[Array, "... 8"]:
     """``A^-1 o B``, the relative transform that maps B's frame into A's."""
     return _join(*_compose_c(_inverse_c(_split(A)), _split(B)))
 
 
+@jax.jit
 def act(S: Real[ArrayLike, "*a 8"], points: Real[ArrayLike, "*b 3"]) -> Float[Array, "... 3"]:
     """Apply ``S`` to points: ``s R x + t``.
 
@@ -189,6 +198,7 @@ def act(S: Real[ArrayLike, "*a 8"], points: Real[ArrayLike, "*b 3"]) -> Float[Ar
     return so3.join(_act_c(_split(S), so3.split(jnp.asarray(points))))
 
 
+@jax.jit
 def normalize(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
     """Re-unit the quaternion of ``S`` (e.g. after many compositions)."""
     t, q, s = _split(S)
@@ -332,11 +342,13 @@ def _log_c(c: tuple[Array, ...]) -> tuple[Array, ...]:
     return (*rho, *omega, sigma)
 
 
+@jax.jit
 def exp(xi: Real[ArrayLike, "*batch 7"]) -> Float[Array, "*batch 8"]:
     """Exponential map ``[..., 7] (rho, omega, sigma) -> [..., 8]``: ``(W rho, exp(omega), e^sigma)``."""
     return _map_components(_exp_c, jnp.asarray(xi), 8, "blocked")
 
 
+@jax.jit
 def log(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7"]:
     """Logarithm ``[..., 8] -> [..., 7]`` with ``|omega| <= pi``; ``log(exp(xi)) = xi`` for ``|omega| < pi``.
 
@@ -351,6 +363,7 @@ def log(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7"]:
 # ---------------------------------------------------------------- matrices and adjoint
 
 
+@jax.jit
 def as_matrix(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 4 4"]:
     """Homogeneous matrix ``[[s R, t], [0, 1]]``: ``[..., 8] -> [..., 4, 4]``."""
     S = jnp.asarray(S)
@@ -401,6 +414,7 @@ def from_rst(
     return _pack(t, so3.from_matrix(R), s)
 
 
+@jax.jit
 def is_valid(S: Real[ArrayLike, "*batch 8"]) -> Bool[Array, "*batch"]:
     """``[..., 8] -> [...]`` bool: finite, ``s > 0`` and ``q != 0`` (jit-able flag)."""
     return _is_valid_c(so3.split(jnp.asarray(S)))
@@ -436,6 +450,7 @@ def check(S: ArrayLike, name: str = "S", unit_tol: float | None = None) -> None:
         )
 
 
+@jax.jit
 def to_rst(S: Real[ArrayLike, "*batch 8"]) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3"], Float[Array, "*batch"]]:
     """``(R [..., 3, 3], t [..., 3], s [...])`` of ``S``."""
     S = jnp.asarray(S)
@@ -464,6 +479,7 @@ def from_matrix(M: Real[ArrayLike, "*batch _ 4"]) -> Float[Array, "*batch 8"]:
     return from_rst(sr / s[..., None, None], M[..., :3, 3], s)
 
 
+@jax.jit
 def adjoint(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7 7"]:
     """Adjoint ``[..., 8] -> [..., 7, 7]`` with ``S o exp(xi) o S^-1 = exp(Ad(S) xi)``::
 
@@ -499,6 +515,7 @@ def _mat3(a: Array, b: Array) -> Array:
     return a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :] + a[..., :, 2, None] * b[..., None, 2, :]
 
 
+@jax.jit
 def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None = None) -> Float[Array, "*batch 7 7"]:
     """Inverse right Jacobian ``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``, closed form:
     ``[..., 7] -> [..., 7, 7]``.
@@ -557,6 +574,7 @@ def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None 
     return jnp.concatenate([top, middle, bottom], -2)
 
 
+@jax.jit
 def right_jacobian_inverse(xi: Real[ArrayLike, "*batch 7"]) -> Float[Array, "*batch 7 7"]:
     """``Jr^-1(xi) = d log(exp(xi) exp(d)) / d d`` at ``d = 0``: ``[..., 7] -> [..., 7, 7]``.
 

@@ -4,6 +4,8 @@ Quaternions are ``[..., 4]`` arrays ``(qx, qy, qz, qw)`` (scalar last, the layou
 pypose and scipy).  Rotation vectors (tangents) are ``[..., 3]``.  Every function
 accepts leading batch axes and broadcasts them; everything is jit-, vmap- and grad-safe:
 small-angle branches use the double-``where`` trick so that no ``0/0`` reaches a gradient.
+The public maps are ``jax.jit``-ted (one program per shape and dtype when called on concrete
+arrays, inlined inside another ``jit``); the ``*_components`` helpers are plain functions.
 
 Maths (Sola, "A micro Lie theory", 2018, eqs. 101-106; Sophus ``so3.hpp``):
 
@@ -192,6 +194,7 @@ def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) 
     return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dtype), (*batch_shape, 4))
 
 
+@jax.jit
 def hat(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Skew-symmetric matrix ``[w]x`` with ``[w]x v = w x v``: ``[..., 3] -> [..., 3, 3]``."""
     w = jnp.asarray(w)
@@ -203,6 +206,7 @@ def hat(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     )
 
 
+@jax.jit
 def vee(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """Inverse of :func:`hat` (reads the antisymmetric part): ``[..., 3, 3] -> [..., 3]``."""
     m = jnp.asarray(m)
@@ -212,11 +216,13 @@ def vee(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     )
 
 
+@jax.jit
 def exp(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     """Exponential map, rotation vector ``[..., 3]`` -> unit quaternion ``[..., 4]``."""
     return join(exp_components(split(jnp.asarray(w)))[0])
 
 
+@jax.jit
 def log(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     """Logarithm, unit quaternion ``[..., 4]`` -> rotation vector ``[..., 3]`` with ``|w| <= pi``.
 
@@ -226,32 +232,38 @@ def log(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     return join(log_components(split(jnp.asarray(q)))[0])
 
 
+@jax.jit
 def compose(a: Real[ArrayLike, "*a 4"], b: Real[ArrayLike, "*b 4"]) -> Float[Array, "... 4"]:
     """Hamilton product ``a * b`` (rotation ``b`` first, then ``a``): ``[..., 4]``."""
     return join(compose_components(split(jnp.asarray(a)), split(jnp.asarray(b))))
 
 
+@jax.jit
 def inverse(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``(-v, w)``, the inverse of a unit quaternion (of ``q / |q|`` up to the norm)."""
     q = jnp.asarray(q)
     return q * jnp.array([-1, -1, -1, 1], dtype=q.dtype)
 
 
+@jax.jit
 def between(a: Real[ArrayLike, "*a 4"], b: Real[ArrayLike, "*b 4"]) -> Float[Array, "... 4"]:
     """``a^-1 * b``, the rotation from ``b``'s frame into ``a``'s: ``[..., 4]``."""
     return join(compose_components(inverse_components(split(jnp.asarray(a))), split(jnp.asarray(b))))
 
 
+@jax.jit
 def act(q: Real[ArrayLike, "*a 4"], x: Real[ArrayLike, "*b 3"]) -> Float[Array, "... 3"]:
     """Rotate points: ``R(q) x`` for ``q [..., 4]``, ``x [..., 3]`` (broadcast)."""
     return join(act_components(split(jnp.asarray(q)), split(jnp.asarray(x))))
 
 
+@jax.jit
 def adjoint(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Adjoint ``[..., 4] -> [..., 3, 3]``: ``q exp(w) q^-1 = exp(Ad(q) w)`` with ``Ad(q) = R(q)``."""
     return as_matrix(q)
 
 
+@jax.jit
 def normalize(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """``q / |q|`` (e.g. after many compositions); the sign is kept."""
     c = split(jnp.asarray(q))
@@ -259,6 +271,7 @@ def normalize(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     return join(tuple(x * inv for x in c))
 
 
+@jax.jit
 def canonical(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """``q`` or ``-q``, whichever has ``qw >= 0`` (the same rotation; the form :func:`from_matrix`
     returns and :func:`log` reads)."""
@@ -266,6 +279,7 @@ def canonical(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     return q * hemisphere_sign(q[..., 3:4])
 
 
+@jax.jit
 def as_matrix(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrix of ``q / |q|``: ``[..., 4] -> [..., 3, 3]`` (always a rotation, as
     :func:`act` and :func:`log` read any non-zero quaternion; NaN for a zero one)."""
@@ -285,6 +299,7 @@ def as_matrix(q: Real[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     )
 
 
+@jax.jit
 def from_matrix(r: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     """Unit quaternion of a rotation matrix ``[..., 3, 3] -> [..., 4]`` (Shepperd's method).
 
@@ -324,6 +339,7 @@ def _det3(m: Array) -> Array:
     )
 
 
+@jax.jit
 def project(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     """Quaternion of the rotation nearest to ``m`` in the Frobenius norm: ``[..., 3, 3] -> [..., 4]``.
 
@@ -345,6 +361,7 @@ def project(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     return from_matrix(r)
 
 
+@jax.jit
 def jlog(w: Real[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Inverse right Jacobian ``Jr^-1(w) = d log(exp(w) exp(d)) / d d`` at ``d = 0``:
     ``[..., 3] -> [..., 3, 3]``.
