@@ -42,6 +42,7 @@ from jax import lax
 from jaxtyping import ArrayLike, Float
 
 from swiftjax import align, camera, sim3
+from swiftjax._compile import LIGHT_COMPILE, quick_jit
 from swiftjax.loops.options import VerificationConfig
 
 __all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_consistency"]
@@ -256,7 +257,7 @@ class CrossCheck(NamedTuple):
     score: jax.Array
 
 
-@functools.partial(jax.jit, static_argnames=("stride", "neighbours"))
+@quick_jit(options=LIGHT_COMPILE, static_argnames=("stride", "neighbours"))
 def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, neighbours):
     def one(fi, fj, z):
         a = _dense_consistency(fi, fj, z, K_ref, conf_ratio, depth_tolerance, stride, neighbours)

@@ -36,6 +36,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from swiftjax import sim3
+from swiftjax._compile import quick_jit
 
 __all__ = ["odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set"]
 
@@ -72,7 +73,7 @@ def loop_covariance(
     return var[..., :, None] * jnp.eye(7, dtype=Z.dtype)
 
 
-@jax.jit
+@quick_jit  # runs once per pipeline on M <= a few hundred loops: compile dominates
 def pairwise_consistency(
     chain_poses: Float[ArrayLike, "T 8"],
     odometry_cov: Float[ArrayLike, "T-1 7 7"],
