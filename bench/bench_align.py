@@ -48,7 +48,6 @@ import jax.numpy as jnp  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from swiftjax import align, camera, sim3  # noqa: E402
-from swiftjax._compile import LIGHT_COMPILE  # noqa: E402
 from swiftjax.align import _kernels, chunk_pair  # noqa: E402
 
 H, W = 154, 518
@@ -225,12 +224,11 @@ def open3d_estimate():
     return prepare
 
 
-def library_jit(fun, mode: str):
-    """``jax.jit(fun)`` with the compiler options the library gives it on that path
-    (``align._kernels.jit``: LIGHT_COMPILE when the fused kernels do the work, else XLA's
-    defaults), as a fresh jit so that ``.lower().compile()`` can be timed."""
-    fast = mode == "auto" and _kernels.available(jnp.float32)
-    return jax.jit(lambda *a: fun(*a), compiler_options=LIGHT_COMPILE if fast else None)
+def library_jit(fun):
+    """``jax.jit(fun)`` with the compiler options the library gives it on the current path
+    (``align._kernels.compiler_options``, read under ``kernel_mode``), as a fresh jit so that
+    ``.lower().compile()`` can be timed."""
+    return jax.jit(lambda *a: fun(*a), compiler_options=_kernels.compiler_options(jnp.float32))
 
 
 def timed_compile(jfn, *args) -> tuple[float, object]:
@@ -257,7 +255,7 @@ def run_case(o: int, repeats: int, slow_repeats: int) -> dict:
     res["kernel_built"] = _kernels._ffi_kernels is not None
     for mode, key in (("auto", "align"), ("jax", "align_jax")):
         with kernel_mode(mode):
-            c_align, f_align = timed_compile(library_jit(chunk_pair._align_core, mode), prev, cur, K_ref, *opts)
+            c_align, f_align = timed_compile(library_jit(chunk_pair._align_core), prev, cur, K_ref, *opts)
         S_m, info = f_align(prev, cur, K_ref, *opts)
         res[f"{key}_compile_s"] = c_align
         res[f"{key}_s"] = best_of(lambda: f_align(prev, cur, K_ref, *opts), repeats, key)
@@ -314,7 +312,7 @@ def run_case(o: int, repeats: int, slow_repeats: int) -> dict:
     src, dst, w = (jax.device_put(jnp.asarray(np.asarray(a))) for a in (Xc, Xp, m))
     for mode, key in (("auto", "umeyama"), ("jax", "umeyama_jax")):
         with kernel_mode(mode):
-            c_um, f_um = timed_compile(library_jit(align.umeyama.__wrapped__, mode), src, dst, w)
+            c_um, f_um = timed_compile(library_jit(align.umeyama.__wrapped__), src, dst, w)
         S_m, _ = f_um(src, dst, w)
         if key == "umeyama":
             S_um = S_m

@@ -33,7 +33,7 @@ try:  # the optional compiled extension
 except ImportError:  # pragma: no cover - depends on the install
     _ffi_kernels = None
 
-__all__ = ["available", "fused", "jit", "pixel_moments", "umeyama_moments"]
+__all__ = ["available", "compiler_options", "fused", "jit", "pixel_moments", "umeyama_moments"]
 
 _registered = False
 
@@ -45,14 +45,21 @@ def available(dtype) -> bool:
     return jnp.dtype(dtype) == jnp.float32
 
 
+def compiler_options(dtype) -> dict | None:
+    """XLA options of a program whose moment passes run on ``dtype`` arrays:
+    :data:`swiftjax._compile.LIGHT_COMPILE` when the fused kernels do the work (:func:`available`,
+    CPU backend), else None (XLA's defaults: the pure-JAX passes are the hot loop)."""
+    fast = dtype is not None and available(dtype) and jax.default_backend() == "cpu"
+    return LIGHT_COMPILE if fast else None
+
+
 def jit(fun: Callable, **jit_kwargs) -> Callable:
     """``jax.jit(fun)`` whose compile fits the path a call takes.
 
-    When the fused kernels do the work (:func:`available` for the dtype of the first floating
-    argument, on the CPU backend) the rest of the program is a few hundred small operations,
-    so it compiles with :data:`swiftjax._compile.LIGHT_COMPILE` (docs/performance/coldstart.md);
-    otherwise the pure-JAX passes are the hot loop and XLA's defaults apply.  Each variant
-    compiles once per shape, dtype and static value.
+    The options are :func:`compiler_options` of the first floating argument's dtype: when the
+    fused kernels do the work the rest of the program is a few hundred small operations,
+    compiled with :data:`swiftjax._compile.LIGHT_COMPILE` (docs/performance/align.md).  Each
+    variant compiles once per shape, dtype and static value.
     """
     quick, full = quick_jit(fun, options=LIGHT_COMPILE, **jit_kwargs), jax.jit(fun, **jit_kwargs)
 
@@ -60,8 +67,7 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
     def call(*args, **kwargs):
         leaves = jax.tree_util.tree_leaves((args, kwargs))
         dtype = next((jnp.result_type(x) for x in leaves if jnp.issubdtype(jnp.result_type(x), jnp.floating)), None)
-        fast = dtype is not None and available(dtype) and jax.default_backend() == "cpu"
-        return (quick if fast else full)(*args, **kwargs)
+        return (full if compiler_options(dtype) is None else quick)(*args, **kwargs)
 
     return call
 

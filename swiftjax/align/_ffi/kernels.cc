@@ -3,8 +3,9 @@
 // XLA:CPU emits a multi-output reduction as a scalar loop; these kernels do the same
 // one-pass accumulation with 8 or 16 independent float32 lanes (each lane sums its own
 // sequence, so the compiler vectorises it without fast-math), then add the lane and block
-// partials in double, on the calling thread and XLA's intra-op thread pool (ParallelFor).  Built at install (pyproject.toml's [[tool.setuptools.ext-modules]], optional:
-// without a C++ compiler the package uses its pure-JAX formulation, swiftjax/align/_kernels.py).
+// partials in double, on the calling thread and XLA's intra-op thread pool (ParallelFor).
+// Built at install (pyproject.toml's [[tool.setuptools.ext-modules]], optional: without a
+// C++ compiler the package uses its pure-JAX formulation, swiftjax/align/_kernels.py).
 //
 // * swiftjax_pixel_moments: per-frame pixel moments of a chunk-pair overlap, the layout of
 //   swiftjax.align.chunk_pair._pixel_moments.
