@@ -159,6 +159,19 @@ def log_components(q: Quat) -> tuple[Vec3, HalfAngle]:
     return omega, half
 
 
+def half_angle(q: Quat, theta_sq: Array) -> HalfAngle:
+    """The :class:`HalfAngle` of the rotation ``q`` whose squared angle ``theta_sq = |log q|^2`` is
+    known: ``sin(theta/2) = |v| / |q|`` and ``cos(theta/2) = |w| / |q|`` read off the quaternion
+    (no trigonometric function).  As in :func:`log_components`, ``theta`` and ``sin_half`` are
+    placeholders where ``small`` (the Taylor branches do not read them)."""
+    v_sq = dot(q[:3], q[:3])
+    inv_norm = jax.lax.rsqrt(v_sq + q[3] * q[3])
+    small = theta_sq < _small_angle_eps(theta_sq.dtype)
+    theta = jnp.sqrt(jnp.where(small, jnp.ones_like(theta_sq), theta_sq))
+    sin_half = jnp.sqrt(jnp.where(small, jnp.ones_like(v_sq), v_sq)) * inv_norm
+    return HalfAngle(theta_sq, theta, sin_half, hemisphere_sign(q[3]) * q[3] * inv_norm, small)
+
+
 def compose_components(a: Quat, b: Quat) -> Quat:
     av, bv = a[:3], b[:3]
     c = cross(av, bv)

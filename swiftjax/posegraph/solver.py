@@ -115,7 +115,10 @@ def linearize(
     kernel_scale: Real[ArrayLike, ""],
 ) -> Linearization:
     """Residuals, exact Jacobians, IRLS weights and the assembled normal equations at ``poses``."""
-    r, jr_inv, adj = residual_jacobian_factors(poses, problem)
+    # Factors materialised before the assembly (as the edge errors are inside them): the
+    # assembly's unrolled block products otherwise re-fuse the Jacobians' formulas into each
+    # of their consumers, which only costs compile time (docs/performance/posegraph.md).
+    r, jr_inv, adj = jax.lax.optimization_barrier(residual_jacobian_factors(poses, problem))
     rho, w = edge_costs(r, problem, kernel, kernel_scale)
     ne = linear.assemble(r, jr_inv, adj, w, problem.information, problem.edges, problem.fixed)
     return Linearization(cost=0.5 * jnp.sum(rho), ne=ne, edge_weights=w, residuals=r)
