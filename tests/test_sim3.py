@@ -339,6 +339,76 @@ def test_jitted_log_exp_with_tiny_log_scale_is_finite(dtype):
             assert np.all(np.isfinite(jax.jit(sim3.right_jacobian_inverse)(xi)))
 
 
+def _jr_inv_mpmath(xi: np.ndarray, dps: int = 40) -> np.ndarray:
+    """``Jr^-1(xi)`` in ``dps``-digit arithmetic from the Baker-Campbell-Hausdorff formula,
+    ``log(e^X e^D) = X + G(-ad_X) D + O(D^2)`` with ``G(z) = z / (e^z - 1) = 1 / F(z)``,
+    ``F(z) = sum_n z^n / (n + 1)!``: a matrix function of the 7 x 7 adjoint of the algebra
+    (``[[sigma I + [omega]x, [rho]x, -rho], [0, [omega]x, 0], [0, 0, 0]]``), independent of
+    ``sim3.jlog``'s closed form and its branches."""
+    import mpmath as mp
+
+    with mp.workdps(dps):
+        r = [mp.mpf(float(v)) for v in xi]
+        rho, w, s = r[:3], r[3:6], r[6]
+        hat = lambda v: [[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]  # noqa: E731
+        ad = mp.zeros(7, 7)
+        for i in range(3):
+            for j in range(3):
+                ad[i, j] = hat(w)[i][j] + (s if i == j else 0)
+                ad[i, 3 + j] = hat(rho)[i][j]
+                ad[3 + i, 3 + j] = hat(w)[i][j]
+            ad[i, 6] = -rho[i]
+        term, total, n = mp.eye(7), mp.eye(7), 1
+        while mp.mnorm(term, 1) > mp.mpf(10) ** -dps:
+            term = term * -ad / (n + 1)
+            total += term
+            n += 1
+        return np.array((total**-1).tolist(), dtype=np.float64)
+
+
+# (|omega|, |sigma|) -> (float64, float32) bound on max |jlog - reference| / max |reference|.
+# The branch each exercises is named in sim3._winv_partials; "small theta, large sigma" is its
+# stated limit (eps / theta).
+JLOG_REGIMES = {
+    "generic": ((0.9, 0.3), (1e-14, 2e-6)),
+    "near pi": ((2.9, 0.7), (1e-14, 2e-6)),
+    "large scale change": ((1.2, 4.0), (1e-14, 2e-6)),
+    "sigma = 0": ((0.5, 0.0), (1e-14, 2e-6)),
+    "tiny sigma": ((0.5, 1e-9), (1e-14, 2e-6)),
+    "sigma just past the float64 series": ((0.1, 0.02), (1e-13, 2e-6)),
+    "theta = 0": ((0.0, 0.8), (1e-14, 2e-6)),
+    "theta below the small-angle threshold": ((1e-8, 0.8), (1e-14, 2e-6)),
+    "small theta, large sigma (float64 limit)": ((1e-5, 0.8), (1e-10, 2e-6)),
+    "small theta, large sigma (float32 limit)": ((1e-3, 0.8), (1e-12, 5e-4)),
+    "|w| -> 0": ((1e-6, 1e-6), (1e-14, 2e-6)),
+    "identity": ((0.0, 0.0), (1e-14, 2e-6)),
+    "|w| inside the float64 series": ((0.07, 0.07), (1e-14, 2e-6)),
+    "|w| outside the float64 series": ((0.08, 0.07), (1e-13, 2e-6)),
+    "|w| inside the float32 series": ((0.5, 0.49), (1e-14, 2e-6)),
+    "|w| outside the float32 series": ((0.5, 0.51), (1e-14, 5e-6)),
+}
+
+
+@pytest.mark.parametrize("regime", list(JLOG_REGIMES))
+def test_jlog_matches_40_digit_reference(x64, regime):
+    """``sim3.jlog`` in float64 and float32, with and without ``S``, against :func:`_jr_inv_mpmath`."""
+    (angle, sigma), (tol64, tol32) = JLOG_REGIMES[regime]
+    rng = np.random.default_rng(7)
+    axis = rng.normal(size=(4, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    xi = np.concatenate([rng.normal(size=(4, 3)) * 3, angle * axis, sigma * np.array([[1.0], [-1.0], [1.0], [-1.0]])], -1)
+    ref = np.stack([_jr_inv_mpmath(x) for x in xi])
+    scale = np.abs(ref).max()
+    for dtype, tol in ((np.float64, tol64), (np.float32, tol32)):
+        x = jnp.asarray(xi, dtype)
+        for got in (_jlog_jit(x), _jlog_jit(x, sim3.exp(x))):
+            err = np.abs(np.asarray(got, np.float64) - ref).max() / scale
+            assert err <= tol, f"{regime}, {np.dtype(dtype).name}: relative error {err:.2e} > {tol:.0e}"
+
+
+_jlog_jit = jax.jit(sim3.jlog)
+
+
 def test_jlog_closed_form_matches_forward_mode(x64):
     xi = _tangents(5, 1.2, 0.3, n=8)
     ref = np.asarray(jax.jit(sim3.right_jacobian_inverse)(xi))
