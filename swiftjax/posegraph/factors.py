@@ -14,7 +14,7 @@ exp(delta_j)`` to first order, hence (``Jr^-1`` = inverse right Jacobian of Sim(
 form from its block structure (derivation in :func:`swiftjax.sim3.jlog`): only the partial
 derivatives of the three scalar coefficients of ``W^-1`` are needed, in closed form from the
 holomorphic ``G(w) = w / (e^w - 1)``, with the ``theta -> 0`` and ``sigma -> 0`` branches of
-``sim3.log``.  The result is checked against a 60-digit mpmath reference, against
+``sim3.log``.  The result is checked against a 40-digit mpmath reference, against
 ``sim3.right_jacobian_inverse`` (seven JVPs through ``log o compose o exp``) and against
 ``jax.jacfwd`` of the residual in the tests.
 

@@ -117,7 +117,7 @@ def linearize(
     """Residuals, exact Jacobians, IRLS weights and the assembled normal equations at ``poses``."""
     # Factors materialised before the assembly (as the edge errors are inside them): the
     # assembly's unrolled block products otherwise re-fuse the Jacobians' formulas into each
-    # of their consumers, which only costs compile time (docs/performance/posegraph.md).
+    # of their consumers, recomputing them (compile and run time: docs/performance/posegraph.md).
     r, jr_inv, adj = jax.lax.optimization_barrier(residual_jacobian_factors(poses, problem))
     rho, w = edge_costs(r, problem, kernel, kernel_scale)
     ne = linear.assemble(r, jr_inv, adj, w, problem.information, problem.edges, problem.fixed)
