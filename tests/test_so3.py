@@ -64,3 +64,27 @@ def test_project_of_a_rotation_is_itself_and_batches_broadcast():
     assert got.shape == (3, 1, 2, 4)
     np.testing.assert_allclose(got, q, atol=1e-6)
     assert so3.project(np.eye(3, dtype=np.float32)).shape == (4,)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_half_angle_reads_the_quaternion_like_log(dtype):
+    """``so3.half_angle`` gives ``sin(theta/2)``, ``cos(theta/2)`` of the rotation ``q`` (either sign,
+    any norm) from the quaternion alone, with ``theta = |log q|``; below the small-angle threshold
+    it flags ``small``, as ``log_components`` does."""
+    rng = np.random.default_rng(5)
+    rotvec = rng.normal(size=(64, 3))
+    angle = rng.uniform(1e-2, np.pi - 1e-3, size=64)
+    angle[:4] = 3e-6  # theta^2 = 9e-12: below float32's threshold (1e-7), above float64's (1e-14)
+    rotvec *= (angle / np.linalg.norm(rotvec, axis=1))[:, None]
+    q = Rotation.from_rotvec(rotvec).as_quat() * rng.choice([-2.0, 0.5], size=(64, 1))  # sign and norm
+    theta = np.linalg.norm(rotvec, axis=1)
+    with jax.enable_x64(dtype == np.float64):
+        half = jax.jit(lambda q, t: so3.half_angle(so3.split(q), t))(q.astype(dtype), (theta**2).astype(dtype))
+        _, ref = jax.jit(lambda q: so3.log_components(so3.split(q)))(q.astype(dtype))
+    small = np.asarray(half.small)
+    np.testing.assert_array_equal(small, np.asarray(ref.small))
+    assert small[:4].all() == (dtype == np.float32) and not small[4:].any()
+    tol = 2e-6 if dtype == np.float32 else 1e-14
+    np.testing.assert_allclose(np.asarray(half.cos_half), np.cos(theta / 2), atol=tol)
+    np.testing.assert_allclose(np.asarray(half.sin_half)[~small], np.sin(theta / 2)[~small], atol=tol)
+    np.testing.assert_allclose(np.asarray(half.theta)[~small], theta[~small], rtol=tol)
