@@ -463,25 +463,64 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _read_trajectory(path: pathlib.Path, fmt: str) -> tuple[Any, Any]:
-    """``(timestamps | None, poses [N, 4, 4])``; TUM quaternions must be non-zero."""
+    """``(timestamps | None, poses [N, 4, 4])``; TUM quaternions must be non-zero, TUM rows
+    are taken in time order (repeated times refused)."""
     import numpy as np
 
     from swiftjax.io import trajectory
 
+    if path.is_dir():
+        raise CliError(f"trajectory file {path} is a directory (give the {fmt.upper()} file, e.g. DIR/poses_{fmt}.txt)")
     if not path.exists():
         raise CliError(f"trajectory file {path} does not exist")
     if fmt == "kitti":
         return None, trajectory.read_kitti(path)
     stamps, rows = trajectory.read_tum_raw(path)
+    order = trajectory.time_order(path, stamps)
     norms = np.linalg.norm(rows[:, 3:], axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:
         k = int(bad[0])
         raise _RotationError(
-            f"{path}: pose {k} (of {len(rows)}, time {stamps[k]!r}) has a quaternion of norm {norms[k]:.6g}, "
+            f"{path}: pose {k} (of {len(rows)}, time {float(stamps[k])!r}) has a quaternion of norm {norms[k]:.6g}, "
             f"not a unit quaternion ({bad.size} such poses)", zero=bool(np.any(norms[bad] < 1e-6)),
         )
-    return trajectory.read_tum(path)
+    if np.any(order != np.arange(len(order))):
+        print(f"swiftjax: {path}: rows are not in time order; taken in time order")
+    t, poses = trajectory.read_tum(path)
+    return t[order], poses[order]
+
+
+_ESTIMATE_HEADER = "swiftjax camera-to-world poses"  # swiftjax's poses_*.txt (pipeline/export.py)
+_GROUND_TRUTH_HEADER = "the ground truth given to this run"  # its ground_truth_kitti.txt (pipeline/report.py)
+
+
+def _check_evaluate_order(ref_path: pathlib.Path, est_path: pathlib.Path) -> str:
+    """Refuse a swapped pair that the files' own headers reveal (evo's order is ``REF EST``;
+    swapped, a Sim(3) alignment prints an error in the estimate's units, a plausible-looking
+    wrong number); returns the reference's unit for the table (``m`` unless its header says
+    otherwise)."""
+    ref_head = " ".join(_header(ref_path))
+    est_head = " ".join(_header(est_path))
+    swap = "swiftjax evaluate REFERENCE ESTIMATE (the reference first, as evo_ape/evo_rpe)"
+    if _ESTIMATE_HEADER in ref_head:
+        raise CliError(f"{ref_path} is a swiftjax estimate (its header says so) but is given as the reference: {swap}")
+    if _GROUND_TRUTH_HEADER in est_head:
+        raise CliError(f"{est_path} is a ground truth (its header says so) but is given as the estimate: {swap}")
+    for line in _header(ref_path):
+        if line.startswith("unit:"):
+            unit = line[5:].strip()
+            return "m" if unit.startswith("metre") else unit
+    return "m"
+
+
+def _header(path: pathlib.Path) -> list[str]:
+    from swiftjax.io import trajectory
+
+    try:
+        return trajectory.read_header(path)
+    except OSError:
+        return []  # the reader names the file below
 
 
 class _RotationError(CliError):
@@ -496,6 +535,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from swiftjax.report import markdown_table
 
     est_path, ref_path = args.estimate, args.reference
+    unit = _check_evaluate_order(ref_path, est_path)
     loaded = []
     fixes = []
     for path in (est_path, ref_path):
@@ -506,6 +546,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 hint = "" if err.zero else "; --fix-rotations normalises them"
                 raise CliError(f"{err}{hint}") from None
             stamps, poses = trajectory.read_tum(path)  # normalised quaternions
+            order = trajectory.time_order(path, stamps)
+            stamps, poses = stamps[order], poses[order]
             fixes.append(f"{path}: quaternions normalised")
         try:
             evaluation.check_rotations(poses, str(path))
@@ -536,10 +578,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise CliError(f"evaluating {est_path} against {ref_path} ({len(est)} poses): {_one_line(err)}") from None
     rows = [
-        ["ATE translation (m)", a.rmse, a.mean, a.median, a.max],
-        [f"RPE translation, delta {args.delta} (m)", *_stats(r.translation)],
+        [f"ATE translation ({unit})", a.rmse, a.mean, a.median, a.max],
+        [f"RPE translation, delta {args.delta} ({unit})", *_stats(r.translation)],
         [f"RPE rotation, delta {args.delta} (deg)", *_stats(r.rotation_deg)],
     ]
+    print(f"reference: {ref_path} (errors in its unit, {unit}); estimate: {est_path}")
     print(f"alignment: {args.align} (scale {a.scale:.6g}); {len(est)} poses")
     print(markdown_table(["metric", "rmse", "mean", "median", "max"], rows))
     return 0
@@ -659,9 +702,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
 
-    p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
-    p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses")
-    p.add_argument("reference", type=pathlib.Path, help="reference (ground-truth) poses")
+    p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference (evo's order: REF EST)")
+    p.add_argument("reference", type=pathlib.Path,
+                   help="reference (ground-truth) poses, FIRST as in evo_ape/evo_rpe; the errors are in its unit")
+    p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses (e.g. a run's poses_kitti.txt)")
     p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
                    help="file format (KITTI pairs poses by row, TUM by timestamp)")
     p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
