@@ -65,24 +65,40 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
 
     values: dict[str, Any] = {}
     if args.config is not None:
-        try:
-            with open(args.config, "rb") as f:
-                data = tomllib.load(f)
-        except FileNotFoundError as err:
-            raise CliError(f"config file {args.config} does not exist") from err
-        except IsADirectoryError as err:
-            raise CliError(f"config file {args.config} is a directory") from err
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            raise CliError(f"config file {args.config} is not valid TOML: {err}") from err
-        table = data.get("swiftjax", data)
-        if not isinstance(table, dict):
-            raise CliError(f"config file {args.config}: [swiftjax] must be a table")
-        values.update(table)
+        values.update(_read_config_table(args.config))
     flags = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(PipelineConfig)}
     try:
         return options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
     except (TypeError, ValueError) as err:
         raise CliError(f"invalid configuration: {err}") from err
+
+
+def _read_config_table(path: pathlib.Path) -> dict[str, Any]:
+    """The method options of a ``--config`` TOML file: its top level or its ``[swiftjax]``
+    table, not both (top-level keys beside the table would be silently dropped).  A UTF-8
+    byte-order mark (Windows editors write one) is accepted."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError as err:
+        raise CliError(f"config file {path} does not exist") from err
+    except IsADirectoryError as err:
+        raise CliError(f"config file {path} is a directory") from err
+    try:
+        data = tomllib.loads(raw.decode("utf-8-sig"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise CliError(f"config file {path} is not valid TOML: {err}") from err
+    if "swiftjax" not in data:
+        return data
+    table = data["swiftjax"]
+    if not isinstance(table, dict):
+        raise CliError(f"config file {path}: [swiftjax] must be a table")
+    others = [k for k, v in data.items() if k != "swiftjax" and not isinstance(v, dict)]  # other tables: other tools
+    if others:
+        raise CliError(
+            f"config file {path} has keys both at the top level ({', '.join(others)}) and in a [swiftjax] "
+            "table: put every option in one of them"
+        )
+    return table
 
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
@@ -204,8 +220,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         h, w = (int(v) for v in args.image_size.lower().split("x"))
     except ValueError:
         raise CliError(f"--image-size must be HEIGHTxWIDTH, e.g. 154x518, got {args.image_size!r}") from None
-    if h < 14 or w < 14:
-        raise CliError(f"--image-size {args.image_size}: height and width must be >= 14")
+    if not (14 <= h <= _DEMO_MAX_SIDE and 14 <= w <= _DEMO_MAX_SIDE):
+        raise CliError(f"--image-size {args.image_size}: height and width must be from 14 to {_DEMO_MAX_SIDE} pixels")
     if not (args.frame_spacing > 0 and args.frame_spacing < 1e3):
         raise CliError(f"--frame-spacing must be in (0, 1000) metres, got {args.frame_spacing}")
     with contextlib.closing(_make_executor(args)) as executor, _LiveView(args) as live:
@@ -217,6 +233,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         _print_summary(result)
         live.wait()
     return 0
+
+
+#: Largest side of the synthetic camera (``demo --image-size``): 100000x100000 asked for
+#: 30 GB per frame and hung on the failed allocation.
+_DEMO_MAX_SIDE = 4096
 
 
 def _demo_batch(args: argparse.Namespace) -> int:
@@ -731,6 +752,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The plain integer flags' ranges (``dest: (low, high)``), checked before any work: a port
+#: outside 1..65535 failed only when the viewer started (after the model load), 10**23 frames
+#: or a negative seed deep inside NumPy.  Method options have theirs in their schema.
+_INT_FLAGS = {
+    "port": (1, 65535), "view_port": (1, 65535), "workers": (1, 4096), "stride": (1, 10**6),
+    "frames": (1, 10**7), "seed": (0, 2**32 - 1), "batch": (1, 10**4), "delta": (1, 10**7),
+    "max_points": (1, 10**9), "view_max_points": (1, 10**9), "height": (1, 16_384), "width": (1, 16_384),
+}
+
+
+def _check_int_flags(args: argparse.Namespace) -> None:
+    for dest, (low, high) in _INT_FLAGS.items():
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        flag = "--" + dest.replace("_", "-")
+        if value < low:
+            raise CliError(f"{flag} must be >= {low}, got {value}")
+        if value > high:
+            raise CliError(f"{flag} must be <= {high}, got {value}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # NumPy's LAPACK (the whitening fit's eigh) is much slower multi-threaded on a small, busy
     # machine (docs/performance/pipeline.md); XLA does not use OpenBLAS.  Must be set before
@@ -754,6 +797,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
+            _check_int_flags(args)
             code = args.func(args)
         if args.command in ("demo", "reconstruct", "batch"):
             print(f"done in {time.perf_counter() - t0:.1f} s")
@@ -765,6 +809,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"swiftjax: error: {_one_line(err)}", file=sys.stderr)
+        return 2
+    except MemoryError as err:
+        if args.debug:
+            raise
+        print(f"swiftjax: error: out of memory ({_one_line(err)}); use smaller inputs, chunks or images",
+              file=sys.stderr)
         return 2
     except ImportError as err:
         if args.debug:

@@ -188,7 +188,7 @@ def test_model_config_errors(capsys, tmp_path):
 @pytest.mark.parametrize(
     "toml, fragments",
     [
-        ("min_points = 1e400\n", ["min_points", "inf", "an integer >= 3"]),
+        ("min_points = 1e400\n", ["min_points", "inf", "an integer with 3 <= value <= 100000000"]),
         ("loop_closure = \"no\"\n", ["loop_closure", "'no' is not a boolean"]),
         ("overlap = true\n", ["overlap", "True is not a number"]),
         ("chunk_size = 60.7\n", ["chunk_size", "60.7 is not an integer"]),
