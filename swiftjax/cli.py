@@ -171,10 +171,12 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     args.input = "."  # _image_spec's input: replaced per sequence below
     spec = _image_spec(args)
     names = batch.unique_names([inp for inp, _ in items])
+    times = (batch.sequence_timestamps([inp for inp, _ in items], args.timestamps) if args.timestamps
+             else [None] * len(items))
     jobs = [
         batch.Sequence(name, dataclasses.replace(spec, input=os.path.abspath(inp)),
-                       os.path.abspath(gt) if gt else None, args.gt_format)
-        for name, (inp, gt) in zip(names, items)
+                       os.path.abspath(gt) if gt else None, args.gt_format, t)
+        for name, (inp, gt), t in zip(names, items, times)
     ]
     return _run_batch(args, jobs)
 
@@ -694,10 +696,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("batch", help="many sequences, each its own resumable run, spread over the workers")
     p.add_argument("list", type=pathlib.Path,
-                   help="text file with one 'INPUT [GROUND_TRUTH]' per line, or a folder of sequence folders "
+                   help="text file with one 'INPUT [GROUND_TRUTH]' per line (shell quoting: \"my seq\" gt.txt; '#' "
+                        "starts a comment at a line's start or after a space), or a folder of sequence folders "
                         "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)")
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="DIR",
                    help="one run directory per sequence, and batch.json; required")
+    p.add_argument("--timestamps", default=None, metavar="NAME",
+                   help="each sequence's times file for poses_tum.txt, found in its folder or beside its frames "
+                        "folder or video (e.g. rgb.txt; the format of reconstruct --timestamps; default: a video's "
+                        "own times, else the frame index)")
     _image_options(p)
     _common_run_options(p)
     _add_method_options(p)
