@@ -231,6 +231,8 @@ def coerce(s: Spec, name: str, value: Any, source: str | None = None) -> Any:
 
 
 def _show(value: Any) -> str:
+    if isinstance(value, numbers.Number) and type(value).__module__ == "numpy":
+        value = value.item()  # 1000.0, not np.float64(1000.0)
     if isinstance(value, float) and math.isinf(value):
         return "inf (a number too large to represent?)" if value > 0 else "-inf"
     return repr(value)

@@ -109,3 +109,30 @@ def test_tum_repeated_timestamps_are_refused(capsys, tmp_path):
     trajectory.write_tum(tmp_path / "flat.txt", np.zeros(len(t)), est)  # all-equal times: not "collinear"
     code, _, err = _run(capsys, tmp_path / "ref.txt", tmp_path / "flat.txt", "--format", "tum")
     _one_line_error(code, err, "flat.txt", "same timestamp")
+
+
+def test_huge_positions_are_not_called_collinear(capsys, tmp_path):
+    """Positions x 1e300 were reported as a degenerate (collinear) alignment."""
+    gt = _route()
+    big = gt.copy()
+    big[:, :3, 3] *= 1e300
+    trajectory.write_kitti(tmp_path / "ref.txt", gt)
+    trajectory.write_kitti(tmp_path / "big.txt", big)
+    code, _, err = _run(capsys, tmp_path / "ref.txt", tmp_path / "big.txt")
+    _one_line_error(code, err, "big.txt", "estimated positions reach", "too large")
+    assert "collinear" not in err
+
+
+def test_messages_show_plain_numbers_not_numpy_reprs(capsys, tmp_path):
+    rows = "".join(f"{1000.0 + k} {k} 0 {k * k} 0 0 0 {0.5 if k == 2 else 1}\n" for k in range(5))
+    (tmp_path / "q.txt").write_text(rows)
+    trajectory.write_tum(tmp_path / "ref.txt", 1000.0 + np.arange(5.0), _route(5))
+    code, _, err = _run(capsys, tmp_path / "ref.txt", tmp_path / "q.txt", "--format", "tum")
+    _one_line_error(code, err, "q.txt", "pose 2", "time 1002.0")
+    assert "np.float64" not in err
+    from swiftjax import options
+    from swiftjax.pipeline import PipelineConfig
+
+    with pytest.raises(options.OptionError) as e:
+        PipelineConfig(depth_threshold=np.float64(-1000.0))
+    assert "-1000.0 is out of range" in str(e.value) and "np.float64" not in str(e.value)
