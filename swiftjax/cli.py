@@ -209,6 +209,21 @@ def _print_summary(result: Any) -> None:
     print(summary_table(result))
 
 
+def _empty_result(result: Any, config: Any) -> int:
+    """Exit status 1 and a loud line when the run wrote no point ("done" over an empty
+    cloud was exit 0), naming the options that drop pixels and were set."""
+    if int(result.metrics.get("points", 1)) > 0:
+        return 0
+    culprits = [f"{flag} {value}" for flag, value in (
+        ("--point-conf-ratio", config.point_conf_ratio), ("--mask-dir", config.mask_dir),
+        ("--drop-sky", config.drop_sky or None), ("--intrinsics", config.intrinsics), ("--voxel-size", config.voxel_size),
+    ) if value is not None and not (flag == "--point-conf-ratio" and value == 0.75)]
+    why = f"check {', '.join(culprits)}" if culprits else "the model's depths or confidences are unusable"
+    print(f"swiftjax: error: the run wrote 0 points (every pixel was dropped; {why}); the trajectory and the other "
+          f"outputs are in {result.run_dir}", file=sys.stderr)
+    return 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from swiftjax import demo, pipeline
 
@@ -234,7 +249,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         )
         _print_summary(result)
         live.wait()
-    return 0
+    return _empty_result(result, config)
 
 
 #: Largest side of the synthetic camera (``demo --image-size``): 100000x100000 asked for
@@ -482,7 +497,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             )
             _print_summary(result)
             live.wait()
-    return 0
+    return _empty_result(result, config)
 
 
 def _read_trajectory(path: pathlib.Path, fmt: str) -> tuple[Any, Any]:

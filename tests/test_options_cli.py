@@ -88,3 +88,14 @@ def test_toml_with_a_utf8_bom_is_read(tmp_path):
     cfg.write_bytes(b"\xef\xbb\xbfchunk_size = 40\noverlap = 10\n")
     conf = _config("--config", str(cfg))
     assert (conf.chunk_size, conf.overlap) == (40, 10)
+
+
+def test_a_run_that_writes_no_point_is_not_done(capsys, tmp_path):
+    """'done' over an empty cloud: exit 0 and "0 points written" with no warning."""
+    code, out, err = _main(capsys, "demo", "--frames", "12", "--chunk-size", "8", "--overlap", "3",
+                           "--no-loop-closure", "--no-colmap", "--no-progress", "--point-conf-ratio", "10",
+                           "--out", tmp_path / "o")
+    assert code == 1, err
+    line = next(ln for ln in err.splitlines() if "0 points" in ln)
+    assert "--point-conf-ratio 10" in line and str(tmp_path / "o") in line
+    assert (tmp_path / "o" / "poses_kitti.txt").is_file()  # the other outputs are kept
