@@ -827,23 +827,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
-    except user_errors as err:
+    except (*user_errors, MemoryError, ImportError) as err:
         if args.debug:
             raise
-        print(f"swiftjax: error: {_one_line(err)}", file=sys.stderr)
+        print(f"swiftjax: error: {_error_line(err)}", file=sys.stderr)
         return 2
-    except MemoryError as err:
-        if args.debug:
-            raise
-        print(f"swiftjax: error: out of memory ({_one_line(err)}); use smaller inputs, chunks or images",
-              file=sys.stderr)
-        return 2
-    except ImportError as err:
-        if args.debug:
-            raise
-        print(f"swiftjax: error: {_one_line(err)} (install the extra: pip install 'swiftjax[inference]')",
-              file=sys.stderr)
-        return 2
+
+
+def _error_line(err: BaseException) -> str:
+    """The one line of a user-facing error, with what to do for memory and missing extras."""
+    if isinstance(err, MemoryError):
+        return f"out of memory ({_one_line(err)}); use smaller inputs, chunks or images"
+    if isinstance(err, ImportError):
+        return f"{_one_line(err)} (install the extra: pip install 'swiftjax[inference]')"
+    return _one_line(err)
 
 
 def _one_line(err: BaseException) -> str:
