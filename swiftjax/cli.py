@@ -68,9 +68,15 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
         values.update(_read_config_table(args.config))
     flags = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(PipelineConfig)}
     try:
-        return options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
+        config = options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
     except (TypeError, ValueError) as err:
         raise CliError(f"invalid configuration: {err}") from err
+    given = {k for k, v in flags.items() if v is not None} | set(values)
+    scaled = [f"{options.flag(f.name)} {getattr(config, f.name)}" for f in dataclasses.fields(PipelineConfig)
+              if f.name not in given and getattr(config, f.name) != f.default]
+    if scaled:
+        print(f"swiftjax: --chunk-size {config.chunk_size}: defaults scaled to fit it: {', '.join(scaled)}")
+    return config
 
 
 def _read_config_table(path: pathlib.Path) -> dict[str, Any]:

@@ -33,6 +33,9 @@ def test_a_small_chunk_size_scales_the_loop_window_default():
     assert _config("--chunk-size", "8", "--overlap", "3").loop_half_window == 4
     assert _config("--chunk-size", "9", "--overlap", "3").loop_half_window == 4
     assert _config().loop_half_window == 10  # the paper's value where it fits
+    # `--chunk-size 20` failed on overlap = 30, a default too: the paper's ratio 30 / 75
+    assert (_config("--chunk-size", "20").overlap, _config("--chunk-size", "20").loop_half_window) == (8, 10)
+    assert _config("--chunk-size", "2").overlap == 1 and _config("--chunk-size", "31").overlap == 30
     assert _config("--chunk-size", "8", "--overlap", "3", "--loop-half-window", "2").loop_half_window == 2
 
 
@@ -41,9 +44,21 @@ def test_cross_option_errors_name_the_flags_and_the_way_out(capsys, tmp_path):
                          "--loop-half-window", "6")
     _one_line_error(code, err, "--loop-half-window: 6;", "--chunk-size / 2 (4)", "--no-loop-closure",
                     absent=("loop_half_window", "chunk_size", "(the default"))
-    code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "20")
-    _one_line_error(code, err, "--overlap: 30 (the default: you did not set it)", "--chunk-size (20)")
+    code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "20", "--overlap", "25")
+    _one_line_error(code, err, "--overlap: 25;", "< --chunk-size (20)", absent=("(the default",))
     assert not (tmp_path / "o").exists()
+
+
+def test_speak_marks_a_default_the_user_never_set():
+    from swiftjax import options
+
+    line = options.speak("invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+                         ["overlap", "chunk_size"], {"chunk_size": "cli"})
+    assert line == ("invalid option --overlap: 30 (the default: you did not set it); allowed: 1 <= --overlap < "
+                    "--chunk-size (20)")
+    line = options.speak("invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+                         ["overlap", "chunk_size"], {"chunk_size": "file"}, "c.toml")
+    assert "< chunk_size (20)" in line  # a key from the file keeps the file's spelling
 
 
 @pytest.mark.parametrize("argv, fragments", [

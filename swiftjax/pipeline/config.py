@@ -64,7 +64,8 @@ class PipelineConfig:
     """
 
     chunk_size: int = option(75, "frames per chunk (B)", low=2, high=10_000, stage="temporal")
-    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size", low=1, high=9_999,
+    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size; default 30, or the "
+                         "paper's 30/75 of a chunk of 30 frames or fewer", low=1, high=9_999,
                          stage="temporal")
     alignment: str = option(
         "umeyama", "chunk alignment: the method's single weighted Umeyama solve, or VGGT-Long's IRLS baseline",
@@ -215,9 +216,14 @@ class PipelineConfig:
     def dependent_defaults(cls, given: dict[str, Any]) -> dict[str, Any]:
         """Defaults that follow the options the user gave (:func:`swiftjax.options.from_sources`):
         ``loop_half_window`` is the paper's 10, or ``chunk_size // 2`` when a smaller chunk
-        cannot hold the loop-centric windows (a value the user gave is kept and checked)."""
+        cannot hold the loop-centric windows; ``overlap`` is the paper's 30, or
+        ``round(chunk_size * 30 / 75)`` when the chunk holds 30 frames or fewer.  A value the
+        user gave is kept and checked."""
         chunk = given.get("chunk_size", _FIELD_DEFAULTS["chunk_size"])
-        return {"loop_half_window": max(1, min(_FIELD_DEFAULTS["loop_half_window"], chunk // 2))}
+        overlap = _FIELD_DEFAULTS["overlap"]
+        if overlap >= chunk:  # the paper's ratio, O / B = 30 / 75
+            overlap = max(1, round(chunk * _FIELD_DEFAULTS["overlap"] / _FIELD_DEFAULTS["chunk_size"]))
+        return {"loop_half_window": max(1, min(_FIELD_DEFAULTS["loop_half_window"], chunk // 2)), "overlap": overlap}
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
