@@ -3,7 +3,9 @@
 * PLY write/read of N points (xyz f32 + rgb u8 + conf f32): ours (one structured write /
   ``np.fromfile``) vs ``plyfile`` (if installed) vs a per-point ``struct.pack`` loop.
 * COLMAP ``points3D.txt`` of N points: ours (batched ``%`` formatting) vs ``np.savetxt``.
-* Input validation per KITTI-sized PNG (1241x376): header-only probe vs a full OpenCV decode.
+* Input validation per KITTI-sized PNG (1241x376): header-only probe vs a full OpenCV decode;
+  the preflight's decode check (``validate(decode=True)``) per PNG / JPEG frame, on one
+  thread and on the pool, against the header-only check.
 * Chunk store, one KITTI chunk (75x154x518, images, 1024-D descriptors): float16 vs float32
   vs zlib-compressed float16, size and save/load time.
 
@@ -23,7 +25,7 @@ import numpy as np
 from common import best_of, markdown_table, write_results
 from swiftjax.io.chunk_store import ChunkStore
 from swiftjax.io.colmap import write_colmap
-from swiftjax.io.images import list_frames
+from swiftjax.io.images import list_frames, validate
 from swiftjax.io.ply import PlyStreamWriter, ply_dtype, read_ply, write_ply
 from swiftjax.prediction import ChunkPrediction
 
@@ -127,6 +129,18 @@ def main() -> None:
             ["validate one 1241x376 PNG", "header probe (Pillow)", t_h, 1.0],
             ["validate one 1241x376 PNG", "full decode (OpenCV)", t_dec, t_dec / t_h],
         ]
+        # the preflight decode check (validate(decode=True)): per frame, 1 thread vs the pool
+        for ext in ("png", "jpg"):
+            folder = d / f"pre_{ext}"
+            folder.mkdir()
+            for i in range(20):
+                cv2.imwrite(str(folder / f"{i:06d}.{ext}"), img)
+            t_v0 = best_of(lambda: validate(list_frames(folder), decode=False), rep) / 20
+            for workers in (1, None):
+                t_v = best_of(lambda: validate(list_frames(folder), workers=workers), rep) / 20
+                label = f"validate(decode=True), {'1 thread' if workers == 1 else 'thread pool'}"
+                rows.append([f"preflight one 1241x376 {ext.upper()}", label, t_v, t_v / t_v0])
+            rows.append([f"preflight one 1241x376 {ext.upper()}", "validate(decode=False) (headers)", t_v0, 1.0])
 
         # ---------------------------------------------------------------- chunk store
         s, h, w = 75, 154, 518

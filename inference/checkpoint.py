@@ -2,7 +2,9 @@
 
 Loading is strict: every model parameter must be in the file with the same shape, and the file
 may hold nothing else except the point and track heads (``point_head.*``, ``track_head.*``),
-which SwiftVGGT does not use and which are skipped on purpose.  Pickled checkpoints are read
+which SwiftVGGT does not use and which are skipped on purpose.  Floating-point tensors of
+another precision are cast to float32 with a warning; integer or boolean tensors and NaN/inf
+values are refused, naming the tensors.  Pickled checkpoints are read
 with ``torch.load(weights_only=True)``, which refuses pickles that would run code.
 """
 
@@ -11,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -35,6 +38,7 @@ class LoadReport:
     path: str
     loaded: int
     ignored: tuple[str, ...]
+    cast: str = ""  # e.g. "385 float16 tensor(s) cast to float32" (also warned)
 
 
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, Tensor]:
@@ -155,6 +159,50 @@ def load_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadRepor
                 parts.append(f"  {len(items)} {title} key(s):\n    {shown}{more}")
         parts.append("  (is the model config the one the checkpoint was trained with?)")
         raise CheckpointError("\n".join(parts))
+    state, cast = _check_values(state, expected, os.fspath(path))
+    if cast:
+        warnings.warn(f"checkpoint {os.fspath(path)}: {cast}", stacklevel=2)
     on_meta = any(t.is_meta for t in expected.values())
     model.load_state_dict(state, strict=True, assign=on_meta)
-    return LoadReport(path=os.fspath(path), loaded=len(state), ignored=ignored)
+    return LoadReport(path=os.fspath(path), loaded=len(state), ignored=ignored, cast=cast)
+
+
+def _listed(names: list[str]) -> str:
+    shown = ", ".join(names[:_MAX_LISTED])
+    return shown + (f" and {len(names) - _MAX_LISTED} more" if len(names) > _MAX_LISTED else "")
+
+
+def _check_values(state: dict[str, Tensor], expected: Mapping[str, Tensor], path: str) -> tuple[dict[str, Tensor], str]:
+    """Dtypes and values of a checkpoint whose names and shapes fit the model.
+
+    A floating-point tensor of another precision (float16, bfloat16, float64 copies of the
+    weights) is cast to the model's dtype, and said (``(state, "N tensors cast ...")``): it
+    used to pass the checks and fail at the first prediction.  Integer, boolean or complex
+    tensors where the model has floating-point parameters, and NaN/inf values, are a
+    :class:`CheckpointError` naming the tensors (they failed inside ``load_state_dict``, or
+    came out much later as non-finite poses)."""
+    wrong: list[str] = []
+    cast: dict[str, list[str]] = {}
+    for k, v in state.items():
+        want = expected[k].dtype
+        if v.dtype == want:
+            continue
+        if want.is_floating_point and v.dtype.is_floating_point:
+            cast.setdefault(str(v.dtype).removeprefix("torch."), []).append(k)
+        else:
+            wrong.append(f"{k} ({str(v.dtype).removeprefix('torch.')})")
+    if wrong:
+        raise CheckpointError(
+            f"checkpoint {path} holds {len(wrong)} tensor(s) of a non-floating-point dtype where VGGT has "
+            f"float32 parameters: {_listed(wrong)} (not a VGGT checkpoint, or a quantised one)"
+        )
+    if cast:
+        state = {k: (v.to(expected[k].dtype) if v.dtype != expected[k].dtype else v) for k, v in state.items()}
+    bad = [k for k, v in state.items() if v.dtype.is_floating_point and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise CheckpointError(
+            f"checkpoint {path}: {len(bad)} tensor(s) hold NaN/inf values: {_listed(bad)} (a damaged or diverged "
+            "checkpoint: VGGT's outputs would be non-finite)"
+        )
+    text = "; ".join(f"{len(names)} {dt} tensor(s) cast to float32" for dt, names in sorted(cast.items()))
+    return state, text

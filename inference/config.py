@@ -82,6 +82,14 @@ class VGGTConfig:
 
     def __post_init__(self) -> None:
         problems = []
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name in _POSITIVE and value is not None and not (
+                isinstance(value, (int, float)) and not isinstance(value, bool) and value >= _POSITIVE[f.name]
+            ):
+                problems.append(f"{f.name} must be >= {_POSITIVE[f.name]}, got {value!r}")
+        if problems:  # the divisibility checks below would divide by zero or mislead
+            raise ValueError("invalid VGGTConfig: " + "; ".join(problems))
         if self.embed_dim % self.num_heads:
             problems.append(f"embed_dim {self.embed_dim} not divisible by num_heads {self.num_heads}")
         if self.embed_dim % self.dino_num_heads:
@@ -94,6 +102,8 @@ class VGGTConfig:
             problems.append(f"aa_order must be a permutation of frame/global, got {self.aa_order}")
         if self.depth % self.aa_block_size:
             problems.append(f"depth {self.depth} not divisible by aa_block_size {self.aa_block_size}")
+        if any(c < 1 for c in self.dpt_out_channels):
+            problems.append(f"dpt_out_channels must be >= 1, got {self.dpt_out_channels}")
         if len(self.dpt_out_channels) != 4 or len(self.dpt_intermediate_layer_idx) != 4:
             problems.append("the DPT head needs exactly four out_channels and intermediate layers")
         if any(not 0 <= i < self.depth for i in self.dpt_intermediate_layer_idx):
@@ -119,6 +129,7 @@ class VGGTConfig:
         ``camera_head_num_iterations``, ``depth_head_kwargs`` and
         ``depth_head_frames_chunk_size``; missing sections keep the 1B defaults.
         """
+        _check_layout(d)
         agg: Mapping[str, Any] = d.get("aggregator_kwargs", {})
         vit: Mapping[str, Any] = d.get("patch_embed_vit", {})
         cam: Mapping[str, Any] = d.get("camera_head_kwargs", {})
@@ -170,6 +181,77 @@ class VGGTConfig:
     def to_dict(self) -> dict[str, Any]:
         """The fields as a plain dict (JSON-serialisable)."""
         return dataclasses.asdict(self)
+
+
+#: Smallest value of each size (``dpt_frames_chunk_size`` may also be ``None``).
+_POSITIVE = {
+    "img_size": 1, "patch_size": 1, "embed_dim": 1, "depth": 1, "num_heads": 1, "mlp_ratio": 0, "num_register_tokens": 0,
+    "aa_block_size": 1, "dino_depth": 1, "dino_num_heads": 1, "dino_mlp_ratio": 0, "camera_trunk_depth": 1,
+    "camera_num_heads": 1, "camera_mlp_ratio": 0, "camera_iterations": 1, "dpt_features": 1,
+    "dpt_frames_chunk_size": 1,
+}
+
+#: The keys of the golden layout (``tiny_config.json``): sections with the keys read or
+#: checked in each, and the top-level keys that only describe the file.  Anything else is a
+#: typo or another layout and is refused (it was ignored, and the checkpoint blamed).
+_SECTIONS = {
+    "aggregator_kwargs": {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "mlp_ratio",
+                          "num_register_tokens", "qkv_bias", "proj_bias", "ffn_bias", "patch_embed", "aa_order",
+                          "aa_block_size", "qk_norm", "rope_freq", "init_values"},
+    "patch_embed_vit": {"embed_dim", "depth", "num_heads", "mlp_ratio", "img_size", "patch_size",
+                        "num_register_tokens", "interpolate_antialias", "interpolate_offset", "block_chunks",
+                        "init_values", "ffn_layer", "qkv_bias", "proj_bias", "ffn_bias", "qk_norm", "layernorm_eps",
+                        "pos_embed_grid"},
+    "camera_head_kwargs": {"dim_in", "trunk_depth", "pose_encoding_type", "num_heads", "mlp_ratio", "init_values",
+                           "trans_act", "quat_act", "fl_act"},
+    "depth_head_kwargs": {"dim_in", "patch_size", "output_dim", "activation", "conf_activation", "features",
+                          "out_channels", "intermediate_layer_idx", "pos_embed", "feature_only", "down_ratio"},
+}
+_SCALARS = {"camera_head_num_iterations": int, "depth_head_frames_chunk_size": (int, type(None))}
+_DESCRIPTIVE = {
+    "upstream_repo", "upstream_commit", "torch_version", "dtype", "device", "input", "patch_embed_note",
+    "point_head", "track_head", "param_init", "num_params", "num_state_dict_entries", "state_dict_keys_in_order",
+    "observed_max_abs_diff", "sha256", "seed_torch_manual_seed_before_construction",
+    "seed_param_perturbation_generator", "seed_input_generator",
+}
+#: Keys whose value is an integer (bools and fractions refused), and numbers.
+_INTS = {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "num_register_tokens", "aa_block_size",
+         "trunk_depth", "features", "dim_in", "output_dim", "down_ratio", "block_chunks"}
+_NUMBERS = {"mlp_ratio", "rope_freq", "init_values", "interpolate_offset", "layernorm_eps"}
+
+
+def _check_layout(d: Any) -> None:
+    """The structure and value types of a golden-layout config (:meth:`VGGTConfig.from_dict`):
+    an object of objects, known keys only, integers where sizes go (``ValueError`` naming the key)."""
+    import difflib
+
+    if not isinstance(d, Mapping):
+        raise ValueError(f"expected a JSON object of sections (aggregator_kwargs, ...), got a {type(d).__name__}")
+    known = set(_SECTIONS) | set(_SCALARS) | _DESCRIPTIVE
+    for key, value in d.items():
+        if key not in known:
+            close = difflib.get_close_matches(key, sorted(set(_SECTIONS) | set(_SCALARS)), n=1)
+            raise ValueError(f"unknown key {key!r}" + (f" (did you mean {close[0]}?)" if close else ""))
+        if key in _SCALARS and not (isinstance(value, _SCALARS[key]) and not isinstance(value, bool)):
+            raise ValueError(f"{key} must be an integer{' or null' if key.endswith('chunk_size') else ''}, got {value!r}")
+        if key not in _SECTIONS:
+            continue
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{key} must be an object of keyword arguments, got {value!r}")
+        for k, v in value.items():
+            if k not in _SECTIONS[key]:
+                close = difflib.get_close_matches(k, sorted(_SECTIONS[key]), n=1)
+                raise ValueError(f"unknown key {key}.{k}" + (f" (did you mean {close[0]}?)" if close else ""))
+            if k in _INTS and (isinstance(v, bool) or not isinstance(v, int)):
+                raise ValueError(f"{key}.{k} must be an integer, got {v!r}")
+            if k in _INTS and v < (0 if k == "block_chunks" else 1):  # before the cross-section checks
+                raise ValueError(f"{key}.{k} must be >= {0 if k == 'block_chunks' else 1}, got {v!r}")
+            if k in _NUMBERS and (isinstance(v, bool) or not isinstance(v, (int, float))):
+                raise ValueError(f"{key}.{k} must be a number, got {v!r}")
+            if k in ("out_channels", "intermediate_layer_idx") and not (
+                isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+            ):
+                raise ValueError(f"{key}.{k} must be a list of integers, got {v!r}")
 
 
 def _four(v: Sequence[Any]) -> tuple[int, int, int, int]:

@@ -115,7 +115,9 @@ def build_runner(
         model = VGGT(config)
     load_checkpoint(model, weights)
     torch_dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[dtype]
-    return TorchRunner(model, device=device, dtype=torch_dtype)
+    runner = TorchRunner(model, device=device, dtype=torch_dtype)
+    runner.name = f"VGGT ({weights}, {dtype})"  # named in a non-finite-output error
+    return runner
 
 
 _RUNNERS: dict[tuple, Any] = {}  # ImageSpec.runner_factory's models, per process

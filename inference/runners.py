@@ -43,9 +43,35 @@ def _check_images(images: Any) -> np.ndarray:
     return arr
 
 
+#: The model outputs a chunk uses, and what each is, for messages.
+_OUTPUTS = {"pose_enc": "camera head pose encoding", "depth": "depth head depth",
+            "depth_conf": "depth head confidence", "patch_tokens": "DINO patch tokens"}
+
+
+class ModelOutputError(ValueError):
+    """The model predicted non-finite values (the message names the model and the output)."""
+
+
+def check_outputs(outputs: dict[str, np.ndarray], model: str = "VGGT") -> None:
+    """Refuse non-finite model outputs, naming ``model`` and the output (``[S, ...]`` each):
+    a NaN in the weights came out much later as "poses holds non-finite values", or as a run
+    that wrote 0 points with exit status 0."""
+    for name, what in _OUTPUTS.items():
+        a = outputs[name]
+        finite = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
+        if not finite.all():
+            raise ModelOutputError(
+                f"{model} predicted non-finite values (NaN/inf) in its {what} ({name}) for "
+                f"{int((~finite).sum())} of {len(finite)} frames: the weights hold NaN/inf or overflow "
+                "(check the checkpoint; with --dtype float16 try bfloat16 or float32)"
+            )
+
+
 def _to_prediction(images: np.ndarray, pose_enc: np.ndarray, depth: np.ndarray, conf: np.ndarray,
-                   patch_tokens: np.ndarray) -> ChunkPrediction:
-    """Model outputs for one scene (leading batch axis already removed) -> ChunkPrediction."""
+                   patch_tokens: np.ndarray, model: str = "VGGT") -> ChunkPrediction:
+    """Model outputs for one scene (leading batch axis already removed) -> ChunkPrediction;
+    :class:`ModelOutputError` naming ``model`` if any is non-finite."""
+    check_outputs({"pose_enc": pose_enc, "depth": depth, "depth_conf": conf, "patch_tokens": patch_tokens}, model)
     height, width = images.shape[-2:]
     extrinsic, intrinsic = pose_encoding_to_extrinsics_intrinsics(pose_enc.astype(np.float32), (height, width))
     return ChunkPrediction(
@@ -74,6 +100,7 @@ class TorchRunner:
 
         self.device = torch.device(device)
         self.dtype = dtype or torch.float32
+        self.name = "VGGT"  # for messages; build_runner names the weights file
         self.model = model.to(self.device).eval()
 
     def forward(self, images: Any) -> dict[str, Any]:
@@ -95,7 +122,8 @@ class TorchRunner:
         def np32(name: str) -> np.ndarray:
             return out[name][0].float().cpu().numpy()
 
-        return _to_prediction(arr, np32("pose_enc"), np32("depth"), np32("depth_conf"), np32("patch_tokens"))
+        return _to_prediction(arr, np32("pose_enc"), np32("depth"), np32("depth_conf"), np32("patch_tokens"),
+                              self.name)
 
 
 class OnnxRunner:
@@ -116,6 +144,7 @@ class OnnxRunner:
         opts.intra_op_num_threads = intra_op_threads
         self.session = ort.InferenceSession(os.fspath(path), sess_options=opts,
                                             providers=list(providers or ["CPUExecutionProvider"]))
+        self.name = f"the ONNX graph {os.fspath(path)}"
         inp = self.session.get_inputs()[0]
         if inp.name != ONNX_INPUT:
             raise ValueError(f"{path}: expected an input named {ONNX_INPUT!r}, got {inp.name!r}")
@@ -143,4 +172,5 @@ class OnnxRunner:
         """See :class:`Runner`."""
         arr = _check_images(images)
         out = self.forward(arr)
-        return _to_prediction(arr, out["pose_enc"][0], out["depth"][0], out["depth_conf"][0], out["patch_tokens"][0])
+        return _to_prediction(arr, out["pose_enc"][0], out["depth"][0], out["depth_conf"][0], out["patch_tokens"][0],
+                              self.name)

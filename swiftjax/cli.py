@@ -65,24 +65,46 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
 
     values: dict[str, Any] = {}
     if args.config is not None:
-        try:
-            with open(args.config, "rb") as f:
-                data = tomllib.load(f)
-        except FileNotFoundError as err:
-            raise CliError(f"config file {args.config} does not exist") from err
-        except IsADirectoryError as err:
-            raise CliError(f"config file {args.config} is a directory") from err
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
-            raise CliError(f"config file {args.config} is not valid TOML: {err}") from err
-        table = data.get("swiftjax", data)
-        if not isinstance(table, dict):
-            raise CliError(f"config file {args.config}: [swiftjax] must be a table")
-        values.update(table)
+        values.update(_read_config_table(args.config))
     flags = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(PipelineConfig)}
     try:
-        return options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
+        config = options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
     except (TypeError, ValueError) as err:
         raise CliError(f"invalid configuration: {err}") from err
+    given = {k for k, v in flags.items() if v is not None} | set(values)
+    scaled = [f"{options.flag(f.name)} {getattr(config, f.name)}" for f in dataclasses.fields(PipelineConfig)
+              if f.name not in given and getattr(config, f.name) != f.default]
+    if scaled:
+        print(f"swiftjax: --chunk-size {config.chunk_size}: defaults scaled to fit it: {', '.join(scaled)}")
+    return config
+
+
+def _read_config_table(path: pathlib.Path) -> dict[str, Any]:
+    """The method options of a ``--config`` TOML file: its top level or its ``[swiftjax]``
+    table, not both (top-level keys beside the table would be silently dropped).  A UTF-8
+    byte-order mark (Windows editors write one) is accepted."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError as err:
+        raise CliError(f"config file {path} does not exist") from err
+    except IsADirectoryError as err:
+        raise CliError(f"config file {path} is a directory") from err
+    try:
+        data = tomllib.loads(raw.decode("utf-8-sig"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise CliError(f"config file {path} is not valid TOML: {err}") from err
+    if "swiftjax" not in data:
+        return data
+    table = data["swiftjax"]
+    if not isinstance(table, dict):
+        raise CliError(f"config file {path}: [swiftjax] must be a table")
+    others = [k for k, v in data.items() if k != "swiftjax" and not isinstance(v, dict)]  # other tables: other tools
+    if others:
+        raise CliError(
+            f"config file {path} has keys both at the top level ({', '.join(others)}) and in a [swiftjax] "
+            "table: put every option in one of them"
+        )
+    return table
 
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
@@ -155,10 +177,12 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     args.input = "."  # _image_spec's input: replaced per sequence below
     spec = _image_spec(args)
     names = batch.unique_names([inp for inp, _ in items])
+    times = (batch.sequence_timestamps([inp for inp, _ in items], args.timestamps) if args.timestamps
+             else [None] * len(items))
     jobs = [
         batch.Sequence(name, dataclasses.replace(spec, input=os.path.abspath(inp)),
-                       os.path.abspath(gt) if gt else None, args.gt_format)
-        for name, (inp, gt) in zip(names, items)
+                       os.path.abspath(gt) if gt else None, args.gt_format, t)
+        for name, (inp, gt), t in zip(names, items, times)
     ]
     return _run_batch(args, jobs)
 
@@ -191,6 +215,21 @@ def _print_summary(result: Any) -> None:
     print(summary_table(result))
 
 
+def _empty_result(result: Any, config: Any) -> int:
+    """Exit status 1 and a loud line when the run wrote no point ("done" over an empty
+    cloud was exit 0), naming the options that drop pixels and were set."""
+    if int(result.metrics.get("points", 1)) > 0:
+        return 0
+    culprits = [f"{flag} {value}" for flag, value in (
+        ("--point-conf-ratio", config.point_conf_ratio), ("--mask-dir", config.mask_dir),
+        ("--drop-sky", config.drop_sky or None), ("--intrinsics", config.intrinsics), ("--voxel-size", config.voxel_size),
+    ) if value is not None and not (flag == "--point-conf-ratio" and value == 0.75)]
+    why = f"check {', '.join(culprits)}" if culprits else "the model's depths or confidences are unusable"
+    print(f"swiftjax: error: the run wrote 0 points (every pixel was dropped; {why}); the trajectory and the other "
+          f"outputs are in {result.run_dir}", file=sys.stderr)
+    return 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from swiftjax import demo, pipeline
 
@@ -204,8 +243,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         h, w = (int(v) for v in args.image_size.lower().split("x"))
     except ValueError:
         raise CliError(f"--image-size must be HEIGHTxWIDTH, e.g. 154x518, got {args.image_size!r}") from None
-    if h < 14 or w < 14:
-        raise CliError(f"--image-size {args.image_size}: height and width must be >= 14")
+    if not (14 <= h <= _DEMO_MAX_SIDE and 14 <= w <= _DEMO_MAX_SIDE):
+        raise CliError(f"--image-size {args.image_size}: height and width must be from 14 to {_DEMO_MAX_SIDE} pixels")
     if not (args.frame_spacing > 0 and args.frame_spacing < 1e3):
         raise CliError(f"--frame-spacing must be in (0, 1000) metres, got {args.frame_spacing}")
     with contextlib.closing(_make_executor(args)) as executor, _LiveView(args) as live:
@@ -216,7 +255,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         )
         _print_summary(result)
         live.wait()
-    return 0
+    return _empty_result(result, config)
+
+
+#: Largest side of the synthetic camera (``demo --image-size``): 100000x100000 asked for
+#: 30 GB per frame and hung on the failed allocation.
+_DEMO_MAX_SIDE = 4096
 
 
 def _demo_batch(args: argparse.Namespace) -> int:
@@ -459,29 +503,68 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             )
             _print_summary(result)
             live.wait()
-    return 0
+    return _empty_result(result, config)
 
 
 def _read_trajectory(path: pathlib.Path, fmt: str) -> tuple[Any, Any]:
-    """``(timestamps | None, poses [N, 4, 4])``; TUM quaternions must be non-zero."""
+    """``(timestamps | None, poses [N, 4, 4])``; TUM quaternions must be non-zero, TUM rows
+    are taken in time order (repeated times refused)."""
     import numpy as np
 
     from swiftjax.io import trajectory
 
+    if path.is_dir():
+        raise CliError(f"trajectory file {path} is a directory (give the {fmt.upper()} file, e.g. DIR/poses_{fmt}.txt)")
     if not path.exists():
         raise CliError(f"trajectory file {path} does not exist")
     if fmt == "kitti":
         return None, trajectory.read_kitti(path)
     stamps, rows = trajectory.read_tum_raw(path)
+    order = trajectory.time_order(path, stamps)
     norms = np.linalg.norm(rows[:, 3:], axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:
         k = int(bad[0])
         raise _RotationError(
-            f"{path}: pose {k} (of {len(rows)}, time {stamps[k]!r}) has a quaternion of norm {norms[k]:.6g}, "
+            f"{path}: pose {k} (of {len(rows)}, time {float(stamps[k])!r}) has a quaternion of norm {norms[k]:.6g}, "
             f"not a unit quaternion ({bad.size} such poses)", zero=bool(np.any(norms[bad] < 1e-6)),
         )
-    return trajectory.read_tum(path)
+    if np.any(order != np.arange(len(order))):
+        print(f"swiftjax: {path}: rows are not in time order; taken in time order")
+    t, poses = trajectory.read_tum(path)
+    return t[order], poses[order]
+
+
+_ESTIMATE_HEADER = "swiftjax camera-to-world poses"  # swiftjax's poses_*.txt (pipeline/export.py)
+_GROUND_TRUTH_HEADER = "the ground truth given to this run"  # its ground_truth_kitti.txt (pipeline/report.py)
+
+
+def _check_evaluate_order(ref_path: pathlib.Path, est_path: pathlib.Path) -> str:
+    """Refuse a swapped pair that the files' own headers reveal (evo's order is ``REF EST``;
+    swapped, a Sim(3) alignment prints an error in the estimate's units, a plausible-looking
+    wrong number); returns the reference's unit for the table (``m`` unless its header says
+    otherwise)."""
+    ref_head = " ".join(_header(ref_path))
+    est_head = " ".join(_header(est_path))
+    swap = "swiftjax evaluate REFERENCE ESTIMATE (the reference first, as evo_ape/evo_rpe)"
+    if _ESTIMATE_HEADER in ref_head:
+        raise CliError(f"{ref_path} is a swiftjax estimate (its header says so) but is given as the reference: {swap}")
+    if _GROUND_TRUTH_HEADER in est_head:
+        raise CliError(f"{est_path} is a ground truth (its header says so) but is given as the estimate: {swap}")
+    for line in _header(ref_path):
+        if line.startswith("unit:"):
+            unit = line[5:].strip()
+            return "m" if unit.startswith("metre") else unit
+    return "m"
+
+
+def _header(path: pathlib.Path) -> list[str]:
+    from swiftjax.io import trajectory
+
+    try:
+        return trajectory.read_header(path)
+    except OSError:
+        return []  # the reader names the file below
 
 
 class _RotationError(CliError):
@@ -496,6 +579,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from swiftjax.report import markdown_table
 
     est_path, ref_path = args.estimate, args.reference
+    unit = _check_evaluate_order(ref_path, est_path)
     loaded = []
     fixes = []
     for path in (est_path, ref_path):
@@ -506,6 +590,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 hint = "" if err.zero else "; --fix-rotations normalises them"
                 raise CliError(f"{err}{hint}") from None
             stamps, poses = trajectory.read_tum(path)  # normalised quaternions
+            order = trajectory.time_order(path, stamps)
+            stamps, poses = stamps[order], poses[order]
             fixes.append(f"{path}: quaternions normalised")
         try:
             evaluation.check_rotations(poses, str(path))
@@ -536,10 +622,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise CliError(f"evaluating {est_path} against {ref_path} ({len(est)} poses): {_one_line(err)}") from None
     rows = [
-        ["ATE translation (m)", a.rmse, a.mean, a.median, a.max],
-        [f"RPE translation, delta {args.delta} (m)", *_stats(r.translation)],
+        [f"ATE translation ({unit})", a.rmse, a.mean, a.median, a.max],
+        [f"RPE translation, delta {args.delta} ({unit})", *_stats(r.translation)],
         [f"RPE rotation, delta {args.delta} (deg)", *_stats(r.rotation_deg)],
     ]
+    print(f"reference: {ref_path} (errors in its unit, {unit}); estimate: {est_path}")
     print(f"alignment: {args.align} (scale {a.scale:.6g}); {len(est)} poses")
     print(markdown_table(["metric", "rmse", "mean", "median", "max"], rows))
     return 0
@@ -630,10 +717,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("batch", help="many sequences, each its own resumable run, spread over the workers")
     p.add_argument("list", type=pathlib.Path,
-                   help="text file with one 'INPUT [GROUND_TRUTH]' per line, or a folder of sequence folders "
+                   help="text file with one 'INPUT [GROUND_TRUTH]' per line (shell quoting: \"my seq\" gt.txt; '#' "
+                        "starts a comment at a line's start or after a space), or a folder of sequence folders "
                         "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)")
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="DIR",
                    help="one run directory per sequence, and batch.json; required")
+    p.add_argument("--timestamps", default=None, metavar="NAME",
+                   help="each sequence's times file for poses_tum.txt, found in its folder or beside its frames "
+                        "folder or video (e.g. rgb.txt; the format of reconstruct --timestamps; default: a video's "
+                        "own times, else the frame index)")
     _image_options(p)
     _common_run_options(p)
     _add_method_options(p)
@@ -659,9 +751,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
 
-    p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
-    p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses")
-    p.add_argument("reference", type=pathlib.Path, help="reference (ground-truth) poses")
+    p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference (evo's order: REF EST)")
+    p.add_argument("reference", type=pathlib.Path,
+                   help="reference (ground-truth) poses, FIRST as in evo_ape/evo_rpe; the errors are in its unit")
+    p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses (e.g. a run's poses_kitti.txt)")
     p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
                    help="file format (KITTI pairs poses by row, TUM by timestamp)")
     p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
@@ -687,6 +780,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The plain integer flags' ranges (``dest: (low, high)``), checked before any work: a port
+#: outside 1..65535 failed only when the viewer started (after the model load), 10**23 frames
+#: or a negative seed deep inside NumPy.  Method options have theirs in their schema.
+_INT_FLAGS = {
+    "port": (1, 65535), "view_port": (1, 65535), "workers": (1, 4096), "stride": (1, 10**6),
+    "frames": (1, 10**7), "seed": (0, 2**32 - 1), "batch": (1, 10**4), "delta": (1, 10**7),
+    "max_points": (1, 10**9), "view_max_points": (1, 10**9), "height": (1, 16_384), "width": (1, 16_384),
+}
+
+
+def _check_int_flags(args: argparse.Namespace) -> None:
+    for dest, (low, high) in _INT_FLAGS.items():
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        flag = "--" + dest.replace("_", "-")
+        if value < low:
+            raise CliError(f"{flag} must be >= {low}, got {value}")
+        if value > high:
+            raise CliError(f"{flag} must be <= {high}, got {value}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # NumPy's LAPACK (the whitening fit's eigh) is much slower multi-threaded on a small, busy
     # machine (docs/performance/pipeline.md); XLA does not use OpenBLAS.  Must be set before
@@ -710,6 +825,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("default")
+            _check_int_flags(args)
             code = args.func(args)
         if args.command in ("demo", "reconstruct", "batch"):
             print(f"done in {time.perf_counter() - t0:.1f} s")
@@ -717,17 +833,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
-    except user_errors as err:
+    except (*user_errors, MemoryError, ImportError) as err:
         if args.debug:
             raise
-        print(f"swiftjax: error: {_one_line(err)}", file=sys.stderr)
+        print(f"swiftjax: error: {_error_line(err)}", file=sys.stderr)
         return 2
-    except ImportError as err:
-        if args.debug:
-            raise
-        print(f"swiftjax: error: {_one_line(err)} (install the extra: pip install 'swiftjax[inference]')",
-              file=sys.stderr)
-        return 2
+
+
+def _error_line(err: BaseException) -> str:
+    """The one line of a user-facing error, with what to do for memory and missing extras."""
+    if isinstance(err, MemoryError):
+        return f"out of memory ({_one_line(err)}); use smaller inputs, chunks or images"
+    if isinstance(err, ImportError):
+        return f"{_one_line(err)} (install the extra: pip install 'swiftjax[inference]')"
+    return _one_line(err)
 
 
 def _one_line(err: BaseException) -> str:

@@ -67,6 +67,9 @@ _to_rst = jax.jit(sim3.to_rst)
 
 Alignment = Literal["sim3", "se3", "none"]
 
+#: Largest coordinate :func:`umeyama_alignment` accepts (its covariance squares them).
+_MAX_COORDINATE = 1e100
+
 #: Largest ``max |R^T R - I|`` accepted as a rotation (see the module docstring).
 ROTATION_TOLERANCE = 1e-4
 
@@ -208,6 +211,13 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, align: Alignment = "sim3
         return np.eye(3), np.zeros(3), 1.0
     if src.shape[0] < 3:
         raise ValueError(f"Umeyama alignment needs at least 3 positions, got {src.shape[0]}")
+    for name, x in (("estimated", src), ("reference", dst)):
+        big = float(np.abs(x).max())
+        if big > _MAX_COORDINATE:  # squares overflow: not "collinear", just too large
+            raise ValueError(
+                f"the {name} positions reach {big:.3g}, too large to align (squares overflow float64; at most "
+                f"{_MAX_COORDINATE:.0e}): a unit or parsing error in the file?"
+            )
     with jax.enable_x64(True):
         S, info = _align.umeyama(jnp.asarray(src, jnp.float64), jnp.asarray(dst, jnp.float64))
         R, t, s = (np.asarray(v, np.float64) for v in _to_rst(S))

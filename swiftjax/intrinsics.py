@@ -92,6 +92,15 @@ class CameraIntrinsics:
             raise IntrinsicsError(
                 f"{where}: the camera is {self.width}x{self.height} but the images are {width}x{height}"
             )
+        side = max(width, height)
+        for name, f in (("fx", self.fx), ("fy", self.fy)):
+            if not (FOCAL_RANGE[0] * side <= f <= FOCAL_RANGE[1] * side):
+                fov = 2 * math.degrees(math.atan2(side / 2, f))
+                raise IntrinsicsError(
+                    f"{where}: focal length {name}={f:g} px is implausible for a {width}x{height} image (a field "
+                    f"of view of {fov:.3g} degrees; allowed: {FOCAL_RANGE[0]:g} to {FOCAL_RANGE[1]:g} x the "
+                    f"image's larger side); every point would project outside the image or onto one pixel"
+                )
         if not (-0.5 <= self.cx <= width - 0.5 and -0.5 <= self.cy <= height - 0.5):
             raise IntrinsicsError(
                 f"{where}: principal point ({self.cx:g}, {self.cy:g}) lies outside the {width}x{height} image"
@@ -99,6 +108,12 @@ class CameraIntrinsics:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+#: Focal lengths accepted, as multiples of the image's larger side: fields of view from
+#: about 179 degrees (0.01) to 0.06 degrees (1000).  fx = 1e300 or 1e-300 passed every check
+#: and the run wrote "0 points" with exit 0.
+FOCAL_RANGE = (0.01, 1000.0)
 
 
 def _floats(tokens: list[str], where: str) -> list[float]:
@@ -213,14 +228,29 @@ def parse_intrinsics(text: str, name: str = "intrinsics") -> CameraIntrinsics:
     return CameraIntrinsics(fx, fy, cx, cy, kind="plain", source=name)
 
 
+def _is_inline(text: str) -> bool:
+    """Whether ``text`` is the four numbers ``fx fy cx cy`` themselves."""
+    fields = text.split()
+    try:
+        return len(fields) == 4 and all(isinstance(float(f), float) for f in fields)
+    except ValueError:
+        return False
+
+
 def read_intrinsics(path: str | os.PathLike[str]) -> CameraIntrinsics:
-    """Read ``path`` (plain, KITTI ``calib.txt`` or COLMAP ``cameras.txt``); :class:`IntrinsicsError`
-    naming the file (and line) when it does not exist or cannot be used."""
+    """Read ``path`` (plain, KITTI ``calib.txt`` or COLMAP ``cameras.txt``), or take ``path``
+    itself when it is no file but the four numbers ``'fx fy cx cy'`` (as ``--intrinsics``'s
+    help says); :class:`IntrinsicsError` naming the file (and line) when it does not exist or
+    cannot be used."""
     p = pathlib.Path(path)
+    if not p.exists() and _is_inline(os.fspath(path)):  # --intrinsics '100 100 99.5 29.5'
+        return parse_intrinsics(os.fspath(path), "--intrinsics string")
     try:
         text = p.read_text()
     except FileNotFoundError:
-        raise IntrinsicsError(f"intrinsics file {p} does not exist") from None
+        raise IntrinsicsError(
+            f"intrinsics file {p} does not exist (or give the four numbers: --intrinsics 'fx fy cx cy')"
+        ) from None
     except (OSError, UnicodeDecodeError) as err:
         raise IntrinsicsError(f"intrinsics file {p} cannot be read: {err}") from None
     return parse_intrinsics(text, str(p))

@@ -55,6 +55,8 @@ class MaskDirectory:
 
     def __init__(self, directory: str | os.PathLike[str], frame_names: Sequence[str], geometry: PreprocessGeometry) -> None:
         self.directory = pathlib.Path(directory)
+        if self.directory.exists() and not self.directory.is_dir():
+            raise MaskError(f"--mask-dir {self.directory} is a file: give the folder of masks (one PNG per frame)")
         if not self.directory.is_dir():
             raise MaskError(f"mask directory {self.directory} does not exist")
         self.geometry = geometry
@@ -87,6 +89,27 @@ class MaskDirectory:
             st = p.stat()
             out.append([p.name, int(st.st_size), int(st.st_mtime_ns)])
         return out
+
+    def check(self) -> None:
+        """Before any work: every mask's size (from its header) is the images', and not every
+        mask is black (white = keep; an all-black folder kept no pixel: the run wrote "0
+        points" and exit 0).  Masks are decoded only until one keeps a pixel."""
+        from PIL import Image
+
+        h, w = self.geometry.original_hw
+        for p in self.paths:
+            try:
+                with Image.open(p) as im:
+                    size = im.size
+            except Exception as err:  # noqa: BLE001 - any decoder failure names the file
+                raise MaskError(f"mask {p} cannot be read: {err}") from None
+            if size != (w, h):
+                raise MaskError(f"mask {p} is {size[0]}x{size[1]} but the images are {w}x{h}")
+        if not any(bool(self.read_original(k).any()) for k in range(len(self.paths))):
+            raise MaskError(
+                f"every mask in {self.directory} is black ({len(self.paths)} masks keep no pixel; white = keep): "
+                "nothing would be reconstructed"
+            )
 
     def read_original(self, k: int) -> np.ndarray:
         """Frame ``k``'s mask at the original size: bool ``[H0, W0]``."""

@@ -55,6 +55,7 @@ __all__ = [
     "add_arguments",
     "flag",
     "stage_options",
+    "INT_LIMIT",
 ]
 
 #: The stages of a run in order; an option's stage is the first one whose result it changes.
@@ -64,6 +65,10 @@ __all__ = [
 STAGES = ("temporal", "loops", "graph", "export")
 
 _KEY = "swiftjax.option"
+
+#: Largest magnitude any ``int`` option takes, whatever its own range (every integer the
+#: pipeline passes on must fit a 32-bit index; ``10**23`` overflowed after the model load).
+INT_LIMIT = 2**31 - 1
 
 
 class OptionError(ValueError):
@@ -212,6 +217,8 @@ def coerce(s: Spec, name: str, value: Any, source: str | None = None) -> Any:
         if not isinstance(value, numbers.Integral):
             raise fail(" is not an integer")
         value = int(value)
+        if abs(value) > INT_LIMIT:  # no option means 10**23; past int64 it would overflow later
+            raise fail(" is out of range")
     else:
         value = float(value)
         if s.finite and not math.isfinite(value):
@@ -224,6 +231,8 @@ def coerce(s: Spec, name: str, value: Any, source: str | None = None) -> Any:
 
 
 def _show(value: Any) -> str:
+    if isinstance(value, numbers.Number) and type(value).__module__ == "numpy":
+        value = value.item()  # 1000.0, not np.float64(1000.0)
     if isinstance(value, float) and math.isinf(value):
         return "inf (a number too large to represent?)" if value > 0 else "-inf"
     return repr(value)
@@ -270,6 +279,7 @@ def from_sources(
     """
     table = specs(cls)
     values: dict[str, Any] = {}
+    given: dict[str, str] = {}  # key -> "file" | "cli"
     for key, raw in (file_values or {}).items():
         if key not in table:
             close = difflib.get_close_matches(key, table, n=1)
@@ -277,6 +287,7 @@ def from_sources(
             where = f" in {file_name}" if file_name else ""
             raise OptionError(f"unknown configuration key {key!r}{where}{hint}")
         values[key] = coerce(table[key], key, raw, source=file_name)
+        given[key] = "file"
     for key, raw in (cli_values or {}).items():
         if raw is None:
             continue
@@ -284,7 +295,38 @@ def from_sources(
             raise OptionError(f"unknown option {flag(key)}")
         parsed = _parse_cli(table[key], raw) if isinstance(raw, str) else raw
         values[key] = coerce(table[key], flag(key), parsed)
-    return cls(**values)
+        given[key] = "cli"
+    resolve = getattr(cls, "dependent_defaults", None)
+    if resolve is not None:  # defaults that follow another option the user set (never a given value)
+        values.update({k: v for k, v in resolve(values).items() if k not in values})
+    try:
+        return cls(**values)
+    except OptionError as err:
+        if cli_values is None:
+            raise
+        raise OptionError(speak(str(err), table, given, file_name)) from None
+
+
+def speak(message: str, names: Iterable[str], given: Mapping[str, str], file_name: str | None = None) -> str:
+    """A cross-option message in the command line's words: each option name written as its
+    flag (``loop_half_window -> --loop-half-window``; ``NAME=false`` as ``--no-NAME``), except
+    the keys the config file gave, and the subject's value marked as the default when the user
+    never set it."""
+    import re
+
+    def subject(m: re.Match[str]) -> str:
+        name, value = m.group(1), m.group(2)
+        note = "" if name in given else " (the default: you did not set it)"
+        return f"invalid option {name}: {value}{note};"
+
+    message = re.sub(r"invalid option (\w+): ([^;]*);", subject, message, count=1)
+    for name in sorted(names, key=len, reverse=True):
+        if given.get(name) == "file":
+            continue
+        message = re.sub(rf"(?<![\w-]){name}=false\b", "--no-" + flag(name)[2:], message)
+        message = re.sub(rf"(?<![\w-]){name}=true\b", flag(name), message)
+        message = re.sub(rf"(?<![\w-]){name}\b", flag(name), message)
+    return message
 
 
 def _metavar(name: str, s: Spec) -> str:

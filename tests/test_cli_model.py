@@ -58,3 +58,39 @@ def test_another_model_is_refused_and_the_same_one_resumes(tmp_path, golden_dir)
     again = _reconstruct(frames, out, weights_a, config)
     assert again.returncode == 0, again.stderr[-2000:]
     assert "12 | " in again.stdout or "frames" in again.stdout
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_weights_of_another_dtype_or_with_nan_through_the_cli(tmp_path, golden_dir):
+    """float16 weights failed at the first prediction, int32 inside load_state_dict, a NaN
+    output bias ran to "0 points written", exit 0 (issue 25 #15 #19 #25)."""
+    from safetensors.torch import load_file, save_file
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    base = np.random.default_rng(0).integers(0, 255, (60, 220, 3), np.uint8)
+    for k in range(10):
+        cv2.imwrite(str(frames / f"{k:04d}.png"), np.roll(base, 3 * k, axis=1))
+    config = golden_dir / "tiny_config.json"
+    state = load_file(str(golden_dir / "tiny_weights.safetensors"))
+    key = "camera_head.pose_branch.fc2.bias"
+
+    nan = dict(state)
+    nan[key] = nan[key].clone()
+    nan[key][2] = float("nan")
+    save_file(nan, str(tmp_path / "nan.safetensors"))
+    run = _reconstruct(frames, tmp_path / "o_nan", tmp_path / "nan.safetensors", config)
+    assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
+    assert f"hold NaN/inf values: {key}" in run.stderr and not (tmp_path / "o_nan" / "chunks").exists()
+
+    ints = dict(state)
+    ints[key] = ints[key].to(torch.int32)
+    save_file(ints, str(tmp_path / "int.safetensors"))
+    run = _reconstruct(frames, tmp_path / "o_int", tmp_path / "int.safetensors", config)
+    assert run.returncode == 2 and "Traceback" not in run.stderr and f"{key} (int32)" in run.stderr
+
+    save_file({k: v.half() for k, v in state.items()}, str(tmp_path / "half.safetensors"))
+    run = _reconstruct(frames, tmp_path / "o_half", tmp_path / "half.safetensors", config)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert f"{len(state)} float16 tensor(s) cast to float32" in run.stderr
+    assert (tmp_path / "o_half" / "poses_kitti.txt").is_file()

@@ -280,7 +280,7 @@ def test_tum_files_are_associated_by_timestamp_in_the_cli(tmp_path, capsys, shar
     write_tum(tmp_path / "late.txt", stamps + 1000.0, rows)
 
     def run(est, *extra):
-        code = cli.main(["evaluate", str(est), str(ref_file), "--format", "tum", *extra])
+        code = cli.main(["evaluate", str(ref_file), str(est), "--format", "tum", *extra])
         return code, capsys.readouterr()
 
     code, out = run(est_file)

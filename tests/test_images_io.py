@@ -177,8 +177,8 @@ def test_truncated_file_is_caught_by_its_end_marker_or_a_decode(tmp_path, ext):
     src = list_frames(tmp_path)
     with pytest.raises(InputError, match=rf"a\{ext}: image file is truncated"):
         validate(src)  # the header alone is intact: the missing end marker gives it away
-    with pytest.raises(InputError, match=rf"a\{ext}: cannot decode image"):
-        validate(src, decode=True)
+    with pytest.raises(InputError, match=rf"a\{ext}: (cannot decode image|corrupt image data)"):
+        src.decode_check(0)  # a full decode catches it too (the end marker is checked first)
 
 
 def test_read_error_names_file(tmp_path):
@@ -247,3 +247,86 @@ def test_truncated_image_is_refused_before_the_run(tmp_path, ext):
     with pytest.warns(UserWarning, match="truncated"):
         src = validate(list_frames(tmp_path), skip_bad=True)
     assert src.names == [f"0{ext}", f"2{ext}"]
+
+
+# ---------------------------------------- damage a header check misses (issue 25 #9 #23)
+
+
+def _smooth_jpeg(path, seed=0):
+    img = cv2.GaussianBlur(_rgb(60, 80, seed=seed), (5, 5), 0)
+    cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return img
+
+
+def test_jpeg_damaged_mid_file_is_refused_or_skipped(tmp_path):
+    """Damaged mid-file but ending in FF D9: libjpeg decodes it with grey rows and only a
+    warning, which swiftjax ignored; the decoder's warning is now a corrupt frame."""
+    for k in range(3):
+        _smooth_jpeg(tmp_path / f"{k}.jpg", seed=k)
+    raw = bytearray((tmp_path / "1.jpg").read_bytes())
+    mid = len(raw) // 2
+    raw[mid:mid + 200] = bytes(200)
+    (tmp_path / "1.jpg").write_bytes(bytes(raw))
+    assert raw[-2:] == b"\xff\xd9"
+    assert cv2.imread(str(tmp_path / "1.jpg")) is not None  # OpenCV returns pixels all the same
+    with pytest.raises(InputError, match=r"1\.jpg: corrupt image data \(the decoder reported: Corrupt JPEG data"):
+        validate(list_frames(tmp_path))
+    with pytest.warns(UserWarning, match=r"skipping unreadable frame: .*1\.jpg: corrupt image data"):
+        src = validate(list_frames(tmp_path), skip_bad=True)
+    assert src.names == ["0.jpg", "2.jpg"]
+    assert len(validate(list_frames(tmp_path), decode=False)) == 3  # the header check alone misses it
+
+
+def test_png_cut_inside_with_its_end_reappended_is_found_before_the_run(tmp_path):
+    """A PNG cut in the middle with IEND re-appended passed the header and end-marker checks
+    and failed only when its chunk was predicted, past --skip-bad."""
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"{k}.png"), cv2.GaussianBlur(_rgb(60, 80, seed=k), (5, 5), 0))
+    raw = (tmp_path / "2.png").read_bytes()
+    (tmp_path / "2.png").write_bytes(raw[: len(raw) // 2] + raw[-12:])  # ... + the IEND chunk
+    with pytest.raises(InputError, match=r"2\.png: cannot decode image"):
+        validate(list_frames(tmp_path))
+    with pytest.warns(UserWarning, match=r"2\.png"):
+        src = validate(list_frames(tmp_path), skip_bad=True)
+    assert src.names == ["0.png", "1.png"]
+    np.testing.assert_array_equal(src.read(1)[..., ::-1], cv2.imread(str(tmp_path / "1.png")))
+
+
+def test_glob_does_not_count_files_twice_through_a_link_loop(tmp_path):
+    """`**` followed a directory link loop: 12 frames became 492."""
+    (tmp_path / "seq" / "a").mkdir(parents=True)
+    for k in range(4):
+        _save(tmp_path / "seq" / "a" / f"{k}.png", _rgb(seed=k))
+    os.symlink("..", tmp_path / "seq" / "a" / "loop")
+    with pytest.warns(UserWarning, match=r"matches are 4 files"):
+        src = list_frames(str(tmp_path / "seq" / "**" / "*.png"))
+    assert src.names == ["a/0.png", "a/1.png", "a/2.png", "a/3.png"]
+    assert sorted(os.path.realpath(p) for p in src.paths) == sorted(
+        os.path.realpath(tmp_path / "seq" / "a" / f"{k}.png") for k in range(4))
+
+
+def test_exif_rotated_frames_are_named_in_the_size_error(tmp_path):
+    """Phone frames rotated by EXIF were refused by raw size with no hint."""
+    _save(tmp_path / "0.jpg", _rgb(20, 30))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 CW to display
+    Image.fromarray(_rgb(30, 20)).save(tmp_path / "1.jpg", exif=exif)
+    with pytest.raises(InputError, match=r"EXIF orientation is ignored .* 1\.jpg \(orientation 6\)"):
+        validate(list_frames(tmp_path))
+    (tmp_path / "1.jpg").unlink()
+    Image.fromarray(_rgb(20, 30)).save(tmp_path / "1.jpg", exif=exif)
+    with pytest.warns(UserWarning, match=r"EXIF orientation .*1\.jpg: 6.*ignored"):
+        validate(list_frames(tmp_path))
+
+
+def test_timestamps_file_naming_a_frame_twice(tmp_path):
+    from swiftjax.io.images import read_timestamps
+
+    for k in range(3):
+        _save(tmp_path / f"{k}.png", _rgb(seed=k))
+    times = tmp_path / "rgb.txt"
+    times.write_text("# t name\n1.0 rgb/0.png\n2.0 rgb/1.png\n3.0 rgb/2.png\n4.0 rgb/1.png\n")
+    with pytest.raises(InputError, match=r"names frame 1\.png twice \(lines 3 and 5\)"):
+        read_timestamps(times, list_frames(tmp_path))
+    with pytest.raises(InputError, match="is a directory"):
+        read_timestamps(tmp_path, list_frames(tmp_path))

@@ -154,3 +154,59 @@ def test_random_bytes_are_corrupt_not_unsafe(tmp_path: pathlib.Path, head: bytes
     text = str(err.value)
     assert str(path) in text and "unsafe" not in text and "refused" not in text
     assert "corrupt" in text
+
+
+# ------------------------------------------- dtypes and values (issue 25 #15 #19 #25)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float64])
+def test_floating_weights_of_another_precision_are_cast_and_said(tmp_path: pathlib.Path, dtype) -> None:
+    """float16 / float64 weights passed the checks and failed at the first prediction."""
+    state = {k: v.to(dtype) for k, v in _state(1).items()}
+    save_file(state, str(tmp_path / "w.safetensors"))
+    model = _model(2)
+    with pytest.warns(UserWarning, match=rf"{len(state)} {str(dtype)[6:]} tensor\(s\) cast to float32"):
+        report = load_checkpoint(model, tmp_path / "w.safetensors")
+    assert "cast to float32" in report.cast
+    _assert_same_weights(model, {k: v.to(torch.float32) for k, v in state.items()})
+    assert all(v.dtype == torch.float32 for v in model.state_dict().values())
+
+
+@pytest.mark.parametrize("dtype", [torch.int32, torch.bool])
+def test_integer_or_boolean_weights_are_refused_by_name(tmp_path: pathlib.Path, dtype) -> None:
+    """int32 / bool tensors failed inside load_state_dict with a torch traceback."""
+    state = _state()
+    key = "camera_head.pose_branch.fc2.bias"
+    state[key] = torch.ones_like(state[key], dtype=dtype)
+    torch.save(state, tmp_path / "w.pt")
+    with pytest.raises(CheckpointError, match=rf"1 tensor\(s\) of a non-floating-point dtype .*{key} \({str(dtype)[6:]}\)"):
+        load_checkpoint(_model(), tmp_path / "w.pt")
+
+
+def test_nan_weights_are_refused_by_name(tmp_path: pathlib.Path) -> None:
+    """One NaN output bias ran to "0 points written", exit 0; all-NaN weights ended in
+    "poses holds non-finite values"."""
+    state = _state()
+    key = "camera_head.pose_branch.fc2.bias"
+    state[key][3] = float("nan")
+    save_file(state, str(tmp_path / "w.safetensors"))
+    with pytest.raises(CheckpointError, match=rf"1 tensor\(s\) hold NaN/inf values: {key}"):
+        load_checkpoint(_model(), tmp_path / "w.safetensors")
+    save_file({k: torch.full_like(v, float("nan")) for k, v in state.items()}, str(tmp_path / "all.safetensors"))
+    with pytest.raises(CheckpointError, match=rf"{len(state)} tensor\(s\) hold NaN/inf values"):
+        load_checkpoint(_model(), tmp_path / "all.safetensors")
+
+
+def test_non_finite_model_output_names_the_model_and_the_output() -> None:
+    """Weights that go bad after loading (or overflow): the runner names the output."""
+    from inference.runners import ModelOutputError, TorchRunner
+
+    model = _model()
+    with torch.no_grad():
+        model.camera_head.pose_branch.fc2.bias[3] = float("nan")
+    runner = TorchRunner(model)
+    runner.name = "VGGT (w.safetensors, float32)"
+    images = np.random.default_rng(0).random((2, 3, 28, 42)).astype(np.float32)
+    with pytest.raises(ModelOutputError, match=r"VGGT \(w.safetensors, float32\) predicted non-finite values .* "
+                                               r"camera head pose encoding \(pose_enc\) for 2 of 2 frames"):
+        runner.predict(images)

@@ -41,8 +41,8 @@ def test_every_field_has_a_schema_a_flag_and_a_description():
     [
         ({"loop_closure": "no"}, "invalid option loop_closure (c.toml): 'no' is not a boolean; allowed: true or false"),
         ({"loop_closure": 1}, "loop_closure (c.toml): 1 is not a boolean"),
-        ({"overlap": True}, "overlap (c.toml): True is not a number; allowed: an integer >= 1"),
-        ({"chunk_size": 60.7}, "chunk_size (c.toml): 60.7 is not an integer; allowed: an integer >= 2"),
+        ({"overlap": True}, "overlap (c.toml): True is not a number; allowed: an integer with 1 <= value <= 9999"),
+        ({"chunk_size": 60.7}, "chunk_size (c.toml): 60.7 is not an integer; allowed: an integer with 2 <= value <= 10000"),
         ({"chunk_size": 60.0}, "chunk_size (c.toml): 60.0 is not an integer"),
         ({"min_points": math.inf}, "min_points (c.toml): inf"),  # what TOML makes of 1e400
         ({"conf_ratio": -1}, "conf_ratio (c.toml): -1 is out of range; allowed: a finite number with 0 <= value <= 10"),

@@ -13,21 +13,28 @@
 * Video (any other existing file): decoded with OpenCV, every ``stride``-th frame; frame
   ``k`` of the video is named ``<stem>_<k:06d>.png``.
 
-Pixels follow VGGT's loader (PIL, no EXIF rotation): grayscale -> RGB, alpha composited on
-white (PIL's integer arithmetic), 16-bit -> 8-bit (high byte), float images taken as [0, 1].  Decoding uses
-OpenCV (``opencv-python-headless``, imported lazily); :func:`validate` reads only the image
-headers (Pillow, a matplotlib dependency) and, for PNG and JPEG, the file's last bytes (the
-end marker: a truncated file is refused before the run), a small fraction of the cost of
-decoding it (docs/performance/io.md), unless ``decode=True``.
+Pixels follow VGGT's loader (PIL, no EXIF rotation: a frame's EXIF orientation is ignored,
+with a warning): grayscale -> RGB, alpha composited on white (PIL's integer arithmetic),
+16-bit -> 8-bit (high byte), float images taken as [0, 1].  Decoding uses OpenCV
+(``opencv-python-headless``, imported lazily); :func:`validate` reads the image headers
+(Pillow, a matplotlib dependency) and, for PNG and JPEG, the file's last bytes (the end
+marker), then decodes every image as the run will, on a thread pool, taking a decoder's
+warning (libjpeg's "Corrupt JPEG data") as damage: a damaged frame is refused, or skipped
+with ``skip_bad``, before the run (``decode=False``: headers only; docs/performance/io.md).
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob as globlib
 import os
 import pathlib
 import re
+import sys
+import tempfile
+import threading
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -192,6 +199,41 @@ def _check_complete(path: pathlib.Path, fmt: str | None) -> None:
         raise InputError(f"{path}: image file is truncated ({fmt}, {size} bytes, {what})")
 
 
+def _exif_orientation(im: Any) -> int:
+    """The EXIF orientation tag (1 = as stored; 5-8 = rotated by 90 degrees) of an open image."""
+    try:
+        return int(im.getexif().get(0x0112, 1) or 1)
+    except Exception:  # noqa: BLE001 - a malformed EXIF block is not our concern here
+        return 1
+
+
+_FD2_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _decoder_messages() -> Any:
+    """What C libraries (libjpeg, libpng inside OpenCV) write to file descriptor 2 while
+    inside: ``with _decoder_messages() as said: ...`` then ``said[0]`` is the text.  One
+    capture at a time (a lock): fd 2 belongs to the process."""
+    box: list[str] = []
+    with _FD2_LOCK, tempfile.TemporaryFile() as tmp:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield box
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            box.append(tmp.read().decode("utf-8", "replace"))
+
+
+def _first_line(text: str) -> str:
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return lines[0] + (f" (+{len(lines) - 1} more)" if len(lines) > 1 else "") if lines else ""
+
+
 class ImageFiles(FrameSource):
     """Frames stored as image files.
 
@@ -208,6 +250,7 @@ class ImageFiles(FrameSource):
             raise ValueError("ImageFiles: names and paths differ in length")
         self.description = description or (str(self.paths[0].parent) if self.paths else "<no images>")
         self._sizes: list[tuple[int, int] | None] | None = None
+        self.orientation: dict[int, int] = {}  # frame -> EXIF orientation, where it is not 1 (from probe)
 
     def probe(self, i: int, decode: bool = False) -> tuple[int, int]:
         """``(height, width)`` of frame ``i`` from its header (``decode=True``: a full decode,
@@ -226,6 +269,9 @@ class ImageFiles(FrameSource):
         with im:
             w, h = im.size
             fmt = im.format
+            orientation = _exif_orientation(im)
+            if orientation != 1:
+                self.orientation[i] = orientation
             if not decode:
                 _check_complete(path, fmt)
             if decode:
@@ -272,10 +318,28 @@ class ImageFiles(FrameSource):
             raise InputError(f"{path}: cannot decode image (corrupt, truncated or not an image)")
         return to_rgb8(img, str(path))
 
+    def decode_check(self, i: int) -> None:
+        """Decode frame ``i`` as the run will (OpenCV) and refuse it if the decoder fails or
+        reports damage: libjpeg decodes a JPEG damaged mid-file (grey rows) with only a
+        warning on stderr ("Corrupt JPEG data: ..."), which is taken as an error here.
+        :class:`InputError` naming the file."""
+        path = self.paths[i]
+        with _decoder_messages() as said:
+            img = self._imread(path)
+        if img is None:
+            why = f": {_first_line(said[0])}" if said[0].strip() else ""
+            raise InputError(f"{path}: cannot decode image (corrupt data{why})")
+        if said[0].strip():
+            raise InputError(f"{path}: corrupt image data (the decoder reported: {_first_line(said[0])})")
+        size = self._sizes[i] if self._sizes is not None else None
+        if size is not None and tuple(img.shape[:2]) != tuple(size):
+            raise InputError(f"{path}: decodes to {img.shape[1]}x{img.shape[0]} but its header says {size[1]}x{size[0]}")
+
     def subset(self, keep: Sequence[int]) -> ImageFiles:
         out = ImageFiles([self.paths[i] for i in keep], [self.names[i] for i in keep], self.description)
         if self._sizes is not None:
             out._sizes = [self._sizes[i] for i in keep]
+        out.orientation = {k: self.orientation[i] for k, i in enumerate(keep) if i in self.orientation}
         return out
 
 
@@ -392,9 +456,13 @@ def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.
     """
     path = pathlib.Path(path)
     try:
-        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+        numbered = [(n, ln.split()) for n, ln in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1)
+                    if ln.strip() and not ln.lstrip().startswith("#")]
+    except IsADirectoryError:
+        raise InputError(f"timestamps file {path} is a directory") from None
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"timestamps file {path}: cannot read it ({err})") from None
+    lines = [w for _, w in numbered]
     n = len(source)
 
     def number(text: str) -> float:
@@ -404,7 +472,15 @@ def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.
             raise InputError(f"timestamps file {path}: {text!r} is not a number") from None
 
     if lines and all(len(w) >= 2 for w in lines):
-        by_name = {pathlib.PurePath(w[1]).name: number(w[0]) for w in lines}
+        by_name: dict[str, float] = {}
+        first_line: dict[str, int] = {}
+        for n, w in numbered:
+            name = pathlib.PurePath(w[1]).name
+            if name in by_name:
+                raise InputError(
+                    f"timestamps file {path} names frame {name} twice (lines {first_line[name]} and {n})"
+                )
+            by_name[name], first_line[name] = number(w[0]), n
         missing = [name for name in source.names if pathlib.PurePath(name).name not in by_name]
         if missing:
             raise InputError(f"timestamps file {path} has no time for frame {missing[0]} ({len(missing)} missing)")
@@ -477,55 +553,91 @@ def list_frames(input: PathLike, stride: int = 1) -> FrameSource:
         if not files:
             raise InputError(f"{text}: no image files match this pattern")
         names = [p.relative_to(root).as_posix() if p.is_relative_to(root) else p.name for p in files]
+        files, names = _once_per_file(files, names, text)
         order = sorted(range(len(files)), key=lambda i: natural_key(names[i]))[::stride]
         return ImageFiles([files[i] for i in order], [names[i] for i in order], text)
     raise InputError(f"{text}: no such file, folder or glob pattern")
+
+
+def _once_per_file(files: list[pathlib.Path], names: list[str], pattern: str) -> tuple[list[pathlib.Path], list[str]]:
+    """Each file once: ``**`` follows directory links, so a link loop (``a/loop -> ..``)
+    reaches the same files again and again (12 frames became 492).  Files are told apart by
+    their real path; the shortest name (fewest folders) is kept, with a warning."""
+    best: dict[str, int] = {}
+    for k, p in enumerate(files):
+        real = os.path.realpath(p)
+        j = best.get(real)
+        if j is None or (names[k].count("/"), natural_key(names[k])) < (names[j].count("/"), natural_key(names[j])):
+            best[real] = k
+    if len(best) == len(files):
+        return files, names
+    keep = sorted(best.values())
+    warnings.warn(
+        f"{pattern}: {len(files)} matches are {len(keep)} files (directory links, e.g. a link loop, reach the same "
+        f"files again); each file is used once",
+        stacklevel=3,
+    )
+    return [files[k] for k in keep], [names[k] for k in keep]
 
 
 def _check_same_size(source: FrameSource) -> None:
     sizes = source.sizes
     for i, s in enumerate(sizes):
         if s != sizes[0]:
+            rotated = {k: o for k, o in getattr(source, "orientation", {}).items() if o >= 5}
+            hint = ""
+            if rotated:
+                k, o = next(iter(rotated.items()))
+                hint = (f"; note: EXIF orientation is ignored (frames are used as stored, as VGGT's loader does) and "
+                        f"{len(rotated)} frames, e.g. {source.names[k]} (orientation {o}), are stored rotated by 90 "
+                        f"degrees: rotate those files themselves (e.g. exiftran -ai, or mogrify -auto-orient)")
             raise InputError(
                 f"{source.description}: images differ in size: {source.names[0]} is {sizes[0][1]}x{sizes[0][0]} "
-                f"but {source.names[i]} is {s[1]}x{s[0]} (width x height); all frames must have one size"
+                f"but {source.names[i]} is {s[1]}x{s[0]} (width x height); all frames must have one size{hint}"
             )
 
 
-def validate(source: FrameSource, skip_bad: bool = False, decode: bool = False) -> FrameSource:
+def validate(source: FrameSource, skip_bad: bool = False, decode: bool = True, workers: int | None = None) -> FrameSource:
     """Check every frame before any work starts; returns the source to use.
 
-    Image files: each header is read (``decode=True``: each image fully decoded, catching
-    truncated files too).  Video: the last listed frame is decoded; if it fails, the frame
-    count is recounted by decoding and the list truncated with a warning.
+    Image files: each header is read, with the end marker of PNG and JPEG files (a
+    truncated file), then (``decode=True``, the default) each image is decoded as the run
+    will decode it, on a thread pool, and refused if the decoder fails or reports damage
+    (libjpeg decodes a JPEG damaged mid-file with grey rows and only a warning; that
+    warning is an error here).  Frames with an EXIF orientation get a warning: it is
+    ignored, as VGGT's loader ignores it.  Video: the last listed frame is decoded; if it
+    fails, the frame count is recounted by decoding and the list truncated with a warning.
 
     Args:
         source: from :func:`list_frames`.
-        skip_bad: drop unreadable images with a warning instead of raising.
-        decode: fully decode every image (slower: a full decode per file).
+        skip_bad: drop unreadable or damaged images with a warning instead of raising.
+        decode: fully decode every image (``False``: headers and end markers only).
+        workers: decoding threads (default: the CPU count, at most 8).
 
     Raises:
-        InputError: no frames; an unreadable image (unless ``skip_bad``); images of
-            different sizes (naming two of them).
+        InputError: no frames; an unreadable or damaged image (unless ``skip_bad``); images
+            of different sizes (naming two of them).
     """
     if len(source) == 0:
         raise InputError(f"{source.description}: no frames")
     if isinstance(source, ImageFiles):
-        sizes: list[tuple[int, int] | None] = []
-        keep = []
+        sizes: dict[int, tuple[int, int]] = {}
+        failed: dict[int, InputError] = {}
         for i in range(len(source)):
             try:
-                sizes.append(source.probe(i, decode=decode))
-                keep.append(i)
+                sizes[i] = source.probe(i)
             except InputError as e:
-                if not skip_bad:
-                    raise
-                warnings.warn(f"skipping unreadable frame: {e}", stacklevel=2)
+                failed[i] = e
+        source._sizes = [sizes.get(i) for i in range(len(source))]
+        if decode:
+            failed.update(_decode_all(source, sorted(sizes), workers))
+        for i in sorted(failed):
+            if not skip_bad:
+                raise failed[i]
+            warnings.warn(f"skipping unreadable frame: {failed[i]}", stacklevel=2)
+        keep = [i for i in range(len(source)) if i not in failed]
         if not keep:
             raise InputError(f"{source.description}: none of the {len(source)} images can be read")
-        source._sizes = [None] * len(source)
-        for i, s in zip(keep, sizes):
-            source._sizes[i] = s
         if len(keep) != len(source):
             source = source.subset(keep)
     elif isinstance(source, VideoFrames):
@@ -543,4 +655,40 @@ def validate(source: FrameSource, skip_bad: bool = False, decode: bool = False) 
             if len(source) == 0:
                 raise InputError(f"{source.path}: video has no decodable frames")
     _check_same_size(source)
+    if getattr(source, "orientation", None):
+        k, o = next(iter(source.orientation.items()))
+        warnings.warn(
+            f"{source.description}: {len(source.orientation)} frames carry an EXIF orientation (e.g. "
+            f"{source.names[k]}: {o}); it is ignored, the frames are used as stored (as VGGT's loader does)",
+            stacklevel=2,
+        )
     return source
+
+
+def _decode_all(source: ImageFiles, frames: Sequence[int], workers: int | None) -> dict[int, InputError]:
+    """:meth:`ImageFiles.decode_check` of ``frames``: ``{frame: error}`` of the bad ones.
+
+    The decoders report damage on the process's stderr, which names no file, so the frames
+    are first decoded together on a thread pool under one capture; only when something was
+    reported (or failed) are they decoded again one at a time to tell which."""
+    if not frames:
+        return {}
+    n = workers or min(8, os.cpu_count() or 1)
+
+    def clean(i: int) -> bool:
+        img = source._imread(source.paths[i])
+        return img is not None and tuple(img.shape[:2]) == tuple(source._sizes[i] or ())
+
+    with _decoder_messages() as said, ThreadPoolExecutor(max_workers=n) as pool:
+        ok = list(pool.map(clean, frames))
+    if all(ok) and not said[0].strip():
+        return {}
+    failed: dict[int, InputError] = {}
+    for i in frames:
+        try:
+            source.decode_check(i)
+        except InputError as e:
+            failed[i] = e
+    if not failed and said[0].strip():
+        sys.stderr.write(said[0])  # someone else's message: pass it on
+    return failed

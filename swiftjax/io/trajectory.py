@@ -42,6 +42,8 @@ __all__ = [
     "write_kitti",
     "read_tum",
     "read_tum_raw",
+    "read_header",
+    "time_order",
     "write_tum",
     "quaternion_to_matrix",
     "matrix_to_quaternion",
@@ -238,6 +240,42 @@ def read_tum_raw(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """
     rows = _parse_rows(path, 8, "TUM")
     return rows[:, 0].copy(), rows[:, 1:].copy()
+
+
+def read_header(path: PathLike, max_lines: int = 64) -> list[str]:
+    """The ``#`` comment lines at the top of a trajectory file (text after ``#``, stripped),
+    e.g. the ``unit: ...`` line swiftjax writes; ``[]`` for a file without them."""
+    out: list[str] = []
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        for _, line in zip(range(max_lines), f):
+            text = line.strip()
+            if text and not text.startswith("#"):
+                break
+            if text:
+                out.append(text.lstrip("#").strip())
+    return out
+
+
+def time_order(path: PathLike, stamps: np.ndarray) -> np.ndarray:
+    """The order that sorts ``stamps [N]`` (a TUM file's, in file order) by time, stable.
+
+    Relative poses (RPE) pair neighbours in time, so a file whose rows are not in time order
+    is read in time order; two poses at the same time have no order and one reference pose
+    would be associated twice (evo pairs the first it finds), so they are refused.
+
+    Raises:
+        TrajectoryFormatError: two rows share a timestamp (naming it and the rows).
+    """
+    t = np.asarray(stamps, np.float64)
+    order = np.argsort(t, kind="stable")
+    same = np.flatnonzero(np.diff(t[order]) == 0)
+    if same.size:
+        a, b = sorted(int(i) for i in order[same[0]:same[0] + 2])
+        raise TrajectoryFormatError(
+            f"{path}: poses {a + 1} and {b + 1} (data rows) have the same timestamp {float(t[a])!r} "
+            f"({same.size} repeated timestamps); each pose needs its own time"
+        )
+    return order
 
 
 def read_tum(path: PathLike) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shlex
 import time
 from collections.abc import Callable, Sequence as Seq
 from typing import Any
@@ -40,36 +41,64 @@ class Sequence:
 
     ``spec``: a picklable recipe whose ``build()`` returns the predictor (e.g.
     :class:`inference.predictor.ImageSpec`, :class:`swiftjax.demo.OracleSpec`);
-    ``ground_truth``: ``[N, 4, 4]`` poses, a trajectory file (``gt_format``), or None.
+    ``ground_truth``: ``[N, 4, 4]`` poses, a trajectory file (``gt_format``), or None;
+    ``timestamps``: a times file (as ``reconstruct --timestamps``), or None: the frames'
+    own times (a video's), else the frame index.
     """
 
     name: str
     spec: Any
     ground_truth: Any = None
     gt_format: str = "kitti"
+    timestamps: str | None = None
 
 
 def read_list(path: str | os.PathLike[str]) -> list[tuple[str, str | None]]:
     """``(input, ground truth or None)`` per line of a batch list: ``INPUT [GT]``, blank
-    lines and ``#`` comments skipped, relative paths relative to the list's folder."""
+    lines and comments skipped, relative paths relative to the list's folder.
+
+    Fields are split as a POSIX shell splits words (:mod:`shlex`): quote a path holding
+    spaces (``"my seq" gt.txt``), or escape them (``my\\ seq``); ``#`` starts a comment at
+    the start of a line or after white space only, so ``take#1/frames`` is one path."""
     path = pathlib.Path(path)
     try:
-        text = path.read_text()
-    except OSError as err:
-        raise BatchError(f"cannot read the batch list {path}: {err.strerror or err}") from err
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as err:
+        raise BatchError(f"cannot read the batch list {path}: {getattr(err, 'strerror', None) or err}") from err
     base = path.parent
     out = []
     for number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split("#", 1)[0].split()
+        try:
+            fields = shlex.split(_strip_comment(line))
+        except ValueError as err:  # an unclosed quote
+            raise BatchError(f"{path}:{number}: {err} in {line.strip()!r}") from None
         if not fields:
             continue
         if len(fields) > 2:
-            raise BatchError(f"{path}:{number}: expected 'INPUT [GROUND_TRUTH]', got {len(fields)} fields")
+            raise BatchError(
+                f"{path}:{number}: expected 'INPUT [GROUND_TRUTH]', got {len(fields)} fields {fields} "
+                "(quote a path that holds spaces)"
+            )
+        if any(not f.strip() for f in fields):
+            raise BatchError(f"{path}:{number}: an empty path")
         resolve = lambda p: p if os.path.isabs(p) else str(base / p)  # noqa: E731
         out.append((resolve(fields[0]), resolve(fields[1]) if len(fields) == 2 else None))
     if not out:
         raise BatchError(f"the batch list {path} names no sequence")
     return out
+
+
+def _strip_comment(line: str) -> str:
+    """``line`` up to its comment: a ``#`` outside quotes at the start or after white space."""
+    quote = None
+    for k, ch in enumerate(line):
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#" and (k == 0 or line[k - 1].isspace()):
+            return line[:k]
+    return line
 
 
 #: Ground-truth file names looked for in a sequence folder (:func:`sequence_folders`).
@@ -93,16 +122,46 @@ def sequence_folders(folder: str | os.PathLike[str]) -> list[tuple[str, str | No
 
 
 def unique_names(inputs: Seq[str]) -> list[str]:
-    """A run-directory name per input: its folder (or file) name, made unique with ``_2``..."""
+    """A run-directory name per input: the name of its folder (or file stem) after resolving
+    the path (``..`` or ``.`` name the folder they point to), ``<parent>`` for a frames folder
+    called ``images``; made unique with ``_2``...  A path without a name (``/``) is refused."""
     names: list[str] = []
     for item in inputs:
-        p = pathlib.Path(item.rstrip("/"))
-        base = (p.parent.name if p.name == "images" else p.stem) or "sequence"
+        p = pathlib.Path(item).resolve()
+        base = p.parent.name if p.name == "images" else p.stem
+        if base in ("", ".", ".."):
+            raise BatchError(f"cannot name a run directory after {item!r}: give the sequence's own folder")
         name, k = base, 2
         while name in names:
             name, k = f"{base}_{k}", k + 1
         names.append(name)
     return names
+
+
+def _run_dir(out: pathlib.Path, name: str) -> pathlib.Path:
+    """``out / name``, which must be a folder directly inside ``out`` (a name ``..`` wrote a
+    sequence's run into the parent of ``--out``)."""
+    if name in ("", ".", "..") or pathlib.PurePath(name).name != name or "/" in name or "\\" in name:
+        raise BatchError(f"sequence name {name!r} is not a folder name (it must name a folder inside --out)")
+    return out / name
+
+
+def sequence_timestamps(inputs: Seq[str], name: str) -> list[str]:
+    """The times file ``name`` of each sequence (``--timestamps NAME``): in the input's folder,
+    or beside it when the frames are a subfolder (TUM: ``seq/rgb/`` and ``seq/rgb.txt``), or
+    beside a video.  :class:`BatchError` naming the first sequence that has none."""
+    if pathlib.PurePath(name).name != name:
+        raise BatchError(f"--timestamps {name!r}: give a file name, found in each sequence's folder")
+    out = []
+    for item in inputs:
+        p = pathlib.Path(item)
+        places = [p / name, p.parent / name] if p.is_dir() else [p.parent / name]
+        found = next((q for q in places if q.is_file()), None)
+        if found is None:
+            raise BatchError(f"--timestamps {name}: sequence {item} has no {name} (looked in "
+                             f"{', '.join(str(q.parent) for q in places)})")
+        out.append(str(found))
+    return out
 
 
 def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: bool,
@@ -116,7 +175,7 @@ def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: boo
         import jax
 
         jax.config.update("jax_compilation_cache_dir", jax_cache_dir)
-    run_dir = pathlib.Path(out) / job.name
+    run_dir = _run_dir(pathlib.Path(out), job.name)
     row: dict[str, Any] = {"sequence": job.name, "run_dir": str(run_dir), "status": "failed"}
     t0 = time.perf_counter()
     try:
@@ -128,8 +187,9 @@ def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: boo
         predictor = job.spec.build()
         if gt is not None and len(gt) != predictor.num_frames:
             raise ValueError(f"ground truth has {len(gt)} poses for {predictor.num_frames} frames")
+        times, note = _times(job, predictor)
         result = reconstruct(predictor, run_dir, config, ground_truth=gt, overwrite=overwrite, progress=False,
-                             log=lambda line: None, executor=LocalExecutor())
+                             log=lambda line: None, executor=LocalExecutor(), timestamps=times, timestamps_note=note)
     except Exception as err:  # noqa: BLE001 -- a failing sequence is reported, the others go on
         row["error"] = f"{type(err).__name__}: {' '.join(str(err).split()) or type(err).__name__}"
     else:
@@ -139,6 +199,19 @@ def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: boo
             row["ate_rmse"] = float(m["ate_rmse"])
     row["seconds"] = time.perf_counter() - t0
     return row
+
+
+def _times(job: Sequence, predictor: Any) -> tuple[Any, str | None]:
+    """A sequence's times for ``poses_tum.txt``, as ``reconstruct`` takes them: its times
+    file, else its source's own (a video's frame times), else ``(None, None)`` (frame index)."""
+    source = getattr(predictor, "source", None)
+    if job.timestamps is not None:
+        from swiftjax.io import images
+
+        return images.read_timestamps(job.timestamps, source, getattr(job.spec, "stride", 1)), f"from {job.timestamps}"
+    if source is not None and hasattr(source, "timestamps"):
+        return source.timestamps()
+    return None, None
 
 
 class _SequenceActor:
@@ -172,6 +245,10 @@ def run_batch(
         raise BatchError(f"sequence names must be unique, got {names}")
     if workers < 1:
         raise BatchError(f"--workers must be >= 1, got {workers}")
+    for name in names:
+        _run_dir(out, name)
+    if out.exists() and not out.is_dir():
+        raise BatchError(f"--out {out} is a file: give a folder for the runs and batch.json")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rows: list[dict[str, Any] | None] = [None] * len(jobs)

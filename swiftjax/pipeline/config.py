@@ -63,8 +63,10 @@ class PipelineConfig:
     prior's standard deviation on one chunk's log-scale), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
-    chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")
-    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size", low=1, stage="temporal")
+    chunk_size: int = option(75, "frames per chunk (B)", low=2, high=10_000, stage="temporal")
+    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size; default 30, or the "
+                         "paper's 30/75 of a chunk of 30 frames or fewer", low=1, high=9_999,
+                         stage="temporal")
     alignment: str = option(
         "umeyama", "chunk alignment: the method's single weighted Umeyama solve, or VGGT-Long's IRLS baseline",
         choices=("umeyama", "irls"), stage="temporal",
@@ -79,7 +81,7 @@ class PipelineConfig:
     )
     min_points: int = option(
         _ALIGN.min_points, "fewest reliable points before the one-time retry with fallback_depth_threshold",
-        low=3, stage="temporal",
+        low=3, high=10**8, stage="temporal",
     )
     fallback_depth_threshold: float = option(
         _ALIGN.fallback_depth_threshold, "depth threshold of the retry when fewer than min_points are reliable",
@@ -102,17 +104,18 @@ class PipelineConfig:
         _LOOPS.false_alarms, "adaptive threshold: accepted rate of false loop candidates",
         low=0.0, high=1.0, low_open=True, high_open=True, stage="loops",
     )
-    loop_min_separation: int = option(_LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, stage="loops")
-    loop_nms_radius: int = option(_LOOPS.nms_radius, "non-maximum suppression radius of loop candidates (frames)", low=0, stage="loops")
-    loop_top_k: int = option(_LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, stage="loops")
-    whitening_dim: int = option(_LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, stage="loops")
-    whitening_remove: int = option(_LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, stage="loops")
+    loop_min_separation: int = option(_LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, high=10**7, stage="loops")
+    loop_nms_radius: int = option(_LOOPS.nms_radius, "non-maximum suppression radius of loop candidates (frames)", low=0, high=10**7, stage="loops")
+    loop_top_k: int = option(_LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, high=1000, stage="loops")
+    whitening_dim: int = option(_LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, high=65_536, stage="loops")
+    whitening_remove: int = option(_LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, high=65_536, stage="loops")
     power_beta: float = option(
         _LOOPS.beta, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True, stage="loops",
     )
     loop_half_window: int = option(
-        _LOOPS.half_window, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2)",
-        low=1, stage="loops",
+        _LOOPS.half_window, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2; "
+        "default 10, or chunk_size / 2 when that is smaller)",
+        low=1, high=5_000, stage="loops",
     )
     loop_verification: str = option(
         _LOOPS.verification, "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
@@ -141,12 +144,13 @@ class PipelineConfig:
         196.0, "pixels per independent residual in an alignment's information (one 14x14 ViT patch)",
         low=1.0, stage="graph",
     )
-    max_lm_steps: int = option(_GRAPH.max_steps, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, stage="graph")
+    max_lm_steps: int = option(_GRAPH.max_steps, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, high=100_000, stage="graph")
     point_conf_ratio: float = option(
         0.75, "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
         low=0.0, high=10.0, stage="temporal",
     )
-    point_stride: int = option(4, "point cloud: keep every k-th pixel in each direction (stored with the chunks)", low=1, stage="temporal")
+    point_stride: int = option(4, "point cloud: keep every k-th pixel in each direction (stored with the chunks)", low=1, high=1024,
+                              stage="temporal")
     voxel_size: float | None = option(
         None, "point cloud: voxel edge for per-chunk downsampling (none: no downsampling)",
         kind=float, low=0.0, low_open=True, optional=True, stage="export",
@@ -160,7 +164,7 @@ class PipelineConfig:
         False, "the COLMAP model at the original image size, with the original files, as VGGT's own export "
         "(decides whether the temporal stage writes the model-resolution frames)", stage="temporal",
     )
-    colmap_max_points: int = option(200_000, "most points written to the COLMAP model", low=0, stage="export")
+    colmap_max_points: int = option(200_000, "most points written to the COLMAP model", low=0, high=10**9, stage="export")
     intrinsics: str | None = option(
         None, "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
         "or a COLMAP cameras.txt (PINHOLE / SIMPLE_PINHOLE / undistorted OPENCV)",
@@ -204,8 +208,22 @@ class PipelineConfig:
         if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
             raise options.OptionError(
                 f"invalid option loop_half_window: {self.loop_half_window}; allowed: "
-                f"1 <= loop_half_window <= chunk_size / 2 ({self.chunk_size / 2:g}) with loop closure on"
+                f"1 <= loop_half_window <= chunk_size / 2 ({self.chunk_size // 2}) with loop closure on: "
+                f"give loop_half_window <= {self.chunk_size // 2}, a larger chunk_size, or loop_closure=false"
             )
+
+    @classmethod
+    def dependent_defaults(cls, given: dict[str, Any]) -> dict[str, Any]:
+        """Defaults that follow the options the user gave (:func:`swiftjax.options.from_sources`):
+        ``loop_half_window`` is the paper's 10, or ``chunk_size // 2`` when a smaller chunk
+        cannot hold the loop-centric windows; ``overlap`` is the paper's 30, or
+        ``round(chunk_size * 30 / 75)`` when the chunk holds 30 frames or fewer.  A value the
+        user gave is kept and checked."""
+        chunk = given.get("chunk_size", _FIELD_DEFAULTS["chunk_size"])
+        overlap = _FIELD_DEFAULTS["overlap"]
+        if overlap >= chunk:  # the paper's ratio, O / B = 30 / 75
+            overlap = max(1, round(chunk * _FIELD_DEFAULTS["overlap"] / _FIELD_DEFAULTS["chunk_size"]))
+        return {"loop_half_window": max(1, min(_FIELD_DEFAULTS["loop_half_window"], chunk // 2)), "overlap": overlap}
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -219,3 +237,6 @@ class PipelineConfig:
     def stage_options(self, stage: str) -> dict[str, Any]:
         """The options of one stage (:data:`swiftjax.options.STAGES`), as JSON-able values."""
         return options.stage_options(type(self), self.to_dict(), stage)
+
+
+_FIELD_DEFAULTS = {f.name: f.default for f in dataclasses.fields(PipelineConfig)}

@@ -77,6 +77,7 @@ class UserCamera:
         mask_dir = None
         if config.mask_dir is not None:
             mask_dir = _masks.MaskDirectory(config.mask_dir, predictor.frame_names(), geometry)
+            mask_dir.check()
         return cls(geometry, intr, K_ref, mask_dir, bool(config.drop_sky), metric)
 
     @property
