@@ -289,3 +289,73 @@ def test_live_viewer_and_host_warning(demo_run):
         assert any("warning: serving on 0.0.0.0" in ln for ln in lines)
     finally:
         shared.close()
+
+
+def _raw_request(port: int, host: str, origin: str | None, websocket: bool) -> bytes:
+    """One HTTP request over a plain socket (a browser's headers, set by hand: Python's
+    clients will not send a foreign Host); everything the server sends within 3 s."""
+    lines = [f"GET / HTTP/1.1", f"Host: {host}"]
+    if websocket:
+        lines += ["Upgrade: websocket", "Connection: Upgrade", "Sec-WebSocket-Version: 13",
+                  "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+                  f"Sec-WebSocket-Protocol: viser-v{__import__('viser').__version__}"]
+    if origin is not None:
+        lines.append(f"Origin: {origin}")
+    received = b""
+    with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+        s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and len(received) < 200_000:
+            try:
+                chunk = s.recv(65536)
+            except TimeoutError:
+                break
+            if not chunk:
+                break
+            received += chunk
+    return received
+
+
+def test_foreign_origin_and_host_get_no_scene(demo_run):
+    """Cross-site WebSocket hijacking and DNS rebinding (issue 25 item 16): a page of
+    another site (``Origin: http://evil.example``) or a rebound name (``Host:
+    evil.example``) gets 403 and no scene; the viewer's own page (same Origin as Host) and a
+    script without Origin get the scene."""
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    out, _ = demo_run
+    v = viewer.Viewer(out, port=0, max_points=2000, log=lambda _: None)
+    try:
+        port = v.server.get_port()
+        own = f"127.0.0.1:{port}"
+        refused = [
+            (own, "http://evil.example", True),
+            (own, f"http://evil.example:{port}", True),
+            (own, "null", True),
+            (f"evil.example:{port}", f"http://evil.example:{port}", True),  # DNS rebinding: same-origin
+            (f"evil.example:{port}", None, True),
+            (f"evil.example:{port}", None, False),  # the page itself
+        ]
+        for host, origin, ws in refused:
+            reply = _raw_request(port, host, origin, ws)
+            assert reply.startswith(b"HTTP/1.1 403"), (host, origin, ws, reply[:200])
+            assert len(reply) < 1000 and b"/cloud" not in reply, (host, origin, ws, len(reply))
+        for host, origin in ((own, f"http://{own}"), (f"localhost:{port}", f"http://localhost:{port}"), (own, None)):
+            reply = _raw_request(port, host, origin, True)
+            assert reply.startswith(b"HTTP/1.1 101"), (host, origin, reply[:200])
+            assert len(reply) > 10_000, (host, origin, len(reply))  # the scene's messages follow
+        assert _raw_request(port, own, None, False).startswith(b"HTTP/1.1 200")
+    finally:
+        v.close()
+
+
+def test_request_refusal_rules():
+    allowed = viewer.allowed_host_names("127.0.0.1")
+    ok = [{"Host": "127.0.0.1:8080"}, {"Host": "[::1]:8080", "Origin": "http://[::1]:8080"},
+          {"Host": "localhost:8080", "Origin": "http://localhost:8080"}, {"Host": "10.1.2.3:8080"}]
+    for headers in ok:
+        assert viewer.request_refusal(headers, allowed) is None, headers
+    bad = [{}, {"Host": "evil.example:8080"}, {"Host": "127.0.0.1:8080", "Origin": "http://127.0.0.1:9999"},
+           {"Host": "127.0.0.1:8080", "Origin": "file://"}, {"Host": "localhost.evil.example"}]
+    for headers in bad:
+        assert viewer.request_refusal(headers, allowed) is not None, headers
+    assert viewer.request_refusal({"Host": "my-box:8080"}, viewer.allowed_host_names("my-box")) is None
