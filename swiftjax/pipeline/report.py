@@ -134,21 +134,37 @@ def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: lis
 
 
 def summary_table(result: RunResult) -> str:
-    """The end-of-run summary: sizes, time per stage, ATE with and without loop closure."""
-    from swiftjax.report import markdown_table
+    """The end-of-run summary, as a terminal table: sizes, ATE with and without loop closure
+    (with a ground truth), the time per stage in pipeline order (seconds, positional
+    notation), then where the outputs are and the command that shows them."""
+    from swiftjax.report import text_table
 
     m = result.metrics
-    rows: list[list[Any]] = [
+    unit = "metres" if m.get("unit") == "metres" else "up to scale (no --metric)"
+    rows: list[Any] = [
+        f"swiftjax: finished {result.run_dir}",
         ["frames", m["frames"]],
         ["chunks", m["chunks"]],
         ["loop candidates", len(m.get("loop_candidates", []))],
         ["loops closed (verified)", m["loops"]],
         ["points written", m["points"]],
+        ["unit", unit],
     ]
-    rows += [[f"time: {k} (s)", float(v)] for k, v in m["timings_seconds"].items()]
     if "ate_rmse" in m:
         rows += [
             ["ATE rmse, loop closure (m)", float(m["ate_rmse"])],
             ["ATE rmse, no loop closure (m)", float(m["ate_rmse_no_loops"])],
         ]
-    return f"{result.run_dir}\n" + markdown_table(["", "value"], rows)
+    timings = {k: float(v) for k, v in m["timings_seconds"].items() if float(v) > 0}
+    rows.append("time per stage (s)")
+    rows += [[k, f"{v:,.2f}"] for k, v in timings.items()]
+    rows.append(["total", f"{sum(timings.values()):,.2f}"])
+    table = text_table(rows)
+    return (f"{table}\noutputs: {result.run_dir}  (points.ply, poses_kitti.txt, poses_tum.txt, colmap/, "
+            f"trajectory.png, points.png, metrics.json)\nnext:    swiftjax view {_shell_quote(result.run_dir)}")
+
+
+def _shell_quote(path: pathlib.Path) -> str:
+    import shlex
+
+    return shlex.quote(str(path))
