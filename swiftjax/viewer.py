@@ -61,7 +61,16 @@ _CHUNK_COLOURS = np.array(
 _ACCEPTED = (40, 170, 60)
 _REJECTED = (220, 30, 30)
 _TRAJECTORY = (30, 90, 220)
-_GROUND_TRUTH = (110, 110, 110)
+_GROUND_TRUTH = (255, 127, 14)  # orange, drawn wider than the trajectory: visible where they agree
+#: The GUI's legend: each colour as the scene draws it (emoji squares render in any browser).
+LEGEND = (
+    "**legend**  \n"
+    "🟦 trajectory (camera centres)  \n"
+    "🟧 ground truth (Sim(3)-aligned, wide band)  \n"
+    "🟩 accepted loop closure  \n"
+    "🟥 rejected loop candidate  \n"
+    "cameras and *chunk* colouring: one colour per chunk"
+)
 POSE_SETS = ("loop closure", "no loop closure")
 
 
@@ -392,6 +401,7 @@ class Viewer:
         self.server.scene.set_up_direction("-y")  # OpenCV world: y down
         gui = self.server.gui
         self.status = gui.add_markdown("reading the run ...")
+        self.legend = gui.add_markdown(LEGEND)
         self.conf_slider = gui.add_slider("confidence percentile", min=0, max=99, step=1, initial_value=0,
                                           hint="hide the least confident points (percentile of the shown sample)")
         self.colour = gui.add_dropdown("colour", ("image", "chunk"), initial_value="image")
@@ -571,7 +581,7 @@ class Viewer:
         R, t, s = umeyama_alignment(gt, centres, "sim3")  # ground truth onto the estimate
         aligned = s * gt @ R.T + t
         seg = np.stack([aligned[:-1], aligned[1:]], axis=1)
-        scene.add_line_segments("/ground_truth", seg, _GROUND_TRUTH, thickness=2.0, thickness_units="screen")
+        scene.add_line_segments("/ground_truth", seg, _GROUND_TRUTH, thickness=8.0, thickness_units="screen")
 
     def watch(self, interval: float = 1.0, stop: threading.Event | None = None) -> None:
         """Poll the run directory every ``interval`` seconds until ``stop`` is set."""

@@ -359,3 +359,27 @@ def test_request_refusal_rules():
     for headers in bad:
         assert viewer.request_refusal(headers, allowed) is not None, headers
     assert viewer.request_refusal({"Host": "my-box:8080"}, viewer.allowed_host_names("my-box")) is None
+
+
+def test_legend_and_ground_truth_visible(demo_run):
+    """The GUI names every colour the scene uses; the ground truth, when ticked, is drawn in
+    its own colour and wider than the trajectory (visible where the two agree), and gone
+    when unticked."""
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    out, _ = demo_run
+    v = viewer.Viewer(out, port=0, max_points=2000, log=lambda _: None)
+    try:
+        for words in ("trajectory", "ground truth", "accepted loop closure", "rejected loop candidate", "chunk"):
+            assert words in v.legend.content, words
+        scene = v.server.scene
+        gt, traj = scene.get_handle_by_name("/ground_truth"), scene.get_handle_by_name("/trajectory")
+        assert gt is not None and traj is not None
+        assert gt.thickness >= 2 * traj.thickness
+        gt_rgb, traj_rgb = np.asarray(gt.colors).reshape(-1, 3)[0], np.asarray(traj.colors).reshape(-1, 3)[0]
+        assert np.abs(gt_rgb.astype(int) - traj_rgb.astype(int)).max() > 100  # told apart at a glance
+        v.show_gt.value = False
+        assert scene.get_handle_by_name("/ground_truth") is None
+        v.show_gt.value = True
+        assert scene.get_handle_by_name("/ground_truth") is not None
+    finally:
+        v.close()
