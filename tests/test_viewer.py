@@ -383,3 +383,87 @@ def test_legend_and_ground_truth_visible(demo_run):
         assert scene.get_handle_by_name("/ground_truth") is not None
     finally:
         v.close()
+
+
+# ------------------------------------------------------------------ the docs' maths, offline
+
+
+def _docs_site(tmp_path_factory) -> "os.PathLike[str]":
+    """A built docs site: ``$SWIFTJAX_DOCS_SITE`` (``.ci/run`` points it at the site its
+    ``mkdocs build --strict`` wrote), else built here without executing the notebooks."""
+    import importlib.util
+    import sys
+
+    site = os.environ.get("SWIFTJAX_DOCS_SITE")
+    if site:
+        assert os.path.isfile(os.path.join(site, "index.html")), f"SWIFTJAX_DOCS_SITE={site} holds no site"
+        return site
+    if importlib.util.find_spec("mkdocs") is None:
+        pytest.skip("mkdocs is not installed (pip install -e '.[docs]'; .ci/run runs this test after the docs build)")
+    out = tmp_path_factory.mktemp("site")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, SWIFTJAX_DOCS_EXECUTE="false", NO_MKDOCS_2_WARNING="1")
+    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-d", str(out)],
+                          cwd=repo, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+def _dump_dom(url: str) -> str:
+    """The page's DOM after its scripts ran, in headless Chromium that can resolve no host
+    but 127.0.0.1 (a renderer fetched from a CDN cannot load)."""
+    with tempfile.TemporaryDirectory() as profile:
+        cmd = [
+            _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader", "--virtual-time-budget=20000", "--disable-background-networking",
+            "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}",
+            "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1", "--dump-dom", url,
+        ]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+        try:
+            out, err = proc.communicate(timeout=180)
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            proc.wait()
+    assert out, err.decode(errors="replace")[-2000:]
+    return out.decode()
+
+
+def test_docs_maths_render_offline(tmp_path_factory):
+    """Issue 26 item 5: a built page's equations are typeset in the browser with no network
+    (MathJax served by the site): every arithmatex element of ``method/`` holds an SVG
+    formula and no TeX error; a notebook page's ``$...$`` maths is typeset too."""
+    import functools
+    import http.server
+    import re
+    import threading
+
+    _need("chromium", _chromium() is not None, "apt-get install chromium")
+    site = _docs_site(tmp_path_factory)
+    for page in ("method/index.html", "conventions/index.html"):
+        html = open(os.path.join(site, page), encoding="utf-8").read()
+        assert not re.search(r"<script[^>]+src=\"https?://", html), f"{page} loads a script from the network"
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # noqa: D102
+            pass
+
+    handler = functools.partial(Quiet, directory=str(site))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        base = f"http://127.0.0.1:{server.server_address[1]}/"
+        source = open(os.path.join(site, "method", "index.html"), encoding="utf-8").read()
+        n_maths = len(re.findall(r'class="arithmatex"', source))
+        assert n_maths >= 20, n_maths
+        dom = _dump_dom(base + "method/")
+        formulas = re.findall(r"<mjx-container[^>]*>\s*<svg", dom)
+        assert len(formulas) >= n_maths, (len(formulas), n_maths)
+        assert '<g data-mml-node="merror"' not in dom  # an unknown macro would render as an error box
+        assert not re.search(r'class="arithmatex">\\[(\[]', dom)  # no raw TeX left
+        dom = _dump_dom(base + "notebooks/05_full_pipeline/")
+        assert re.search(r"<mjx-container[^>]*>\s*<svg", dom) and "$S_{i\\to j}" not in dom  # typeset, not raw
+    finally:
+        server.shutdown()
