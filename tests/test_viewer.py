@@ -157,21 +157,18 @@ def _live_group_members(pgid: int) -> list[int]:
     return alive
 
 
-def _screenshot(url: str, path: str) -> np.ndarray:
-    """Headless Chromium with software WebGL; returns the PNG as ``[H, W, 3]`` uint8. The
-    browser's whole process group is killed afterwards, and checked gone."""
-    from PIL import Image
-
+def _run_chromium(flags: list[str], url: str, timeout: float) -> tuple[int, bytes, bytes]:
+    """Headless Chromium (software WebGL) with ``flags`` on ``url``: (exit status, stdout,
+    stderr). The browser's whole process group is killed afterwards, and checked gone."""
     with tempfile.TemporaryDirectory() as profile:
         cmd = [
             _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader", "--window-size=1200,800", "--virtual-time-budget=15000",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            "--no-first-run", f"--user-data-dir={profile}", f"--screenshot={path}", url,
+            "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--no-first-run", f"--user-data-dir={profile}", *flags, url,
         ]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
         try:
-            _, err = proc.communicate(timeout=120)
+            out, err = proc.communicate(timeout=timeout)
         finally:
             try:
                 os.killpg(proc.pid, signal.SIGKILL)
@@ -182,7 +179,16 @@ def _screenshot(url: str, path: str) -> np.ndarray:
         while _live_group_members(proc.pid) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not _live_group_members(proc.pid), "browser processes were left behind"
-    assert proc.returncode == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
+    return proc.returncode, out, err
+
+
+def _screenshot(url: str, path: str) -> np.ndarray:
+    """A 1200 x 800 screenshot of ``url``, as ``[H, W, 3]`` uint8."""
+    from PIL import Image
+
+    rc, _, err = _run_chromium(["--window-size=1200,800", "--virtual-time-budget=15000", f"--screenshot={path}"],
+                               url, timeout=120)
+    assert rc == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
     return np.asarray(Image.open(path).convert("RGB"))
 
 
@@ -412,22 +418,8 @@ def _docs_site(tmp_path_factory) -> "os.PathLike[str]":
 def _dump_dom(url: str) -> str:
     """The page's DOM after its scripts ran, in headless Chromium that can resolve no host
     but 127.0.0.1 (a renderer fetched from a CDN cannot load)."""
-    with tempfile.TemporaryDirectory() as profile:
-        cmd = [
-            _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader", "--virtual-time-budget=20000", "--disable-background-networking",
-            "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={profile}",
-            "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1", "--dump-dom", url,
-        ]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
-        try:
-            out, err = proc.communicate(timeout=180)
-        finally:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            proc.wait()
+    _, out, err = _run_chromium(["--virtual-time-budget=20000", "--dump-dom",
+                                 "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"], url, timeout=180)
     assert out, err.decode(errors="replace")[-2000:]
     return out.decode()
 
