@@ -217,8 +217,8 @@ def _mathjax_dir() -> pathlib.Path:
     import importlib.util
 
     spec = importlib.util.find_spec("mathjax")
-    base = pathlib.Path(next(iter(spec.submodule_search_locations))) if spec and spec.submodule_search_locations else None
-    es5 = base / "static" / "mathjax" / "es5" if base else None
+    roots = list(spec.submodule_search_locations or []) if spec else []
+    es5 = pathlib.Path(roots[0]) / "static" / "mathjax" / "es5" if roots else None
     if es5 is None or not (es5 / "tex-svg.js").is_file():
         raise RuntimeError("MathJax is not installed: pip install -c constraints.txt -e '.[docs]' "
                            "(django-static-mathjax ships MathJax 3's files)")

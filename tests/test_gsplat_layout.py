@@ -67,7 +67,10 @@ def gsplat_parser_steps(data_dir: pathlib.Path, factor: int) -> tuple[list[str],
     for d in (image_dir, colmap_image_dir):
         if not d.exists():
             raise ValueError(f"Image folder {d} does not exist.")
-    rel = lambda d: sorted(os.path.relpath(os.path.join(dp, f), d) for dp, _, fs in os.walk(d) for f in fs)  # noqa: E731
+
+    def rel(d):  # gsplat's _get_rel_paths, sorted
+        return sorted(os.path.relpath(os.path.join(dp, f), d) for dp, _, fs in os.walk(d) for f in fs)
+
     colmap_to_image = dict(zip(rel(colmap_image_dir), rel(image_dir)))
     paths = [str(image_dir / colmap_to_image[n]) for n in names]
     with Image.open(paths[0]) as im:

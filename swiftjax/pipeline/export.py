@@ -590,7 +590,8 @@ def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
     if not rows:
         count = "0 candidates: loop detection found no pair of frames that look at the same place"
     elif any("accepted" in r for r in rows):
-        count = f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), {len(rows) - accepted} rejected"
+        count = (f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), "
+                 f"{len(rows) - accepted} rejected")
     else:
         count = f"{len(rows)} candidates, all used as edges of the pose graph (no verification verdicts recorded)"
     lines = [
