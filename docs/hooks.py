@@ -15,6 +15,10 @@ the option schema.
 * ``commands.md``: each ``swiftjax`` subcommand's ``--help``, from the CLI's own parser.
 * The "Benchmarks" section lists ``performance/index.md``, then the pages in
   ``PERFORMANCE_ORDER`` that exist, then any other page found there (alphabetical).
+* The maths renders offline: MathJax 3 (its SVG output, ``tex-svg.js``, and the TeX
+  extensions it may autoload) is copied into the site under ``javascripts/mathjax/`` from
+  the installed Python package that ships it (PyPI ``django-static-mathjax``: MathJax's
+  files, nothing of Django is imported); nothing is fetched from a CDN.
 """
 
 from __future__ import annotations
@@ -205,7 +209,27 @@ def on_config(config):
     return config
 
 
+MATHJAX_URI = "javascripts/mathjax"
+
+
+def _mathjax_dir() -> pathlib.Path:
+    """MathJax 3's ``es5`` folder from the installed ``django-static-mathjax`` package."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("mathjax")
+    roots = list(spec.submodule_search_locations or []) if spec else []
+    es5 = pathlib.Path(roots[0]) / "static" / "mathjax" / "es5" if roots else None
+    if es5 is None or not (es5 / "tex-svg.js").is_file():
+        raise RuntimeError("MathJax is not installed: pip install -c constraints.txt -e '.[docs]' "
+                           "(django-static-mathjax ships MathJax 3's files)")
+    return es5
+
+
 def on_files(files, config):
     for uri, text in _pages.items():
         files.append(File.generated(config, uri, content=text))
+    es5 = _mathjax_dir()
+    for path in [es5 / "tex-svg.js", *sorted((es5 / "input" / "tex" / "extensions").rglob("*.js"))]:
+        uri = f"{MATHJAX_URI}/{path.relative_to(es5).as_posix()}"
+        files.append(File.generated(config, uri, abs_src_path=str(path)))
     return files

@@ -22,26 +22,35 @@ ones, written by the export); while a run is going, the viewer chains the tempor
 ``chunk_poses.json``'s modification times) and adds chunks as they arrive: ``swiftjax view``
 on a running reconstruction, or ``swiftjax reconstruct ... --view``.
 
-The server binds ``127.0.0.1`` unless told otherwise (a map is private).  ``import
-swiftjax`` never imports viser: this module imports it inside :func:`serve` only.
+The server binds ``127.0.0.1`` unless told otherwise (a map is private).  A web page on
+another site open in the same browser could still reach ``ws://127.0.0.1:8080`` (cross-site
+WebSocket hijacking) or rename itself to that address (DNS rebinding), so every request is
+checked before viser sees it (:func:`request_refusal`): the ``Host`` header must name this
+server (an IP address, ``localhost``, this machine's name, or the ``--host`` given), and a
+WebSocket's ``Origin``, when a browser sends one, must be the page's own address.  A
+refused request gets ``403`` and no scene.  ``import swiftjax`` never imports viser: this
+module imports it inside :class:`Viewer` only.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import ipaddress
 import json
 import pathlib
 import socket
 import threading
 import time
-from collections.abc import Callable
+import urllib.parse
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 
 from swiftjax.sampling import Reservoir
 
-__all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port"]
+__all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port", "request_refusal"]
 
 
 #: Distinct colours for per-chunk colouring (matplotlib's tab10, as uint8).
@@ -52,7 +61,16 @@ _CHUNK_COLOURS = np.array(
 _ACCEPTED = (40, 170, 60)
 _REJECTED = (220, 30, 30)
 _TRAJECTORY = (30, 90, 220)
-_GROUND_TRUTH = (110, 110, 110)
+_GROUND_TRUTH = (255, 127, 14)  # orange, drawn wider than the trajectory: visible where they agree
+#: The GUI's legend: each colour as the scene draws it (emoji squares render in any browser).
+LEGEND = (
+    "**legend**  \n"
+    "🟦 trajectory (camera centres)  \n"
+    "🟧 ground truth (Sim(3)-aligned, wide band)  \n"
+    "🟩 accepted loop closure  \n"
+    "🟥 rejected loop candidate  \n"
+    "cameras and *chunk* colouring: one colour per chunk"
+)
 POSE_SETS = ("loop closure", "no loop closure")
 
 
@@ -259,6 +277,93 @@ def check_port(host: str, port: int) -> None:
             raise ViewerError(f"port {port} on {host} {what}; choose another with --port") from None
 
 
+# ------------------------------------------------------------------------------ request guard
+
+
+def _split_host(value: str) -> str | None:
+    """The host name of a ``Host`` header or an origin's netloc, lower case, without port or
+    IPv6 brackets; None if it does not parse."""
+    try:
+        parsed = urllib.parse.urlsplit("//" + value.strip())
+        return (parsed.hostname or "").lower() or None
+    except ValueError:
+        return None
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def allowed_host_names(bind_host: str) -> frozenset[str]:
+    """Names a ``Host`` header may carry besides an IP address: ``localhost``, this machine's
+    names, and the ``--host`` the server was started with (an IP literal cannot be rebound
+    by DNS, a name can)."""
+    names = {"localhost", "localhost.localdomain", bind_host.strip("[]").lower()}
+    with contextlib.suppress(OSError):
+        names.update({socket.gethostname().lower(), socket.getfqdn().lower()})
+    return frozenset(n for n in names if n)
+
+
+def request_refusal(headers: Any, allowed: frozenset[str]) -> str | None:
+    """Why a request (its HTTP headers) must be refused, or None to serve it.
+
+    * ``Host`` must be an IP address or one of ``allowed`` (:func:`allowed_host_names`):
+      a page of ``evil.example`` rebound by DNS to 127.0.0.1 sends ``Host: evil.example``;
+    * ``Origin``, when present (browsers always send it on a WebSocket), must be
+      ``http(s)://`` + the ``Host`` header: the page that opens the socket was served here.
+      A client that is not a browser (a script) sends none and is let through.
+    """
+    host_header = headers.get("Host")
+    host = _split_host(host_header) if host_header else None
+    if host is None:
+        return "no valid Host header"
+    if not _is_ip(host) and host not in allowed:
+        return f"Host {host_header!r} is not this viewer's address"
+    origin = headers.get("Origin")
+    if origin is not None:
+        parsed = urllib.parse.urlsplit(origin.strip())
+        if parsed.scheme not in ("http", "https") or parsed.netloc.lower() != host_header.strip().lower():
+            return f"Origin {origin!r} is not this viewer's page ({host_header})"
+    return None
+
+
+@contextlib.contextmanager
+def _guarded_websockets(allowed: frozenset[str]) -> Iterator[None]:
+    """While viser starts its server, make websockets' ``serve`` run :func:`request_refusal`
+    before viser's own request hook (viser offers no hook of its own).  viser's constructor
+    returns only once the socket is bound, so the patch is in place exactly as long as it
+    is read; a lock keeps two viewers of one process from interleaving."""
+    import http
+
+    import websockets.asyncio.server as ws_server
+
+    original = ws_server.serve
+
+    class GuardedServe(original):  # type: ignore[misc, valid-type]
+        def __init__(self, *args: Any, process_request: Any = None, **kwargs: Any) -> None:
+            def guard(connection: Any, request: Any) -> Any:
+                reason = request_refusal(request.headers, allowed)
+                if reason is not None:
+                    return connection.respond(http.HTTPStatus.FORBIDDEN, f"swiftjax view: refused: {reason}\n")
+                return process_request(connection, request) if process_request is not None else None
+
+            super().__init__(*args, process_request=guard, **kwargs)
+
+    with _GUARD_LOCK:
+        ws_server.serve = GuardedServe
+        try:
+            yield
+        finally:
+            ws_server.serve = original
+
+
+_GUARD_LOCK = threading.Lock()
+
+
 # ------------------------------------------------------------------------------ serving
 
 
@@ -288,13 +393,15 @@ class Viewer:
         self._lock = threading.RLock()
         self.view: RunView | None = None
         self._point_size = point_size
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with _guarded_websockets(allowed_host_names(host)):
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         if port and self.server.get_port() != port:  # viser moves on to a free port silently
             self.server.stop()
             raise ViewerError(f"port {port} on {host} is already in use; choose another with --port")
         self.server.scene.set_up_direction("-y")  # OpenCV world: y down
         gui = self.server.gui
         self.status = gui.add_markdown("reading the run ...")
+        self.legend = gui.add_markdown(LEGEND)
         self.conf_slider = gui.add_slider("confidence percentile", min=0, max=99, step=1, initial_value=0,
                                           hint="hide the least confident points (percentile of the shown sample)")
         self.colour = gui.add_dropdown("colour", ("image", "chunk"), initial_value="image")
@@ -474,7 +581,7 @@ class Viewer:
         R, t, s = umeyama_alignment(gt, centres, "sim3")  # ground truth onto the estimate
         aligned = s * gt @ R.T + t
         seg = np.stack([aligned[:-1], aligned[1:]], axis=1)
-        scene.add_line_segments("/ground_truth", seg, _GROUND_TRUTH, thickness=2.0, thickness_units="screen")
+        scene.add_line_segments("/ground_truth", seg, _GROUND_TRUTH, thickness=8.0, thickness_units="screen")
 
     def watch(self, interval: float = 1.0, stop: threading.Event | None = None) -> None:
         """Poll the run directory every ``interval`` seconds until ``stop`` is set."""

@@ -444,10 +444,16 @@ def test_loops_txt_and_plot_with_rejected_candidates(tmp_path):
     export.write_loops(tmp_path / "loops.txt", recs)
     lines = (tmp_path / "loops.txt").read_text().splitlines()
     keys = [x for x in lines if x.startswith("#")][-1][2:].split()
-    rows = [dict(zip(keys, x.split())) for x in lines if not x.startswith("#")]
+    assert keys[-1] == "reason"
+    rows = [dict(zip(keys, x.split(maxsplit=len(keys) - 1))) for x in lines if not x.startswith("#")]
     assert rows[0]["accepted"] == "yes" and rows[0]["dense_agreement"] == "0.8" and rows[0]["align_i.num_points"] == "10"
     assert rows[1]["accepted"] == "no" and rows[1]["dense_agreement"] == "-"
-    assert rows[1]["reason"] == "chunks_1_and_2_are_neighbours_(their_temporal_edge)"
+    assert rows[1]["reason"] == "chunks 1 and 2 are neighbours (their temporal edge)"  # readable, not snake_case
+    assert "# 2 candidates, 1 accepted (edges of the pose graph), 1 rejected" in lines
+    export.write_loops(tmp_path / "none.txt", [])
+    text = (tmp_path / "none.txt").read_text()
+    assert "0 candidates: loop detection found no pair" in text and "all were used" not in text
+    assert [x for x in text.splitlines() if not x.startswith("#")] == []
     est = np.cumsum(np.ones((200, 3)), axis=0)
     plot.plot_trajectory(tmp_path / "t.png", est, loops=[[150, 20]], rejected=[[60, 30]])
     assert (tmp_path / "t.png").stat().st_size > 1000

@@ -134,7 +134,7 @@ def test_text_outputs_describe_themselves(small_loop_run):
 
     loops = out / "loops.txt"
     columns = _header(loops)[-1].split()
-    body = [ln.split() for ln in loops.read_text().splitlines() if not ln.startswith("#")]
+    body = [ln.split(maxsplit=len(columns) - 1) for ln in loops.read_text().splitlines() if not ln.startswith("#")]
     assert columns[:5] == ["i", "j", "score", "chunk_i", "chunk_j"] and "align_i.num_points" in columns
     assert len(body) == len(result.loops) > 0 and all(len(r) == len(columns) for r in body)
     for r, rec in zip(body, result.loops):

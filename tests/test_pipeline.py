@@ -102,9 +102,9 @@ def test_loop_candidates_are_verified_and_recorded(result, small_run):
     assert [r for r in cands if r["accepted"]] == result.loops and len(result.loops) >= 1
     lines = (result.run_dir / "loops.txt").read_text().splitlines()
     keys = [x for x in lines if x.startswith("#")][-1][2:].split()
-    rows = [dict(zip(keys, x.split())) for x in lines if not x.startswith("#")]
+    rows = [dict(zip(keys, x.split(maxsplit=len(keys) - 1))) for x in lines if not x.startswith("#")]
     assert [(int(x["i"]), int(x["j"]), x["accepted"] == "yes", x["reason"]) for x in rows] == [
-        (r["i"], r["j"], r["accepted"], "_".join(r["reason"].split())) for r in cands]
+        (r["i"], r["j"], r["accepted"], " ".join(r["reason"].split())) for r in cands]
     metrics = json.loads((result.run_dir / "metrics.json").read_text())
     assert [(c["i"], c["j"], c["accepted"]) for c in metrics["loop_candidates"]] == [
         (r["i"], r["j"], r["accepted"]) for r in cands]

@@ -108,10 +108,11 @@ def test_stream_equals_one_shot_and_large_count(tmp_path):
 
 def test_stream_header_reserve_holds_any_count():
     dt = ply_dtype()
-    size = len(ply_module._header(0, dt)) + len("comment \n") + ply_module._COUNT_WIDTH
+    size = len(ply_module._header(0, dt)) + ply_module._COUNT_WIDTH
     for count in (0, 9, 10**6, 2**64 - 1):
         h = ply_module._header(count, dt, pad_to=size)
         assert len(h) == size and f"\nelement vertex {count}\n".encode() in h
+        assert all(line.strip() != "comment" for line in h.decode().splitlines())  # no blank comment
     with pytest.raises(ValueError, match="does not fit"):
         ply_module._header(10**25, dt, pad_to=size)
 
@@ -260,3 +261,32 @@ def test_voxel_downsample_special_cases():
     assert empty.points.shape == (0, 3)
     with pytest.raises(ValueError, match="positive"):
         voxel_downsample(p, None, k, 0.0)
+
+
+def test_header_comments_none_blank(tmp_path):
+    """A streamed PLY has no blank comment line (the reserved space trails the first comment)
+    and carries the comments it is given, one line each (issue 26 item 11)."""
+    notes = ["unit: up to scale", "frame: the first camera's frame,  OpenCV axes"]
+    with PlyStreamWriter(tmp_path / "s.ply", colors=False, conf=False, comments=notes) as w:
+        w.append(np.ones((5, 3), np.float32))
+    data = (tmp_path / "s.ply").read_bytes()
+    head = data[: data.index(b"end_header\n")].decode().splitlines()
+    comments = [ln.rstrip() for ln in head if ln.startswith("comment")]
+    assert comments == ["comment written by swiftjax", "comment unit: up to scale",
+                        "comment frame: the first camera's frame, OpenCV axes"]
+    assert all(ln.split(maxsplit=1)[1:] for ln in comments)
+    np.testing.assert_array_equal(_spec_reader(tmp_path / "s.ply")["x"], np.ones(5))
+    write_ply(tmp_path / "o.ply", np.zeros((2, 3)), comments=["unit: metres"])
+    assert b"\ncomment unit: metres\nelement vertex 2\n" in (tmp_path / "o.ply").read_bytes()
+
+
+def test_run_points_ply_names_unit_and_frame(small_loop_run):
+    out, result = small_loop_run
+    data = (out / "points.ply").read_bytes()
+    head = data[: data.index(b"end_header\n")].decode().splitlines()
+    comments = [ln.rstrip() for ln in head if ln.startswith("comment")]
+    assert all(len(c) > len("comment") for c in comments), comments
+    assert any(c.startswith("comment unit: up to scale") for c in comments), comments
+    assert any(c.startswith("comment frame: the run's world = the first camera's frame, OpenCV") for c in comments)
+    np.testing.assert_allclose(result.cam_to_world[0], np.eye(4), atol=1e-6)  # what the frame comment says
+    assert len(read_ply(out / "points.ply").points) == result.metrics["points"]

@@ -157,21 +157,18 @@ def _live_group_members(pgid: int) -> list[int]:
     return alive
 
 
-def _screenshot(url: str, path: str) -> np.ndarray:
-    """Headless Chromium with software WebGL; returns the PNG as ``[H, W, 3]`` uint8. The
-    browser's whole process group is killed afterwards, and checked gone."""
-    from PIL import Image
-
+def _run_chromium(flags: list[str], url: str, timeout: float) -> tuple[int, bytes, bytes]:
+    """Headless Chromium (software WebGL) with ``flags`` on ``url``: (exit status, stdout,
+    stderr). The browser's whole process group is killed afterwards, and checked gone."""
     with tempfile.TemporaryDirectory() as profile:
         cmd = [
             _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader", "--window-size=1200,800", "--virtual-time-budget=15000",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync",
-            "--no-first-run", f"--user-data-dir={profile}", f"--screenshot={path}", url,
+            "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", "--no-first-run", f"--user-data-dir={profile}", *flags, url,
         ]
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
         try:
-            _, err = proc.communicate(timeout=120)
+            out, err = proc.communicate(timeout=timeout)
         finally:
             try:
                 os.killpg(proc.pid, signal.SIGKILL)
@@ -182,7 +179,16 @@ def _screenshot(url: str, path: str) -> np.ndarray:
         while _live_group_members(proc.pid) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not _live_group_members(proc.pid), "browser processes were left behind"
-    assert proc.returncode == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
+    return proc.returncode, out, err
+
+
+def _screenshot(url: str, path: str) -> np.ndarray:
+    """A 1200 x 800 screenshot of ``url``, as ``[H, W, 3]`` uint8."""
+    from PIL import Image
+
+    rc, _, err = _run_chromium(["--window-size=1200,800", "--virtual-time-budget=15000", f"--screenshot={path}"],
+                               url, timeout=120)
+    assert rc == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
     return np.asarray(Image.open(path).convert("RGB"))
 
 
@@ -289,3 +295,167 @@ def test_live_viewer_and_host_warning(demo_run):
         assert any("warning: serving on 0.0.0.0" in ln for ln in lines)
     finally:
         shared.close()
+
+
+def _raw_request(port: int, host: str, origin: str | None, websocket: bool) -> bytes:
+    """One HTTP request over a plain socket (a browser's headers, set by hand: Python's
+    clients will not send a foreign Host); everything the server sends within 3 s."""
+    lines = [f"GET / HTTP/1.1", f"Host: {host}"]
+    if websocket:
+        lines += ["Upgrade: websocket", "Connection: Upgrade", "Sec-WebSocket-Version: 13",
+                  "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+                  f"Sec-WebSocket-Protocol: viser-v{__import__('viser').__version__}"]
+    if origin is not None:
+        lines.append(f"Origin: {origin}")
+    received = b""
+    with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+        s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and len(received) < 200_000:
+            try:
+                chunk = s.recv(65536)
+            except TimeoutError:
+                break
+            if not chunk:
+                break
+            received += chunk
+    return received
+
+
+def test_foreign_origin_and_host_get_no_scene(demo_run):
+    """Cross-site WebSocket hijacking and DNS rebinding (issue 25 item 16): a page of
+    another site (``Origin: http://evil.example``) or a rebound name (``Host:
+    evil.example``) gets 403 and no scene; the viewer's own page (same Origin as Host) and a
+    script without Origin get the scene."""
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    out, _ = demo_run
+    v = viewer.Viewer(out, port=0, max_points=2000, log=lambda _: None)
+    try:
+        port = v.server.get_port()
+        own = f"127.0.0.1:{port}"
+        refused = [
+            (own, "http://evil.example", True),
+            (own, f"http://evil.example:{port}", True),
+            (own, "null", True),
+            (f"evil.example:{port}", f"http://evil.example:{port}", True),  # DNS rebinding: same-origin
+            (f"evil.example:{port}", None, True),
+            (f"evil.example:{port}", None, False),  # the page itself
+        ]
+        for host, origin, ws in refused:
+            reply = _raw_request(port, host, origin, ws)
+            assert reply.startswith(b"HTTP/1.1 403"), (host, origin, ws, reply[:200])
+            assert len(reply) < 1000 and b"/cloud" not in reply, (host, origin, ws, len(reply))
+        for host, origin in ((own, f"http://{own}"), (f"localhost:{port}", f"http://localhost:{port}"), (own, None)):
+            reply = _raw_request(port, host, origin, True)
+            assert reply.startswith(b"HTTP/1.1 101"), (host, origin, reply[:200])
+            assert len(reply) > 10_000, (host, origin, len(reply))  # the scene's messages follow
+        assert _raw_request(port, own, None, False).startswith(b"HTTP/1.1 200")
+    finally:
+        v.close()
+
+
+def test_request_refusal_rules():
+    allowed = viewer.allowed_host_names("127.0.0.1")
+    ok = [{"Host": "127.0.0.1:8080"}, {"Host": "[::1]:8080", "Origin": "http://[::1]:8080"},
+          {"Host": "localhost:8080", "Origin": "http://localhost:8080"}, {"Host": "10.1.2.3:8080"}]
+    for headers in ok:
+        assert viewer.request_refusal(headers, allowed) is None, headers
+    bad = [{}, {"Host": "evil.example:8080"}, {"Host": "127.0.0.1:8080", "Origin": "http://127.0.0.1:9999"},
+           {"Host": "127.0.0.1:8080", "Origin": "file://"}, {"Host": "localhost.evil.example"}]
+    for headers in bad:
+        assert viewer.request_refusal(headers, allowed) is not None, headers
+    assert viewer.request_refusal({"Host": "my-box:8080"}, viewer.allowed_host_names("my-box")) is None
+
+
+def test_legend_and_ground_truth_visible(demo_run):
+    """The GUI names every colour the scene uses; the ground truth, when ticked, is drawn in
+    its own colour and wider than the trajectory (visible where the two agree), and gone
+    when unticked."""
+    _need("viser", __import__("importlib").util.find_spec("viser") is not None, "pip install 'swiftjax[view]'")
+    out, _ = demo_run
+    v = viewer.Viewer(out, port=0, max_points=2000, log=lambda _: None)
+    try:
+        for words in ("trajectory", "ground truth", "accepted loop closure", "rejected loop candidate", "chunk"):
+            assert words in v.legend.content, words
+        scene = v.server.scene
+        gt, traj = scene.get_handle_by_name("/ground_truth"), scene.get_handle_by_name("/trajectory")
+        assert gt is not None and traj is not None
+        assert gt.thickness >= 2 * traj.thickness
+        gt_rgb, traj_rgb = np.asarray(gt.colors).reshape(-1, 3)[0], np.asarray(traj.colors).reshape(-1, 3)[0]
+        assert np.abs(gt_rgb.astype(int) - traj_rgb.astype(int)).max() > 100  # told apart at a glance
+        v.show_gt.value = False
+        assert scene.get_handle_by_name("/ground_truth") is None
+        v.show_gt.value = True
+        assert scene.get_handle_by_name("/ground_truth") is not None
+    finally:
+        v.close()
+
+
+# ------------------------------------------------------------------ the docs' maths, offline
+
+
+def _docs_site(tmp_path_factory) -> "os.PathLike[str]":
+    """A built docs site: ``$SWIFTJAX_DOCS_SITE`` (``.ci/run`` points it at the site its
+    ``mkdocs build --strict`` wrote), else built here without executing the notebooks."""
+    import importlib.util
+    import sys
+
+    site = os.environ.get("SWIFTJAX_DOCS_SITE")
+    if site:
+        assert os.path.isfile(os.path.join(site, "index.html")), f"SWIFTJAX_DOCS_SITE={site} holds no site"
+        return site
+    if importlib.util.find_spec("mkdocs") is None:
+        pytest.skip("mkdocs is not installed (pip install -e '.[docs]'; .ci/run runs this test after the docs build)")
+    out = tmp_path_factory.mktemp("site")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, SWIFTJAX_DOCS_EXECUTE="false", NO_MKDOCS_2_WARNING="1")
+    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-d", str(out)],
+                          cwd=repo, env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+def _dump_dom(url: str) -> str:
+    """The page's DOM after its scripts ran, in headless Chromium that can resolve no host
+    but 127.0.0.1 (a renderer fetched from a CDN cannot load)."""
+    _, out, err = _run_chromium(["--virtual-time-budget=20000", "--dump-dom",
+                                 "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"], url, timeout=180)
+    assert out, err.decode(errors="replace")[-2000:]
+    return out.decode()
+
+
+def test_docs_maths_render_offline(tmp_path_factory):
+    """Issue 26 item 5: a built page's equations are typeset in the browser with no network
+    (MathJax served by the site): every arithmatex element of ``method/`` holds an SVG
+    formula and no TeX error; a notebook page's ``$...$`` maths is typeset too."""
+    import functools
+    import http.server
+    import re
+    import threading
+
+    _need("chromium", _chromium() is not None, "apt-get install chromium")
+    site = _docs_site(tmp_path_factory)
+    for page in ("method/index.html", "conventions/index.html"):
+        html = open(os.path.join(site, page), encoding="utf-8").read()
+        assert not re.search(r"<script[^>]+src=\"https?://", html), f"{page} loads a script from the network"
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # noqa: D102
+            pass
+
+    handler = functools.partial(Quiet, directory=str(site))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        base = f"http://127.0.0.1:{server.server_address[1]}/"
+        source = open(os.path.join(site, "method", "index.html"), encoding="utf-8").read()
+        n_maths = len(re.findall(r'class="arithmatex"', source))
+        assert n_maths >= 20, n_maths
+        dom = _dump_dom(base + "method/")
+        formulas = re.findall(r"<mjx-container[^>]*>\s*<svg", dom)
+        assert len(formulas) >= n_maths, (len(formulas), n_maths)
+        assert '<g data-mml-node="merror"' not in dom  # an unknown macro would render as an error box
+        assert not re.search(r'class="arithmatex">\\[(\[]', dom)  # no raw TeX left
+        dom = _dump_dom(base + "notebooks/05_full_pipeline/")
+        assert re.search(r"<mjx-container[^>]*>\s*<svg", dom) and "$S_{i\\to j}" not in dom  # typeset, not raw
+    finally:
+        server.shutdown()

@@ -1,6 +1,12 @@
 """PNGs without a browser: the top-view trajectory (estimate vs reference, loop closures drawn as
 segments) and a bird's-eye view of the coloured point cloud with the cameras (``points.png``).
 
+Both pictures share one convention: the two coordinate axes of largest extent of the camera
+positions (:func:`top_view_axes`), the lower-numbered one to the right, never mirrored (in
+an OpenCV world, y down, x right and z up on the page is the view from above), each axis
+labelled with the world's unit (``[m]`` only when the run is metric, else ``[up to
+scale]``).
+
 Uses matplotlib's object API with the Agg canvas (no pyplot global state, no display) and
 writes the file atomically (:func:`swiftjax.io.atomic.atomic_path`).
 """
@@ -8,14 +14,31 @@ writes the file atomically (:func:`swiftjax.io.atomic.atomic_path`).
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from swiftjax.io.atomic import atomic_path
 
-__all__ = ["plot_points", "plot_trajectory", "top_view_axes"]
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+__all__ = ["plot_points", "plot_trajectory", "top_view_axes", "axis_label"]
 
 _AXIS = "xyz"
+#: Colours shared by both pictures (and named in their legends).
+_ESTIMATE, _NO_LOOPS, _REFERENCE, _LOOP, _REJECTED = "tab:blue", "tab:purple", "tab:orange", "tab:red", "0.35"
+
+
+def axis_label(axis: int, unit: str | None) -> str:
+    """``"x [m]"`` for a metric world (``unit`` ``"m"`` / ``"metres"``), ``"x [up to scale]"``
+    when the unit is unknown (``None``) or up to scale, else ``"x [<unit>]"``."""
+    name = _AXIS[axis]
+    if unit in ("m", "metres", "meters"):
+        return f"{name} [m]"
+    if unit is None or "scale" in unit:
+        return f"{name} [up to scale]"
+    return f"{name} [{unit}]"
 
 
 def _positions(x: np.ndarray, name: str) -> np.ndarray:
@@ -43,8 +66,14 @@ def plot_trajectory(
     axes: tuple[int, int] | None = None,
     dpi: int = 120,
     rejected: np.ndarray | None = None,
-) -> None:
+    no_loops: np.ndarray | None = None,
+    unit: str | None = None,
+) -> Figure:
     """Write a top-view PNG of ``estimate`` (and ``reference``) to ``path``.
+
+    The reference is drawn first as a wide light band and the estimate on it as a thin line,
+    so both stay visible where they agree; accepted loop closures are red segments with
+    their two frames marked, rejected candidates dotted grey.
 
     Args:
         path: output ``.png`` file (written atomically; the folder must exist).
@@ -55,9 +84,15 @@ def plot_trajectory(
             two estimated positions.
         title: figure title.
         rejected: optional ``[R, 2]`` rejected loop candidates, drawn as dotted grey segments.
+        no_loops: optional trajectory without loop closure (same forms and frame as
+            ``estimate``), drawn dashed.
+        unit: the world's unit for the axis labels (:func:`axis_label`; None: up to scale).
         axes: the two coordinate axes to plot (default: :func:`top_view_axes` of the reference,
             or of the estimate).
         dpi: resolution.
+
+    Returns:
+        the matplotlib figure (written already; its axes can be inspected).
 
     Raises:
         ValueError: bad shapes or loop indices outside the estimate.
@@ -67,27 +102,32 @@ def plot_trajectory(
 
     est = _positions(estimate, "estimate")
     ref = None if reference is None else _positions(reference, "reference")
+    free = None if no_loops is None else _positions(no_loops, "no_loops")
     pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)  # noqa: E731
     lp, rj = pairs(loops), pairs(rejected)
     for name, p in (("loops", lp), ("rejected", rj)):
         if p.size and (p.min() < 0 or p.max() >= len(est)):
             raise ValueError(f"{name} index frames outside [0, {len(est)})")
-    a, b = axes if axes is not None else top_view_axes(ref if ref is not None else est)
+    a, b = axes if axes is not None else top_view_axes(est)
     fig = Figure(figsize=(7, 7))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     if ref is not None:
-        ax.plot(ref[:, a], ref[:, b], "-", color="0.55", lw=1.5, label="reference")
-    ax.plot(est[:, a], est[:, b], "-", color="tab:blue", lw=1.0, label="estimate")
-    ax.plot(est[:1, a], est[:1, b], "o", color="tab:green", ms=6, label="start")
+        ax.plot(ref[:, a], ref[:, b], "-", color=_REFERENCE, lw=5.0, alpha=0.45, solid_capstyle="round",
+                label="ground truth", zorder=1)
+    if free is not None:
+        ax.plot(free[:, a], free[:, b], "--", color=_NO_LOOPS, lw=1.0, label="without loop closure", zorder=2)
+    ax.plot(est[:, a], est[:, b], "-", color=_ESTIMATE, lw=1.2,
+            label="estimate" if free is None else "with loop closure", zorder=3)
+    ax.plot(est[:1, a], est[:1, b], "o", color="tab:green", ms=6, label="start", zorder=5)
     for k, (i, j) in enumerate(rj):
-        ax.plot(est[[i, j], a], est[[i, j], b], ":", color="0.35", lw=0.9,
-                label="rejected loop candidates" if k == 0 else None)
+        ax.plot(est[[i, j], a], est[[i, j], b], ":", color=_REJECTED, lw=0.9,
+                label="rejected loop candidates" if k == 0 else None, zorder=4)
     for k, (i, j) in enumerate(lp):
-        ax.plot(est[[i, j], a], est[[i, j], b], "-", color="tab:red", lw=0.8,
-                label="loop closures" if k == 0 else None)
-    ax.set_xlabel(f"{_AXIS[a]} [m]")
-    ax.set_ylabel(f"{_AXIS[b]} [m]")
+        ax.plot(est[[i, j], a], est[[i, j], b], "-", color=_LOOP, lw=1.5, marker="o", ms=3.5,
+                label=f"loop closures ({len(lp)})" if k == 0 else None, zorder=4)
+    ax.set_xlabel(axis_label(a, unit))
+    ax.set_ylabel(axis_label(b, unit))
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, lw=0.3)
     ax.legend(loc="best", fontsize=8)
@@ -95,6 +135,7 @@ def plot_trajectory(
         ax.set_title(title)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
+    return fig
 
 
 def plot_points(
@@ -106,13 +147,14 @@ def plot_points(
     title: str | None = None,
     max_points: int = 100_000,
     dpi: int = 120,
-) -> None:
+    unit: str | None = None,
+) -> Figure:
     """Write a bird's-eye PNG of a coloured point cloud with the camera trajectory.
 
-    The view looks down the vertical axis: the coordinate axis outside the two of largest
-    trajectory extent (:func:`top_view_axes`), "up" being the cameras' mean up direction
-    (``-y`` of OpenCV cameras).  Points are drawn lowest first, so roofs and tree tops cover
-    the ground as seen from above; at most ``max_points`` (an evenly spaced subset).
+    The axes are those of :func:`plot_trajectory` (:func:`top_view_axes` of the cameras,
+    never mirrored), so the two pictures overlay.  Points are drawn lowest first along the
+    third axis, "up" being the cameras' mean up direction (``-y`` of OpenCV cameras), so
+    roofs and tree tops cover the ground; at most ``max_points`` (an evenly spaced subset).
 
     Args:
         path: output ``.png`` (written atomically; the folder must exist).
@@ -120,6 +162,10 @@ def plot_points(
         cameras: ``[N, 4, 4]`` camera-to-world poses (OpenCV axes) -- the trajectory.
         loops: optional ``[L, 2]`` frame pairs drawn as segments.
         title: figure title.
+        unit: the world's unit for the axis labels (:func:`axis_label`; None: up to scale).
+
+    Returns:
+        the matplotlib figure (written already).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -142,9 +188,7 @@ def plot_points(
     if len(pts) > max_points:
         pts, rgb = pts[:: -(-len(pts) // max_points)], rgb[:: -(-len(pts) // max_points)]
     order = np.argsort(sign * pts[:, vertical], kind="stable")
-    # Mirror so that the picture is a view from above (right-handed: a x b = up).
-    flip = sign * np.cross(np.eye(3)[a], np.eye(3)[b])[vertical] < 0
-    x = lambda p: -p[..., a] if flip else p[..., a]  # noqa: E731
+    x = lambda p: p[..., a]  # noqa: E731
 
     # Frame the cloud without its farthest 0.5 % (sky, stray depth) and the whole trajectory.
     uv_cam = np.stack([x(est), est[:, b]], axis=1)
@@ -158,13 +202,13 @@ def plot_points(
     ax = fig.add_subplot(1, 1, 1)
     ax.scatter(x(pts[order]), pts[order, b], c=rgb[order] / 255.0, s=0.6, marker="s", linewidths=0,
                rasterized=True)
-    ax.plot(x(est), est[:, b], "-", color="tab:blue", lw=1.2, label="cameras")
+    ax.plot(x(est), est[:, b], "-", color=_ESTIMATE, lw=1.2, label="cameras")
     ax.plot(x(est[:1]), est[:1, b], "o", color="tab:green", ms=6, label="start")
     for k, (i, j) in enumerate(lp):
-        ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color="tab:red", lw=1.0,
-                label="loop closures" if k == 0 else None)
-    ax.set_xlabel(f"{'-' if flip else ''}{_AXIS[a]}")
-    ax.set_ylabel(_AXIS[b])
+        ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color=_LOOP, lw=1.5, marker="o", ms=3.5,
+                label=f"loop closures ({len(lp)})" if k == 0 else None)
+    ax.set_xlabel(axis_label(a, unit))
+    ax.set_ylabel(axis_label(b, unit))
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
@@ -173,3 +217,4 @@ def plot_points(
         ax.set_title(title)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight")
+    return fig

@@ -79,19 +79,22 @@ def ply_dtype(colors: bool = True, conf: bool = True) -> np.dtype:
     return np.dtype(fields)
 
 
-def _header(count: int, dtype: np.dtype, pad_to: int | None = None) -> bytes:
-    """The PLY header for ``count`` vertices of ``dtype``; padded to ``pad_to`` bytes by a
-    comment line when given (streaming)."""
+def _header(count: int, dtype: np.dtype, pad_to: int | None = None, comments: Sequence[str] = ()) -> bytes:
+    """The PLY header for ``count`` vertices of ``dtype`` with ``comments`` (one line each)
+    after ``comment written by swiftjax``; padded to ``pad_to`` bytes when given (streaming)
+    by trailing spaces on that first comment line, so no comment line is blank."""
     names = {"<f4": "float", "|u1": "uchar", "u1": "uchar"}
     props = "".join(f"property {names[dtype[n].str]} {n}\n" for n in dtype.names)
-    head = "ply\nformat binary_little_endian 1.0\ncomment written by swiftjax\n"
+    first = "comment written by swiftjax"
+    rest = "".join(f"comment {' '.join(str(c).split())}\n" for c in comments)
     tail = f"element vertex {count}\n{props}end_header\n"
+    head = "ply\nformat binary_little_endian 1.0\n"
     if pad_to is None:
-        return (head + tail).encode("ascii")
-    fill = pad_to - len(head) - len(tail) - len("comment \n")
+        return (head + first + "\n" + rest + tail).encode("ascii")
+    fill = pad_to - len(head) - len(first) - 1 - len(rest) - len(tail)
     if fill < 0:
         raise ValueError(f"PLY vertex count {count} does not fit the reserved header")
-    return (head + "comment " + " " * fill + "\n" + tail).encode("ascii")
+    return (head + first + " " * fill + "\n" + rest + tail).encode("ascii")
 
 
 def _check_columns(
@@ -126,7 +129,8 @@ def _pack(points: np.ndarray, colors: np.ndarray | None, conf: np.ndarray | None
 
 
 def write_ply(
-    path: PathLike, points: np.ndarray, colors: np.ndarray | None = None, conf: np.ndarray | None = None
+    path: PathLike, points: np.ndarray, colors: np.ndarray | None = None, conf: np.ndarray | None = None,
+    comments: Sequence[str] = (),
 ) -> None:
     """Write a binary little-endian PLY atomically.
 
@@ -135,12 +139,13 @@ def write_ply(
         points: ``[N, 3]`` coordinates (stored as float32).
         colors: ``[N, 3]`` uint8 RGB, or None to omit the colour properties.
         conf: ``[N]`` confidence (stored as float32), or None to omit it.
+        comments: header comment lines (ASCII; e.g. the unit and frame of the coordinates).
     """
     points, colors, conf = _check_columns(points, colors, conf)
     dtype = ply_dtype(colors is not None, conf is not None)
     rec = _pack(points, colors, conf, dtype)
     with atomic_write(path, "wb") as f:
-        f.write(_header(len(rec), dtype))
+        f.write(_header(len(rec), dtype, comments=comments))
         f.write(rec.data)
 
 
@@ -159,20 +164,22 @@ class PlyStreamWriter:
         path: output file.
         colors, conf: whether the vertices carry colour / confidence; every :meth:`append`
             must then pass them.
+        comments: header comment lines (ASCII; e.g. the unit and frame of the coordinates).
     """
 
-    def __init__(self, path: PathLike, colors: bool = True, conf: bool = True) -> None:
+    def __init__(self, path: PathLike, colors: bool = True, conf: bool = True, comments: Sequence[str] = ()) -> None:
         self.path = pathlib.Path(path)
         self.dtype = ply_dtype(colors, conf)
         self.count = 0
-        self._header_size = len(_header(0, self.dtype)) + len("comment \n") + _COUNT_WIDTH
+        self.comments = tuple(comments)
+        self._header_size = len(_header(0, self.dtype, comments=self.comments)) + _COUNT_WIDTH
         self._ctx: Any = None
         self._file: IO[bytes] | None = None
 
     def __enter__(self) -> PlyStreamWriter:
         self._ctx = atomic_write(self.path, "wb")
         self._file = self._ctx.__enter__()
-        self._file.write(_header(0, self.dtype, pad_to=self._header_size))
+        self._file.write(_header(0, self.dtype, pad_to=self._header_size, comments=self.comments))
         return self
 
     def append(self, points: np.ndarray, colors: np.ndarray | None = None, conf: np.ndarray | None = None) -> None:
@@ -198,7 +205,7 @@ class PlyStreamWriter:
         if exc_type is None:
             try:
                 f.seek(0)
-                f.write(_header(self.count, self.dtype, pad_to=self._header_size))
+                f.write(_header(self.count, self.dtype, pad_to=self._header_size, comments=self.comments))
             except BaseException as e:
                 ctx.__exit__(type(e), e, e.__traceback__)  # removes the temp file
                 raise

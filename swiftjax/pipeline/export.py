@@ -366,7 +366,9 @@ def _export(
     picture = Reservoir(100_000, seed=1)  # points.png's uniform sample of the cloud
     image_hw: tuple[int, int] | None = None
     total_points = 0
-    with ply.PlyStreamWriter(run_dir / "points.ply") as cloud:
+    ply_comments = [f"unit: {pose_unit(ctx)}",
+                    f"frame: the run's world = the first camera's frame, {_CAMERA_AXES}"]
+    with ply.PlyStreamWriter(run_dir / "points.ply", comments=ply_comments) as cloud:
         for t in ctx.bar(range(T), desc="export", unit="chunk"):
             frames = schedule.frames(t)
             own = owner[frames] == t
@@ -541,8 +543,10 @@ def write_intrinsics(
             f.write(f"{k} {K[0, 0]:.6f} {K[1, 1]:.6f} {K[0, 2]:.6f} {K[1, 2]:.6f}\n")
 
 
-#: loops.txt's leading columns (when the records carry them); the other keys follow.
-_LOOP_FIRST = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason")
+#: loops.txt's leading columns (when the records carry them); the other keys follow, and
+#: ``reason`` (readable text, spaces kept) closes the line.
+_LOOP_FIRST = ("i", "j", "score", "chunk_i", "chunk_j", "accepted")
+_LOOP_LAST = "reason"
 
 
 def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -571,24 +575,38 @@ def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
     """``loops.txt``: a header naming every column, then one line per loop candidate.
 
     Columns are the scalar keys the records carry (nested dicts flattened as ``align_i.rms``;
-    the edge ``Z`` is in ``manifest.json``), ``i j score chunk_i chunk_j accepted reason``
-    first; a value a record lacks is ``-``, text has its spaces replaced by ``_``.  Records
+    the edge ``Z`` is in ``manifest.json``), ``i j score chunk_i chunk_j accepted`` first and
+    ``reason`` last: the reason is readable text, the rest of the line (split a row with
+    ``line.split(maxsplit=len(columns) - 1)``); a value a record lacks is ``-``.  Records
     without ``accepted`` predate loop verification: every such loop entered the pose graph.
     """
     rows = [_flatten(r) for r in records]
     keys: list[str] = [k for k in _LOOP_FIRST if any(k in r for r in rows)]
     for r in rows:
-        keys += [k for k in r if k not in keys]
+        keys += [k for k in r if k not in keys and k != _LOOP_LAST]
+    if any(_LOOP_LAST in r for r in rows):
+        keys.append(_LOOP_LAST)
     accepted = sum(1 for r in rows if r.get("accepted", True))
+    if not rows:
+        count = "0 candidates: loop detection found no pair of frames that look at the same place"
+    elif any("accepted" in r for r in rows):
+        count = (f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), "
+                 f"{len(rows) - accepted} rejected")
+    else:
+        count = f"{len(rows)} candidates, all used as edges of the pose graph (no verification verdicts recorded)"
     lines = [
         "swiftjax loop candidates: frames i and j (0-based) look at the same place; score = cosine of "
         "their whitened descriptors",
-        f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), {len(rows) - accepted} rejected"
-        + ("" if any("accepted" in r for r in rows) else "; no verification verdicts recorded: all were used"),
+        count,
         "align_i / align_j: the loop chunk's alignment to chunk_i / chunk_j (num_points = reliable points used)",
-        " ".join(keys) if keys else "i j score chunk_i chunk_j",
     ]
+    if _LOOP_LAST in keys:
+        lines.append("reason: the verdict in words, the rest of the line (it holds spaces)")
+    lines.append(" ".join(keys) if keys else "i j score chunk_i chunk_j")
     with atomic_write(path) as f:
         f.writelines(f"# {line}\n" for line in lines)
         for r in rows:
-            f.write(" ".join(_cell(r.get(k)) for k in keys) + "\n")
+            cells = [_cell(r.get(k)) for k in keys if k != _LOOP_LAST]
+            if _LOOP_LAST in keys:
+                cells.append(" ".join(str(r.get(_LOOP_LAST) or "-").split()))
+            f.write(" ".join(cells) + "\n")

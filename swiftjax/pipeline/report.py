@@ -33,8 +33,9 @@ def write(
     )
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)
-    _plot(ctx.run_dir / "trajectory.png", exported, ground_truth, loops.records)
-    _plot_points(ctx.run_dir / "points.png", exported, loops.records)
+    unit = "m" if metrics["unit"] == "metres" else None
+    _plot(ctx.run_dir / "trajectory.png", exported, ground_truth, loops.records, unit)
+    _plot_points(ctx.run_dir / "points.png", exported, loops.records, unit)
     if ground_truth is not None:
         from swiftjax.io import trajectory
 
@@ -100,9 +101,10 @@ def _candidate(r: dict[str, Any]) -> dict[str, Any]:
 
 def _plot(
     path: pathlib.Path, exported: dict[str, Any], ground_truth: np.ndarray | None,
-    loop_records: list[dict[str, Any]],
-) -> None:
-    """Top view of the trajectory (Sim(3)-aligned to the ground truth when given), loops drawn."""
+    loop_records: list[dict[str, Any]], unit: str | None = None,
+) -> Any:
+    """Top view of the trajectory with and without loop closure, in the run's own frame and
+    unit (as ``points.png``); the ground truth Sim(3)-aligned onto it; loops drawn."""
     from swiftjax import evaluation
     from swiftjax.io import plot
 
@@ -110,45 +112,62 @@ def _plot(
     reference = None
     title = "swiftjax trajectory"
     if ground_truth is not None:
-        reference = ground_truth[:, :3, 3]
-        result = evaluation.ate(estimate, reference)
-        estimate = result.aligned
-        title = f"ATE {result.rmse:.3g} m (Sim(3)-aligned)"
+        gt = ground_truth[:, :3, 3]
+        title = f"ATE {evaluation.ate(estimate, gt).rmse:.3g} m (Sim(3)-aligned)"
+        R, t, s = evaluation.umeyama_alignment(gt, estimate, "sim3")  # ground truth onto the estimate
+        reference = s * gt @ R.T + t
     pairs = {
         ok: np.array([(r["i"], r["j"]) for r in loop_records if bool(r.get("accepted", True)) == ok],
                      dtype=np.int64).reshape(-1, 2)
         for ok in (True, False)
     }
-    plot.plot_trajectory(path, estimate, reference=reference, loops=pairs[True], rejected=pairs[False],
-                         title=title)
+    return plot.plot_trajectory(path, estimate, reference=reference, loops=pairs[True], rejected=pairs[False],
+                         no_loops=exported["cam_to_world_no_loops"][:, :3, 3], title=title, unit=unit)
 
 
-def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]]) -> None:
+def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]],
+                 unit: str | None = None) -> Any:
     """Bird's-eye view of a uniform sample of the cloud with the cameras."""
     from swiftjax.io import plot
 
     pairs = np.array([(r["i"], r["j"]) for r in loop_records if r.get("accepted", True)], np.int64).reshape(-1, 2)
-    plot.plot_points(path, exported["sample_points"], exported["sample_colors"], exported["cam_to_world"],
-                     loops=pairs, title=f"swiftjax: {len(exported['sample_points']):,} of "
+    return plot.plot_points(path, exported["sample_points"], exported["sample_colors"], exported["cam_to_world"],
+                     loops=pairs, unit=unit, title=f"swiftjax: {len(exported['sample_points']):,} of "
                      f"{exported['num_points']:,} points, {len(exported['cam_to_world'])} cameras")
 
 
 def summary_table(result: RunResult) -> str:
-    """The end-of-run summary: sizes, time per stage, ATE with and without loop closure."""
-    from swiftjax.report import markdown_table
+    """The end-of-run summary, as a terminal table: sizes, ATE with and without loop closure
+    (with a ground truth), the time per stage in pipeline order (seconds, positional
+    notation), then where the outputs are and the command that shows them."""
+    from swiftjax.report import text_table
 
     m = result.metrics
-    rows: list[list[Any]] = [
+    unit = "metres" if m.get("unit") == "metres" else "up to scale (no --metric)"
+    rows: list[Any] = [
+        f"swiftjax: finished {result.run_dir}",
         ["frames", m["frames"]],
         ["chunks", m["chunks"]],
         ["loop candidates", len(m.get("loop_candidates", []))],
         ["loops closed (verified)", m["loops"]],
         ["points written", m["points"]],
+        ["unit", unit],
     ]
-    rows += [[f"time: {k} (s)", float(v)] for k, v in m["timings_seconds"].items()]
     if "ate_rmse" in m:
         rows += [
             ["ATE rmse, loop closure (m)", float(m["ate_rmse"])],
             ["ATE rmse, no loop closure (m)", float(m["ate_rmse_no_loops"])],
         ]
-    return f"{result.run_dir}\n" + markdown_table(["", "value"], rows)
+    timings = {k: float(v) for k, v in m["timings_seconds"].items() if float(v) > 0}
+    rows.append("time per stage (s)")
+    rows += [[k, f"{v:,.2f}"] for k, v in timings.items()]
+    rows.append(["total", f"{sum(timings.values()):,.2f}"])
+    table = text_table(rows)
+    return (f"{table}\noutputs: {result.run_dir}  (points.ply, poses_kitti.txt, poses_tum.txt, colmap/, "
+            f"trajectory.png, points.png, metrics.json)\nnext:    swiftjax view {_shell_quote(result.run_dir)}")
+
+
+def _shell_quote(path: pathlib.Path) -> str:
+    import shlex
+
+    return shlex.quote(str(path))

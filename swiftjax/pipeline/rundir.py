@@ -490,9 +490,9 @@ class StageTimer:
     predictions inside the loop-chunk stage), so every second counts once.
     """
 
-    ORDER = (
-        "predict", "predict (loop chunks)", "align", "loop detection", "loop chunks", "pose graph",
-        "chunk store", "export",
+    ORDER = (  # the pipeline's order: temporal chunks, loop closure, pose graph, scale, export
+        "predict", "align", "chunk store", "loop detection", "predict (loop chunks)", "loop chunks",
+        "loop verification", "pose graph", "metric scale", "export",
     )
 
     def __init__(self) -> None:
@@ -514,8 +514,9 @@ class StageTimer:
 
 
 def progress_bar(iterable: Iterable, enabled: bool, **kwargs: Any) -> Iterable:
-    """``iterable`` wrapped in a tqdm bar when ``enabled``."""
-    if not enabled:
+    """``iterable`` wrapped in a tqdm bar when ``enabled`` (no bar over an empty sized one:
+    "loop chunks: 0loop" says nothing)."""
+    if not enabled or (hasattr(iterable, "__len__") and len(iterable) == 0):  # type: ignore[arg-type]
         return iterable
     from tqdm.auto import tqdm
 

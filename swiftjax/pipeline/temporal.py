@@ -89,6 +89,9 @@ def run(ctx: RunContext) -> TemporalResult:
             r = _resume_chunk(ctx, records, t)
             if r is not None:
                 resumed[t] = r
+    if resumed:
+        ctx.log(f"swiftjax: resumed {len(resumed)}/{T} chunks from {store.root}"
+                + (f"; predicting {T - len(resumed)}" if len(resumed) < T else ""))
     predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed])
 
     try:
