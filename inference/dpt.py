@@ -55,26 +55,28 @@ def _resize(x: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 class ResidualConvUnit(nn.Module):
-    """``conv2(relu(conv1(relu(x)))) + relu(x)`` (the official in-place ReLU quirk)."""
+    """``conv2(relu(conv1(relu(x)))) + relu(x)`` (VGGT's in-place ReLU quirk), or ``+ x`` when
+    ``relu_skip`` is false (Depth Anything 3, whose ReLU is not in place)."""
 
-    def __init__(self, features: int) -> None:
+    def __init__(self, features: int, relu_skip: bool = True) -> None:
         super().__init__()
+        self.relu_skip = relu_skip
         self.conv1 = nn.Conv2d(features, features, kernel_size=3, padding=1)
         self.conv2 = nn.Conv2d(features, features, kernel_size=3, padding=1)
 
     def forward(self, x: Tensor) -> Tensor:
-        x = F.relu(x)
-        return self.conv2(F.relu(self.conv1(x))) + x
+        r = F.relu(x)
+        return self.conv2(F.relu(self.conv1(r))) + (r if self.relu_skip else x)
 
 
 class FeatureFusionBlock(nn.Module):
     """``out_conv(resize(RCU2(x0 + RCU1(x1))))``; without ``resConfUnit1`` when ``has_residual`` is false."""
 
-    def __init__(self, features: int, has_residual: bool = True) -> None:
+    def __init__(self, features: int, has_residual: bool = True, relu_skip: bool = True) -> None:
         super().__init__()
         self.out_conv = nn.Conv2d(features, features, kernel_size=1)
-        self.resConfUnit1: ResidualConvUnit | None = ResidualConvUnit(features) if has_residual else None
-        self.resConfUnit2 = ResidualConvUnit(features)
+        self.resConfUnit1: ResidualConvUnit | None = ResidualConvUnit(features, relu_skip) if has_residual else None
+        self.resConfUnit2 = ResidualConvUnit(features, relu_skip)
 
     def forward(self, x: Tensor, skip: Tensor | None, size: tuple[int, int]) -> Tensor:
         if self.resConfUnit1 is not None and skip is not None:
@@ -86,16 +88,18 @@ class FeatureFusionBlock(nn.Module):
 class _Scratch(nn.Module):
     """Container named like the official ``scratch`` module (layerN_rn, refinenetN, output convs)."""
 
-    def __init__(self, in_channels: tuple[int, int, int, int], features: int, output_dim: int) -> None:
+    def __init__(
+        self, in_channels: tuple[int, int, int, int], features: int, output_dim: int, relu_skip: bool = True
+    ) -> None:
         super().__init__()
         self.layer1_rn = nn.Conv2d(in_channels[0], features, kernel_size=3, padding=1, bias=False)
         self.layer2_rn = nn.Conv2d(in_channels[1], features, kernel_size=3, padding=1, bias=False)
         self.layer3_rn = nn.Conv2d(in_channels[2], features, kernel_size=3, padding=1, bias=False)
         self.layer4_rn = nn.Conv2d(in_channels[3], features, kernel_size=3, padding=1, bias=False)
-        self.refinenet1 = FeatureFusionBlock(features)
-        self.refinenet2 = FeatureFusionBlock(features)
-        self.refinenet3 = FeatureFusionBlock(features)
-        self.refinenet4 = FeatureFusionBlock(features, has_residual=False)
+        self.refinenet1 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet2 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet3 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet4 = FeatureFusionBlock(features, has_residual=False, relu_skip=relu_skip)
         self.output_conv1 = nn.Conv2d(features, features // 2, kernel_size=3, padding=1)
         self.output_conv2 = nn.Sequential(
             nn.Conv2d(features // 2, 32, kernel_size=3, padding=1),
