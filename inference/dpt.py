@@ -18,12 +18,16 @@ __all__ = ["DPTHead", "uv_pos_embed"]
 
 
 @functools.lru_cache(maxsize=64)
-def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omega_0: float = 100.0) -> np.ndarray:
+def _uv_pos_embed_np(
+    height: int, width: int, aspect: float, channels: int, omega_0: float = 100.0, float32_trig: bool = False
+) -> np.ndarray:
     """Float32 ``[channels, height, width]`` sin/cos embedding of a normalised UV grid (x 0.1).
 
     The grid spans ``±aspect/diag`` horizontally and ``±1/diag`` vertically
     (``diag = sqrt(aspect² + 1)``), pixel centres ``(k - (n-1)/2)·2·span/n``; it is built in
-    float32 (``torch.linspace``), the sin/cos in float64, then cast — as the official code does.
+    float32 (``torch.linspace``), the sin/cos in float64, then cast — as the official VGGT code
+    does.  ``float32_trig``: frequencies, products and sin/cos in torch float32 instead, as the
+    official Depth Anything 3 code does.
     """
     diag = (aspect**2 + 1.0) ** 0.5
     span_x, span_y = aspect / diag, 1.0 / diag
@@ -33,6 +37,10 @@ def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omeg
     v = np.broadcast_to(ys.numpy().astype(np.float64)[:, None], (height, width)).reshape(-1)
 
     def sincos(dim: int, pos: np.ndarray) -> np.ndarray:
+        if float32_trig:
+            omega32 = torch.arange(dim // 2, dtype=torch.float32) / (dim / 2.0)
+            out32 = torch.from_numpy(pos.astype(np.float32))[:, None] * (1.0 / omega_0**omega32)[None, :]
+            return torch.cat([torch.sin(out32), torch.cos(out32)], dim=1).numpy()
         omega = 1.0 / omega_0 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2.0))
         out = pos[:, None] * omega[None, :]
         return np.concatenate([np.sin(out), np.cos(out)], axis=1).astype(np.float32)
@@ -43,10 +51,11 @@ def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omeg
     return np.ascontiguousarray(emb)
 
 
-def uv_pos_embed(x: Tensor, image_h: int, image_w: int) -> Tensor:
-    """Adds the UV position embedding to a feature map ``x [N, C, h, w]`` of an ``image_h x image_w`` image."""
+def uv_pos_embed(x: Tensor, image_h: int, image_w: int, float32_trig: bool = False) -> Tensor:
+    """Adds the UV position embedding to a feature map ``x [N, C, h, w]`` of an ``image_h x image_w`` image
+    (``float32_trig``: see :func:`_uv_pos_embed_np`)."""
     _, c, h, w = x.shape
-    emb = _uv_pos_embed_np(int(h), int(w), image_w / image_h, int(c))
+    emb = _uv_pos_embed_np(int(h), int(w), image_w / image_h, int(c), float32_trig=float32_trig)
     return x + torch.from_numpy(emb).to(device=x.device, dtype=x.dtype)
 
 

@@ -74,7 +74,7 @@ class DPTTrunk(nn.Module):
         raise NotImplementedError
 
     def _pos(self, x: Tensor, image_hw: tuple[int, int]) -> Tensor:
-        return uv_pos_embed(x, image_hw[0], image_hw[1]) if self.pos_embed else x
+        return uv_pos_embed(x, image_hw[0], image_hw[1], float32_trig=True) if self.pos_embed else x
 
     def pyramid(self, feats: Sequence[Tensor], image_hw: tuple[int, int]) -> list[Tensor]:
         """``feats``: 4 × ``[N, P, C]`` patch tokens -> ``[l1, l2, l3, l4]`` after ``layerN_rn``."""
