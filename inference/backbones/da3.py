@@ -29,7 +29,7 @@ from swiftjax.prediction import ChunkPrediction
 
 from .header import FAMILY_TEXT, HeaderError, describe_family, read_header
 
-__all__ = ["rebase_extrinsics", "to_prediction", "DA3Runner", "tokens_in_input_order"]
+__all__ = ["rebase_extrinsics", "to_prediction", "DA3Runner"]
 
 name = "da3"
 modes = ("resize", "crop")
@@ -133,18 +133,6 @@ def rebase_extrinsics(extrinsics: np.ndarray) -> np.ndarray:
     return np.concatenate([R, t[:, :, None]], axis=2).astype(np.float32)
 
 
-def tokens_in_input_order(tokens: np.ndarray, ref_view_idx: int) -> np.ndarray:
-    """Undo the reference-view reordering of the aux exports (``[S, ...]`` in the network's
-    internal order: the reference view first, the others in input order)."""
-    S = tokens.shape[0]
-    if ref_view_idx < 0 or S <= 2:
-        return tokens
-    order = np.array([ref_view_idx] + [k for k in range(S) if k != ref_view_idx])
-    out = np.empty_like(tokens)
-    out[order] = tokens
-    return out
-
-
 def to_prediction(images: np.ndarray, out: dict[str, np.ndarray]) -> ChunkPrediction:
     """One scene's DA3 outputs (batch axis removed, NumPy) -> :class:`ChunkPrediction`.
 
@@ -211,10 +199,8 @@ class DA3Runner:
         def np32(key: str) -> np.ndarray:
             return raw[key][0].float().cpu().numpy()
 
+        # prealt_patch_tokens come back in input order (inference.da3 undoes the reference reordering)
         out = {k: np32(k) for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")}
-        ref = raw.get("ref_view_idx")
-        ref = -1 if ref is None else int(np.asarray(ref.cpu() if hasattr(ref, "cpu") else ref).reshape(-1)[0])
-        out["prealt_patch_tokens"] = tokens_in_input_order(out["prealt_patch_tokens"], ref)
         return to_prediction(arr, out)
 
 
