@@ -16,7 +16,7 @@ from ..layers import Block, Mlp
 from ..pose_encoding import quat_to_mat
 
 __all__ = [
-    "CameraDec", "CameraEnc", "affine_inverse", "mat_to_quat_torch", "encode_pose", "decode_pose",
+    "CameraDec", "CameraEnc", "affine_inverse", "mat_to_quat_torch", "encode_pose", "decode_pose", "normalize_extrinsics",
 ]
 
 POSE_DIM = 9
@@ -111,3 +111,16 @@ class CameraEnc(nn.Module):
     def forward(self, extrinsics: Tensor, intrinsics: Tensor, image_hw: tuple[int, int]) -> Tensor:
         tokens = self.token_norm(self.pose_branch(self.pose_encoding(extrinsics, intrinsics, image_hw)))
         return self.trunk_norm(self.trunk(tokens))
+
+
+def normalize_extrinsics(w2c: Tensor) -> Tensor:
+    """The official API's normalisation of known poses before the camera encoder.
+
+    ``w2c [B, S, 4, 4]`` -> ``w2c @ inverse(w2c[:, 0])`` (view 0 becomes the identity), then all
+    translations divided by the median camera-centre distance (lower median over every view of
+    the batch, ``torch.median``; clamped to >= 0.1).
+    """
+    out = w2c @ affine_inverse(w2c[:, :1])
+    dist = affine_inverse(out)[..., :3, 3].norm(dim=-1)
+    median = torch.clamp(torch.median(dist), min=0.1)
+    return torch.cat([torch.cat([out[..., :3, :3], out[..., :3, 3:] / median], dim=-1), out[..., 3:, :]], dim=-2)

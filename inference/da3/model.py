@@ -23,6 +23,7 @@ from .dinov2 import Backbone
 from .dualdpt import DualDPT
 from .metric_dpt import GaussianHeadWeights, MetricDPT
 from .raypose import cameras_from_rays
+from .refview import balance_scores
 from .sky import fill_sky
 
 __all__ = ["DA3Net", "build_da3"]
@@ -128,12 +129,14 @@ class DA3Net(nn.Module):
             out["feats_cam_tokens"] = torch.stack(bb.cam_tokens)
             if bb.select_cls_tokens is not None:
                 out["ref_select_cls_tokens"] = bb.select_cls_tokens
+                out["ref_balance_scores"] = balance_scores(bb.select_cls_tokens)
         head = self.head(bb.patch_tokens, hw, frames_chunk_size)
         if cfg.head == "dpt":
             out["head_depth"] = head["depth"]
             out["sky"] = head["sky"]
             out["depth"] = fill_sky(head["depth"], head["sky"])
             return out
+        out["head_depth"] = head["depth"]
         out.update(head)
         out["pose_enc"] = self.cam_dec(bb.cam_tokens[-1])
         if use_ray_pose:
