@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["DPTHead", "uv_pos_embed"]
+__all__ = ["DPTHead", "resize_layers", "uv_pos_embed"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -94,6 +94,20 @@ class FeatureFusionBlock(nn.Module):
         return self.out_conv(_resize(x, size))
 
 
+def resize_layers(out_channels: Sequence[int]) -> nn.ModuleList:
+    """The four level re-sizers of a DPT head: ×4 and ×2 transposed convolutions, identity, a
+    stride-2 3×3 convolution (patch grid -> 4×, 2×, 1×, 1/2×)."""
+    oc = tuple(out_channels)
+    return nn.ModuleList(
+        [
+            nn.ConvTranspose2d(oc[0], oc[0], kernel_size=4, stride=4),
+            nn.ConvTranspose2d(oc[1], oc[1], kernel_size=2, stride=2),
+            nn.Identity(),
+            nn.Conv2d(oc[3], oc[3], kernel_size=3, stride=2, padding=1),
+        ]
+    )
+
+
 class _Scratch(nn.Module):
     """Container named like the official ``scratch`` module (layerN_rn, refinenetN, output convs)."""
 
@@ -134,14 +148,7 @@ class DPTHead(nn.Module):
         self.intermediate_layer_idx = tuple(intermediate_layer_idx)
         self.norm = nn.LayerNorm(dim_in)
         self.projects = nn.ModuleList(nn.Conv2d(dim_in, oc, kernel_size=1) for oc in out_channels)
-        self.resize_layers = nn.ModuleList(
-            [
-                nn.ConvTranspose2d(out_channels[0], out_channels[0], kernel_size=4, stride=4),
-                nn.ConvTranspose2d(out_channels[1], out_channels[1], kernel_size=2, stride=2),
-                nn.Identity(),
-                nn.Conv2d(out_channels[3], out_channels[3], kernel_size=3, stride=2, padding=1),
-            ]
-        )
+        self.resize_layers = resize_layers(out_channels)
         self.scratch = _Scratch(out_channels, features, output_dim)
 
     def forward(

@@ -183,3 +183,30 @@ def test_bad_inputs_are_refused_with_one_line(model, golden):
         model(images, None, torch.from_numpy(golden["posecond_in_intrinsics"]))
     with pytest.raises(ValueError, match="ref_view_strategy"):
         model(images, ref_view_strategy="best")
+
+
+def test_fewer_than_three_views_skip_selection_and_batches_select_per_scene(model):
+    x = torch.randn(2, 4, 3, 28, 42, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        two = model(x[:1, :2])
+        both, second = model(x), model(x[1:])
+    assert two["ref_view_idx"].tolist() == [-1] and two["view_order"].tolist() == [[0, 1]]
+    assert both["ref_view_idx"][1] == second["ref_view_idx"][0]
+    torch.testing.assert_close(both["depth"][1], second["depth"][0], rtol=1e-5, atol=1e-5)
+
+
+def test_check_golden_finds_a_perturbed_key(da3_dir, tmp_path, capsys):
+    """``python -m inference.check_golden`` dispatches on tiny_config.json and fails (naming the
+    key, and only it) on a copy of the set with one key off by 0.1 %."""
+    import shutil
+
+    from inference.check_golden import main
+
+    for name in ("tiny_config.json", "tiny_weights.safetensors", "tiny_nested_weights.safetensors"):
+        shutil.copy(da3_dir / name, tmp_path / name)
+    data = dict(np.load(da3_dir / "tiny_golden.npz"))
+    data["middle_ray_conf"] = data["middle_ray_conf"] * np.float32(1.001)
+    np.savez(tmp_path / "tiny_golden.npz", **data)
+    assert main([str(tmp_path), "--no-onnx"]) == 1
+    failed = [line.split()[1] for line in capsys.readouterr().out.splitlines() if line.endswith("FAIL")]
+    assert failed == ["middle_ray_conf"]

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from ..dpt import FeatureFusionBlock, _resize, _Scratch, uv_pos_embed
+from ..dpt import FeatureFusionBlock, _resize, _Scratch, resize_layers, uv_pos_embed
 
 __all__ = ["DPTTrunk", "DualDPT"]
 
@@ -46,14 +46,7 @@ class DPTTrunk(nn.Module):
         self.pos_embed = pos_embed
         self.norm: nn.Module = nn.LayerNorm(dim_in) if token_norm else nn.Identity()
         self.projects = nn.ModuleList(nn.Conv2d(dim_in, c, kernel_size=1) for c in oc)
-        self.resize_layers = nn.ModuleList(
-            [
-                nn.ConvTranspose2d(oc[0], oc[0], kernel_size=4, stride=4),
-                nn.ConvTranspose2d(oc[1], oc[1], kernel_size=2, stride=2),
-                nn.Identity(),
-                nn.Conv2d(oc[3], oc[3], kernel_size=3, stride=2, padding=1),
-            ]
-        )
+        self.resize_layers = resize_layers(oc)
         self.scratch = _Scratch(oc, features, output_dim, relu_skip=False)  # type: ignore[arg-type]
 
     def forward(self, feats: Sequence[Tensor], image_hw: tuple[int, int], frames_chunk_size: int | None = 8) -> dict[str, Tensor]:
