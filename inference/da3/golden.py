@@ -5,8 +5,8 @@ Every key of ``tiny_golden.npz`` is checked, per backend (torch; onnxruntime unl
 
 * runs ``first_`` / ``saddle_`` / ``middle_`` (reference-view strategies), ``posecond_`` (known
   cameras through the camera encoder), ``*_raypose_`` (cameras from the ray map; the RANSAC
-  indices are drawn from the global RNG seeded as the generator did and compared, then the
-  golden ones are injected), ``raysynth_`` (the ray decoder on a synthetic ray map), ``nested_``
+  indices are drawn from the global RNG seeded as the generator did and compared; should they
+  differ, the golden ones are injected for the camera keys), ``raysynth_`` (the ray decoder on a synthetic ray map), ``nested_``
   (DA3-Nested: metric scaling and sky);
 * the inputs: ``images == (images_raw - mean) / std``, ``posecond_in_extrinsics`` == the
   official API's normalisation of ``posecond_in_extrinsics_raw``.
@@ -144,9 +144,14 @@ def _check_backend(cmp: _Comparer, name: str, run: Backend, model: DA3Net, neste
     ext, intr = torch.from_numpy(g["posecond_in_extrinsics"]), torch.from_numpy(g["posecond_in_intrinsics"])
     cmp.run(name, "posecond_", run(model, images, "saddle_balanced", ext, intr))
     for prefix, strategy in RAYPOSE_RUNS:
-        drawn = run(model, images, strategy, use_ray_pose=True)
-        cmp.add(name, prefix + "ransac_sample_idx", drawn["ransac_sample_idx"])
-        out = run(model, images, strategy, use_ray_pose=True, ransac_sample_idx=torch.from_numpy(g[prefix + "ransac_sample_idx"]))
+        # The generator's global-RNG state (seed 2024) reproduces the official draws, including
+        # the refit's when a view has > 8000 inliers; if this torch draws other indices (another
+        # version), the golden ones are injected so that the cameras are still compared.
+        out = run(model, images, strategy, use_ray_pose=True)
+        cmp.add(name, prefix + "ransac_sample_idx", out["ransac_sample_idx"])
+        if not np.array_equal(out["ransac_sample_idx"], g[prefix + "ransac_sample_idx"]):
+            out = run(model, images, strategy, use_ray_pose=True,
+                      ransac_sample_idx=torch.from_numpy(g[prefix + "ransac_sample_idx"]))
         cmp.run(name, prefix, out, ("extrinsics", "intrinsics", "ransac_homography"))
     out = run(nested, images, "saddle_balanced")
     out.setdefault("metric_sky", out["sky"])
