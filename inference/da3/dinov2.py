@@ -33,8 +33,8 @@ _POS_INTERP_OFFSET = 0.1
 
 
 class SwiGLUFFN(nn.Module):
-    """``w3(silu(a) * b)`` with ``[a, b] = w12(x)``; hidden width ``8 * ceil((2/3 * hidden + ...) / 8)``
-    as the official ``SwiGLUFFNFused`` rounds it."""
+    """``w3(silu(a) * b)`` with ``[a, b] = w12(x)``; the hidden width is rounded as the official
+    ``SwiGLUFFNFused`` does: ``((int(2/3 * hidden) + 7) // 8) * 8`` (4096 for ViT-g)."""
 
     def __init__(self, dim: int, hidden: int) -> None:
         super().__init__()

@@ -91,7 +91,8 @@ class DA3Net(nn.Module):
             ``depth, depth_conf [B,S,H,W]``, ``extrinsics [B,S,3,4]`` w2c, ``intrinsics [B,S,3,3]``,
             ``ray [B,S,8h,8w,6]``, ``ray_conf [B,S,8h,8w]``, ``pose_enc [B,S,9]``,
             ``ref_view_idx [B]``, ``view_order [B,S]``, ``prealt_patch_tokens [B,S,h,w,C]``
-            (input order); metric/mono: ``depth``, ``sky``, ``head_depth`` (before sky filling).
+            (input order), ``head_depth`` (the head's depth: == depth here; for metric/mono
+            models before sky filling); metric/mono: ``depth``, ``sky``, ``head_depth``.
             With ``intermediates``: ``block_outputs [L,B,S,1+P,C]`` (internal order),
             ``feats_tokens [4,B,S,P,C']``, ``feats_cam_tokens [4,B,S,C']``,
             ``ref_select_cls_tokens``, ``ref_balance_scores``, ``camenc_*`` when conditioned.
@@ -131,12 +132,11 @@ class DA3Net(nn.Module):
                 out["ref_select_cls_tokens"] = bb.select_cls_tokens
                 out["ref_balance_scores"] = balance_scores(bb.select_cls_tokens)
         head = self.head(bb.patch_tokens, hw, frames_chunk_size)
+        out["head_depth"] = head["depth"]
         if cfg.head == "dpt":
-            out["head_depth"] = head["depth"]
             out["sky"] = head["sky"]
             out["depth"] = fill_sky(head["depth"], head["sky"])
             return out
-        out["head_depth"] = head["depth"]
         out.update(head)
         out["pose_enc"] = self.cam_dec(bb.cam_tokens[-1])
         if use_ray_pose:

@@ -83,9 +83,8 @@ def _ransac(src: Tensor, dst: Tensor, weight: Tensor, sample_idx: Tensor) -> Ten
     v, n, _ = src.shape
     cand = torch.argsort(weight, dim=1, descending=True)[:, : n_candidates(n)]
     idx = cand[:, sample_idx]  # [V, iters, 8]
-    take = lambda t: torch.gather(t, 1, idx.reshape(v, -1, *([1] * (t.dim() - 2))).expand(v, idx[0].numel(), *t.shape[2:]))  # noqa: E731
-    hyp = _dlt(take(src).reshape(v, *idx.shape[1:], 2), take(dst).reshape(v, *idx.shape[1:], 2),
-               take(weight).reshape(v, *idx.shape[1:]))  # [V, iters, 3, 3]
+    batch = torch.arange(v, device=src.device)[:, None, None]
+    hyp = _dlt(src[batch, idx], dst[batch, idx], weight[batch, idx])  # [V, iters, 3, 3]
     src_h = torch.cat([src, torch.ones_like(src[..., :1])], dim=-1)  # [V, N, 3]
     proj = torch.einsum("vnj,vtij->vtni", src_h, hyp)  # [V, iters, N, 3]
     err = ((proj[..., :2] / proj[..., 2:3] - dst[:, None]) ** 2).sum(-1).sqrt()
