@@ -130,7 +130,10 @@ class DA3Net(nn.Module):
             out["feats_cam_tokens"] = torch.stack(bb.cam_tokens)
             if bb.select_cls_tokens is not None:
                 out["ref_select_cls_tokens"] = bb.select_cls_tokens
-                out["ref_balance_scores"] = balance_scores(bb.select_cls_tokens)
+                # Diagnostic restatement in float64, as the golden generator did: the min-max
+                # normalisation of near-equal similarities amplifies float32 rounding ~1e4-fold.
+                # (The choice itself runs in the tokens' dtype inside the ViT, as officially.)
+                out["ref_balance_scores"] = balance_scores(bb.select_cls_tokens.double()).float()
         head = self.head(bb.patch_tokens, hw, frames_chunk_size)
         out["head_depth"] = head["depth"]
         if cfg.head == "dpt":
