@@ -17,11 +17,8 @@ from swiftjax.intrinsics import da3_preprocess_geometry, map_intrinsics, map_poi
 
 
 @pytest.fixture(scope="module")
-def da3_dir(shared_dir):
-    d = shared_dir / "golden" / "da3"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.fail(f"the shared folder {shared_dir} has no DA3 golden tensors in {d}")
-    return d
+def da3_dir(da3_golden_dir):
+    return da3_golden_dir
 
 
 @pytest.fixture(scope="module")

@@ -30,11 +30,8 @@ FLAGS = ("--chunk-size", "8", "--overlap", "3", "--min-points", "10", "--no-loop
 
 
 @pytest.fixture(scope="module")
-def da3_dir(shared_dir):
-    d = shared_dir / "golden" / "da3"
-    if not (d / "tiny_weights.safetensors").is_file():
-        pytest.fail(f"the shared folder {shared_dir} has no DA3 golden weights in {d}")
-    return d
+def da3_dir(da3_golden_dir):
+    return da3_golden_dir
 
 
 @pytest.fixture(scope="module")
