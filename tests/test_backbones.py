@@ -234,3 +234,26 @@ def test_vggt_refuses_a_da3_checkpoint_and_a_wrong_shape(tmp_path, da3_dir, gold
     _write_header_only(bad, entries)
     with pytest.raises(CheckpointError, match=f"shape mismatch 1 \\({key} "):
         vggt.impl.check_checkpoint(vggt, bad, config)
+
+
+def test_drop_sky_with_the_nested_model_is_its_own_sky_map(golden):
+    """--drop-sky with da3-nested-giant-large: the pixels whose confidence the nested model set
+    to the floor 1 are exactly its metric branch's sky (sky >= 0.3), also after the chunk
+    store's float16; the depth/confidence cue rule does not find them."""
+    import jax.numpy as jnp
+
+    from swiftjax import masks
+    from swiftjax.pipeline import PipelineConfig
+    from swiftjax.pipeline.user_camera import UserCamera
+
+    conf, depth = golden["nested_depth_conf"][0], golden["nested_depth"][0]
+    sky = golden["nested_metric_sky"][0] >= 0.3
+    assert 0.2 < sky.mean() < 0.5
+    np.testing.assert_array_equal(np.asarray(masks.network_sky_mask(conf)), sky)
+    np.testing.assert_array_equal(np.asarray(masks.network_sky_mask(jnp.asarray(conf, jnp.float16))), sky)
+    cues = np.asarray(masks.sky_mask(depth, conf))
+    assert (cues & sky).sum() < 0.5 * sky.sum()
+    cam = UserCamera.from_config(PipelineConfig(model="da3-nested-giant-large", drop_sky=True), predictor=None)
+    assert cam.sky_rule == "network"
+    np.testing.assert_array_equal(np.asarray(cam.keep(np.arange(4), depth, conf)), ~sky)
+    assert UserCamera.from_config(PipelineConfig(model="da3-small", drop_sky=True), None).sky_rule == "cues"
