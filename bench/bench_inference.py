@@ -9,6 +9,18 @@ peak increase during inference over the RSS after loading, and onnxruntime/torch
 
     python bench/bench_inference.py [--configs tiny mid] [--frames 8] [--height 154]
                                     [--width 518] [--repeat 3] [--threads 2]
+
+``--presets [MODEL ...]``: instead, the full-size ``--model`` backbones with random weights
+(speed does not depend on the values) on one chunk of KITTI-shaped frames (DA3 504 x 154, VGGT
+518 x 154; ``--frames``, default 8 here, 75 = one KITTI chunk).  Each (preset, backend, dtype)
+runs in its own child: built on ``meta``, materialised on the CPU, filled with small random
+values; ``runner.predict`` (normalisation, forward, conversion to ChunkPrediction) is timed once
+after a 3-frame warm-up.  Parameters are checked against ``shared/golden/da3/manifest_*.json``.
+``--max-frames PRESET=N`` caps a slow preset (global attention is quadratic in the frames, so
+fewer frames understate a full chunk's time; the table says how many were measured).
+onnxruntime (``--onnx-presets``) where the graph fits protobuf's 2 GB.
+
+    python bench/bench_inference.py --presets da3-small da3-base --frames 75 --dtypes float32
 """
 
 from __future__ import annotations
@@ -122,6 +134,149 @@ class Row:
     max_err: dict[str, float]
 
 
+KITTI_HW = {"vggt": (154, 518), "da3": (154, 504)}
+MANIFEST = {"da3-small": "da3-small", "da3-base": "da3-base", "da3-large": "da3-large", "da3-giant": "da3-giant",
+            "da3-nested-giant-large": "da3nested-giant-large"}
+
+
+def _random_model(name: str):  # type: ignore[no-untyped-def]
+    """The preset's network on the CPU with small random weights (no checkpoint needed)."""
+    import torch
+
+    from inference.backbones import get
+
+    b = get(name)
+    if b.family == "vggt":
+        from inference import VGGT, VGGTConfig
+
+        with torch.device("meta"):
+            model = VGGT(VGGTConfig())
+    else:
+        from inference.da3 import build_da3
+
+        model = build_da3(b.preset, device="meta")
+    model = model.to_empty(device="cpu")
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for pname, p in model.named_parameters():
+            if pname.endswith("bias"):
+                p.zero_()
+            elif p.ndim == 1:  # norm weights, LayerScale
+                p.fill_(1.0 if "norm" in pname else 0.1)
+            else:
+                p.normal_(0.0, 0.02, generator=gen)
+        for pname, p in model.named_parameters():  # nested: no sky, so the metric alignment has pixels
+            if "sky_output_conv2" in pname and pname.endswith("bias"):
+                p.fill_(-10.0)
+    return b, model.eval()
+
+
+def preset_child(args: argparse.Namespace) -> None:
+    """Runs one (preset, backend, dtype) and prints one JSON line."""
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(args.threads)
+    b, model = _random_model(args.preset)
+    params = sum(p.numel() for p in model.parameters())
+    h, w = KITTI_HW[b.family]
+    x = np.random.default_rng(0).random((args.frames, 3, h, w), dtype=np.float32)
+    dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16}[args.dtype]
+    if args.backend == "onnxruntime":
+        from inference.backbones.da3 import DA3Runner
+
+        runner = DA3Runner(model)
+        from inference.da3.onnx import DA3OnnxRunner, export_da3_onnx
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = export_da3_onnx(model, Path(tmp) / "g.onnx", frames=3, height=h, width=w)
+            runner.model = _OrtModel(DA3OnnxRunner(path, threads=args.threads))
+            del model
+            _time(runner, x, args, params)
+        return
+    if b.family == "vggt":
+        from inference.runners import TorchRunner
+
+        runner = TorchRunner(model, "cpu", dtype=dtype)
+    else:
+        from inference.backbones.da3 import DA3Runner
+
+        runner = DA3Runner(model, "cpu", dtype=dtype)
+    _time(runner, x, args, params)
+
+
+class _OrtModel:
+    """An onnxruntime graph behind :class:`DA3Runner`'s ``model(x, ref_view_strategy=...)`` call."""
+
+    def __init__(self, ort_runner):  # type: ignore[no-untyped-def]
+        self.ort = ort_runner
+
+    def __call__(self, x, ref_view_strategy="saddle_balanced"):  # type: ignore[no-untyped-def]
+        return self.ort.run(x.numpy())
+
+    def to(self, *a, **k):  # type: ignore[no-untyped-def]
+        return self
+
+    def eval(self):  # type: ignore[no-untyped-def]
+        return self
+
+
+def _time(runner, x, args, params) -> None:  # type: ignore[no-untyped-def]
+    import numpy as np
+
+    loaded = _status_mb("VmRSS")
+    with np.errstate(all="ignore"):
+        runner.predict(x[:3])  # warm-up
+        _reset_peak()
+        t0 = time.perf_counter()
+        runner.predict(x)
+        seconds = time.perf_counter() - t0
+    peak = _status_mb("VmHWM")
+    print(json.dumps(dict(seconds=seconds, params=params, rss_loaded_mb=loaded, peak_mb=peak)))
+
+
+def presets_main(args: argparse.Namespace) -> None:
+    """The full-size presets' table (``--presets``; module docstring)."""
+    caps = {k: int(v) for k, v in (item.split("=") for item in args.max_frames)}
+    shared = Path(os.environ.get("SWIFTJAX_SHARED", REPO.parent / "shared"))
+    rows, records = [], []
+    for preset in args.presets:
+        frames = min(args.frames, caps.get(preset, args.frames))
+        runs = [("torch", d) for d in args.dtypes] + ([("onnxruntime", "float32")] if preset in args.onnx_presets else [])
+        for backend, dtype in runs:
+            cmd = [sys.executable, __file__, "--child", "--preset", preset, "--backend", backend, "--dtype", dtype,
+                   "--frames", str(frames), "--threads", str(args.threads)]
+            try:
+                out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=args.timeout, check=True)
+                r = json.loads(out.stdout.strip().splitlines()[-1])
+            except subprocess.TimeoutExpired:
+                r = {"error": f"over {args.timeout:g} s"}
+            except subprocess.CalledProcessError as err:
+                r = {"error": (err.stderr.strip().splitlines() or ["failed"])[-1][:120]}
+            manifest = shared / "golden" / "da3" / f"manifest_{MANIFEST.get(preset, '-')}.json"
+            if "params" in r and manifest.is_file():
+                r["manifest_params"] = json.loads(manifest.read_text())["total_params"]
+            rec = dict(preset=preset, backend=backend, dtype=dtype, frames=frames, **r)
+            records.append(rec)
+            print(json.dumps(rec), file=sys.stderr)
+            if "error" in r:
+                rows.append([preset, backend, dtype, frames, "-", "-", "-", "-", r["error"]])
+            else:
+                rows.append([preset, backend, dtype, frames, r["params"] / 1e6, r["seconds"], frames / r["seconds"],
+                             r["peak_mb"] / 1024, "" if r.get("manifest_params") in (None, r["params"]) else
+                             f"manifest {r['manifest_params']}"])
+    print(f"\nBackbones on this CPU ({args.threads} threads), random weights, one chunk of KITTI-shaped frames "
+          f"(DA3 504x154, VGGT 518x154), runner.predict after a 3-frame warm-up; peak = child's peak RSS\n")
+    print(markdown_table(["model", "backend", "dtype", "frames", "params (M)", "seconds", "frames/s", "peak GiB", "note"],
+                         rows))
+    path = write_results("inference_backbones", {"args": {k: v for k, v in vars(args).items()
+                                                           if k in ("presets", "frames", "max_frames", "dtypes",
+                                                                    "onnx_presets", "threads")},
+                                                  "rows": records})
+    print(f"\nresults: {path.relative_to(REPO)}")
+
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--configs", nargs="+", default=["tiny", "mid"], choices=sorted(CONFIGS))
@@ -130,13 +285,27 @@ def main() -> None:
     p.add_argument("--width", type=int, default=518)
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--presets", nargs="*", default=None, metavar="MODEL",
+                   help="full-size --model presets with random weights instead of the configs (no names: all)")
+    p.add_argument("--max-frames", nargs="*", default=[], metavar="PRESET=N", help="--presets: frames cap of a slow preset")
+    p.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"], help="--presets: torch compute dtypes")
+    p.add_argument("--onnx-presets", nargs="*", default=["da3-small"], metavar="PRESET",
+                   help="--presets: those also run with onnxruntime")
+    p.add_argument("--timeout", type=float, default=900.0, help="--presets: seconds per child")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--preset", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--dtype", default="float32", help=argparse.SUPPRESS)
     p.add_argument("--config", default="tiny", help=argparse.SUPPRESS)
     p.add_argument("--backend", default="torch", help=argparse.SUPPRESS)
     p.add_argument("--onnx", default="", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
-        child(args)
+        (preset_child if args.preset else child)(args)
+        return
+    if args.presets is not None:
+        args.presets = args.presets or ["da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large",
+                                        "vggt-1b"]
+        presets_main(args)
         return
 
     import torch

@@ -1,11 +1,13 @@
-"""Self-check of the VGGT implementation against reference tensors from the official code.
+"""Self-check of the VGGT (or Depth Anything 3) implementation against reference tensors from the official code.
 
 Usage::
 
     python -m inference.check_golden DIR [--no-onnx] [--onnx-path FILE]
 
 ``DIR`` holds ``tiny_config.json``, ``tiny_weights.safetensors``, ``tiny_images.npy`` and
-``tiny_golden.npz`` (the layout of ``shared/golden/vggt``).  The model is built from the
+``tiny_golden.npz`` (the layout of ``shared/golden/vggt``).  The family is read from
+``tiny_config.json``: a Depth Anything 3 set (``shared/golden/da3`` layout) is checked by
+:mod:`inference.da3.golden` (its keys and tolerances are described there).  The model is built from the
 config, loaded with strict key checking, run in torch and — unless ``--no-onnx`` — exported to
 ONNX and run with onnxruntime.  Every golden output a backend produces is compared; a table of
 max abs / rel errors is printed and the exit status is 1 if any output is beyond tolerance
@@ -16,9 +18,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -133,28 +136,41 @@ def _compare_all(backend: str, outputs: Mapping[str, np.ndarray], golden: Mappin
 
 def format_table(checks: Sequence[Check]) -> str:
     """A fixed-width table of the checks."""
-    head = f"{'backend':<12} {'output':<22} {'max abs':>10} {'max rel':>10} {'atol':>7} {'rtol':>7}  result"
+    width = max([22, *(len(c.name) for c in checks)])
+    head = f"{'backend':<12} {'output':<{width}} {'max abs':>10} {'max rel':>10} {'atol':>7} {'rtol':>7}  result"
     lines = [head, "-" * len(head)]
     for c in checks:
         lines.append(
-            f"{c.backend:<12} {c.name:<22} {c.max_abs:>10.2e} {c.max_rel:>10.2e} {c.atol:>7.0e} {c.rtol:>7.0e}  "
+            f"{c.backend:<12} {c.name:<{width}} {c.max_abs:>10.2e} {c.max_rel:>10.2e} {c.atol:>7.0e} {c.rtol:>7.0e}  "
             f"{'ok' if c.passed else 'FAIL'}"
         )
     return "\n".join(lines)
+
+
+def _family(directory: Path) -> tuple[tuple[str, ...], Callable[..., list[Check]]]:
+    """Required files and check function of the model family named by ``DIR/tiny_config.json``
+    (Depth Anything 3: a ``create_object_config_main`` section; otherwise VGGT)."""
+    config_path = directory / "tiny_config.json"
+    config = json.loads(config_path.read_text(encoding="utf-8")) if config_path.is_file() else {}
+    if isinstance(config, dict) and "create_object_config_main" in config:
+        from .da3.golden import REQUIRED_FILES, run_da3_checks
+
+        return REQUIRED_FILES, run_da3_checks
+    return ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz"), run_checks
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m inference.check_golden", description=__doc__.split("\n\n")[0])
     parser.add_argument("directory", type=Path, help="folder with tiny_config.json, tiny_weights.safetensors, ...")
     parser.add_argument("--no-onnx", action="store_true", help="check torch only")
-    parser.add_argument("--onnx-path", type=Path, default=None, help="keep the exported graph at this path")
+    parser.add_argument("--onnx-path", type=Path, default=None, help="keep the exported graph at this path (DA3: a folder for its graphs)")
     args = parser.parse_args(argv)
-    missing = [n for n in ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz")
-               if not (args.directory / n).is_file()]
+    required, run = _family(args.directory)
+    missing = [n for n in required if not (args.directory / n).is_file()]
     if missing:
         print(f"error: {args.directory} lacks {', '.join(missing)}", file=sys.stderr)
         return 2
-    checks = run_checks(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path)
+    checks = run(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path)
     print(format_table(checks))
     failed = [c for c in checks if not c.passed]
     print(f"\n{len(checks) - len(failed)}/{len(checks)} outputs within tolerance")

@@ -14,16 +14,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["DPTHead", "uv_pos_embed"]
+__all__ = ["DPTHead", "resize_layers", "uv_pos_embed"]
 
 
 @functools.lru_cache(maxsize=64)
-def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omega_0: float = 100.0) -> np.ndarray:
+def _uv_pos_embed_np(
+    height: int, width: int, aspect: float, channels: int, omega_0: float = 100.0, float32_trig: bool = False
+) -> np.ndarray:
     """Float32 ``[channels, height, width]`` sin/cos embedding of a normalised UV grid (x 0.1).
 
     The grid spans ``±aspect/diag`` horizontally and ``±1/diag`` vertically
     (``diag = sqrt(aspect² + 1)``), pixel centres ``(k - (n-1)/2)·2·span/n``; it is built in
-    float32 (``torch.linspace``), the sin/cos in float64, then cast — as the official code does.
+    float32 (``torch.linspace``), the sin/cos in float64, then cast — as the official VGGT code
+    does.  ``float32_trig``: frequencies, products and sin/cos in torch float32 instead, as the
+    official Depth Anything 3 code does.
     """
     diag = (aspect**2 + 1.0) ** 0.5
     span_x, span_y = aspect / diag, 1.0 / diag
@@ -33,6 +37,10 @@ def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omeg
     v = np.broadcast_to(ys.numpy().astype(np.float64)[:, None], (height, width)).reshape(-1)
 
     def sincos(dim: int, pos: np.ndarray) -> np.ndarray:
+        if float32_trig:
+            omega32 = torch.arange(dim // 2, dtype=torch.float32) / (dim / 2.0)
+            out32 = torch.from_numpy(pos.astype(np.float32))[:, None] * (1.0 / omega_0**omega32)[None, :]
+            return torch.cat([torch.sin(out32), torch.cos(out32)], dim=1).numpy()
         omega = 1.0 / omega_0 ** (np.arange(dim // 2, dtype=np.float64) / (dim / 2.0))
         out = pos[:, None] * omega[None, :]
         return np.concatenate([np.sin(out), np.cos(out)], axis=1).astype(np.float32)
@@ -43,10 +51,11 @@ def _uv_pos_embed_np(height: int, width: int, aspect: float, channels: int, omeg
     return np.ascontiguousarray(emb)
 
 
-def uv_pos_embed(x: Tensor, image_h: int, image_w: int) -> Tensor:
-    """Adds the UV position embedding to a feature map ``x [N, C, h, w]`` of an ``image_h x image_w`` image."""
+def uv_pos_embed(x: Tensor, image_h: int, image_w: int, float32_trig: bool = False) -> Tensor:
+    """Adds the UV position embedding to a feature map ``x [N, C, h, w]`` of an ``image_h x image_w`` image
+    (``float32_trig``: see :func:`_uv_pos_embed_np`)."""
     _, c, h, w = x.shape
-    emb = _uv_pos_embed_np(int(h), int(w), image_w / image_h, int(c))
+    emb = _uv_pos_embed_np(int(h), int(w), image_w / image_h, int(c), float32_trig=float32_trig)
     return x + torch.from_numpy(emb).to(device=x.device, dtype=x.dtype)
 
 
@@ -55,26 +64,28 @@ def _resize(x: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 class ResidualConvUnit(nn.Module):
-    """``conv2(relu(conv1(relu(x)))) + relu(x)`` (the official in-place ReLU quirk)."""
+    """``conv2(relu(conv1(relu(x)))) + relu(x)`` (VGGT's in-place ReLU quirk), or ``+ x`` when
+    ``relu_skip`` is false (Depth Anything 3, whose ReLU is not in place)."""
 
-    def __init__(self, features: int) -> None:
+    def __init__(self, features: int, relu_skip: bool = True) -> None:
         super().__init__()
+        self.relu_skip = relu_skip
         self.conv1 = nn.Conv2d(features, features, kernel_size=3, padding=1)
         self.conv2 = nn.Conv2d(features, features, kernel_size=3, padding=1)
 
     def forward(self, x: Tensor) -> Tensor:
-        x = F.relu(x)
-        return self.conv2(F.relu(self.conv1(x))) + x
+        r = F.relu(x)
+        return self.conv2(F.relu(self.conv1(r))) + (r if self.relu_skip else x)
 
 
 class FeatureFusionBlock(nn.Module):
     """``out_conv(resize(RCU2(x0 + RCU1(x1))))``; without ``resConfUnit1`` when ``has_residual`` is false."""
 
-    def __init__(self, features: int, has_residual: bool = True) -> None:
+    def __init__(self, features: int, has_residual: bool = True, relu_skip: bool = True) -> None:
         super().__init__()
         self.out_conv = nn.Conv2d(features, features, kernel_size=1)
-        self.resConfUnit1: ResidualConvUnit | None = ResidualConvUnit(features) if has_residual else None
-        self.resConfUnit2 = ResidualConvUnit(features)
+        self.resConfUnit1: ResidualConvUnit | None = ResidualConvUnit(features, relu_skip) if has_residual else None
+        self.resConfUnit2 = ResidualConvUnit(features, relu_skip)
 
     def forward(self, x: Tensor, skip: Tensor | None, size: tuple[int, int]) -> Tensor:
         if self.resConfUnit1 is not None and skip is not None:
@@ -83,19 +94,35 @@ class FeatureFusionBlock(nn.Module):
         return self.out_conv(_resize(x, size))
 
 
+def resize_layers(out_channels: Sequence[int]) -> nn.ModuleList:
+    """The four level re-sizers of a DPT head: ×4 and ×2 transposed convolutions, identity, a
+    stride-2 3×3 convolution (patch grid -> 4×, 2×, 1×, 1/2×)."""
+    oc = tuple(out_channels)
+    return nn.ModuleList(
+        [
+            nn.ConvTranspose2d(oc[0], oc[0], kernel_size=4, stride=4),
+            nn.ConvTranspose2d(oc[1], oc[1], kernel_size=2, stride=2),
+            nn.Identity(),
+            nn.Conv2d(oc[3], oc[3], kernel_size=3, stride=2, padding=1),
+        ]
+    )
+
+
 class _Scratch(nn.Module):
     """Container named like the official ``scratch`` module (layerN_rn, refinenetN, output convs)."""
 
-    def __init__(self, in_channels: tuple[int, int, int, int], features: int, output_dim: int) -> None:
+    def __init__(
+        self, in_channels: tuple[int, int, int, int], features: int, output_dim: int, relu_skip: bool = True
+    ) -> None:
         super().__init__()
         self.layer1_rn = nn.Conv2d(in_channels[0], features, kernel_size=3, padding=1, bias=False)
         self.layer2_rn = nn.Conv2d(in_channels[1], features, kernel_size=3, padding=1, bias=False)
         self.layer3_rn = nn.Conv2d(in_channels[2], features, kernel_size=3, padding=1, bias=False)
         self.layer4_rn = nn.Conv2d(in_channels[3], features, kernel_size=3, padding=1, bias=False)
-        self.refinenet1 = FeatureFusionBlock(features)
-        self.refinenet2 = FeatureFusionBlock(features)
-        self.refinenet3 = FeatureFusionBlock(features)
-        self.refinenet4 = FeatureFusionBlock(features, has_residual=False)
+        self.refinenet1 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet2 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet3 = FeatureFusionBlock(features, relu_skip=relu_skip)
+        self.refinenet4 = FeatureFusionBlock(features, has_residual=False, relu_skip=relu_skip)
         self.output_conv1 = nn.Conv2d(features, features // 2, kernel_size=3, padding=1)
         self.output_conv2 = nn.Sequential(
             nn.Conv2d(features // 2, 32, kernel_size=3, padding=1),
@@ -121,14 +148,7 @@ class DPTHead(nn.Module):
         self.intermediate_layer_idx = tuple(intermediate_layer_idx)
         self.norm = nn.LayerNorm(dim_in)
         self.projects = nn.ModuleList(nn.Conv2d(dim_in, oc, kernel_size=1) for oc in out_channels)
-        self.resize_layers = nn.ModuleList(
-            [
-                nn.ConvTranspose2d(out_channels[0], out_channels[0], kernel_size=4, stride=4),
-                nn.ConvTranspose2d(out_channels[1], out_channels[1], kernel_size=2, stride=2),
-                nn.Identity(),
-                nn.Conv2d(out_channels[3], out_channels[3], kernel_size=3, stride=2, padding=1),
-            ]
-        )
+        self.resize_layers = resize_layers(out_channels)
         self.scratch = _Scratch(out_channels, features, output_dim)
 
     def forward(

@@ -139,13 +139,15 @@ class Block(nn.Module):
         init_values: float = 0.01,
         qk_norm: bool = False,
         norm_eps: float = 1e-5,
+        mlp: nn.Module | None = None,
     ) -> None:
+        """``mlp``: a feed-forward to use instead of ``Mlp(dim, dim * mlp_ratio)`` (e.g. SwiGLU)."""
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=norm_eps)
         self.attn = Attention(dim, num_heads, qk_norm=qk_norm)
         self.ls1 = LayerScale(dim, init_values)
         self.norm2 = nn.LayerNorm(dim, eps=norm_eps)
-        self.mlp = Mlp(dim, int(dim * mlp_ratio))
+        self.mlp = mlp if mlp is not None else Mlp(dim, int(dim * mlp_ratio))
         self.ls2 = LayerScale(dim, init_values)
 
     def forward(self, x: Tensor, rope: RopeTables | None = None) -> Tensor:

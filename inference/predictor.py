@@ -24,9 +24,11 @@ __all__ = ["ImagePredictor", "ImageSpec", "build_runner", "model_identity", "wei
 class ImagePredictor:
     """Predictor over image files or a video, through an ``inference`` runner.
 
-    Frames are read with :mod:`swiftjax.io.images`, preprocessed as VGGT's loader does
-    (:func:`inference.preprocess.preprocess`, ``mode``) and passed to ``runner.predict``
-    (:class:`inference.runners.TorchRunner` or :class:`inference.runners.OnnxRunner`).
+    Frames are read with :mod:`swiftjax.io.images`, preprocessed as the backbone's official
+    loader does (``model``: a :data:`inference.backbones.BACKBONES` name; VGGT:
+    :func:`inference.preprocess.preprocess`, DA3: :func:`inference.preprocess.preprocess_da3`;
+    ``mode``) and passed to ``runner.predict`` (:class:`inference.runners.TorchRunner`,
+    :class:`inference.runners.OnnxRunner`, :class:`inference.backbones.da3.DA3Runner`).
     ``runner`` may be a zero-argument factory, called at the first prediction (a driver
     whose predictions run on workers never loads the model).  ``spec``: the recipe
     returned by :meth:`spec` (for workers).
@@ -34,11 +36,14 @@ class ImagePredictor:
 
     def __init__(
         self, source: Any, runner: Any, mode: str = "crop", spec: ImageSpec | None = None,
-        identity: dict[str, Any] | None = None,
+        identity: dict[str, Any] | None = None, model: str | None = None,
     ) -> None:
+        from inference.backbones import get
+
         self.source = source
         self._runner = runner
         self.mode = mode
+        self.backbone = get(model or (spec.model if spec is not None else "vggt-1b"))
         self.identity = identity or {}
         self.num_frames = len(source)
         self._spec = spec
@@ -50,9 +55,7 @@ class ImagePredictor:
         return self._runner
 
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
-        from inference.preprocess import preprocess
-
-        images = preprocess([self.source.read(int(k)) for k in frames], mode=self.mode)
+        images = self.backbone.impl.preprocess([self.source.read(int(k)) for k in frames], self.mode)
         return self.runner.predict(images)
 
     def fingerprint(self) -> dict[str, Any]:
@@ -69,18 +72,16 @@ class ImagePredictor:
         if not model and self._spec is not None:
             sp = self._spec
             model = model_identity(sp.weights, backend=sp.backend, dtype=sp.dtype,
-                                   device_class=sp.device.split(":")[0], config=sp.model_config)
+                                   device_class=sp.device.split(":")[0], config=sp.model_config, model=sp.model)
         return {"frames": frames, "model": model, "preprocessing": {"mode": self.mode}}
 
     def frame_names(self) -> list[str]:
         return list(self.source.names)
 
     def preprocess_geometry(self) -> Any:
-        """Where the original pixels land in the model's images
-        (:func:`swiftjax.intrinsics.preprocess_geometry` of the frames' common size and ``mode``)."""
-        from swiftjax.intrinsics import preprocess_geometry
-
-        return preprocess_geometry(*self.source.image_hw, self.mode)
+        """Where the original pixels land in the model's images (the backbone's geometry of the
+        frames' common size and ``mode``, e.g. :func:`swiftjax.intrinsics.preprocess_geometry`)."""
+        return self.backbone.impl.preprocess_geometry(*self.source.image_hw, self.mode)
 
     def spec(self) -> Any:
         if self._spec is None:
@@ -90,11 +91,14 @@ class ImagePredictor:
 
 def build_runner(
     weights: str | os.PathLike[str], backend: str = "torch", device: str = "cpu", dtype: str = "float32",
-    model_config: dict[str, Any] | None = None,
+    model_config: dict[str, Any] | None = None, model: str = "vggt-1b",
 ) -> Any:
-    """A :class:`~inference.runners.TorchRunner` (VGGT-1B, or ``model_config``) or an
-    :class:`~inference.runners.OnnxRunner` for ``weights``.  ``dtype``: ``float32``,
+    """The runner of backbone ``model`` (:data:`inference.backbones.BACKBONES`; its preset, or
+    ``model_config`` of its family) with ``weights`` loaded, or an
+    :class:`~inference.runners.OnnxRunner` (VGGT graphs).  ``dtype``: ``float32``,
     ``bfloat16`` or ``float16`` (torch)."""
+    from inference.backbones import get
+
     weights = os.fspath(weights)
     if backend == "onnx":
         from inference.runners import OnnxRunner
@@ -105,19 +109,8 @@ def build_runner(
         return OnnxRunner(weights, providers=providers)
     if backend != "torch":
         raise ValueError(f"backend must be 'torch' or 'onnx', got {backend!r}")
-    import torch
-
-    from inference import VGGT, VGGTConfig, load_checkpoint
-    from inference.runners import TorchRunner
-
-    config = VGGTConfig(**model_config) if model_config else VGGTConfig()
-    with torch.device("meta"):  # no 5 GB allocation: load_checkpoint assigns the (mmapped) tensors
-        model = VGGT(config)
-    load_checkpoint(model, weights)
-    torch_dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[dtype]
-    runner = TorchRunner(model, device=device, dtype=torch_dtype)
-    runner.name = f"VGGT ({weights}, {dtype})"  # named in a non-finite-output error
-    return runner
+    backbone = get(model)
+    return backbone.impl.build_runner(backbone, weights, device, dtype, model_config)
 
 
 _RUNNERS: dict[tuple, Any] = {}  # ImageSpec.runner_factory's models, per process
@@ -127,7 +120,7 @@ _RUNNERS: dict[tuple, Any] = {}  # ImageSpec.runner_factory's models, per proces
 class ImageSpec:
     """The recipe of an :class:`ImagePredictor`: frames from ``input`` (folder, glob or
     video; every ``stride``-th; ``skip_bad`` as :func:`swiftjax.io.images.validate`), a
-    runner from :func:`build_runner`'s arguments, preprocessing ``mode``."""
+    runner from :func:`build_runner`'s arguments (``model``: the backbone), preprocessing ``mode``."""
 
     input: str
     weights: str
@@ -138,6 +131,7 @@ class ImageSpec:
     mode: str = "crop"
     stride: int = 1
     skip_bad: bool = False
+    model: str = "vggt-1b"
 
     def source(self) -> Any:
         from swiftjax.io import images
@@ -147,11 +141,13 @@ class ImageSpec:
     def runner_factory(self) -> Callable[[], Any]:
         """Loads the runner when called; one per process for the same weights, backend,
         device, dtype and model (a worker running many sequences loads the model once)."""
-        key = (self.weights, self.backend, self.device, self.dtype, repr(sorted((self.model_config or {}).items())))
+        key = (self.model, self.weights, self.backend, self.device, self.dtype,
+               repr(sorted((self.model_config or {}).items())))
 
         def load() -> Any:
             if key not in _RUNNERS:
-                _RUNNERS[key] = build_runner(self.weights, self.backend, self.device, self.dtype, self.model_config)
+                _RUNNERS[key] = build_runner(self.weights, self.backend, self.device, self.dtype, self.model_config,
+                                             self.model)
             return _RUNNERS[key]
 
         return load
@@ -176,10 +172,16 @@ def weights_identity(path: Any) -> dict[str, Any]:
 
 
 def model_identity(
-    weights: Any, *, backend: str, dtype: str, device_class: str, config: dict[str, Any] | None
+    weights: Any, *, backend: str, dtype: str, device_class: str, config: dict[str, Any] | None,
+    model: str = "vggt-1b",
 ) -> dict[str, Any]:
-    """The model part of :meth:`ImagePredictor.fingerprint`."""
+    """The model part of :meth:`ImagePredictor.fingerprint`: the backbone (name, family,
+    preset), its configuration, the weights file, backend, dtype and device class."""
+    from inference.backbones import get
+
+    b = get(model)
     return {
+        "backbone": {"name": b.name, "family": b.family, "preset": b.preset},
         "weights": weights_identity(weights), "config": config, "backend": backend, "dtype": dtype,
         "device_class": device_class,
     }

@@ -34,7 +34,12 @@ from typing import Literal, Union
 
 import numpy as np
 
-__all__ = ["preprocess", "load_image", "target_size_hw", "resize_rgb", "to_uint8_images"]
+__all__ = ["preprocess", "preprocess_da3", "load_image", "target_size_hw", "resize_rgb", "to_uint8_images",
+           "IMAGENET_MEAN", "IMAGENET_STD"]
+
+#: What Depth Anything 3's official API normalises with (outside the network).
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 ImageSource = Union[str, "os.PathLike[str]", np.ndarray]
 Mode = Literal["crop", "pad"]
@@ -268,6 +273,56 @@ def preprocess(
         warnings.warn(f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}", stacklevel=2)
         out = [_pad_white(a, max_h, max_w) for a in out]
     return np.stack(out)
+
+
+def _cv2_resize(img: np.ndarray, height: int, width: int, enlarge: bool) -> np.ndarray:
+    import cv2
+
+    interp = cv2.INTER_CUBIC if enlarge else cv2.INTER_AREA
+    return np.ascontiguousarray(cv2.resize(img, (width, height), interpolation=interp))
+
+
+def preprocess_da3(
+    images: ImageSource | Sequence[ImageSource], mode: str = "resize", process_res: int = 504
+) -> np.ndarray:
+    """Loads and resizes images as Depth Anything 3's official input processor does.
+
+    Per image (:func:`swiftjax.intrinsics.da3_preprocess_geometry` gives the sizes): the longer
+    side to ``process_res`` with OpenCV (``INTER_CUBIC`` when enlarging, ``INTER_AREA`` when
+    shrinking), then ``"resize"``: a second OpenCV resize to the nearest multiples of 14 (cubic
+    if a side grows, else area), or ``"crop"``: a centre crop down to the multiples below.
+    Images of different final sizes are centre-cropped to the smallest ``H`` and ``W``.
+
+    Returns ``[N, 3, H, W]`` float32 RGB in [0, 1] (``uint8 / 255``, as ``ToTensor``); the
+    ImageNet normalisation (:data:`IMAGENET_MEAN`, :data:`IMAGENET_STD`) is the runner's.
+    """
+    from swiftjax.intrinsics import da3_preprocess_geometry, da3_sizes
+
+    sources = [images] if isinstance(images, (str, os.PathLike, np.ndarray)) else list(images)
+    if not sources:
+        raise ValueError("no images given")
+    out: list[np.ndarray] = []
+    for src in sources:
+        rgb = load_image(src)
+        h0, w0 = rgb.shape[:2]
+        geom = da3_preprocess_geometry(h0, w0, mode, process_res)
+        h1, w1 = da3_sizes(h0, w0, process_res)
+        if (h1, w1) != (h0, w0):
+            rgb = _cv2_resize(rgb, h1, w1, enlarge=process_res > max(h0, w0))
+        h, w = geom.model_hw
+        if mode == "resize" and (h, w) != (h1, w1):
+            rgb = _cv2_resize(rgb, h, w, enlarge=h > h1 or w > w1)
+        elif mode == "crop":
+            rgb = rgb[-geom.top : -geom.top + h, -geom.left : -geom.left + w]
+        out.append(np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32) / np.float32(255.0))
+    shapes = {a.shape for a in out}
+    if len(shapes) > 1:
+        h = min(a.shape[1] for a in out)
+        w = min(a.shape[2] for a in out)
+        warnings.warn(f"images have different shapes {sorted(shapes)}; centre-cropping them to {h}x{w}", stacklevel=2)
+        out = [a[:, (a.shape[1] - h) // 2 : (a.shape[1] - h) // 2 + h, (a.shape[2] - w) // 2 : (a.shape[2] - w) // 2 + w]
+               for a in out]
+    return np.ascontiguousarray(np.stack(out))
 
 
 def to_uint8_images(images: np.ndarray) -> np.ndarray:

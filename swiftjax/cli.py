@@ -376,17 +376,46 @@ def _torch_device(text: str) -> Any:
     return device
 
 
-def _model_config(args: argparse.Namespace) -> Any:
+def _model_config(args: argparse.Namespace, backbone: Any = None) -> Any:
+    """The architecture of ``--model-config`` for the backbone's family (``None``: its preset),
+    as the JSON-able dict the runner is rebuilt from.  Without ``backbone``: a VGGTConfig."""
     from inference import VGGTConfig
 
+    if backbone is None:
+        config = _model_config(args, _backbone_named("vggt-1b"))
+        return VGGTConfig(**config) if config else VGGTConfig()
     if args.model_config is None:
-        return VGGTConfig()
+        return None
     try:
-        return VGGTConfig.from_json(args.model_config)
+        return backbone.impl.load_config(backbone, args.model_config)
     except FileNotFoundError:
         raise CliError(f"--model-config {args.model_config} does not exist") from None
     except (OSError, ValueError, TypeError, KeyError) as err:  # JSONDecodeError is a ValueError
-        raise CliError(f"--model-config {args.model_config} is not a VGGT config: {_one_line(err)}") from None
+        raise CliError(
+            f"--model-config {args.model_config} is not a {backbone.family.upper()} config (--model {backbone.name}): "
+            f"{_one_line(err)}"
+        ) from None
+
+
+def _backbone_named(name: str) -> Any:
+    from inference.backbones import get
+
+    return get(name)
+
+
+def _backbone(args: argparse.Namespace) -> Any:
+    """The ``--model`` (flag or TOML ``model``) backbone."""
+    return _backbone_named(_pipeline_config(args).model)
+
+
+def _mode(args: argparse.Namespace, backbone: Any) -> str:
+    """``--mode`` checked against the family's modes (default: its first, the official one)."""
+    modes = backbone.impl.modes
+    if args.mode is None:
+        return modes[0]
+    if args.mode not in modes:
+        raise CliError(f"--mode {args.mode} is not a preprocessing of --model {backbone.name} (use {' or '.join(modes)})")
+    return args.mode
 
 
 def _check_weights(args: argparse.Namespace) -> pathlib.Path:
@@ -399,9 +428,14 @@ def _check_weights(args: argparse.Namespace) -> pathlib.Path:
 
 
 def _check_runner_options(args: argparse.Namespace, check_device: bool = True) -> None:
-    """Device, backend and dtype checked before any input is read or weights loaded
-    (``check_device=False`` where the model runs on workers, whose devices are theirs)."""
+    """Device, backend, dtype, mode and the weights file's header (family, shapes, complete)
+    checked before any input is read or weights loaded (``check_device=False`` where the model
+    runs on workers, whose devices are theirs)."""
     weights = _check_weights(args)
+    backbone = _backbone(args)
+    _mode(args, backbone)
+    if args.backend == "onnx" and backbone.family != "vggt":
+        raise CliError(f"--backend onnx runs VGGT graphs; --model {backbone.name} needs --backend torch")
     if args.backend == "onnx":
         if weights.suffix.lower() != ".onnx":
             raise CliError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
@@ -424,28 +458,37 @@ def _check_runner_options(args: argparse.Namespace, check_device: bool = True) -
             raise CliError(f"{weights} is an ONNX graph: pass --backend onnx")
         if check_device:
             _torch_device(args.device)
-        _model_config(args)
+        config = _model_config(args, backbone)
+        try:
+            backbone.impl.check_checkpoint(backbone, weights, config)
+        except Exception as err:  # noqa: BLE001 - CheckpointError, without importing torch to name it
+            if _is_user_error(err):
+                raise CliError(_one_line(err)) from None
+            raise
 
 
-def _image_spec(args: argparse.Namespace) -> Any:
+def _image_spec(args: argparse.Namespace, checked: bool = False) -> Any:
+    """The :class:`~inference.predictor.ImageSpec` of the flags (``checked``: the runner options
+    were checked already)."""
     from inference.predictor import ImageSpec
 
-    _check_runner_options(args, check_device=False)  # a worker checks its own device
-    model_config = None if args.backend == "onnx" or args.model_config is None else _model_config(args).to_dict()
+    if not checked:
+        _check_runner_options(args, check_device=False)  # a worker checks its own device
+    backbone = _backbone(args)
+    model_config = None if args.backend == "onnx" else _model_config(args, backbone)
     return ImageSpec(  # absolute paths: a worker may run elsewhere
         input=os.path.abspath(args.input), weights=os.path.abspath(args.weights), backend=args.backend,
-        device=args.device, dtype=args.dtype, model_config=model_config, mode=args.mode, stride=args.stride,
-        skip_bad=args.skip_bad,
+        device=args.device, dtype=args.dtype, model_config=model_config, mode=_mode(args, backbone),
+        stride=args.stride, skip_bad=args.skip_bad, model=backbone.name,
     )
 
 
-def _make_runner(args: argparse.Namespace) -> Any:
-    """The runner, loaded now: a bad checkpoint or graph is a one-line error before any work."""
+def _make_runner(args: argparse.Namespace, spec: Any) -> Any:
+    """The runner of ``spec``, loaded now: a bad checkpoint or graph is a one-line error before any work."""
     from inference.predictor import build_runner
 
-    spec = _image_spec(args)
     try:
-        return build_runner(spec.weights, spec.backend, spec.device, spec.dtype, spec.model_config)
+        return build_runner(spec.weights, spec.backend, spec.device, spec.dtype, spec.model_config, spec.model)
     except Exception as err:  # noqa: BLE001 - checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
         if _is_user_error(err):
             raise CliError(_one_line(err)) from None
@@ -484,18 +527,23 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     else:
         timestamps, note = source.timestamps()
     _check_runner_options(args, check_device=getattr(args, "executor", "local") == "local")
-    if len(source) < config.chunk_size:
-        print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     from inference.predictor import ImagePredictor
 
-    spec = _image_spec(args)  # its model identity is part of the run directory's fingerprint
+    spec = _image_spec(args, checked=True)  # its model identity is part of the run directory's fingerprint
+    backbone = _backbone_named(spec.model)
+    try:  # an image size the network cannot take
+        backbone.impl.preprocess_geometry(*source.image_hw, spec.mode)
+    except ValueError as err:
+        raise CliError(f"--model {spec.model} cannot take the frames of {args.input}: {_one_line(err)}") from None
+    if len(source) < config.chunk_size:
+        print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     executor = _make_executor(args)
     with contextlib.closing(executor):
         if args.executor == "local":  # load the model now: a bad checkpoint fails before any work
-            runner: Any = _make_runner(args)
+            runner: Any = _make_runner(args, spec)
         else:  # each worker loads its own (ImageSpec)
             runner = spec.runner_factory()
-        predictor = ImagePredictor(source, runner, mode=args.mode, spec=spec)
+        predictor = ImagePredictor(source, runner, mode=spec.mode, spec=spec)
         with _LiveView(args) as live:
             result = pipeline.reconstruct(
                 predictor, out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
@@ -664,15 +712,18 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 def _image_options(parser: argparse.ArgumentParser) -> None:
     """The model and the frames' preprocessing (reconstruct, batch)."""
     parser.add_argument("--weights", required=True,
-                        help="VGGT weights (.pt/.pth/.safetensors; .onnx with --backend onnx); required")
+                        help="weights of the --model network (VGGT: .pt/.pth/.safetensors, .onnx with --backend onnx; "
+                             "DA3: the official model.safetensors); required")
     parser.add_argument("--model-config", type=pathlib.Path, default=None, metavar="FILE",
-                        help="VGGT architecture as JSON (the layout VGGTConfig.from_json reads, e.g. the tiny "
-                             "golden tiny_config.json; default: VGGT-1B)")
+                        help="a custom size of the --model network's family as JSON (the golden tiny_config.json "
+                             "layout of that family; default: the preset of --model)")
     parser.add_argument("--backend", choices=("torch", "onnx"), default="torch", help="inference engine")
     parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N, mps")
     parser.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
                         help="aggregator compute dtype (torch autocast; the heads stay float32)")
-    parser.add_argument("--mode", choices=("crop", "pad"), default="crop", help="VGGT preprocessing mode")
+    parser.add_argument("--mode", choices=("crop", "pad", "resize"), default=None,
+                        help="preprocessing: VGGT crop (default) or pad; DA3 resize (default: longer side 504, sides "
+                             "to the nearest multiple of 14, the official upper_bound_resize) or crop")
     parser.add_argument("--stride", type=int, default=1, help="use every k-th frame")
     parser.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     parser.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti", help="ground-truth file format")

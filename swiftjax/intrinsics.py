@@ -49,6 +49,8 @@ __all__ = [
     "parse_intrinsics",
     "PreprocessGeometry",
     "preprocess_geometry",
+    "da3_sizes",
+    "da3_preprocess_geometry",
     "map_intrinsics",
     "unmap_intrinsics",
     "map_points",
@@ -309,6 +311,53 @@ def preprocess_geometry(
         top, left = (target - new_h) // 2, (target - new_w) // 2
         model = (target, target)
     return PreprocessGeometry((int(height), int(width)), (int(new_h), int(new_w)), int(top), int(left), model)
+
+
+def da3_sizes(height: int, width: int, process_res: int = 504) -> tuple[int, int]:
+    """Depth Anything 3's boundary resize (official ``upper_bound_*``): the longer side becomes
+    ``process_res``, each side ``max(1, round(side * process_res / longer))`` (Python ``round``,
+    half to even); unchanged when the longer side already is ``process_res``."""
+    longest = max(height, width)
+    if longest == process_res:
+        return int(height), int(width)
+    scale = process_res / float(longest)
+    return max(1, int(round(height * scale))), max(1, int(round(width * scale)))
+
+
+def da3_preprocess_geometry(
+    height: int, width: int, mode: str = "resize", process_res: int = 504, patch: int = 14
+) -> PreprocessGeometry:
+    """The geometry of ``inference.preprocess.preprocess_da3`` (the official DA3 input processor).
+
+    :func:`da3_sizes`, then each side becomes a multiple of ``patch``: ``"resize"``
+    (``upper_bound_resize``, the official default) resizes again to the nearest multiple (ties
+    round up), ``"crop"`` (``upper_bound_crop``) centre-crops down to the multiple below
+    (offset ``(old - new) // 2``).  Both resizes are pixel-centre scalings, so together they
+    are one (``scale_xy`` = final / original size).  KITTI 1241 x 376 -> 504 x 153 -> 504 x 154.
+
+    Raises ``ValueError`` when a side would end up below one patch (the network cannot take it).
+    """
+    if height < 1 or width < 1:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if mode not in ("resize", "crop"):
+        raise ValueError(f"DA3 preprocessing mode must be 'resize' or 'crop', got {mode!r}")
+    h1, w1 = da3_sizes(height, width, process_res)
+    if mode == "resize":
+        def nearest(x: int) -> int:
+            down = (x // patch) * patch
+            return down + patch if (down + patch - x) <= (x - down) else down
+
+        h, w = nearest(h1), nearest(w1)
+        resized, top, left = (h, w), 0, 0
+    else:
+        h, w = (h1 // patch) * patch, (w1 // patch) * patch
+        resized, top, left = (h1, w1), -((h1 - h) // 2), -((w1 - w) // 2)
+    if h < patch or w < patch:
+        raise ValueError(
+            f"a {width}x{height} image is too elongated for Depth Anything 3: it would become {w}x{h} pixels "
+            f"(each side must be at least {patch})"
+        )
+    return PreprocessGeometry((int(height), int(width)), resized, int(top), int(left), (int(h), int(w)))
 
 
 def _affine(geom: PreprocessGeometry) -> np.ndarray:

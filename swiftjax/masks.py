@@ -14,6 +14,8 @@ untouched (the DINO tokens stay whole-image).
   and unsure.  A pixel is sky when its depth exceeds ``depth_ratio`` times the frame's
   median depth AND its confidence is below ``conf_ratio`` times the frame's median
   confidence.  Measured against the synthetic world's sky label in the README.
+  :func:`network_sky_mask` (``--drop-sky`` with the nested DA3 model): that network has a sky
+  head and marks its sky pixels itself, with confidence exactly 1 (the floor of ``1 + exp``).
 """
 
 from __future__ import annotations
@@ -30,7 +32,10 @@ from jax.typing import ArrayLike
 
 from swiftjax.intrinsics import PreprocessGeometry, map_mask
 
-__all__ = ["MaskError", "MaskDirectory", "sky_mask", "keep_mask"]
+__all__ = ["MaskError", "MaskDirectory", "sky_mask", "network_sky_mask", "keep_mask", "SKY_RULES"]
+
+#: How ``--drop-sky`` finds sky: ``cues`` (:func:`sky_mask`) or ``network`` (:func:`network_sky_mask`).
+SKY_RULES = ("cues", "network")
 
 _EXTENSIONS = (".png", ".PNG")
 
@@ -162,14 +167,27 @@ def sky_mask(
     return (far & unsure) | ~jnp.isfinite(depth)
 
 
+def network_sky_mask(conf: ArrayLike) -> Array:
+    """Sky as a network with a sky head marks it: bool ``[..., H, W]``, ``conf <= 1``.
+
+    The nested Depth Anything 3 model sets the confidence of the pixels its metric branch calls
+    sky (``sky >= 0.3``) to exactly 1, the lowest value ``1 + exp(.)`` takes; every other
+    pixel keeps ``1 + exp(logit) > 1``.  Stored as float16 (the chunk store), a pixel with
+    ``logit < -7.6`` also rounds to 1: those are unreliable pixels the point filter drops anyway.
+    """
+    return jnp.asarray(conf) <= 1
+
+
 def keep_mask(
-    depth: ArrayLike, conf: ArrayLike, user: ArrayLike | None = None, drop_sky: bool = False, **sky_options
+    depth: ArrayLike, conf: ArrayLike, user: ArrayLike | None = None, drop_sky: bool = False,
+    sky_rule: str = "cues", **sky_options
 ) -> Array | None:
     """The combined keep-mask ``[S, H, W]`` (user mask AND not sky), or ``None`` when neither
-    is asked for (the caller then uses every pixel, with no extra compile)."""
+    is asked for (the caller then uses every pixel, with no extra compile).  ``sky_rule``:
+    :data:`SKY_RULES` (``network`` for a backbone that marks sky, see :func:`network_sky_mask`)."""
     keep = None if user is None else jnp.asarray(user, bool)
     if drop_sky:
-        not_sky = ~sky_mask(depth, conf, **sky_options)
+        not_sky = ~(network_sky_mask(conf) if sky_rule == "network" else sky_mask(depth, conf, **sky_options))
         keep = not_sky if keep is None else keep & not_sky
     return keep
 

@@ -350,11 +350,14 @@ def apply_scale(poses: ArrayLike, m: float) -> np.ndarray:
 
 
 def parse_metric(value: str | None) -> tuple[str, float | None] | None:
-    """``None``, ``"gt"`` or ``"camera-height=H"`` (metres > 0) -> ``(kind, H)``; ``ValueError`` otherwise."""
+    """``None``, ``"gt"``, ``"model"`` (a metric network's own metres) or ``"camera-height=H"``
+    (metres > 0) -> ``(kind, H)``; ``ValueError`` otherwise."""
     if value is None or value == "" or value == "none":
         return None
     if value == "gt":
         return ("gt", None)
+    if value == "model":
+        return ("model", None)
     if value.startswith("camera-height="):
         try:
             h = float(value.split("=", 1)[1])
@@ -363,4 +366,4 @@ def parse_metric(value: str | None) -> tuple[str, float | None] | None:
         if not (np.isfinite(h) and h > 0):
             raise ValueError(f"--metric camera-height=H needs a height in metres > 0, got {value!r}")
         return ("camera-height", h)
-    raise ValueError(f"--metric must be 'camera-height=H' (metres) or 'gt', got {value!r}")
+    raise ValueError(f"--metric must be 'camera-height=H' (metres), 'gt' or 'model', got {value!r}")

@@ -104,13 +104,23 @@ def x64():
         yield
 
 
+def _golden(shared_dir: pathlib.Path, family: str, name: str) -> pathlib.Path:
+    d = shared_dir / "golden" / family
+    if not (d / "tiny_golden.npz").is_file():
+        pytest.fail(f"the shared folder {shared_dir} has no {name} golden tensors in {d}")
+    return d
+
+
 @pytest.fixture(scope="session")
 def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
     """``shared/golden/vggt``: tensors from the official VGGT code on a tiny configuration."""
-    d = shared_dir / "golden" / "vggt"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.fail(f"the shared folder {shared_dir} has no VGGT golden tensors in {d}")
-    return d
+    return _golden(shared_dir, "vggt", "VGGT")
+
+
+@pytest.fixture(scope="session")
+def da3_golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
+    """``shared/golden/da3``: tensors from the official Depth Anything 3 code on tiny networks."""
+    return _golden(shared_dir, "da3", "DA3")
 
 
 #: ``small_loop_run``'s configuration (``test_pipeline.py``'s CONFIG).

@@ -20,14 +20,20 @@ from swiftjax.posegraph.options import PIPELINE as _GRAPH
 
 _LOOPS = loops.LoopOptions()  # the loop fields' defaults
 
-__all__ = ["PipelineConfig"]
+__all__ = ["PipelineConfig", "BACKBONE_NAMES", "METRIC_BACKBONES"]
+
+#: The networks ``--model`` offers (``inference.backbones.BACKBONES`` implements them; a test
+#: keeps the two lists equal, so that ``swiftjax`` can validate the option without importing it).
+BACKBONE_NAMES = ("vggt-1b", "da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large")
+#: Those whose depth is in metres (``--metric model``).
+METRIC_BACKBONES = ("da3-nested-giant-large",)
 
 
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
     """Every method parameter, with the paper's / authors' defaults (explained in docs/method.md).
 
-    Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
+    The network: ``model`` (:data:`BACKBONE_NAMES`).  Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
     (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's
     iterative baseline on the same reliable points, for comparison), ``depth_threshold``
     (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
@@ -56,13 +62,17 @@ class PipelineConfig:
     original image size, with the original files, as VGGT's own COLMAP export),
     ``colmap_max_points``.  The user's camera (:mod:`swiftjax.pipeline.user_camera`):
     ``intrinsics`` (a file: ``fx fy cx cy``, KITTI ``calib.txt`` or COLMAP ``cameras.txt``, at
-    the original image size), ``metric`` (``"camera-height=H"`` in metres or ``"gt"``: every
-    output in metres), ``metric_combine`` (how ``camera-height`` combines the chunks' factors:
+    the original image size), ``metric`` (``"camera-height=H"`` in metres, ``"gt"``, or ``"model"``: the metric network's
+    own metres; every output in metres), ``metric_combine`` (how ``camera-height`` combines the chunks' factors:
     ``"median"`` of their votes, one factor for the world, or ``"prior"``: a prior on each
     chunk's scale in the pose graph, :mod:`swiftjax.metric`), ``metric_prior_sigma`` (that
     prior's standard deviation on one chunk's log-scale), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
+    model: str = option(
+        "vggt-1b", "the network that predicts each chunk (reconstruct, batch; --model-config picks a custom size of "
+        "its family; the demo's synthetic oracle ignores it)", choices=BACKBONE_NAMES, stage="temporal",
+    )
     chunk_size: int = option(75, "frames per chunk (B)", low=2, high=10_000, stage="temporal")
     overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size; default 30, or the "
                          "paper's 30/75 of a chunk of 30 frames or fewer", low=1, high=9_999,
@@ -171,7 +181,8 @@ class PipelineConfig:
         kind=str, optional=True, stage="temporal",
     )
     metric: str | None = option(
-        None, "metric scale: 'camera-height=H' (metres above the road) or 'gt' (from --gt)",
+        None, "metric scale: 'camera-height=H' (metres above the road), 'gt' (from --gt) or 'model' (the metric "
+        "network's own metres: --model da3-nested-giant-large)",
         kind=str, optional=True, stage="temporal",
     )
     metric_combine: str = option(
@@ -205,6 +216,11 @@ class PipelineConfig:
             parse_metric(self.metric)
         except ValueError as err:
             raise options.OptionError(f"invalid option metric: {err}") from None
+        if self.metric == "model" and self.model not in METRIC_BACKBONES:
+            raise options.OptionError(
+                f"invalid option metric: 'model' needs a metric network (--model {' or '.join(METRIC_BACKBONES)}), "
+                f"got --model {self.model}"
+            )
         if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
             raise options.OptionError(
                 f"invalid option loop_half_window: {self.loop_half_window}; allowed: "

@@ -54,7 +54,10 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
             ctx.log(f"metric scale (camera-height={height:g}, scale priors in the pose graph): "
                     f"{ctx.scale['metres_per_unit']:.6g} m per unit of chunk 0")
             return graph
-        if kind == "camera-height":
+        if kind == "model":  # the network predicts metres: the world is chunk 0's, in its metres
+            m, m0 = 1.0 / float(graph.chunk_poses[0, 7]), 1.0 / float(graph.chunk_poses_no_loops[0, 7])
+            info = {"method": "model (the metric network's depth, chunk 0's metres)"}
+        elif kind == "camera-height":
             assert temporal.ground_heights is not None
             m, stats = metric.combine_scales(temporal.ground_heights, graph.chunk_poses[:, 7], height)
             m0, _ = metric.combine_scales(temporal.ground_heights, graph.chunk_poses_no_loops[:, 7], height)

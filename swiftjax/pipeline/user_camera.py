@@ -44,7 +44,9 @@ class UserCamera:
         intrinsics: the file's :class:`~swiftjax.intrinsics.CameraIntrinsics` or ``None``.
         K_ref: ``[3, 3]`` float64 at the model's resolution, or ``None`` (use the prediction's).
         masks: the :class:`~swiftjax.masks.MaskDirectory` or ``None``.
-        drop_sky: drop :func:`~swiftjax.masks.sky_mask` pixels.
+        drop_sky: drop sky pixels: :func:`~swiftjax.masks.sky_mask`, or the network's own
+            (:func:`~swiftjax.masks.network_sky_mask`, ``sky_rule == "network"``: a backbone of
+            :data:`~swiftjax.pipeline.config.METRIC_BACKBONES`, which has a sky head).
         metric: ``None``, ``("camera-height", H)`` or ``("gt", None)``.
     """
 
@@ -54,6 +56,7 @@ class UserCamera:
     masks: _masks.MaskDirectory | None = None
     drop_sky: bool = False
     metric: tuple[str, float | None] | None = None
+    sky_rule: str = "cues"
 
     @classmethod
     def from_config(cls, config: Any, predictor: Any) -> UserCamera:
@@ -78,7 +81,10 @@ class UserCamera:
         if config.mask_dir is not None:
             mask_dir = _masks.MaskDirectory(config.mask_dir, predictor.frame_names(), geometry)
             mask_dir.check()
-        return cls(geometry, intr, K_ref, mask_dir, bool(config.drop_sky), metric)
+        from swiftjax.pipeline.config import METRIC_BACKBONES
+
+        sky_rule = "network" if getattr(config, "model", None) in METRIC_BACKBONES else "cues"
+        return cls(geometry, intr, K_ref, mask_dir, bool(config.drop_sky), metric, sky_rule)
 
     @property
     def masked(self) -> bool:
@@ -102,4 +108,4 @@ class UserCamera:
             return None
         user = None if self.masks is None else jnp.asarray(self.masks.read(frames))
         return _masks.keep_mask(jnp.asarray(depth, jnp.float32), jnp.asarray(conf, jnp.float32), user,
-                                drop_sky=self.drop_sky)
+                                drop_sky=self.drop_sky, sky_rule=self.sky_rule)
