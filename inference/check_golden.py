@@ -149,6 +149,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-onnx", action="store_true", help="check torch only")
     parser.add_argument("--onnx-path", type=Path, default=None, help="keep the exported graph at this path")
     args = parser.parse_args(argv)
+    from .pi3.golden import is_pi3_dir  # family dispatch: π³ / π³X golden data
+
+    if is_pi3_dir(args.directory):
+        from .pi3.golden import main as pi3_main
+
+        return pi3_main([str(args.directory), *(["--no-onnx"] if args.no_onnx else []),
+                         *(["--onnx-path", str(args.onnx_path)] if args.onnx_path else [])])
     missing = [n for n in ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz")
                if not (args.directory / n).is_file()]
     if missing:
