@@ -116,7 +116,8 @@ def torch_outputs(model: Any, golden: Mapping[str, np.ndarray], run: str | None)
 def _compare_all(backend: str, outputs: Mapping[str, np.ndarray], golden: Mapping[str, np.ndarray],
                  prefix: str = "", required: Sequence[str] | None = None) -> list[Check]:
     keys = required if required is not None else [
-        k for k in golden if k.startswith(prefix) and k not in _INPUT_KEYS and ".cond_input." not in k
+        k for k in golden
+        if k.startswith(prefix) and k.split(":")[-1] not in _INPUT_KEYS and ".cond_input." not in k
     ]
     checks = []
     for k in keys:
