@@ -118,7 +118,7 @@ def se3_inverse(T: Tensor) -> Tensor:
 
 
 def _rope_1d(x: Tensor, pos: Tensor, base: float, inverse: bool = False) -> Tensor:
-    """Split-half 1-D RoPE on the last axis of ``x [..., T, d]`` at positions ``pos [T]``.
+    """Split-half 1-D RoPE on the last axis of ``x [..., P, d]`` at positions ``pos [P]``.
 
     Frequencies ``base^(-i / (d/2))``, ``i < d/2``; ``(a, b) -> (a cos + b sin, -a sin + b cos)``
     (the transpose, i.e. the inverse rotation, with ``inverse``).
@@ -134,12 +134,11 @@ def _rope_1d(x: Tensor, pos: Tensor, base: float, inverse: bool = False) -> Tens
 
 
 def _apply_per_view_matrix(x: Tensor, mats: Tensor) -> Tensor:
-    """``x [B, h, V*P, d]`` with ``d = 4k``: each view's features, read as ``k`` 4-vectors, are
+    """``x [B, h, V, P, d]`` with ``d = 4k``: each view's features, read as ``k`` 4-vectors, are
     multiplied by that view's ``mats [B, V, 4, 4]``."""
-    b, h, n, d = x.shape
-    v = mats.shape[1]
-    xv = x.reshape(b, h, v, n // v, d // 4, 4)
-    return torch.einsum("bvij,bhvpkj->bhvpki", mats, xv).reshape(b, h, n, d)
+    b, h, v, p, d = x.shape
+    xv = x.reshape(b, h, v, p, d // 4, 4)
+    return torch.einsum("bvij,bhvpkj->bhvpki", mats, xv).reshape(b, h, v, p, d)
 
 
 def prope_attention(
@@ -151,21 +150,22 @@ def prope_attention(
     Half of each head (``d/2``) is transformed by the view's projective matrix ``P``: queries
     by ``P^T``, keys/values by ``P^-1``, outputs by ``P``; the other two quarters get 1-D RoPE
     (base 100) on the patch column then row (0-based, no offset), keys/values/queries
-    forward, outputs inverse.  ``attn_mask [B, 1, V*P, V*P]`` bool, True = attend.
+    forward, outputs inverse.  ``attn_mask [B, 1, V*P, V*P]``: bool (True = attend) or additive.
     """
     ph, pw = patches_hw
-    d = q.shape[-1]
-    n_views = world_to_cam.shape[1]
-    cols = torch.arange(pw, device=q.device).repeat(ph * n_views)
-    rows = torch.arange(ph, device=q.device).repeat_interleave(pw).repeat(n_views)
+    p = ph * pw
+    b, h, n, d = q.shape
+    cols = torch.arange(pw, device=q.device).repeat(ph)
+    rows = torch.arange(ph, device=q.device).repeat_interleave(pw)
     inv = se3_inverse(world_to_cam)
 
     def transform(x: Tensor, mat: Tensor, inverse: bool) -> Tensor:
-        a, bx, by = x.split([d // 2, d // 4, d // 4], dim=-1)
-        return torch.cat(
+        a, bx, by = x.reshape(b, h, -1, p, d).split([d // 2, d // 4, d // 4], dim=-1)
+        out = torch.cat(
             [_apply_per_view_matrix(a, mat), _rope_1d(bx, cols, 100.0, inverse), _rope_1d(by, rows, 100.0, inverse)],
             dim=-1,
         )
+        return out.reshape(b, h, n, d)
 
     out = F.scaled_dot_product_attention(
         transform(q, world_to_cam.transpose(-1, -2), False),

@@ -171,7 +171,7 @@ class ConvHead(nn.Module):
 
     def _with_uv(self, x: Tensor, aspect: float) -> Tensor:
         uv = view_plane_uv(x.shape[-2], x.shape[-1], aspect, x.dtype, x.device)
-        return torch.cat([x, uv[None].expand(x.shape[0], -1, -1, -1)], dim=1)
+        return torch.cat([x, uv[None].expand_as(x[:, :2])], dim=1)  # expand_as: dynamic batch in ONNX
 
     def forward(self, tokens: Tensor, patches_hw: tuple[int, int]) -> list[Tensor]:
         """``tokens [N, P, C]`` -> one ``[N, d, H, W]`` map per output (``H = 14 h``)."""

@@ -62,31 +62,42 @@ class Pi3X(Pi3Base):
         self._register_normalisation()
 
     # ---- conditioning ----------------------------------------------------------------------
+    # ``static_graph`` (set by the ONNX exporter): no data-dependent branch; every branch
+    # runs and is multiplied by its mask, and the pose attention mask is additive (0 / -1e4:
+    # exp underflows to exactly 0 for a masked score, and a fully masked row -- an unposed
+    # view, whose delta is then zeroed -- stays finite).  Same outputs, more work.
+    static_graph: bool = False
+
     def _add_conditions(self, tokens: Tensor, prep: PreparedConditions, trace: Trace | None) -> Tensor:
         """DINO tokens ``[V, P, C]`` + ray and depth embeddings of the views that use them."""
         if trace is not None:
             trace.update(encode_poses_normalized=prep.poses, encode_norm_factor=prep.norm_factor)
-        if bool(prep.mask_depth.any()):
+        if self.static_graph or bool(prep.mask_depth.any()):
             depth_tokens = self.depth_encoder(prep.depth_input)["x_norm_patchtokens"]
             if trace is not None:
                 trace["depth_encoder_patch_tokens"] = depth_tokens
-            tokens = tokens + (depth_tokens + self.depth_emb) * prep.mask_depth.reshape(-1, 1, 1)
-        if bool(prep.mask_ray.any()):
+            tokens = tokens + (depth_tokens + self.depth_emb) * prep.mask_depth.reshape(-1, 1, 1).to(tokens.dtype)
+        if self.static_graph or bool(prep.mask_ray.any()):
             ray_tokens = self.ray_embed(prep.rays_xy)
             if trace is not None:
                 trace["ray_embed_out"] = ray_tokens
-            tokens = tokens + ray_tokens * prep.mask_ray.reshape(-1, 1, 1)
+            tokens = tokens + ray_tokens * prep.mask_ray.reshape(-1, 1, 1).to(tokens.dtype)
         return tokens
 
     def _pose_injector(self, prep: PreparedConditions, views: int, patches_hw: tuple[int, int],
                        trace: Trace | None):  # noqa: ANN202 - a closure for Pi3Base.decode
         mask = prep.mask_pose  # [B, N]
-        if not bool(mask.any()):
+        if not self.static_graph and not bool(mask.any()):
             return None
         b = mask.shape[0]
         p = patches_hw[0] * patches_hw[1]
         attn_mask = None
-        if not bool(mask.all()):  # views attend only to posed views (never built when all are posed)
+        if self.static_graph:
+            m = mask.to(torch.float32)
+            pair = m[:, :, None] * m[:, None, :]  # [B, N, N]
+            pair = pair[:, :, None, :, None].expand(b, views, p, views, p).reshape(b, 1, views * p, views * p)
+            attn_mask = (pair - 1.0) * 1e4
+        elif not bool(mask.all()):  # views attend only to posed views (never built when all are posed)
             pair = mask[:, :, None] & mask[:, None, :]
             attn_mask = pair.repeat_interleave(p, dim=1).repeat_interleave(p, dim=2)[:, None]
         blocks = dict(zip(self.config.inject_layers, self.pose_inject_blk))
@@ -100,13 +111,15 @@ class Pi3X(Pi3Base):
             delta = blk(h[:, :, s:].reshape(b, views * p, -1), prep.poses, patches_hw, attn_mask)
             if trace is not None:
                 trace[f"pose_inject_{self.config.inject_layers.index(layer)}_out"] = delta
-            delta = delta.reshape(b, views, p, -1) * mask.view(b, views, 1, 1)
+            delta = delta.reshape(b, views, p, -1) * mask.view(b, views, 1, 1).to(delta.dtype)
             return torch.cat([h[:, :, :s], h[:, :, s:] + delta], dim=2).reshape(hidden.shape)
 
         return inject
 
     # ---- forward -----------------------------------------------------------------------------
     def _conv_head(self, head: ConvHead, tokens: Tensor, patches_hw: tuple[int, int]) -> list[Tensor]:
+        if self.static_graph:  # exported graph: one pass (a traced chunk loop would be frozen)
+            return head(tokens, patches_hw)
         parts = [head(tokens[i : i + _CONV_HEAD_CHUNK], patches_hw) for i in range(0, tokens.shape[0], _CONV_HEAD_CHUNK)]
         return [torch.cat([p[j] for p in parts], dim=0) for j in range(len(parts[0]))]
 
@@ -117,16 +130,24 @@ class Pi3X(Pi3Base):
         ``conditions=None`` skips the conditioning preamble altogether; ``Conditions()`` (no
         condition given) runs it as upstream does and gives the same outputs.
         """
+        prep = None
+        if conditions is not None:
+            if not self.config.multimodal:
+                raise ValueError("this Pi3X was built without its multimodal branches: conditions cannot be used")
+            b, n, _, h, w = images.shape
+            prep = prepare_conditions(conditions, b, n, h, w, images.device)
+        return self.forward_prepared(images, prep, trace)
+
+    def forward_prepared(self, images: Tensor, prep: PreparedConditions | None,
+                         trace: Trace | None = None) -> dict[str, Tensor]:
+        """:meth:`forward_raw` with the conditions already prepared (the ONNX graph's body)."""
         b, n, _, h, w = images.shape
         phw = self.patches_hw(images)
         rope = self.rope(phw, images.device)
         tokens = self.encode_images(images, trace)
         dino_tokens = tokens
         inject = None
-        if conditions is not None:
-            if not self.config.multimodal:
-                raise ValueError("this Pi3X was built without its multimodal branches: conditions cannot be used")
-            prep = prepare_conditions(conditions, b, n, h, w, images.device)
+        if prep is not None:
             tokens = self._add_conditions(tokens, prep, trace)
             inject = self._pose_injector(prep, n, phw, trace)
         if trace is not None:
