@@ -5,7 +5,7 @@ Everything here runs before the network and equals the official ``Pi3X.encode`` 
 * **rays** (the intrinsics condition): ``K^-1 (u + 1/2, v + 1/2, 1)`` for pixel ``(u, v)``,
   first two components, NOT normalised (upstream's pixel grid puts pixel centres at
   ``+ 1/2``, i.e. it reads ``K`` with the origin at the top-left CORNER).
-  :func:`rays_from_swiftjax_intrinsics` converts swiftjax's integer-pixel-centre ``K``
+  :func:`official_intrinsics` converts swiftjax's integer-pixel-centre ``K``
   (``--intrinsics``) so that each pixel gets the ray swiftjax means; given ray directions are
   reduced to ``(x/(z + 1e-6), y/(z + 1e-6))``.
 * **depth**: divided by the mean of the valid (``> 0``) depths of the whole batch element (1 if
@@ -24,7 +24,9 @@ Everything here runs before the network and equals the official ``Pi3X.encode`` 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -35,7 +37,9 @@ __all__ = [
     "PreparedConditions",
     "prepare_conditions",
     "rays_from_intrinsics",
-    "rays_from_swiftjax_intrinsics",
+    "official_intrinsics",
+    "intrinsics_condition",
+    "overlap_pose_conditions",
     "normalize_depth",
 ]
 
@@ -95,13 +99,58 @@ def rays_from_intrinsics(K: Tensor, height: int, width: int) -> Tensor:
     return torch.einsum("bnij,hwj->bnhwi", torch.inverse(K.float()), pix)[..., :2]
 
 
-def rays_from_swiftjax_intrinsics(K: Tensor, height: int, width: int) -> Tensor:
-    """Like :func:`rays_from_intrinsics` for swiftjax's ``K`` (integer pixel centres): the
-    principal point moves by ``+½`` so that pixel ``(u, v)`` gets the ray ``K^-1 (u, v, 1)``."""
-    shift = torch.zeros_like(K)
-    shift[..., 0, 2] = 0.5
-    shift[..., 1, 2] = 0.5
-    return rays_from_intrinsics(K + shift, height, width)
+def official_intrinsics(K: Any) -> Tensor:
+    """swiftjax's ``K`` (integer pixel centres, ``--intrinsics`` mapped to the model size) ->
+    upstream's convention (pixel centres at ``+ 1/2``): ``c_x + 1/2, c_y + 1/2``, so that
+    :func:`rays_from_intrinsics` gives pixel ``(u, v)`` the ray ``K^-1 (u, v, 1)``."""
+    out = torch.as_tensor(np.asarray(K, dtype=np.float32)).clone()
+    out[..., 0, 2] += 0.5
+    out[..., 1, 2] += 0.5
+    return out
+
+
+def intrinsics_condition(K: Any, views: int) -> Conditions:
+    """``--intrinsics`` as π³X's ray condition for a chunk of ``views`` frames.
+
+    ``K``: ``[3, 3]`` or ``[views, 3, 3]`` swiftjax intrinsics at the model resolution
+    (:func:`swiftjax.intrinsics.map_intrinsics` with :func:`inference.pi3.preprocess.geometry`).
+    """
+    k = official_intrinsics(K)
+    if k.dim() == 2:
+        k = k.expand(views, 3, 3)
+    if k.shape != (views, 3, 3):
+        raise ValueError(f"intrinsics must be [3, 3] or [{views}, 3, 3], got {tuple(k.shape)}")
+    return Conditions(intrinsics=k[None])
+
+
+def overlap_pose_conditions(prev_extrinsic: Any, views: int, base: Conditions | None = None) -> Conditions:
+    """Condition a chunk on the poses of its first ``O`` views known from the previous chunk.
+
+    As Pi3's ``example_vo.py`` (``Pi3XVO`` with ``inject_condition=['pose']``): the first ``O``
+    views get those poses and a True pose mask, the others identity poses and False.  The
+    ``[O, 3, 4]`` (or ``[O, 4, 4]``) world-to-camera ``prev_extrinsic`` (the previous chunk's
+    ``ChunkPrediction.extrinsic`` of the overlap frames) are inverted and re-based on the first
+    overlap view, which makes the condition independent of the previous chunk's world frame
+    and scale (π³X normalises poses relative to view 0 and by the mean translation); upstream
+    passes the globally aligned poses, the same when its first overlap pose is the identity.
+    ``base``: other conditions (e.g. :func:`intrinsics_condition`) to keep.
+    """
+    E = np.asarray(prev_extrinsic, dtype=np.float64)
+    if E.ndim != 3 or E.shape[1:] not in ((3, 4), (4, 4)) or not 2 <= E.shape[0] <= views:
+        raise ValueError(f"prev_extrinsic must be [O, 3, 4] with 2 <= O <= {views}, got shape {E.shape}")
+    o = E.shape[0]
+    W2C = np.tile(np.eye(4), (o, 1, 1))
+    W2C[:, :3, :] = E[:, :3, :]
+    c2w = np.linalg.inv(W2C)
+    rel = np.linalg.inv(c2w[0]) @ c2w
+    poses = np.tile(np.eye(4), (views, 1, 1))
+    poses[:o] = rel
+    mask = np.zeros(views, dtype=bool)
+    mask[:o] = True
+    out = dataclasses.replace(base) if base is not None else Conditions()
+    out.poses = torch.from_numpy(poses.astype(np.float32))[None]
+    out.mask_pose = torch.from_numpy(mask)[None]
+    return out
 
 
 def normalize_depth(depths: Tensor) -> tuple[Tensor, Tensor]:

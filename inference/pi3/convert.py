@@ -33,7 +33,7 @@ from swiftjax.prediction import ChunkPrediction
 
 from ..preprocess import to_uint8_images
 
-__all__ = ["intrinsics_from_local_points", "rebase_extrinsics", "confidence_from_logit", "to_chunk_prediction"]
+__all__ = ["metric_scale", "intrinsics_from_local_points", "rebase_extrinsics", "confidence_from_logit", "to_chunk_prediction"]
 
 
 def intrinsics_from_local_points(points: Any, center_principal_point: bool = False) -> np.ndarray:
@@ -82,6 +82,19 @@ def rebase_extrinsics(cam_to_world: Any) -> np.ndarray:
     inv[..., :3, 3:] = -rt @ T[..., :3, 3:]
     inv[..., 3, 3] = 1.0
     return (inv @ T[0])[..., :3, :]
+
+
+def metric_scale(outputs: dict[str, Any]) -> float:
+    """π³X's metric scale of one scene (``exp`` of the metric head on the metric token).
+
+    π³X's outputs are already multiplied by it (depths in approximately metres); this is the
+    factor itself, e.g. for ``--metric model`` bookkeeping.  π³ has none (raises KeyError).
+    """
+    m = outputs["metric"]
+    m = m.detach().cpu().numpy() if hasattr(m, "detach") else np.asarray(m)
+    if m.size != 1:
+        raise ValueError(f"metric must hold one scene's scale, got shape {m.shape}")
+    return float(m.reshape(()))
 
 
 def confidence_from_logit(logit: Any) -> np.ndarray:

@@ -18,9 +18,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from swiftjax.intrinsics import PreprocessGeometry
+
 from ..preprocess import ImageSource, Resample, load_image, resize_rgb
 
-__all__ = ["PIXEL_LIMIT", "target_size_hw", "preprocess"]
+__all__ = ["PIXEL_LIMIT", "target_size_hw", "geometry", "preprocess"]
 
 PIXEL_LIMIT = 255_000
 
@@ -38,6 +40,13 @@ def target_size_hw(height: int, width: int, pixel_limit: int = PIXEL_LIMIT, patc
         else:
             m -= 1
     return max(1, m) * patch, max(1, k) * patch
+
+
+def geometry(height: int, width: int, pixel_limit: int = PIXEL_LIMIT) -> PreprocessGeometry:
+    """Where a ``width x height`` frame's pixels land (no crop, no pad), for
+    :func:`swiftjax.intrinsics.map_intrinsics` / ``map_mask``."""
+    hw = target_size_hw(height, width, pixel_limit)
+    return PreprocessGeometry(original_hw=(int(height), int(width)), resized_hw=hw, top=0, left=0, model_hw=hw)
 
 
 def preprocess(
