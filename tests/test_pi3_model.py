@@ -191,9 +191,12 @@ def test_pi3x_file_without_image_normalisation_loads(tmp_path, golden_dir) -> No
     state = load_file(str(golden_dir / "tiny_weights_pi3x.safetensors"))
     del state["image_mean"], state["image_std"]
     save_file(state, str(tmp_path / "x.safetensors"))
-    model = Pi3X(Pi3Config.from_json(golden_dir / "tiny_config.json", "pi3x"))
-    load_pi3_checkpoint(model, tmp_path / "x.safetensors")
-    torch.testing.assert_close(model.image_std.flatten(), torch.tensor([0.229, 0.224, 0.225]))
+    for device in ("cpu", "meta"):
+        with torch.device(device):
+            model = Pi3X(Pi3Config.from_json(golden_dir / "tiny_config.json", "pi3x"))
+        load_pi3_checkpoint(model, tmp_path / "x.safetensors")
+        torch.testing.assert_close(model.image_std.flatten(), torch.tensor([0.229, 0.224, 0.225]))
+        assert not any(t.is_meta for t in model.state_dict().values())
 
 
 def test_pi3x_without_multimodal_skips_those_entries(golden_dir) -> None:

@@ -68,13 +68,10 @@ def load_pi3_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadR
         raise CheckpointError("\n".join(parts))
     on_meta = any(t.is_meta for t in expected.values())
     absent = [k for k in OPTIONAL_KEYS if k in expected and k not in state]
-    if absent and on_meta:
-        raise CheckpointError(
-            f"checkpoint {os.fspath(path)} lacks {absent}; a model built on the meta device needs them "
-            f"(build it on the CPU instead, the ImageNet constants are then kept)"
-        )
     result = model.load_state_dict(state, strict=False, assign=on_meta)
     leftover = [k for k in result.missing_keys if k not in absent] + list(result.unexpected_keys)
     if leftover:  # cannot happen after the checks above; kept as a guard against silent partial loads
         raise CheckpointError(f"checkpoint {os.fspath(path)}: unexpected load result {leftover}")
+    if absent and on_meta:  # materialise the ImageNet constants the file does not hold
+        model._register_normalisation()  # type: ignore[operator]
     return LoadReport(path=os.fspath(path), loaded=len(state), ignored=ignored)

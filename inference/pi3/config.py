@@ -166,4 +166,14 @@ class Pi3Config:
             return cls.from_dict(json.load(f), variant)
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as a plain (JSON-serialisable) dict; :meth:`from_fields` inverts it."""
         return dataclasses.asdict(self)
+
+    @classmethod
+    def from_fields(cls, d: Mapping[str, Any]) -> Pi3Config:
+        """Inverse of :meth:`to_dict` (also after a JSON round trip: lists become tuples)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown Pi3Config fields {unknown}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
