@@ -240,10 +240,10 @@ def main() -> None:
          f"{r.max_err['depth']:.1e} / {r.max_err['pose_enc']:.1e}"]
         for r in rows
     ]
-    print(f"\nVGGT CPU inference, {args.frames} frames of {args.width}x{args.height}, {args.threads} threads, "
-          f"best of {args.repeat}; peak = the child process's peak RSS during inference (model loaded), "
-          f"+MB = that peak minus the RSS after loading\n")
     if rows:
+        print(f"\nVGGT CPU inference, {args.frames} frames of {args.width}x{args.height}, {args.threads} threads, "
+              f"best of {args.repeat}; peak = the child process's peak RSS during inference (model loaded), "
+              f"+MB = that peak minus the RSS after loading\n")
         print(markdown_table(headers, table))
     if pi3_rows:
         print(f"\nπ³ / π³X full size (random weights), torch CPU, {args.pi3_frames} frames of {args.width}x"
@@ -254,7 +254,8 @@ def main() -> None:
             [[r["model"], r["params"] / 1e6, r["seconds"], r["cpu_seconds"], r["seconds"] / args.pi3_frames,
               r["peak_mb"], r["peak_increase_mb"]] for r in pi3_rows]))
     skip = ("child", "config", "backend", "onnx", "pi3_child")
-    path = write_results("inference", {"args": {k: v for k, v in vars(args).items() if k not in skip},
+    name = "inference" if rows else "inference_pi3"  # a π³-only run keeps the VGGT rows' file
+    path = write_results(name, {"args": {k: v for k, v in vars(args).items() if k not in skip},
                                        "rows": [dataclasses.asdict(r) for r in rows], "pi3_rows": pi3_rows})
     print(f"\nresults: {path.relative_to(REPO)}")
 

@@ -161,7 +161,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         print(f"error: {args.directory} lacks {', '.join(missing)}", file=sys.stderr)
         return 2
-    checks = run_checks(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path)
+    return report(run_checks(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path))
+
+
+def report(checks: Sequence[Check]) -> int:
+    """Prints the table and the count; the exit status (1 if any check failed)."""
     print(format_table(checks))
     failed = [c for c in checks if not c.passed]
     print(f"\n{len(checks) - len(failed)}/{len(checks)} outputs within tolerance")

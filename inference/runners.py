@@ -98,6 +98,15 @@ class TorchRunner:
         return _to_prediction(arr, np32("pose_enc"), np32("depth"), np32("depth_conf"), np32("patch_tokens"))
 
 
+def ort_session(path: str | os.PathLike[str], providers: Sequence[str] | None = None, intra_op_threads: int = 0) -> Any:
+    """An onnxruntime ``InferenceSession`` (default provider: CPU; 0 threads = its default)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = intra_op_threads
+    return ort.InferenceSession(os.fspath(path), sess_options=opts, providers=list(providers or ["CPUExecutionProvider"]))
+
+
 class OnnxRunner:
     """Runs a graph written by :func:`inference.onnx_export.export_onnx` with onnxruntime.
 
@@ -110,12 +119,7 @@ class OnnxRunner:
 
     def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
                  intra_op_threads: int = 0) -> None:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = intra_op_threads
-        self.session = ort.InferenceSession(os.fspath(path), sess_options=opts,
-                                            providers=list(providers or ["CPUExecutionProvider"]))
+        self.session = ort_session(path, providers, intra_op_threads)
         inp = self.session.get_inputs()[0]
         if inp.name != ONNX_INPUT:
             raise ValueError(f"{path}: expected an input named {ONNX_INPUT!r}, got {inp.name!r}")

@@ -27,11 +27,8 @@ PI3X = _Backbone("pi3x", "pi3x")
 
 
 @pytest.fixture(scope="module")
-def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
-    d = shared_dir / "golden" / "pi3"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.skip(f"π³ golden data not found in {d}")
-    return d
+def golden_dir(pi3_golden_dir: pathlib.Path) -> pathlib.Path:
+    return pi3_golden_dir
 
 
 def test_variant_of_key_names(golden_dir) -> None:

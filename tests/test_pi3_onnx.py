@@ -16,11 +16,8 @@ from swiftjax.prediction import ChunkPrediction  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
-    d = shared_dir / "golden" / "pi3"
-    if not (d / "tiny_golden.npz").is_file():
-        pytest.skip(f"π³ golden data not found in {d}")
-    return d
+def golden_dir(pi3_golden_dir: pathlib.Path) -> pathlib.Path:
+    return pi3_golden_dir
 
 
 @pytest.fixture(scope="module")

@@ -17,13 +17,12 @@ from pathlib import Path
 
 from torch import nn
 
-from ..checkpoint import CheckpointError, LoadReport, read_state_dict
+from ..checkpoint import CheckpointError, LoadReport, key_differences, mismatch_error, read_state_dict
 
 __all__ = ["load_pi3_checkpoint", "MULTIMODAL_PREFIXES", "OPTIONAL_KEYS"]
 
 MULTIMODAL_PREFIXES: tuple[str, ...] = ("depth_encoder.", "depth_emb", "ray_embed.", "pose_inject_blk.")
 OPTIONAL_KEYS: tuple[str, ...] = ("image_mean", "image_std")
-_MAX_LISTED = 15
 
 
 def load_pi3_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadReport:
@@ -49,23 +48,10 @@ def load_pi3_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadR
     skip_multimodal = getattr(cfg, "variant", "") == "pi3x" and not getattr(cfg, "multimodal", True)
     ignored = tuple(k for k in state if skip_multimodal and k.startswith(MULTIMODAL_PREFIXES))
     state = {k: v for k, v in state.items() if k not in ignored}
-    missing = [k for k in expected if k not in state and k not in OPTIONAL_KEYS]
-    unexpected = [k for k in state if k not in expected]
-    mismatched = [
-        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
-        for k in expected
-        if k in state and tuple(state[k].shape) != tuple(expected[k].shape)
-    ]
+    missing, unexpected, mismatched = key_differences(state, expected, OPTIONAL_KEYS)
     if missing or unexpected or mismatched:
-        name = type(model).__name__
-        parts = [f"checkpoint {os.fspath(path)} does not match the {name} model:"]
-        for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", mismatched)):
-            if items:
-                shown = "\n    ".join(items[:_MAX_LISTED])
-                more = f"\n    ... and {len(items) - _MAX_LISTED} more" if len(items) > _MAX_LISTED else ""
-                parts.append(f"  {len(items)} {title} key(s):\n    {shown}{more}")
-        parts.append("  (is the model config -- pi3 / pi3x, its sizes -- the one the checkpoint was trained with?)")
-        raise CheckpointError("\n".join(parts))
+        raise mismatch_error(path, f"{type(model).__name__} model", missing, unexpected, mismatched,
+                             hint="the model config -- pi3 / pi3x, its sizes --")
     on_meta = any(t.is_meta for t in expected.values())
     absent = [k for k in OPTIONAL_KEYS if k in expected and k not in state]
     result = model.load_state_dict(state, strict=False, assign=on_meta)

@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from swiftjax.prediction import ChunkPrediction
 
+from ..runners import ort_session
 from .conditioning import Conditions, PreparedConditions, prepare_conditions
 from .convert import to_chunk_prediction
 from .model import Pi3Base, assemble
@@ -143,12 +144,7 @@ class Pi3OnnxRunner:
 
     def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
                  intra_op_threads: int = 0) -> None:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = intra_op_threads
-        self.session = ort.InferenceSession(os.fspath(path), sess_options=opts,
-                                            providers=list(providers or ["CPUExecutionProvider"]))
+        self.session = ort_session(path, providers, intra_op_threads)
         self.inputs = [i.name for i in self.session.get_inputs()]
         self.outputs = [o.name for o in self.session.get_outputs()]
         self.image_hw = tuple(self.session.get_inputs()[0].shape[3:5])
