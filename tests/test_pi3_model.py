@@ -215,3 +215,23 @@ def test_meta_model_gets_the_checkpoint_assigned(golden_dir) -> None:
         model = Pi3(cfg)
     load_pi3_checkpoint(model, golden_dir / "tiny_weights.safetensors")
     assert not any(t.is_meta for t in model.state_dict().values())
+
+
+def test_pi3x_batch_of_scenes_equals_each_scene_alone(pi3x, golden_dir) -> None:
+    """B = 2 (the golden scene and a flipped copy, each with its own conditions) gives every
+    scene's own outputs: per-scene normalisation, metric token and pose masks."""
+    import dataclasses
+
+    golden = _npz(golden_dir / "tiny_golden_pi3x.npz")
+    imgs = torch.from_numpy(golden["input_imgs"])
+    c = golden_conditions(golden, "condpartial")
+    other = dataclasses.replace(c, depths=c.depths.flip(-1) * 2.0, mask_pose=torch.tensor([[True, True, False, False]]))
+    both = dataclasses.replace(c, **{f: torch.cat([getattr(c, f), getattr(other, f)]) for f in
+                                     ("intrinsics", "depths", "poses", "mask_depth", "mask_ray", "mask_pose")})
+    with torch.no_grad():
+        batch = pi3x(torch.cat([imgs, imgs.flip(-1)]), both)
+        first = pi3x(imgs, c)
+        second = pi3x(imgs.flip(-1), other)
+    for key in ("points", "conf", "camera_poses", "metric"):
+        torch.testing.assert_close(batch[key][:1], first[key], atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(batch[key][1:], second[key], atol=1e-4, rtol=1e-4)

@@ -148,6 +148,27 @@ def run_checks(directory: str | Path, onnx: bool = True, onnx_dir: str | Path | 
     return checks
 
 
+def _per_scene(runner: Any, images: np.ndarray, conditions: Any = None) -> dict[str, np.ndarray]:
+    """The runner (one scene per call) over every scene of ``images [B, S, 3, H, W]``, stacked
+    back to the golden layout (``metric [B]``, ``dino_patch_tokens [B*S, P, C]``)."""
+    import dataclasses
+
+    import torch
+
+    outs = []
+    for b in range(images.shape[0]):
+        cond = None
+        if conditions is not None:
+            cond = dataclasses.replace(conditions, **{
+                f.name: getattr(conditions, f.name)[b : b + 1] for f in dataclasses.fields(conditions)
+                if isinstance(getattr(conditions, f.name), torch.Tensor)})
+        outs.append(runner.forward(images[b], cond))
+    stacked = {k: np.stack([o[k] for o in outs]) for k in outs[0]}
+    stacked["metric"] = stacked["metric"].reshape(-1) if "metric" in stacked else None
+    stacked["dino_patch_tokens"] = stacked["dino_patch_tokens"].reshape(-1, *stacked["dino_patch_tokens"].shape[2:])
+    return {k: v for k, v in stacked.items() if v is not None}
+
+
 def _onnx_checks(pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[str, np.ndarray],
                  where: Path) -> list[Check]:
     from .onnx import Pi3OnnxRunner, export_pi3_onnx
@@ -156,18 +177,19 @@ def _onnx_checks(pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[
     s, h, w = g3["input_imgs"].shape[1], g3["input_imgs"].shape[3], g3["input_imgs"].shape[4]
     # Traced with one frame fewer than the golden input: exercises the dynamic frame axis.
     export_pi3_onnx(pi3, where / "pi3.onnx", frames=max(2, s - 1), height=h, width=w)
-    out = Pi3OnnxRunner(where / "pi3.onnx").forward(g3["input_imgs"][0])
+    out = _per_scene(Pi3OnnxRunner(where / "pi3.onnx"), g3["input_imgs"])
     keys = [k for k in ("points", "local_points", "conf", "camera_poses", "dino_patch_tokens") if k in g3]
-    checks += _compare_all("onnxruntime", {f"pi3:{k}": v[None] for k, v in out.items()},
+    checks += _compare_all("onnxruntime", {f"pi3:{k}": v for k, v in out.items()},
                            {f"pi3:{k}": v for k, v in g3.items()}, required=[f"pi3:{k}" for k in keys])
+    s, h, w = gx["input_imgs"].shape[1], gx["input_imgs"].shape[3], gx["input_imgs"].shape[4]
     export_pi3_onnx(pi3x, where / "pi3x.onnx", frames=max(2, s - 1), height=h, width=w)
     runner = Pi3OnnxRunner(where / "pi3x.onnx")
     for run in PI3X_RUNS:
-        out = runner.forward(gx["input_imgs"][0], golden_conditions(gx, run))
+        out = _per_scene(runner, gx["input_imgs"], golden_conditions(gx, run))
         names = ("points", "local_points", "conf", "camera_poses", "rays", "metric", "dino_patch_tokens")
         keys = [f"pi3x:{run}.{k}" for k in names if f"{run}.{k}" in gx]
-        got = {f"pi3x:{run}.{k}": (v if k == "metric" else v[None]) for k, v in out.items()}
-        checks += _compare_all("onnxruntime", got, {f"pi3x:{k}": v for k, v in gx.items()}, required=keys)
+        checks += _compare_all("onnxruntime", {f"pi3x:{run}.{k}": v for k, v in out.items()},
+                               {f"pi3x:{k}": v for k, v in gx.items()}, required=keys)
     return checks
 
 
