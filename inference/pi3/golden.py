@@ -33,13 +33,16 @@ import numpy as np
 
 from ..check_golden import Check, report
 
-__all__ = ["ATOL", "RTOL", "EXACT_KEYS", "PI3X_RUNS", "is_pi3_dir", "run_checks", "torch_outputs", "main"]
+__all__ = ["ATOL", "RTOL", "EXACT_KEYS", "PI3X_RUNS", "REQUIRED_FILES", "is_pi3_dir", "run_checks", "run_pi3_checks",
+           "torch_outputs", "main"]
 
 ATOL = 1e-4
 RTOL = 1e-4
 EXACT_KEYS = ("decode_pos",)
 PI3X_RUNS = ("uncond", "cond", "condpartial")
 _INPUT_KEYS = ("input_imgs", "forward_input_imgs")
+REQUIRED_FILES = ("tiny_config.json", "tiny_weights.safetensors", "tiny_golden.npz",
+                  "tiny_weights_pi3x.safetensors", "tiny_golden_pi3x.npz")
 
 
 def is_pi3_dir(directory: str | Path) -> bool:
@@ -148,6 +151,11 @@ def run_checks(directory: str | Path, onnx: bool = True, onnx_dir: str | Path | 
     return checks
 
 
+def run_pi3_checks(directory: str | Path, onnx: bool = True, onnx_path: str | Path | None = None) -> list[Check]:
+    """:func:`run_checks` with ``check_golden``'s family signature (``onnx_path``: a folder)."""
+    return run_checks(directory, onnx=onnx, onnx_dir=onnx_path)
+
+
 def _per_scene(runner: Any, images: np.ndarray, conditions: Any = None) -> dict[str, np.ndarray]:
     """The runner (one scene per call) over every scene of ``images [B, S, 3, H, W]``, stacked
     back to the golden layout (``metric [B]``, ``dino_patch_tokens [B*S, P, C]``)."""
@@ -199,9 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--no-onnx", action="store_true", help="check torch only")
     parser.add_argument("--onnx-path", type=Path, default=None, help="keep the exported graphs in this folder")
     args = parser.parse_args(argv)
-    needed = ("tiny_config.json", "tiny_weights.safetensors", "tiny_golden.npz",
-              "tiny_weights_pi3x.safetensors", "tiny_golden_pi3x.npz")
-    missing = [n for n in needed if not (args.directory / n).is_file()]
+    missing = [n for n in REQUIRED_FILES if not (args.directory / n).is_file()]
     if missing:
         print(f"error: {args.directory} lacks {', '.join(missing)}", file=sys.stderr)
         return 2
