@@ -19,6 +19,10 @@
   pixels (logit 15 -> 3e6) dominate the mean and empty both masks, whereas upstream itself
   thresholds ``sigmoid(conf)`` (> 0.1 in its examples, > 0.05 in its VO pipeline).  The kept
   fractions are measured in ``tests/test_pi3_convert.py``.
+* A view whose fitted focal length is not finite and positive (its rays describe no forward
+  pinhole camera: only an untrained or degenerate network does that, e.g. the tiny random golden
+  models) gets a nominal 60° horizontal field of view with a centred principal point instead,
+  with a warning naming the fitted values, so that a run still completes.
 * **patch tokens** = DINO ``x_norm_patchtokens`` before the multi-view decoder, ``[S, P, C]``
   (golden key ``dino_patch_tokens``), the layout VGGT's runners give.
 """
@@ -33,7 +37,7 @@ from swiftjax.prediction import ChunkPrediction
 
 from ..preprocess import to_uint8_images
 
-__all__ = ["metric_scale", "intrinsics_from_local_points", "rebase_extrinsics", "confidence_from_logit", "to_chunk_prediction"]
+__all__ = ["metric_scale", "intrinsics_from_local_points", "usable_intrinsics", "rebase_extrinsics", "confidence_from_logit", "to_chunk_prediction"]
 
 
 def intrinsics_from_local_points(points: Any, center_principal_point: bool = False) -> np.ndarray:
@@ -70,6 +74,27 @@ def _line_fit(x: np.ndarray, target: np.ndarray, wgt: np.ndarray) -> tuple[np.nd
     xc = x - mx[..., None]
     a = (wgt * xc * (target - mt[..., None])).sum(-1) / (wgt * xc * xc).sum(-1)
     return a, mt - a * mx
+
+
+NOMINAL_HFOV_DEG = 60.0
+
+
+def usable_intrinsics(K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``K [S, 3, 3]`` with every view whose focal lengths are not finite and positive replaced
+    by a nominal 60° horizontal field of view (centred principal point), with a warning."""
+    K = np.array(K, dtype=np.float64)
+    f = np.stack([K[:, 0, 0], K[:, 1, 1]], -1)
+    bad = ~np.all(np.isfinite(K.reshape(len(K), -1)), axis=-1) | np.any(~(f > 0), axis=-1)
+    if np.any(bad):
+        import warnings
+
+        nominal = (width / 2.0) / np.tan(np.deg2rad(NOMINAL_HFOV_DEG) / 2.0)
+        warnings.warn(
+            f"π³: the rays of view(s) {np.flatnonzero(bad).tolist()} describe no pinhole camera (fitted fx, fy "
+            f"= {f[bad][0].round(3).tolist()}, ...); using a nominal {NOMINAL_HFOV_DEG:g}° field of view there",
+            RuntimeWarning, stacklevel=2)
+        K[bad] = [[nominal, 0.0, (width - 1) / 2.0], [0.0, nominal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+    return K
 
 
 def rebase_extrinsics(cam_to_world: Any) -> np.ndarray:
@@ -121,7 +146,7 @@ def to_chunk_prediction(outputs: dict[str, Any], images: Any | None = None,
         depth=np.ascontiguousarray(local[..., 2]),
         conf=confidence_from_logit(arr["conf"].reshape(s, h, w)),
         extrinsic=rebase_extrinsics(arr["camera_poses"]).astype(np.float32),
-        intrinsic=intrinsics_from_local_points(local, center_principal_point).astype(np.float32),
+        intrinsic=usable_intrinsics(intrinsics_from_local_points(local, center_principal_point), h, w).astype(np.float32),
         patch_tokens=np.ascontiguousarray(arr["dino_patch_tokens"], dtype=np.float32),
         images=None if images is None else to_uint8_images(np.asarray(images)),
     )
