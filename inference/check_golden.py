@@ -161,11 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         print(f"error: {args.directory} lacks {', '.join(missing)}", file=sys.stderr)
         return 2
-    return report(run_checks(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path))
-
-
-def report(checks: Sequence[Check]) -> int:
-    """Prints the table and the count; the exit status (1 if any check failed)."""
+    checks = run_checks(args.directory, onnx=not args.no_onnx, onnx_path=args.onnx_path)
     print(format_table(checks))
     failed = [c for c in checks if not c.passed]
     print(f"\n{len(checks) - len(failed)}/{len(checks)} outputs within tolerance")

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ..check_golden import Check, report
+from ..check_golden import Check, format_table
 
 __all__ = ["ATOL", "RTOL", "EXACT_KEYS", "PI3X_RUNS", "REQUIRED_FILES", "is_pi3_dir", "run_checks", "run_pi3_checks",
            "torch_outputs", "main"]
@@ -211,7 +211,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if missing:
         print(f"error: {args.directory} lacks {', '.join(missing)}", file=sys.stderr)
         return 2
-    return report(run_checks(args.directory, onnx=not args.no_onnx, onnx_dir=args.onnx_path))
+    checks = run_checks(args.directory, onnx=not args.no_onnx, onnx_dir=args.onnx_path)
+    print(format_table(checks))
+    failed = [c for c in checks if not c.passed]
+    print(f"\n{len(checks) - len(failed)}/{len(checks)} outputs within tolerance")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
