@@ -134,7 +134,7 @@ class Row:
     max_err: dict[str, float]
 
 
-KITTI_HW = {"vggt": (154, 518), "da3": (154, 504)}
+KITTI_HW = {"vggt": (154, 518), "da3": (154, 504), "pi3": (154, 504)}
 MANIFEST = {"da3-small": "da3-small", "da3-base": "da3-base", "da3-large": "da3-large", "da3-giant": "da3-giant",
             "da3-nested-giant-large": "da3nested-giant-large"}
 
@@ -151,6 +151,10 @@ def _random_model(name: str):  # type: ignore[no-untyped-def]
 
         with torch.device("meta"):
             model = VGGT(VGGTConfig())
+    elif b.family == "pi3":
+        from inference.backbones.pi3 import _model, load_config
+
+        model = _model(load_config(b, None))
     else:
         from inference.da3 import build_da3
 
@@ -198,6 +202,10 @@ def preset_child(args: argparse.Namespace) -> None:
         from inference.runners import TorchRunner
 
         runner = TorchRunner(model, "cpu", dtype=dtype)
+    elif b.family == "pi3":
+        from inference.pi3.runner import Pi3TorchRunner
+
+        runner = Pi3TorchRunner(model, "cpu", dtype=dtype)
     else:
         from inference.backbones.da3 import DA3Runner
 

@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 from .config import VGGTConfig
 from .dino import DinoVisionTransformer
-from .layers import Block, RopeTables, rope_tables_2d
+from .layers import Block, RopeTables, frame_rope_tables
 
 __all__ = ["Aggregator", "AggregatorOutput"]
 
@@ -63,12 +63,8 @@ class Aggregator(nn.Module):
         """RoPE tables for one frame: special tokens at (0, 0), patch (r, c) at (r+1, c+1)."""
         if self.cfg.rope_freq <= 0:
             return None
-        rows = torch.arange(patches_h, device=device).repeat_interleave(patches_w)
-        cols = torch.arange(patches_w, device=device).repeat(patches_h)
-        patch_pos = torch.stack([rows, cols], dim=-1) + 1
-        special = torch.zeros(self.cfg.patch_start_idx, 2, dtype=patch_pos.dtype, device=device)
-        positions = torch.cat([special, patch_pos], dim=0)
-        return rope_tables_2d(positions, self.cfg.embed_dim // self.cfg.num_heads, self.cfg.rope_freq)
+        head_dim = self.cfg.embed_dim // self.cfg.num_heads
+        return frame_rope_tables(patches_h, patches_w, self.cfg.patch_start_idx, head_dim, self.cfg.rope_freq, device)
 
     def forward(self, images: Tensor, keep: Collection[int] | None = None) -> AggregatorOutput:
         """Runs the aggregator.

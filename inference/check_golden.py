@@ -149,13 +149,19 @@ def format_table(checks: Sequence[Check]) -> str:
 
 def _family(directory: Path) -> tuple[tuple[str, ...], Callable[..., list[Check]]]:
     """Required files and check function of the model family named by ``DIR/tiny_config.json``
-    (Depth Anything 3: a ``create_object_config_main`` section; otherwise VGGT)."""
+    (Depth Anything 3: a ``create_object_config_main`` section; π³ / π³X: ``pi3_src_commit``;
+    otherwise VGGT)."""
     config_path = directory / "tiny_config.json"
     config = json.loads(config_path.read_text(encoding="utf-8")) if config_path.is_file() else {}
     if isinstance(config, dict) and "create_object_config_main" in config:
         from .da3.golden import REQUIRED_FILES, run_da3_checks
 
         return REQUIRED_FILES, run_da3_checks
+    if isinstance(config, dict) and "pi3_src_commit" in config:
+        from .pi3.golden import REQUIRED_FILES as PI3_FILES
+        from .pi3.golden import run_pi3_checks
+
+        return PI3_FILES, run_pi3_checks
     return ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz"), run_checks
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-__all__ = ["CheckpointError", "LoadReport", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
+__all__ = ["CheckpointError", "LoadReport", "key_differences", "mismatch_error", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
 
 IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
 _PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
@@ -128,6 +128,35 @@ def _torch_load(p: Path) -> object:
         raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
 
 
+def key_differences(
+    state: Mapping[str, Tensor], expected: Mapping[str, Tensor], optional: tuple[str, ...] = ()
+) -> tuple[list[str], list[str], list[str]]:
+    """``(missing, unexpected, shape mismatches)`` of a checkpoint against a model's state_dict;
+    keys in ``optional`` may be missing."""
+    missing = [k for k in expected if k not in state and k not in optional]
+    unexpected = [k for k in state if k not in expected]
+    mismatched = [
+        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
+        for k in expected
+        if k in state and tuple(state[k].shape) != tuple(expected[k].shape)
+    ]
+    return missing, unexpected, mismatched
+
+
+def mismatch_error(path: str | os.PathLike[str], what: str, missing: list[str], unexpected: list[str],
+                   mismatched: list[str], hint: str = "the model config") -> CheckpointError:
+    """The error listing a checkpoint's missing, unexpected and shape-mismatched keys (up to
+    15 of each)."""
+    parts = [f"checkpoint {os.fspath(path)} does not match the {what}:"]
+    for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", mismatched)):
+        if items:
+            shown = "\n    ".join(items[:_MAX_LISTED])
+            more = f"\n    ... and {len(items) - _MAX_LISTED} more" if len(items) > _MAX_LISTED else ""
+            parts.append(f"  {len(items)} {title} key(s):\n    {shown}{more}")
+    parts.append(f"  (is {hint} the one the checkpoint was trained with?)")
+    return CheckpointError("\n".join(parts))
+
+
 def load_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadReport:
     """Loads official VGGT weights into ``model`` with strict name and shape checking.
 
@@ -143,22 +172,9 @@ def load_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadRepor
     ignored = tuple(k for k in state if k.startswith(IGNORED_PREFIXES))
     state = {k: v for k, v in state.items() if not k.startswith(IGNORED_PREFIXES)}
     expected = model.state_dict()
-    missing = [k for k in expected if k not in state]
-    unexpected = [k for k in state if k not in expected]
-    mismatched = [
-        f"{k}: checkpoint {tuple(state[k].shape)} vs model {tuple(expected[k].shape)}"
-        for k in expected
-        if k in state and tuple(state[k].shape) != tuple(expected[k].shape)
-    ]
+    missing, unexpected, mismatched = key_differences(state, expected)
     if missing or unexpected or mismatched:
-        parts = [f"checkpoint {os.fspath(path)} does not match the VGGT model:"]
-        for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", mismatched)):
-            if items:
-                shown = "\n    ".join(items[:_MAX_LISTED])
-                more = f"\n    ... and {len(items) - _MAX_LISTED} more" if len(items) > _MAX_LISTED else ""
-                parts.append(f"  {len(items)} {title} key(s):\n    {shown}{more}")
-        parts.append("  (is the model config the one the checkpoint was trained with?)")
-        raise CheckpointError("\n".join(parts))
+        raise mismatch_error(path, "VGGT model", missing, unexpected, mismatched)
     state, cast = _check_values(state, expected, os.fspath(path))
     if cast:
         warnings.warn(f"checkpoint {os.fspath(path)}: {cast}", stacklevel=2)

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["Attention", "Block", "LayerScale", "Mlp", "RopeTables", "rope_tables_2d", "apply_rope_2d"]
+__all__ = ["Attention", "Block", "LayerScale", "Mlp", "RopeTables", "rope_tables_2d", "frame_rope_tables", "apply_rope_2d"]
 
 
 class RopeTables(NamedTuple):
@@ -46,6 +46,19 @@ def rope_tables_2d(positions: Tensor, head_dim: int, frequency: float) -> RopeTa
     angles_x = pos[:, 1:2] * inv_freq[None, :]
     angles = torch.cat([angles_y, angles_y, angles_x, angles_x], dim=-1)  # [T, head_dim]
     return RopeTables(angles.cos(), angles.sin())
+
+
+def frame_rope_tables(
+    patches_h: int, patches_w: int, num_special: int, head_dim: int, frequency: float, device: torch.device
+) -> RopeTables:
+    """Tables for one frame of ``num_special`` special tokens then ``patches_h x patches_w``
+    patches (row-major): special tokens at (0, 0), patch ``(r, c)`` at ``(r + 1, c + 1)``
+    (VGGT's aggregator and π³'s decoder)."""
+    rows = torch.arange(patches_h, device=device).repeat_interleave(patches_w)
+    cols = torch.arange(patches_w, device=device).repeat(patches_h)
+    patch_pos = torch.stack([rows, cols], dim=-1) + 1
+    special = torch.zeros(num_special, 2, dtype=patch_pos.dtype, device=device)
+    return rope_tables_2d(torch.cat([special, patch_pos], dim=0), head_dim, frequency)
 
 
 def _rotate_half(x: Tensor) -> Tensor:

@@ -43,7 +43,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 ImageSource = Union[str, "os.PathLike[str]", np.ndarray]
 Mode = Literal["crop", "pad"]
-Resample = Literal["pil", "cv2-cubic", "cv2-area"]
+Resample = Literal["pil", "pil-lanczos", "cv2-cubic", "cv2-area"]
 
 _PRECISION_BITS = 32 - 8 - 2  # PIL Resample.c, 8 bits per channel
 
@@ -135,20 +135,29 @@ def _pil_bicubic(x: np.ndarray) -> np.ndarray:
     return np.where(x < 1.0, near, np.where(x < 2.0, far, 0.0))
 
 
+def _pil_lanczos(x: np.ndarray) -> np.ndarray:
+    """PIL's LANCZOS kernel: ``sinc(x) sinc(x / 3)`` on ``[-3, 3)``, support 3 (π³'s resize)."""
+    return np.where((x >= -3.0) & (x < 3.0), np.sinc(x) * np.sinc(x / 3.0), 0.0)
+
+
+_PIL_FILTERS = {"bicubic": (_pil_bicubic, 2.0), "lanczos": (_pil_lanczos, 3.0)}
+
+
 @functools.lru_cache(maxsize=32)
-def _pil_coeffs(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
+def _pil_coeffs(in_size: int, out_size: int, kernel: str = "bicubic") -> tuple[np.ndarray, np.ndarray]:
     """PIL's ``precompute_coeffs`` + ``normalize_coeffs_8bpc``: first input index per output and
     fixed-point weights ``[out_size, ksize]`` (zero beyond each output's window)."""
+    filt, filter_support = _PIL_FILTERS[kernel]
     scale = in_size / out_size
     filterscale = max(scale, 1.0)
-    support = 2.0 * filterscale
+    support = filter_support * filterscale
     ksize = int(np.ceil(support)) * 2 + 1
     center = (np.arange(out_size) + 0.5) * scale
     xmin = np.maximum((center - support + 0.5).astype(np.int64), 0)  # C casts truncate
     xmax = np.minimum((center + support + 0.5).astype(np.int64), in_size) - xmin
     taps = np.arange(ksize)
     inside = taps[None, :] < xmax[:, None]
-    w = np.where(inside, _pil_bicubic((taps[None, :] + xmin[:, None] - center[:, None] + 0.5) / filterscale), 0.0)
+    w = np.where(inside, filt((taps[None, :] + xmin[:, None] - center[:, None] + 0.5) / filterscale), 0.0)
     total = w.sum(axis=1, keepdims=True)
     w = np.where(total != 0.0, w / np.where(total != 0.0, total, 1.0), w)
     fixed = np.trunc(w * (1 << _PRECISION_BITS) + np.where(w < 0, -0.5, 0.5)).astype(np.int64)
@@ -158,13 +167,15 @@ def _pil_coeffs(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray]:
     return xmin, fixed
 
 
-def _pil_resample_axis(img: np.ndarray, out_size: int, axis: int, keep: tuple[int, int] | None = None) -> np.ndarray:
+def _pil_resample_axis(
+    img: np.ndarray, out_size: int, axis: int, keep: tuple[int, int] | None = None, kernel: str = "bicubic"
+) -> np.ndarray:
     """One PIL resampling pass along ``axis`` (0 rows, 1 columns) of ``[H, W, C]`` uint8.
 
     ``keep = (start, stop)`` computes only those output indices (each output is independent).
     """
     in_size = img.shape[axis]
-    starts, weights = _pil_coeffs(in_size, out_size)
+    starts, weights = _pil_coeffs(in_size, out_size, kernel)
     if keep is not None:
         starts, weights = starts[keep[0] : keep[1]], weights[keep[0] : keep[1]]
         out_size = len(starts)
@@ -182,7 +193,8 @@ def resize_rgb(
 ) -> np.ndarray:
     """Resizes ``[H, W, 3]`` uint8 to ``[height, width, 3]`` uint8.
 
-    ``"pil"`` reproduces ``PIL.Image.resize(..., BICUBIC)`` exactly; ``"cv2-cubic"`` is
+    ``"pil"`` reproduces ``PIL.Image.resize(..., BICUBIC)`` exactly, ``"pil-lanczos"``
+    ``PIL.Image.resize(..., LANCZOS)`` (π³'s loader); ``"cv2-cubic"`` is
     ``cv2.INTER_CUBIC``; ``"cv2-area"`` is ``cv2.INTER_AREA`` when shrinking, INTER_CUBIC otherwise.
     ``rows = (start, stop)`` returns only those output rows (same values as resizing fully and
     cropping; with ``"pil"`` the other rows are not computed).
@@ -190,7 +202,8 @@ def resize_rgb(
     h0, w0 = img.shape[:2]
     if (h0, w0) == (height, width):
         return img[slice(*rows) if rows else slice(None)].copy()
-    if resample == "pil":
+    if resample in ("pil", "pil-lanczos"):
+        kernel = "lanczos" if resample == "pil-lanczos" else "bicubic"
         # Pillow runs the horizontal pass first, except when the vertical pass shrinks the
         # image by more than twice as many pixels as the horizontal one (an order that matters
         # because of the 8-bit rounding in between; found and verified empirically against
@@ -200,9 +213,9 @@ def resize_rgb(
         out = img
         for size, axis in passes:
             if axis == 0 and size != h0:
-                out = _pil_resample_axis(out, size, 0, keep=rows)
+                out = _pil_resample_axis(out, size, 0, keep=rows, kernel=kernel)
             elif axis == 1 and size != w0:
-                out = _pil_resample_axis(out, size, 1)
+                out = _pil_resample_axis(out, size, 1, kernel=kernel)
         if rows is not None and height == h0:
             out = out[rows[0] : rows[1]]
         return np.ascontiguousarray(out)
@@ -213,7 +226,7 @@ def resize_rgb(
     elif resample == "cv2-area":
         interp = cv2.INTER_AREA if (height <= h0 and width <= w0) else cv2.INTER_CUBIC
     else:
-        raise ValueError(f"resample must be 'pil', 'cv2-cubic' or 'cv2-area', got {resample!r}")
+        raise ValueError(f"resample must be 'pil', 'pil-lanczos', 'cv2-cubic' or 'cv2-area', got {resample!r}")
     out = cv2.resize(img, (width, height), interpolation=interp)
     return np.ascontiguousarray(out[rows[0] : rows[1]]) if rows else out
 

@@ -126,6 +126,15 @@ class TorchRunner:
                               self.name)
 
 
+def ort_session(path: str | os.PathLike[str], providers: Sequence[str] | None = None, intra_op_threads: int = 0) -> Any:
+    """An onnxruntime ``InferenceSession`` (default provider: CPU; 0 threads = its default)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = intra_op_threads
+    return ort.InferenceSession(os.fspath(path), sess_options=opts, providers=list(providers or ["CPUExecutionProvider"]))
+
+
 class OnnxRunner:
     """Runs a graph written by :func:`inference.onnx_export.export_onnx` with onnxruntime.
 
@@ -138,12 +147,7 @@ class OnnxRunner:
 
     def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
                  intra_op_threads: int = 0) -> None:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = intra_op_threads
-        self.session = ort.InferenceSession(os.fspath(path), sess_options=opts,
-                                            providers=list(providers or ["CPUExecutionProvider"]))
+        self.session = ort_session(path, providers, intra_op_threads)
         self.name = f"the ONNX graph {os.fspath(path)}"
         inp = self.session.get_inputs()[0]
         if inp.name != ONNX_INPUT:

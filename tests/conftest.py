@@ -123,6 +123,15 @@ def da3_golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
     return _golden(shared_dir, "da3", "DA3")
 
 
+@pytest.fixture(scope="session")
+def pi3_golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
+    """``shared/golden/pi3``: tensors from the official π³ / π³X code on tiny configurations."""
+    d = shared_dir / "golden" / "pi3"
+    if not (d / "tiny_golden.npz").is_file():
+        pytest.fail(f"the shared folder {shared_dir} has no π³ golden tensors in {d}")
+    return d
+
+
 #: ``small_loop_run``'s configuration (``test_pipeline.py``'s CONFIG).
 SMALL_RUN_CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
                         colmap_max_points=5_000)

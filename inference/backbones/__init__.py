@@ -3,9 +3,9 @@
 A backbone is an architecture + its configuration + checkpoint loading + preprocessing + the
 conversion of its outputs to :class:`swiftjax.prediction.ChunkPrediction` (depth, confidence,
 world-to-camera extrinsics and intrinsics in the chunk's FIRST camera's frame, loop tokens).
-Each family lives in one module of this package (:mod:`.vggt`, :mod:`.da3`) exposing a
-:class:`Family`; :data:`BACKBONES` names the presets the CLI's ``--model`` offers.  A third
-family (e.g. pi3) is one more module and its rows in :data:`BACKBONES`.
+Each family lives in one module of this package (:mod:`.vggt`, :mod:`.da3`, :mod:`.pi3`) exposing a
+:class:`Family`; :data:`BACKBONES` names the presets the CLI's ``--model`` offers.  Another
+family is one more module and its rows in :data:`BACKBONES`.
 
 Importing this package does not import torch (the CLI resolves names and checks headers
 before any model is built).
@@ -79,6 +79,8 @@ BACKBONES: dict[str, Backbone] = {b.name: b for b in (
     Backbone("da3-giant", "da3", "da3-giant", False, "CC BY-NC 4.0", "depth-anything/DA3-GIANT"),
     Backbone("da3-nested-giant-large", "da3", "da3nested-giant-large", True, "CC BY-NC 4.0",
              "depth-anything/DA3NESTED-GIANT-LARGE"),
+    Backbone("pi3", "pi3", "pi3", False, "CC BY-NC 4.0", "yyfz233/Pi3"),
+    Backbone("pi3x", "pi3", "pi3x", True, "CC BY-NC 4.0", "yyfz233/Pi3X"),
 )}
 
 

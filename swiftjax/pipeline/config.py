@@ -24,9 +24,10 @@ __all__ = ["PipelineConfig", "BACKBONE_NAMES", "METRIC_BACKBONES"]
 
 #: The networks ``--model`` offers (``inference.backbones.BACKBONES`` implements them; a test
 #: keeps the two lists equal, so that ``swiftjax`` can validate the option without importing it).
-BACKBONE_NAMES = ("vggt-1b", "da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large")
+BACKBONE_NAMES = ("vggt-1b", "da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large", "pi3",
+                  "pi3x")
 #: Those whose depth is in metres (``--metric model``).
-METRIC_BACKBONES = ("da3-nested-giant-large",)
+METRIC_BACKBONES = ("da3-nested-giant-large", "pi3x")
 
 
 @dataclasses.dataclass(frozen=True)
