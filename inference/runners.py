@@ -45,7 +45,10 @@ def _check_images(images: Any) -> np.ndarray:
 
 #: The model outputs a chunk uses, and what each is, for messages.
 _OUTPUTS = {"pose_enc": "camera head pose encoding", "depth": "depth head depth",
-            "depth_conf": "depth head confidence", "patch_tokens": "DINO patch tokens"}
+            "depth_conf": "depth head confidence", "patch_tokens": "DINO patch tokens",
+            "extrinsics": "camera extrinsics", "intrinsics": "camera intrinsics",
+            "prealt_patch_tokens": "DINO patch tokens", "local_points": "local point map",
+            "conf": "confidence", "camera_poses": "camera poses", "dino_patch_tokens": "DINO patch tokens"}
 
 
 class ModelOutputError(ValueError):
@@ -56,8 +59,8 @@ def check_outputs(outputs: dict[str, np.ndarray], model: str = "VGGT") -> None:
     """Refuse non-finite model outputs, naming ``model`` and the output (``[S, ...]`` each):
     a NaN in the weights came out much later as "poses holds non-finite values", or as a run
     that wrote 0 points with exit status 0."""
-    for name, what in _OUTPUTS.items():
-        a = outputs[name]
+    for name, a in outputs.items():
+        what = _OUTPUTS.get(name, name)
         finite = np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1)
         if not finite.all():
             raise ModelOutputError(

@@ -257,3 +257,19 @@ def test_drop_sky_with_the_nested_model_is_its_own_sky_map(golden):
     assert cam.sky_rule == "network"
     np.testing.assert_array_equal(np.asarray(cam.keep(np.arange(4), depth, conf)), ~sky)
     assert UserCamera.from_config(PipelineConfig(model="da3-small", drop_sky=True), None).sky_rule == "cues"
+
+
+def test_a_nan_in_da3_weights_is_named_by_the_model(da3_dir, golden):
+    """Issue 25 item 15 for DA3: non-finite outputs are an error naming the model."""
+    import torch
+
+    from inference.runners import ModelOutputError
+
+    b = backbones.get("da3-small")
+    cfg = da3_backbone.load_config(b, da3_dir / "tiny_config.json")
+    runner = da3_backbone.build_runner(b, str(da3_dir / "tiny_weights.safetensors"), "cpu", "float32", cfg)
+    with torch.no_grad():
+        runner.model.state_dict()[next(k for k in runner.model.state_dict() if k.startswith("head.") and
+                                       k.endswith("weight"))].fill_(float("nan"))
+    with pytest.raises(ModelOutputError, match=r"da3-small \(.*tiny_weights.safetensors, float32\) predicted non-finite"):
+        runner.predict(golden["images_raw"][0])

@@ -100,3 +100,19 @@ def test_check_checkpoint_refusals(golden_dir, tmp_path) -> None:
     truncated.write_bytes((golden_dir / "tiny_weights.safetensors").read_bytes()[:-100])
     with pytest.raises(CheckpointError, match="truncated"):
         family.check_checkpoint(PI3, truncated, cfg)
+
+
+def test_a_nan_in_the_weights_is_named_by_the_model(golden_dir) -> None:
+    """Issue 25 item 15 for π³: non-finite outputs are an error naming the model, not a run of 0 points."""
+    import torch
+
+    from inference.runners import ModelOutputError
+
+    cfg = family.load_config(PI3, golden_dir / "tiny_config.json")
+    runner = family.build_runner(PI3, str(golden_dir / "tiny_weights.safetensors"), "cpu", "float32", cfg)
+    with torch.no_grad():
+        next(p for n, p in runner.model.named_parameters() if n.endswith("weight") and p.ndim == 2).fill_(float("nan"))
+    with np.load(golden_dir / "tiny_golden.npz") as z:
+        images = z["input_imgs"][0]
+    with pytest.raises(ModelOutputError, match=r"pi3 \(.*tiny_weights.safetensors, float32\) predicted non-finite"):
+        runner.predict(images)

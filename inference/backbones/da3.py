@@ -27,6 +27,7 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
+from ..runners import check_outputs
 from .header import FAMILY_TEXT, HeaderError, describe_family, read_header
 
 __all__ = ["rebase_extrinsics", "to_prediction", "DA3Runner"]
@@ -173,6 +174,7 @@ class DA3Runner:
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
         self.ref_view_strategy = ref_view_strategy
+        self.name = "Depth Anything 3"  # for messages; build_runner names the preset and weights
 
     def forward(self, images: Any) -> dict[str, Any]:
         """Raw network outputs (torch, batch axis 1) for ``[S, 3, H, W]`` frames in [0, 1]."""
@@ -201,6 +203,7 @@ class DA3Runner:
 
         # prealt_patch_tokens come back in input order (inference.da3 undoes the reference reordering)
         out = {k: np32(k) for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")}
+        check_outputs(out, self.name)
         return to_prediction(arr, out)
 
 
@@ -212,4 +215,6 @@ def build_runner(backbone: Any, weights: str, device: str, dtype: str, config: d
     model = build_da3(_config_object(backbone, config), device="meta")
     load_da3_checkpoint(model, weights)
     torch_dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[dtype]
-    return DA3Runner(model, device=device, dtype=torch_dtype)
+    runner = DA3Runner(model, device=device, dtype=torch_dtype)
+    runner.name = f"{backbone.name} ({weights}, {dtype})"  # named in a non-finite-output error
+    return runner

@@ -119,4 +119,6 @@ def build_runner(backbone: Any, weights: str, device: str, dtype: str, config: d
     model = _model(config)
     load_pi3_checkpoint(model, weights)
     torch_dtype = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[dtype]
-    return Pi3TorchRunner(model, device=device, dtype=torch_dtype, intrinsics=intrinsics)
+    runner = Pi3TorchRunner(model, device=device, dtype=torch_dtype, intrinsics=intrinsics)
+    runner.name = f"{backbone.name} ({weights}, {dtype})"  # named in a non-finite-output error
+    return runner

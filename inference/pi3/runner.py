@@ -9,6 +9,7 @@ import torch
 
 from swiftjax.prediction import ChunkPrediction
 
+from ..runners import check_outputs
 from .conditioning import Conditions, intrinsics_condition
 from .convert import to_chunk_prediction
 from .model import Pi3Base
@@ -33,6 +34,7 @@ class Pi3TorchRunner:
         self.device = torch.device(device)
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
+        self.name = f"π³ ({model.config.variant})"  # for messages (a non-finite output)
         if intrinsics is not None and model.config.variant != "pi3x":
             raise ValueError("--intrinsics as a condition needs π³X (π³ takes no conditions)")
         self.intrinsics = None if intrinsics is None else np.asarray(intrinsics, dtype=np.float64)
@@ -56,6 +58,8 @@ class Pi3TorchRunner:
         """One chunk -> :class:`ChunkPrediction` (:mod:`inference.pi3.convert`)."""
         out = self.forward(images, conditions)
         scene = {k: v[0].float() for k, v in out.items() if k != "metric"}
+        check_outputs({k: v.cpu().numpy() for k, v in scene.items()
+                       if k in ("local_points", "conf", "camera_poses", "dino_patch_tokens")}, self.name)
         return to_chunk_prediction(scene, images=images)
 
 
