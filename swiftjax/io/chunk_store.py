@@ -65,7 +65,7 @@ from swiftjax import _faults
 from swiftjax.io.atomic import atomic_write
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ChunkStore", "ChunkCorruptError", "KINDS", "half_if_fits"]
+__all__ = ["ChunkStore", "ChunkCorruptError", "ChunkMismatchError", "KINDS", "half_if_fits"]
 
 PathLike = str | os.PathLike[str]
 
@@ -97,6 +97,16 @@ class ChunkCorruptError(ValueError):
         self.path, self.field, self.frame = path, field, frame
         where = "" if field is None else f" {field}" + ("" if frame is None else f" frame {frame}")
         super().__init__(f"{path}: corrupt chunk file:{where} {why}".replace(":  ", ": "))
+
+
+class ChunkMismatchError(ChunkCorruptError):
+    """A sound chunk file that is not the chunk the run expects (another chunk's, another
+    run's, the wrong frame count): :func:`swiftjax.pipeline.rundir.check_binding`.  A
+    :class:`ChunkCorruptError`, so the pipeline reports it and predicts the chunk again."""
+
+    def __init__(self, path: pathlib.Path, why: str) -> None:
+        self.path, self.field, self.frame = path, None, None
+        ValueError.__init__(self, f"{path}: not this run's chunk file: {why}")
 
 
 def _crc_rows(a: np.ndarray) -> np.ndarray:
@@ -284,11 +294,15 @@ class ChunkStore:
             value = _read_member(path, data, name, frames)
         return value if name == "images" else value.astype(np.float32)
 
-    def load_extra(self, kind: str, index: int) -> dict[str, np.ndarray]:
-        """The ``extra`` arrays saved with the chunk (as saved)."""
+    def load_extra(self, kind: str, index: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """The ``extra`` arrays saved with the chunk (as saved); only ``names`` (those
+        present) when given."""
         path, data = self._open(kind, index)
         with data:
-            return {k[len(_EXTRA) :]: _read_member(path, data, k, None) for k in data.files if k.startswith(_EXTRA)}
+            return {
+                k[len(_EXTRA):]: _read_member(path, data, k, None) for k in data.files
+                if k.startswith(_EXTRA) and (names is None or k[len(_EXTRA):] in names)
+            }
 
     def verify(self, kind: str, index: int) -> None:
         """Read every array of ``(kind, index)`` and check its CRC32s; :class:`ChunkCorruptError` if one fails."""

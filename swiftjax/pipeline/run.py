@@ -101,11 +101,19 @@ def reconstruct(
                 poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
                 _faults.point("graph-done")
                 # The outputs are renamed together at the end: a full disk or a kill mid-way
-                # leaves the previous complete set (or none), never a mix.
-                with output_set():
+                # leaves the previous complete set (or none), never a mix.  The outputs record
+                # lists them first; then what the previous run wrote and this one did not goes.
+                written: list[pathlib.Path] = []
+
+                def expect(targets: list[pathlib.Path]) -> None:
+                    written[:] = targets
+                    rundir.record_outputs(ctx, targets, final=False)
+
+                with output_set(before_rename=expect):
                     exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
                     _faults.point("export-done")
                     metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
+                rundir.record_outputs(ctx, written, final=True)
                 break
             except ChunkCorruptError as err:
                 t = _corrupt_chunk_index(ctx, err)
