@@ -453,3 +453,53 @@ def test_a_disk_too_small_is_refused_after_the_first_chunk(route, tmp_path, monk
         pipeline.reconstruct(p, tmp_path / "run", CONFIG, progress=False, log=lambda s: None)
     assert p.calls <= 3  # stopped at once (the executor predicts ahead while chunk 0 is written)
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["chunks"]  # chunk 0 kept
+
+
+def test_weights_and_frames_are_fingerprinted_by_their_whole_content(tmp_path, monkeypatch):
+    """Issue 25 items 3 and 4: weights changed after the first MiB, or a frame changed, with
+    size and modification time kept, were not detected (predictions reused or mixed).  The
+    digest is SHA-256 of the whole file (checked against hashlib), cached by (device, inode,
+    size, mtime, ctime): restoring mtime does not restore ctime, so the edit is seen."""
+    import hashlib
+
+    from inference.predictor import ImagePredictor, weights_identity
+    from swiftjax.io import file_hash, images
+
+    monkeypatch.setenv("SWIFTJAX_HASH_CACHE", str(tmp_path / "hashes.json"))
+
+    def edit_keeping_size_and_mtime(path, offset):
+        st = path.stat()
+        raw = bytearray(path.read_bytes())
+        raw[offset] ^= 0x01
+        path.write_bytes(bytes(raw))
+        os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+        assert (path.stat().st_size, path.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+        return bytes(raw)
+
+    weights = tmp_path / "model.safetensors"
+    weights.write_bytes(np.random.default_rng(0).bytes(3 << 20))
+    before = weights_identity(weights)
+    assert before["sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+    raw = edit_keeping_size_and_mtime(weights, (2 << 20) + 17)  # after the first MiB
+    after = weights_identity(weights)
+    assert after["sha256"] == hashlib.sha256(raw).hexdigest() != before["sha256"]
+    reads = []
+    monkeypatch.setattr(file_hash, "_digest", lambda p: reads.append(p) or "x")
+    assert weights_identity(weights) == after and not reads  # hashed once: cached by identity
+
+    monkeypatch.undo()
+    monkeypatch.setenv("SWIFTJAX_HASH_CACHE", str(tmp_path / "hashes.json"))
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    from PIL import Image
+
+    for k in range(3):
+        Image.fromarray(rng.integers(0, 255, (20, 30, 3), np.uint8)).save(folder / f"{k:03d}.png")
+    predictor = ImagePredictor(images.list_frames(str(folder)), runner=None, identity={"model": "m"})
+    first = predictor.fingerprint()["frames"]
+    path = folder / "001.png"
+    edit_keeping_size_and_mtime(path, path.stat().st_size - 20)  # inside the image data
+    second = predictor.fingerprint()["frames"]
+    assert first[0] == second[0] and first[2] == second[2]
+    assert second[1] == ["001.png", path.stat().st_size, hashlib.sha256(path.read_bytes()).hexdigest()] != first[1]
