@@ -434,6 +434,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     gt = _load_ground_truth(args.gt, args.gt_format) if args.gt is not None else None
     if gt is not None and len(gt) != len(source):
         raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
+    if gt is not None:  # before the run: a reference the ATE cannot use is named now, not after the run
+        from swiftjax.pipeline.report import check_ground_truth
+
+        check_ground_truth(gt, len(source), name=f"ground-truth file {args.gt}")
     if args.timestamps is not None:
         timestamps = images.read_timestamps(args.timestamps, source, args.stride)
         note = f"from {args.timestamps}"
@@ -715,6 +719,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"done in {time.perf_counter() - t0:.1f} s")
         return code
     except KeyboardInterrupt:
+        _quiesce()
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
     except user_errors as err:
@@ -728,6 +733,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"swiftjax: error: {_one_line(err)} (install the extra: pip install 'swiftjax[inference]')",
               file=sys.stderr)
         return 2
+
+
+def _quiesce(timeout: float = 60.0) -> None:
+    """After a Ctrl-C, before the interpreter finalises: wait for the computations JAX still
+    runs on its own threads and join swiftjax's writer threads, so that none of them calls
+    into a finalising interpreter ('Fatal Python error: PyThreadState_Get ... finalizing')."""
+    import threading
+
+    export = sys.modules.get("swiftjax.pipeline.export")
+    if export is not None:
+        export.close_frame_writers()
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        with contextlib.suppress(Exception):
+            jax.effects_barrier()
+        with contextlib.suppress(Exception):
+            for array in jax.live_arrays():
+                array.block_until_ready()
+    deadline = time.monotonic() + timeout
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon and thread.name.startswith("swiftjax-"):
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 def _one_line(err: BaseException) -> str:

@@ -503,3 +503,44 @@ def test_weights_and_frames_are_fingerprinted_by_their_whole_content(tmp_path, m
     second = predictor.fingerprint()["frames"]
     assert first[0] == second[0] and first[2] == second[2]
     assert second[1] == ["001.png", path.stat().st_size, hashlib.sha256(path.read_bytes()).hexdigest()] != first[1]
+
+
+def test_an_unusable_ground_truth_is_refused_before_the_run_and_an_evaluation_failure_keeps_the_outputs(
+        route, reference, tmp_path, monkeypatch, capsys):
+    """Issue 25 item 24: a collinear or too-short --gt failed only after the whole run,
+    discarded the outputs, named no file and suggested align='none'."""
+    from swiftjax import cli, evaluation
+
+    gt = route.ground_truth.copy()
+    gt[:, :3, 3] = np.arange(len(gt))[:, None] * np.array([1.0, 0.5, 0.0])  # a straight line
+    p = FramePredictor(route.predictor)
+    with pytest.raises(ValueError, match="the ground truth: its positions are coincident or collinear") as err:
+        pipeline.reconstruct(p, tmp_path / "line", CONFIG, ground_truth=gt, progress=False)
+    assert "align=" not in str(err.value) and p.calls == 0 and not (tmp_path / "line").exists()
+    # through the CLI: one line naming the file, exit 2, before the model (there is none) loads
+    from PIL import Image
+
+    for rows, fragment in ((gt[:4], "its positions are coincident or collinear"), (gt[:2], "needs at least 3")):
+        frames = tmp_path / f"frames{len(rows)}"
+        frames.mkdir()
+        for k in range(len(rows)):
+            Image.fromarray(np.full((20, 30, 3), 40 * k, np.uint8)).save(frames / f"{k:03d}.png")
+        path = tmp_path / f"gt{len(rows)}.txt"
+        path.write_text("".join(" ".join(f"{v:.6f}" for v in T[:3].ravel()) + "\n" for T in rows))
+        code = cli.main(["reconstruct", str(frames), "--weights", str(tmp_path / "none.pt"), "--gt", str(path),
+                         "--out", str(tmp_path / "cli")])
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and f"ground-truth file {path}" in lines[0], lines
+        assert fragment in lines[0] and "align=" not in lines[0], lines
+    # an evaluation failure after the run: the outputs are written, without ATE, and it is said
+    run_dir = _copy(reference, tmp_path)
+
+    def failing_ate(*args, **kwargs):
+        raise ValueError("Umeyama alignment is degenerate")
+
+    monkeypatch.setattr(evaluation, "ate", failing_ate)
+    logs: list[str] = []
+    res = pipeline.reconstruct(FramePredictor(route.predictor), run_dir, CONFIG, ground_truth=route.ground_truth,
+                               progress=False, log=logs.append)
+    assert "ate_rmse" not in res.metrics and any("ATE/RPE not computed (Umeyama" in ln for ln in logs)
+    assert_same_outputs(run_dir, reference[0])

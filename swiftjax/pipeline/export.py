@@ -29,6 +29,7 @@ Under the per-frame ``K`` the same observations are off by ``|K_f K_ref^-1 p - p
 
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 import warnings
@@ -354,6 +355,14 @@ class _FrameWriter:
 
 #: The frame writer of each run directory being written (created by :func:`write_frames`).
 _FRAME_WRITERS: dict[str, _FrameWriter] = {}
+
+
+def close_frame_writers() -> None:
+    """Wait for every run's queued frame writes and stop their threads (the CLI, after a Ctrl-C)."""
+    while _FRAME_WRITERS:
+        _, writer = _FRAME_WRITERS.popitem()
+        with contextlib.suppress(Exception):
+            writer.close()
 
 
 def finish_frames(ctx: RunContext) -> None:

@@ -79,10 +79,8 @@ def reconstruct(
     n = int(predictor.num_frames)
     if n < 1:
         raise ValueError("the input has no frames")
-    if ground_truth is not None:
-        ground_truth = np.asarray(ground_truth, np.float64)
-        if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
-            raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
+    if ground_truth is not None:  # checked before the run: an evaluation failure never comes after it
+        ground_truth = report.check_ground_truth(ground_truth, n)
     if config.metric == "gt" and ground_truth is None:
         raise ValueError("--metric gt needs the ground-truth poses (--gt)")
     executor = executor if executor is not None else LocalExecutor()
