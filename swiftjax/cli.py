@@ -294,6 +294,13 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_prune(args: argparse.Namespace) -> int:
+    from swiftjax.pipeline import rundir
+
+    rundir.prune(args.run_dir)
+    return 0
+
+
 def _view_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("live viewer (the 'view' extra)")
     group.add_argument("--view", action="store_true", help="watch the run in a web viewer as chunks arrive")
@@ -662,6 +669,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (0.0.0.0 shares it on the network)")
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
+
+    p = add("prune", help="shrink a finished run directory: drop the chunk store's dense maps, keep every output",
+            description="Drop the depth and confidence maps from the chunk files of a finished run (most of "
+                        "chunks/). Every output is kept; 'swiftjax view' and re-runs with other export or pose-graph "
+                        "options still predict nothing; a re-run that needs the maps (other loop or temporal "
+                        "options, changed frames) predicts those chunks again.")
+    p.add_argument("run_dir", type=pathlib.Path, help="the --out folder of a finished run")
+    p.set_defaults(func=_cmd_prune)
 
     p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference")
     p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses")

@@ -544,3 +544,32 @@ def test_an_unusable_ground_truth_is_refused_before_the_run_and_an_evaluation_fa
                                progress=False, log=logs.append)
     assert "ate_rmse" not in res.metrics and any("ATE/RPE not computed (Umeyama" in ln for ln in logs)
     assert_same_outputs(run_dir, reference[0])
+
+
+def test_prune_keeps_every_output_and_a_rerun_predicts_only_what_needs_the_maps(route, reference, tmp_path):
+    """Issue 26 item 8: the chunk store is most of a run directory; 'swiftjax prune' drops its
+    dense maps, keeps every deliverable, and says what resuming then costs."""
+    from swiftjax import cli
+
+    run_dir = _copy(reference, tmp_path)
+    code = cli.main(["prune", str(run_dir)])
+    assert code == 0
+    before = sum(p.stat().st_size for p in (reference[0] / "chunks").iterdir())
+    after = sum(p.stat().st_size for p in (run_dir / "chunks").iterdir())
+    assert after < 0.6 * before
+    outputs = [q for q in (reference[0]).rglob("*") if q.is_file() and q.parent.name != "chunks"]
+    assert all((run_dir / q.relative_to(reference[0])).read_bytes() == q.read_bytes() for q in outputs)
+    p = FramePredictor(route.predictor)
+    res = pipeline.reconstruct(p, run_dir, dataclasses.replace(CONFIG, colmap_max_points=500), progress=False,
+                               log=lambda s: None)
+    assert p.calls == 0  # export-only change: nothing predicted
+    np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
+    cfg = dataclasses.replace(CONFIG, loop_depth_threshold=0.5)  # the loop stage reads the dense maps
+    logs: list[str] = []
+    res = pipeline.reconstruct(p, run_dir, cfg, progress=False, log=logs.append)
+    assert any("depth and confidence maps were dropped ('swiftjax prune'); predicting chunk" in ln for ln in logs)
+    fresh = pipeline.reconstruct(route.predictor, tmp_path / "fresh", cfg, progress=False, log=lambda s: None)
+    np.testing.assert_array_equal(res.cam_to_world, fresh.cam_to_world)
+    (tmp_path / "unfinished").mkdir()
+    with pytest.raises(rundir.RunDirError, match="not a swiftjax run directory"):
+        rundir.prune(tmp_path / "unfinished")

@@ -80,6 +80,7 @@ __all__ = [
     "chunk_binding",
     "check_binding",
     "record_outputs",
+    "prune",
     "TOP_FILES",
     "progress_bar",
 ]
@@ -802,6 +803,41 @@ def _file_crc(path: pathlib.Path) -> str:
         while block := f.read(1 << 22):
             crc = zlib.crc32(block, crc)
     return f"{crc:08x}"
+
+
+def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[int, int]:
+    """Shrink the chunk store of a finished run: drop every chunk file's depth and confidence
+    maps (:meth:`~swiftjax.io.chunk_store.ChunkStore.drop_dense`; most of ``chunks/``) and the
+    tail/loop files.  Every output stays; so do what a resume reads of a finished run
+    (descriptors, poses, intrinsics, the export's points), so ``swiftjax view`` and re-runs
+    with export-only or pose-graph options still predict nothing.  A re-run that needs the
+    dense maps (changed loop options, changed frames, a corrupt chunk) predicts those chunks
+    again.  Returns the store's ``(bytes before, bytes after)``."""
+    if not (run_dir / "manifest.json").is_file():
+        raise RunDirError(f"{run_dir} is not a swiftjax run directory (no manifest.json)")
+    lock = RunLock(run_dir).acquire()
+    try:
+        data = Manifest._read(run_dir / "manifest.json")
+        if not data.get("outputs"):
+            raise RunDirError(f"{run_dir} holds an unfinished run (no outputs recorded): finish it first "
+                              "(re-run the same command), then prune it")
+        store = ChunkStore(run_dir)
+        size = lambda: sum(p.stat().st_size for p in store.root.iterdir() if p.is_file())  # noqa: E731
+        before = size()
+        for kind in ("tail", "loop"):
+            for t in store.indices(kind):
+                store.remove(kind, t)
+        chunk_files = store.indices("chunk")
+        for t in chunk_files:
+            store.drop_dense("chunk", t)
+        after = size()
+    finally:
+        lock.release()
+    log(f"swiftjax: {store.root}: {before / 1e6:.1f} MB -> {after / 1e6:.1f} MB (the depth and confidence maps of "
+        f"{len(chunk_files)} chunk files dropped); every output is kept, and so is what 'swiftjax view' and a re-run "
+        "with other export or pose-graph options read (they predict nothing); a re-run that needs the dense maps "
+        "(other loop options, changed frames) predicts those chunks again, at the cost of their first prediction")
+    return before, after
 
 
 def open_run(
