@@ -87,7 +87,14 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace a run directory that holds another input, model or configuration")
+                        help="replace a run directory that holds another input, model or configuration (deletes only "
+                             "the files its manifest records). What is fingerprinted: each input frame's content "
+                             "(name, size, SHA-256 of the whole file; a video: the video file's), the weights file's "
+                             "SHA-256 (whole file, cached by device, inode, size, mtime and ctime), the model "
+                             "configuration, backend, dtype, device class, preprocessing mode, --intrinsics and "
+                             "--mask-dir contents, and the options by stage: a changed temporal option needs "
+                             "--overwrite, a changed frame re-predicts only its chunks, loop options re-run the loop "
+                             "stage, pose-graph and export options (--colmap*, --voxel-size) re-run only those")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     group = parser.add_argument_group("execution (where the VGGT predictions run)")
     group.add_argument("--executor", choices=("local", "ray"), default="local",
