@@ -518,7 +518,8 @@ def _export(
                 RuntimeWarning, stacklevel=2,
             )
         if config.colmap_original_resolution:
-            _copy_originals(ctx, names)
+            _copy_originals(ctx, names)  # every frame (renamed into place with the output set)
+            redrawn = set(names)
         missing = [names[k] for k in range(n)
                    if names[k] not in redrawn and not (run_dir / "colmap" / "images" / names[k]).is_file()]
         if missing:
