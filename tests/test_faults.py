@@ -279,10 +279,10 @@ def test_swapped_and_foreign_chunks_an_edited_record_and_damaged_frames_are_name
     shutil.copytree(reference, out)
     chunk_dir = out / "chunks"
     shutil.copy(chunk_dir / "chunk_00002.npz", chunk_dir / "chunk_00001.npz")
-    store = ChunkStore(out)  # chunk 5 as another run (another fingerprint) wrote it: a sound file
-    extra = store.load_extra("chunk", 5)
+    store = ChunkStore(out)  # chunk 6 as another run (another fingerprint) wrote it: a sound file
+    extra = store.load_extra("chunk", 6)
     extra["fingerprint"] = np.asarray("0" * 64)
-    store.save("chunk", 5, store.load("chunk", 5), extra)
+    store.save("chunk", 6, store.load("chunk", 6), extra)
     m = _manifest(out)
     m["edges"]["4"]["S"][3] += 1e-3  # edge (4, 5): one digit
     (out / "manifest.json").write_text(json.dumps(m))
@@ -295,7 +295,7 @@ def test_swapped_and_foreign_chunks_an_edited_record_and_damaged_frames_are_name
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = proc.stdout + proc.stderr
     assert "chunk_00001.npz: not this run's chunk file: it holds chunk 2, not chunk 1; predicting chunk 1 again" in text
-    assert "chunk_00005.npz: not this run's chunk file: it was predicted from another input, model or configuration" in text
+    assert "chunk_00006.npz: not this run's chunk file: it was predicted from another input, model or configuration" in text
     assert "the record of edge (chunks 4/5) fails its checksum (edited or damaged): predicting chunks 4 and 5 again" in text
     assert "000007.png (missing)" in text and "000120.png (damaged: fails its CRC32)" in text
     assert "Traceback" not in text
