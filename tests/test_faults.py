@@ -288,16 +288,16 @@ def test_swapped_and_foreign_chunks_an_edited_record_and_damaged_frames_are_name
     (out / "manifest.json").write_text(json.dumps(m))
     images = out / "colmap" / "images"
     (images / "000007.png").unlink()
-    raw = bytearray((images / "000120.png").read_bytes())
+    raw = bytearray((images / "000065.png").read_bytes())
     raw[len(raw) // 2] ^= 0xFF
-    (images / "000120.png").write_bytes(bytes(raw))
+    (images / "000065.png").write_bytes(bytes(raw))
     proc = swiftjax(out)
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = proc.stdout + proc.stderr
     assert "chunk_00001.npz: not this run's chunk file: it holds chunk 2, not chunk 1; predicting chunk 1 again" in text
     assert "chunk_00006.npz: not this run's chunk file: it was predicted from another input, model or configuration" in text
     assert "the record of edge (chunks 4/5) fails its checksum (edited or damaged): predicting chunks 4 and 5 again" in text
-    assert "000007.png (missing)" in text and "000120.png (damaged: fails its CRC32)" in text
+    assert "000007.png (missing)" in text and "000065.png (damaged: fails its CRC32)" in text
     assert "Traceback" not in text
     assert_same_outputs(out, reference)
 
