@@ -179,8 +179,6 @@ class ImageSpec:
 def weights_identity(path: Any) -> dict[str, Any]:
     """A weights file's identity: its name, size and the SHA-256 of its whole content (hashed
     once, then cached by file identity: :mod:`swiftjax.io.file_hash`)."""
-    import os
-
     from swiftjax.io.file_hash import sha256_file
 
     p = os.fspath(path)

@@ -8,9 +8,9 @@ configuration, and re-running finishes the job without redoing or corrupting fin
   line naming the holder.  The kernel drops the lock of a dead process, so a stale lock
   (a killed run) is simply taken over, and said so.
 * **Fingerprints, per stage** (:func:`fingerprints`).  The temporal stage's -- every input
-  frame (name, size, modification time), the predictor's model identity (weights file size,
-  modification time and SHA-256 of its first MiB, the model configuration, backend, dtype,
-  device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
+  frame by content (name, size, SHA-256 of the whole file), the predictor's model identity
+  (SHA-256 of the whole weights file -- both cached by file identity,
+  :mod:`swiftjax.io.file_hash` -- the model configuration, backend, dtype, device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
   the chunk file format -- decides whether the stored chunks can be used: a change is refused
   with the overwrite message, except a change of some frames' files (same count), which
   re-predicts only the chunks that hold them (and their neighbours, whose edges need the
@@ -28,10 +28,19 @@ configuration, and re-running finishes the job without redoing or corrupting fin
   (:class:`~swiftjax.io.chunk_store.ChunkCorruptError`); a corrupt chunk is reported by name
   and predicted again (:func:`forget_chunk`; :func:`swiftjax.pipeline.run.reconstruct`
   restarts the stages after it).
-* **Hygiene.** Temp files left by a killed run (``.<name>.<random>.tmp*``) are removed when
-  the directory is opened; the output directory may not be empty text; a manifest that is not
-  a swiftjax manifest (``[]``, ``null``, another version) is refused with ``--overwrite``
-  suggested.
+* **Bindings.** Each chunk file stores its chunk index, frames and a digest of what
+  determines it (:func:`chunk_binding`), checked on resume; each edge record a CRC32
+  (checked when the manifest is opened): a chunk that is not this run's, or an edited
+  record, is reported and computed again.
+* **Outputs record.** ``manifest["outputs"]`` lists every file the last export wrote (the
+  COLMAP frames with their CRC32s, checked and redrawn by the next export): a re-run removes
+  what the previous run wrote and it did not (:func:`record_outputs`).
+* **Hygiene.** A non-empty directory without a manifest is refused (even with
+  ``--overwrite``, which deletes only recorded files and the chunk store).  Temp files left
+  by a killed run are removed after the run is validated, under the lock: only temp names
+  of this run's own files in its own folders; the output directory may not be empty text; a
+  manifest that is not a swiftjax manifest (``[]``, ``null``, another version) is refused
+  with ``--overwrite`` suggested.
 
 :class:`RunContext` is what every stage receives: the records above, the chunk store, the
 schedule, the configuration, the stage clock and the log.
