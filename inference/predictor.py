@@ -59,11 +59,19 @@ class ImagePredictor:
         return self.runner.predict(images)
 
     def fingerprint(self) -> dict[str, Any]:
-        """Everything that determines a chunk's prediction: each frame's file (name, size,
-        modification time; a video is one entry per frame naming the file), the model
-        (``identity``, else :func:`model_identity` of the ``spec``: weights file, architecture,
-        backend, dtype, device class) and the preprocessing."""
+        """Everything that determines a chunk's prediction: each frame's file by content (name,
+        size and the SHA-256 of the whole file, :mod:`swiftjax.io.file_hash`, cached by file
+        identity; a video is one entry per frame naming the video file and its digest), the
+        model (``identity``, else :func:`model_identity` of the ``spec``: the weights file's
+        SHA-256, architecture, backend, dtype, device class) and the preprocessing."""
+        from swiftjax.io.file_hash import sha256_files
+
         files = [list(item) for item in self.source.fingerprint()]
+        paths = getattr(self.source, "paths", None)
+        if paths is None and getattr(self.source, "path", None) is not None:
+            paths = [self.source.path]
+        digests = sha256_files(paths) if paths is not None and len(paths) == len(files) else [None] * len(files)
+        files = [[item[0], item[1], d] if d is not None else item for item, d in zip(files, digests)]
         if len(files) == self.num_frames:
             frames = files
         else:  # a video: one file for every frame
@@ -74,6 +82,14 @@ class ImagePredictor:
             model = model_identity(sp.weights, backend=sp.backend, dtype=sp.dtype,
                                    device_class=sp.device.split(":")[0], config=sp.model_config, model=sp.model)
         return {"frames": frames, "model": model, "preprocessing": {"mode": self.mode}}
+
+    def images(self, frames: np.ndarray) -> np.ndarray:
+        """The frames ``[S, H, W, 3]`` uint8 as the model sees them (preprocessed; the
+        prediction's ``images``), without running the model: the export rewrites missing
+        COLMAP frames from them."""
+        from inference.preprocess import preprocess, to_uint8_images
+
+        return to_uint8_images(preprocess([self.source.read(int(k)) for k in frames], mode=self.mode))
 
     def frame_names(self) -> list[str]:
         return list(self.source.names)
@@ -159,16 +175,12 @@ class ImageSpec:
 
 
 def weights_identity(path: Any) -> dict[str, Any]:
-    """A weights file's identity without reading it all: name, size, modification time and
-    the SHA-256 of its first MiB (a re-saved or different checkpoint changes at least one)."""
-    import hashlib
-    import os
+    """A weights file's identity: its name, size and the SHA-256 of its whole content (hashed
+    once, then cached by file identity: :mod:`swiftjax.io.file_hash`)."""
+    from swiftjax.io.file_hash import sha256_file
 
     p = os.fspath(path)
-    st = os.stat(p)
-    with open(p, "rb") as f:
-        head = hashlib.sha256(f.read(1 << 20)).hexdigest()
-    return {"file": os.path.basename(p), "size": int(st.st_size), "mtime_ns": int(st.st_mtime_ns), "sha256_first_mib": head}
+    return {"file": os.path.basename(p), "size": int(os.stat(p).st_size), "sha256": sha256_file(p)}
 
 
 def model_identity(

@@ -109,7 +109,14 @@ def _read_config_table(path: pathlib.Path) -> dict[str, Any]:
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace a run directory that holds another input, model or configuration")
+                        help="replace a run directory that holds another input, model or configuration (deletes only "
+                             "the files its manifest records). What is fingerprinted: each input frame's content "
+                             "(name, size, SHA-256 of the whole file; a video: the video file's), the weights file's "
+                             "SHA-256 (whole file, cached by device, inode, size, mtime and ctime), the model "
+                             "configuration, backend, dtype, device class, preprocessing mode, --intrinsics and "
+                             "--mask-dir contents, and the options by stage: a changed temporal option needs "
+                             "--overwrite, a changed frame re-predicts only its chunks, loop options re-run the loop "
+                             "stage, pose-graph and export options (--colmap*, --voxel-size) re-run only those")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     group = parser.add_argument_group("execution (where the VGGT predictions run)")
     group.add_argument("--executor", choices=("local", "ray"), default="local",
@@ -338,6 +345,13 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_prune(args: argparse.Namespace) -> int:
+    from swiftjax.pipeline import rundir
+
+    rundir.prune(args.run_dir)
+    return 0
+
+
 def _view_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("live viewer (the 'view' extra)")
     group.add_argument("--view", action="store_true", help="watch the run in a web viewer as chunks arrive")
@@ -521,6 +535,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     gt = _load_ground_truth(args.gt, args.gt_format) if args.gt is not None else None
     if gt is not None and len(gt) != len(source):
         raise CliError(f"ground truth {args.gt} has {len(gt)} poses for {len(source)} frames")
+    if gt is not None:  # before the run: a reference the ATE cannot use is named now, not after the run
+        from swiftjax.pipeline.report import check_ground_truth
+
+        check_ground_truth(gt, len(source), name=f"ground-truth file {args.gt}")
     if args.timestamps is not None:
         timestamps = images.read_timestamps(args.timestamps, source, args.stride)
         note = f"from {args.timestamps}"
@@ -802,6 +820,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
 
+    p = add("prune", help="shrink a finished run directory: drop the chunk store's dense maps, keep every output",
+            description="Drop the depth and confidence maps from the chunk files of a finished run (most of "
+                        "chunks/). Every output is kept; 'swiftjax view' and re-runs with other export or pose-graph "
+                        "options still predict nothing; a re-run that needs the maps (other loop or temporal "
+                        "options, changed frames) predicts those chunks again.")
+    p.add_argument("run_dir", type=pathlib.Path, help="the --out folder of a finished run")
+    p.set_defaults(func=_cmd_prune)
+
     p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference (evo's order: REF EST)")
     p.add_argument("reference", type=pathlib.Path,
                    help="reference (ground-truth) poses, FIRST as in evo_ape/evo_rpe; the errors are in its unit")
@@ -882,6 +908,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"done in {time.perf_counter() - t0:.1f} s")
         return code
     except KeyboardInterrupt:
+        _quiesce()
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
     except (*user_errors, MemoryError, ImportError) as err:
@@ -898,6 +925,28 @@ def _error_line(err: BaseException) -> str:
     if isinstance(err, ImportError):
         return f"{_one_line(err)} (install the extra: pip install 'swiftjax[inference]')"
     return _one_line(err)
+
+
+def _quiesce(timeout: float = 60.0) -> None:
+    """After a Ctrl-C, before the interpreter finalises: wait for the computations JAX still
+    runs on its own threads and join swiftjax's writer threads, so that none of them calls
+    into a finalising interpreter ('Fatal Python error: PyThreadState_Get ... finalizing')."""
+    import threading
+
+    export = sys.modules.get("swiftjax.pipeline.export")
+    if export is not None:
+        export.close_frame_writers()
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        with contextlib.suppress(Exception):
+            jax.effects_barrier()
+        with contextlib.suppress(Exception):
+            for array in jax.live_arrays():
+                array.block_until_ready()
+    deadline = time.monotonic() + timeout
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon and thread.name.startswith("swiftjax-"):
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 def _one_line(err: BaseException) -> str:

@@ -330,3 +330,25 @@ def test_disk_full_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     assert err.value.errno == errno.ENOSPC and err.value.filename == str(store.path("chunk", 4))
     assert "chunk_00004.npz" in _one_line(err.value) and "No space left" in _one_line(err.value)
     assert list(store.root.iterdir()) == []
+
+
+def test_drop_dense_keeps_every_other_array_checked_and_load_says_why(tmp_path):
+    """'swiftjax prune' (issue 26 item 8): a chunk file without its depth and confidence maps
+    keeps every other array bit for bit (with its CRC32s), is much smaller, and a full load
+    raises ChunkMismatchError naming the file (the pipeline predicts the chunk again)."""
+    store = ChunkStore(tmp_path)
+    pred = _pred()
+    path = store.save("chunk", 2, pred, extra={"frames": np.arange(8, 12), "points_xyz": np.ones((5, 3), np.float32)})
+    size = path.stat().st_size
+    store.drop_dense("chunk", 2)
+    assert path.stat().st_size < size - pred.depth.size * 2 * 2 + 1  # two float16 maps gone
+    for name in ("extrinsic", "intrinsic", "descriptors", "images"):
+        np.testing.assert_array_equal(store.load_array("chunk", 2, name), getattr(pred, name))
+    assert store.load_array("chunk", 2, "depth") is None
+    extra = store.load_extra("chunk", 2, names=("frames",))
+    assert list(extra) == ["frames"] and np.array_equal(extra["frames"], np.arange(8, 12))
+    store.verify("chunk", 2)  # every remaining array passes its CRC32
+    with pytest.raises(cs.ChunkMismatchError, match=r"chunk_00002.npz: not this run's chunk file: its depth and "
+                                                    r"confidence maps were dropped"):
+        store.load("chunk", 2)
+    assert isinstance(cs.ChunkMismatchError(path, "x"), cs.ChunkCorruptError)  # re-predicted like a corrupt file

@@ -248,3 +248,123 @@ def test_options_are_refused_before_work_and_an_export_fix_reruns_only_the_expor
     refused = swiftjax(out, "--depth-threshold", "0.3")
     assert refused.returncode == 2 and "different options depth_threshold" in refused.stderr
     assert "--overwrite" in refused.stderr
+
+
+def test_a_user_folder_as_out_is_refused_and_left_as_it_was(tmp_path):
+    """Issue 25 item 1: --out at a user's folder replaced 4 of its 5 files (and --overwrite
+    deleted its chunks/*.npz)."""
+    user = tmp_path / "mine"
+    files = {"points.ply": b"ply", "metrics.json": b"{}", "colmap/images/00000.png": b"png",
+             "colmap/sparse/0/cameras.bin": b"bin", "chunks/chunk_00007.npz": b"npz", "chunks/loop_00001.npz": b"npz"}
+    for rel, data in files.items():
+        (user / rel).parent.mkdir(parents=True, exist_ok=True)
+        (user / rel).write_bytes(data)
+    for extra in ((), ("--overwrite",)):
+        proc = swiftjax(user, *extra)
+        errors = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+        assert proc.returncode == 2 and len(errors) == 1, proc.stderr
+        assert f"--out {user} is not empty and holds no swiftjax run" in errors[0]
+    assert sorted(str(p.relative_to(user)) for p in user.rglob("*") if p.is_file()) == sorted(files)
+    assert all((user / rel).read_bytes() == data for rel, data in files.items())
+
+
+def test_swapped_and_foreign_chunks_an_edited_record_and_damaged_frames_are_named_and_repaired(reference, tmp_path):
+    """Issue 25 items 5, 6, 7: a chunk file copied over another, another run's chunk, one
+    changed digit of an edge record, COLMAP frames deleted or damaged after the run: each was
+    used (or left) silently.  Now each is named, repaired, and the outputs equal the
+    uninterrupted run's."""
+    from swiftjax.io.chunk_store import ChunkStore
+
+    out = tmp_path / "run"
+    shutil.copytree(reference, out)
+    chunk_dir = out / "chunks"
+    shutil.copy(chunk_dir / "chunk_00002.npz", chunk_dir / "chunk_00001.npz")
+    store = ChunkStore(out)  # chunk 6 as another run (another fingerprint) wrote it: a sound file
+    extra = store.load_extra("chunk", 6)
+    extra["fingerprint"] = np.asarray("0" * 64)
+    store.save("chunk", 6, store.load("chunk", 6), extra)
+    m = _manifest(out)
+    m["edges"]["4"]["S"][3] += 1e-3  # edge (4, 5): one digit
+    (out / "manifest.json").write_text(json.dumps(m))
+    images = out / "colmap" / "images"
+    (images / "000007.png").unlink()
+    raw = bytearray((images / "000065.png").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (images / "000065.png").write_bytes(bytes(raw))
+    proc = swiftjax(out)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    text = proc.stdout + proc.stderr
+    assert "chunk_00001.npz: not this run's chunk file: it holds chunk 2, not chunk 1; predicting chunk 1 again" in text
+    assert "chunk_00006.npz: not this run's chunk file: it was predicted from another input, model or configuration" in text
+    assert "the record of edge (chunks 4/5) fails its checksum (edited or damaged): predicting chunks 4 and 5 again" in text
+    assert "000007.png (missing)" in text and "000065.png (damaged: fails its CRC32)" in text
+    assert "Traceback" not in text
+    assert_same_outputs(out, reference)
+
+
+@pytest.mark.parametrize("k", [0, 3, 7])
+def test_ctrl_c_during_the_export_exits_cleanly(reference, tmp_path, k):
+    """Issue 25 item 21: a Ctrl-C during the export once ended in 'Fatal Python error:
+    PyThreadState_Get ... finalizing' (SIGABRT): the writer threads and JAX's work are now
+    waited for before the interpreter exits."""
+    out = tmp_path / "run"
+    shutil.copytree(reference, out)
+    (out / "colmap" / "images" / "000003.png").unlink()  # the export has frames to write too
+    proc = swiftjax(out, "--colmap-max-points", "500", fault=f"export-chunk:{k}:INT")
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert "Fatal Python error" not in proc.stderr and "Traceback" not in proc.stderr
+    assert "interrupted (finished chunks are kept" in proc.stderr
+    assert (out / "poses_kitti.txt").read_bytes() == (reference / "poses_kitti.txt").read_bytes()
+
+
+def test_weights_changed_after_the_first_mib_are_refused_and_every_export_option_predicts_nothing(tmp_path, golden_dir):
+    """Issue 25 item 3 (weights edited after their first MiB, size and mtime kept, were
+    reused) and issue 26 item 3 through the real CLI with the tiny VGGT: adding
+    --colmap-original-resolution (or any export option) to a finished run re-runs the export
+    alone (no chunk file rewritten), and turning it off draws the model-resolution frames
+    from the input again."""
+    from PIL import Image
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    base = rng.integers(0, 255, (60, 90, 3), np.uint8)
+    for k in range(6):
+        Image.fromarray(np.roll(base, 3 * k, axis=1)).save(folder / f"img_{k}.png")
+    weights = tmp_path / "tiny.safetensors"
+    shutil.copy(golden_dir / "tiny_weights.safetensors", weights)
+    out = tmp_path / "run"
+    env = {**_env(), "SWIFTJAX_HASH_CACHE": str(tmp_path / "hashes.json")}
+
+    def run(*extra):
+        return subprocess.run(
+            [sys.executable, "-m", "swiftjax.cli", "reconstruct", str(folder), "--weights", str(weights),
+             "--model-config", str(golden_dir / "tiny_config.json"), "--out", str(out), "--chunk-size", "4",
+             "--overlap", "2", "--min-points", "10", "--no-loop-closure", "--point-stride", "2", "--no-progress",
+             *extra], env=env, capture_output=True, text=True, timeout=600)
+
+    first = run()
+    assert first.returncode == 0, first.stderr[-3000:]
+    frames_before = {p.name: p.read_bytes() for p in (out / "colmap" / "images").iterdir()}
+    chunks_before = {p.name: p.stat().st_ino for p in (out / "chunks").iterdir()}
+    for extra in (("--colmap-original-resolution",), ("--colmap-text", "--voxel-size", "0.05"),
+                  ("--colmap-max-points", "50"), ("--no-colmap",), ()):
+        proc = run(*extra)
+        assert proc.returncode == 0, (extra, proc.stderr[-3000:])
+        assert {p.name: p.stat().st_ino for p in (out / "chunks").iterdir()} == chunks_before, extra
+        names = sorted(p.name for p in (out / "colmap" / "images").iterdir()) if (out / "colmap").exists() else []
+        if extra == ("--colmap-original-resolution",):
+            assert names == [f"img_{k}.png" for k in range(6)]
+            assert (out / "colmap" / "images" / "img_2.png").read_bytes() == (folder / "img_2.png").read_bytes()
+        elif extra == ("--no-colmap",):
+            assert names == []
+        else:
+            assert {n: (out / "colmap" / "images" / n).read_bytes() for n in names} == frames_before, extra
+    st = weights.stat()
+    raw = bytearray(weights.read_bytes())
+    raw[(4 << 20) + 11] ^= 0x01  # after the first MiB, inside the tensors
+    weights.write_bytes(bytes(raw))
+    os.utime(weights, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert (weights.stat().st_size, weights.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    refused = run()
+    assert refused.returncode == 2 and "holds a run with a different model (weights)" in refused.stderr, refused.stderr

@@ -24,7 +24,7 @@ import contextvars
 import os
 import pathlib
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import IO, Any
 
 import numpy as np
@@ -79,9 +79,13 @@ def _replace(tmp: pathlib.Path, target: pathlib.Path) -> bool:
 
 
 @contextlib.contextmanager
-def output_set() -> Iterator[None]:
+def output_set(before_rename: Callable[[list[pathlib.Path]], None] | None = None) -> Iterator[None]:
     """Write the atomic files of the block as one set (module docstring): renamed together at
-    the end, none of them on an exception.  Nested sets join the outer one."""
+    the end, none of them on an exception.  Nested sets join the outer one.
+
+    ``before_rename(targets)``, if given, is called with the set's files once the block has
+    succeeded, before the renames (its own atomic writes happen at once); an exception from
+    it cancels the set."""
     if _PENDING.get() is not None:
         yield
         return
@@ -96,6 +100,14 @@ def output_set() -> Iterator[None]:
         raise
     finally:
         _PENDING.reset(token)
+    if before_rename is not None:
+        try:
+            before_rename([target for _, target in pending])
+        except BaseException:
+            for tmp, _ in pending:
+                with contextlib.suppress(FileNotFoundError):
+                    tmp.unlink()
+            raise
     for tmp, target in pending:
         os.replace(tmp, target)
     for directory in dict.fromkeys(t.parent for _, t in pending):

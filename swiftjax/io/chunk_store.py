@@ -65,7 +65,7 @@ from swiftjax import _faults
 from swiftjax.io.atomic import atomic_write
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ChunkStore", "ChunkCorruptError", "KINDS", "half_if_fits"]
+__all__ = ["ChunkStore", "ChunkCorruptError", "ChunkMismatchError", "KINDS", "half_if_fits"]
 
 PathLike = str | os.PathLike[str]
 
@@ -97,6 +97,16 @@ class ChunkCorruptError(ValueError):
         self.path, self.field, self.frame = path, field, frame
         where = "" if field is None else f" {field}" + ("" if frame is None else f" frame {frame}")
         super().__init__(f"{path}: corrupt chunk file:{where} {why}".replace(":  ", ": "))
+
+
+class ChunkMismatchError(ChunkCorruptError):
+    """A sound chunk file that is not the chunk the run expects (another chunk's, another
+    run's, the wrong frame count): :func:`swiftjax.pipeline.rundir.check_binding`.  A
+    :class:`ChunkCorruptError`, so the pipeline reports it and predicts the chunk again."""
+
+    def __init__(self, path: pathlib.Path, why: str) -> None:
+        self.path, self.field, self.frame = path, None, None
+        ValueError.__init__(self, f"{path}: not this run's chunk file: {why}")
 
 
 def _crc_rows(a: np.ndarray) -> np.ndarray:
@@ -184,6 +194,11 @@ class ChunkStore:
             if value.dtype.hasobject:
                 raise ValueError(f"{path}: extra[{key!r}] is not a numeric/string array (dtype {value.dtype})")
             arrays[_EXTRA + key] = value
+        return self._write(path, arrays, index if kind == "chunk" else None)
+
+    def _write(self, path: pathlib.Path, arrays: dict[str, np.ndarray], fault_index: int | None) -> pathlib.Path:
+        """``arrays`` with their member list and CRC32s, written atomically to ``path``."""
+        arrays = {k: v for k, v in arrays.items() if k != "members" and not k.startswith(_CRC)}
         # The member list, so that a damaged name in the zip directory cannot hide a member.
         arrays["members"] = np.asarray(sorted(arrays), dtype=np.str_)
         arrays = {k: np.require(v, requirements="C") for k, v in arrays.items()}
@@ -193,8 +208,20 @@ class ChunkStore:
         with atomic_write(path, "wb") as f:
             save(f, **arrays)
             f.flush()
-            _faults.point("chunk-write", index if kind == "chunk" else None)
+            _faults.point("chunk-write", fault_index)
         return path
+
+    def drop_dense(self, kind: str, index: int) -> None:
+        """Rewrite ``(kind, index)`` without its dense maps (``depth``, ``conf``: most of its
+        bytes), every other array kept and checked; the file then records ``dropped``, and
+        :meth:`load` raises :class:`ChunkMismatchError` (the pipeline predicts the chunk again
+        when it needs the maps)."""
+        path, data = self._open(kind, index)
+        with data:
+            arrays = {n: _read_member(path, data, n, None) for n in data.files
+                      if not n.startswith(_CRC) and n not in ("members", *_HALF_FIELDS)}
+        arrays["dropped"] = np.asarray(sorted(_HALF_FIELDS), dtype=np.str_)
+        self._write(path, arrays, None)
 
     def _open(self, kind: str, index: int) -> tuple[pathlib.Path, Any]:
         path = self.path(kind, index)
@@ -258,6 +285,7 @@ class ChunkStore:
         wanted = set(chosen) | {"depth", "conf", "extrinsic", "intrinsic"}
         path, data = self._open(kind, index)
         with data:
+            dropped = "dropped" in data.files
             out: dict[str, Any] = {}
             for name in names:
                 if name not in wanted or name not in data.files:
@@ -265,6 +293,8 @@ class ChunkStore:
                     continue
                 value = _read_member(path, data, name, frames)
                 out[name] = value if name == "images" else value.astype(np.float32)
+        if out["depth"] is None and dropped:
+            raise ChunkMismatchError(path, "its depth and confidence maps were dropped ('swiftjax prune')")
         if out["depth"] is None or out["extrinsic"] is None:
             raise ValueError(f"{path}: chunk file lacks depth or extrinsic arrays")
         return ChunkPrediction(**out)
@@ -284,11 +314,15 @@ class ChunkStore:
             value = _read_member(path, data, name, frames)
         return value if name == "images" else value.astype(np.float32)
 
-    def load_extra(self, kind: str, index: int) -> dict[str, np.ndarray]:
-        """The ``extra`` arrays saved with the chunk (as saved)."""
+    def load_extra(self, kind: str, index: int, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
+        """The ``extra`` arrays saved with the chunk (as saved); only ``names`` (those
+        present) when given."""
         path, data = self._open(kind, index)
         with data:
-            return {k[len(_EXTRA) :]: _read_member(path, data, k, None) for k in data.files if k.startswith(_EXTRA)}
+            return {
+                k[len(_EXTRA):]: _read_member(path, data, k, None) for k in data.files
+                if k.startswith(_EXTRA) and (names is None or k[len(_EXTRA):] in names)
+            }
 
     def verify(self, kind: str, index: int) -> None:
         """Read every array of ``(kind, index)`` and check its CRC32s; :class:`ChunkCorruptError` if one fails."""

@@ -168,12 +168,14 @@ class PipelineConfig:
     )
     colmap: bool = option(
         True, "write the COLMAP model and its frames (colmap/; the frames are written while each chunk is "
-        "predicted, hence a temporal-stage option)", stage="temporal",
+        "predicted; turned on for a finished run, the export draws them from the input, predicting nothing)",
+        stage="export",
     )
     colmap_text: bool = option(False, "also write the COLMAP model's .txt files beside the .bin", stage="export")
     colmap_original_resolution: bool = option(
         False, "the COLMAP model at the original image size, with the original files, as VGGT's own export "
-        "(decides whether the temporal stage writes the model-resolution frames)", stage="temporal",
+        "(the temporal stage then writes no model-resolution frames; turned off again, the export draws "
+        "them from the input)", stage="export",
     )
     colmap_max_points: int = option(200_000, "most points written to the COLMAP model", low=0, high=10**9, stage="export")
     intrinsics: str | None = option(

@@ -29,6 +29,7 @@ Under the per-frame ``K`` the same observations are off by ``|K_f K_ref^-1 p - p
 
 from __future__ import annotations
 
+import contextlib
 import json
 import pathlib
 import warnings
@@ -173,6 +174,70 @@ def frame_image_names(ctx: RunContext) -> list[str]:
     return list(names) if ctx.config.colmap_original_resolution else image_names(names)
 
 
+def colmap_frame_paths(ctx: RunContext) -> list[str]:
+    """``colmap/images/<name>`` of every frame this run's COLMAP export holds (none without
+    ``colmap``), relative to the run directory."""
+    return [f"colmap/images/{name}" for name in frame_image_names(ctx)] if ctx.config.colmap else []
+
+
+def _check_frames(ctx: RunContext, names: list[str]) -> set[str]:
+    """The COLMAP frames at the model's resolution, checked against the outputs record
+    (:func:`swiftjax.pipeline.rundir.record_outputs`): a frame missing, or one whose bytes
+    fail the CRC32 recorded when it was written, is written again from the predictor's
+    ``images`` (the preprocessed input; no prediction) and reported.  A predictor without
+    ``images`` has the chunk holding such a frame predicted again (raises
+    :class:`~swiftjax.io.chunk_store.ChunkMismatchError` on that chunk's file).  Frames this
+    run wrote, and those no record lists, are taken as they are (a missing one is warned about
+    by :func:`_export`)."""
+    from swiftjax.io.chunk_store import ChunkMismatchError
+    from swiftjax.pipeline.rundir import _file_crc
+
+    recorded = ctx.manifest.data.get("outputs") or {}
+    folder = ctx.run_dir / "colmap" / "images"
+    can_draw = getattr(ctx.predictor, "images", None) is not None
+    crcs: dict[str, str] = {}
+    bad: dict[int, str] = {}  # frame -> why
+    for k, name in enumerate(names):
+        rel = f"colmap/images/{name}"
+        if rel in ctx.frames_written:
+            continue
+        path = folder / name
+        exists = path.is_file()
+        if rel not in recorded:  # no export recorded it (an older run, or colmap just turned on)
+            if not exists and can_draw:
+                bad[k] = "missing"
+            continue
+        want = recorded[rel]
+        if not exists:
+            bad[k] = "missing"
+        elif want is None:
+            bad[k] = "written at the original resolution"
+        elif (got := _file_crc(path)) != want:
+            bad[k] = "damaged: fails its CRC32"
+        else:
+            crcs[rel] = got
+    ctx.frame_crcs = crcs
+    if not bad:
+        return set()
+    shown = ", ".join(f"{names[k]} ({why})" for k, why in list(bad.items())[:3])
+    more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
+    by_chunk: dict[int, list[int]] = {}
+    for k in bad:
+        by_chunk.setdefault(int(ctx.schedule.chunk_of(k)), []).append(k)
+    if not can_draw:
+        t = min(by_chunk)
+        raise ChunkMismatchError(ctx.store.path("chunk", t),
+                                 f"its COLMAP frame(s) {shown}{more} must be written again and the predictor cannot "
+                                 "give the frames without predicting")
+    folder.mkdir(parents=True, exist_ok=True)
+    for t, ks in by_chunk.items():  # the images of the chunk that wrote them (the oracle's depend on it)
+        frames = ctx.schedule.frames(t)
+        images = np.asarray(ctx.predictor.images(frames))
+        _save_pngs([folder / names[k] for k in ks], images[[k - int(frames[0]) for k in ks]])
+    ctx.log(f"swiftjax: COLMAP frame(s) {shown}{more}: written again from the input (no prediction)")
+    return {names[k] for k in bad}  # (renamed into place with the output set)
+
+
 def original_source(ctx: RunContext) -> Any:
     """The predictor's frame source (:class:`swiftjax.io.images.FrameSource`) for
     ``colmap_original_resolution``; :class:`ValueError` if it has none (the synthetic oracle)."""
@@ -246,6 +311,7 @@ def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> 
         return None
     names = frame_image_names(ctx)
     targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
+    ctx.frames_written.update(f"colmap/images/{names[int(f)]}" for f in np.asarray(frames))
     writer = _FRAME_WRITERS.setdefault(str(ctx.run_dir), _FrameWriter())
     return writer.submit(targets, np.asarray(pred.images)[: len(targets)])
 
@@ -289,6 +355,14 @@ class _FrameWriter:
 
 #: The frame writer of each run directory being written (created by :func:`write_frames`).
 _FRAME_WRITERS: dict[str, _FrameWriter] = {}
+
+
+def close_frame_writers() -> None:
+    """Wait for every run's queued frame writes and stop their threads (the CLI, after a Ctrl-C)."""
+    while _FRAME_WRITERS:
+        _, writer = _FRAME_WRITERS.popitem()
+        with contextlib.suppress(Exception):
+            writer.close()
 
 
 def finish_frames(ctx: RunContext) -> None:
@@ -352,6 +426,9 @@ def _export(
     run_dir, schedule, store, config, K_ref = ctx.run_dir, ctx.schedule, ctx.store, ctx.config, ctx.K_ref
     assert K_ref is not None
     _finish_frames(ctx)
+    redrawn = set()
+    if config.colmap and not config.colmap_original_resolution:
+        redrawn = _check_frames(ctx, frame_image_names(ctx))
     n = schedule.n_frames
     T = schedule.num_chunks
     owner = schedule.chunk_of(np.arange(n))  # later chunk wins
@@ -443,8 +520,10 @@ def _export(
                 RuntimeWarning, stacklevel=2,
             )
         if config.colmap_original_resolution:
-            _copy_originals(ctx, names)
-        missing = [names[k] for k in range(n) if not (run_dir / "colmap" / "images" / names[k]).is_file()]
+            _copy_originals(ctx, names)  # every frame (renamed into place with the output set)
+            redrawn = set(names)
+        missing = [names[k] for k in range(n)
+                   if names[k] not in redrawn and not (run_dir / "colmap" / "images" / names[k]).is_file()]
         if missing:
             warnings.warn(
                 f"colmap/images/ lacks {len(missing)} of {n} frames (e.g. {missing[0]}): the predictor gave no "

@@ -36,6 +36,10 @@ class Predictor(Protocol):
         """A name per frame (COLMAP image names)."""
         ...
 
+    # Optional: ``images(frames) -> [S, H, W, 3] uint8``, the frames as the model sees them,
+    # without predicting (the export rewrites missing COLMAP frames from it; a predictor
+    # without it has the chunks holding such frames predicted again).
+
 
 class OraclePredictor:
     """:class:`Predictor` over a :class:`swiftjax.synthetic.oracle.VGGTOracle`."""
@@ -57,6 +61,11 @@ class OraclePredictor:
 
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
         return self.oracle.predict_chunk(np.asarray(frames))
+
+    def images(self, frames: np.ndarray) -> np.ndarray:
+        """The frames ``[S, H, W, 3]`` uint8 of the chunk ``frames`` as the oracle renders them
+        (the export rewrites missing COLMAP frames from them; no model prediction is recorded)."""
+        return np.asarray(self.oracle.predict_chunk(np.asarray(frames)).images)
 
     def fingerprint(self) -> dict[str, Any]:
         return {"frames": None, "model": ["synthetic", self.num_frames, self.oracle.seed, self._description]}

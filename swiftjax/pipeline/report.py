@@ -18,7 +18,31 @@ if TYPE_CHECKING:
     from swiftjax.pipeline.run import RunResult
     from swiftjax.pipeline.temporal import TemporalResult
 
-__all__ = ["write", "summary_table"]
+__all__ = ["write", "summary_table", "check_ground_truth"]
+
+
+def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth") -> np.ndarray:
+    """``ground_truth`` as float64 ``[n, 4|3, 4]``, or one line naming ``name`` (``ValueError``)
+    when the report's ATE (a Sim(3) alignment) could not use it: another frame count, fewer
+    than 3 poses, non-finite values, positions coincident or collinear (the rotation about
+    the line is undetermined; the same test as :func:`swiftjax.evaluation.umeyama_alignment`).
+    Called before the run starts."""
+    from swiftjax import evaluation
+
+    gt = np.asarray(ground_truth, np.float64)
+    if gt.ndim != 3 or gt.shape[0] != n or gt.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"{name} has shape {gt.shape}, expected [{n}, 4, 4] (one pose per frame)")
+    if not np.all(np.isfinite(gt)):
+        raise ValueError(f"{name} holds non-finite values (nan/inf)")
+    if n < 3:
+        raise ValueError(f"{name} has {n} pose(s): the ATE's Sim(3) alignment needs at least 3 (leave out --gt)")
+    pos = gt[:, :3, 3]
+    try:
+        evaluation.umeyama_alignment(pos, pos)
+    except ValueError:
+        raise ValueError(f"{name}: its positions are coincident or collinear, so the Sim(3) alignment of the "
+                         "ATE is undefined (leave out --gt)") from None
+    return gt
 
 
 def write(
@@ -27,10 +51,20 @@ def write(
 ) -> dict[str, Any]:
     """Write ``metrics.json``, ``trajectory.png``, ``points.png`` and, with a ground truth,
     ``ground_truth_kitti.txt`` (for the viewer); returns the metrics."""
-    metrics = _metrics(
-        ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-        ctx.timer.seconds, exported, ground_truth, ctx.scale,
-    )
+    try:
+        metrics = _metrics(
+            ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
+            ctx.timer.seconds, exported, ground_truth, ctx.scale,
+        )
+    except ValueError as err:  # the evaluation failed: the run's outputs are kept, without ATE
+        if ground_truth is None:
+            raise
+        ctx.log(f"swiftjax: warning: ATE/RPE not computed ({err}); the outputs are written without them")
+        ground_truth = None
+        metrics = _metrics(
+            ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
+            ctx.timer.seconds, exported, None, ctx.scale,
+        )
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)
     unit = "m" if metrics["unit"] == "metres" else None

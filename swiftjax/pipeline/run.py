@@ -79,10 +79,8 @@ def reconstruct(
     n = int(predictor.num_frames)
     if n < 1:
         raise ValueError("the input has no frames")
-    if ground_truth is not None:
-        ground_truth = np.asarray(ground_truth, np.float64)
-        if ground_truth.shape[0] != n or ground_truth.shape[1:] not in ((4, 4), (3, 4)):
-            raise ValueError(f"ground truth has shape {ground_truth.shape}, expected [{n}, 4, 4]")
+    if ground_truth is not None:  # checked before the run: an evaluation failure never comes after it
+        ground_truth = report.check_ground_truth(ground_truth, n)
     if config.metric == "gt" and ground_truth is None:
         raise ValueError("--metric gt needs the ground-truth poses (--gt)")
     executor = executor if executor is not None else LocalExecutor()
@@ -101,11 +99,19 @@ def reconstruct(
                 poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
                 _faults.point("graph-done")
                 # The outputs are renamed together at the end: a full disk or a kill mid-way
-                # leaves the previous complete set (or none), never a mix.
-                with output_set():
+                # leaves the previous complete set (or none), never a mix.  The outputs record
+                # lists them first; then what the previous run wrote and this one did not goes.
+                written: list[pathlib.Path] = []
+
+                def expect(targets: list[pathlib.Path]) -> None:
+                    written[:] = targets
+                    rundir.record_outputs(ctx, targets, final=False)
+
+                with output_set(before_rename=expect):
                     exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
                     _faults.point("export-done")
                     metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
+                rundir.record_outputs(ctx, written, final=True)
                 break
             except ChunkCorruptError as err:
                 t = _corrupt_chunk_index(ctx, err)

@@ -8,9 +8,9 @@ configuration, and re-running finishes the job without redoing or corrupting fin
   line naming the holder.  The kernel drops the lock of a dead process, so a stale lock
   (a killed run) is simply taken over, and said so.
 * **Fingerprints, per stage** (:func:`fingerprints`).  The temporal stage's -- every input
-  frame (name, size, modification time), the predictor's model identity (weights file size,
-  modification time and SHA-256 of its first MiB, the model configuration, backend, dtype,
-  device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
+  frame by content (name, size, SHA-256 of the whole file), the predictor's model identity
+  (SHA-256 of the whole weights file -- both cached by file identity,
+  :mod:`swiftjax.io.file_hash` -- the model configuration, backend, dtype, device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
   the chunk file format -- decides whether the stored chunks can be used: a change is refused
   with the overwrite message, except a change of some frames' files (same count), which
   re-predicts only the chunks that hold them (and their neighbours, whose edges need the
@@ -28,10 +28,19 @@ configuration, and re-running finishes the job without redoing or corrupting fin
   (:class:`~swiftjax.io.chunk_store.ChunkCorruptError`); a corrupt chunk is reported by name
   and predicted again (:func:`forget_chunk`; :func:`swiftjax.pipeline.run.reconstruct`
   restarts the stages after it).
-* **Hygiene.** Temp files left by a killed run (``.<name>.<random>.tmp*``) are removed when
-  the directory is opened; the output directory may not be empty text; a manifest that is not
-  a swiftjax manifest (``[]``, ``null``, another version) is refused with ``--overwrite``
-  suggested.
+* **Bindings.** Each chunk file stores its chunk index, frames and a digest of what
+  determines it (:func:`chunk_binding`), checked on resume; each edge record a CRC32
+  (checked when the manifest is opened): a chunk that is not this run's, or an edited
+  record, is reported and computed again.
+* **Outputs record.** ``manifest["outputs"]`` lists every file the last export wrote (the
+  COLMAP frames with their CRC32s, checked and redrawn by the next export): a re-run removes
+  what the previous run wrote and it did not (:func:`record_outputs`).
+* **Hygiene.** A non-empty directory without a manifest is refused (even with
+  ``--overwrite``, which deletes only recorded files and the chunk store).  Temp files left
+  by a killed run are removed after the run is validated, under the lock: only temp names
+  of this run's own files in its own folders; the output directory may not be empty text; a
+  manifest that is not a swiftjax manifest (``[]``, ``null``, another version) is refused
+  with ``--overwrite`` suggested.
 
 :class:`RunContext` is what every stage receives: the records above, the chunk store, the
 schedule, the configuration, the stage clock and the log.
@@ -45,8 +54,10 @@ import datetime
 import json
 import os
 import pathlib
+import re
 import socket
 import time
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -75,6 +86,11 @@ __all__ = [
     "fingerprints",
     "forget_chunk",
     "open_run",
+    "chunk_binding",
+    "check_binding",
+    "record_outputs",
+    "prune",
+    "TOP_FILES",
     "progress_bar",
 ]
 
@@ -258,9 +274,11 @@ class Manifest:
             "edges": {},
             "loops": None,
             "loop_edges": {},
+            "outputs": {},
         }
         if path.exists() and not overwrite:
             data = cls._read(path)
+            data.setdefault("outputs", {})
             old = data["fingerprint"]
             count_only = (  # frames added or removed (e.g. a repaired image skipped before): reconciled below
                 old.get("frames") is not None and fingerprint.get("frames") is not None
@@ -270,6 +288,7 @@ class Manifest:
                 what = _describe_identity_change(old["temporal"], fingerprint["temporal"])
                 raise RunDirError(f"{run_dir} holds a run with a different {what}; {_OVERWRITE}")
             manifest = cls(path, data)
+            manifest._check_records(log)
             manifest._reconcile_frames(old.get("frames"), fingerprint.get("frames"), schedule, log)
             if old.get("loops") != fingerprint["loops"]:
                 changed = _changed((old.get("loops") or {}).get("options"), fingerprint["loops"]["options"])
@@ -371,6 +390,25 @@ class Manifest:
             f"predicting every chunk again"
         )
 
+    def _check_records(self, log: Callable[[str], None]) -> None:
+        """Drop the edge records that fail their checksum (edited or damaged): a temporal edge
+        ``(t-1, t)`` is computed again from chunks ``t-1`` and ``t`` predicted again (its float32
+        overlap is gone), a loop edge by its loop chunk; each is reported."""
+        data = self.data
+        for key, record in list(data["edges"].items()):
+            if not _record_ok(record):
+                t = int(key) + 1
+                data["edges"].pop(key)
+                for c in (t - 1, t):
+                    data["chunks"].pop(str(c), None)
+                log(f"swiftjax: {self.path}: the record of edge (chunks {t - 1}/{t}) fails its checksum (edited or "
+                    f"damaged): predicting chunks {t - 1} and {t} again to compute it")
+        for key, record in list(data["loop_edges"].items()):
+            if not _record_ok(record):
+                data["loop_edges"].pop(key)
+                log(f"swiftjax: {self.path}: the record of loop edge {key} fails its checksum (edited or damaged): "
+                    "predicting its loop chunk again")
+
     #: :meth:`save_soon` writes at most this often (seconds).  Each write is a JSON dump and
     #: two fsyncs; an interrupted run redoes at most this much finished work.
     MIN_INTERVAL = 1.0
@@ -379,6 +417,9 @@ class Manifest:
     _unsaved = False
 
     def save(self) -> None:
+        for group in ("edges", "loop_edges"):
+            for record in self.data[group].values():
+                _seal(record)
         with atomic_write(self.path) as f:
             json.dump(self.data, f, indent=1)
         self._last_save = time.monotonic()
@@ -394,6 +435,64 @@ class Manifest:
         """Save changes that :meth:`save_soon` held back."""
         if self._unsaved:
             self.save()
+
+
+_CHECKSUM = "crc32"
+
+
+def _record_crc(record: dict[str, Any]) -> str:
+    body = json.dumps({k: v for k, v in record.items() if k != _CHECKSUM}, sort_keys=True)
+    return f"{zlib.crc32(body.encode()):08x}"
+
+
+def _seal(record: dict[str, Any]) -> None:
+    """Set ``record["crc32"]``: the CRC32 of its canonical JSON (sorted keys) without it."""
+    record[_CHECKSUM] = _record_crc(record)
+
+
+def _record_ok(record: Any) -> bool:
+    return isinstance(record, dict) and record.get(_CHECKSUM) == _record_crc(record)
+
+
+def chunk_binding(manifest: Manifest, schedule: chunks.ChunkSchedule, t: int) -> dict[str, np.ndarray]:
+    """What binds chunk ``t``'s file to this run (stored in it, checked on every resume:
+    :func:`check_binding`): its index, its frames and ``fingerprint``, the SHA-256 of
+    everything that determines its prediction -- the temporal fingerprint (model, options,
+    preprocessing, chunk format; not the frame count) and the identities of its own frames."""
+    import hashlib
+
+    fp = manifest.data["fingerprint"]
+    frames = schedule.frames(t)
+    own = None if fp.get("frames") is None else [fp["frames"][int(k)] for k in frames]
+    body = json.dumps([_without_count(fp["temporal"]), own], sort_keys=True)
+    return {
+        "chunk_index": np.asarray(t, np.int64),
+        "frames": np.asarray(frames, np.int64),
+        "fingerprint": np.asarray(hashlib.sha256(body.encode()).hexdigest()),
+    }
+
+
+def check_binding(store: ChunkStore, kind: str, t: int, want: dict[str, np.ndarray], rows: int | None) -> None:
+    """:class:`~swiftjax.io.chunk_store.ChunkMismatchError` naming the file unless ``(kind, t)``
+    holds chunk ``t`` of this run (:func:`chunk_binding`) with ``rows`` frames in its arrays."""
+    path = store.path(kind, t)
+    got = store.load_extra(kind, t, names=tuple(want))
+    if set(got) != set(want):
+        raise _chunk_store.ChunkMismatchError(path, "it records no chunk index, frames or fingerprint "
+                                              "(written by an older swiftjax or not by this run)")
+    if int(got["chunk_index"]) != t:
+        raise _chunk_store.ChunkMismatchError(path, f"it holds chunk {int(got['chunk_index'])}, not chunk {t}")
+    if not np.array_equal(got["frames"], want["frames"]):
+        f = got["frames"]
+        span = f"frames {int(f[0])}-{int(f[-1])} ({len(f)})" if len(f) else "no frames"
+        raise _chunk_store.ChunkMismatchError(
+            path, f"it holds {span}, chunk {t} is frames {int(want['frames'][0])}-{int(want['frames'][-1])} "
+                  f"({len(want['frames'])})")
+    if str(got["fingerprint"]) != str(want["fingerprint"]):
+        raise _chunk_store.ChunkMismatchError(
+            path, "it was predicted from another input, model or configuration (fingerprint differs)")
+    if rows is not None and rows != len(want["frames"]):
+        raise _chunk_store.ChunkMismatchError(path, f"its arrays hold {rows} frames, chunk {t} has {len(want['frames'])}")
 
 
 class ChunkRecords:
@@ -544,6 +643,8 @@ class RunContext:
     scale: dict[str, Any] | None = None  # the metric-scale step's record (unit, factor, votes)
     unit: str | None = None  # the world's unit once known ("metres" with --metric; export headers)
     lock: RunLock | None = None
+    frame_crcs: dict[str, str] | None = None  # COLMAP frames the export checked (relpath -> CRC32)
+    frames_written: set[str] = dataclasses.field(default_factory=set)  # COLMAP frames this run wrote
 
     @property
     def num_frames(self) -> int:
@@ -569,15 +670,184 @@ def _writable(path: pathlib.Path) -> bool:
         return False
 
 
-def _clean_temp_files(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
-    """Remove the temp files a killed run left (we hold the lock: no writer is running)."""
-    dirs = [run_dir, *(p for p in run_dir.rglob("*") if p.is_dir())]
-    left = [p for d in dirs for p in temp_files(d)]
+#: The files a run writes at the top of its directory (the outputs record lists what one run wrote).
+TOP_FILES = (
+    "manifest.json", "poses_kitti.txt", "poses_tum.txt", "intrinsics.txt", "points.ply", "loops.txt",
+    "trajectory.png", "points.png", "metrics.json", "chunk_poses.json", "frames.txt", "ground_truth_kitti.txt",
+)
+_MODEL_FILES = tuple(f"{n}.{e}" for n in ("cameras", "images", "points3D") for e in ("bin", "txt"))
+_TEMP = re.compile(r"^\.(.+)\.[A-Za-z0-9_]{8}\.tmp(\.[^.]*)?$")
+
+
+def _own_names(run_dir: pathlib.Path, frame_names: Iterable[str], recorded: Iterable[str]) -> dict[pathlib.Path, Callable[[str], bool]]:
+    """The folders a run writes in and, for each, which file names are its own."""
+    from swiftjax.io.colmap import image_names
+
+    names = list(frame_names)
+    recorded = list(recorded)
+    frames = set(names) | set(image_names(names)) | {pathlib.PurePath(r).name for r in recorded
+                                                      if r.startswith("colmap/images/")}
+    top = set(TOP_FILES) | {r for r in recorded if "/" not in r}
+    return {
+        run_dir: top.__contains__,
+        run_dir / "chunks": lambda n: ChunkStore.parse_name(n) is not None,
+        run_dir / "colmap" / "images": frames.__contains__,
+        run_dir / "colmap" / "sparse" / "0": set(_MODEL_FILES).__contains__,
+    }
+
+
+def _clean_temp_files(run_dir: pathlib.Path, own: dict[pathlib.Path, Callable[[str], bool]],
+                      log: Callable[[str], None]) -> None:
+    """Remove the temp files a killed run left: only temp names of this run's own files, in its
+    own folders (:func:`_own_names`; called under the lock, after the run is validated)."""
+    left = []
+    for folder, ours in own.items():
+        for p in temp_files(folder):
+            m = _TEMP.match(p.name)
+            if m and ours(m.group(1)):
+                left.append(p)
     for p in left:
         with contextlib.suppress(OSError):
             p.unlink()
     if left:
         log(f"swiftjax: removed {len(left)} temp file(s) of an interrupted run in {run_dir}")
+
+
+def _refuse_foreign(run_dir: pathlib.Path) -> None:
+    """A non-empty ``--out`` must hold a swiftjax run (its ``manifest.json``): a user's folder is
+    never written into (not even with ``--overwrite``, which deletes only what a run recorded)."""
+    if (run_dir / "manifest.json").is_file():
+        return
+    allowed = {LOCK_NAME, ".swiftjax-write-test"}
+    found = sorted(p.name for p in run_dir.iterdir()
+                   if p.name not in allowed and not (p.name == "chunks" and p.is_dir() and not any(p.iterdir())))
+    if found:
+        shown = ", ".join(found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
+        raise RunDirError(
+            f"--out {run_dir} is not empty and holds no swiftjax run (no manifest.json; it holds {shown}): "
+            "choose a new or empty directory (swiftjax writes only into its own run directories)"
+        )
+
+
+def _remove_recorded(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
+    """``--overwrite``: delete what the previous run recorded (its outputs record) and the chunk
+    store's files -- nothing else (a user's files beside them survive)."""
+    try:
+        old = json.loads((run_dir / "manifest.json").read_text())
+    except (OSError, ValueError):
+        old = None
+    recorded = old.get("outputs") if isinstance(old, dict) and isinstance(old.get("outputs"), dict) else {}
+    removed = _remove_files(run_dir, list(recorded))
+    store = run_dir / "chunks"
+    if store.is_dir():
+        for p in store.iterdir():
+            if ChunkStore.parse_name(p.name) is not None:
+                p.unlink(missing_ok=True)
+                removed += 1
+    if removed:
+        log(f"swiftjax: --overwrite: removed {removed} file(s) of the previous run in {run_dir}")
+
+
+def _remove_files(run_dir: pathlib.Path, relpaths: Iterable[str]) -> int:
+    """Delete ``run_dir/relpath`` for each (paths inside ``run_dir`` only), then the folders
+    that became empty; returns how many files were deleted."""
+    root = run_dir.resolve()
+    count = 0
+    parents: set[pathlib.Path] = set()
+    for rel in relpaths:
+        path = (run_dir / rel)
+        if ".." in pathlib.PurePosixPath(rel).parts or not path.resolve().is_relative_to(root):
+            continue
+        if path.is_file() or path.is_symlink():
+            path.unlink()
+            count += 1
+            parents.update(p for p in path.parents if p.resolve().is_relative_to(root) and p.resolve() != root)
+    for folder in sorted(parents, key=lambda p: len(p.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            folder.rmdir()  # only when empty
+    return count
+
+
+def record_outputs(ctx: RunContext, targets: Iterable[pathlib.Path], final: bool) -> None:
+    """The outputs record: ``manifest["outputs"]`` maps every file this run's export wrote
+    (relative path) to the CRC32 of its bytes for the COLMAP frames (checked by the next run's
+    export), else None.
+
+    Called twice: with ``final=False`` just before the output set is renamed into place (the
+    record then lists the previous run's files too, so a kill between the renames and the
+    final record leaves nothing unaccounted for); with ``final=True`` after, which deletes
+    what the previous run wrote and this one did not (a stale ``ground_truth_kitti.txt``,
+    ``.txt`` model, frames of a longer input, the model after ``--no-colmap``) and records
+    exactly this run's files."""
+    from swiftjax.pipeline.export import colmap_frame_paths
+
+    run_dir = ctx.run_dir
+    old: dict[str, Any] = dict(ctx.manifest.data.get("outputs") or {})
+    new = {p.relative_to(run_dir).as_posix(): None for p in (pathlib.Path(t) for t in targets)}
+    for rel in colmap_frame_paths(ctx):
+        if rel in new or (run_dir / rel).is_file():  # (a predictor without images writes none)
+            new[rel] = None
+    if not final:
+        ctx.manifest.data["outputs"] = {**old, **new}
+        ctx.manifest.save()
+        return
+    stale = sorted(set(old) - set(new) - {"manifest.json"})
+    if stale:
+        _remove_files(run_dir, stale)
+        ctx.log(f"swiftjax: removed {len(stale)} output file(s) of the previous run that this run does not write "
+                f"({', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''})")
+    known = getattr(ctx, "frame_crcs", {}) or {}
+    for rel in new:
+        if rel.startswith("colmap/images/") and not ctx.config.colmap_original_resolution:
+            crc = known.get(rel)
+            if crc is None and (run_dir / rel).is_file():
+                crc = _file_crc(run_dir / rel)
+            new[rel] = crc
+    ctx.manifest.data["outputs"] = new
+    ctx.manifest.save()
+
+
+def _file_crc(path: pathlib.Path) -> str:
+    crc = 0
+    with open(path, "rb") as f:
+        while block := f.read(1 << 22):
+            crc = zlib.crc32(block, crc)
+    return f"{crc:08x}"
+
+
+def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[int, int]:
+    """Shrink the chunk store of a finished run: drop every chunk file's depth and confidence
+    maps (:meth:`~swiftjax.io.chunk_store.ChunkStore.drop_dense`; most of ``chunks/``) and the
+    tail/loop files.  Every output stays; so do what a resume reads of a finished run
+    (descriptors, poses, intrinsics, the export's points), so ``swiftjax view`` and re-runs
+    with export-only or pose-graph options still predict nothing.  A re-run that needs the
+    dense maps (changed loop options, changed frames, a corrupt chunk) predicts those chunks
+    again.  Returns the store's ``(bytes before, bytes after)``."""
+    if not (run_dir / "manifest.json").is_file():
+        raise RunDirError(f"{run_dir} is not a swiftjax run directory (no manifest.json)")
+    lock = RunLock(run_dir).acquire()
+    try:
+        data = Manifest._read(run_dir / "manifest.json")
+        if not data.get("outputs"):
+            raise RunDirError(f"{run_dir} holds an unfinished run (no outputs recorded): finish it first "
+                              "(re-run the same command), then prune it")
+        store = ChunkStore(run_dir)
+        size = lambda: sum(p.stat().st_size for p in store.root.iterdir() if p.is_file())  # noqa: E731
+        before = size()
+        for kind in ("tail", "loop"):
+            for t in store.indices(kind):
+                store.remove(kind, t)
+        chunk_files = store.indices("chunk")
+        for t in chunk_files:
+            store.drop_dense("chunk", t)
+        after = size()
+    finally:
+        lock.release()
+    log(f"swiftjax: {store.root}: {before / 1e6:.1f} MB -> {after / 1e6:.1f} MB (the depth and confidence maps of "
+        f"{len(chunk_files)} chunk files dropped); every output is kept, and so is what 'swiftjax view' and a re-run "
+        "with other export or pose-graph options read (they predict nothing); a re-run that needs the dense maps "
+        "(other loop options, changed frames) predicts those chunks again, at the cost of their first prediction")
+    return before, after
 
 
 def open_run(
@@ -600,6 +870,7 @@ def open_run(
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise RunDirError(f"cannot create output directory {run_dir}: {err.strerror}") from err
+    _refuse_foreign(run_dir)
     if not _writable(run_dir):
         raise RunDirError(f"output directory {run_dir} is not writable")
     lock = RunLock(run_dir).acquire()
@@ -607,17 +878,16 @@ def open_run(
         if lock.previous and lock.previous.get("pid"):
             log(f"swiftjax: taking over the lock of an interrupted run (pid {lock.previous.get('pid')} on "
                 f"{lock.previous.get('host')}, no longer running)")
-        _clean_temp_files(run_dir, log)
         schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
         camera = UserCamera.from_config(config, predictor)  # validated before any work
         fp = fingerprints(predictor, config, camera.fingerprint())
-        store = ChunkStore(run_dir)
-        manifest = Manifest.open(run_dir, config.to_dict(), fp, schedule, overwrite, log)
         if overwrite:
-            for kind in _chunk_store.KINDS:
-                for t in store.indices(kind):
-                    store.remove(kind, t)
-        elif manifest.previous_names is not None:  # frames added or removed: drop what is nobody's now
+            _remove_recorded(run_dir, log)
+        manifest = Manifest.open(run_dir, config.to_dict(), fp, schedule, overwrite, log)
+        # Validated: now the temp files a killed run left (this run's names in its folders only).
+        _clean_temp_files(run_dir, _own_names(run_dir, predictor.frame_names(), manifest.data["outputs"]), log)
+        store = ChunkStore(run_dir)
+        if manifest.previous_names is not None:  # frames added or removed: drop what is nobody's now
             for kind in ("chunk", "tail"):
                 for t in store.indices(kind):
                     if t >= schedule.num_chunks:

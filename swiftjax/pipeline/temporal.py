@@ -40,7 +40,7 @@ from swiftjax import _faults, align, loops, metric, sim3
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.export import chunk_points_jit, export_points, finish_frames, write_frames
-from swiftjax.pipeline.rundir import ChunkRecords, RunContext, forget_chunk
+from swiftjax.pipeline.rundir import ChunkRecords, RunContext, check_binding, chunk_binding, forget_chunk
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
 
@@ -164,7 +164,8 @@ def run(ctx: RunContext) -> TemporalResult:
                     )
                     dirty = records.commit(
                         writer.submit(
-                            t, _save_chunk, store, t, stored, {"frames": frames, **points}, exact_tail, frames_written
+                            t, _save_chunk, store, t, stored, chunk_binding(manifest, schedule, t), points,
+                            exact_tail, frames_written,
                         )
                     )
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
@@ -219,16 +220,17 @@ def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
 
 
 def _save_chunk(
-    store: ChunkStore, t: int, stored: ChunkPrediction, extra: dict[str, Any], tail: ChunkPrediction | None,
-    frames_written: Any = None,
+    store: ChunkStore, t: int, stored: ChunkPrediction, binding: dict[str, np.ndarray], extra: dict[str, Any],
+    tail: ChunkPrediction | None, frames_written: Any = None,
 ) -> None:
-    """Chunk ``t``'s files: its frame PNGs (``frames_written``, the export's future) and the
-    float32 tail first, so that a complete chunk file implies both."""
+    """Chunk ``t``'s files, each bound to the chunk (``binding``:
+    :func:`~swiftjax.pipeline.rundir.chunk_binding`): its frame PNGs (``frames_written``, the
+    export's future) and the float32 tail first, so that a complete chunk file implies both."""
     if frames_written is not None:
         frames_written.result()
     if tail is not None:
-        store.save("tail", t, tail, half=False)
-    store.save("chunk", t, stored, extra)
+        store.save("tail", t, tail, binding, half=False)
+    store.save("chunk", t, stored, {**binding, **extra})
 
 
 def _resume_chunk(
@@ -236,19 +238,23 @@ def _resume_chunk(
 ) -> tuple[np.ndarray, np.ndarray, align.ChunkFrames | None] | None:
     """A recorded chunk read back: ``(descriptors, intrinsic of its first frame, float32 tail
     or None when edge (t, t+1) is recorded)``; None when it must be predicted again (its file
-    or its tail is missing or fails its checksums, which is reported)."""
+    or its tail is missing, fails its checksums or is not this run's chunk ``t``, which is
+    reported)."""
     store = ctx.store
     need_tail = t + 1 < ctx.schedule.num_chunks and records.edge(t + 1) is None
+    binding = chunk_binding(ctx.manifest, ctx.schedule, t)
     try:
         with ctx.timer("chunk store"):
             if not store.exists("chunk", t):
                 raise FileNotFoundError(store.path("chunk", t))
             desc = store.load_array("chunk", t, "descriptors")
+            check_binding(store, "chunk", t, binding, rows=None if desc is None else len(desc))
             intrinsic0 = store.load_array("chunk", t, "intrinsic", frames=[0])[0]
             tail = None
             if need_tail:
                 if not store.exists("tail", t):
                     raise FileNotFoundError(store.path("tail", t))
+                check_binding(store, "tail", t, binding, rows=None)
                 tail = align.ChunkFrames.from_prediction(store.load("tail", t, fields=()))
     except ChunkCorruptError as err:
         ctx.log(f"swiftjax: {err}; predicting chunk {t} again")
