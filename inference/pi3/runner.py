@@ -9,7 +9,7 @@ import torch
 
 from swiftjax.prediction import ChunkPrediction
 
-from ..runners import check_outputs
+from ..runners import ModelOutputError, check_outputs
 from .conditioning import Conditions, intrinsics_condition
 from .convert import to_chunk_prediction
 from .model import Pi3Base
@@ -48,11 +48,17 @@ class Pi3TorchRunner:
             conditions = intrinsics_condition(self.intrinsics, arr.shape[0])
         x = torch.from_numpy(arr).to(self.device)[None]
         args = () if self.model.config.variant == "pi3" else (_to(conditions, self.device),)
-        with torch.inference_mode():
-            if self.dtype == torch.float32:
-                return self.model(x, *args)
-            with torch.autocast(device_type=self.device.type, dtype=self.dtype):
-                return self.model(x, *args)
+        try:
+            with torch.inference_mode():
+                if self.dtype == torch.float32:
+                    return self.model(x, *args)
+                with torch.autocast(device_type=self.device.type, dtype=self.dtype):
+                    return self.model(x, *args)
+        except torch.linalg.LinAlgError as err:  # the pose SVD of a non-finite camera head output
+            raise ModelOutputError(
+                f"{self.name} predicted non-finite values (NaN/inf) in its camera poses ({err}): the weights hold "
+                "NaN/inf or overflow (check the checkpoint; with --dtype float16 try bfloat16 or float32)"
+            ) from None
 
     def predict(self, images: Any, conditions: Conditions | None = None) -> ChunkPrediction:
         """One chunk -> :class:`ChunkPrediction` (:mod:`inference.pi3.convert`)."""
