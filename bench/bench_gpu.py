@@ -23,6 +23,11 @@ seconds (the test suite runs it, so the script cannot rot). Results go to
 ``bench/results/gpu-<stamp>.json`` (``--json`` elsewhere) and the log to ``--log``.
 
     python bench/bench_gpu.py [--smoke] [--chunks 30 60 75 120] [--golden DIR] [--e2e-frames 600]
+
+On a GPU machine that has torch, JAX and the project's other packages but not ``../shared``
+(the device tool's H200 image): ``mkdir -p .gpu_data/golden && cp -r ../shared/golden/vggt
+.gpu_data/golden/`` here, carry ``.gpu_data``, and run ``PYTHONPATH=$PWD python3
+bench/bench_gpu.py --json $OUT/gpu.json --log $OUT/gpu.log`` there.
 """
 
 from __future__ import annotations
@@ -435,7 +440,9 @@ def end_to_end(model: Any, device: Any, dtype: Any, frames: int, chunk: int, ove
 
 
 def default_golden() -> pathlib.Path | None:
-    for cand in (os.environ.get("SWIFTJAX_SHARED"), HERE.parents[1] / "shared", HERE.parents[0] / ".gpu_data"):
+    """``golden/vggt`` under ``$SWIFTJAX_SHARED``, ``../shared`` or the repository's git-ignored
+    ``.gpu_data/`` (what travels to a GPU machine: ``cp -r ../shared/golden/vggt .gpu_data/golden/``)."""
+    for cand in (os.environ.get("SWIFTJAX_SHARED"), HERE.parents[1] / "shared", HERE.parent / ".gpu_data"):
         if cand and (pathlib.Path(cand) / "golden" / "vggt" / "tiny_config.json").is_file():
             return pathlib.Path(cand) / "golden" / "vggt"
     return None
