@@ -126,7 +126,7 @@ def test_bad_input_is_one_line_before_any_prediction(tmp_path, frames, da3_dir, 
         ([str(thin), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors")],
          "--model da3-small cannot take the frames of"),
         ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors"),
-          "--metric", "model"], "'model' needs a metric network"),
+          "--metric", "model"], "own scale needs a network that predicts metres"),
         ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors"),
           "--mode", "pad"], "--mode pad is not a preprocessing of --model da3-small"),
     ]

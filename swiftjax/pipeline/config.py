@@ -221,8 +221,8 @@ class PipelineConfig:
             raise options.OptionError(f"invalid option metric: {err}") from None
         if self.metric == "model" and self.model not in METRIC_BACKBONES:
             raise options.OptionError(
-                f"invalid option metric: 'model' needs a metric network (--model {' or '.join(METRIC_BACKBONES)}), "
-                f"got --model {self.model}"
+                f"invalid option metric: the network's own scale needs a network that predicts metres "
+                f"({' or '.join(METRIC_BACKBONES)}), not {self.model}"
             )
         if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
             raise options.OptionError(
