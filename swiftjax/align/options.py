@@ -11,7 +11,12 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-__all__ = ["AlignOptions"]
+__all__ = ["AlignOptions", "OVERLAP_SCALE_RULES"]
+
+#: How chunk t+1's overlap depths are put on chunk t's scale before eq. 2: ``"median"`` (the
+#: robust ratio of :func:`~swiftjax.align.overlap_scale_ratio`) or ``"none"`` (the authors' eq. 2,
+#: absolute differences of the chunks' own normalised depths).
+OVERLAP_SCALE_RULES = ("median", "none")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,8 +32,15 @@ class AlignOptions:
         fallback_depth_threshold: the depth threshold of that one-time retry.
         loop_depth_threshold: ``depth_threshold`` when a loop chunk is aligned to its temporal
             chunks (:meth:`for_loop`).
+        overlap_scale: :data:`OVERLAP_SCALE_RULES`: ``"median"`` rescales chunk t+1's overlap
+            depths by the robust ratio ``rho`` (:func:`~swiftjax.align.overlap_scale_ratio`)
+            before eq. 2, so ``lambda_D`` is in chunk t's units whatever the two chunks' gauges;
+            ``"none"`` is the authors' eq. 2.
 
     Every field is a traced argument of the jitted alignment: changing one never recompiles.
+
+    Raises:
+        ValueError: ``overlap_scale`` not in :data:`OVERLAP_SCALE_RULES`.
     """
 
     depth_threshold: float = 0.2
@@ -36,6 +48,11 @@ class AlignOptions:
     min_points: int = 20_000
     fallback_depth_threshold: float = 0.25
     loop_depth_threshold: float = 0.4
+    overlap_scale: str = "median"
+
+    def __post_init__(self) -> None:
+        if self.overlap_scale not in OVERLAP_SCALE_RULES:
+            raise ValueError(f"AlignOptions: overlap_scale must be one of {OVERLAP_SCALE_RULES}, got {self.overlap_scale!r}")
 
     def replace(self, **changes: Any) -> "AlignOptions":
         """A copy with ``changes`` applied (``None`` values are ignored)."""
