@@ -284,11 +284,12 @@ def _core_subsample(o, h, w):
     return slice(None, None, fs), slice(None, None, hs), slice(None, None, ws)
 
 
-def _reference_pair(prev, cur, K_ref, lam=0.2, conf_ratio=0.5, scale=True):
+def _reference_pair(prev, cur, K_ref, lam=0.2, conf_ratio=0.5, scale=False):
     """The long way, with the public building blocks (float64 NumPy at the end).
 
     ``scale``: chunk t+1's depths first put on chunk t's scale by :func:`np_scale_ratio` of the
-    alignment's strided subsample (``overlap_scale="median"``); False: the authors' eq. 2."""
+    alignment's strided subsample (``overlap_scale="median"``); False: the authors' eq. 2 (what
+    the default ``"auto"`` does when enough points pass)."""
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
     sub = _core_subsample(*np.shape(dp))
@@ -373,8 +374,8 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
     K_ref = K_ref.copy()
     K_ref[0, 1], K_ref[0, 2], K_ref[1, 2] = 0.7, 9.0, 13.0
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
-    (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median"))
+    (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref, scale=True)
     Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
     np.testing.assert_allclose(Rg, R_r, atol=1e-11)
     np.testing.assert_allclose(tg, t_r, atol=1e-10 * max(1, np.abs(t_r).max()))
@@ -441,6 +442,10 @@ def test_align_chunk_pair_fallback_threshold_and_batch():
         Sk, ik = align.align_chunk_pair(p, c, K_ref, min_points=100)
         np.testing.assert_allclose(np.asarray(Sd[k]), np.asarray(Sk), atol=1e-5)
         assert float(idf.scale_ratio[k]) == pytest.approx(float(ik.scale_ratio), rel=1e-6)
+    # "auto" with enough points at lambda_D: the authors' numbers bit for bit, rho = 1
+    Sa, ia = align.align_chunk_pair(p2, c2, K_ref, min_points=100)
+    np.testing.assert_array_equal(np.asarray(Sa), np.asarray(S1))
+    assert float(ia.scale_ratio) == 1.0 and int(ia.num_points) > 100
     # float32: the batched reductions round differently (~eps x |t| ~ 1e-6 here).
     np.testing.assert_allclose(np.asarray(Sb[0]), np.asarray(S), atol=1e-5)
     np.testing.assert_allclose(np.asarray(Sb[1]), np.asarray(S1), atol=1e-5)

@@ -95,7 +95,7 @@ def test_gauge_jump_3p5x_kernel_and_jax(monkeypatch):
     fn, args = _core(prev, cur, K_ref, min_points=100, overlap_scale="none")
     (_, i_k), (_, i_j) = _both(monkeypatch, fn, *args)
     assert int(i_k.num_points) == int(i_j.num_points) == 0 and bool(i_k.pose_fallback)
-    fn, args = _core(prev, cur, K_ref, min_points=100)
+    fn, args = _core(prev, cur, K_ref, min_points=100)  # "auto": the authors' keep 0 < min_points, redone
     (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
     conf_ok = ((prev.conf > 0.5 * prev.conf.mean((1, 2), keepdims=True))
                & (cur.conf > 0.5 * cur.conf.mean((1, 2), keepdims=True)) & np.isfinite(dc))

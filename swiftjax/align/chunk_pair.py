@@ -31,7 +31,7 @@ from swiftjax import camera, sim3, so3
 from swiftjax._reductions import variadic_sum
 from swiftjax.align import _kernels, checks
 from swiftjax.align.mask import overlap_scale_ratio, reliability_mask
-from swiftjax.align.options import AlignOptions
+from swiftjax.align.options import OVERLAP_SCALE_RULES, AlignOptions
 from swiftjax.align.umeyama import UmeyamaInfo, _Moments, _rough_centre, _solve
 
 __all__ = [
@@ -282,6 +282,26 @@ def _align_core(
     conf_ratio: Array,
     min_points: Array,
     fallback_depth_threshold: Array,
+    scale_mode: Array,
+    user_keep: Array | None = None,
+) -> tuple[Array, AlignInfo]:
+    """``scale_mode`` (int32, traced): 0 ``"none"``, 1 ``"median"``, 2 ``"auto"`` (the authors'
+    solve, redone with the ratio only when even their retry leaves fewer than ``min_points``;
+    a ``lax.cond``: the second solve runs only then, except under ``vmap``)."""
+    args = (prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold)
+    S, info = _align_once(*args, scale_mode == 1, user_keep)
+    redo = (scale_mode == 2) & (info.num_points < min_points)
+    return jax.lax.cond(redo, lambda: _align_once(*args, True, user_keep), lambda: (S, info))
+
+
+def _align_once(
+    prev: ChunkFrames,
+    cur: ChunkFrames,
+    K_ref: Array,
+    depth_threshold: Array,
+    conf_ratio: Array,
+    min_points: Array,
+    fallback_depth_threshold: Array,
     use_scale_ratio: Array,
     user_keep: Array | None = None,
 ) -> tuple[Array, AlignInfo]:
@@ -403,7 +423,7 @@ def _core_arguments(prev, cur, K_ref, options: AlignOptions):
         jnp.asarray(options.conf_ratio, dtype),
         jnp.asarray(options.min_points, jnp.int32),
         jnp.asarray(options.fallback_depth_threshold, dtype),
-        jnp.asarray(options.overlap_scale == "median"),
+        jnp.asarray(OVERLAP_SCALE_RULES.index(options.overlap_scale), jnp.int32),
     )
 
 
@@ -432,10 +452,12 @@ def align_chunk_pair(
     inverse of that chunk's extrinsic.  Reliable pixels (eq. 2, :func:`reliability_mask`)
     weight one Umeyama solve with ``src`` = chunk t+1's points, ``dst`` = chunk t's points.
     Before eq. 2, chunk t+1 is put on chunk t's scale by the robust ratio ``rho`` of the
-    overlap depths (``options.overlap_scale="median"``, :func:`~swiftjax.align.overlap_scale_ratio`
-    on a strided subsample; ``"none"``: the authors' eq. 2), so a gauge jump between the chunks
-    (each normalised to its own mean depth) does not empty the mask; ``S`` is in the chunks'
-    own units either way and ``info.scale_ratio`` is ``rho``.
+    overlap depths (:func:`~swiftjax.align.overlap_scale_ratio` on a strided subsample), so a
+    gauge jump between the chunks (each normalised to its own mean depth) does not empty the
+    mask: ``options.overlap_scale="median"`` always, ``"auto"`` (default) only when the authors'
+    eq. 2 and their retry leave fewer than ``min_points`` (otherwise the authors' numbers bit for
+    bit), ``"none"`` never.  ``S`` is in the chunks' own units either way and
+    ``info.scale_ratio`` is the ``rho`` used (1 when none).
     If fewer than ``min_points`` pass, the mask is recomputed once with
     ``fallback_depth_threshold`` (the authors' rule).  If the solve is still invalid (e.g.
     empty overlap), ``S`` is :func:`pose_based_estimate` of the overlap cameras (identity if

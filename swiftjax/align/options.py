@@ -13,10 +13,12 @@ from typing import Any
 
 __all__ = ["AlignOptions", "OVERLAP_SCALE_RULES"]
 
-#: How chunk t+1's overlap depths are put on chunk t's scale before eq. 2: ``"median"`` (the
-#: robust ratio of :func:`~swiftjax.align.overlap_scale_ratio`) or ``"none"`` (the authors' eq. 2,
-#: absolute differences of the chunks' own normalised depths).
-OVERLAP_SCALE_RULES = ("median", "none")
+#: How chunk t+1's overlap depths are put on chunk t's scale before eq. 2: ``"none"`` (the
+#: authors' eq. 2, absolute differences of the chunks' own normalised depths), ``"median"``
+#: (always rescaled by the robust ratio of :func:`~swiftjax.align.overlap_scale_ratio`) or
+#: ``"auto"`` (the authors' eq. 2 and retry; rescaled only when they keep fewer than
+#: ``min_points``: a gauge jump).  The order is the traced code of the jitted alignment.
+OVERLAP_SCALE_RULES = ("none", "median", "auto")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +37,10 @@ class AlignOptions:
         overlap_scale: :data:`OVERLAP_SCALE_RULES`: ``"median"`` rescales chunk t+1's overlap
             depths by the robust ratio ``rho`` (:func:`~swiftjax.align.overlap_scale_ratio`)
             before eq. 2, so ``lambda_D`` is in chunk t's units whatever the two chunks' gauges;
-            ``"none"`` is the authors' eq. 2.
+            ``"none"`` is the authors' eq. 2; ``"auto"`` (default) is the authors' unless their
+            mask and retry keep fewer than ``min_points``, then ``"median"`` (measured: on the
+            demo and synthetic KITTI 00/05/06 the ratio ranges 0.87-1.10 and always rescaling
+            moves the demo's ATE 0.393 -> 0.405 m; ``"auto"`` leaves those runs unchanged).
 
     Every field is a traced argument of the jitted alignment: changing one never recompiles.
 
@@ -48,7 +53,7 @@ class AlignOptions:
     min_points: int = 20_000
     fallback_depth_threshold: float = 0.25
     loop_depth_threshold: float = 0.4
-    overlap_scale: str = "median"
+    overlap_scale: str = "auto"
 
     def __post_init__(self) -> None:
         if self.overlap_scale not in OVERLAP_SCALE_RULES:
