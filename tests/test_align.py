@@ -260,15 +260,92 @@ def make_pair(seed=0, o=4, h=24, w=40, s=1.02, outliers=0.3, dtype=np.float64):
     return prev, cur, K_ref.astype(dtype), (R_S, t_S, s)
 
 
-def _reference_pair(prev, cur, K_ref, lam=0.2, conf_ratio=0.5):
-    """The long way, with the public building blocks (float64 NumPy at the end)."""
+def np_scale_ratio(dp, dc, cp, cc, conf_ratio=0.5):
+    """NumPy loops: ``exp median log(dp / dc)`` over pixels finite, positive and confident in
+    both (confidence > ratio x the frame's mean over its finite pixels); 1 if none or outside [1/100, 100]."""
+    logs = []
+    for f in range(dp.shape[0]):
+        ma = np.mean(cp[f][np.isfinite(cp[f])])
+        mb = np.mean(cc[f][np.isfinite(cc[f])])
+        for y in range(dp.shape[1]):
+            for x in range(dp.shape[2]):
+                a, b, ca, cb = float(dp[f, y, x]), float(dc[f, y, x]), float(cp[f, y, x]), float(cc[f, y, x])
+                if all(np.isfinite([a, b, ca, cb])) and a > 0 and b > 0 and ca > conf_ratio * ma and cb > conf_ratio * mb:
+                    logs.append(np.log(a) - np.log(b))
+    if not logs:
+        return 1.0
+    rho = float(np.exp(np.median(logs)))
+    return rho if 1 / 100 <= rho <= 100 else 1.0
+
+
+def _core_subsample(o, h, w):
+    """The strided subsample ``_align_core`` estimates ``rho`` on (chunk_pair.py)."""
+    fs, hs, ws = max(1, o // 8), max(1, h // 8), max(1, w // 16)
+    return slice(None, None, fs), slice(None, None, hs), slice(None, None, ws)
+
+
+def _reference_pair(prev, cur, K_ref, lam=0.2, conf_ratio=0.5, scale=False):
+    """The long way, with the public building blocks (float64 NumPy at the end).
+
+    ``scale``: chunk t+1's depths first put on chunk t's scale by :func:`np_scale_ratio` of the
+    alignment's strided subsample (``overlap_scale="median"``); False: the authors' eq. 2 (what
+    the default ``"auto"`` does when enough points pass)."""
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
-    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, lam, conf_ratio))
+    sub = _core_subsample(*np.shape(dp))
+    rho = np_scale_ratio(*(np.asarray(a)[sub] for a in (dp, dc, prev.conf, cur.conf)), conf_ratio) if scale else 1.0
+    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, lam, conf_ratio, scale_ratio=rho))
     Xp = np.asarray(camera.unproject(dp, K_ref, camera.camera_to_world(prev.extrinsic))).reshape(-1, 3)
     Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)
     mm = m.reshape(-1)
     return np_weighted_umeyama(Xc[mm], Xp[mm], np.ones(mm.sum())), mm.sum()
+
+
+def test_overlap_scale_ratio_matches_numpy_loops(x64):
+    """``overlap_scale_ratio`` against NumPy loops on frames with NaN/inf, non-positive depths,
+    gross outliers (30 %) and unconfident pixels; odd and even counts; and masked_median."""
+    rng = np.random.default_rng(3)
+    for o, h, w in ((3, 7, 9), (2, 4, 6), (1, 5, 5)):
+        da = rng.uniform(0.5, 5.0, (o, h, w))
+        db = da / 2.7 * (1 + 0.01 * rng.normal(size=da.shape))
+        db = np.where(rng.random(da.shape) < 0.3, rng.uniform(0.1, 9.0, da.shape), db)
+        ca, cb = rng.uniform(0.5, 3.0, da.shape), rng.uniform(0.5, 3.0, da.shape)
+        da[0, 0, :3] = np.nan, -1.0, 0.0
+        db[0, 1, :2] = np.inf, -2.0
+        ca[0, 2, 0] = np.nan
+        rho, n = align.overlap_scale_ratio(da, db, ca, cb, 0.5)
+        assert float(rho) == pytest.approx(np_scale_ratio(da, db, ca, cb, 0.5), rel=1e-12)
+        if da.size > 100:  # enough inliers for the median to sit on them
+            assert abs(float(rho) - 2.7) < 0.1
+        keep = rng.random(da.shape) < 0.5
+        vals = rng.normal(size=da.shape)
+        med, cnt = align.masked_median(vals, keep)
+        assert int(cnt) == keep.sum() and float(med) == pytest.approx(np.median(vals[keep]), rel=1e-12)
+    assert np.isnan(float(align.masked_median(np.ones(4), np.zeros(4, bool))[0]))
+    # nothing confident, or a ratio beyond [1/100, 100]: rho = 1 (eq. 2 as the authors wrote it)
+    one = np.ones((1, 3, 3))
+    assert float(align.overlap_scale_ratio(one, np.full_like(one, np.nan), one, one)[0]) == 1.0
+    assert float(align.overlap_scale_ratio(one * 500, one, one, one)[0]) == 1.0
+    assert float(align.overlap_scale_ratio(one * 50, one, one, one)[0]) == pytest.approx(50)
+
+
+def test_reliability_mask_scale_ratio_matches_numpy(x64):
+    """Eq. 2 after the rescale, ``|D_a - rho D_b| < lambda_D`` in chunk a's units, against loops."""
+    rng = np.random.default_rng(4)
+    da = rng.uniform(1, 4, (2, 5, 6))
+    db = da / 3.5 + rng.normal(size=da.shape) * 0.05
+    ca, cb = rng.uniform(0.5, 3, da.shape), rng.uniform(0.5, 3, da.shape)
+    rho = float(align.overlap_scale_ratio(da, db, ca, cb, 0.5)[0])
+    m = np.asarray(align.reliability_mask(da, db, ca, cb, 0.2, 0.5, scale_ratio=rho))
+    ref = np.zeros_like(m)
+    for f in range(2):
+        for y in range(5):
+            for x in range(6):
+                ref[f, y, x] = (abs(da[f, y, x] - rho * db[f, y, x]) < 0.2 and ca[f, y, x] > 0.5 * ca[f].mean()
+                                and cb[f, y, x] > 0.5 * cb[f].mean())
+    np.testing.assert_array_equal(m, ref)
+    assert ref.sum() > 0.25 * ref.size  # about every confident pixel (noise 0.05 x 3.5 < 0.2)
+    assert not np.asarray(align.reliability_mask(da, db, ca, cb, 0.2, 0.5)).any()  # as written: none
 
 
 def test_align_chunk_pair_recovers_sim3_float64(x64):
@@ -297,8 +374,8 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
     K_ref = K_ref.copy()
     K_ref[0, 1], K_ref[0, 2], K_ref[1, 2] = 0.7, 9.0, 13.0
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
-    (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median"))
+    (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref, scale=True)
     Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
     np.testing.assert_allclose(Rg, R_r, atol=1e-11)
     np.testing.assert_allclose(tg, t_r, atol=1e-10 * max(1, np.abs(t_r).max()))
@@ -307,7 +384,9 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     # rms from the closed form vs the explicit residuals
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
-    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5)).reshape(-1)
+    rho = float(info.scale_ratio)
+    assert rho == pytest.approx(np_scale_ratio(*(np.asarray(a)[_core_subsample(*dp.shape)] for a in (dp, dc, prev.conf, cur.conf))), rel=1e-12)
+    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5, scale_ratio=rho)).reshape(-1)
     Xp = np.asarray(camera.unproject(dp, K_ref, camera.camera_to_world(prev.extrinsic))).reshape(-1, 3)[m]
     Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)[m]
     res = np.sqrt(((Xp - (s_r * Xc @ R_r.T + t_r)) ** 2).sum(1).mean())
@@ -343,19 +422,30 @@ def test_align_chunk_pair_float32_close_to_float64():
 
 def test_align_chunk_pair_fallback_threshold_and_batch():
     prev, cur, K_ref, _ = make_pair(seed=3, s=1.0, dtype=np.float32)
-    # Shift cur's depth by 0.22 (scale-free): nothing passes at 0.2, all inliers at 0.25.
+    # Shift cur's depth by 0.22 (scale-free): nothing passes at 0.2, all inliers at 0.25
+    # (the authors' eq. 2: a ratio would absorb part of the shift).
+    authors = align.AlignOptions(overlap_scale="none")
     cur = cur._replace(depth=cur.depth + 0.22 / (0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1]))[:, None, None])
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=authors)
     assert bool(info.used_fallback_threshold) and float(info.depth_threshold) == pytest.approx(0.25)
-    assert bool(info.valid) and int(info.num_points) > 100
-    S2, info2 = align.align_chunk_pair(prev, cur, K_ref, min_points=0)
+    assert bool(info.valid) and int(info.num_points) > 100 and float(info.scale_ratio) == 1.0
+    S2, info2 = align.align_chunk_pair(prev, cur, K_ref, min_points=0, options=authors)
     assert not bool(info2.used_fallback_threshold) and not bool(info2.valid)  # 0 points at 0.2
-    # Batched form = individual calls.
+    # Batched form = individual calls (the default options: rho per pair).
     p2, c2, _, _ = make_pair(seed=4, dtype=np.float32)
     pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
     cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
-    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)
-    S1, _ = align.align_chunk_pair(p2, c2, K_ref, min_points=100)
+    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100, options=authors)
+    S1, _ = align.align_chunk_pair(p2, c2, K_ref, min_points=100, options=authors)
+    Sd, idf = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)
+    for k, (p, c) in enumerate(((prev, cur), (p2, c2))):
+        Sk, ik = align.align_chunk_pair(p, c, K_ref, min_points=100)
+        np.testing.assert_allclose(np.asarray(Sd[k]), np.asarray(Sk), atol=1e-5)
+        assert float(idf.scale_ratio[k]) == pytest.approx(float(ik.scale_ratio), rel=1e-6)
+    # "auto" with enough points at lambda_D: the authors' numbers bit for bit, rho = 1
+    Sa, ia = align.align_chunk_pair(p2, c2, K_ref, min_points=100)
+    np.testing.assert_array_equal(np.asarray(Sa), np.asarray(S1))
+    assert float(ia.scale_ratio) == 1.0 and int(ia.num_points) > 100
     # float32: the batched reductions round differently (~eps x |t| ~ 1e-6 here).
     np.testing.assert_allclose(np.asarray(Sb[0]), np.asarray(S), atol=1e-5)
     np.testing.assert_allclose(np.asarray(Sb[1]), np.asarray(S1), atol=1e-5)
@@ -386,9 +476,9 @@ def test_align_chunk_pair_nan_pixels_never_reach_S(x64):
 
 def test_align_chunk_pair_checked_empty_overlap_warns_and_falls_back(x64):
     prev, cur, K_ref, (R, t, s) = make_pair(seed=6, outliers=0.0)
-    cur_bad = cur._replace(depth=cur.depth + 10.0)  # no pixel passes either threshold
+    cur_bad = cur._replace(depth=cur.depth + 10.0)  # no pixel passes either threshold (eq. 2 as written)
     with pytest.warns(RuntimeWarning, match="ill-posed"):
-        S, info = align.align_chunk_pair_checked(prev, cur_bad, K_ref)
+        S, info = align.align_chunk_pair_checked(prev, cur_bad, K_ref, options=align.AlignOptions(overlap_scale="none"))
     assert not bool(info.valid) and bool(info.pose_fallback) and int(info.num_points) == 0
     assert np.all(np.isfinite(np.asarray(S)))
     # The pose-based fallback recovers the rotation exactly and the rest approximately.
@@ -446,7 +536,7 @@ def test_align_options_written_once_and_taken_everywhere():
 
 def test_align_chunk_pair_checked_throw_false_reports_flags_only():
     prev, cur, K_ref, _ = make_pair(seed=6, o=2, h=16, w=24, outliers=0.0, dtype=np.float32)
-    cur_bad = cur._replace(depth=cur.depth + 10.0)  # no pixel passes either threshold
+    cur_bad = cur._replace(depth=-cur.depth)  # behind the cameras: no ratio, no pixel passes
     import warnings
 
     with warnings.catch_warnings():

@@ -153,10 +153,11 @@ def test_align_info_moments_equal_explicit_points(x64):
     prev, cur, K_ref, _ = make_pair(seed=11, o=5, h=20, w=33)
     rng = np.random.default_rng(1)
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median"))
+    assert float(info.scale_ratio) != 1.0  # the moments are mapped back to chunk t+1's units
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
-    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5)).reshape(-1)
+    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5, scale_ratio=float(info.scale_ratio))).reshape(-1)  # eq. 2 after the rescale
     Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)[m]
     np.testing.assert_allclose(np.asarray(info.src_mean), Xc.mean(0), rtol=1e-10)
     np.testing.assert_allclose(np.asarray(info.src_covariance), np.cov(Xc.T, bias=True), rtol=1e-9, atol=1e-12)

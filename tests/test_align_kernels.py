@@ -86,11 +86,34 @@ def test_chunk_pair_kernel_matches_jax(monkeypatch, isa):
         np.testing.assert_allclose(np.asarray(i_k.src_covariance), np.asarray(i_j.src_covariance), rtol=1e-4, atol=1e-5)
 
 
+def test_gauge_jump_3p5x_kernel_and_jax(monkeypatch):
+    """Chunk t+1 in a gauge 3.5x smaller (depths and camera centres / 3.5, synthetic KITTI 08's
+    first pair): the authors' eq. 2 keeps no point and falls back to the poses; with the robust
+    ratio both paths keep every confident pixel and recover S (scale 3.5) to float32 rounding."""
+    prev, cur, K_ref, (R, t, s) = make_pair(seed=13, s=3.5, outliers=0.0, dtype=np.float32)
+    dc = np.asarray(cur.depth)
+    fn, args = _core(prev, cur, K_ref, min_points=100, overlap_scale="none")
+    (_, i_k), (_, i_j) = _both(monkeypatch, fn, *args)
+    assert int(i_k.num_points) == int(i_j.num_points) == 0 and bool(i_k.pose_fallback)
+    fn, args = _core(prev, cur, K_ref, min_points=100)  # "auto": the authors' keep 0 < min_points, redone
+    (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
+    conf_ok = ((prev.conf > 0.5 * prev.conf.mean((1, 2), keepdims=True))
+               & (cur.conf > 0.5 * cur.conf.mean((1, 2), keepdims=True)) & np.isfinite(dc))
+    assert int(i_k.num_points) == int(i_j.num_points) == int(conf_ok.sum())  # every confident pixel
+    assert float(i_k.scale_ratio) == pytest.approx(3.5, rel=1e-5)
+    _close(S_k, S_j)
+    from swiftjax import sim3
+    Rg, tg, sg = (np.asarray(a, np.float64) for a in sim3.to_rst(S_k))
+    np.testing.assert_allclose(Rg, R, atol=1e-4)
+    np.testing.assert_allclose(tg, t, atol=1e-3 * max(1, np.abs(t).max()))
+    assert float(sg) == pytest.approx(s, rel=1e-4)
+
+
 def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
     prev, cur, K_ref, _ = make_pair(seed=3, s=1.0, dtype=np.float32)
     r = 0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1])
-    cur = cur._replace(depth=cur.depth + 0.22 / r[:, None, None])  # only the fallback threshold passes
-    fn, args = _core(prev, cur, K_ref, min_points=100)
+    cur = cur._replace(depth=cur.depth + 0.22 / r[:, None, None])  # only the fallback threshold passes (eq. 2 as written)
+    fn, args = _core(prev, cur, K_ref, min_points=100, overlap_scale="none")
     (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
     assert bool(i_k.used_fallback_threshold) and int(i_k.num_points) == int(i_j.num_points)
     _close(S_k, S_j)
@@ -98,7 +121,7 @@ def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
     pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
     cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
     monkeypatch.delenv("SWIFTJAX_ALIGN_KERNEL", raising=False)
-    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)  # vmap over the FFI call
+    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100, overlap_scale="none")  # vmap over the FFI call
     _close(Sb[0], S_j)
     assert int(ib.num_points[0]) == int(i_j.num_points)
 

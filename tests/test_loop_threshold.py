@@ -165,3 +165,21 @@ def test_a_calibrated_threshold_above_one_says_so():
     with pytest.warns(UserWarning, match="calibrated loop threshold is 1.1"):
         found, det = L.find_loops(G, chunk_schedule(len(G)), fit_on="raw", return_details=True)
     assert found == [] and det["threshold"] > 1.0
+
+
+def test_a_route_of_laps_without_candidate_says_so_and_fixed_finds_the_loops():
+    """Issue 25 item 32: a route that revisits every frame (the demo route driven 2.4 times,
+    1200 frames; ``swiftjax demo --frames 3000`` is the six-lap case) breaks the calibration's
+    assumption (< 60 % of frames revisit): the adaptive threshold lands above every revisit.
+    That used to be silent; now a warning names the cause and the remedy, and the remedy (the
+    fixed rule) finds the loops, every one of them true by the ground truth."""
+    poses = loop_route(laps=1.25 * 1200 / loop_route().shape[0] + 0.01)[:1200]
+    G = _route_descriptors(poses, places.PlaceTokenConfig())
+    sched = chunk_schedule(len(G))
+    with pytest.warns(UserWarning, match="revisits most of its frames"):
+        found, det = L.find_loops(G, sched, return_details=True)
+    assert found == [] and det["threshold"] < 1.0 and "no_candidate_warning" in det
+    fixed = L.find_loops(G, sched, rule="fixed")
+    gt = places.ground_truth_loops(poses)
+    ev = places.evaluate_loops(np.array([(lp.i, lp.j) for lp in fixed]).reshape(-1, 2), gt, tolerance=25)
+    assert ev.n_correct >= 5 and ev.region_recall == 1.0

@@ -17,7 +17,7 @@ Modules:
 
 from swiftjax.align.options import AlignOptions
 from swiftjax.align.umeyama import UmeyamaInfo, umeyama
-from swiftjax.align.mask import frame_conf_mean, reliability_mask
+from swiftjax.align.mask import frame_conf_mean, masked_median, overlap_scale_ratio, reliability_mask
 from swiftjax.align.chunk_pair import (
     AlignInfo,
     ChunkFrames,
@@ -35,6 +35,8 @@ __all__ = [
     "umeyama",
     "frame_conf_mean",
     "reliability_mask",
+    "overlap_scale_ratio",
+    "masked_median",
     *_irls.__all__,
     *_chunk_pair.__all__,
 ]

@@ -30,8 +30,8 @@ from jaxtyping import ArrayLike, Bool, Float, Int, Real
 from swiftjax import camera, sim3, so3
 from swiftjax._reductions import variadic_sum
 from swiftjax.align import _kernels, checks
-from swiftjax.align.mask import reliability_mask
-from swiftjax.align.options import AlignOptions
+from swiftjax.align.mask import overlap_scale_ratio, reliability_mask
+from swiftjax.align.options import OVERLAP_SCALE_RULES, AlignOptions
 from swiftjax.align.umeyama import UmeyamaInfo, _Moments, _rough_centre, _solve
 
 __all__ = [
@@ -83,6 +83,9 @@ class AlignInfo(NamedTuple):
             points (chunk ``t+1``'s reliable overlap points, in chunk ``t+1`` units): with ``S``'s
             scale, ``num_points`` and ``rms`` they give the edge's information matrix
             (:func:`swiftjax.align_covariance.alignment_information`).  Zeros if no point is used.
+        scale_ratio: ``rho``, the factor chunk ``t+1``'s overlap depths were multiplied by
+            before eq. 2 (:func:`~swiftjax.align.overlap_scale_ratio`; 1 with
+            ``overlap_scale="none"``).
     """
 
     num_points: Array
@@ -95,6 +98,7 @@ class AlignInfo(NamedTuple):
     umeyama: UmeyamaInfo
     src_mean: Array
     src_covariance: Array
+    scale_ratio: Array
 
 
 def _chunk_geometry(frames: ChunkFrames, K_ref: Array):
@@ -278,6 +282,27 @@ def _align_core(
     conf_ratio: Array,
     min_points: Array,
     fallback_depth_threshold: Array,
+    scale_mode: Array,
+    user_keep: Array | None = None,
+) -> tuple[Array, AlignInfo]:
+    """``scale_mode`` (int32, traced): 0 ``"none"``, 1 ``"median"``, 2 ``"auto"`` (the authors'
+    solve, redone with the ratio only when even their retry leaves fewer than ``min_points``;
+    a ``lax.cond``: the second solve runs only then, except under ``vmap``)."""
+    args = (prev, cur, K_ref, depth_threshold, conf_ratio, min_points, fallback_depth_threshold)
+    S, info = _align_once(*args, scale_mode == 1, user_keep)
+    redo = (scale_mode == 2) & (info.num_points < min_points)
+    return jax.lax.cond(redo, lambda: _align_once(*args, True, user_keep), lambda: (S, info))
+
+
+def _align_once(
+    prev: ChunkFrames,
+    cur: ChunkFrames,
+    K_ref: Array,
+    depth_threshold: Array,
+    conf_ratio: Array,
+    min_points: Array,
+    fallback_depth_threshold: Array,
+    use_scale_ratio: Array,
     user_keep: Array | None = None,
 ) -> tuple[Array, AlignInfo]:
     dtype = prev.depth.dtype
@@ -286,6 +311,20 @@ def _align_core(
     r_p, B_p, c_p = _chunk_geometry(prev, K_ref)
     r_c, B_c, c_c = _chunk_geometry(cur, K_ref)
     e = (slice(None), None, None)
+    fs, hs, ws = max(1, o // 8), max(1, h // 8), max(1, w // 16)
+    sub = (slice(None, None, fs), slice(None, None, hs), slice(None, None, ws))
+    fsub = slice(None, None, fs)
+
+    # The gauge of chunk t+1 put on chunk t's (mask.py): rho from a strided subsample of the
+    # confident overlap pixels, then chunk t+1's geometry is scaled by rho about its origin
+    # (depths and camera centres: its points become rho x, a similarity), so eq. 2 compares
+    # depths in chunk t's units and the solve below returns S' = S diag(rho)^-1; S = S' diag(rho).
+    # With rho = 1 every product below is exact: the authors' numbers bit for bit.
+    rho, _ = overlap_scale_ratio(
+        r_p[fsub][e] * prev.depth[sub], r_c[fsub][e] * cur.depth[sub], prev.conf[sub], cur.conf[sub],
+        conf_ratio, None if user_keep is None else user_keep[sub])
+    rho = jax.lax.stop_gradient(jnp.where(use_scale_ratio, rho, 1).astype(dtype))
+    r_c, c_c = rho * r_c, rho * c_c
 
     def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, lam, user):
         m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio)
@@ -296,9 +335,6 @@ def _align_core(
 
     # Rough centres from a strided subsample of pixels (about 8 x 8 x 16 of them), masked with
     # the subsample's own confidence means: any centre is exact, it only conditions the sums.
-    fs, hs, ws = max(1, o // 8), max(1, h // 8), max(1, w // 16)
-    sub = (slice(None, None, fs), slice(None, None, hs), slice(None, None, ws))
-    fsub = slice(None, None, fs)
     m_sub = mask(prev.depth[sub], cur.depth[sub], prev.conf[sub], cur.conf[sub],
                  r_p[fsub], r_c[fsub], depth_threshold, None if user_keep is None else user_keep[sub])
     zero = jnp.zeros(3, dtype)
@@ -344,7 +380,10 @@ def _align_core(
     lam_used = jnp.where(few, fallback_depth_threshold, depth_threshold).astype(dtype)
     m, sxx3 = _moments_from_pixels(S_pix, n, My, Mx, cx, cy)
     S, uinfo = _solve(m)
+    S = S.at[..., 7].multiply(rho)  # S' diag(rho): back to chunk t+1's own units
+    uinfo = uinfo._replace(singular_values=uinfo.singular_values / rho)
     src_mean, src_cov = _source_moments(m, sxx3)
+    src_mean, src_cov = src_mean / rho, src_cov / (rho * rho)
     S_pose, _ = pose_based_estimate(prev.extrinsic.astype(dtype), cur.extrinsic.astype(dtype))
     S = jnp.where(uinfo.valid, S, S_pose)
     info = AlignInfo(
@@ -358,12 +397,13 @@ def _align_core(
         umeyama=uinfo,
         src_mean=src_mean,
         src_covariance=src_cov,
+        scale_ratio=rho,
     )
     return S, info
 
 
 _align_core_jit = _kernels.jit(_align_core)
-_align_core_batched = _kernels.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, 0)))
+_align_core_batched = _kernels.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, None, 0)))
 
 
 def _as_frames(x, dtype=None) -> ChunkFrames:
@@ -383,6 +423,7 @@ def _core_arguments(prev, cur, K_ref, options: AlignOptions):
         jnp.asarray(options.conf_ratio, dtype),
         jnp.asarray(options.min_points, jnp.int32),
         jnp.asarray(options.fallback_depth_threshold, dtype),
+        jnp.asarray(OVERLAP_SCALE_RULES.index(options.overlap_scale), jnp.int32),
     )
 
 
@@ -410,6 +451,13 @@ def align_chunk_pair(
     (eq. 1), unprojected with ``K_ref`` at integer pixels, mapped to the chunk frame with the
     inverse of that chunk's extrinsic.  Reliable pixels (eq. 2, :func:`reliability_mask`)
     weight one Umeyama solve with ``src`` = chunk t+1's points, ``dst`` = chunk t's points.
+    Before eq. 2, chunk t+1 is put on chunk t's scale by the robust ratio ``rho`` of the
+    overlap depths (:func:`~swiftjax.align.overlap_scale_ratio` on a strided subsample), so a
+    gauge jump between the chunks (each normalised to its own mean depth) does not empty the
+    mask: ``options.overlap_scale="median"`` always, ``"auto"`` (default) only when the authors'
+    eq. 2 and their retry leave fewer than ``min_points`` (otherwise the authors' numbers bit for
+    bit), ``"none"`` never.  ``S`` is in the chunks' own units either way and
+    ``info.scale_ratio`` is the ``rho`` used (1 when none).
     If fewer than ``min_points`` pass, the mask is recomputed once with
     ``fallback_depth_threshold`` (the authors' rule).  If the solve is still invalid (e.g.
     empty overlap), ``S`` is :func:`pose_based_estimate` of the overlap cameras (identity if

@@ -14,6 +14,7 @@ from jaxtyping import ArrayLike
 from swiftjax.chunks import ChunkSchedule
 from swiftjax.loops._checks import _check_finite
 from swiftjax.loops.descriptors import fit_whitening, power_normalize, whiten
+from swiftjax.loops import detection
 from swiftjax.loops.detection import detect_loops
 from swiftjax.loops.loop_chunk import _loop_chunks, filter_by_chunks
 from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions, check_values
@@ -40,6 +41,36 @@ class Loop(NamedTuple):
     chunk_j: int
     local_i: int
     local_j: int
+
+
+def _warn_no_candidate(Z, o: LoopOptions, details: dict) -> None:
+    """The adaptive threshold found no candidate: say loudly that its assumption may have failed
+    (issue 25 item 32).
+
+    :func:`calibrate_threshold` fits the null on the lower 40 % of the frames' best scores, so
+    it assumes that fewer than 60 % of the frames revisit.  A route driven several times (a race
+    track, a delivery robot: ``swiftjax demo --frames 1200`` is 2.4 laps, every frame has a match
+    on another lap) breaks it: the fitted "null" is the revisits themselves and ``tau`` lands
+    above all of them.  From the best scores alone "no revisit at all" and "nearly every frame
+    revisits" give the same empty result (both are one population), so no rule on them can tell
+    the two apart; the warning names both and the remedy (``rule="fixed"``: its candidates are
+    verified geometrically as usual).  ``details["no_candidate_warning"]`` records it, with the
+    fraction of frames whose best score passes the fixed threshold.
+    """
+    best = np.asarray(detection._row_topk(jnp.asarray(Z), o.min_separation, 1,
+                                          detection._default_block_rows(Z.shape[0]))[0])[:, 0]
+    best = best[np.isfinite(best)]
+    above = float(np.mean(best > o.threshold)) if best.size else 0.0
+    details["no_candidate_warning"] = {"frames_above_fixed_threshold": above}
+    warnings.warn(
+        f"find_loops: the adaptive loop threshold ({details['threshold']:.3f}, false_alarms={o.false_alarms:g}) "
+        f"leaves no loop candidate among {best.size} frames. Either the route never revisits a place, or it "
+        "revisits most of its frames (several laps): the calibration fits its null on the lower 40% of the "
+        "frames' best scores and assumes fewer than 60% of the frames revisit. "
+        f"{100 * above:.0f}% of the frames have a match above the fixed threshold {o.threshold:g}; if the route "
+        "has laps, set loop_threshold_rule='fixed' (its candidates are verified as usual)",
+        stacklevel=3,
+    )
 
 
 def find_loops(
@@ -158,6 +189,8 @@ def find_loops(
     cand = detect_loops(Z, threshold, o.min_separation, o.nms_radius, o.top_k, o.max_loops, nms=o.nms,
                         calibrate=o.rule == "adaptive", false_alarms=o.false_alarms, throw=n_fit == n)
     details["threshold"] = float(cand.threshold)
+    if o.rule == "adaptive" and int(cand.count) == 0 and details["threshold"] < 1.0:
+        _warn_no_candidate(Z, o, details)
     if o.rule == "adaptive" and n > o.min_separation + 1 and details["threshold"] >= 1.0:
         warnings.warn(
             f"find_loops: the calibrated loop threshold is {details['threshold']:.3f} >= 1 (false_alarms="

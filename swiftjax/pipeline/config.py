@@ -13,6 +13,7 @@ from typing import Any
 
 from swiftjax import loops, options
 from swiftjax.align import AlignOptions as _ALIGN
+from swiftjax.align.options import OVERLAP_SCALE_RULES
 from swiftjax.metric import METRIC_COMBINE
 from swiftjax.options import option
 from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
@@ -38,7 +39,8 @@ class PipelineConfig:
     (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's
     iterative baseline on the same reliable points, for comparison), ``depth_threshold``
     (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
-    ``fallback_depth_threshold`` (the authors' one-time retry), ``loop_depth_threshold``
+    ``fallback_depth_threshold`` (the authors' one-time retry), ``overlap_scale`` (``"auto"``:
+    the overlap depths put on one scale before the mask when the authors' keeps too few points; ``"median"``: always; ``"none"``: the authors'), ``loop_depth_threshold``
     (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold_rule``
     (``"adaptive"``: calibrated per sequence, :func:`swiftjax.loops.calibrate_threshold`, with
     ``loop_false_alarms``; ``"fixed"``: ``loop_threshold``, the cosine of the whitened
@@ -97,6 +99,10 @@ class PipelineConfig:
     fallback_depth_threshold: float = option(
         _ALIGN.fallback_depth_threshold, "depth threshold of the retry when fewer than min_points are reliable",
         low=0.0, low_open=True, stage="temporal",
+    )
+    overlap_scale: str = option(
+        _ALIGN.overlap_scale, "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the "
+        "reliability mask: median (always), auto (only when the authors' mask keeps fewer than min_points) or none (the authors' eq. 2)", choices=OVERLAP_SCALE_RULES, stage="temporal",
     )
     loop_depth_threshold: float = option(
         _ALIGN.loop_depth_threshold, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True,

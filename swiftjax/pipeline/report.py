@@ -105,6 +105,9 @@ def _metrics(
             "mean_points": float(np.mean([a["num_points"] for a in align_infos])) if align_infos else 0.0,
             "fallback_threshold_used": int(sum(a["used_fallback_threshold"] for a in align_infos)),
             "pose_fallbacks": int(sum(a["pose_fallback"] for a in align_infos)),
+            "zero_point_pairs": int(sum(a["num_points"] == 0 for a in align_infos)),
+            # rho of each temporal pair (chunk t+1's overlap depths onto chunk t's scale)
+            "scale_ratios": [float(a.get("scale_ratio", 1.0)) for a in align_infos],
         },
         "pose_graph": graph,
     }

@@ -371,7 +371,8 @@ def align_pair(
         if not ok:
             S = sim3.identity((), jnp.float32)
         diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
-                "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok}
+                "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok,
+                "scale_ratio": 1.0}
         return np.asarray(S, np.float64), diag
     S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, options=options)
     S = np.asarray(S, np.float64)
@@ -393,6 +394,7 @@ def _info_dict(info: align.AlignInfo) -> dict[str, Any]:
         "valid": bool(info.valid),
         "used_fallback_threshold": bool(info.used_fallback_threshold),
         "pose_fallback": bool(info.pose_fallback),
+        "scale_ratio": float(info.scale_ratio),
         "src_mean": np.asarray(info.src_mean, np.float64).tolist(),
         "src_covariance": np.asarray(info.src_covariance, np.float64).tolist(),
     }
