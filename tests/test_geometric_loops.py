@@ -209,3 +209,28 @@ def test_chunk_descriptors_reverse_pass_matches(shared_dir):
     assert d[0, 1] < min(d[0, 2], d[0, 3], d[1, 2], d[1, 3])
     empty = stack._replace(conf=np.zeros_like(stack.conf))
     assert not np.asarray(G.chunk_descriptors(empty, orc.K, opts).valid).any()
+
+
+def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
+    """The benchmark's smoke test (``--quick``): the pipeline with ``loop_geometry`` on runs
+    through synthetic KITTI 08's start; every candidate carries its source and a one-line
+    verdict, every geometric one its registration numbers or why it got none; every arm's
+    ATE is finite (never a NaN pose)."""
+    import pathlib
+    import sys
+
+    monkeypatch.setenv("SWIFTJAX_SHARED", str(shared_dir))
+    monkeypatch.setenv("SWIFTJAX_CACHE_DIR", str(tmp_path / "cache"))
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
+    import bench_hard_sequences
+
+    out = bench_hard_sequences.main(["--quick", "--frames", "400"])
+    (rec,) = out["records"]
+    assert set(rec["arms"]) == {"tokens (defaults)", "tokens + geometry", "authors", "truth edges"}
+    assert all(np.isfinite(a["ate_rmse"]) for a in rec["arms"].values())
+    assert rec["candidates"]["geometry"] >= 1
+    for c in rec["candidate_records"]:
+        assert c["source"] in ("tokens", "geometry") and c["reason"] and "\n" not in c["reason"]
+        if c["source"] == "geometry" and c["registration"] is not None:
+            assert all(np.isfinite(v) for v in c["registration"].values() if isinstance(v, float))
+    assert "truth edges" in out["table"]
