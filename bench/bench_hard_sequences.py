@@ -114,7 +114,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
         "authors": [r for r in cands if "Z" in r and r.get("source", "tokens") == "tokens"],
     }
     timings = res.timings
-    new = float(timings.get("loop geometry", 0.0))
+    new = sum(float(v) for k, v in timings.items() if k.startswith("loop geometry"))
     geometry = wall - float(timings.get("predict", 0.0)) - float(timings.get("predict (loop chunks)", 0.0)) - new
     out = {"sequence": seq, "frames": res.num_frames, "chunks": res.num_chunks, "aliasing": aliasing,
            "wall_seconds": wall, "load_average_before": load, "loop_geometry_seconds": new,

@@ -234,3 +234,47 @@ def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
         if c["source"] == "geometry" and c["registration"] is not None:
             assert all(np.isfinite(v) for v in c["registration"].values() if isinstance(v, float))
     assert "truth edges" in out["table"]
+
+
+def test_geometric_records_in_loops_txt_and_metrics(tmp_path):
+    """A geometric candidate's source and registration numbers reach ``loops.txt`` and
+    ``metrics.json``'s candidate list (marked ``source: geometry``), its reason on one line."""
+    from swiftjax.pipeline import export, report
+
+    rec = {"i": 3000, "j": 120, "score": 0.7, "chunk_i": 66, "chunk_j": 2, "accepted": False,
+           "reason": "degenerate registration: 12 structure inliers, spread 0.004", "source": "geometry",
+           "Z": [0, 0, 0, 0, 0, 0, 1, 1.0],
+           "registration": {"inlier_ratio": 0.41, "rms": 0.12, "scale_ratio": 1.02, "spread": 0.004,
+                            "num_inliers": 300, "num_structure": 12, "num_points": 1024, "valid": True}}
+    tok = {"i": 900, "j": 100, "score": 0.9, "chunk_i": 20, "chunk_j": 2, "accepted": True, "reason": "verified",
+           "source": "tokens", "dense_agreement": 0.8}
+    export.write_loops(tmp_path / "loops.txt", [tok, rec])
+    lines = (tmp_path / "loops.txt").read_text().splitlines()
+    header = lines[3].lstrip("# ").split()
+    rows = [dict(zip(header, line.split())) for line in lines[4:]]
+    assert rows[1]["source"] == "geometry" and rows[0]["source"] == "tokens"
+    assert rows[1]["registration.inlier_ratio"] == "0.41" and rows[0]["registration.inlier_ratio"] == "-"
+    assert rows[1]["reason"].startswith("degenerate_registration")
+    cand = report._candidate(rec)
+    assert cand["source"] == "geometry" and cand["registration"]["spread"] == 0.004 and "Z" not in cand
+
+
+def test_odometry_gate():
+    """Chunks on an out-and-back drive: the chunk driven back over the same stretch passes the
+    gate, a chunk far away does not (distances by hand)."""
+    from types import SimpleNamespace
+
+    from swiftjax.pipeline.loop_geometry import _gate
+
+    x = np.array([0, 50, 100, 150, 100, 50, 0, 300.0])  # metres; chunk 7 jumps far away
+    chain = np.zeros((8, 8))
+    chain[:, 0] = x
+    chain[:, 6] = 1.0  # identity rotation (qw last)
+    chain[:, 7] = 1.0
+    g = SimpleNamespace(anchors=np.zeros((8, 1, 3)), height=np.full(8, 1.65))
+    best = np.zeros((8, 8, 2), np.int32)
+    ok = _gate(chain, g, best, G.GeometryOptions(gate_min=15.0, gate_drift=0.1))
+    # 1 and 5: same place, 200 m of path apart -> 0 m <= max(24.75, 20)
+    assert ok[1, 5] and ok[0, 6] and ok[2, 4]
+    # 0 and 2: 100 m apart, path 100 m -> 100 > max(24.75, 10)
+    assert not ok[0, 2] and not ok[6, 7]

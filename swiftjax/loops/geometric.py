@@ -128,6 +128,8 @@ class GeometryOptions:
         max_distance: largest signature distance ``d_σ`` of a candidate.
         max_sc_distance: largest Scan Context distance ``d_SC(m*)`` of a candidate.
         top_k: best matches kept per chunk.
+        gate_min, gate_drift: the odometry gate of the pipeline's candidates (camera heights;
+            fraction of the path driven between the two chunks).
         src_points, dst_points: registration subsample sizes ``P``, ``Q``.
         iterations: ICP iterations ``n``.
         tau_start, tau_end: Tukey radius schedule ``τ_0 → τ_n`` (camera heights).
@@ -150,7 +152,9 @@ class GeometryOptions:
     ground_band: float = 0.35
     max_distance: float = 0.25
     max_sc_distance: float = 0.45
-    top_k: int = 1
+    top_k: int = 2
+    gate_min: float = 15.0
+    gate_drift: float = 0.1
     src_points: int = 1024
     dst_points: int = 4096
     iterations: int = 16

@@ -124,7 +124,8 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
     if config.loop_geometry:  # the second candidate source (swiftjax.pipeline.loop_geometry)
         with timer("loop geometry"):
             taken = {(max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"])) for r in loop_records}
-            geometric = loop_geometry.candidates(ctx, K_ref, taken, _verification_config(config))
+            geometric = loop_geometry.candidates(ctx, K_ref, taken, _verification_config(config),
+                                                 chain=chain_poses(temporal.relative))
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     _decide(ctx, temporal, loop_records + [r for r in geometric if "accepted" not in r])
     loop_records += geometric

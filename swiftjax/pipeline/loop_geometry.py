@@ -11,6 +11,11 @@ inliers kept) and their edge is checked like every other candidate (the cross-ch
 over all frame pairs of the two chunks: a reverse revisit's nearest cameras face each other,
 and pairwise consistency).  No loop-centric chunk is predicted.
 
+Candidate chunk pairs must also lie near each other under the dead-reckoned chain (within
+``gate_min`` camera heights or ``gate_drift`` of the path driven between them: the odometry's
+drift), as Scan Context's users gate by the odometry: a signature alone is ambiguous among
+the many look-alike streets of a city.
+
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread); a
 registration that fails its own test (:func:`swiftjax.loops.geometric.registration_reason`) is
@@ -69,16 +74,38 @@ def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
 
 
+def _gate(chain: np.ndarray, g: Any, best: np.ndarray, options: geo.GeometryOptions) -> np.ndarray:
+    """``[T, T]`` bool: the best anchors of the two chunks lie within ``max(gate_min h,
+    gate_drift x path length between them)`` of each other under the dead-reckoned chain."""
+    import jax.numpy as jnp
+
+    from swiftjax import sim3
+
+    T = len(chain)
+    with jax.enable_x64(True):
+        anchors = np.asarray(sim3.act(jnp.asarray(chain)[:, None, :], jnp.asarray(g.anchors, jnp.float64)))
+    centre = chain[:, :3]
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centre, axis=0), axis=1))])
+    h_world = np.nanmedian(np.asarray(g.height) * chain[:, 7])
+    a, b = np.meshgrid(np.arange(T), np.arange(T), indexing="ij")
+    d = np.linalg.norm(anchors[a, best[..., 0]] - anchors[b, best[..., 1]], axis=-1)
+    return d <= np.maximum(options.gate_min * h_world, options.gate_drift * np.abs(path[a] - path[b]))
+
+
 def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
-               verification: lv.VerificationConfig, options: geo.GeometryOptions = geo.GeometryOptions()
-               ) -> list[dict[str, Any]]:
+               verification: lv.VerificationConfig, options: geo.GeometryOptions = geo.GeometryOptions(),
+               chain: np.ndarray | None = None) -> list[dict[str, Any]]:
     """The geometric candidates' records (module docstring), chunk pairs in ``taken`` (the
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
-    set when its registration rejects it, else ready for :func:`verify_candidates`."""
+    set when its registration rejects it, else ready for :func:`verify_candidates`.
+    ``chain [T, 8]``: the dead-reckoned chunk poses; pairs whose anchors lie too far apart
+    under them are not proposed (:func:`_gate`)."""
     desc, ids = descriptors(ctx, K_ref, options)
     T = len(ids)
     dist, best = (np.asarray(a) for a in geo.signature_distances(desc.signatures, desc.valid))
     g = desc.geometry
+    if chain is not None:
+        dist = np.where(_gate(np.asarray(chain, np.float64), g, best, options), dist, np.inf)
     sep = ctx.config.loop_min_separation
     pairs: dict[tuple[int, int], float] = {}
     for a in range(T):
@@ -114,7 +141,7 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
         if why is not None:
             record.update(accepted=False, reason=why)
         else:
-            with ctx.timer("loop verification"):
+            with ctx.timer("loop geometry: verification"):
                 record.update(_dense(ctx, ci, cj, record["Z"], K_ref, options, verification))
         records.append(record)
     return records
