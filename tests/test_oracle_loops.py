@@ -265,3 +265,36 @@ def test_aliased_tokens_share_the_documented_component(route):
         places.make_place_params(dataclasses.replace(cfg, aliasing=((400, 200, 20), (410, 100, 5))))
     with pytest.raises(ValueError, match="alias_strength"):
         places.make_place_params(dataclasses.replace(cfg, aliasing=segs, alias_strength=1.5))
+
+
+def test_depth_seen_from_the_other_side_carries_the_same_errors():
+    """A street driven out and back: the oracle's depth of the frames driving back (which see
+    the facades from their other end) carries VGGT's per-pixel errors as the outbound frames'
+    do: after the chunk scale is divided out, the log depth error has the same spread (not 0,
+    not larger)."""
+    from swiftjax import demo
+
+    out = []
+    for k in range(160):
+        m = np.eye(4)
+        m[:3, 3] = [0.0, 0.0, 1.0 * k]
+        out.append(m)
+    back = []
+    for m in out[::-1]:
+        b = m.copy()
+        b[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # yaw by pi: facing -z
+        back.append(b)
+    poses = np.stack(out + back)
+    run = demo.trajectory_run(poses, name="out-and-back")
+    orc = run.predictor.oracle
+    spreads = []
+    for frames in (np.arange(40, 55), np.arange(160 + 105, 160 + 120)):  # the same stretch of street
+        pred = orc.predict_chunk(frames)
+        truth, _, _ = orc.render_truth(frames)
+        ratio = np.log(pred.depth / truth)
+        ok = np.isfinite(ratio) & (truth < 40)
+        res = ratio - np.nanmedian(np.where(ok, ratio, np.nan), axis=(1, 2), keepdims=True)
+        spreads.append(float(np.std(res[ok])))
+    fwd, rev = spreads
+    assert 0.005 < fwd and 0.005 < rev
+    assert 0.5 < rev / fwd < 2.0

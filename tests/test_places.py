@@ -155,3 +155,52 @@ def test_ground_truth_rejects_bad_input():
     bad[3, 0, 3] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         places.ground_truth_loops(bad)
+
+
+def test_ground_truth_loops_count_reverse_revisits():
+    """The third lap drives the square backwards: ``direction="reverse"`` finds exactly those
+    pairs (brute force), ``"any"`` is the union, and the regions are counted per direction."""
+    poses = _square_drive()
+    p, v = poses[:, :3, 3], poses[:, :3, 2]
+    i, j = np.tril_indices(len(poses), -1)
+    near = (np.linalg.norm(p[i] - p[j], axis=1) < 3.0) & (i - j > 100)
+    cos = np.sum(v[i] * v[j], 1)
+    c = np.cos(np.pi / 6)
+    for direction, ok in (("reverse", cos < -c), ("same", cos > c), ("any", (cos > c) | (cos < -c))):
+        ref = np.stack([i[near & ok], j[near & ok]], 1)
+        ref = ref[np.lexsort((ref[:, 1], ref[:, 0]))]
+        got = places.ground_truth_loops(poses, 3.0, 30.0, 100, direction=direction)
+        np.testing.assert_array_equal(got, ref)
+    rev = places.ground_truth_loops(poses, 3.0, 30.0, 100, direction="reverse")
+    assert len(rev) > 300 and np.all(rev[:, 0] >= 800)  # only the backward lap
+    regions = places.revisit_regions(poses, 3.0, 30.0, 100)
+    np.testing.assert_array_equal(regions["reverse"][0], rev)
+    assert len(np.unique(regions["same"][1])) == 1 and len(np.unique(regions["reverse"][1])) >= 1
+    with pytest.raises(ValueError, match="direction"):
+        places.ground_truth_loops(poses, direction="backwards")
+
+
+def test_place_tokens_stay_heading_dependent():
+    """A reverse revisit must not match by token: the place signal at the same spot facing the
+    other way is as unrelated as a far place, while a same-direction revisit 1 m away matches."""
+    import jax.numpy as jnp
+
+    params = places.make_place_params(places.PlaceTokenConfig(seed=0))
+
+    def pose(x, yaw):
+        c, s = np.cos(yaw), np.sin(yaw)
+        m = np.eye(4, dtype=np.float32)
+        m[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+        m[:3, 3] = [x, 0, 0]
+        return m
+
+    xs = np.linspace(0, 400, 40)
+    cams = np.stack([pose(x, 0.3) for x in xs] + [pose(x + 1.0, 0.3) for x in xs] + [pose(x, 0.3 + np.pi) for x in xs]
+                    + [pose(x + 200.0, 0.3) for x in xs])
+    sig = np.asarray(places.place_signal(params, jnp.asarray(cams))).reshape(4, 40, -1)
+    sig = sig / np.linalg.norm(sig, axis=-1, keepdims=True)
+    same = np.mean(np.sum(sig[0] * sig[1], -1))
+    reverse = np.mean(np.sum(sig[0] * sig[2], -1))
+    far = np.mean(np.sum(sig[0] * sig[3], -1))
+    assert same > 0.8
+    assert reverse < far + 0.1 and reverse < 0.5 * same

@@ -50,7 +50,8 @@ class PipelineConfig:
     every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
     pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
     candidate above the threshold is an edge), ``loop_min_agreement`` (the dense test's
-    bound), ``loop_pcm`` (the pairwise test).  Pose
+    bound), ``loop_pcm`` (the pairwise test), ``loop_geometry`` (geometric candidates beside the
+    tokens', :mod:`swiftjax.loops.geometric`).  Pose
     graph: ``robust_loops`` (``"gnc"``: graduated non-convexity with truncated least squares on
     the loop edges, :mod:`swiftjax.posegraph.gnc`; ``"huber"``, ``"cauchy"``, or ``None``, the
     authors' plain least squares), ``robust_scale`` (the kernel's scale / GNC's inlier threshold
@@ -144,6 +145,10 @@ class PipelineConfig:
         stage="loops",
     )
     loop_pcm: bool = option(_LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops")
+    loop_geometry: bool = option(
+        False, "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "
+        "edges by point-cloud registration (swiftjax.loops.geometric)", stage="loops",
+    )
     robust_loops: str | None = option(
         _GRAPH.kernel, "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
         "or none (the authors' plain least squares)", kind=str, choices=_ROBUST_CHOICES,

@@ -13,6 +13,11 @@ candidate edge, its loop chunk's alignments are checked, and the survivors must 
 consistent (:mod:`swiftjax.loops.verification`).  Each candidate, accepted or not, is a record
 with its numbers, ``accepted`` and a one-line ``reason``; only accepted ones become edges.
 ``loop_verification = "none"`` is the authors' rule: every candidate is an edge.
+
+``loop_geometry = true`` adds a second candidate source beside the tokens, chunk pairs whose
+dense geometry matches whichever way the revisit was driven, with edges from registering the
+two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry ``source``
+(``tokens`` or ``geometry``).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import numpy as np
 
 from swiftjax import _faults, align, loops
 from swiftjax.loops import verification as lv
+from swiftjax.pipeline import loop_geometry
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
@@ -112,20 +118,34 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
         finally:
             predictions.close()
             manifest.flush()  # also when interrupted: keep the finished loop edges
+    for r in loop_records:
+        r.setdefault("source", "tokens")
+    geometric: list[dict[str, Any]] = []
+    if config.loop_geometry:  # the second candidate source (swiftjax.pipeline.loop_geometry)
+        with timer("loop geometry"):
+            taken = {(max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"])) for r in loop_records}
+            geometric = loop_geometry.candidates(ctx, K_ref, taken, _verification_config(config),
+                                                 chain=chain_poses(temporal.relative))
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
-    _decide(ctx, temporal, loop_records)
+    _decide(ctx, temporal, loop_records + [r for r in geometric if "accepted" not in r])
+    loop_records += geometric
     for r in loop_records:
         if r["accepted"]:
             # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
-            loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])))
+            info = loop_geometry.edge_information(r, config.edge_pixels_per_sample) if r["source"] == "geometry" else None
+            loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"]), info))
+    for r in geometric:
+        r.pop("_stats", None)
     loop_records += [
         {"i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i, "chunk_j": lp.chunk_j,
-         "accepted": False, "reason": f"chunks {lp.chunk_j} and {lp.chunk_i} are neighbours (their temporal edge)"}
+         "accepted": False, "reason": f"chunks {lp.chunk_j} and {lp.chunk_i} are neighbours (their temporal edge)",
+         "source": "tokens"}
         for lp in neighbours
     ]
     # Every candidate's verdict, also those without a loop chunk (the viewer reads this list).
     manifest.data["loops"] = [
-        {k: r[k] for k in ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason")} for r in loop_records
+        {k: r[k] for k in ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason", "source") if k in r}
+        for r in loop_records
     ]
     manifest.save_soon()
     manifest.flush()

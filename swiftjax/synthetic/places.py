@@ -80,6 +80,7 @@ __all__ = [
     "camera_centres_and_axes",
     "ground_truth_loops",
     "loop_regions",
+    "revisit_regions",
     "LoopEvaluation",
     "evaluate_loops",
     "plant_aliasing",
@@ -319,16 +320,22 @@ def ground_truth_loops(
     max_distance: float = 5.0,
     max_angle_deg: float = 30.0,
     min_separation: int = 100,
+    direction: str = "same",
 ) -> np.ndarray:
     """True loop pairs of a trajectory: ``[M, 2]`` int64 ``(i, j)``, ``i > j``, sorted.
 
-    A pair is a loop when the camera centres are closer than ``max_distance`` metres, the
-    optical axes differ by less than ``max_angle_deg`` degrees, and ``i - j > min_separation``
-    frames.  (A car parked for more than ``min_separation`` frames would also qualify; KITTI
-    00 has no such stop.)  Host-level (scipy KD-tree), O(N log N + M).
+    A pair is a loop when the camera centres are closer than ``max_distance`` metres and
+    ``i - j > min_separation`` frames, and its optical axes ``v_i, v_j`` fit ``direction``:
+    ``"same"`` (the default): they differ by less than ``max_angle_deg`` (``v_i · v_j >
+    cos``), a revisit driven the same way; ``"reverse"``: by more than ``180° −
+    max_angle_deg`` (``v_i · v_j < −cos``), the street driven the other way (KITTI 08's
+    revisits); ``"any"``: either.  (A car parked for more than ``min_separation`` frames would
+    also qualify; KITTI 00 has no such stop.)  Host-level (scipy KD-tree), O(N log N + M).
     """
     from scipy.spatial import cKDTree
 
+    if direction not in ("same", "reverse", "any"):
+        raise ValueError(f"direction must be 'same', 'reverse' or 'any', got {direction!r}")
     p, v = _np_centres_axes(cam_to_world)
     pairs = cKDTree(p).query_pairs(max_distance, output_type="ndarray")
     if len(pairs) == 0:
@@ -336,13 +343,25 @@ def ground_truth_loops(
     pairs = np.sort(pairs, axis=1)[:, ::-1].astype(np.int64)  # i > j
     cos = np.einsum("nc,nc->n", v[pairs[:, 0]], v[pairs[:, 1]])
     dist = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)  # strict: the tree uses <=
-    keep = (
-        (dist < max_distance)
-        & (cos > np.cos(np.deg2rad(max_angle_deg)))
-        & (pairs[:, 0] - pairs[:, 1] > min_separation)
-    )
+    c = np.cos(np.deg2rad(max_angle_deg))
+    heading = {"same": cos > c, "reverse": cos < -c, "any": (cos > c) | (cos < -c)}[direction]
+    keep = (dist < max_distance) & heading & (pairs[:, 0] - pairs[:, 1] > min_separation)
     pairs = pairs[keep]
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def revisit_regions(
+    cam_to_world: np.ndarray, max_distance: float = 5.0, max_angle_deg: float = 30.0,
+    min_separation: int = 100, radius: int = 25,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Same-direction and reverse revisits counted separately: ``{"same": (pairs, regions),
+    "reverse": (pairs, regions)}``, each :func:`ground_truth_loops` with that ``direction``
+    and its :func:`loop_regions` labels."""
+    out = {}
+    for direction in ("same", "reverse"):
+        pairs = ground_truth_loops(cam_to_world, max_distance, max_angle_deg, min_separation, direction)
+        out[direction] = (pairs, loop_regions(pairs, radius))
+    return out
 
 
 def loop_regions(pairs: np.ndarray, radius: int = 25) -> np.ndarray:

@@ -1,0 +1,198 @@
+"""Hard sequences: revisits driven the other way (synthetic KITTI 08, 05, 06, 00).
+
+For each sequence the pipeline runs ONCE (defaults plus ``loop_geometry = true``: the token
+candidates and the geometric ones, :mod:`swiftjax.pipeline.loop_geometry`); the arms reuse that
+run's candidates, edges and temporal chain (same run, same numbers), each solved by the same
+plain pose graph (equal weights, no kernel) so that only the edges differ:
+
+* ``tokens (defaults)``: the accepted token candidates (today's default loop stage);
+* ``tokens + geometry``: every accepted candidate, both sources;
+* ``authors``: every token candidate with an edge, unverified (SwiftVGGT's rule);
+* ``truth edges``: one edge per true revisit chunk pair (frames within 5 m, same or opposite
+  heading, :func:`~swiftjax.synthetic.places.ground_truth_loops` ``direction="any"``), its
+  ``Z = G_{c_j}⁻¹ G_{c_i}`` from the oracle's TRUE chunk gauges
+  (:meth:`~swiftjax.synthetic.oracle.VGGTOracle.true_chunk_gauge`): the best any loop
+  detector could do with these chunks.
+
+Per arm: candidates by source, accepted, precision (accepted candidates within ±25 frames of a
+true pair of either direction), recall of the same-direction and of the reverse loop regions
+(:func:`~swiftjax.synthetic.places.revisit_regions`), ATE (Sim(3)-aligned, metres); per
+sequence: ATE without loops, the new stage's time (``loop geometry``) against the geometry time
+(the run's wall time less prediction and the new stage).
+
+    python bench/bench_hard_sequences.py [--sequences 08 05 06 00] [--frames N] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bench_loop_robustness import _centres, _relative
+from bench_pipeline import _shared
+from common import markdown_table, write_results
+
+SEQUENCES = ("08", "05", "06", "00")
+
+
+def graph_poses(relative: np.ndarray, edges: list[tuple[int, int, np.ndarray]], max_steps: int) -> tuple[np.ndarray, bool]:
+    """Chunk poses of the temporal chain plus loop ``edges`` ``(a, b, Z)``: plain LM, equal
+    weights, no kernel; ``(poses [T, 8], converged)`` (a graph that did not converge in
+    ``max_steps`` keeps its last iterate and says so)."""
+    from swiftjax import posegraph, sim3
+    from swiftjax.posegraph import chain_poses
+
+    chain = chain_poses(relative)
+    if not edges:
+        return chain, True
+    T = len(chain)
+    pairs = [(t, t + 1) for t in range(T - 1)] + [(a, b) for a, b, _ in edges]
+    meas = np.concatenate([relative, np.stack([z for _, _, z in edges])])
+    with jax.enable_x64(True):
+        problem = posegraph.Problem(jnp.asarray(chain), np.asarray(pairs, np.int32), jnp.asarray(meas))
+        res = posegraph.optimize(problem, max_steps=max_steps, throw=False)
+        return np.asarray(sim3.normalize(res.poses), np.float64), bool(res.converged)
+
+
+def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> list[tuple[int, int, np.ndarray]]:
+    """``(c_j, c_i, Z)`` per true revisit chunk pair (``c_i - c_j >= 2``), ``Z`` maps chunk ``c_i``
+    into ``c_j`` from the oracle's true gauges."""
+    from swiftjax import sim3
+    from swiftjax.synthetic import places
+
+    pairs = places.ground_truth_loops(poses, min_separation=min_separation, direction="any")
+    chunk_pairs = sorted({(int(schedule.chunk_of(i)), int(schedule.chunk_of(j))) for i, j in pairs})
+    gauges = {}
+    out = []
+    for ci, cj in chunk_pairs:
+        if ci - cj < 2:
+            continue
+        for c in (ci, cj):
+            if c not in gauges:
+                gauges[c] = oracle.true_chunk_gauge(schedule.frames(c))
+        with jax.enable_x64(True):
+            Z = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(gauges[cj])), jnp.asarray(gauges[ci])))
+        out.append((cj, ci, Z))
+    return out
+
+
+def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
+    from swiftjax import chunks, demo, evaluation, pipeline
+    from swiftjax.io.trajectory import read_kitti
+    from swiftjax.synthetic import places
+
+    poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
+    if frames:
+        poses = poses[:frames]
+    aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
+    run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
+    config = pipeline.PipelineConfig(loop_geometry=True)
+    load = os.getloadavg()
+    t0 = time.perf_counter()
+    res = pipeline.reconstruct(run.predictor, out_dir, config, ground_truth=run.ground_truth, progress=False,
+                               overwrite=True, log=lambda s: None)
+    wall = time.perf_counter() - t0
+    schedule = chunks.chunk_schedule(res.num_frames, config.chunk_size, config.overlap)
+    gt = run.ground_truth[:, :3, 3]
+    sep = config.loop_min_separation
+    anyp = places.ground_truth_loops(run.ground_truth, min_separation=sep, direction="any")
+    regions = places.revisit_regions(run.ground_truth, min_separation=sep)
+    relative = _relative(out_dir, schedule.num_chunks)
+    cands = res.loop_candidates
+    pair = lambda rs: np.asarray([(r["i"], r["j"]) for r in rs], np.int64).reshape(-1, 2)  # noqa: E731
+    correct = places.evaluate_loops(pair(cands), anyp, tolerance=25).correct
+    arms = {
+        "tokens (defaults)": [r for r in cands if r["accepted"] and r.get("source", "tokens") == "tokens"],
+        "tokens + geometry": [r for r in cands if r["accepted"]],
+        "authors": [r for r in cands if "Z" in r and r.get("source", "tokens") == "tokens"],
+    }
+    timings = res.timings
+    new = sum(float(v) for k, v in timings.items() if k.startswith("loop geometry"))
+    geometry = wall - float(timings.get("predict", 0.0)) - float(timings.get("predict (loop chunks)", 0.0)) - new
+    out = {"sequence": seq, "frames": res.num_frames, "chunks": res.num_chunks, "aliasing": aliasing,
+           "wall_seconds": wall, "load_average_before": load, "loop_geometry_seconds": new,
+           "geometry_seconds": geometry, "loop_geometry_fraction": new / geometry if geometry > 0 else None,
+           "timings": timings, "ate_rmse_no_loops": float(res.metrics["ate_rmse_no_loops"]),
+           "ate_rmse_pipeline": float(res.metrics["ate_rmse"]),
+           "candidates": {s: sum(r.get("source", "tokens") == s for r in cands) for s in ("tokens", "geometry")},
+           "true_candidates": {s: int(sum(c for r, c in zip(cands, correct) if r.get("source", "tokens") == s))
+                               for s in ("tokens", "geometry")},
+           "regions": {d: int(len(np.unique(regions[d][1]))) for d in ("same", "reverse")}, "arms": {}}
+    edges_of = lambda rs: [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in rs]  # noqa: E731
+    truth = truth_edges(run.predictor.oracle, schedule, run.ground_truth, sep)
+    for name, chosen in [*arms.items(), ("truth edges", None)]:
+        edges = truth if chosen is None else edges_of(chosen)
+        poses_arm, converged = graph_poses(relative, edges, config.max_lm_steps)
+        ate = float(evaluation.ate(_centres(res, schedule, poses_arm), gt).rmse)
+        row = {"accepted": len(edges), "ate_rmse": ate, "converged": converged}
+        if chosen is not None:
+            ev = places.evaluate_loops(pair(chosen), anyp, tolerance=25)
+            row.update(precision=ev.precision, correct=int(ev.n_correct),
+                       by_source={s: sum(r.get("source", "tokens") == s for r in chosen) for s in ("tokens", "geometry")})
+            for d in ("same", "reverse"):
+                p, lab = regions[d]
+                e = places.evaluate_loops(pair(chosen), p, tolerance=25, regions=lab)
+                row[f"recall_{d}"] = e.region_recall if len(p) else None
+                row[f"regions_found_{d}"] = int(e.n_regions_found)
+        out["arms"][name] = row
+    out["candidate_records"] = [
+        {"i": r["i"], "j": r["j"], "source": r.get("source", "tokens"), "true": bool(c),
+         "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])), "accepted": r["accepted"], "reason": r["reason"],
+         **{k: r.get(k) for k in ("score", "dense_agreement", "dense_overlap", "pcm_residual", "registration")}}
+        for r, c in zip(cands, correct)
+    ]
+    return out
+
+
+def table(records: list[dict]) -> str:
+    rows = []
+    for r in records:
+        for name, a in r["arms"].items():
+            rec = lambda d: "-" if a.get(f"recall_{d}") is None else f"{a[f'regions_found_{d}']}/{r['regions'][d]}"  # noqa: E731
+            rows.append([
+                r["sequence"], r["frames"], name,
+                f"{r['candidates']['tokens']}/{r['candidates']['geometry']}" if name != "truth edges" else "-",
+                a["accepted"], "-" if "precision" not in a else f"{a['precision']:.2f}", rec("same"), rec("reverse"),
+                f"{a['ate_rmse']:.2f}", f"{r['ate_rmse_no_loops']:.2f}",
+                f"{r['loop_geometry_seconds']:.1f} ({100 * (r['loop_geometry_fraction'] or 0):.0f} %)",
+            ])
+    return markdown_table(["seq", "frames", "arm", "cand. tokens/geometry", "accepted", "precision",
+                           "same-dir. regions", "reverse regions", "ATE (m)", "ATE no loops (m)",
+                           "geometry stage s (% of geometry)"], rows)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=SEQUENCES)
+    parser.add_argument("--frames", type=int, default=None, help="first N frames of each sequence (default: all)")
+    parser.add_argument("--quick", action="store_true", help="smoke test: KITTI 08's first 500 frames, no JSON")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.sequences, args.frames = ["08"], args.frames or 500
+    jax.config.update("jax_compilation_cache_dir",
+                      os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    records = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seq in args.sequences:
+            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq)
+            records.append(rec)
+            print(f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
+                  f"(load {rec['load_average_before'][0]:.1f})", flush=True)
+    text = table(records)
+    print(text)
+    payload = {"records": records, "table": text, "quick": bool(args.quick)}
+    if not args.quick:
+        print(f"wrote {write_results('hard_sequences', payload)}")
+    return payload
+
+
+if __name__ == "__main__":
+    main()
