@@ -18,6 +18,8 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
+from .frames import FrameLoader
+
 __all__ = ["ImagePredictor", "ImageSpec", "build_runner", "model_identity", "weights_identity"]
 
 
@@ -47,6 +49,8 @@ class ImagePredictor:
         self.identity = identity or {}
         self.num_frames = len(source)
         self._spec = spec
+        self._frames = FrameLoader(source.read, lambda images: self.backbone.impl.preprocess(images, self.mode),
+                                   serial_reads=getattr(source, "paths", None) is None)  # a video seeks
 
     @property
     def runner(self) -> Any:
@@ -55,8 +59,16 @@ class ImagePredictor:
         return self._runner
 
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
-        images = self.backbone.impl.preprocess([self.source.read(int(k)) for k in frames], self.mode)
-        return self.runner.predict(images)
+        return self.runner.predict(self._frames.load(frames))
+
+    def prefetch(self, frames: np.ndarray) -> None:
+        """Start decoding a scheduled chunk's frames (:class:`inference.frames.FrameLoader`)
+        while earlier chunks predict; the executor calls it when it schedules the chunk."""
+        self._frames.prefetch(frames)
+
+    def close(self) -> None:
+        """Stop the decoding threads."""
+        self._frames.close()
 
     def fingerprint(self) -> dict[str, Any]:
         """Everything that determines a chunk's prediction: each frame's file by content (name,
@@ -87,9 +99,9 @@ class ImagePredictor:
         """The frames ``[S, H, W, 3]`` uint8 as the model sees them (preprocessed; the
         prediction's ``images``), without running the model: the export rewrites missing
         COLMAP frames from them."""
-        from inference.preprocess import preprocess, to_uint8_images
+        from inference.preprocess import to_uint8_images
 
-        return to_uint8_images(preprocess([self.source.read(int(k)) for k in frames], mode=self.mode))
+        return to_uint8_images(self._frames.load(frames))
 
     def frame_names(self) -> list[str]:
         return list(self.source.names)

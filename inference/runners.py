@@ -14,6 +14,7 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
+from .device import GPUMemoryError
 from .pose_encoding import pose_encoding_to_extrinsics_intrinsics
 from .preprocess import to_uint8_images
 
@@ -47,7 +48,7 @@ def _check_images(images: Any) -> np.ndarray:
 _OUTPUTS = {"pose_enc": "camera head pose encoding", "depth": "depth head depth",
             "depth_conf": "depth head confidence", "patch_tokens": "DINO patch tokens",
             "extrinsics": "camera extrinsics", "intrinsics": "camera intrinsics",
-            "prealt_patch_tokens": "DINO patch tokens", "local_points": "local point map",
+            "prealt_patch_tokens": "DINO patch tokens", "descriptors": "loop descriptors", "local_points": "local point map",
             "conf": "confidence", "camera_poses": "camera poses", "dino_patch_tokens": "DINO patch tokens"}
 
 
@@ -71,10 +72,12 @@ def check_outputs(outputs: dict[str, np.ndarray], model: str = "VGGT") -> None:
 
 
 def _to_prediction(images: np.ndarray, pose_enc: np.ndarray, depth: np.ndarray, conf: np.ndarray,
-                   patch_tokens: np.ndarray, model: str = "VGGT") -> ChunkPrediction:
+                   tokens: np.ndarray, model: str = "VGGT", reduced: bool = False) -> ChunkPrediction:
     """Model outputs for one scene (leading batch axis already removed) -> ChunkPrediction;
-    :class:`ModelOutputError` naming ``model`` if any is non-finite."""
-    check_outputs({"pose_enc": pose_enc, "depth": depth, "depth_conf": conf, "patch_tokens": patch_tokens}, model)
+    :class:`ModelOutputError` naming ``model`` if any is non-finite.  ``tokens``: the DINO patch
+    tokens ``[S, P, C]``, or (``reduced``) their descriptors ``[S, C]``."""
+    name = "descriptors" if reduced else "patch_tokens"
+    check_outputs({"pose_enc": pose_enc, "depth": depth, "depth_conf": conf, name: tokens}, model)
     height, width = images.shape[-2:]
     extrinsic, intrinsic = pose_encoding_to_extrinsics_intrinsics(pose_enc.astype(np.float32), (height, width))
     return ChunkPrediction(
@@ -82,7 +85,7 @@ def _to_prediction(images: np.ndarray, pose_enc: np.ndarray, depth: np.ndarray, 
         conf=np.ascontiguousarray(conf, dtype=np.float32),
         extrinsic=np.ascontiguousarray(extrinsic, dtype=np.float32),
         intrinsic=np.ascontiguousarray(intrinsic, dtype=np.float32),
-        patch_tokens=np.ascontiguousarray(patch_tokens, dtype=np.float32),
+        **{name: np.ascontiguousarray(tokens, dtype=np.float32)},
         images=to_uint8_images(images),
     )
 
@@ -98,35 +101,74 @@ class TorchRunner:
             the runner's device type; the heads stay in float32, as upstream.
     """
 
-    def __init__(self, model: VGGT, device: str | torch.device = "cpu", dtype: torch.dtype | None = None) -> None:
+    def __init__(self, model: VGGT, device: str | torch.device = "cpu", dtype: torch.dtype | None = None,
+                 reduce_tokens: bool | None = None) -> None:
         import torch
 
         self.device = torch.device(device)
         self.dtype = dtype or torch.float32
         self.name = "VGGT"  # for messages; build_runner names the weights file
         self.model = model.to(self.device).eval()
+        # On a GPU the DINO tokens become descriptors before they leave the device (a 75-frame
+        # chunk: 300 KB instead of 125 MB); on the CPU the JAX reduction keeps its results.
+        self.reduce_tokens = self.device.type == "cuda" if reduce_tokens is None else reduce_tokens
 
     def forward(self, images: Any) -> dict[str, Any]:
-        """Raw model outputs (torch tensors, batch axis 1) for ``[S, 3, H, W]`` images."""
+        """Raw model outputs (torch tensors, batch axis 1) for ``[S, 3, H, W]`` images; on CUDA
+        the frames go up through pinned memory and attention runs on a fused kernel only
+        (:mod:`inference.device`)."""
         import torch
 
-        x = torch.as_tensor(_check_images(images), device=self.device)[None]
-        with torch.inference_mode():
+        from .device import fused_attention, to_device
+
+        x = to_device(_check_images(images), self.device)[None]
+        with torch.inference_mode(), fused_attention(self.device):
             if self.dtype == torch.float32:
                 return self.model(x)
             with torch.autocast(device_type=self.device.type, dtype=self.dtype):
                 return self.model(x)
 
     def predict(self, images: Any) -> ChunkPrediction:
-        """See :class:`Runner`."""
+        """See :class:`Runner`.  Out of device memory: :class:`~inference.device.GPUMemoryError`
+        naming the largest chunk that fits at this image size (measured by trying)."""
+        import torch
+
+        from .descriptors import frame_descriptors
+        from .device import to_host
+
         arr = _check_images(images)
-        out = self.forward(arr)
+        try:
+            out = self.forward(arr)
+        except torch.OutOfMemoryError:
+            raise self._memory_error(arr) from None
+        wanted = {k: out[k][0] for k in ("pose_enc", "depth", "depth_conf")}
+        if self.reduce_tokens:
+            wanted["descriptors"] = frame_descriptors(out["patch_tokens"][0])
+        else:
+            wanted["patch_tokens"] = out["patch_tokens"][0]
+        host = to_host(wanted)
+        tokens = host["descriptors"] if self.reduce_tokens else host["patch_tokens"]
+        return _to_prediction(arr, host["pose_enc"], host["depth"], host["depth_conf"], tokens, self.name,
+                              reduced=self.reduce_tokens)
 
-        def np32(name: str) -> np.ndarray:
-            return out[name][0].float().cpu().numpy()
+    def _memory_error(self, arr: np.ndarray) -> GPUMemoryError:
+        import torch
 
-        return _to_prediction(arr, np32("pose_enc"), np32("depth"), np32("depth_conf"), np32("patch_tokens"),
-                              self.name)
+        from .device import largest_chunk_that_fits
+
+        s, _, h, w = arr.shape
+        probe = np.zeros((1, 3, h, w), np.float32)
+
+        def run(frames: int) -> None:
+            self.forward(np.broadcast_to(probe, (frames, 3, h, w)))
+
+        torch.cuda.empty_cache() if self.device.type == "cuda" else None
+        fits = largest_chunk_that_fits(run, s, device=self.device)
+        return GPUMemoryError(
+            f"{self.name}: a chunk of {s} frames of {w}x{h} does not fit in the memory of {self.device}; the largest "
+            f"that fits, measured now, is {fits} frames: --chunk-size {fits} (and an --overlap below it)"
+            if fits else f"{self.name}: not even one frame of {w}x{h} fits in the memory of {self.device}"
+        )
 
 
 def ort_session(path: str | os.PathLike[str], providers: Sequence[str] | None = None, intra_op_threads: int = 0) -> Any:

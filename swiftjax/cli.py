@@ -562,7 +562,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         else:  # each worker loads its own (ImageSpec)
             runner = spec.runner_factory()
         predictor = ImagePredictor(source, runner, mode=spec.mode, spec=spec)
-        with _LiveView(args) as live:
+        with contextlib.closing(predictor), _LiveView(args) as live:
             result = pipeline.reconstruct(
                 predictor, out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
                 timestamps=timestamps, timestamps_note=note, executor=executor,

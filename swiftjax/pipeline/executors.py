@@ -108,7 +108,8 @@ class LocalExecutor:
     thread (0: synchronous, each prediction when it is asked for).  With ``prefetch = 1``
     the predictor works on chunk ``t+1`` while the host aligns and stores chunk ``t``; at
     most ``prefetch`` predictions wait beside the one being consumed.  The predictor is
-    called from one thread only, in request order.
+    called from one thread only, in request order; a predictor with a ``prefetch(frames)``
+    method is told each request as it is scheduled (the image predictor starts decoding it).
     """
 
     workers = 1
@@ -131,8 +132,11 @@ class LocalExecutor:
 
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swiftjax-predict")
         pending: collections.deque = collections.deque()
+        prefetch = getattr(predictor, "prefetch", None)  # e.g. decode a chunk's frames as it is scheduled
         try:
             for frames in requests:
+                if prefetch is not None:
+                    prefetch(frames)
                 pending.append(pool.submit(_timed_predict, predictor, frames))
                 if len(pending) > self.prefetch:
                     yield self._take(pending)

@@ -1,0 +1,102 @@
+"""Moving a chunk to and from the model's device, and the device's limits, measured.
+
+On a GPU a chunk's frames go up through pinned host memory (``non_blocking``), the attention
+runs on a fused kernel (flash or memory-efficient; the math fallback, which materialises the
+``N × N`` score matrix of global attention, is refused rather than taken silently), and the
+outputs come down in one synchronisation: each output copied into pinned memory
+asynchronously, then one wait.  On the CPU every function is the plain operation, so CPU
+results do not change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["GPUMemoryError", "fused_attention", "largest_chunk_that_fits", "to_device", "to_host"]
+
+
+class GPUMemoryError(ValueError):
+    """A chunk does not fit in the device's memory (the message gives the largest that does)."""
+
+
+def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """``array`` as a tensor on ``device`` (CUDA: through pinned memory, asynchronously)."""
+    import torch
+
+    t = torch.from_numpy(np.ascontiguousarray(array))
+    if device.type == "cuda":
+        return t.pin_memory().to(device, non_blocking=True)
+    return t.to(device)
+
+
+def to_host(tensors: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """Every tensor as a float32 NumPy array; on CUDA each is copied into pinned memory
+    asynchronously and the stream is synchronised once."""
+    import torch
+
+    first = next(iter(tensors.values()), None)
+    if first is None or first.device.type != "cuda":
+        return {k: v.float().cpu().numpy() for k, v in tensors.items()}
+    out = {}
+    for k, v in tensors.items():
+        buf = torch.empty(v.shape, dtype=torch.float32, pin_memory=True)
+        buf.copy_(v, non_blocking=True)
+        out[k] = buf
+    torch.cuda.current_stream(first.device).synchronize()
+    return {k: v.numpy() for k, v in out.items()}
+
+
+@contextlib.contextmanager
+def fused_attention(device: torch.device) -> Iterator[None]:
+    """On CUDA, ``scaled_dot_product_attention`` may use the flash or memory-efficient kernel
+    only (a shape or dtype neither takes raises instead of falling back to the math path);
+    elsewhere torch's own choice."""
+    if device.type != "cuda":
+        yield
+        return
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    try:
+        with sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION]):
+            yield
+    except RuntimeError as err:
+        if "No available kernel" not in str(err):
+            raise
+        raise RuntimeError(
+            f"no fused attention kernel (flash, memory-efficient) runs this model on {device}: {err}"
+        ) from None
+
+
+def largest_chunk_that_fits(run: Callable[[int], Any], frames: int, *, device: torch.device) -> int:
+    """The largest chunk size ``S <= frames`` for which ``run(S)`` does not run out of device
+    memory, found by trying (halving down from ``frames``, then bisecting between the last size
+    that failed and the first that ran); 0 if not even one frame fits."""
+    import torch
+
+    def fits(s: int) -> bool:
+        try:
+            run(s)
+            return True
+        except torch.OutOfMemoryError:
+            return False
+        finally:
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+
+    hi = frames  # known (or assumed) not to fit
+    lo = hi // 2
+    while lo >= 1 and not fits(lo):
+        hi, lo = lo, lo // 2
+    if lo < 1:
+        return 0
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
