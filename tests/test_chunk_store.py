@@ -352,3 +352,12 @@ def test_drop_dense_keeps_every_other_array_checked_and_load_says_why(tmp_path):
                                                     r"confidence maps were dropped"):
         store.load("chunk", 2)
     assert isinstance(cs.ChunkMismatchError(path, "x"), cs.ChunkCorruptError)  # re-predicted like a corrupt file
+
+
+def test_a_file_where_the_store_goes_is_named(tmp_path):
+    """Issue 25 item 27: ``chunks`` being a file was 'File exists' without saying what to do."""
+    from swiftjax.io.chunk_store import ChunkStore
+
+    (tmp_path / "chunks").write_text("not a folder")
+    with pytest.raises(ValueError, match=r"chunks is a file where the run keeps its chunk store .*move it away"):
+        ChunkStore(tmp_path)

@@ -152,6 +152,8 @@ class ChunkStore:
         self, run_dir: PathLike, subdir: str = "chunks", compress: bool = False, half: bool = True
     ) -> None:
         self.root = pathlib.Path(run_dir) / subdir
+        if self.root.exists() and not self.root.is_dir():
+            raise ValueError(f"{self.root} is a file where the run keeps its chunk store (a folder): move it away")
         self.root.mkdir(parents=True, exist_ok=True)
         self.compress = compress
         self.half = half
