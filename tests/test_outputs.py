@@ -179,7 +179,7 @@ def test_reconstruct_cli_passes_the_sources_times(tmp_path, monkeypatch):
         seen.update(kwargs)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_make_runner", lambda args: None)
+    monkeypatch.setattr(cli, "_make_runner", lambda *args: None)
     monkeypatch.setattr(pipeline, "reconstruct", fake_reconstruct)
     assert cli.main(["reconstruct", str(tmp_path / "drive.avi"), "--weights", str(tmp_path / "w.pt"),
                      "--out", str(tmp_path / "run"), "--stride", "2"]) == 130
