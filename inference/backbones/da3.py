@@ -28,7 +28,7 @@ import numpy as np
 from swiftjax.prediction import ChunkPrediction
 
 from ..runners import check_outputs
-from .header import FAMILY_TEXT, HeaderError, describe_family, read_header
+from .header import FAMILY_TEXT, checkpoint_header, compare_shapes, describe_family
 
 __all__ = ["rebase_extrinsics", "to_prediction", "DA3Runner"]
 
@@ -85,15 +85,10 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any] | None) ->
     safetensors header alone (one line naming the first differing keys)."""
     from inference.checkpoint import CheckpointError
 
-    from .vggt import _compare
-
     p = os.fspath(path)
     if not p.lower().endswith(".safetensors"):
         raise CheckpointError(f"--weights {p}: Depth Anything 3 weights are read from .safetensors (model.safetensors)")
-    try:
-        header = read_header(p)
-    except HeaderError as err:
-        raise CheckpointError(str(err)) from None
+    header = checkpoint_header(p)
     fam = describe_family(header)
     want = "da3-nested" if backbone.metric else "da3"
     if fam != want:
@@ -102,7 +97,7 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any] | None) ->
     got = {k: s for k, (_, s) in header.items()}
     aliases = [k for k in expected if ".output_conv2_aux." in k and ".output_conv2_aux.0." not in k
                and k.rsplit(".", 2)[-2] == "2" and k not in got]  # the DualDPT LayerNorm stored once
-    _compare(p, got, {k: v for k, v in expected.items() if k not in aliases}, f"{backbone.name} model")
+    compare_shapes(p, got, {k: v for k, v in expected.items() if k not in aliases}, f"{backbone.name} model")
 
 
 # ------------------------------------------------------------------------ preprocessing

@@ -13,7 +13,7 @@ import os
 import struct
 from typing import Any
 
-__all__ = ["read_header", "describe_family", "HeaderError", "FAMILY_TEXT"]
+__all__ = ["read_header", "checkpoint_header", "compare_shapes", "describe_family", "HeaderError", "FAMILY_TEXT"]
 
 _ITEMSIZE = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1,
              "BOOL": 1, "F8_E4M3": 1, "F8_E5M2": 1, "U16": 2, "U32": 4, "U64": 8}
@@ -77,3 +77,29 @@ def describe_family(names: Any) -> str:
 
 FAMILY_TEXT = {"vggt": "a VGGT checkpoint", "da3": "a Depth Anything 3 (any-view) checkpoint",
                "da3-nested": "a Depth Anything 3 nested (metric) checkpoint", "unknown": "not a checkpoint of a known network"}
+
+
+def checkpoint_header(path: str | os.PathLike[str]) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """:func:`read_header`, its failure as the loaders' one-line ``CheckpointError``."""
+    from inference.checkpoint import CheckpointError
+
+    try:
+        return read_header(path)
+    except HeaderError as err:
+        raise CheckpointError(str(err)) from None
+
+
+def compare_shapes(path: str | os.PathLike[str], got: dict[str, tuple[int, ...]], want: dict[str, tuple[int, ...]],
+                   what: str, optional: tuple[str, ...] = ()) -> None:
+    """One-line ``CheckpointError`` naming the first differing keys (missing, unexpected, shape)
+    between a file's tensor shapes ``got`` and the model's ``want``; ``optional`` keys may be absent."""
+    from inference.checkpoint import CheckpointError
+
+    missing = [k for k in want if k not in got and k not in optional]
+    unexpected = [k for k in got if k not in want]
+    shapes = [f"{k} {list(got[k])} vs {list(want[k])}" for k in want if k in got and tuple(got[k]) != tuple(want[k])]
+    if missing or unexpected or shapes:
+        parts = [f"{title} {len(items)} ({', '.join(items[:3])}{', ...' if len(items) > 3 else ''})"
+                 for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes)) if items]
+        raise CheckpointError(f"checkpoint {os.fspath(path)} does not match the {what}: {'; '.join(parts)} "
+                              f"(is --model / --model-config the one it was trained with?)")

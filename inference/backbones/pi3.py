@@ -58,15 +58,12 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any]) -> None:
     other shapes, or truncated (one line); π³ files are safetensors only."""
     from inference.checkpoint import CheckpointError
 
-    from .header import HeaderError, read_header
+    from .header import checkpoint_header, compare_shapes
 
     p = os.fspath(path)
     if not p.lower().endswith(".safetensors"):
         raise CheckpointError(f"--weights {p}: π³ checkpoints are read from .safetensors only (--model {backbone.name})")
-    try:
-        header = read_header(p)
-    except HeaderError as err:
-        raise CheckpointError(str(err)) from None
+    header = checkpoint_header(p)
     got = variant_of(header)
     want = config.get("variant", backbone.preset)
     if got is None:
@@ -77,15 +74,7 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any]) -> None:
     if want == "pi3x" and not config.get("multimodal", True):
         shapes = {k: s for k, s in shapes.items() if not k.startswith(_MULTIMODAL)}
     model = {k: tuple(v.shape) for k, v in _model(config).state_dict().items()}
-    optional = ("image_mean", "image_std")
-    missing = [k for k in model if k not in shapes and k not in optional]
-    unexpected = [k for k in shapes if k not in model]
-    mismatch = [f"{k} {list(shapes[k])} vs {list(model[k])}" for k in model if k in shapes and tuple(shapes[k]) != model[k]]
-    if missing or unexpected or mismatch:
-        parts = [f"{t} {len(i)} ({', '.join(i[:3])}{', ...' if len(i) > 3 else ''})"
-                 for t, i in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", mismatch)) if i]
-        raise CheckpointError(f"checkpoint {p} does not match the {want} model: {'; '.join(parts)} "
-                              f"(is --model / --model-config the one it was trained with?)")
+    compare_shapes(p, shapes, model, f"{want} model", optional=("image_mean", "image_std"))
 
 
 def preprocess(images: list[Any], mode: str) -> Any:

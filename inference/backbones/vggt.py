@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from .header import FAMILY_TEXT, HeaderError, describe_family, read_header
+from .header import FAMILY_TEXT, checkpoint_header, compare_shapes, describe_family
 
 name = "vggt"
 modes = ("crop", "pad")
@@ -41,29 +41,12 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any] | None) ->
 
     if not os.fspath(path).lower().endswith(".safetensors"):
         return
-    try:
-        header = read_header(path)
-    except HeaderError as err:
-        raise CheckpointError(str(err)) from None
+    header = checkpoint_header(path)
     fam = describe_family(header)
     if fam != "vggt":
         raise CheckpointError(f"--weights {os.fspath(path)} is {FAMILY_TEXT[fam]}, not a VGGT one (--model {backbone.name})")
-    _compare(path, {k: s for k, (_, s) in header.items() if not k.startswith(_IGNORED)},
+    compare_shapes(path, {k: s for k, (_, s) in header.items() if not k.startswith(_IGNORED)},
              {k: tuple(v.shape) for k, v in _model(config).state_dict().items()}, "VGGT model")
-
-
-def _compare(path: Any, got: dict[str, tuple[int, ...]], want: dict[str, tuple[int, ...]], what: str) -> None:
-    """One-line refusal naming the first differing keys (missing, unexpected, shape)."""
-    from inference.checkpoint import CheckpointError
-
-    missing = [k for k in want if k not in got]
-    unexpected = [k for k in got if k not in want]
-    shapes = [f"{k} {list(got[k])} vs {list(want[k])}" for k in want if k in got and got[k] != want[k]]
-    if missing or unexpected or shapes:
-        parts = [f"{title} {len(items)} ({', '.join(items[:3])}{', ...' if len(items) > 3 else ''})"
-                 for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes)) if items]
-        raise CheckpointError(f"checkpoint {os.fspath(path)} does not match the {what}: {'; '.join(parts)} "
-                              f"(is --model / --model-config the one it was trained with?)")
 
 
 def preprocess(images: list[Any], mode: str) -> Any:
