@@ -35,30 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bench_loop_robustness import _centres, _relative
+from bench_loop_robustness import _centres, _relative, graph_poses
 from bench_pipeline import _shared
 from common import markdown_table, write_results
 
 SEQUENCES = ("08", "05", "06", "00")
-
-
-def graph_poses(relative: np.ndarray, edges: list[tuple[int, int, np.ndarray]], max_steps: int) -> tuple[np.ndarray, bool]:
-    """Chunk poses of the temporal chain plus loop ``edges`` ``(a, b, Z)``: plain LM, equal
-    weights, no kernel; ``(poses [T, 8], converged)`` (a graph that did not converge in
-    ``max_steps`` keeps its last iterate and says so)."""
-    from swiftjax import posegraph, sim3
-    from swiftjax.posegraph import chain_poses
-
-    chain = chain_poses(relative)
-    if not edges:
-        return chain, True
-    T = len(chain)
-    pairs = [(t, t + 1) for t in range(T - 1)] + [(a, b) for a, b, _ in edges]
-    meas = np.concatenate([relative, np.stack([z for _, _, z in edges])])
-    with jax.enable_x64(True):
-        problem = posegraph.Problem(jnp.asarray(chain), np.asarray(pairs, np.int32), jnp.asarray(meas))
-        res = posegraph.optimize(problem, max_steps=max_steps, throw=False)
-        return np.asarray(sim3.normalize(res.poses), np.float64), bool(res.converged)
 
 
 def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> list[tuple[int, int, np.ndarray]]:
@@ -129,7 +110,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     truth = truth_edges(run.predictor.oracle, schedule, run.ground_truth, sep)
     for name, chosen in [*arms.items(), ("truth edges", None)]:
         edges = truth if chosen is None else edges_of(chosen)
-        poses_arm, converged = graph_poses(relative, edges, config.max_lm_steps)
+        poses_arm, converged = graph_poses(relative, edges, config.max_lm_steps, throw=False)
         ate = float(evaluation.ate(_centres(res, schedule, poses_arm), gt).rmse)
         row = {"accepted": len(edges), "ate_rmse": ate, "converged": converged}
         if chosen is not None:

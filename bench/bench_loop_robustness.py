@@ -58,21 +58,24 @@ def _make_run(route: str, level: float):
     return demo.kitti00_run(_shared(), aliasing=level)
 
 
-def _graph_poses(relative: np.ndarray, loop_edges: list[tuple[int, int, np.ndarray]], max_steps: int) -> np.ndarray:
-    """Chunk poses of the temporal chain plus ``loop_edges`` ``(a, b, Z)``, no kernel, equal weights."""
+def graph_poses(relative: np.ndarray, loop_edges: list[tuple[int, int, np.ndarray]], max_steps: int,
+                throw: bool = True) -> tuple[np.ndarray, bool]:
+    """Chunk poses of the temporal chain plus ``loop_edges`` ``(a, b, Z)``: plain LM, equal
+    weights, no kernel; ``(poses [T, 8], converged)``.  ``throw=False``: a graph that did not
+    converge in ``max_steps`` keeps its last iterate and says so instead of raising."""
     from swiftjax import posegraph, sim3
     from swiftjax.posegraph import chain_poses
 
     chain = chain_poses(relative)
     if not loop_edges:
-        return chain
+        return chain, True
     T = len(chain)
     edges = [(t, t + 1) for t in range(T - 1)] + [(a, b) for a, b, _ in loop_edges]
     meas = np.concatenate([relative, np.stack([z for _, _, z in loop_edges])])
     with jax.enable_x64(True):
         problem = posegraph.Problem(jnp.asarray(chain), np.asarray(edges, np.int32), jnp.asarray(meas))
-        res = posegraph.optimize(problem, max_steps=max_steps)
-        return np.asarray(sim3.normalize(res.poses), np.float64)
+        res = posegraph.optimize(problem, max_steps=max_steps, throw=throw)
+        return np.asarray(sim3.normalize(res.poses), np.float64), bool(res.converged)
 
 
 def _centres(result, schedule, chunk_poses: np.ndarray) -> np.ndarray:
@@ -123,8 +126,8 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
         if name == "ours":
             ate = float(res.metrics["ate_rmse"])
         else:
-            poses = _graph_poses(relative, [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in chosen],
-                                 config.max_lm_steps)
+            poses, _ = graph_poses(relative, [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in chosen],
+                                   config.max_lm_steps)
             ate = float(evaluation.ate(_centres(res, schedule, poses), gt).rmse)
         out["arms"][name] = {"accepted": len(chosen), "correct": int(ev.n_correct), "precision": ev.precision,
                              "region_recall": ev.region_recall, "regions_found": int(ev.n_regions_found),
