@@ -162,7 +162,8 @@ class TorchRunner:
         def run(frames: int) -> None:
             self.forward(np.broadcast_to(probe, (frames, 3, h, w)))
 
-        torch.cuda.empty_cache() if self.device.type == "cuda" else None
+        if self.device.type == "cuda":  # free what the failed chunk held before probing
+            torch.cuda.empty_cache()
         fits = largest_chunk_that_fits(run, s, device=self.device)
         return GPUMemoryError(
             f"{self.name}: a chunk of {s} frames of {w}x{h} does not fit in the memory of {self.device}; the largest "

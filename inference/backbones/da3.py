@@ -27,6 +27,7 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
+from ..device import to_host
 from ..runners import check_outputs
 from .header import FAMILY_TEXT, checkpoint_header, compare_shapes, describe_family
 
@@ -192,12 +193,8 @@ class DA3Runner:
     def predict(self, images: Any) -> ChunkPrediction:
         arr = np.asarray(images, np.float32)
         raw = self.forward(arr)
-
-        def np32(key: str) -> np.ndarray:
-            return raw[key][0].float().cpu().numpy()
-
         # prealt_patch_tokens come back in input order (inference.da3 undoes the reference reordering)
-        out = {k: np32(k) for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")}
+        out = to_host({k: raw[k][0] for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")})
         check_outputs(out, self.name)
         return to_prediction(arr, out)
 

@@ -9,6 +9,7 @@ import torch
 
 from swiftjax.prediction import ChunkPrediction
 
+from ..device import to_host
 from ..runners import ModelOutputError, check_outputs
 from .conditioning import Conditions, intrinsics_condition
 from .convert import to_chunk_prediction
@@ -63,8 +64,8 @@ class Pi3TorchRunner:
     def predict(self, images: Any, conditions: Conditions | None = None) -> ChunkPrediction:
         """One chunk -> :class:`ChunkPrediction` (:mod:`inference.pi3.convert`)."""
         out = self.forward(images, conditions)
-        scene = {k: v[0].float() for k, v in out.items() if k != "metric"}
-        check_outputs({k: v.cpu().numpy() for k, v in scene.items()
+        scene = to_host({k: v[0] for k, v in out.items() if k != "metric"})  # one move to the host
+        check_outputs({k: v for k, v in scene.items()
                        if k in ("local_points", "conf", "camera_poses", "dino_patch_tokens")}, self.name)
         return to_chunk_prediction(scene, images=images)
 
