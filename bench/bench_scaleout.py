@@ -57,8 +57,8 @@ class Recording:
     def __init__(self, inner, cache):
         self.inner, self.cache, self.num_frames = inner, pathlib.Path(cache), inner.num_frames
     def predict(self, frames):
-        from swiftjax.pipeline.temporal import _with_descriptors
-        pred = _with_descriptors(self.inner.predict(frames))
+        from swiftjax.loops.descriptors import chunk_descriptors
+        pred = chunk_descriptors(self.inner.predict(frames))
         d = self.cache / key(frames)
         d.mkdir(parents=True, exist_ok=True)
         for f in FIELDS:

@@ -30,6 +30,7 @@ __all__ = [
     "world_to_camera",
     "extrinsic_to_sim3",
     "sim3_to_extrinsic",
+    "world_cameras",
     "focal_ratio",
     "normalize_depth",
 ]
@@ -140,6 +141,26 @@ def sim3_to_extrinsic(cam_to_world: Real[ArrayLike, "*batch 8"]) -> Float[Array,
     R = so3.as_matrix(sim3.quaternion(S))
     c2w = jnp.concatenate([R, sim3.translation(S)[..., :, None]], axis=-1)
     return invert_extrinsic(c2w)
+
+
+@jax.jit
+def world_cameras(chunk_pose: Real[ArrayLike, "*batch 8"], extrinsic: Real[ArrayLike, "*batch 3 4"],
+                  ) -> Float[Array, "*batch 4 4"]:
+    """Camera-to-world ``[..., 4, 4]`` with orthonormal rotation: a chunk-to-world ``S_t``
+    composed with each camera of the chunk.
+
+    ``chunk_pose`` is ``[8]`` or ``[S, 8]`` (each frame's chunk-to-world pose), ``extrinsic``
+    ``[S, 3, 4]`` (world-to-camera in the chunk's frame).  ``S_t`` scales the chunk; the
+    camera's orientation is ``R_t R_c`` and its centre ``S_t(c)``.  Recompiles per ``S``, pose
+    rank and dtype.
+    """
+    c2w = camera_to_world(extrinsic)
+    R, _, _ = sim3.to_rst(chunk_pose)
+    rot = R @ c2w[..., :3, :3]
+    centre = sim3.act(chunk_pose, c2w[..., :3, 3])
+    top = jnp.concatenate([rot, centre[..., None]], axis=-1)
+    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], rot.dtype), (*rot.shape[:-2], 1, 4))
+    return jnp.concatenate([top, bottom], axis=-2)
 
 
 def focal_ratio(K_src: Real[ArrayLike, "*s 3 3"], K_ref: Real[ArrayLike, "*r 3 3"]) -> Float[Array, "..."]:

@@ -933,9 +933,6 @@ def _quiesce(timeout: float = 60.0) -> None:
     into a finalising interpreter ('Fatal Python error: PyThreadState_Get ... finalizing')."""
     import threading
 
-    export = sys.modules.get("swiftjax.pipeline.export")
-    if export is not None:
-        export.close_frame_writers()
     jax = sys.modules.get("jax")
     if jax is not None:
         with contextlib.suppress(Exception):

@@ -37,7 +37,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import ipaddress
-import json
 import pathlib
 import socket
 import threading
@@ -48,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.pipeline.reader import POSE_SETS
 from swiftjax.sampling import Reservoir
 
 __all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port", "request_refusal"]
@@ -71,7 +71,6 @@ LEGEND = (
     "🟥 rejected loop candidate  \n"
     "cameras and *chunk* colouring: one colour per chunk"
 )
-POSE_SETS = ("loop closure", "no loop closure")
 
 
 class ViewerError(RuntimeError):
@@ -112,64 +111,21 @@ class RunView:
         import jax
         import jax.numpy as jnp
 
-        from swiftjax.pipeline.export import world_cameras
+        from swiftjax.camera import world_cameras
 
         poses = self.poses[pose_set][np.searchsorted(self.chunks, self.frame_chunk)]
         with jax.enable_x64(True):
             return np.asarray(world_cameras(jnp.asarray(poses), jnp.asarray(self.extrinsic, jnp.float64)))
 
 
-def _load_json(path: pathlib.Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ViewerError(f"{path} is unreadable ({err})") from None
-
-
 def open_manifest(run_dir: pathlib.Path) -> dict[str, Any]:
     """The run's manifest, or :class:`ViewerError` naming what is wrong with ``run_dir``."""
-    run_dir = pathlib.Path(run_dir)
-    if not run_dir.exists():
-        raise ViewerError(f"run directory {run_dir} does not exist")
-    if not run_dir.is_dir():
-        raise ViewerError(f"{run_dir} is not a directory (give the run directory written by swiftjax)")
-    path = run_dir / "manifest.json"
-    if not path.is_file():
-        raise ViewerError(
-            f"{run_dir} is not a swiftjax run directory (no manifest.json; give the --out folder of "
-            "'swiftjax reconstruct' or 'swiftjax demo')"
-        )
-    data = _load_json(path)
-    if not isinstance(data, dict) or not {"config", "chunks", "edges"} <= set(data):
-        raise ViewerError(f"{path} is not a swiftjax manifest (no config/chunks/edges)")
-    return data
+    from swiftjax.pipeline import reader
 
-
-def loop_candidates(manifest: dict[str, Any]) -> list[tuple[int, int, bool]]:
-    """``(i, j, accepted)`` of every loop candidate recorded in the manifest.
-
-    ``manifest["loops"]``, when it is a list, holds every candidate's verdict (loop
-    verification); it wins.  Otherwise the loop chunks' records in ``manifest["loop_edges"]``
-    are the candidates, ``accepted`` defaulting to True there (before verification every
-    recorded loop edge entered the pose graph).
-    """
-    out: dict[tuple[int, int], bool] = {}
-    for r in (manifest.get("loop_edges") or {}).values():
-        if isinstance(r, dict) and "i" in r and "j" in r:
-            out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", True))
-    candidates = manifest.get("loops")
-    if isinstance(candidates, list):
-        for r in candidates:
-            if isinstance(r, dict) and "i" in r and "j" in r:
-                out[int(r["i"]), int(r["j"])] = bool(r.get("accepted", False))
-    return [(i, j, a) for (i, j), a in sorted(out.items())]
-
-
-def _frame_names(run_dir: pathlib.Path) -> list[str] | None:
-    path = run_dir / "frames.txt"
-    if not path.is_file():
-        return None
-    return [ln.split(maxsplit=1)[1] for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    try:
+        return reader.read_manifest(run_dir)
+    except reader.RunReadError as err:
+        raise ViewerError(str(err)) from None
 
 
 @dataclasses.dataclass
@@ -188,31 +144,27 @@ def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
     merged into ``reservoir``, their frames and extrinsics kept in ``cache``)."""
     from swiftjax.io import trajectory
     from swiftjax.io.chunk_store import ChunkStore
-    from swiftjax.pipeline import chain_poses
+    from swiftjax.pipeline import chain_poses, reader
 
     run_dir = pathlib.Path(run_dir)
     manifest = open_manifest(run_dir)
     cache = {} if cache is None else cache
     store = ChunkStore(run_dir)
     done = {int(c) for c, ok in manifest["chunks"].items() if ok}
-    final_path = run_dir / "chunk_poses.json"
-    poses: dict[str, np.ndarray] = {}
-    if final_path.is_file():
-        data = _load_json(final_path)
-        for name in POSE_SETS:
-            if name in data:
-                poses[name] = np.asarray(data[name], np.float64).reshape(-1, 8)
+    try:
+        poses = reader.read_chunk_poses(run_dir)
+    except reader.RunReadError as err:
+        raise ViewerError(str(err)) from None
+    if poses is not None:
         count = min(len(p) for p in poses.values()) if poses else 0
         if not all(c in done for c in range(count)):
-            raise ViewerError(f"{final_path} has {count} chunk poses but the chunk store lacks some of them")
+            raise ViewerError(f"{run_dir / 'chunk_poses.json'} has {count} chunk poses but the chunk store lacks "
+                              "some of them")
         chunk_ids = list(range(count))
         final = True
     else:
         # Live: the longest prefix 0..k-1 of finished chunks whose edges are all recorded.
-        k = 0
-        while k in done and (k == 0 or str(k - 1) in manifest["edges"]):
-            k += 1
-        rel = np.array([manifest["edges"][str(t)]["S"] for t in range(k - 1)], np.float64).reshape(-1, 8)
+        k, rel = reader.chained_prefix(manifest)
         chunk_ids = list(range(k))
         poses = {"no loop closure": chain_poses(rel)} if k else {}
         final = False
@@ -248,7 +200,7 @@ def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
         frame_chunk=np.concatenate(owner) if owner else np.zeros(0, np.int64),
         extrinsic=np.concatenate(extrinsic) if extrinsic else np.zeros((0, 3, 4), np.float32),
         K=first.K if first else np.eye(3), image_hw=first.image_hw if first else (1, 1),
-        loops=loop_candidates(manifest), ground_truth=gt, names=_frame_names(run_dir), final=final,
+        loops=reader.loop_candidates(manifest), ground_truth=gt, names=reader.frame_names(run_dir), final=final,
     )
 
 

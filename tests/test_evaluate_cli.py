@@ -38,14 +38,14 @@ def _route(n=60, seed=0):
 def _run_files(tmp_path):
     """A run's poses_kitti.txt (up to scale: 0.1x the metric route, with noise) and its
     ground_truth_kitti.txt, with the headers swiftjax writes."""
-    from swiftjax.pipeline import export
+    from swiftjax.pipeline import export, results
 
     gt = _route()
     est = gt.copy()
     est[:, :3, 3] = 0.1 * gt[:, :3, 3] + np.random.default_rng(1).normal(scale=0.05, size=(len(gt), 3))
     run = tmp_path / "run"
     run.mkdir()
-    export._write_trajectories(run, est, np.arange(len(est), dtype=float), export.UP_TO_SCALE, "frame index")  # noqa: SLF001
+    export._write_trajectories(run, est, np.arange(len(est), dtype=float), results.UP_TO_SCALE, "frame index")  # noqa: SLF001
     trajectory.write_kitti(run / "ground_truth_kitti.txt", gt, header=[
         "the ground truth given to this run: camera-to-world poses as given (metres, its own frame)"])
     return run, gt, est

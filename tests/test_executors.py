@@ -137,8 +137,8 @@ class KillingExecutor(RayExecutor):
         self.at, self.log, self.taken, self.killed_pid = at, log, 0, None
         self.killer: threading.Thread | None = None
 
-    def map(self, predictor, requests):
-        for pred in super().map(predictor, requests):
+    def map(self, predictor, requests, prepare=None):
+        for pred in super().map(predictor, requests, prepare):
             self.taken += 1
             if self.taken == self.at:
                 self.killed_pid = str(ray.get(self.actors[0].pid.remote()))

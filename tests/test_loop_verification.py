@@ -411,7 +411,7 @@ class _Ctx:
 
 def test_pipeline_decisions_all_rejected_none_option_and_empty(x64):
     from swiftjax.pipeline import loop_closure
-    from swiftjax.pipeline.temporal import TemporalResult
+    from swiftjax.pipeline.results import TemporalResult
 
     rel, X, nodes, Z = chain_problem(5)
     temporal = TemporalResult(np.zeros((12, 4)), rel, [], K)

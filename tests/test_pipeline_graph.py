@@ -11,9 +11,10 @@ import pytest
 
 from swiftjax import align, align_covariance as ac, loops, posegraph, sim3
 from swiftjax.pipeline import PipelineConfig, graph
-from swiftjax.pipeline.loop_closure import LoopEdge, LoopResult
+from swiftjax.pipeline.results import LoopEdge, LoopResult
 from swiftjax.pipeline.rundir import StageTimer
-from swiftjax.pipeline.temporal import TemporalResult, _info_dict
+from swiftjax.pipeline.alignment import info_dict as _info_dict
+from swiftjax.pipeline.results import TemporalResult
 
 from test_align import make_pair
 

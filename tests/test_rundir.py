@@ -573,3 +573,17 @@ def test_prune_keeps_every_output_and_a_rerun_predicts_only_what_needs_the_maps(
     (tmp_path / "unfinished").mkdir()
     with pytest.raises(rundir.RunDirError, match="not a swiftjax run directory"):
         rundir.prune(tmp_path / "unfinished")
+
+
+def test_a_fingerprint_that_is_not_a_dict_is_refused():
+    """The list form ("one opaque identity of the whole input") is gone: a predictor's
+    fingerprint lists its frames or says None, beside its identity."""
+
+    class ListFingerprint:
+        num_frames = 3
+
+        def fingerprint(self):
+            return ["input.mp4", 1234]
+
+    with pytest.raises(TypeError, match=r"ListFingerprint.fingerprint\(\) must return a dict"):
+        rundir.fingerprints(ListFingerprint(), pipeline.PipelineConfig())

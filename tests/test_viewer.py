@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from swiftjax import viewer
+from swiftjax.pipeline import reader
 
 CI = bool(os.environ.get("CI"))
 
@@ -60,12 +61,12 @@ def test_loop_candidates_accepted_and_rejected():
     manifest = {  # before verification: every loop edge was used
         "loop_edges": {"5-300": {"i": 5, "j": 300}, "9-400": {"i": 9, "j": 400, "accepted": False}},
     }
-    assert viewer.loop_candidates(manifest) == [(5, 300, True), (9, 400, False)]
+    assert reader.loop_candidates(manifest) == [(5, 300, True), (9, 400, False)]
     manifest["loops"] = [  # verified: the candidates' list has the verdicts
         {"i": 5, "j": 300, "accepted": False}, {"i": 7, "j": 350}, {"i": 8, "j": 390, "accepted": True},
     ]
-    assert viewer.loop_candidates(manifest) == [(5, 300, False), (7, 350, False), (8, 390, True), (9, 400, False)]
-    assert viewer.loop_candidates({"loops": None, "loop_edges": {}}) == []
+    assert reader.loop_candidates(manifest) == [(5, 300, False), (7, 350, False), (8, 390, True), (9, 400, False)]
+    assert reader.loop_candidates({"loops": None, "loop_edges": {}}) == []
 
 
 def test_errors_name_the_problem(tmp_path):

@@ -8,11 +8,13 @@
     g¹ ──(g − μ) W──► ℓ2 ──► ẑ [d′]                                       whiten
 
 ``frame_descriptor`` runs per chunk as tokens arrive (the pipeline never holds all tokens:
-4,500 frames × 407 tokens × 1024 floats is 7.5 GB); only ``[N, d]`` descriptors are kept.
+4,500 frames × 407 tokens × 1024 floats is 7.5 GB); only ``[N, d]`` descriptors are kept
+(:func:`chunk_descriptors`, which an executor applies where the prediction is computed).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -24,6 +26,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from swiftjax.loops._checks import _check_finite, _is_concrete
 from swiftjax.loops.options import LoopOptions
+from swiftjax.prediction import ChunkPrediction
 
 _DEFAULTS = LoopOptions()
 
@@ -184,3 +187,15 @@ def whiten(w: Whitening, G: Float[ArrayLike, "*batch d"]) -> Float[Array, "*batc
     """Whitened descriptors ``ẑ = ℓ2((G − μ) W)``: ``[..., d]`` → ``[..., d′]``."""
     return _l2((jnp.asarray(G) - w.mean) @ w.projection)
 
+
+
+def chunk_descriptors(pred: ChunkPrediction) -> ChunkPrediction:
+    """``pred`` with its patch tokens ``[S, K, d]`` reduced to frame descriptors ``[S, d]``
+    (:func:`frame_descriptor`) and the tokens dropped; a prediction that carries descriptors
+    already only drops its tokens.  Host side (one device round trip per chunk)."""
+    if pred.descriptors is not None:
+        return dataclasses.replace(pred, patch_tokens=None)
+    if pred.patch_tokens is None:
+        raise ValueError("the predictor returned neither descriptors nor patch tokens")
+    g = np.asarray(frame_descriptor(jnp.asarray(pred.patch_tokens)))
+    return dataclasses.replace(pred, descriptors=g, patch_tokens=None)

@@ -1,20 +1,26 @@
 """The host-level SwiftVGGT pipeline: chunks in, trajectory and point cloud out.
 
 This is the imperative shell around the pure JAX core, and the only place with loops over
-chunks, files and progress bars.  One module per stage, each a function of what the
-earlier stages produced, all sharing a :class:`~swiftjax.pipeline.rundir.RunContext`::
+chunks, files and progress bars.  One module per stage; each takes explicit inputs and
+returns an immutable result (:mod:`~swiftjax.pipeline.results`), sharing only a
+:class:`~swiftjax.pipeline.rundir.RunContext` (records, store, schedule, clock)::
 
-    temporal.run      schedule ─► for each chunk: predict ─► descriptors ─► export points
-                                  ─► chunk store ─► align with previous
+    temporal.run      for each chunk: predict (descriptors where the executor computes it)
+                      ─► export's share (export.ChunkExport) ─► chunk store ─► align with previous
+                                                                        ─► TemporalResult
     loop_closure.run  loop detection ─► loop-centric chunks: predict ─► align both halves
-                                  ─► loop edges
-    graph.run         chain of temporal edges ─► Sim(3) pose graph (LM)
+                                  ─► verification ─► LoopResult
+    graph.run         chain of temporal edges + loop edges ─► Sim(3) pose graph ─► GraphResult
+    scale.run         --metric: every chunk pose in metres ─► ScaleResult
     export.run        final pass over the store ─► poses, PLY, COLMAP, intrinsics, loops.txt
     report.write      metrics.json, trajectory.png
 
-:func:`~swiftjax.pipeline.run.reconstruct` runs them in order.  The run directory's records
-(manifest, input fingerprint, resume records, stage clock) are in
-:mod:`~swiftjax.pipeline.rundir`, the method parameters in :mod:`~swiftjax.pipeline.config`.
+:func:`~swiftjax.pipeline.run.reconstruct` runs them in order.  The import graph is layered
+(``tests/test_pipeline_imports.py``): ``results`` and ``config`` at the bottom; ``alignment``
+(pair alignment, shared by the temporal and loop stages), ``executors`` (they only move
+arrays), ``rundir`` (the run directory's records: manifest, input fingerprint, resume records,
+stage clock) and ``reader`` (the one reader of a run directory: viewer, tests) above them; the
+stages; ``run`` on top.  The method parameters are in :mod:`~swiftjax.pipeline.config`.
 
 Memory stays flat in the sequence length: one chunk's dense arrays are in memory at a time
 (plus the previous chunk's overlap frames and at most one chunk waiting for the background
@@ -29,19 +35,17 @@ configuration is refused (:class:`RunDirError`) unless ``overwrite=True``.
 
 from __future__ import annotations
 
-from typing import Any
-
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.predictors import OraclePredictor, Predictor
 from swiftjax.pipeline.report import summary_table
-from swiftjax.pipeline.run import RunResult, reconstruct
+from swiftjax.pipeline.results import RunResult
+from swiftjax.pipeline.run import reconstruct
 from swiftjax.pipeline.rundir import RunDirError
 from swiftjax.posegraph import chain_poses  # re-export: it lives with the pose graph
 
 __all__ = [
     "PipelineConfig",
     "Predictor",
-    "ImagePredictor",
     "OraclePredictor",
     "RunDirError",
     "RunResult",
@@ -49,12 +53,3 @@ __all__ = [
     "chain_poses",
     "summary_table",
 ]
-
-
-def __getattr__(name: str) -> Any:
-    # ImagePredictor moved to the inference package (swiftjax never imports it eagerly).
-    if name == "ImagePredictor":
-        from inference.predictor import ImagePredictor
-
-        return ImagePredictor
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -3,8 +3,12 @@
 The temporal and loop stages hand an executor the chunks they need, in schedule order, and
 consume the :class:`~swiftjax.prediction.ChunkPrediction` s in that order::
 
-    stream = executor.map(predictor, [frames_0, frames_1, ...])   # an iterator
-    for frames in ...: pred = next(stream)                        # same order
+    stream = executor.map(predictor, [frames_0, frames_1, ...], prepare)   # an iterator
+    for frames in ...: pred = next(stream)                                 # same order
+
+Executors only move arrays: ``prepare`` (e.g. the loop package's token -> descriptor
+reduction, :func:`swiftjax.loops.descriptors.chunk_descriptors`) is the caller's, applied to
+each prediction where it is computed (on a Ray worker: before it crosses the network).
 
 An executor never reorders, drops or repeats a request; what a stage has recorded in the
 manifest is never requested (so never recomputed).  At most a bounded number of requests
@@ -33,7 +37,7 @@ import os
 import socket
 import time
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -54,6 +58,10 @@ __all__ = [
     "check_ray_address",
     "prediction_nbytes",
 ]
+
+
+#: What a stage asks an executor to apply to each prediction where it is computed.
+Prepare = Callable[[ChunkPrediction], ChunkPrediction]
 
 
 class ExecutorError(RuntimeError):
@@ -77,9 +85,10 @@ class Executor(Protocol):
 
     stats: ExecutorStats
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray]) -> Iterator[ChunkPrediction]:
-        """``predictor.predict(frames)`` for each ``frames`` of ``requests``, in order.  Close
-        the iterator (or exhaust it) to release what is in flight."""
+    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
+            ) -> Iterator[ChunkPrediction]:
+        """``prepare(predictor.predict(frames))`` for each ``frames`` of ``requests``, in order.
+        Close the iterator (or exhaust it) to release what is in flight."""
         ...
 
     def close(self) -> None:
@@ -92,9 +101,12 @@ def prediction_nbytes(pred: ChunkPrediction) -> int:
     return int(sum(v.nbytes for v in vars(pred).values() if isinstance(v, np.ndarray)))
 
 
-def _timed_predict(predictor: Any, frames: np.ndarray) -> tuple[ChunkPrediction, float]:
+def _timed_predict(predictor: Any, frames: np.ndarray, prepare: Prepare | None = None,
+                   ) -> tuple[ChunkPrediction, float]:
     t0 = time.perf_counter()
     pred = predictor.predict(frames)
+    if prepare is not None:
+        pred = prepare(pred)
     return pred, time.perf_counter() - t0
 
 
@@ -120,11 +132,12 @@ class LocalExecutor:
         self.prefetch = int(prefetch)
         self.stats = ExecutorStats()
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray]) -> Iterator[ChunkPrediction]:
+    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
+            ) -> Iterator[ChunkPrediction]:
         if self.prefetch == 0:
             for frames in requests:
                 t0 = time.perf_counter()
-                pred, seconds = _timed_predict(predictor, frames)
+                pred, seconds = _timed_predict(predictor, frames, prepare)
                 self._count(pred, seconds, time.perf_counter() - t0)
                 yield pred
             return
@@ -137,7 +150,7 @@ class LocalExecutor:
             for frames in requests:
                 if prefetch is not None:
                     prefetch(frames)
-                pending.append(pool.submit(_timed_predict, predictor, frames))
+                pending.append(pool.submit(_timed_predict, predictor, frames, prepare))
                 if len(pending) > self.prefetch:
                     yield self._take(pending)
             while pending:
@@ -328,14 +341,11 @@ class _PredictorActor:
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
         self.predictor = spec.build()
 
-    def predict(self, frames: np.ndarray) -> tuple[ChunkPrediction, float]:
-        """The prediction with its patch tokens already reduced to frame descriptors (what
-        the driver would do first): a VGGT chunk's tokens ([S, P, 1024] float32, 125 MB for
-        75 frames of 518 x 154) are twice its dense maps, and never cross the network."""
-        from swiftjax.pipeline.temporal import _with_descriptors
-
-        pred, seconds = _timed_predict(self.predictor, frames)
-        return (_with_descriptors(pred) if pred.patch_tokens is not None else pred), seconds
+    def predict(self, frames: np.ndarray, prepare: Prepare | None = None) -> tuple[ChunkPrediction, float]:
+        """The prediction, ``prepare`` applied here: e.g. its patch tokens reduced to frame
+        descriptors (a VGGT chunk's tokens, [S, P, 1024] float32, 125 MB for 75 frames of
+        518 x 154, are twice its dense maps, and never cross the network)."""
+        return _timed_predict(self.predictor, frames, prepare)
 
     def pid(self) -> int:
         return os.getpid()
@@ -432,7 +442,8 @@ class RayExecutor:
         self._spec_key = predictor
         return self.actors
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray]) -> Iterator[ChunkPrediction]:
+    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
+            ) -> Iterator[ChunkPrediction]:
         requests = list(requests)
         if not requests:
             return
@@ -443,7 +454,7 @@ class RayExecutor:
             while submitted < len(requests) or pending:
                 while submitted < len(requests) and len(pending) < self.max_in_flight:
                     actor = actors[submitted % len(actors)]
-                    pending.append(actor.predict.remote(np.asarray(requests[submitted])))
+                    pending.append(actor.predict.remote(np.asarray(requests[submitted]), prepare))
                     submitted += 1
                 t0 = time.perf_counter()
                 pred, seconds = self.ray.get(pending.popleft())

@@ -3,9 +3,11 @@
 Each temporal chunk's share of ``points.ply`` is taken while the chunk is in memory
 (:func:`chunk_points`, :func:`export_points`; saved in its chunk file, in the chunk's
 frame, with the pixel each point came from), and so are its frames as PNG for the COLMAP
-model (:func:`write_frames`; the chunk store keeps no images).  :func:`run` then reads only
-points and poses from the chunk store -- never the dense maps -- and applies the optimised
-``S_t``.
+model (:meth:`ChunkExport.write_frames`; the chunk store keeps no images): the temporal stage
+hands each chunk to a :class:`ChunkExport` it is given, and stores what it returns.
+:func:`run` then reads only points and poses from the chunk store -- never the dense maps --
+and applies the optimised ``S_t``.  The export owns ``colmap/images/`` (it writes, checks and
+cleans it: :func:`check`) and the list of its files in the outputs record (:func:`output_files`).
 
 Files (every text file starts with ``#`` lines saying what it holds; evo skips them):
 
@@ -29,12 +31,12 @@ Under the per-frame ``K`` the same observations are off by ``|K_f K_ref^-1 p - p
 
 from __future__ import annotations
 
-import contextlib
 import json
 import pathlib
 import warnings
+import zlib
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -44,33 +46,28 @@ from swiftjax import _faults, camera, sim3
 from swiftjax._compile import LOOP_EMITTER, quick_jit
 from swiftjax.align import frame_conf_mean
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
+from swiftjax.pipeline.results import LoopResult, ScaleResult, TemporalResult
+from swiftjax.pipeline.rundir import RunContext
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
 
-if TYPE_CHECKING:
-    from swiftjax.pipeline.graph import GraphResult
-    from swiftjax.pipeline.loop_closure import LoopResult
-    from swiftjax.pipeline.rundir import RunContext
-
 __all__ = [
-    "check", "run", "chunk_points", "chunk_points_jit", "export_points", "write_frames", "world_cameras",
-    "pose_unit", "UP_TO_SCALE",
+    "check", "run", "ChunkExport", "chunk_points", "chunk_points_jit", "export_points", "output_files",
 ]
 
-#: The unit of a run's poses and points unless a metric scale is known (``ctx.unit``).
-UP_TO_SCALE = "up to scale (VGGT's units of the first chunk; align with Sim(3) to compare with metric poses)"
 _CAMERA_AXES = "OpenCV camera axes (x right, y down, z forward)"
 
 
-def pose_unit(ctx: RunContext) -> str:
-    """The unit of the run's world coordinates: ``ctx.unit`` when set (e.g. ``"metres"`` from a
-    metric scale), else :data:`UP_TO_SCALE`."""
-    return getattr(ctx, "unit", None) or UP_TO_SCALE
-
-
 def check(ctx: RunContext) -> None:
-    """Refuse, before any work, output options the input cannot satisfy (``ValueError``)."""
-    _finish_frames(ctx)  # writes an interrupted run in this process left queued
+    """Remove the COLMAP frames of input frames that are gone (frames added or removed since the
+    last run), then refuse, before any work, output options the input cannot satisfy
+    (``ValueError``)."""
+    from swiftjax.io.colmap import image_names
+
+    if ctx.manifest.previous_names is not None:
+        old, new = ctx.manifest.previous_names, list(ctx.predictor.frame_names())
+        for name in (set(old) | set(image_names(old))) - (set(new) | set(image_names(new))):
+            (ctx.run_dir / "colmap" / "images" / name).unlink(missing_ok=True)
     if ctx.config.colmap and ctx.config.colmap_original_resolution:
         original_source(ctx)
         spaced = [n for n in ctx.predictor.frame_names() if any(c.isspace() for c in n)]
@@ -83,18 +80,21 @@ def check(ctx: RunContext) -> None:
 
 
 def run(
-    ctx: RunContext, graph: GraphResult, loops: LoopResult, timestamps: Sequence[float] | None = None,
-    timestamps_note: str | None = None,
+    ctx: RunContext, temporal: TemporalResult, scaled: ScaleResult, loops: LoopResult, chunks: ChunkExport,
+    timestamps: Sequence[float] | None = None, timestamps_note: str | None = None,
 ) -> dict[str, Any]:
     """Write every output of the run but the report's; returns ``cam_to_world``,
-    ``cam_to_world_no_loops`` ``[N, 4, 4]``, ``intrinsics [N, 3, 3]``, ``num_points`` and a
+    ``cam_to_world_no_loops`` ``[N, 4, 4]``, ``intrinsics [N, 3, 3]``, ``num_points``, a
     uniform sample of the cloud (``sample_points [M, 3]``, ``sample_colors [M, 3]``, M <= 1e5)
-    for ``points.png``.
+    for ``points.png`` and ``frame_crcs`` (the COLMAP frames checked, for :func:`output_files`).
 
-    ``timestamps`` ``[N]`` seconds for ``poses_tum.txt`` (default: the frame index) and
-    ``timestamps_note`` where they come from (said in the file's header)."""
+    ``chunks``: the run's :class:`ChunkExport` (the frames it wrote); ``timestamps`` ``[N]``
+    seconds for ``poses_tum.txt`` (default: the frame index) and ``timestamps_note`` where they
+    come from (said in the file's header)."""
+    graph = scaled.graph
     with ctx.timer("export"):
-        exported = _export(ctx, graph.chunk_poses, graph.chunk_poses_no_loops, timestamps, timestamps_note)
+        exported = _export(ctx, temporal.K_ref, graph.chunk_poses, graph.chunk_poses_no_loops, scaled.unit, chunks,
+                           timestamps, timestamps_note)
         write_loops(ctx.run_dir / "loops.txt", loops.records)
     return exported
 
@@ -180,17 +180,44 @@ def colmap_frame_paths(ctx: RunContext) -> list[str]:
     return [f"colmap/images/{name}" for name in frame_image_names(ctx)] if ctx.config.colmap else []
 
 
-def _check_frames(ctx: RunContext, names: list[str]) -> set[str]:
+def output_files(ctx: RunContext, targets: Sequence[pathlib.Path], frame_crcs: dict[str, str] | None,
+                 ) -> dict[str, str | None]:
+    """The outputs record of an export (:func:`swiftjax.pipeline.rundir.record_outputs`): every
+    file of ``targets`` and every COLMAP frame on disk, relative to the run directory, mapped to
+    None, or, with ``frame_crcs`` (after the renames), the COLMAP frames at the model's
+    resolution to the CRC32 of their bytes (checked by the next run's :func:`_check_frames`)."""
+    run_dir = ctx.run_dir
+    files: dict[str, str | None] = {p.relative_to(run_dir).as_posix(): None for p in map(pathlib.Path, targets)}
+    for rel in colmap_frame_paths(ctx):
+        if rel in files or (run_dir / rel).is_file():  # (a predictor without images writes none)
+            files[rel] = None
+    if frame_crcs is not None and not ctx.config.colmap_original_resolution:
+        for rel in files:
+            if rel.startswith("colmap/images/"):
+                crc = frame_crcs.get(rel)
+                files[rel] = crc if crc is not None or not (run_dir / rel).is_file() else _file_crc(run_dir / rel)
+    return files
+
+
+def _file_crc(path: pathlib.Path) -> str:
+    crc = 0
+    with open(path, "rb") as f:
+        while block := f.read(1 << 22):
+            crc = zlib.crc32(block, crc)
+    return f"{crc:08x}"
+
+
+def _check_frames(ctx: RunContext, names: list[str], frames_written: set[str]) -> tuple[set[str], dict[str, str]]:
     """The COLMAP frames at the model's resolution, checked against the outputs record
     (:func:`swiftjax.pipeline.rundir.record_outputs`): a frame missing, or one whose bytes
     fail the CRC32 recorded when it was written, is written again from the predictor's
     ``images`` (the preprocessed input; no prediction) and reported.  A predictor without
     ``images`` has the chunk holding such a frame predicted again (raises
     :class:`~swiftjax.io.chunk_store.ChunkMismatchError` on that chunk's file).  Frames this
-    run wrote, and those no record lists, are taken as they are (a missing one is warned about
-    by :func:`_export`)."""
+    run wrote (``frames_written``), and those no record lists, are taken as they are (a missing
+    one is warned about by :func:`_export`).  Returns the frames redrawn and the CRC32s of those
+    found intact."""
     from swiftjax.io.chunk_store import ChunkMismatchError
-    from swiftjax.pipeline.rundir import _file_crc
 
     recorded = ctx.manifest.data.get("outputs") or {}
     folder = ctx.run_dir / "colmap" / "images"
@@ -199,7 +226,7 @@ def _check_frames(ctx: RunContext, names: list[str]) -> set[str]:
     bad: dict[int, str] = {}  # frame -> why
     for k, name in enumerate(names):
         rel = f"colmap/images/{name}"
-        if rel in ctx.frames_written:
+        if rel in frames_written:
             continue
         path = folder / name
         exists = path.is_file()
@@ -216,9 +243,8 @@ def _check_frames(ctx: RunContext, names: list[str]) -> set[str]:
             bad[k] = "damaged: fails its CRC32"
         else:
             crcs[rel] = got
-    ctx.frame_crcs = crcs
     if not bad:
-        return set()
+        return set(), crcs
     shown = ", ".join(f"{names[k]} ({why})" for k, why in list(bad.items())[:3])
     more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
     by_chunk: dict[int, list[int]] = {}
@@ -235,7 +261,7 @@ def _check_frames(ctx: RunContext, names: list[str]) -> set[str]:
         images = np.asarray(ctx.predictor.images(frames))
         _save_pngs([folder / names[k] for k in ks], images[[k - int(frames[0]) for k in ks]])
     ctx.log(f"swiftjax: COLMAP frame(s) {shown}{more}: written again from the input (no prediction)")
-    return {names[k] for k in bad}  # (renamed into place with the output set)
+    return {names[k] for k in bad}, crcs  # (renamed into place with the output set)
 
 
 def original_source(ctx: RunContext) -> Any:
@@ -292,28 +318,61 @@ def _copy_originals(ctx: RunContext, names: list[str]) -> None:
                 Image.fromarray(source.read(k)).save(tmp, format="PNG", compress_level=1)
 
 
-def write_frames(ctx: RunContext, frames: np.ndarray, pred: ChunkPrediction) -> Any:
-    """Queue the frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as
-    PNG in ``colmap/images/`` at the model's resolution -- the images the COLMAP model's
-    cameras describe -- named by :func:`frame_image_names`.
+class ChunkExport:
+    """The export's share of each temporal chunk, taken while the chunk is in memory: its points
+    (:func:`chunk_points`, :func:`export_points`; kept in the chunk's file) and its frames
+    (:meth:`write_frames`).  One per run; owns the frame writer's thread (:meth:`close`)."""
 
-    Called by the temporal stage while the prediction is in memory, for the frames the chunk
-    owns (with ``colmap_original_resolution`` the export copies the originals instead).  The
-    files are written by one background thread (at most two chunks queued) while the next
-    chunk is predicted; :func:`run` waits for them.  Lossless PNG (Pillow, compression level
-    1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`;
-    cost: ``bench/bench_colmap_export.py``, docs/performance/pipeline.md); nothing when ``colmap`` is off or the predictor gives
-    no images.  Returns the write's future (``None`` when nothing is written): the temporal
-    stage's chunk write waits for it, so a chunk is recorded only once its frames are on disk
-    (a resumed run never lacks the frames of a recorded chunk).
-    """
-    if not ctx.config.colmap or ctx.config.colmap_original_resolution or pred.images is None:
-        return None
-    names = frame_image_names(ctx)
-    targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
-    ctx.frames_written.update(f"colmap/images/{names[int(f)]}" for f in np.asarray(frames))
-    writer = _FRAME_WRITERS.setdefault(str(ctx.run_dir), _FrameWriter())
-    return writer.submit(targets, np.asarray(pred.images)[: len(targets)])
+    def __init__(self, ctx: RunContext) -> None:
+        self.ctx = ctx
+        self.frames_written: set[str] = set()  # colmap/images/<name> this run wrote
+        self._writer: _FrameWriter | None = None
+
+    def __call__(
+        self, frames: np.ndarray, pred: ChunkPrediction, depth: jax.Array, conf: jax.Array, mask: jax.Array | None,
+        K_ref: np.ndarray,
+    ) -> tuple[dict[str, np.ndarray], Any]:
+        """Points (chunk-store extras) and the frame write's future (or None) of the chunk
+        ``pred``, whose first ``len(frames)`` frames (global indices ``frames``) it owns;
+        ``depth, conf [S, H, W]`` float32 and ``mask`` on the device."""
+        config = self.ctx.config
+        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        pts, keep = chunk_points_jit(
+            depth, conf, f32(pred.intrinsic), f32(K_ref), f32(pred.extrinsic), jnp.float32(config.point_conf_ratio),
+            mask, count=len(frames), stride=config.point_stride,
+        )
+        return export_points(pred, pts, keep, config.point_stride), self.write_frames(frames, pred)
+
+    def write_frames(self, frames: np.ndarray, pred: ChunkPrediction) -> Any:
+        """Queue the frames ``frames`` (global indices; the first ``len(frames)`` of ``pred``) as
+        PNG in ``colmap/images/`` at the model's resolution -- the images the COLMAP model's
+        cameras describe -- named by :func:`frame_image_names`.
+
+        Called for each chunk while the prediction is in memory, for the frames the chunk
+        owns (with ``colmap_original_resolution`` the export copies the originals instead).  The
+        files are written by one background thread (at most two chunks queued) while the next
+        chunk is predicted; :func:`run` waits for them.  Lossless PNG (Pillow, compression level
+        1), each chunk's files synced as one batch (:func:`~swiftjax.io.atomic.atomic_paths`;
+        cost: ``bench/bench_colmap_export.py``, docs/performance/pipeline.md); nothing when ``colmap`` is off or the predictor gives
+        no images.  Returns the write's future (``None`` when nothing is written): the temporal
+        stage's chunk write waits for it, so a chunk is recorded only once its frames are on disk
+        (a resumed run never lacks the frames of a recorded chunk).
+        """
+        ctx = self.ctx
+        if not ctx.config.colmap or ctx.config.colmap_original_resolution or pred.images is None:
+            return None
+        names = frame_image_names(ctx)
+        targets = [ctx.run_dir / "colmap" / "images" / names[int(f)] for f in np.asarray(frames)]
+        self.frames_written.update(f"colmap/images/{names[int(f)]}" for f in np.asarray(frames))
+        if self._writer is None:
+            self._writer = _FrameWriter()
+        return self._writer.submit(targets, np.asarray(pred.images)[: len(targets)])
+
+    def close(self) -> None:
+        """Wait for the queued frame writes (re-raising a failed one) and stop their thread."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            writer.close()
 
 
 def _save_pngs(targets: list[pathlib.Path], images: np.ndarray) -> None:
@@ -353,50 +412,7 @@ class _FrameWriter:
             self.pool.shutdown(wait=True)
 
 
-#: The frame writer of each run directory being written (created by :func:`write_frames`).
-_FRAME_WRITERS: dict[str, _FrameWriter] = {}
-
-
-def close_frame_writers() -> None:
-    """Wait for every run's queued frame writes and stop their threads (the CLI, after a Ctrl-C)."""
-    while _FRAME_WRITERS:
-        _, writer = _FRAME_WRITERS.popitem()
-        with contextlib.suppress(Exception):
-            writer.close()
-
-
-def finish_frames(ctx: RunContext) -> None:
-    """Wait for the run's queued frame writes and stop their thread (the temporal stage calls it
-    when interrupted, so that no write outlives the run)."""
-    _finish_frames(ctx)
-
-
-def _finish_frames(ctx: RunContext) -> None:
-    """Wait for the run's queued frame writes (also those an interrupted run left)."""
-    writer = _FRAME_WRITERS.pop(str(ctx.run_dir), None)
-    if writer is not None:
-        writer.close()
-
-
 _as_matrix = jax.jit(sim3.as_matrix)
-
-
-@jax.jit
-def world_cameras(chunk_pose: jax.Array, extrinsic: jax.Array) -> jax.Array:
-    """Camera-to-world ``[S, 4, 4]`` with orthonormal rotation: ``S_t`` composed with each camera.
-
-    ``chunk_pose`` is ``[8]`` or ``[S, 8]`` (each frame's chunk-to-world pose), ``extrinsic``
-    ``[S, 3, 4]``.  ``S_t`` scales the chunk; the camera's orientation is ``R_t R_c`` and its
-    centre ``S_t(c)``.  Recompiles per ``S``, pose rank and dtype (the export calls it once
-    for all frames).
-    """
-    c2w = camera.camera_to_world(extrinsic)
-    R, t, _ = sim3.to_rst(chunk_pose)
-    rot = R @ c2w[..., :3, :3]
-    centre = sim3.act(chunk_pose, c2w[..., :3, 3])
-    top = jnp.concatenate([rot, centre[..., None]], axis=-1)
-    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], rot.dtype), (*rot.shape[:-2], 1, 4))
-    return jnp.concatenate([top, bottom], axis=-2)
 
 
 def _per_frame_sample(frame: np.ndarray, per_frame: int, rng: np.random.Generator) -> np.ndarray:
@@ -412,8 +428,8 @@ def _per_frame_sample(frame: np.ndarray, per_frame: int, rng: np.random.Generato
 
 
 def _export(
-    ctx: RunContext, chunk_poses: np.ndarray, chunk_poses_no_loops: np.ndarray,
-    timestamps: Sequence[float] | None, timestamps_note: str | None,
+    ctx: RunContext, K_ref: np.ndarray, chunk_poses: np.ndarray, chunk_poses_no_loops: np.ndarray, unit: str,
+    chunks: ChunkExport, timestamps: Sequence[float] | None, timestamps_note: str | None,
 ) -> dict[str, Any]:
     """The final pass over the chunk store: world poses, points, COLMAP model.
 
@@ -423,12 +439,12 @@ def _export(
     """
     from swiftjax.io import colmap, ply
 
-    run_dir, schedule, store, config, K_ref = ctx.run_dir, ctx.schedule, ctx.store, ctx.config, ctx.K_ref
-    assert K_ref is not None
-    _finish_frames(ctx)
-    redrawn = set()
+    run_dir, schedule, store, config = ctx.run_dir, ctx.schedule, ctx.store, ctx.config
+    chunks.close()  # every frame the chunks queued is on disk
+    redrawn: set[str] = set()
+    frame_crcs: dict[str, str] = {}
     if config.colmap and not config.colmap_original_resolution:
-        redrawn = _check_frames(ctx, frame_image_names(ctx))
+        redrawn, frame_crcs = _check_frames(ctx, frame_image_names(ctx), chunks.frames_written)
     n = schedule.n_frames
     T = schedule.num_chunks
     owner = schedule.chunk_of(np.arange(n))  # later chunk wins
@@ -439,11 +455,10 @@ def _export(
     rng = np.random.default_rng(0)
     per_frame = max(1, config.colmap_max_points // n)
     sample: dict[str, list[np.ndarray]] = {"xyz": [], "rgb": [], "frame": [], "uv": []}
-    no_pixels: list[int] = []
     picture = Reservoir(100_000, seed=1)  # points.png's uniform sample of the cloud
     image_hw: tuple[int, int] | None = None
     total_points = 0
-    ply_comments = [f"unit: {pose_unit(ctx)}",
+    ply_comments = [f"unit: {unit}",
                     f"frame: the run's world = the first camera's frame, {_CAMERA_AXES}"]
     with ply.PlyStreamWriter(run_dir / "points.ply", comments=ply_comments) as cloud:
         for t in ctx.bar(range(T), desc="export", unit="chunk"):
@@ -463,17 +478,14 @@ def _export(
             cf = extra["points_conf"]
             rgb = extra["points_rgb"] if "points_rgb" in extra else np.full((xyz.shape[0], 3), 200, np.uint8)
             # COLMAP: a uniform sample of each frame's points, each with the pixel it came from.
-            if "points_pixel" in extra:
-                pix = extra["points_pixel"].astype(np.int64)
-                local = pix // (gh * gw)
-                take = _per_frame_sample(local, per_frame, rng)
-                sample["xyz"].append(xyz[take])
-                sample["rgb"].append(rgb[take])
-                sample["frame"].append(frames[local[take]])
-                cell = pix[take] % (gh * gw)
-                sample["uv"].append(np.column_stack([cell % gw, cell // gw]) * config.point_stride)
-            else:
-                no_pixels.append(t)
+            pix = extra["points_pixel"].astype(np.int64)
+            local = pix // (gh * gw)
+            take = _per_frame_sample(local, per_frame, rng)
+            sample["xyz"].append(xyz[take])
+            sample["rgb"].append(rgb[take])
+            sample["frame"].append(frames[local[take]])
+            cell = pix[take] % (gh * gw)
+            sample["uv"].append(np.column_stack([cell % gw, cell // gw]) * config.point_stride)
             if config.voxel_size:
                 down = ply.voxel_downsample(xyz, rgb, cf, config.voxel_size)
                 xyz, rgb, cf = down.points, down.colors, down.conf
@@ -484,11 +496,10 @@ def _export(
 
     with jax.enable_x64(True):
         ext = jnp.asarray(extrinsics, jnp.float64)
-        c2w = np.asarray(world_cameras(jnp.asarray(chunk_poses[owner], jnp.float64), ext))
-        c2w_no_loops = np.asarray(world_cameras(jnp.asarray(chunk_poses_no_loops[owner], jnp.float64), ext))
+        c2w = np.asarray(camera.world_cameras(jnp.asarray(chunk_poses[owner], jnp.float64), ext))
+        c2w_no_loops = np.asarray(camera.world_cameras(jnp.asarray(chunk_poses_no_loops[owner], jnp.float64), ext))
     assert image_hw is not None
     h, w = image_hw
-    unit = pose_unit(ctx)
     if timestamps is None:
         ts, note = np.arange(n, dtype=np.float64), "frame index (no timestamps given)"
     else:
@@ -507,18 +518,12 @@ def _export(
     if config.colmap and config.colmap_original_resolution:
         K, size, uv, keep = _to_original_resolution(ctx, K_ref, (h, w), uv)
         pts, rgb, frame, uv = pts[keep], rgb[keep], frame[keep], uv[keep]
-    cam = getattr(ctx, "camera", None)
+    cam = ctx.camera
     ref = "frame 0's K" if cam is None or cam.intrinsics is None else (
         f"the given intrinsics ({cam.intrinsics.kind} file {cam.intrinsics.source}) mapped to the model's resolution")
     write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None),
                      colmap_camera=(K, size) if config.colmap else None, ref=ref)
     if config.colmap:
-        if no_pixels:
-            warnings.warn(
-                f"chunks {no_pixels[:5]}{'...' if len(no_pixels) > 5 else ''} were written by an older swiftjax "
-                "without the points' pixels: their COLMAP points are left out (re-run with --overwrite)",
-                RuntimeWarning, stacklevel=2,
-            )
         if config.colmap_original_resolution:
             _copy_originals(ctx, names)  # every frame (renamed into place with the output set)
             redrawn = set(names)
@@ -543,6 +548,7 @@ def _export(
         "num_points": total_points,
         "sample_points": picture.xyz,
         "sample_colors": picture.rgb,
+        "frame_crcs": frame_crcs,
     }
 
 
@@ -656,8 +662,8 @@ def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
     Columns are the scalar keys the records carry (nested dicts flattened as ``align_i.rms``;
     the edge ``Z`` is in ``manifest.json``), ``i j score chunk_i chunk_j accepted`` first and
     ``reason`` last: the reason is readable text, the rest of the line (split a row with
-    ``line.split(maxsplit=len(columns) - 1)``); a value a record lacks is ``-``.  Records
-    without ``accepted`` predate loop verification: every such loop entered the pose graph.
+    ``line.split(maxsplit=len(columns) - 1)``); a value a record lacks is ``-``.  Every record
+    carries its verdict ``accepted``.
     """
     rows = [_flatten(r) for r in records]
     keys: list[str] = [k for k in _LOOP_FIRST if any(k in r for r in rows)]
@@ -665,14 +671,12 @@ def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
         keys += [k for k in r if k not in keys and k != _LOOP_LAST]
     if any(_LOOP_LAST in r for r in rows):
         keys.append(_LOOP_LAST)
-    accepted = sum(1 for r in rows if r.get("accepted", True))
+    accepted = sum(1 for r in rows if r["accepted"])
     if not rows:
         count = "0 candidates: loop detection found no pair of frames that look at the same place"
-    elif any("accepted" in r for r in rows):
+    else:
         count = (f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), "
                  f"{len(rows) - accepted} rejected")
-    else:
-        count = f"{len(rows)} candidates, all used as edges of the pose graph (no verification verdicts recorded)"
     lines = [
         "swiftjax loop candidates: frames i and j (0-based) look at the same place; score = cosine of "
         "their whitened descriptors",

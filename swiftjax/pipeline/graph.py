@@ -35,7 +35,7 @@ same way on the temporal edges and the priors (so both outputs are metric).
 from __future__ import annotations
 
 import warnings
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -43,24 +43,11 @@ import numpy as np
 
 from swiftjax import align_covariance, metric, posegraph, sim3
 from swiftjax.loops import verification as lv
-from swiftjax.pipeline.loop_closure import LoopResult
+from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
-from swiftjax.pipeline.temporal import TemporalResult
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["GraphResult", "run", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
-
-
-class GraphResult(NamedTuple):
-    """``chunk_poses [T, 8]`` optimised chunk-to-world, ``chunk_poses_no_loops [T, 8]`` the
-    chain alone (float64), ``metrics`` for ``metrics.json`` (empty without loop edges),
-    ``inlier_weights``: per loop edge (GNC: 1 kept, 0 rejected; Huber/Cauchy: IRLS weight), or
-    None (no loop edges)."""
-
-    chunk_poses: np.ndarray
-    chunk_poses_no_loops: np.ndarray
-    metrics: dict[str, Any]
-    inlier_weights: np.ndarray | None = None
+__all__ = ["run", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
 
 
 _STATS = ("S", "num_points", "rms", "src_mean", "src_covariance")

@@ -22,7 +22,8 @@ two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -31,31 +32,15 @@ import numpy as np
 from swiftjax import _faults, align, loops
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline import loop_geometry
+from swiftjax.pipeline.alignment import align_pair, both
 from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.results import LoopEdge, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
-from swiftjax.pipeline.temporal import TemporalResult, align_pair, both
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.posegraph import chain_poses
+from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["LoopEdge", "LoopResult", "loop_options", "run"]
-
-
-class LoopEdge(NamedTuple):
-    """A loop edge of the pose graph: ``Z [8]`` maps chunk ``chunk_b`` into chunk ``chunk_a``;
-    ``information [7, 7]`` or None (identity)."""
-
-    chunk_a: int
-    chunk_b: int
-    Z: np.ndarray
-    information: np.ndarray | None = None
-
-
-class LoopResult(NamedTuple):
-    """``records``: one dict per loop (as in the manifest and ``loops.txt``); ``edges``: the
-    pose graph's loop edges."""
-
-    records: list[dict[str, Any]]
-    edges: list[LoopEdge]
+__all__ = ["loop_options", "run"]
 
 
 def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
@@ -80,7 +65,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
     for lp in found:
         if f"{lp.i}-{lp.j}" not in manifest.data["loop_edges"]:
             todo.setdefault(f"{lp.i}-{lp.j}", lp.frames)
-    predictions = ctx.executor.map(ctx.predictor, list(todo.values()))
+    predictions = ctx.executor.map(ctx.predictor, list(todo.values()), _without_tokens)
     with timer("loop chunks"):
         try:
             for lp in ctx.bar(found, desc="loop chunks", unit="loop"):
@@ -171,6 +156,12 @@ def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any
             sides[0], sides[1], np.asarray(record["Z"]), K_ref, record["align_i"], record["align_j"],
             _verification_config(ctx.config),
         )
+
+
+def _without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
+    """A loop chunk's prediction without its patch tokens (its alignment needs none; on a Ray
+    worker they never cross the network)."""
+    return dataclasses.replace(pred, patch_tokens=None)
 
 
 def loop_options(config: PipelineConfig) -> loops.LoopOptions:

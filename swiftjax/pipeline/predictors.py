@@ -24,12 +24,11 @@ class Predictor(Protocol):
         """One forward pass over the given global frame indices."""
         ...
 
-    def fingerprint(self) -> dict[str, Any] | list[Any]:
+    def fingerprint(self) -> dict[str, Any]:
         """JSON-able identity of everything that determines a prediction: ``{"frames": [one
         item per frame, e.g. name, size, mtime] or None, **rest}`` (model, preprocessing, ...).
         A changed frame re-predicts only its chunks; any other change refuses the run
-        directory (:func:`swiftjax.pipeline.rundir.fingerprints`).  A plain list is one opaque
-        identity of the whole input."""
+        directory (:func:`swiftjax.pipeline.rundir.fingerprints`)."""
         ...
 
     def frame_names(self) -> list[str]:

@@ -5,18 +5,13 @@ from __future__ import annotations
 
 import json
 import pathlib
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from swiftjax.io.atomic import atomic_write
-
-if TYPE_CHECKING:
-    from swiftjax.pipeline.graph import GraphResult
-    from swiftjax.pipeline.loop_closure import LoopResult
-    from swiftjax.pipeline.rundir import RunContext
-    from swiftjax.pipeline.run import RunResult
-    from swiftjax.pipeline.temporal import TemporalResult
+from swiftjax.pipeline.results import LoopResult, RunResult, ScaleResult, TemporalResult
+from swiftjax.pipeline.rundir import RunContext
 
 __all__ = ["write", "summary_table", "check_ground_truth"]
 
@@ -46,15 +41,16 @@ def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth"
 
 
 def write(
-    ctx: RunContext, temporal: TemporalResult, loops: LoopResult, graph: GraphResult,
+    ctx: RunContext, temporal: TemporalResult, loops: LoopResult, scaled: ScaleResult,
     exported: dict[str, Any], ground_truth: np.ndarray | None,
 ) -> dict[str, Any]:
     """Write ``metrics.json``, ``trajectory.png``, ``points.png`` and, with a ground truth,
     ``ground_truth_kitti.txt`` (for the viewer); returns the metrics."""
+    graph = scaled.graph
     try:
         metrics = _metrics(
             ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-            ctx.timer.seconds, exported, ground_truth, ctx.scale,
+            ctx.timer.seconds, exported, ground_truth, scaled.record,
         )
     except ValueError as err:  # the evaluation failed: the run's outputs are kept, without ATE
         if ground_truth is None:
@@ -63,7 +59,7 @@ def write(
         ground_truth = None
         metrics = _metrics(
             ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-            ctx.timer.seconds, exported, None, ctx.scale,
+            ctx.timer.seconds, exported, None, scaled.record,
         )
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import dataclasses
 import pathlib
 from collections.abc import Callable, Sequence
-from typing import Any
 
 import numpy as np
 
@@ -16,26 +14,9 @@ from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import Executor, LocalExecutor
 from swiftjax.pipeline.predictors import Predictor
+from swiftjax.pipeline.results import RunResult
 
 __all__ = ["RunResult", "reconstruct"]
-
-
-@dataclasses.dataclass
-class RunResult:
-    """What :func:`reconstruct` produced (also written to ``metrics.json``)."""
-
-    run_dir: pathlib.Path
-    num_frames: int
-    num_chunks: int
-    loops: list[dict[str, Any]]  # the accepted loop candidates (loop edges)
-    chunk_poses: np.ndarray  # [T, 8] optimised chunk-to-world
-    chunk_poses_no_loops: np.ndarray  # [T, 8] chained alignment only
-    cam_to_world: np.ndarray  # [N, 4, 4] (rotation orthonormal)
-    cam_to_world_no_loops: np.ndarray
-    intrinsics: np.ndarray  # [N, 3, 3]
-    timings: dict[str, float]
-    metrics: dict[str, Any]
-    loop_candidates: list[dict[str, Any]] = dataclasses.field(default_factory=list)  # every one, with its verdict
 
 
 def reconstruct(
@@ -85,18 +66,18 @@ def reconstruct(
         raise ValueError("--metric gt needs the ground-truth poses (--gt)")
     executor = executor if executor is not None else LocalExecutor()
     ctx = rundir.open_run(predictor, run_dir, config, executor, overwrite=overwrite, progress=progress, log=log)
+    chunk_export = export.ChunkExport(ctx)
     try:
         export.check(ctx)
         # A chunk file found corrupt by a later stage is forgotten and the stages restart: the
         # temporal stage predicts it again (every other chunk is read back), at most once per chunk.
         for _attempt in range(ctx.schedule.num_chunks + 1):
             try:
-                chain = temporal.run(ctx)
+                chain = temporal.run(ctx, chunk_export)
                 _faults.point("temporal-done")
                 loops = loop_closure.run(ctx, chain)
                 _faults.point("loops-done")
-                poses = graph.run(ctx, chain, loops)
-                poses = scale.run(ctx, chain, poses, ground_truth)  # --metric: everything in metres
+                poses = scale.run(ctx, chain, graph.run(ctx, chain, loops), ground_truth)  # --metric: in metres
                 _faults.point("graph-done")
                 # The outputs are renamed together at the end: a full disk or a kill mid-way
                 # leaves the previous complete set (or none), never a mix.  The outputs record
@@ -105,13 +86,13 @@ def reconstruct(
 
                 def expect(targets: list[pathlib.Path]) -> None:
                     written[:] = targets
-                    rundir.record_outputs(ctx, targets, final=False)
+                    rundir.record_outputs(ctx, export.output_files(ctx, targets, None), final=False)
 
                 with output_set(before_rename=expect):
-                    exported = export.run(ctx, poses, loops, timestamps, timestamps_note)
+                    exported = export.run(ctx, chain, poses, loops, chunk_export, timestamps, timestamps_note)
                     _faults.point("export-done")
                     metrics = report.write(ctx, chain, loops, poses, exported, ground_truth)
-                rundir.record_outputs(ctx, written, final=True)
+                rundir.record_outputs(ctx, export.output_files(ctx, written, exported["frame_crcs"]), final=True)
                 break
             except ChunkCorruptError as err:
                 t = _corrupt_chunk_index(ctx, err)
@@ -120,15 +101,18 @@ def reconstruct(
         else:  # pragma: no cover - every chunk re-predicted and still corrupt: the disk is failing
             raise rundir.RunDirError(f"chunk files in {ctx.store.root} keep failing their checksums")
     finally:
-        ctx.close()
+        try:
+            chunk_export.close()  # no frame write outlives the run
+        finally:
+            ctx.close()
 
     return RunResult(
         run_dir=run_dir,
         num_frames=n,
         num_chunks=ctx.schedule.num_chunks,
         loops=[r for r in loops.records if r["accepted"]],
-        chunk_poses=poses.chunk_poses,
-        chunk_poses_no_loops=poses.chunk_poses_no_loops,
+        chunk_poses=poses.graph.chunk_poses,
+        chunk_poses_no_loops=poses.graph.chunk_poses_no_loops,
         cam_to_world=exported["cam_to_world"],
         cam_to_world_no_loops=exported["cam_to_world_no_loops"],
         intrinsics=exported["intrinsics"],

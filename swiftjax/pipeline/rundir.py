@@ -177,17 +177,17 @@ def _jsonable(x: Any) -> Any:
 def fingerprints(predictor: Predictor, config: PipelineConfig, camera: Any = None) -> dict[str, Any]:
     """What determines each stage's stored result (see the module docstring), JSON-able.
 
-    ``predictor.fingerprint()`` is either a dict ``{"frames": [one item per frame],
-    **identity}`` (model, preprocessing, ...: everything else that determines a prediction),
-    or a list (the legacy form: one opaque identity of the whole input).  ``camera`` is the
-    user camera's fingerprint (intrinsics values, mask files), part of the identity.
+    ``predictor.fingerprint()`` is a dict ``{"frames": [one item per frame] or None,
+    **identity}`` (model, preprocessing, ...: everything else that determines a prediction).
+    ``camera`` is the user camera's fingerprint (intrinsics values, mask files), part of the
+    identity.
     """
     fp = predictor.fingerprint()
-    if isinstance(fp, dict):
-        frames = fp.get("frames")
-        identity = {k: v for k, v in fp.items() if k != "frames"}
-    else:
-        frames, identity = None, {"input": fp}
+    if not isinstance(fp, dict):
+        raise TypeError(f"{type(predictor).__name__}.fingerprint() must return a dict "
+                        f"{{'frames': [...] or None, **identity}}, got {type(fp).__name__}")
+    frames = fp.get("frames")
+    identity = {k: v for k, v in fp.items() if k != "frames"}
     if camera:
         identity["camera"] = camera
     n = int(predictor.num_frames)
@@ -624,9 +624,10 @@ def progress_bar(iterable: Iterable, enabled: bool, **kwargs: Any) -> Iterable:
 
 @dataclasses.dataclass
 class RunContext:
-    """What every stage receives.  Stages get predictions from ``executor.map(predictor,
-    ...)``, never from the predictor directly.  ``K_ref`` (the first frame's intrinsics, the
-    reference of the depth normalisation) is set by the temporal stage."""
+    """What every stage receives: the run's records, store, schedule, configuration, clock and
+    log.  Nothing a stage computes is stored here (a stage returns its result,
+    :mod:`swiftjax.pipeline.results`).  Stages get predictions from ``executor.map(predictor,
+    ...)``, never from the predictor directly."""
 
     run_dir: pathlib.Path
     config: PipelineConfig
@@ -638,13 +639,8 @@ class RunContext:
     executor: Executor
     progress: bool = True
     log: Callable[[str], None] = print
-    K_ref: np.ndarray | None = None
     camera: UserCamera | None = None
-    scale: dict[str, Any] | None = None  # the metric-scale step's record (unit, factor, votes)
-    unit: str | None = None  # the world's unit once known ("metres" with --metric; export headers)
     lock: RunLock | None = None
-    frame_crcs: dict[str, str] | None = None  # COLMAP frames the export checked (relpath -> CRC32)
-    frames_written: set[str] = dataclasses.field(default_factory=set)  # COLMAP frames this run wrote
 
     @property
     def num_frames(self) -> int:
@@ -768,10 +764,11 @@ def _remove_files(run_dir: pathlib.Path, relpaths: Iterable[str]) -> int:
     return count
 
 
-def record_outputs(ctx: RunContext, targets: Iterable[pathlib.Path], final: bool) -> None:
+def record_outputs(ctx: RunContext, files: dict[str, str | None], final: bool) -> None:
     """The outputs record: ``manifest["outputs"]`` maps every file this run's export wrote
-    (relative path) to the CRC32 of its bytes for the COLMAP frames (checked by the next run's
-    export), else None.
+    (relative path) to what the export checks it with next time (the CRC32 of a COLMAP frame's
+    bytes), else None: ``files``, as the export lists them
+    (:func:`swiftjax.pipeline.export.output_files`).
 
     Called twice: with ``final=False`` just before the output set is renamed into place (the
     record then lists the previous run's files too, so a kill between the renames and the
@@ -779,14 +776,9 @@ def record_outputs(ctx: RunContext, targets: Iterable[pathlib.Path], final: bool
     what the previous run wrote and this one did not (a stale ``ground_truth_kitti.txt``,
     ``.txt`` model, frames of a longer input, the model after ``--no-colmap``) and records
     exactly this run's files."""
-    from swiftjax.pipeline.export import colmap_frame_paths
-
     run_dir = ctx.run_dir
     old: dict[str, Any] = dict(ctx.manifest.data.get("outputs") or {})
-    new = {p.relative_to(run_dir).as_posix(): None for p in (pathlib.Path(t) for t in targets)}
-    for rel in colmap_frame_paths(ctx):
-        if rel in new or (run_dir / rel).is_file():  # (a predictor without images writes none)
-            new[rel] = None
+    new = dict(files)
     if not final:
         ctx.manifest.data["outputs"] = {**old, **new}
         ctx.manifest.save()
@@ -796,23 +788,8 @@ def record_outputs(ctx: RunContext, targets: Iterable[pathlib.Path], final: bool
         _remove_files(run_dir, stale)
         ctx.log(f"swiftjax: removed {len(stale)} output file(s) of the previous run that this run does not write "
                 f"({', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''})")
-    known = getattr(ctx, "frame_crcs", {}) or {}
-    for rel in new:
-        if rel.startswith("colmap/images/") and not ctx.config.colmap_original_resolution:
-            crc = known.get(rel)
-            if crc is None and (run_dir / rel).is_file():
-                crc = _file_crc(run_dir / rel)
-            new[rel] = crc
     ctx.manifest.data["outputs"] = new
     ctx.manifest.save()
-
-
-def _file_crc(path: pathlib.Path) -> str:
-    crc = 0
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            crc = zlib.crc32(block, crc)
-    return f"{crc:08x}"
 
 
 def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[int, int]:
@@ -887,16 +864,11 @@ def open_run(
         # Validated: now the temp files a killed run left (this run's names in its folders only).
         _clean_temp_files(run_dir, _own_names(run_dir, predictor.frame_names(), manifest.data["outputs"]), log)
         store = ChunkStore(run_dir)
-        if manifest.previous_names is not None:  # frames added or removed: drop what is nobody's now
-            for kind in ("chunk", "tail"):
+        if manifest.previous_names is not None:  # frames added or removed: drop the chunks nobody's now
+            for kind in ("chunk", "tail"):  # (the export drops its frames: export.check)
                 for t in store.indices(kind):
                     if t >= schedule.num_chunks:
                         store.remove(kind, t)
-            from swiftjax.io.colmap import image_names
-
-            old, new = manifest.previous_names, list(predictor.frame_names())
-            for name in (set(old) | set(image_names(old))) - (set(new) | set(image_names(new))):
-                (run_dir / "colmap" / "images" / name).unlink(missing_ok=True)
     except BaseException:
         lock.release()
         raise

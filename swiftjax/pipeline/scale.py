@@ -12,8 +12,8 @@
 The world is then stretched by the factor (:func:`swiftjax.metric.apply_scale` on every
 chunk pose), so the poses, the point cloud and the COLMAP model are all in metres.  The
 loop-closed and chain-only poses get their own factors (their ``s_t`` differ).
-``ctx.scale`` records ``unit``, the factors and the vote statistics for ``metrics.json``;
-``ctx.unit`` (``"metres"``) is what the export's headers state.
+The result (:class:`~swiftjax.pipeline.results.ScaleResult`) records ``unit``, the factors and
+the vote statistics for ``metrics.json``; its ``unit`` is what the export's headers state.
 """
 
 from __future__ import annotations
@@ -25,35 +25,29 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import metric
-from swiftjax.pipeline.export import UP_TO_SCALE, world_cameras
-from swiftjax.pipeline.graph import GraphResult
+from swiftjax.camera import world_cameras
+from swiftjax.pipeline.results import UNIT_METRE, UP_TO_SCALE, GraphResult, ScaleResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
-from swiftjax.pipeline.temporal import TemporalResult
 
-__all__ = ["run", "UNIT_METRE", "UNIT_ARBITRARY"]
-
-UNIT_METRE = "metres"
-UNIT_ARBITRARY = UP_TO_SCALE
+__all__ = ["run"]
 
 
-def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_truth: np.ndarray | None) -> GraphResult:
+def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_truth: np.ndarray | None) -> ScaleResult:
     """``graph`` with every chunk pose in metres (unchanged without ``--metric``)."""
     spec = None if ctx.camera is None else ctx.camera.metric
     if spec is None:
-        ctx.scale = {"unit": UNIT_ARBITRARY}
-        return graph
+        return ScaleResult(graph, {"unit": UP_TO_SCALE}, UP_TO_SCALE)
     kind, height = spec
     with ctx.timer("metric scale"):
         prior = graph.metrics.get("metric_prior")
         if kind == "camera-height" and prior is not None:  # the pose graph solved in metres
-            ctx.scale = {"unit": UNIT_METRE, "combine": "prior", "metres_per_unit": float(graph.chunk_poses[0, 7]),
+            record = {"unit": UNIT_METRE, "combine": "prior", "metres_per_unit": float(graph.chunk_poses[0, 7]),
                          "metres_per_unit_no_loops": float(graph.chunk_poses_no_loops[0, 7]),
                          "method": f"camera-height={height:g}", **prior,
                          "chunk_heights": [None if not np.isfinite(h) else float(h) for h in temporal.ground_heights]}
-            ctx.unit = UNIT_METRE
             ctx.log(f"metric scale (camera-height={height:g}, scale priors in the pose graph): "
-                    f"{ctx.scale['metres_per_unit']:.6g} m per unit of chunk 0")
-            return graph
+                    f"{record['metres_per_unit']:.6g} m per unit of chunk 0")
+            return ScaleResult(graph, record, UNIT_METRE)
         if kind == "model":  # the network predicts metres: the world is chunk 0's, in its metres
             m, m0 = 1.0 / float(graph.chunk_poses[0, 7]), 1.0 / float(graph.chunk_poses_no_loops[0, 7])
             info = {"method": "model (the metric network's depth, chunk 0's metres)"}
@@ -71,13 +65,13 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
             m = _sim3_scale(ctx, graph.chunk_poses, gt)
             m0 = _sim3_scale(ctx, graph.chunk_poses_no_loops, gt)
             info = {"method": "gt (Sim(3) alignment of the camera centres)"}
-    ctx.scale = {"unit": UNIT_METRE, "metres_per_unit": m, "metres_per_unit_no_loops": m0, **info}
-    ctx.unit = UNIT_METRE  # the export's file headers say so
+    record = {"unit": UNIT_METRE, "metres_per_unit": m, "metres_per_unit_no_loops": m0, **info}
     ctx.log(f"metric scale ({info['method']}): {m:.6g} m per VGGT unit")
-    return graph._replace(
+    scaled = graph._replace(
         chunk_poses=metric.apply_scale(graph.chunk_poses, m),
         chunk_poses_no_loops=metric.apply_scale(graph.chunk_poses_no_loops, m0),
     )
+    return ScaleResult(scaled, record, UNIT_METRE)
 
 
 def _sim3_scale(ctx: RunContext, chunk_poses: np.ndarray, gt_centres: np.ndarray) -> float:

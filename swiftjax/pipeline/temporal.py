@@ -1,10 +1,12 @@
 """The temporal stage: predict -> descriptors -> chunk store -> align with the previous chunk.
 
 For each chunk of the schedule (in order): the prediction's patch tokens are reduced to
-per-frame descriptors at once (``[N, d]`` is all that is kept); the dense maps go to the
-device once, where they are cast to float16 for the chunk store, sliced into the overlap
-frames for the alignment, and unprojected into the chunk's share of the point cloud
-(:func:`swiftjax.pipeline.export.chunk_points`).  Chunk files (zip + fsync) are written by
+per-frame descriptors where the executor computes it (``[N, d]`` is all that is kept;
+:func:`swiftjax.loops.descriptors.chunk_descriptors`); the dense maps go to the device once,
+where they are cast to float16 for the chunk store, sliced into the overlap frames for the
+alignment, and handed to the export's share of the chunk (``chunk_export``, a
+:class:`~swiftjax.pipeline.export.ChunkExport` given by the caller: points, frames), whose
+result is stored with the chunk.  Chunk files (zip + fsync) are written by
 one background thread while the next chunk is predicted.  Memory stays flat in the
 sequence length: one chunk's dense arrays are in memory at a time, plus the previous
 chunk's overlap frames and at most one chunk waiting for the writer.
@@ -18,8 +20,8 @@ and predicted again.  The other chunks are requested from the run's executor at 
 schedule order (a local one predicts the next chunk while this one is stored and aligned; a
 Ray pool predicts several ahead).
 
-Stage clocks: the wait for the predictions is booked as "predict", everything else as geometry:
-descriptors under "loop detection"; the float16 conversion, chunk-file and manifest writes
+Stage clocks: the wait for the predictions (descriptors included) is booked as "predict",
+everything else as geometry: the float16 conversion, chunk-file and manifest writes
 (and waits for the background writer) under "chunk store"; the chunk-frame export points
 under "export".
 """
@@ -29,44 +31,32 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
-import sys
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import _faults, align, loops, metric, sim3
+from swiftjax import _faults, align, metric
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
-from swiftjax.pipeline.config import PipelineConfig
-from swiftjax.pipeline.export import chunk_points_jit, export_points, finish_frames, write_frames
+from swiftjax.loops.descriptors import chunk_descriptors
+from swiftjax.pipeline.alignment import align_pair, both
+from swiftjax.pipeline.results import TemporalResult
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext, check_binding, chunk_binding, forget_chunk
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["TemporalResult", "run", "align_pair", "both"]
+__all__ = ["ChunkSink", "run"]
+
+#: The export's share of a chunk (:class:`swiftjax.pipeline.export.ChunkExport`): ``(owned
+#: frames, prediction, depth, conf, keep-mask, K_ref) -> (chunk-store extras, write future)``.
+ChunkSink = Callable[..., tuple[dict[str, np.ndarray], Any]]
 
 
-class TemporalResult(NamedTuple):
-    """What the temporal stage produced.
-
-    ``descriptors [N, d]`` float32 (per frame), ``relative [T-1, 8]`` float64 (edge ``t``
-    maps chunk ``t+1`` into chunk ``t``), ``edges``: one record per edge (``S`` and the
-    alignment diagnostics, as in the manifest), ``K_ref [3, 3]`` float64 (the user's
-    intrinsics at the model's resolution, else the first frame's prediction),
-    ``ground_heights [T]`` (``--metric camera-height``: the camera's height above the road
-    in each chunk's units, NaN where no road was found; else ``None``).
-    """
-
-    descriptors: np.ndarray
-    relative: np.ndarray
-    edges: list[dict[str, Any]]
-    K_ref: np.ndarray
-    ground_heights: np.ndarray | None = None
-
-
-def run(ctx: RunContext) -> TemporalResult:
-    """Every temporal chunk predicted (or read back), stored and aligned with its predecessor."""
+def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
+    """Every temporal chunk predicted (or read back), stored and aligned with its predecessor;
+    ``chunk_export`` takes each predicted chunk's share of the outputs."""
     config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
     n = schedule.n_frames
     T = schedule.num_chunks
@@ -92,7 +82,8 @@ def run(ctx: RunContext) -> TemporalResult:
     if resumed:
         ctx.log(f"swiftjax: resumed {len(resumed)}/{T} chunks from {store.root}"
                 + (f"; predicting {T - len(resumed)}" if len(resumed) < T else ""))
-    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed])
+    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed],
+                                   chunk_descriptors)
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
@@ -121,9 +112,7 @@ def run(ctx: RunContext) -> TemporalResult:
                     raise ValueError(
                         f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}"
                     )
-                with timer("loop detection"):
-                    pred = _with_descriptors(pred)
-                    desc = pred.descriptors
+                desc = pred.descriptors
                 if K_ref is None:
                     K_ref = np.asarray(pred.intrinsic[0], np.float64)
 
@@ -137,12 +126,7 @@ def run(ctx: RunContext) -> TemporalResult:
                     # masks from the stored (float16) maps, as a resumed run recomputes them
                     mask_d = cam.keep(frames, *halves)
                     count = int(schedule.starts[t + 1] - schedule.starts[t]) if t + 1 < T else S
-                    pts, keep = chunk_points_jit(
-                        depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), f32(pred.extrinsic),
-                        jnp.float32(config.point_conf_ratio), mask_d, count=count, stride=config.point_stride,
-                    )
-                    points = export_points(pred, pts, keep, config.point_stride)
-                    frames_written = write_frames(ctx, frames[:count], pred)  # the frames it owns, colmap/images/
+                    points, frames_written = chunk_export(frames[:count], pred, depth_d, conf_d, mask_d, K_ref)
                 if heights is not None:
                     with timer("metric scale"):
                         gh = metric.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
@@ -172,7 +156,7 @@ def run(ctx: RunContext) -> TemporalResult:
                 tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O:], pred.extrinsic[S - O:])
                 head_mask = None if mask_d is None else mask_d[:O]
                 tail_mask = None if mask_d is None else mask_d[S - O:]
-                del pred, stored, depth, conf, depth_d, conf_d, halves, pts, keep, mask_d
+                del pred, stored, depth, conf, depth_d, conf_d, halves, mask_d
 
             if descriptors is None:
                 descriptors = np.zeros((n, desc.shape[1]), np.float32)
@@ -203,20 +187,11 @@ def run(ctx: RunContext) -> TemporalResult:
     finally:
         predictions.close()  # interrupted: release the chunks in flight
         writer.close()
-        if sys.exc_info()[0] is not None:  # interrupted: no frame write outlives the run
-            with contextlib.suppress(Exception):
-                finish_frames(ctx)
         with contextlib.suppress(Exception):  # interrupted: record every complete chunk file
             records.commit(writer.finished(wait=True))
         manifest.flush()
     assert descriptors is not None and K_ref is not None
-    ctx.K_ref = K_ref
     return TemporalResult(descriptors, relative, align_infos, K_ref, heights)
-
-
-def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
-    """The pixels both keep-masks keep (``None``: no mask)."""
-    return a if b is None else b if a is None else a & b
 
 
 def _save_chunk(
@@ -339,62 +314,3 @@ class _BackgroundWriter:
     def close(self) -> None:
         """Wait for every pending write (files are complete or removed), stop the thread."""
         self.pool.shutdown(wait=True)
-
-
-def _with_descriptors(pred: ChunkPrediction) -> ChunkPrediction:
-    """Reduce patch tokens to per-frame descriptors at once (tokens are never kept)."""
-    if pred.descriptors is not None:
-        return dataclasses.replace(pred, patch_tokens=None)
-    if pred.patch_tokens is None:
-        raise ValueError("the predictor returned neither descriptors nor patch tokens")
-    g = np.asarray(loops.frame_descriptor(jnp.asarray(pred.patch_tokens)))
-    return dataclasses.replace(pred, descriptors=g, patch_tokens=None)
-
-
-def align_pair(
-    prev: align.ChunkFrames, cur: align.ChunkFrames, K_ref: np.ndarray, config: PipelineConfig,
-    loop: bool, name: str, mask: jax.Array | None = None,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """``S`` mapping ``cur``'s chunk into ``prev``'s, with the configured method, and diagnostics.
-
-    ``mask``: keep-mask ``[O, H, W]`` of the overlap frames (masked pixels are never reliable)."""
-    options = _align_options(config, loop)
-    if config.alignment == "irls":
-        if mask is not None:  # a masked pixel is a non-finite one (never reliable)
-            prev, cur = (f._replace(depth=jnp.where(mask, jnp.asarray(f.depth, jnp.float32), jnp.nan)) for f in (prev, cur))
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-        S, info, count = align.irls_chunk_pair(
-            align.ChunkFrames(*map(f32, prev)), align.ChunkFrames(*map(f32, cur)), f32(K_ref),
-            f32(options.depth_threshold), f32(options.conf_ratio),
-        )
-        ok = bool(np.all(np.isfinite(np.asarray(S)))) and int(count) >= 3
-        if not ok:
-            S = sim3.identity((), jnp.float32)
-        diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
-                "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok,
-                "scale_ratio": 1.0}
-        return np.asarray(S, np.float64), diag
-    S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, options=options)
-    S = np.asarray(S, np.float64)
-    # S and the source moments with the diagnostics: what the edge information is formed from
-    # (swiftjax.pipeline.graph.edge_information), also for loop-chunk halves.
-    return S, {**_info_dict(info), "S": S.tolist()}
-
-
-def _align_options(config: PipelineConfig, loop: bool) -> align.AlignOptions:
-    options = align.AlignOptions.from_config(config)
-    return options.for_loop() if loop else options
-
-
-def _info_dict(info: align.AlignInfo) -> dict[str, Any]:
-    return {
-        "num_points": int(info.num_points),
-        "fraction_used": float(info.fraction_used),
-        "rms": float(info.rms),
-        "valid": bool(info.valid),
-        "used_fallback_threshold": bool(info.used_fallback_threshold),
-        "pose_fallback": bool(info.pose_fallback),
-        "scale_ratio": float(info.scale_ratio),
-        "src_mean": np.asarray(info.src_mean, np.float64).tolist(),
-        "src_covariance": np.asarray(info.src_covariance, np.float64).tolist(),
-    }
