@@ -82,7 +82,9 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
         first.setdefault(r["frame"], r)
     last_step = steps[-1][0]  # the frames after the last complete chunk are posed by the final pass
     assert sorted(first) == list(range(n))
-    assert [first[k]["reason"] for k in range(n)] == ["new"] * last_step + ["final"] * (n - last_step)
+    before, at = steps[closing - 1][0], steps[closing][0]  # the closing step publishes its new frames too
+    assert [first[k]["reason"] for k in range(n)] == (
+        ["new"] * before + ["loop closure"] * (at - before) + ["new"] * (last_step - at) + ["final"] * (n - last_step))
     for count, revision, c2w, result in steps:
         for k in range(count):
             latest = [r for r in records if r["frame"] == k and r["revision"] <= revision][-1]

@@ -7,7 +7,7 @@ model (:meth:`ChunkExport.write_frames`; the chunk store keeps no images): the t
 hands each chunk to a :class:`ChunkExport` it is given, and stores what it returns.
 :func:`run` then reads only points and poses from the chunk store -- never the dense maps --
 and applies the optimised ``S_t``.  The export owns ``colmap/images/`` (it writes, checks and
-cleans it: :func:`check`) and the list of its files in the outputs record (:func:`output_files`).
+cleans it: :func:`clean`) and the list of its files in the outputs record (:func:`output_files`).
 
 Files (every text file starts with ``#`` lines saying what it holds; evo skips them):
 
@@ -52,22 +52,25 @@ from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
 
 __all__ = [
-    "check", "run", "ChunkExport", "chunk_points", "chunk_points_jit", "export_points", "output_files",
+    "clean", "check", "run", "ChunkExport", "chunk_points", "chunk_points_jit", "export_points", "output_files",
 ]
 
 _CAMERA_AXES = "OpenCV camera axes (x right, y down, z forward)"
 
 
-def check(ctx: RunContext) -> None:
+def clean(ctx: RunContext) -> None:
     """Remove the COLMAP frames of input frames that are gone (frames added or removed since the
-    last run), then refuse, before any work, output options the input cannot satisfy
-    (``ValueError``)."""
+    last run: ``ctx.manifest.previous_names``)."""
     from swiftjax.io.colmap import image_names
 
     if ctx.manifest.previous_names is not None:
         old, new = ctx.manifest.previous_names, list(ctx.predictor.frame_names())
         for name in (set(old) | set(image_names(old))) - (set(new) | set(image_names(new))):
             (ctx.run_dir / "colmap" / "images" / name).unlink(missing_ok=True)
+
+
+def check(ctx: RunContext) -> None:
+    """Refuse, before any work, output options the input cannot satisfy (``ValueError``)."""
     if ctx.config.colmap and ctx.config.colmap_original_resolution:
         original_source(ctx)
         spaced = [n for n in ctx.predictor.frame_names() if any(c.isspace() for c in n)]

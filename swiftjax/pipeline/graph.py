@@ -47,7 +47,7 @@ from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["run", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
+__all__ = ["run", "warm_start", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
 
 
 _STATS = ("S", "num_points", "rms", "src_mean", "src_covariance")
@@ -197,8 +197,25 @@ def _solve_metrics(res: Any) -> dict[str, Any]:
             "solve_seconds": res.solve_seconds}
 
 
-def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> GraphResult:
-    """Chain the temporal edges; optimise the pose graph when there are loop edges (or scale priors)."""
+def warm_start(previous: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """Initial chunk poses ``[T, 8]`` for a graph that grew: the previous solution ``[T0, 8]``
+    for its chunks, the new ones chained on from the last (``S_t = S_{t-1} R_{t-1}``, ``relative
+    [T-1, 8]``), so that the solver starts next to the optimum when a few edges arrive."""
+    T0, T = len(previous), len(relative) + 1
+    if not 1 <= T0 <= T:
+        raise ValueError(f"a warm start of {T0} chunk poses for a graph of {T} chunks")
+    previous = np.asarray(previous, np.float64)
+    tail = chain_poses(relative[T0 - 1:])[1:]  # chunks T0..T-1 in chunk T0-1's frame
+    with jax.enable_x64(True):
+        grown = np.asarray(sim3.normalize(sim3.compose(jnp.asarray(previous[-1]), jnp.asarray(tail))), np.float64)
+    return np.concatenate([previous, grown.reshape(-1, 8)])
+
+
+def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: GraphResult | None = None) -> GraphResult:
+    """Chain the temporal edges; optimise the pose graph when there are loop edges (or scale priors).
+
+    ``warm``: the last solution of a graph with fewer edges (a live run): the loop solve starts
+    from it (:func:`warm_start`) instead of the chain; offline runs start from the chain."""
     config = ctx.config
     relative = temporal.relative
     T = ctx.schedule.num_chunks
@@ -231,8 +248,9 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> GraphRe
             robust = np.arange(len(edges)) >= T - 1
             with jax.enable_x64(True):
                 if priors is None:
+                    initial = chunk_poses_no_loops if warm is None else warm_start(warm.chunk_poses, relative)
                     problem = posegraph.Problem(
-                        jnp.asarray(chunk_poses_no_loops), np.asarray(edges, np.int32), jnp.asarray(meas),
+                        jnp.asarray(initial), np.asarray(edges, np.int32), jnp.asarray(meas),
                         information=information, robust=robust,
                     )
                 else:

@@ -23,6 +23,7 @@ two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -40,12 +41,18 @@ from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.posegraph import chain_poses
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["loop_options", "run"]
+__all__ = ["CandidateSource", "loop_options", "run"]
 
 
-def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
+#: A loop candidate source: ``(descriptors [N, d], schedule, options) -> [Loop]`` over the frames
+#: seen so far (offline: :func:`swiftjax.loops.find_loops` over the whole sequence).
+CandidateSource = Callable[[np.ndarray, Any, loops.LoopOptions], list[loops.Loop]]
+
+
+def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource | None = None) -> LoopResult:
     """Loop edges from ``temporal``'s descriptors and the chunk store (none when loop closure
-    is off or there are fewer than three chunks)."""
+    is off or there are fewer than three chunks); ``candidates``: where the loop candidates
+    come from (default: every frame's descriptor, :func:`swiftjax.loops.find_loops`)."""
     config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
     K_ref = temporal.K_ref
     cam = ctx.camera if ctx.camera is not None else UserCamera()
@@ -54,7 +61,7 @@ def run(ctx: RunContext, temporal: TemporalResult) -> LoopResult:
     if not (config.loop_closure and schedule.num_chunks > 2):
         return LoopResult(loop_records, loop_edges)
     with timer("loop detection"):
-        found = loops.find_loops(temporal.descriptors, schedule, loop_options(config))
+        found = (candidates or loops.find_loops)(temporal.descriptors, schedule, loop_options(config))
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
         neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]

@@ -31,6 +31,7 @@ def reconstruct(
     timestamps_note: str | None = None,
     log: Callable[[str], None] = print,
     executor: Executor | None = None,
+    loop_candidates: loop_closure.CandidateSource | None = None,
 ) -> RunResult:
     """Run SwiftVGGT over every frame of ``predictor`` and write the outputs to ``run_dir``.
 
@@ -49,6 +50,8 @@ def reconstruct(
         executor: where the predictions are computed (default: a
             :class:`~swiftjax.pipeline.executors.LocalExecutor` with prefetch); the caller
             closes an executor it passes.
+        loop_candidates: where the loop stage's candidates come from (default: every frame's
+            descriptor, :func:`swiftjax.loops.find_loops`; e.g. an online detector).
 
     Returns:
         :class:`RunResult`; the files are ``poses_kitti.txt``, ``poses_tum.txt``,
@@ -68,6 +71,7 @@ def reconstruct(
     ctx = rundir.open_run(predictor, run_dir, config, executor, overwrite=overwrite, progress=progress, log=log)
     chunk_export = export.ChunkExport(ctx)
     try:
+        export.clean(ctx)  # the frames of a previous, longer input
         export.check(ctx)
         # A chunk file found corrupt by a later stage is forgotten and the stages restart: the
         # temporal stage predicts it again (every other chunk is read back), at most once per chunk.
@@ -75,7 +79,7 @@ def reconstruct(
             try:
                 chain = temporal.run(ctx, chunk_export)
                 _faults.point("temporal-done")
-                loops = loop_closure.run(ctx, chain)
+                loops = loop_closure.run(ctx, chain, loop_candidates)
                 _faults.point("loops-done")
                 poses = scale.run(ctx, chain, graph.run(ctx, chain, loops), ground_truth)  # --metric: in metres
                 _faults.point("graph-done")

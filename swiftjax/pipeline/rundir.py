@@ -865,7 +865,7 @@ def open_run(
         _clean_temp_files(run_dir, _own_names(run_dir, predictor.frame_names(), manifest.data["outputs"]), log)
         store = ChunkStore(run_dir)
         if manifest.previous_names is not None:  # frames added or removed: drop the chunks nobody's now
-            for kind in ("chunk", "tail"):  # (the export drops its frames: export.check)
+            for kind in ("chunk", "tail"):  # (the export drops its frames: export.clean)
                 for t in store.indices(kind):
                     if t >= schedule.num_chunks:
                         store.remove(kind, t)
