@@ -86,3 +86,23 @@ def test_run_interrupted_in_the_loop_stage_resumes_to_identical_outputs(route, r
     assert again.calls == L - 1  # only the loop chunks not recorded
     np.testing.assert_array_equal(out.chunk_poses, reference.chunk_poses)
     assert_same_outputs(run_dir, reference.run_dir)
+
+
+def test_the_loop_stage_takes_its_candidates_from_the_source_it_is_given(route, reference, tmp_path):
+    """``reconstruct(loop_candidates=...)``: the loop stage verifies what the source proposes
+    (here the default detector's candidates less all but the first), nothing else."""
+    from swiftjax import loops
+
+    seen, proposed = [], []
+
+    def first_only(descriptors, schedule, options):
+        seen.append((descriptors.shape[0], schedule.num_chunks))
+        found = [lp for lp in loops.find_loops(descriptors, schedule, options) if abs(lp.chunk_i - lp.chunk_j) >= 2]
+        proposed.extend(found[:1])
+        return found[:1]
+
+    res = pipeline.reconstruct(route.predictor, tmp_path / "run", CONFIG, ground_truth=route.ground_truth,
+                               progress=False, loop_candidates=first_only, log=lambda s: None)
+    assert seen == [(route.predictor.num_frames, reference.num_chunks)] and len(proposed) == 1
+    assert [(r["i"], r["j"]) for r in res.loop_candidates] == [(proposed[0].i, proposed[0].j)]
+    assert len(reference.loop_candidates) >= 2  # the default source proposes more

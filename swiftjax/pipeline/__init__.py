@@ -15,7 +15,11 @@ returns an immutable result (:mod:`~swiftjax.pipeline.results`), sharing only a
     export.run        final pass over the store ─► poses, PLY, COLMAP, intrinsics, loops.txt
     report.write      metrics.json, trajectory.png
 
-:func:`~swiftjax.pipeline.run.reconstruct` runs them in order.  The import graph is layered
+:func:`~swiftjax.pipeline.run.reconstruct` runs them in order (its ``loop_candidates`` plugs in
+another candidate source, e.g. an online detector; ``graph.run`` takes a warm start from the last
+solution).  :class:`~swiftjax.pipeline.engine.Reconstruction` is the live API: fed frame by
+frame, it runs the same stages whenever a chunk completes, appends the poses to
+``poses_live.jsonl`` (:mod:`~swiftjax.pipeline.live`) and finishes as the offline run.  The import graph is layered
 (``tests/test_pipeline_imports.py``): ``results`` and ``config`` at the bottom; ``alignment``
 (pair alignment, shared by the temporal and loop stages), ``executors`` (they only move
 arrays), ``rundir`` (the run directory's records: manifest, input fingerprint, resume records,
@@ -36,6 +40,7 @@ configuration is refused (:class:`RunDirError`) unless ``overwrite=True``.
 from __future__ import annotations
 
 from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.engine import Reconstruction
 from swiftjax.pipeline.predictors import OraclePredictor, Predictor
 from swiftjax.pipeline.report import summary_table
 from swiftjax.pipeline.results import RunResult
@@ -49,6 +54,7 @@ __all__ = [
     "OraclePredictor",
     "RunDirError",
     "RunResult",
+    "Reconstruction",
     "reconstruct",
     "chain_poses",
     "summary_table",
