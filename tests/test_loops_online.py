@@ -11,7 +11,7 @@ import pytest
 from swiftjax import loops as L
 from swiftjax.chunks import chunk_schedule
 from swiftjax.io.chunk_store import ChunkStore
-from swiftjax.loops import online
+from swiftjax.loops import detection, online
 from swiftjax.prediction import ChunkPrediction
 
 
@@ -121,7 +121,10 @@ def test_refit_schedule_doubles_from_the_minimum():
     G = planted(n, 32, seed=2, loops=(), noise=0.0)
     sched = chunk_schedule(n, 50, 10)
     det = online.OnlineLoopDetector(o)
+    compiled = detection._detect_loops._cache_size()
     feed(det, [(sched.frames(t), G[sched.frames(t)]) for t in range(sched.num_chunks)])
+    # doubling buckets: at most two detect_loops compiles per whitening (14 chunks here)
+    assert detection._detect_loops._cache_size() - compiled <= 2 * len(det.fits)
     ends = list(sched.ends)
     expected, level = [], m
     for e in ends:  # independent: the first chunk end reaching m, 2m, 4m, ... (skipping passed levels)
