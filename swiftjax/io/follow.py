@@ -229,7 +229,8 @@ class FollowSource:
 
 class ReplaySource:
     """The frames of an image folder, glob, list of image paths or video, released at ``fps``
-    (frame ``k`` at ``start + k / fps``, decoded before its time): a recording played back live.
+    (frame ``k`` at ``t₀ + k / fps``, ``t₀`` the first frame's release; each decoded before its
+    time): a recording played back live.
 
     Args:
         input: what :func:`~swiftjax.io.images.list_frames` takes, or a sequence of image paths.
@@ -265,13 +266,15 @@ class ReplaySource:
         return len(self.source)
 
     def __iter__(self) -> Iterator[Frame]:
-        start = time.monotonic()
         paths = getattr(self.source, "paths", None)
+        start = 0.0
         try:
             for k in range(len(self.source)):
                 img = self.source.read(k)
+                if k == 0:  # the clock starts at the first frame (opening a video takes a while)
+                    start = time.monotonic()
                 delay = start + k / self.fps - time.monotonic()
-                if self._stop.wait(max(0.0, delay)) or self._stop.is_set():
+                if self._stop.wait(max(0.0, delay)):
                     self.ended_by = "stop"
                     return
                 yield Frame(k, self.source.names[k], None if paths is None else paths[k], img, time.monotonic())
