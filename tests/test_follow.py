@@ -93,6 +93,19 @@ def test_timeout_without_any_frame_is_one_clear_error(tmp_path):
     assert isinstance(err.value, InputError) and "\n" not in msg
 
 
+def test_file_stuck_incomplete_at_the_timeout_is_named(tmp_path):
+    with follow.Recorder(tmp_path, frames(2, seed=14), fps=1000.0, end_marker=None) as rec:
+        rec.wait()
+    data = (tmp_path / "000001.png").read_bytes()
+    (tmp_path / "000001.png").write_bytes(data[:100])  # the recorder hangs mid-file, no end marker
+    got = []
+    with pytest.raises(follow.FollowError, match=r"000001\.png: still not a complete image after the follow timeout "
+                                                 r"of 0\.2 s"):
+        for f in follow.FollowSource(tmp_path, timeout_s=0.2, poll_s=POLL):
+            got.append(f)
+    assert [f.name for f in got] == ["000000.png"]
+
+
 def test_timeout_after_frames_ends_the_run(tmp_path):
     imgs = frames(3, seed=3)
     src = follow.FollowSource(tmp_path, timeout_s=0.3, poll_s=POLL)

@@ -163,7 +163,7 @@ class FollowSource:
             # the marker first: every frame it follows is then in the listing below
             ended = self.end_marker is not None and (self.folder / self.end_marker).exists()
             try:
-                listing = [p for p in self.folder.iterdir() if _is_image(p) and p.name not in read]
+                listing = [p for p in self.folder.iterdir() if p.name not in read and _is_image(p)]  # no stat of read files
             except FileNotFoundError:
                 raise FollowError(f"{self.folder}: the followed folder was removed") from None
             listing.sort(key=lambda p: natural_key(p.name))
@@ -216,12 +216,12 @@ class FollowSource:
                 self.ended_by = "end_marker"
                 return
             if self.timeout_s is not None and time.monotonic() - progress > self.timeout_s:
+                if waiting is not None:
+                    raise FollowError(f"{waiting}: still not a complete image after the follow timeout of "
+                                      f"{self.timeout_s:g} s without a change in the folder")
                 if self.count == 0:
                     raise FollowTimeoutError(f"{self.folder}: no frame arrived within the follow timeout of "
                                              f"{self.timeout_s:g} s")
-                if waiting is not None:
-                    raise FollowError(f"{waiting}: still not a complete image after the follow timeout of "
-                                      f"{self.timeout_s:g} s without a new frame")
                 self.ended_by = "timeout"
                 return
             self._stop.wait(self.poll_s)
