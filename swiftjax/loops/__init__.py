@@ -21,6 +21,9 @@ Modules, one idea each:
 * :mod:`swiftjax.loops.loop_chunk`: loop-centric chunks, the chunk filter, the loop edge;
 * :mod:`swiftjax.loops.find`: :func:`find_loops`, the one host-level call from descriptors
   to the final loop list;
+* :mod:`swiftjax.loops.online`: the same as chunks arrive (prefix whitening refitted on a
+  doubling schedule or loaded from another run, proposals of each new chunk against all
+  earlier frames), with ``find_loops`` itself as the final pass;
 * :mod:`swiftjax.loops.verification`: geometric verification of the candidates, the
   decision rule (:mod:`swiftjax.loops.cross_chunk`: the dense cross-chunk test;
   :mod:`swiftjax.loops.pcm`: pairwise consistency of loop edges).

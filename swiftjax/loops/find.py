@@ -166,14 +166,8 @@ def find_loops(
     given = {k: v for k, v in given.items() if v is not None}
     check_values(given, "find_loops")
     o = dataclasses.replace(LoopOptions() if options is None else options, **given)
-    threshold, fit_on, dim = o.threshold, o.fit_on, o.dim
-    if o.rule == "authors":
-        threshold, fit_on = AUTHORS_THRESHOLD, "raw"
     n_fit = int(finite.sum())
-    if o.adapt_to_length:
-        dim = min(dim, max(8, n_fit // 4))
-        if o.rule == "fixed":
-            threshold = max(threshold, 5.0 / float(np.sqrt(dim)))
+    threshold, fit_on, dim = effective_settings(o, n_fit)
     g1 = power_normalize(G, o.beta)
     details = {
         "g1": g1, "rule": o.rule, "threshold": float("inf") if o.rule == "adaptive" else float(threshold),
@@ -204,9 +198,31 @@ def find_loops(
             f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist", stacklevel=2
         )
     kept = filter_by_chunks(cand, schedule)
+    loops = as_loops(kept, schedule, o.half_window)
+    details.update(whitening=w, z=Z, candidates=cand, filtered=kept)
+    return (loops, details) if return_details else loops
+
+
+def effective_settings(o: LoopOptions, n_fit: int) -> tuple[float, str, int]:
+    """``(threshold, fit_on, d′)`` that :func:`find_loops` uses for ``n_fit`` finite descriptors:
+    ``rule="authors"`` forces :data:`AUTHORS_THRESHOLD` and ``fit_on="raw"``; ``adapt_to_length``
+    caps ``d′`` at ``max(8, n_fit // 4)`` and floors a fixed threshold at ``5/sqrt(d′)``."""
+    threshold, fit_on, dim = o.threshold, o.fit_on, o.dim
+    if o.rule == "authors":
+        threshold, fit_on = AUTHORS_THRESHOLD, "raw"
+    if o.adapt_to_length:
+        dim = min(dim, max(8, n_fit // 4))
+        if o.rule == "fixed":
+            threshold = max(threshold, 5.0 / float(np.sqrt(dim)))
+    return threshold, fit_on, dim
+
+
+def as_loops(kept, schedule: ChunkSchedule, hw: int) -> list[Loop]:
+    """The :class:`Loop` list of filtered candidates ``kept`` (:func:`filter_by_chunks` output):
+    each with its loop-centric chunk in ``schedule``; loops without a well-formed one are
+    dropped with a warning."""
     c = int(kept.count)
     loops: list[Loop] = []
-    hw = o.half_window
     if c:
         # all M buffer rows at once (one compile per buffer size, not per loop count)
         lc = jax.tree.map(np.asarray, _loop_chunks(
@@ -220,7 +236,7 @@ def find_loops(
                 warnings.warn(
                     f"find_loops: loop ({pairs[k, 0]}, {pairs[k, 1]}) has no well-formed "
                     f"{4 * hw}-frame loop chunk (a chunk is shorter than {2 * hw} frames); dropped",
-                    stacklevel=2,
+                    stacklevel=3,
                 )
                 continue
             loops.append(
@@ -228,5 +244,4 @@ def find_loops(
                      lc.frames[k].astype(np.int64), int(lc.chunk_i[k]), int(lc.chunk_j[k]),
                      int(lc.local_i[k]), int(lc.local_j[k]))
             )
-    details.update(whitening=w, z=Z, candidates=cand, filtered=kept)
-    return (loops, details) if return_details else loops
+    return loops

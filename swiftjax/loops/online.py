@@ -1,0 +1,381 @@
+"""Loop detection without the future: proposals as chunks arrive, the offline pass at the end.
+
+Offline, :func:`~swiftjax.loops.find_loops` whitens with a PCA fitted on *every* frame's
+descriptor and calibrates its threshold on *every* frame's best score, so it cannot start
+before the end.  :class:`OnlineLoopDetector` is fed each chunk's per-frame descriptors ``g⁰``
+(``add(frames, descriptors)``, the rows the temporal stage writes: a later chunk's copy of an
+overlap frame replaces the earlier one, as offline) and proposes loop candidates of the prefix
+seen so far; :meth:`OnlineLoopDetector.finish` is ``find_loops`` on the whole sequence, so the
+final loop list is the offline one, bit for bit.
+
+The prefix detector, after each chunk (``n`` frames seen)::
+
+    whitening W_k fitted on the first n_k frames   (refit schedule below, or given)
+    Z = ℓ2((g¹_{0..n-1} − μ_k) W_k), padded with NaN rows to a bucket
+    candidates = detect_loops(Z, calibrate on the prefix's best scores)   (as offline, on n rows)
+      ──keep pairs whose later frame i is new──► filter_by_chunks (chunks seen so far)
+      ──Loop list──not within ±nms_radius (both ends) of an earlier proposal──► proposals
+
+"New" later frames: this chunk's frames, and at the first detection every frame (none was
+tested before).  A pair with both ends old was tested when its later end arrived; a refit
+that now lifts it above the threshold is left to the final pass (re-testing every old pair
+after each refit proposed false loops on the demo route: the prefix right after a fit is
+whitened on itself and its calibrated threshold drops, 0.61 → 0.32 at 435 frames).
+
+Refit schedule (doubling).  With ``m`` = :func:`min_descriptors` ``= 2 (min_separation + 1)``
+(202 at the defaults) the whitening is fitted on all ``n`` descriptors seen when ``n`` first
+reaches ``m``, ``2m``, ``4m``, ...: :func:`refit_due`.  Each fit uses
+:func:`fit_sequence_whitening`, exactly the fit ``find_loops`` makes for ``n`` frames
+(``d′ = min(dim, max(8, n // 4))`` with ``adapt_to_length``): a fit on ``n`` frames is the
+whitening an offline run of those ``n`` frames uses, bit for bit.  A whitening is always fitted on at least
+half of the prefix it is applied to; there are ``⌊log₂(N/m)⌋ + 1`` fits, each
+``O(n d² + d³)``, ``O(N d² + d³ log N)`` in all.
+
+Why ``m = 2 (s + 1)`` (``s = min_separation``).  A frame ``i`` of ``n`` has a temporally
+separated partner (``|i − j| > s``) iff ``i > s`` or ``i < n − 1 − s``; every frame has one iff
+``n ≥ 2 (s + 1)``.  Below that the calibration's null sample (each frame's best separated
+score) is a biased part of the prefix (only its two ends, whose partners are each other) and
+the whitening has ``d′ ≤ n/4 ≈ 50`` dimensions.  From ``m`` on, the prefix is a sequence like
+any other and the offline derivation of :func:`~swiftjax.loops.calibrate_threshold` holds for
+it.
+
+What is lost early in the sequence.
+
+* ``n ≤ s + 1``: no pair is separated at all; nothing can be proposed (offline neither).
+* ``s + 1 < n < m``: too few descriptors to whiten (and to calibrate); the fallback is *no
+  proposal*, with the prefix whitening and with one given by ``--whitening-from`` alike (a
+  given whitening removes the fit's noise, not the calibration's need for a null sample).
+  Unwhitened cosines are not an option: they are dominated by the shared "dataset bias"
+  direction (hubness) that the whitening removes, and no threshold on them transfers.  A
+  loop with both ends in the first ``m`` frames is proposed at the first chunk that brings
+  ``n ≥ m``: late by at most ``m − s − 2`` frames (100 at the defaults, ~2 chunks).
+* ``n ≥ m``: frames that arrived after the last fit are whitened with statistics that did not
+  see them (their components outside the fitted subspace are projected out); the
+  calibration measures the spread of the actual prefix scores, so the threshold follows.
+  False alarms: the calibration of a prefix of ``n`` frames expects ``α`` null frames above
+  ``τ``; only the chunk's ``B`` frames are tested as later ends (its overlap frames again:
+  their descriptors are the new chunk's), so ``≈ α B / n`` per chunk; the first detection
+  tests all ``m`` frames (``α``); over a drive of ``N`` frames, chunks ``B − O`` frames apart,
+  ``α (1 + B/(B − O) · ln(N / m))``: 0.006 for KITTI 00 (4,541 frames, ``B = 75``,
+  ``O = 30``) at ``α = 10⁻³``, before geometric verification.
+* Threshold: ``τ = μ + Φ̄⁻¹(α/n) σ`` uses the prefix's ``n``, slightly lower than the final
+  one (``k`` grows as ``sqrt(2 ln n)``), and the prefix whitening differs from the final one:
+  a proposal can be absent from the final pass, and a final loop can have had no proposal
+  (one whose later end arrived before ``m``, or that only the whole sequence's whitening
+  lifts above the threshold).  The final pass decides; proposals are hypotheses for
+  verification.
+
+Shapes and compiles.  Descriptors live in a host buffer of ``cap = m 2^k ≥ n`` rows (doubling
+buckets); the whitened prefix is computed at that size and NaN-padded (a NaN row never
+matches and is ignored by the calibration, so the candidates are those of the ``n``-row
+prefix), so :func:`~swiftjax.loops.detect_loops` compiles once per bucket and whitening
+dimension: ``O(log n)`` compiles in a drive, as are the fits (one per refit, per ``n``) and
+the chunk filter (chunk starts padded to a power-of-two count).  Cost per chunk: one
+``O(n² d′)`` similarity pass over the prefix (the offline pass on ``n`` rows): 2.5-4 s at
+``n = 4,475``, ``d = 1,024``, ``d′ = 512`` on 2 loaded CPU cores (a refit with its compile:
+20 s); an incremental cache of each frame's best score would make it ``O(n S d′)``.
+
+``--whitening-from RUN_DIR``: :func:`load_whitening` reads the descriptors an offline run
+recorded (every chunk file ``RUN_DIR/chunks/chunk_*.npz`` holds its frames' ``descriptors`` and
+``frames``; :func:`~swiftjax.pipeline.rundir.prune` keeps both) and fits on them as
+``find_loops`` did for that run (:func:`fit_sequence_whitening`): the pipeline writes nothing
+new for it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike
+
+from swiftjax.chunks import ChunkSchedule
+from swiftjax.io.images import InputError
+from swiftjax.loops._checks import _check_finite
+from swiftjax.loops.descriptors import Whitening, fit_whitening, power_normalize, whiten
+from swiftjax.loops.detection import LoopCandidates, detect_loops
+from swiftjax.loops.find import Loop, as_loops, effective_settings, find_loops
+from swiftjax.loops.loop_chunk import filter_by_chunks
+from swiftjax.loops.options import LoopOptions
+
+__all__ = [
+    "OnlineLoopDetector",
+    "WhiteningSourceError",
+    "fit_sequence_whitening",
+    "load_whitening",
+    "min_descriptors",
+    "recorded_descriptors",
+    "refit_due",
+]
+
+_NO_CHUNK = 2**30  # start = end of a padding chunk: it contains no frame
+
+
+def min_descriptors(options: LoopOptions) -> int:
+    """``m = 2 (min_separation + 1)``: the first whitening fit and the first proposal wait
+    for ``m`` frames (the module docstring derives it)."""
+    return 2 * (options.min_separation + 1)
+
+
+def refit_due(n: int, fitted_at: int | None, minimum: int) -> bool:
+    """Whether ``n`` descriptors call for a new fit when the last one used ``fitted_at``
+    (``None``: none yet): ``n`` has reached the next size of ``m, 2m, 4m, ...`` above
+    ``fitted_at``."""
+    if n < minimum:
+        return False
+    if fitted_at is None:
+        return True
+    level = minimum
+    while level <= fitted_at:
+        level *= 2
+    return n >= level
+
+
+def fit_sequence_whitening(descriptors: ArrayLike, options: LoopOptions | None = None) -> Whitening:
+    """The whitening :func:`~swiftjax.loops.find_loops` fits for ``descriptors [N, d]`` (``g⁰``,
+    finite): ``fit_whitening`` of ``g¹ = power_normalize(g⁰)`` (or of ``g⁰`` for
+    ``fit_on="raw"`` / ``rule="authors"``) with ``d′`` from
+    :func:`~swiftjax.loops.find.effective_settings`.  Bit-identical to ``find_loops``'s
+    ``details["whitening"]``.  Recompiles per ``N``."""
+    o = LoopOptions() if options is None else options
+    G = np.asarray(descriptors)
+    _check_finite(G, "fit_sequence_whitening: descriptors")
+    _, fit_on, dim = effective_settings(o, G.shape[0])
+    fit = G if fit_on == "raw" else power_normalize(G, o.beta)
+    return fit_whitening(fit, o.remove, dim, o.eps, o.max_samples)
+
+
+class WhiteningSourceError(InputError):
+    """``--whitening-from RUN_DIR`` is unusable; the message is one line naming the path."""
+
+
+def recorded_descriptors(run_dir: str | os.PathLike[str]) -> np.ndarray:
+    """The per-frame descriptors ``g⁰ [N, d]`` float32 an offline run recorded in
+    ``run_dir/chunks/chunk_*.npz`` (each file's ``descriptors`` rows at its ``frames``; in
+    overlaps the later chunk's copy, as the temporal stage assembles them).
+
+    Raises:
+        WhiteningSourceError: no chunk store, no chunk file, a file without descriptors or
+            frames, an unreadable file, or frames not covering ``0 .. N-1``.
+    """
+    from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore
+
+    run = pathlib.Path(run_dir)
+    root = run / "chunks"
+    if not root.is_dir():
+        raise WhiteningSourceError(f"{run}: not a run directory with recorded descriptors (no {root})")
+    store = ChunkStore(run)
+    chunks = store.indices("chunk")
+    if not chunks:
+        raise WhiteningSourceError(f"{root}: no chunk files (chunk_*.npz), so no descriptors to fit a whitening on")
+    rows: dict[int, np.ndarray] = {}
+    d = None
+    for t in chunks:
+        path = store.path("chunk", t)
+        try:
+            desc = store.load_array("chunk", t, "descriptors")
+            frames = store.load_extra("chunk", t, names=("frames",)).get("frames")
+        except (ChunkCorruptError, OSError) as err:
+            raise WhiteningSourceError(f"{path}: cannot read its descriptors ({err})") from None
+        if desc is None or frames is None or desc.ndim != 2 or len(desc) != len(frames):
+            raise WhiteningSourceError(f"{path}: records no per-frame descriptors with their frames")
+        if d is not None and desc.shape[1] != d:
+            raise WhiteningSourceError(f"{path}: {desc.shape[1]}-D descriptors, other chunk files have {d}-D")
+        d = desc.shape[1]
+        for f, g in zip(np.asarray(frames, np.int64), desc):
+            rows[int(f)] = g
+    n = max(rows) + 1
+    if len(rows) != n or min(rows) != 0:
+        missing = sorted(set(range(n)) - set(rows))
+        raise WhiteningSourceError(f"{root}: the chunk files miss the descriptors of {len(missing)} frame(s), "
+                                   f"first {missing[0]}")
+    return np.stack([rows[f] for f in range(n)]).astype(np.float32)
+
+
+def load_whitening(
+    run_dir: str | os.PathLike[str], options: LoopOptions | None = None, *, descriptor_dim: int | None = None
+) -> Whitening:
+    """The whitening of the offline run in ``run_dir`` (``--whitening-from RUN_DIR``):
+    :func:`fit_sequence_whitening` of :func:`recorded_descriptors`, i.e. the one its
+    ``find_loops`` used (same ``options``).
+
+    Raises:
+        WhiteningSourceError: one line naming the path: nothing usable recorded, non-finite
+            descriptors, too few frames to fit, or ``descriptor_dim`` given and different from
+            the recorded dimension.
+    """
+    G = recorded_descriptors(run_dir)
+    if descriptor_dim is not None and G.shape[1] != descriptor_dim:
+        raise WhiteningSourceError(
+            f"{pathlib.Path(run_dir)}: its descriptors are {G.shape[1]}-D but this run's are {descriptor_dim}-D "
+            "(another model?): its whitening does not apply"
+        )
+    try:
+        return fit_sequence_whitening(G, options)
+    except ValueError as err:
+        raise WhiteningSourceError(f"{pathlib.Path(run_dir)}: cannot fit a whitening on its descriptors ({err})") from None
+
+
+@jax.jit
+def _whitened_prefix(w: Whitening, G: jax.Array, n: jax.Array, beta: jax.Array) -> jax.Array:
+    """``ẑ`` of the first ``n`` rows of ``G [cap, d]``, NaN below (no match, not calibrated):
+    ``[cap, d′]``.  Recompiles per ``(cap, d, d′)``."""
+    Z = whiten(w, power_normalize(G, beta))
+    return jnp.where((jnp.arange(G.shape[0]) < n)[:, None], Z, jnp.nan)
+
+
+@jax.jit
+def _later_end_from(cand: LoopCandidates, first: jax.Array) -> LoopCandidates:
+    """The candidates whose later frame ``i >= first`` (score order kept).  Recompiles per ``M``."""
+    m = cand.pairs.shape[0]
+    keep = (jnp.arange(m) < cand.count) & (cand.pairs[:, 0] >= first)
+    order = jnp.argsort(~keep, stable=True)
+    count = jnp.sum(keep).astype(jnp.int32)
+    row = jnp.arange(m) < count
+    return cand._replace(pairs=jnp.where(row[:, None], cand.pairs[order], -1),
+                         scores=jnp.where(row, cand.scores[order], -jnp.inf), count=count)
+
+
+def _bucket(n: int, base: int) -> int:
+    size = base
+    while size < n:
+        size *= 2
+    return size
+
+
+class OnlineLoopDetector:
+    """Loop candidates of the prefix as chunks arrive; the offline loops at :meth:`finish`.
+
+    Args:
+        options: the loop options (``LoopOptions()``), as for ``find_loops``.
+        whitening: a whitening to use throughout instead of refitting on the prefix
+            (:func:`load_whitening`); ``whitening_source`` names where it came from (for
+            messages).
+
+    Attributes:
+        n: frames seen (``0 .. n-1``).
+        whitening: the whitening in use (``None`` before the first fit).
+        fits: the prefix sizes at which the whitening was (re)fitted.
+        threshold: the last prefix threshold (``inf`` before the first detection).
+        proposed: every proposal so far (:class:`~swiftjax.loops.Loop`), in order.
+
+    Not thread-safe (one caller feeds it).  Frames must arrive in order: each ``add`` starts
+    at or before ``n`` (an overlap) and ends after it.
+    """
+
+    def __init__(self, options: LoopOptions | None = None, *, whitening: Whitening | None = None,
+                 whitening_source: str | None = None) -> None:
+        self.options = LoopOptions() if options is None else options
+        self.minimum = min_descriptors(self.options)
+        self.given = whitening is not None
+        self.whitening = whitening
+        self.whitening_source = whitening_source or "the given whitening"
+        self.fits: list[int] = []
+        self.threshold = float("inf")
+        self.proposed: list[Loop] = []
+        self.n = 0
+        self._G: np.ndarray | None = None  # [cap, d] host buffer
+        self._starts: list[int] = []
+        self._ends: list[int] = []
+        self._fixed_threshold: float | None = None
+        self._tested = 0  # frames 0.._tested-1 were tested as a loop's later end
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        """``[n, d]`` float32, the prefix as the temporal stage assembles it (a copy)."""
+        if self._G is None:
+            return np.zeros((0, 0), np.float32)
+        return self._G[: self.n].copy()
+
+    def _schedule(self, padded: bool) -> ChunkSchedule:
+        starts, ends = np.asarray(self._starts, np.int64), np.asarray(self._ends, np.int64)
+        if padded:
+            t = _bucket(len(starts), 4)
+            starts = np.concatenate([starts, np.full(t - len(starts), _NO_CHUNK)])
+            ends = np.concatenate([ends, np.full(t - len(ends), _NO_CHUNK)])
+        size = int(max(e - s for s, e in zip(self._starts, self._ends)))
+        overlap = max([0] + [e - s for s, e in zip(self._starts[1:], self._ends[:-1])])
+        return ChunkSchedule(self.n, size, overlap, starts, ends)
+
+    def add(self, frames: ArrayLike, descriptors: ArrayLike) -> list[Loop]:
+        """Feed one chunk: ``frames [S]`` (consecutive indices) and their ``descriptors [S, d]``
+        ``g⁰``.  Returns the new proposals (loops of the prefix whose chunk pair was not
+        proposed before), each a :class:`~swiftjax.loops.Loop` whose loop-centric chunk lies
+        in the chunks seen so far.
+
+        Raises:
+            ValueError: frames not consecutive or not continuing the prefix, shape mismatch,
+                non-finite descriptors, a descriptor dimension other than the given
+                whitening's (naming ``whitening_source``).
+        """
+        f = np.asarray(frames, np.int64).reshape(-1)
+        G = np.asarray(descriptors, np.float32)
+        if G.ndim != 2 or len(G) != len(f) or len(f) == 0:
+            raise ValueError(f"OnlineLoopDetector.add: descriptors {G.shape} for {len(f)} frames (want [S, d], S >= 1)")
+        if np.any(np.diff(f) != 1) or f[0] > self.n or f[-1] < self.n:
+            raise ValueError(
+                f"OnlineLoopDetector.add: frames {f[0]}..{f[-1]} do not continue the {self.n} frames seen "
+                "(consecutive, starting at or before the next frame)"
+            )
+        _check_finite(G, f"OnlineLoopDetector.add: descriptors of frames {f[0]}..{f[-1]}")
+        d = G.shape[1]
+        if self._G is not None and d != self._G.shape[1]:
+            raise ValueError(f"OnlineLoopDetector.add: {d}-D descriptors after {self._G.shape[1]}-D ones")
+        if self.given and d != self.whitening.mean.shape[-1]:
+            raise ValueError(
+                f"{self.whitening_source}: its whitening is for {self.whitening.mean.shape[-1]}-D descriptors but "
+                f"this run's are {d}-D"
+            )
+        end = int(f[-1]) + 1
+        cap = _bucket(end, self.minimum)
+        if self._G is None or self._G.shape[0] < cap:
+            grown = np.zeros((cap, d), np.float32)
+            if self._G is not None:
+                grown[: self.n] = self._G[: self.n]
+            self._G = grown
+        self._G[f] = G
+        self.n = end
+        self._starts.append(int(f[0]))
+        self._ends.append(end)
+        if not self.given and refit_due(self.n, self.fits[-1] if self.fits else None, self.minimum):
+            self.whitening = fit_sequence_whitening(self._G[: self.n], self.options)
+            self.fits.append(self.n)
+            self._fixed_threshold = effective_settings(self.options, self.n)[0]
+        if self.whitening is None or self.n < self.minimum:
+            return []
+        return self._propose(int(f[0]))
+
+    def _propose(self, first: int) -> list[Loop]:
+        o = self.options
+        if self._fixed_threshold is None:  # a given whitening: the fixed rule's floor for its d'
+            self._fixed_threshold = effective_settings(
+                dataclasses.replace(o, dim=self.whitening.dim_requested), self.whitening.dim_requested * 4
+            )[0]
+        Z = _whitened_prefix(self.whitening, jnp.asarray(self._G), jnp.int32(self.n), jnp.float32(o.beta))
+        cand = detect_loops(Z, self._fixed_threshold, o.min_separation, o.nms_radius, o.top_k, o.max_loops,
+                            nms=o.nms, calibrate=o.rule == "adaptive", false_alarms=o.false_alarms, throw=False)
+        self.threshold = float(cand.threshold)
+        cand = _later_end_from(cand, jnp.int32(min(first, self._tested)))
+        self._tested = self.n
+        schedule = self._schedule(padded=True)
+        new = []
+        r = o.nms_radius
+        for lp in as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window):
+            # a loop within ±r of an earlier proposal at both ends is that proposal again
+            if not any(abs(lp.i - p.i) <= r and abs(lp.j - p.j) <= r for p in self.proposed + new):
+                new.append(lp)
+        self.proposed += new
+        return new
+
+    def finish(self, schedule: ChunkSchedule | None = None, **kwargs) -> list[Loop]:
+        """Loop detection over the whole sequence exactly as offline: ``find_loops(descriptors,
+        schedule, options, **kwargs)`` (``schedule``: the chunks as added, by default).  The
+        result is the offline one, bit for bit (same inputs, same call)."""
+        if self.n == 0:
+            raise ValueError("OnlineLoopDetector.finish: no frame was added")
+        return find_loops(self.descriptors, self._schedule(padded=False) if schedule is None else schedule,
+                          self.options, **kwargs)
