@@ -5,10 +5,9 @@ Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 back from the chunk store, memory-mapped) become :func:`swiftjax.loops.geometric.chunk_descriptors`
 (in fixed batches of :data:`BATCH` chunks: one compile per run); chunk pairs at least
 ``loop_min_separation`` frames apart whose signatures match are registered
-(:func:`swiftjax.loops.geometric.register_hypotheses`: a gravity-aligned yaw + translation ICP
-from every anchor pair at its Scan Context yaw ``ψ`` and at ``ψ + π`` (a street is nearly
-symmetric end to end; the signature's best anchor pair is often tens of camera heights from
-the true correspondence), the start with the most structure inliers refined by the Sim(3) ICP) and their edge is checked like every other candidate (the cross-chunk dense test
+(:func:`swiftjax.loops.geometric.register`, both yaw hypotheses ``ψ`` and ``ψ + π`` of the
+Scan Context shift, since a street is nearly symmetric end to end; the one with more structure
+inliers kept) and their edge is checked like every other candidate (the cross-chunk dense test
 over all frame pairs of the two chunks: a reverse revisit's nearest cameras face each other,
 and pairwise consistency).  No loop-centric chunk is predicted.
 
@@ -120,7 +119,7 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
     records = []
     for (ci, cj), dsig in sorted(pairs.items(), key=lambda kv: kv[1]):
         ai, aj = best[ci, cj]
-        sc, _ = (np.asarray(x) for x in geo.scan_context_distance(desc.grids[ci, ai], desc.grids[cj, aj]))
+        sc, shift = (np.asarray(x) for x in geo.scan_context_distance(desc.grids[ci, ai], desc.grids[cj, aj]))
         record: dict[str, Any] = {
             "source": "geometry", "i": int(ids[ci, ai]), "j": int(ids[cj, aj]), "score": float(1.0 - sc),
             "chunk_i": int(ci), "chunk_j": int(cj), "signature_distance": dsig, "scan_context_distance": float(sc),
@@ -130,11 +129,11 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
             records.append(record)
             continue
         with ctx.timer("loop geometry: registration"):
-            reg, unit, yaw = _register(desc, ci, cj, options)
+            reg, unit = _register(g, ci, ai, cj, aj, int(shift), options)
         record["Z"] = np.asarray(reg.S, np.float64).tolist()
         record["registration"] = {k: _plain(getattr(reg, k)) for k in (
             "inlier_ratio", "rms", "scale_ratio", "spread", "num_inliers", "num_structure", "num_points", "valid")}
-        record["registration"]["yaw_deg"] = yaw
+        record["registration"]["yaw_deg"] = float(np.degrees(geo.sector_yaw(int(shift), options.sectors)))
         record["_stats"] = (reg, unit)
         why = geo.registration_reason(record["registration"], options)
         # the loop-chunk fields of the decision rule: the registration stands in for the loop chunk
@@ -153,23 +152,27 @@ def _plain(v: Any) -> Any:
     return bool(a) if a.dtype == bool else (int(a) if a.dtype.kind in "iu" else float(a))
 
 
-def _register(desc: geo.ChunkDescriptors, ci: int, cj: int, options: geo.GeometryOptions):
-    """The registration of chunk ``ci`` onto ``cj`` from the best of every start
-    (:func:`swiftjax.loops.geometric.coarse_hypotheses`: each anchor pair, its Scan Context yaw
-    and the yaw + π; :func:`swiftjax.loops.geometric.register_hypotheses`) on the points each
-    chunk's camera path saw from close by; ``(Registration, unit, chosen yaw in degrees)``."""
-    g = desc.geometry
+def _register(g: geo.ChunkGeometry, ci: int, ai: int, cj: int, aj: int, shift: int, options: geo.GeometryOptions):
+    """The better of the two yaw hypotheses' registrations of chunk ``ci`` onto ``cj``."""
     key = jax.random.PRNGKey(ci * 100003 + cj)
-    weights = geo.path_weights(jax.tree_util.tree_map(lambda a: jnp.asarray(a[np.array([ci, cj])]), g),
-                               options.max_radius)
-    src, ws = geo.subsample(g.points[ci], weights[0], options.src_points, key)
-    dst, wd = geo.subsample(g.points[cj], weights[1], options.dst_points, jax.random.fold_in(key, 1))
-    S0, _, yaw = geo.coarse_hypotheses(desc.grids[ci], desc.grids[cj], g.anchors[ci], g.basis[ci], g.height[ci],
-                                       g.anchors[cj], g.basis[cj], g.height[cj])
+
+    def near(c, a):
+        q = geo._normalised(jnp.asarray(g.points[c]), g.anchors[c, a], g.basis[c], g.height[c])
+        return jnp.asarray(g.weights[c]) * (jnp.hypot(q[:, 0], q[:, 1]) < options.max_radius)
+
+    src, ws = geo.subsample(g.points[ci], near(ci, ai), options.src_points, key)
+    dst, wd = geo.subsample(g.points[cj], near(cj, aj), options.dst_points, jax.random.fold_in(key, 1))
     up = jnp.asarray(g.basis[cj][:, 2])
-    ground = jnp.median(jnp.asarray(g.anchors[cj]) @ up) - g.height[cj]  # the road under b's cameras
-    reg, k, _ = geo.register_hypotheses(src, ws, dst, wd, S0, g.height[cj], up, ground, options)
-    return reg, float(g.height[cj]), float(np.degrees(np.asarray(yaw)[int(k)]))
+    ground = up @ jnp.asarray(g.anchors[cj, aj]) - g.height[cj]
+    best = None
+    for m in (shift, shift + options.sectors // 2):
+        S0 = geo.coarse_edge(g.anchors[ci, ai], g.basis[ci], g.height[ci], g.anchors[cj, aj], g.basis[cj],
+                             g.height[cj], geo.sector_yaw(m % options.sectors, options.sectors))
+        reg = geo.register(src, ws, dst, wd, S0, g.height[cj], up, ground, options.tau_start, options.tau_end,
+                           options.ground_band, iterations=options.iterations)
+        if best is None or float(reg.num_structure) > float(best.num_structure):
+            best = reg
+    return best, float(g.height[cj])
 
 
 def _dense(ctx: RunContext, ci: int, cj: int, Z: list[float], K_ref: np.ndarray, options: geo.GeometryOptions,
