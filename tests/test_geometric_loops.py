@@ -282,3 +282,119 @@ def test_odometry_gate():
     assert ok[1, 5] and ok[0, 6] and ok[2, 4]
     # 0 and 2: 100 m apart, path 100 m -> 100 > max(24.75, 10)
     assert not ok[0, 2] and not ok[6, 7]
+
+
+def _rodrigues(u, theta):
+    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]], np.float64)
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+
+
+def test_yaw_step_is_the_closed_form_rotation_about_up():
+    """Points rotated about a tilted up axis by 2.5 rad and shifted: one 4-DoF step recovers the
+    rotation (Rodrigues, float64) and translation exactly, the scale untouched."""
+    rng = np.random.default_rng(8)
+    y = rng.normal(size=(60, 3))
+    up = np.array([0.1, 0.2, 0.97])
+    up /= np.linalg.norm(up)
+    R = _rodrigues(up, 2.5)
+    z = y @ R.T + [1.0, -2.0, 0.5]
+    D, ok = G._yaw_step(jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.ones(60), jnp.asarray(up, jnp.float32))
+    M = np.asarray(sim3.as_matrix(D), np.float64)
+    assert bool(ok)
+    np.testing.assert_allclose(M[:3, :3], R, atol=1e-5)
+    np.testing.assert_allclose(M[:3, 3], [1.0, -2.0, 0.5], atol=1e-4)
+    # no weight: invalid, finite
+    D, ok = G._yaw_step(jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.zeros(60), jnp.asarray(up, jnp.float32))
+    assert not bool(ok)
+
+
+def test_path_weights_against_numpy_loop():
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-30, 30, (400, 3)).astype(np.float32)
+    w = (rng.uniform(size=400) > 0.3).astype(np.float32)
+    anchors = np.float32([[-10, 0, 1], [0, 0, 1], [10, 2, 1]])
+    basis = np.asarray(_rodrigues(np.array([1.0, 0, 0]), 0.1), np.float32)  # up tilted about x
+    g = G.ChunkGeometry(pts, w, anchors, basis, np.float32(1.5), np.arange(3, dtype=np.int32))
+    got = np.asarray(G.path_weights(jax.tree_util.tree_map(jnp.asarray, g), 6.0))
+    ref = np.zeros(400)
+    for n in range(400):
+        for a in anchors:
+            xy = (pts[n] - a) @ basis[:, :2] / 1.5
+            if w[n] > 0 and xy @ xy < 36.0:
+                ref[n] = w[n]
+    np.testing.assert_array_equal(got, ref)
+
+
+def _corner(rng, n):
+    """:func:`_street` with a building at one end: the street's facades alone are nearly
+    symmetric under a half turn (``sin`` is odd), the building is not."""
+    m = n // 4
+    side = rng.choice(3, m)
+    t = rng.uniform(0, 1, m)
+    x = np.where(side == 0, 8 + 6 * t, np.where(side == 1, 8.0, 14.0))
+    y = np.where(side == 0, -9.0, -9 - 4 * t)
+    building = np.c_[x, y, rng.uniform(0, 5, m)]
+    return np.concatenate([_street(rng, n - m), building]).astype(np.float32)
+
+
+def _reverse_pass(rng, s_true, phi, offset):
+    """Chunk a: a street with a building at one end (:func:`_corner`; camera heights 1, up z,
+    anchors along x); chunk b: the same street from
+    its other end, ``x_b = S(x_a)`` with a 180 degree yaw about up, scale ``s_true`` and a shift;
+    b's gravity basis turned by ``phi`` about up and its anchors ``offset`` along the road
+    from a's (b's cameras drove the same road, not through a's anchor points)."""
+    R_true = _rodrigues(np.array([0.0, 0, 1]), np.pi) @ _rodrigues(np.array([1.0, 0, 0]), 0.03)
+    S_true = sim3.from_rst(jnp.asarray(R_true, jnp.float32), jnp.asarray([4.0, -3.0, 1.0], jnp.float32), s_true)
+    pts = rng.permutation(_corner(rng, 6000))
+    src, dst = pts[::2], np.asarray(sim3.act(S_true, pts))  # b saw more of the street than a
+    anchors_a = np.float32([[x, 0, 1] for x in (-12, -6, 0, 6, 12)])
+    anchors_b = np.asarray(sim3.act(S_true, anchors_a[::-1] + np.float32([offset, 0, 0])))
+    basis_a = np.eye(3, dtype=np.float32)
+    basis_b = np.asarray(R_true @ _rodrigues(np.array([0.0, 0, 1]), phi), np.float32)
+    return S_true, R_true, src, dst, anchors_a, anchors_b, basis_a, basis_b
+
+
+@pytest.mark.parametrize("s_true", [3.0, 0.4])
+def test_register_hypotheses_finds_a_reverse_revisit(s_true):
+    """The same street driven the other way (180 degree yaw, 3x or 0.4x scale, gravity basis
+    turned, anchors off by 2.5 camera heights along the road): the best of the several starts
+    (every anchor pair at its Scan Context yaw and yaw + pi) registers to the true Sim(3)
+    (closed form)."""
+    rng = np.random.default_rng(10)
+    S_true, R_true, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, s_true, 0.7, 2.5)
+    opts = G.GeometryOptions(rings=10, sectors=36, max_radius=20.0, tau_start=3.0, tau_end=0.15, iterations=30)
+    grid = lambda pts, a, B, h: G.polar_grid(G._normalised(jnp.asarray(pts), jnp.asarray(a), jnp.asarray(B), h),  # noqa: E731
+                                             np.ones(len(pts), np.float32), 10, 36, 20.0, 8.0)[0]
+    ga = jnp.stack([grid(src, a, Ba, 1.0) for a in aa])
+    gb = jnp.stack([grid(dst, a, Bb, s_true) for a in ab])
+    S0, anchors, yaw = G.coarse_hypotheses(ga, gb, aa, Ba, 1.0, ab, Bb, s_true)
+    assert S0.shape == (50, 8) and anchors.shape == (50, 2)
+    np.testing.assert_allclose(np.asarray(jnp.mod(yaw[1::2] - yaw[::2], 2 * np.pi)), np.pi, atol=1e-5)
+    up = Bb[:, 2]
+    ground = float(up @ np.asarray(sim3.translation(S_true)))
+    ws, wd = np.ones(len(src), np.float32), np.ones(len(dst), np.float32)
+    src_s, ws_s = G.subsample(src, ws, 1024, jax.random.PRNGKey(0))
+    reg, k, scores = G.register_hypotheses(src_s, ws_s, dst, wd, S0, s_true, up, ground, opts)
+    M, M_true = np.asarray(sim3.as_matrix(reg.S), np.float64), np.asarray(sim3.as_matrix(S_true), np.float64)
+    R = M[:3, :3] / np.cbrt(np.linalg.det(M[:3, :3]))
+    assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_true) - 1) / 2, -1, 1))) < 0.1
+    assert abs(float(sim3.scale(reg.S)) / s_true - 1) < 1e-3
+    np.testing.assert_allclose(M[:3, 3], M_true[:3, 3], atol=0.01 * s_true)
+    assert bool(reg.valid) and float(reg.inlier_ratio) > 0.95 and float(reg.rms) < 1e-3
+    assert int(scores[int(k)]) == int(np.max(np.asarray(scores)))
+
+
+def test_register_hypotheses_without_a_camera_height_is_rejected_not_nan():
+    """A chunk whose camera height is unknown (no road seen: NaN): every start is NaN, the
+    result is the identity (finite), invalid, and the candidate's reason says so in one line."""
+    rng = np.random.default_rng(11)
+    _, _, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, 2.0, 0.0, 0.0)
+    g = jnp.ones((5, 10, 36))
+    S0, _, _ = G.coarse_hypotheses(g, g, aa, Ba, float("nan"), ab, Bb, 2.0)
+    assert not np.isfinite(np.asarray(S0)).all()
+    reg, _, scores = G.register_hypotheses(src[:512], np.ones(512), dst[:1024], np.ones(1024), S0, 2.0,
+                                           Bb[:, 2], 0.0, G.GeometryOptions())
+    assert np.all(np.isfinite(np.asarray(reg.S))) and not bool(reg.valid) and np.all(np.asarray(scores) == -1)
+    plain = {k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v for k, v in reg._asdict().items()}
+    why = G.registration_reason(plain, G.GeometryOptions())
+    assert why is not None and "\n" not in why and "registration failed" in why

@@ -61,6 +61,21 @@ z_ground``: every road matches every road, so road points prove nothing),
 spread (``λ₂ / λ₁`` of the horizontal covariance of the inlying structure: a straight wall on
 each side of a featureless road leaves the translation along the road free).
 
+**Several starts** (:func:`coarse_hypotheses`, :func:`register_hypotheses`).  The
+signature's best anchor pair may lie far from the true correspondence (the grid is only weakly
+sensitive to where along a street it is taken: on synthetic KITTI 08, 2-103 camera heights,
+while some anchor pair lies within 1-6), so every anchor pair ``(α, β)`` at its own Scan
+Context yaw and at yaw + π is a start (``2 A²``).  From each, a gravity-aligned ICP solves only
+yaw about ``u`` and translation (scale held at ``s₀``; a full Sim(3) step from a far start
+can shrink the cloud, ``s → 0``)::
+
+    θ = atan2(Σ w u·(a × b), Σ w a·b),   a, b: horizontal parts of the centred pairs
+
+all starts at once (``vmap``); the start with the most structure inliers is refined by the
+Sim(3) ICP.  Measured limit: on streets whose facades look alike along the street and across
+a half turn the structure-inlier count barely peaks at the truth (KITTI 08: 2 of 14 true
+reverse pairs registered to 1.5°/3.3 m); the pipeline keeps the two-start registration.
+
 **Failure modes.**  (1) Too few reliable points (night, blur, a chunk of sky): no signature,
 recorded, the chunk proposes nothing.  (2) A camera that is not level (steep ramps, a
 handheld camera): ``u`` is wrong by the tilt, the grid smears; the road-plane fit of
@@ -108,6 +123,9 @@ __all__ = [
     "Registration",
     "register",
     "subsample",
+    "path_weights",
+    "coarse_hypotheses",
+    "register_hypotheses",
 ]
 
 
@@ -138,6 +156,12 @@ class GeometryOptions:
         max_scale_ratio: ``s / s₀`` must lie in ``[1 / r, r]``.
         min_spread: ``λ₂ / λ₁`` of the inlying structure's horizontal spread.
         min_structure: fewest inlying structure points.
+        coarse_src_points, coarse_dst_points, coarse_iterations, coarse_tau_start, coarse_tau_end:
+            the coarse ICP
+            run from every start hypothesis (:func:`register_hypotheses`): the first points of
+            the registration subsamples, its iterations and its Tukey radii.  The target keeps
+            all ``dst_points`` rows by default: with a sparser target the structure-inlier score
+            cannot tell a street's half turn from the truth (tests: the corner scene).
     """
 
     frame_stride: int = 5
@@ -165,6 +189,11 @@ class GeometryOptions:
     max_scale_ratio: float = 1.3
     min_spread: float = 0.02
     min_structure: int = 60
+    coarse_src_points: int = 256
+    coarse_dst_points: int = 4096
+    coarse_iterations: int = 8
+    coarse_tau_start: float = 3.0
+    coarse_tau_end: float = 0.5
 
 
 # ----------------------------------------------------------------------- per chunk
@@ -414,11 +443,28 @@ def _nearest(y: Array, dst: Array, w_dst: Array) -> tuple[Array, Array]:
     return k, jnp.sqrt(jnp.sum(diff * diff, -1))
 
 
-@functools.partial(jax.jit, static_argnames=("iterations",))
+def _yaw_step(y: Array, z: Array, w: Array, up: Array) -> tuple[Array, Array]:
+    """The weighted least-squares rotation about ``up`` and translation ``D`` taking ``y [P, 3]``
+    onto ``z [P, 3]`` (scale fixed): with the weighted means ``ȳ, z̄`` and the horizontal parts
+    ``a = (I − u uᵀ)(y − ȳ)``, ``b = (I − u uᵀ)(z − z̄)``, ``θ = atan2(Σ w u·(a × b), Σ w a·b)``,
+    ``R = R_u(θ)`` (Rodrigues), ``t = z̄ − R ȳ``.  ``(D [8], valid)``."""
+    W = jnp.sum(w)
+    my = jnp.sum(w[:, None] * y, 0) / jnp.maximum(W, 1e-30)
+    mz = jnp.sum(w[:, None] * z, 0) / jnp.maximum(W, 1e-30)
+    P = jnp.eye(3) - jnp.outer(up, up)
+    a, b = (y - my) @ P, (z - mz) @ P
+    theta = jnp.arctan2(jnp.sum(w * (jnp.cross(a, b) @ up)), jnp.sum(w * jnp.sum(a * b, -1)))
+    K = jnp.cross(jnp.eye(3), up)  # [u]x: row k is e_k × u, (e_k × u)·v = (u × v)_k
+    R = jnp.eye(3) + jnp.sin(theta) * K + (1.0 - jnp.cos(theta)) * K @ K
+    D = sim3.from_rst(R, mz - R @ my, jnp.ones((), y.dtype))
+    return D, (W > 0) & jnp.all(jnp.isfinite(D))
+
+
+@functools.partial(jax.jit, static_argnames=("iterations", "four_dof"))
 def register(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Float[ArrayLike, "Q 3"],
              w_dst: Float[ArrayLike, "Q"], S0: Float[ArrayLike, "8"], unit: ArrayLike, up: Float[ArrayLike, "3"],
              ground: ArrayLike, tau_start: float | ArrayLike = 3.0, tau_end: float | ArrayLike = 0.25,
-             ground_band: float | ArrayLike = 0.35, *, iterations: int = 16) -> Registration:
+             ground_band: float | ArrayLike = 0.35, *, iterations: int = 16, four_dof: bool = False) -> Registration:
     """Robust Sim(3) ICP of ``src`` onto ``dst`` from ``S0`` (module docstring).
 
     Args:
@@ -430,9 +476,13 @@ def register(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Fl
             (``up · x = ground`` on the road), so that ``z = (up · x − ground) / unit``.
         tau_start, tau_end, ground_band: camera heights.
         iterations: static.
+        four_dof: static; each step solves only a rotation about ``up`` and a translation
+            (:func:`_yaw_step`, gravity-aligned, the scale stays ``S0``'s): the coarse stage,
+            where a full Sim(3) step from a far start can shrink the cloud onto a few
+            neighbours (``s → 0``, every residual small).
 
     Returns:
-        :class:`Registration`.  Pure; recompiles per ``(P, Q, iterations)``.
+        :class:`Registration`.  Pure; recompiles per ``(P, Q, iterations, four_dof)``.
     """
     src = jnp.asarray(src, jnp.float32)
     dst = jnp.asarray(dst, jnp.float32)
@@ -447,8 +497,13 @@ def register(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Fl
         S, ok = carry
         k, r = _nearest(sim3.act(S, src), dst, w_dst)
         w = w_src * jnp.where(r < tau, (1.0 - (r / tau) ** 2) ** 2, 0.0)
-        S_new, info = align.umeyama(src, dst[k], w)
-        good = info.valid & jnp.all(jnp.isfinite(S_new))
+        if four_dof:
+            D, good = _yaw_step(sim3.act(S, src), dst[k], w, up)
+            S_new = sim3.compose(D, S)
+        else:
+            S_new, info = align.umeyama(src, dst[k], w)
+            good = info.valid
+        good = good & jnp.all(jnp.isfinite(S_new))
         return (jnp.where(good, S_new, S), ok & good), None
 
     S0 = jnp.asarray(S0, jnp.float32)
@@ -508,3 +563,88 @@ def registration_reason(reg: dict, options: GeometryOptions) -> str | None:
 def sector_yaw(shift: int | ArrayLike, sectors: int) -> float | Array:
     """The yaw ``ψ = m 2π / N_s`` of a sector shift."""
     return shift * (2 * math.pi / sectors)
+
+
+# ----------------------------------------------------------------------- several starts
+
+
+def path_weights(geometry: ChunkGeometry, max_radius: float) -> Array:
+    """``[..., N]`` the weights of the reliable points lying within ``max_radius`` camera
+    heights (horizontally, in the chunk's gravity frame) of one of its anchors: the part of the
+    chunk's cloud the camera path saw from close by (what both passes of a street share)."""
+
+    def one(g: ChunkGeometry) -> Array:
+        rel = g.points[None, :, :] - g.anchors[:, None, :]  # [A, N, 3]
+        xy = rel @ g.basis[:, :2] / g.height  # [A, N, 2]
+        near = jnp.any(jnp.sum(xy * xy, -1) < max_radius**2, 0)
+        return jnp.where(near & jnp.isfinite(g.height), g.weights, 0.0)
+
+    lead = geometry.weights.shape[:-1]
+    flat = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[len(lead):]), geometry)
+    return jax.vmap(one)(flat).reshape(*lead, -1)
+
+
+@jax.jit
+def coarse_hypotheses(grids_a: Float[ArrayLike, "A R S"], grids_b: Float[ArrayLike, "A R S"], anchors_a: ArrayLike,
+                      basis_a: ArrayLike, height_a: ArrayLike, anchors_b: ArrayLike, basis_b: ArrayLike,
+                      height_b: ArrayLike) -> tuple[Array, Array, Array]:
+    """Every start of the registration of chunk ``a`` onto ``b``: ``(S0 [2 A², 8], anchors
+    [2 A², 2] int32, yaw [2 A²])``.
+
+    The signature's best anchor pair is often far from the true correspondence (the polar grid
+    is only weakly sensitive to where along a street it is taken), and a street is nearly
+    symmetric end to end, so one start is not enough.  For every anchor pair ``(α, β)``
+    the Scan Context shift ``m*_{αβ}`` of their grids gives the yaw ``ψ = m* 2π / N_s``; each
+    pair contributes :func:`coarse_edge` at ``ψ`` and at ``ψ + π`` (anchors of a reverse pass
+    coincide to a few camera heights for some pair: the cameras drove the same road).
+    Order: ``(α, β, yaw)`` row-major.  Pure; recompiles per ``(A, R, S)``.
+    """
+    ga, gb = jnp.asarray(grids_a), jnp.asarray(grids_b)
+    A, S = ga.shape[0], ga.shape[-1]
+    _, shift = scan_context_distance(ga[:, None], gb[None, :])  # [A, A]
+    psi = shift.astype(jnp.float32) * (2 * jnp.pi / S)
+    yaw = jnp.stack([psi, psi + jnp.pi], -1)  # [A, A, 2]
+    ia, ib = jnp.meshgrid(jnp.arange(A), jnp.arange(A), indexing="ij")
+    ia, ib = jnp.broadcast_to(ia[..., None], yaw.shape), jnp.broadcast_to(ib[..., None], yaw.shape)
+    aa, ab = jnp.asarray(anchors_a)[ia.reshape(-1)], jnp.asarray(anchors_b)[ib.reshape(-1)]
+    S0 = coarse_edge(aa, basis_a, height_a, ab, basis_b, height_b, yaw.reshape(-1))
+    return S0, jnp.stack([ia.reshape(-1), ib.reshape(-1)], -1).astype(jnp.int32), jnp.mod(yaw.reshape(-1), 2 * jnp.pi)
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def register_hypotheses(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Float[ArrayLike, "Q 3"],
+                        w_dst: Float[ArrayLike, "Q"], S0: Float[ArrayLike, "H 8"], unit: ArrayLike,
+                        up: Float[ArrayLike, "3"], ground: ArrayLike,
+                        options: GeometryOptions = GeometryOptions()) -> tuple[Registration, Array, Array]:
+    """The registration of ``src`` onto ``dst`` from the best of ``H`` starts: ``(Registration,
+    chosen int32, scores [H])``.
+
+    A coarse robust ICP (:func:`register` with ``four_dof``: yaw about gravity and translation,
+    the scale held at the start's camera-height ratio; ``coarse_iterations``, Tukey radius
+    ``coarse_tau_start → coarse_tau_end``) runs from every start at once (``vmap``) on the first
+    ``coarse_src_points`` / ``coarse_dst_points`` rows of the subsamples (:func:`subsample`
+    puts the chosen points first, in random order); each is scored by its inlying structure
+    points (``num_structure``: road points match under any yaw, so they do not count), an
+    invalid solve by −1.  The best is refined by the full ICP (``iterations``, ``tau_start →
+    tau_end``, all rows).  ``scale_ratio`` of the result is ``s`` against the chosen START's
+    scale (the camera-height ratio ``s₀``), not against the coarse result.  Pure; recompiles per
+    ``(P, Q, H, options)``.
+    """
+    S0 = jnp.asarray(S0, jnp.float32)
+    o = options
+    pc, qc = min(o.coarse_src_points, src.shape[0]), min(o.coarse_dst_points, dst.shape[0])
+    src, w_src, dst, w_dst = (jnp.asarray(x, jnp.float32) for x in (src, w_src, dst, w_dst))
+
+    def coarse(s0):
+        return register(src[:pc], w_src[:pc], dst[:qc], w_dst[:qc], s0, unit, up, ground, o.coarse_tau_start,
+                        o.coarse_tau_end, o.ground_band, iterations=o.coarse_iterations, four_dof=True)
+
+    rough = jax.vmap(coarse)(S0)
+    scores = jnp.where(rough.valid & jnp.all(jnp.isfinite(S0), -1), rough.num_structure, -1)
+    k = jnp.argmax(scores).astype(jnp.int32)
+    start = jnp.where(scores[k] >= 0, rough.S[k], sim3.identity())
+    reg = register(src, w_src, dst, w_dst, start, unit, up, ground, o.tau_start, o.tau_end, o.ground_band,
+                   iterations=o.iterations)
+    ok = reg.valid & (scores[k] >= 0)
+    return reg._replace(S=jnp.where(ok, reg.S, sim3.identity()), scale_ratio=sim3.scale(reg.S) / sim3.scale(start),
+                        valid=ok), k, scores
