@@ -23,12 +23,30 @@ fine for the tens of candidates a sequence has; ties broken by the larger sum of
 consistency scores).  The per-edge covariances ``Σ_e`` come from a drift model
 (:func:`odometry_covariance`): VGGT's chunk-to-chunk error is model error (drift), which
 the alignment's own statistics do not see.
+
+**Before the robust solve** (:func:`graph_consistency`, Kimera-RPGO's recipe): the same test
+over *every* loop edge of a pose graph, against its odometry chain, so that GNC starts from the
+maximum consistent set and the rejected edges are out of the graph (``edge_mask`` False,
+weight 0).  The threshold is derived, not tuned (:func:`consistency_threshold`): under the
+hypothesis that ``a`` and ``b`` are both inliers and the covariances are right, ``m_ab²`` is
+chi-squared with 7 degrees of freedom; one falsely failed pair can drop a true loop from the
+clique, so the ``N = M (M − 1) / 2`` pair tests share the error budget ``1 − p`` (Bonferroni)::
+
+    threshold = sqrt(chi2_7⁻¹(1 − (1 − p) / N))          (p = 0.99: 5.36 for M = 10, 6.23 for M = 30)
+
+so that with probability ``>= p`` no pair of true loops is declared inconsistent.  What it
+cannot do: a group of false loops that agree with each other (look-alike streets matched
+chunk after chunk) and outnumber the true loops wins the clique; ``odometry_check=True`` adds
+Kimera's per-edge test (each loop against the odometry alone, ``m_k`` with ``Σ = P[[p, q)] +
+Ad Σ_Z Adᵀ``, the same threshold over ``N + M`` tests), which rejects such a group when the
+drift it implies is outside the odometry's covariance — and a true loop after more drift than
+the model allows, so it is off by default.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +56,10 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from swiftjax import sim3
 from swiftjax._compile import quick_jit
 
-__all__ = ["odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set"]
+__all__ = [
+    "odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set",
+    "consistency_threshold", "GraphConsistency", "graph_consistency",
+]
 
 
 @jax.jit
@@ -159,3 +180,122 @@ def max_consistent_set(
     if m:
         expand([], set(range(m)), set())
     return best[1]
+
+
+def consistency_threshold(num_loops: int, probability: float = 0.99, *, extra_tests: int = 0) -> float:
+    """The PCM bound on ``m_ab`` (module docstring): ``sqrt(chi2_7⁻¹(1 − (1 − p) / N))`` with
+    ``N = M (M − 1) / 2 + extra_tests`` (at least 1) tests sharing the error budget ``1 − p``."""
+    from scipy.stats import chi2
+
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"consistency probability must be in (0, 1), not {probability!r}")
+    tests = max(num_loops * (num_loops - 1) // 2 + extra_tests, 1)
+    return float(np.sqrt(chi2.isf((1.0 - probability) / tests, 7)))
+
+
+class GraphConsistency(NamedTuple):
+    """Outcome of :func:`graph_consistency` (host NumPy).
+
+    ``kept [E]``: False exactly for the loop edges outside the maximum consistent set (every
+    other edge True); ``loop_edges [M]``: the indices of the tested loop edges;
+    ``residuals [M, M]``: ``m_ab``; ``odometry_residuals [M]``: ``m_k`` against the odometry
+    alone (computed always, used with ``odometry_check``); ``threshold``; ``problem``: the input
+    with ``edge_mask &= kept`` (the graph GNC starts from).
+    """
+
+    kept: np.ndarray
+    loop_edges: np.ndarray
+    residuals: np.ndarray
+    odometry_residuals: np.ndarray
+    threshold: float
+    problem: Any
+
+
+def _chain_edges(edges: np.ndarray, plain: np.ndarray, num: int) -> np.ndarray:
+    """Index of the plain edge ``(t, t + 1)`` for every ``t < num − 1`` (ValueError if one is missing)."""
+    index = {(int(a), int(b)): k for k, (a, b) in enumerate(edges) if plain[k]}
+    missing = [t for t in range(num - 1) if (t, t + 1) not in index]
+    if missing:
+        raise ValueError(f"graph_consistency: no odometry edge ({missing[0]}, {missing[0] + 1}) among the "
+                         "non-robust edges (the test needs the chain t -> t + 1)")
+    return np.array([index[(t, t + 1)] for t in range(num - 1)], np.int64)
+
+
+def graph_consistency(
+    problem: Any,
+    covariance: Float[ArrayLike, "E 7 7"] | None = None,
+    *,
+    num_chain_nodes: int | None = None,
+    probability: float = 0.99,
+    odometry_check: bool = False,
+) -> GraphConsistency:
+    """Pairwise consistency of every loop edge of a pose graph before its robust solve (host).
+
+    Args:
+        problem: a :class:`swiftjax.posegraph.Problem`; its loop edges are the ``robust`` ones
+            (both ends below ``num_chain_nodes``), its odometry the non-robust edges
+            ``(t, t + 1)``, ``t < num_chain_nodes − 1`` (all must be present).  Other edges
+            (priors, an anchor) are neither tested nor used.
+        covariance: ``[E, 7, 7]`` covariance of each edge's right perturbation; default the
+            inverse of ``problem.information`` (right when the information matches the noise).
+            Give the noise model here when the solve's weights do not describe the noise (equal
+            weights).
+        num_chain_nodes: the chain's length (default every node).
+        probability: ``p`` of :func:`consistency_threshold`.
+        odometry_check: also reject a loop whose own cycle with the odometry fails (module
+            docstring).
+
+    A loop edge ``(a, b)`` with ``a > b`` is tested as ``(b, a)`` with ``Z⁻¹`` and covariance
+    ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
+    :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
+    :func:`max_consistent_set`; ties between cliques of one size go to the members with the
+    smaller summed residual to their consistent partners.
+    """
+    import jax.numpy as jnp
+
+    from swiftjax.posegraph import Problem, chain_poses
+
+    edges = np.asarray(problem.edges, np.int64)
+    E = len(edges)
+    mask = np.asarray(problem.edge_mask, bool)
+    robust = np.asarray(problem.robust, bool) & mask
+    T = problem.num_nodes if num_chain_nodes is None else int(num_chain_nodes)
+    meas = np.asarray(problem.measurements, np.float64)
+    if covariance is None:
+        info = np.asarray(problem.information, np.float64)
+        cov = np.linalg.inv(np.where(mask[:, None, None], info, np.eye(7)))
+    else:
+        cov = np.asarray(covariance, np.float64)
+        if cov.shape != (E, 7, 7):
+            raise ValueError(f"graph_consistency: covariance has shape {cov.shape}; expected [E, 7, 7] = [{E}, 7, 7]")
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    chain = _chain_edges(edges, mask & ~robust, T)
+    loop = np.flatnonzero(robust & (edges.max(1) < T) & (edges[:, 0] != edges[:, 1]))
+    M = len(loop)
+    kept = np.ones(E, bool)
+    with jax.enable_x64(True):
+        X = chain_poses(meas[chain])
+        nodes, Z, L = edges[loop], meas[loop], cov[loop]
+        flip = nodes[:, 0] > nodes[:, 1]
+        if flip.any():
+            Ad = np.asarray(sim3.adjoint(jnp.asarray(Z[flip])))
+            Z[flip] = np.asarray(sim3.inverse(jnp.asarray(Z[flip])))
+            L[flip] = Ad @ L[flip] @ np.swapaxes(Ad, -1, -2)
+            nodes[flip] = nodes[flip][:, ::-1]
+        # a virtual identity loop (0, 0) with zero covariance: its pair with loop k is loop k's
+        # cycle with the odometry alone
+        nodes = np.concatenate([nodes, [[0, 0]]])
+        Z = np.concatenate([Z, np.asarray(sim3.identity((1,), jnp.float64))])
+        L = np.concatenate([L, np.zeros((1, 7, 7))])
+        m = np.asarray(pairwise_consistency(jnp.asarray(X), jnp.asarray(cov[chain]), jnp.asarray(nodes),
+                                            jnp.asarray(Z), jnp.asarray(L)), np.float64)
+    m, m_odo = m[:M, :M], m[:M, M]
+    threshold = consistency_threshold(M, probability, extra_tests=M if odometry_check else 0)
+    ok = m <= threshold
+    alone = m_odo <= threshold if odometry_check else np.ones(M, bool)
+    ok &= alone[:, None] & alone[None, :]
+    clique = [k for k in max_consistent_set(ok, -np.where(ok, m, 0).sum(1)) if alone[k]]
+    kept[loop] = np.isin(np.arange(M), clique)
+    out = Problem(problem.poses, problem.edges, problem.measurements, problem.information, problem.fixed,
+                  problem.robust, mask & kept)
+    return GraphConsistency(kept, loop, m, m_odo, threshold, out)
