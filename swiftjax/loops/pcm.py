@@ -41,6 +41,11 @@ Kimera's per-edge test (each loop against the odometry alone, ``m_k`` with ``Σ 
 Ad Σ_Z Adᵀ``, the same threshold over ``N + M`` tests), which rejects such a group when the
 drift it implies is outside the odometry's covariance — and a true loop after more drift than
 the model allows, so it is off by default.
+
+:func:`consistent_solve` is the whole back end: PCM, then GNC-TLS on the consistent set.  When
+the solve's weights are not the noise model (equal weights, the authors' choice) GNC decides
+the inliers on the graph whitened by the noise model (where its chi-squared threshold means
+what it says) and a last plain solve with the caller's weights runs on those inliers.
 """
 
 from __future__ import annotations
@@ -58,7 +63,7 @@ from swiftjax._compile import quick_jit
 
 __all__ = [
     "odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set",
-    "consistency_threshold", "GraphConsistency", "graph_consistency",
+    "consistency_threshold", "GraphConsistency", "graph_consistency", "consistent_solve",
 ]
 
 
@@ -251,8 +256,6 @@ def graph_consistency(
     :func:`max_consistent_set`; ties between cliques of one size go to the members with the
     smaller summed residual to their consistent partners.
     """
-    import jax.numpy as jnp
-
     from swiftjax.posegraph import Problem, chain_poses
 
     edges = np.asarray(problem.edges, np.int64)
@@ -299,3 +302,46 @@ def graph_consistency(
     out = Problem(problem.poses, problem.edges, problem.measurements, problem.information, problem.fixed,
                   problem.robust, mask & kept)
     return GraphConsistency(kept, loop, m, m_odo, threshold, out)
+
+
+def consistent_solve(
+    problem: Any,
+    covariance: Float[ArrayLike, "E 7 7"] | None = None,
+    *,
+    num_chain_nodes: int | None = None,
+    probability: float = 0.99,
+    odometry_check: bool = False,
+    **options: Any,
+) -> tuple[Any, GraphConsistency]:
+    """PCM over every loop edge (:func:`graph_consistency`), then GNC-TLS on the consistent set:
+    ``(Result, GraphConsistency)`` (host; Kimera-RPGO's recipe).
+
+    ``options`` go to :func:`swiftjax.posegraph.optimize` (``kernel`` is ``"gnc"``; its
+    ``kernel_scale`` is the inlier threshold in the noise model's whitened units).  With
+    ``covariance`` None the noise model is ``problem.information`` and this is one GNC solve on
+    ``problem`` with the PCM-rejected edges out.  With a ``covariance`` (the noise model when the
+    solve's information is something else, e.g. equal weights): GNC runs on the problem with
+    ``information = covariance⁻¹`` to decide the inliers, then plain least squares with
+    ``problem.information`` on the edges it kept, from the same start.  ``Result.inlier_weights``
+    are GNC's (0 for the PCM-rejected edges), ``gnc_iterations`` its outer iterations.
+    """
+    import dataclasses
+
+    from swiftjax import posegraph
+
+    check = graph_consistency(problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability,
+                              odometry_check=odometry_check)
+    options = {**options, "kernel": "gnc"}
+    consistent = check.problem
+    if covariance is None:
+        return posegraph.optimize(consistent, **options), check
+    cov = np.asarray(covariance, np.float64)
+    info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    dtype = np.asarray(problem.poses).dtype
+    whitened = dataclasses.replace(consistent, information=jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), dtype))
+    decision = posegraph.optimize(whitened, **options)
+    inliers = np.asarray(consistent.edge_mask) & (decision.inlier_weights >= 0.5)
+    final = posegraph.optimize(dataclasses.replace(consistent, edge_mask=jnp.asarray(inliers)),
+                               **{**options, "kernel": None})
+    return dataclasses.replace(final, inlier_weights=decision.inlier_weights,
+                               gnc_iterations=decision.gnc_iterations), check
