@@ -79,11 +79,12 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
                 r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
                 c = 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
             for level in levels:
-                edges, meas, info, kind = rg._subgraph(g, int(round(level * rg.NUM_TRUE)), information)
+                edges, meas, info, kind = rg._subgraph(g, int(round(level * g["num_true"])), information)
                 prob = posegraph.Problem(g["initial"], edges, meas, information=info, robust=kind != "odometry")
                 cov = None if information == "matched" else nominal_covariance(kind)
                 base = dict(route=g["route"], seed=g["seed"], generator=g["generator"], information=information,
-                            level=level, false_loops=int(np.sum(kind == "false")), threshold=c)
+                            level=level, true_loops=g["num_true"], false_loops=int(np.sum(kind == "false")),
+                            threshold=c)
                 t0 = time.perf_counter()
                 res, check = pcm.consistent_solve(prob, cov, kernel_scale=gnc.DEFAULT_SCALE, throw=False)
                 out = {"PCM+GNC": (res.poses, res.inlier_weights, time.perf_counter() - t0)}
@@ -129,6 +130,7 @@ def summary(rows: list[dict]) -> list[dict]:
     for r in rows:
         cells.setdefault((r["route"], r["generator"], r["information"], r["level"], r["solver"]), []).append(r)
     return [dict(route=k[0], generator=k[1], information=k[2], level=k[3], solver=k[4], seeds=len(v),
+                 true_loops=v[0]["true_loops"],
                  dist_max_pct=max(r["dist_max_pct"] for r in v), true_kept_min=min(r["true_kept"] for r in v),
                  false_kept_max=max(r["false_kept"] for r in v)) for k, v in cells.items()]
 
@@ -138,10 +140,11 @@ def markdown(result: dict) -> str:
     by = {(r["route"], r["generator"], r["information"], r["level"], r["solver"]): r for r in result["summary"]}
     head = "| route | false edges | information | level | " + " | ".join(
         f"{s}: max dist % / true kept / false kept" for s in solvers) + " |"
-    lines = [head, "| --- " * (4 + len(solvers)) + "|"]
+    lines = [head.replace("| level |", "| level | true loops |"), "| --- " * (5 + len(solvers)) + "|"]
     for key in sorted({k[:4] for k in by}, key=lambda k: (k[0], rg.GENERATORS.index(k[1]), k[2], k[3])):
         cells = [by[key + (s,)] for s in solvers]
-        lines.append(f"| KITTI {key[0]} | {key[1]} | {key[2]} | {100 * key[3]:.0f} % | " + " | ".join(
+        lines.append(f"| KITTI {key[0]} | {key[1]} | {key[2]} | {100 * key[3]:.0f} % | {cells[0]['true_loops']} | "
+                     + " | ".join(
             f"{c['dist_max_pct']:.3f} / {c['true_kept_min']} / {c['false_kept_max']}" for c in cells) + " |")
     return "\n".join(lines)
 

@@ -253,8 +253,9 @@ def graph_consistency(
     A loop edge ``(a, b)`` with ``a > b`` is tested as ``(b, a)`` with ``Z⁻¹`` and covariance
     ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
     :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
-    :func:`max_consistent_set`; ties between cliques of one size go to the members with the
-    smaller summed residual to their consistent partners.
+    :func:`max_consistent_set`; ties between cliques of one size go to the one whose members
+    agree best with the odometry (the smaller sum of ``m_k``; with two inconsistent loops and
+    nothing else, the one the odometry supports).
     """
     from swiftjax.posegraph import Problem, chain_poses
 
@@ -297,7 +298,7 @@ def graph_consistency(
     ok = m <= threshold
     alone = m_odo <= threshold if odometry_check else np.ones(M, bool)
     ok &= alone[:, None] & alone[None, :]
-    clique = [k for k in max_consistent_set(ok, -np.where(ok, m, 0).sum(1)) if alone[k]]
+    clique = [k for k in max_consistent_set(ok, -m_odo) if alone[k]]
     kept[loop] = np.isin(np.arange(M), clique)
     out = Problem(problem.poses, problem.edges, problem.measurements, problem.information, problem.fixed,
                   problem.robust, mask & kept)
