@@ -45,7 +45,8 @@ the model allows, so it is off by default.
 :func:`consistent_solve` is the whole back end: PCM, then GNC-TLS on the consistent set.  When
 the solve's weights are not the noise model (equal weights, the authors' choice) GNC decides
 the inliers on the graph whitened by the noise model (where its chi-squared threshold means
-what it says) and a last plain solve with the caller's weights runs on those inliers.
+what it says) and a last plain solve with the caller's weights runs on those inliers.  A loop
+PCM left out that fits the solved map within GNC's bound gets a second look (it goes back in).
 """
 
 from __future__ import annotations
@@ -151,12 +152,14 @@ def pairwise_consistency(
 def max_consistent_set(
     consistent: ArrayLike,  # bool [M, M]: checked here, with a ValueError (host boundary)
     weights: Sequence[float] | Float[ArrayLike, " M"] | None = None,
+    pair_cost: Float[ArrayLike, "M M"] | None = None,
 ) -> list[int]:
     """A maximum clique of the boolean consistency graph ``consistent [M, M]`` (host).
 
     Exact: Bron–Kerbosch with pivoting (Tomita et al. 2006), exponential in the worst case
     but instant for the tens of candidates of a sequence.  Among cliques of the maximum size
-    the one with the largest sum of ``weights`` wins (then the lexicographically smallest).
+    the one with the largest sum of ``weights`` wins, then (``pair_cost [M, M]``) the one with
+    the smallest sum of ``pair_cost`` over its pairs, then the lexicographically smallest.
     The diagonal is ignored; an empty graph gives ``[]``.
     """
     A = np.asarray(consistent, bool)
@@ -165,12 +168,13 @@ def max_consistent_set(
         raise ValueError(f"max_consistent_set: consistent must be square, got {A.shape}")
     A = A & A.T & ~np.eye(m, dtype=bool)
     w = np.zeros(m) if weights is None else np.asarray(weights, np.float64)
+    cost = np.zeros((m, m)) if pair_cost is None else np.asarray(pair_cost, np.float64)
     nbrs = [set(np.flatnonzero(A[k]).tolist()) for k in range(m)]
-    best: list[Any] = [(-1, -np.inf), []]
+    best: list[Any] = [(-1, -np.inf, -np.inf), []]
 
     def expand(R: list[int], P: set[int], X: set[int]) -> None:
         if not P and not X:
-            key = (len(R), float(w[R].sum()) if R else 0.0)
+            key = (len(R), float(w[R].sum()) if R else 0.0, -0.5 * float(cost[np.ix_(R, R)].sum()) if R else 0.0)
             if key > best[0] or (key == best[0] and sorted(R) < best[1]):
                 best[0], best[1] = key, sorted(R)
             return
@@ -205,7 +209,9 @@ class GraphConsistency(NamedTuple):
     other edge True); ``loop_edges [M]``: the indices of the tested loop edges;
     ``residuals [M, M]``: ``m_ab``; ``odometry_residuals [M]``: ``m_k`` against the odometry
     alone (computed always, used with ``odometry_check``); ``threshold``; ``problem``: the input
-    with ``edge_mask &= kept`` (the graph GNC starts from).
+    with ``edge_mask &= kept`` (the graph GNC starts from); ``readmitted [E]`` (from
+    :func:`consistent_solve`, else None): the loop edges PCM left out that fitted the solved map
+    and went back into GNC.
     """
 
     kept: np.ndarray
@@ -214,6 +220,7 @@ class GraphConsistency(NamedTuple):
     odometry_residuals: np.ndarray
     threshold: float
     problem: Any
+    readmitted: np.ndarray | None = None
 
 
 def _chain_edges(edges: np.ndarray, plain: np.ndarray, num: int) -> np.ndarray:
@@ -253,9 +260,8 @@ def graph_consistency(
     A loop edge ``(a, b)`` with ``a > b`` is tested as ``(b, a)`` with ``Z⁻¹`` and covariance
     ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
     :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
-    :func:`max_consistent_set`; ties between cliques of one size go to the one whose members
-    agree best with the odometry (the smaller sum of ``m_k``; with two inconsistent loops and
-    nothing else, the one the odometry supports).
+    :func:`max_consistent_set`; ties between cliques of one size go to the most consistent one
+    (the smallest sum of ``m_ab²`` over its pairs).
     """
     from swiftjax.posegraph import Problem, chain_poses
 
@@ -298,7 +304,7 @@ def graph_consistency(
     ok = m <= threshold
     alone = m_odo <= threshold if odometry_check else np.ones(M, bool)
     ok &= alone[:, None] & alone[None, :]
-    clique = [k for k in max_consistent_set(ok, -m_odo) if alone[k]]
+    clique = [k for k in max_consistent_set(ok, pair_cost=np.where(ok, m**2, 0)) if alone[k]]
     kept[loop] = np.isin(np.arange(M), clique)
     out = Problem(problem.poses, problem.edges, problem.measurements, problem.information, problem.fixed,
                   problem.robust, mask & kept)
@@ -323,8 +329,14 @@ def consistent_solve(
     ``problem`` with the PCM-rejected edges out.  With a ``covariance`` (the noise model when the
     solve's information is something else, e.g. equal weights): GNC runs on the problem with
     ``information = covariance⁻¹`` to decide the inliers, then plain least squares with
-    ``problem.information`` on the edges it kept, from the same start.  ``Result.inlier_weights``
-    are GNC's (0 for the PCM-rejected edges), ``gnc_iterations`` its outer iterations.
+    ``problem.information`` on the edges it kept, from the same start.
+
+    Second look: a maximum clique is one of possibly several, and loops that are slightly wrong
+    pass many pair tests, so the clique can hold them and leave a true loop out.  After the
+    first GNC solve every loop edge PCM left out is tested against the solved map (``s_e =
+    r_eᵀ Ω_e r_e <= c²``, the same chi-squared bound as GNC's) and those that fit go back in for
+    a second GNC solve (the rest stay out).  ``Result.inlier_weights`` are GNC's (0 for the
+    edges left out), ``gnc_iterations`` its outer iterations (of the last GNC solve).
     """
     import dataclasses
 
@@ -333,16 +345,27 @@ def consistent_solve(
     check = graph_consistency(problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability,
                               odometry_check=odometry_check)
     options = {**options, "kernel": "gnc"}
-    consistent = check.problem
+    c = posegraph.GraphOptions(kernel="gnc", kernel_scale=options.get("kernel_scale")).scale
+    decide = check.problem
+    if covariance is not None:  # GNC decides on the graph whitened by the noise model
+        cov = np.asarray(covariance, np.float64)
+        info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        info = jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), np.asarray(problem.poses).dtype)
+        decide = dataclasses.replace(decide, information=info)
+    res = posegraph.optimize(decide, **options)
+    # second look: a loop PCM left out that fits the solved map (s <= c^2) comes back, and GNC reruns
+    out = np.zeros(problem.num_edges, bool)
+    out[check.loop_edges] = ~check.kept[check.loop_edges]
+    r = np.asarray(res.residuals, np.float64)
+    s = np.einsum("ei,eij,ej->e", r, np.asarray(decide.information, np.float64), r)
+    readmitted = out & (s <= c * c)
+    if readmitted.any():
+        decide = dataclasses.replace(decide, edge_mask=jnp.asarray(np.asarray(decide.edge_mask) | readmitted))
+        res = posegraph.optimize(decide, **options)
+    check = check._replace(readmitted=readmitted)
     if covariance is None:
-        return posegraph.optimize(consistent, **options), check
-    cov = np.asarray(covariance, np.float64)
-    info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    dtype = np.asarray(problem.poses).dtype
-    whitened = dataclasses.replace(consistent, information=jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), dtype))
-    decision = posegraph.optimize(whitened, **options)
-    inliers = np.asarray(consistent.edge_mask) & (decision.inlier_weights >= 0.5)
-    final = posegraph.optimize(dataclasses.replace(consistent, edge_mask=jnp.asarray(inliers)),
+        return res, check
+    inliers = np.asarray(decide.edge_mask) & (res.inlier_weights >= 0.5)
+    final = posegraph.optimize(dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)),
                                **{**options, "kernel": None})
-    return dataclasses.replace(final, inlier_weights=decision.inlier_weights,
-                               gnc_iterations=decision.gnc_iterations), check
+    return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check
