@@ -1,5 +1,9 @@
 """Pose-graph level of the loop-robustness benchmark: false loop edges in a KITTI-like chunk graph.
 
+``kitti_chunk_graph(route=..., generator=...)`` builds the same graph on KITTI 05 or 08 and with
+the other kinds of false edges of :data:`GENERATORS` (``bench/bench_robust_backend.py`` runs them
+all); what follows describes the default (KITTI 00, ``random``).
+
 The graph: the KITTI 00 ground-truth trajectory (``$SWIFTJAX_SHARED/data/trajectories/KITTI_00_gt.txt``)
 cut into the pipeline's chunk schedule (75 frames, overlap 30: 101 chunks), one Sim(3) node per
 chunk (its first camera, with a log-scale random walk of 0.01 per chunk as VGGT's scale drift),
@@ -49,7 +53,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from swiftjax import posegraph, sim3  # noqa: E402
 from swiftjax.posegraph import gnc  # noqa: E402
 
-__all__ = ["kitti_chunk_graph", "run", "markdown", "main"]
+__all__ = ["kitti_chunk_graph", "clean_solve", "run", "markdown", "main"]
 
 CHUNK, OVERLAP = 75, 30
 NUM_TRUE = 10
@@ -198,6 +202,18 @@ def _subgraph(g: dict, num_false: int, information: str):
     return g["edges"][keep], g["measurements"][keep], info, g["kind"][keep]
 
 
+def clean_solve(g: dict, information: str):
+    """``(outlier-free solve, GNC threshold c)`` of one information setting (module docstring);
+    call under ``jax.enable_x64(True)``."""
+    edges, meas, info, kind = _subgraph(g, 0, information)
+    clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
+    clean = posegraph.optimize(clean_prob, rtol=1e-12)
+    if information == "matched":
+        return clean, gnc.DEFAULT_SCALE
+    r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
+    return clean, 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
+
+
 def _distances(poses, clean, extent):
     d = np.linalg.norm(np.asarray(poses)[:, :3] - np.asarray(clean)[:, :3], axis=1)
     return 100 * d.max() / extent, 100 * np.sqrt(np.mean(d**2)) / extent
@@ -256,14 +272,7 @@ def run(shared_dir=None, *, levels=LEVELS, seed: int = 0, repeat: int = 3, with_
     rows = []
     with jax.enable_x64(True):
         for information in ("matched", "equal"):
-            edges, meas, info, kind = _subgraph(g, 0, information)
-            clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
-            clean = posegraph.optimize(clean_prob, rtol=1e-12)
-            if information == "matched":
-                c = gnc.DEFAULT_SCALE
-            else:
-                r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
-                c = 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
+            clean, c = clean_solve(g, information)
             for level in levels:
                 num_false = int(round(level * NUM_TRUE))
                 edges, meas, info, kind = _subgraph(g, num_false, information)

@@ -70,14 +70,7 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
     rows = []
     with jax.enable_x64(True):
         for information in ("matched", "equal"):
-            edges, meas, info, kind = rg._subgraph(g, 0, information)
-            clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
-            clean = posegraph.optimize(clean_prob, rtol=1e-12)
-            if information == "matched":
-                c = gnc.DEFAULT_SCALE
-            else:
-                r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
-                c = 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
+            clean, c = rg.clean_solve(g, information)
             for level in levels:
                 edges, meas, info, kind = rg._subgraph(g, int(round(level * g["num_true"])), information)
                 prob = posegraph.Problem(g["initial"], edges, meas, information=info, robust=kind != "odometry")

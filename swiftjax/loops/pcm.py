@@ -51,6 +51,7 @@ PCM left out that fits the solved map within GNC's bound gets a second look (it 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -158,8 +159,8 @@ def max_consistent_set(
 
     Exact: Bron–Kerbosch with pivoting (Tomita et al. 2006), exponential in the worst case
     but instant for the tens of candidates of a sequence.  Among cliques of the maximum size
-    the one with the largest sum of ``weights`` wins, then (``pair_cost [M, M]``) the one with
-    the smallest sum of ``pair_cost`` over its pairs, then the lexicographically smallest.
+    the one with the smallest sum of ``pair_cost [M, M]`` over its pairs wins (when given), then
+    the one with the largest sum of ``weights``, then the lexicographically smallest.
     The diagonal is ignored; an empty graph gives ``[]``.
     """
     A = np.asarray(consistent, bool)
@@ -174,7 +175,7 @@ def max_consistent_set(
 
     def expand(R: list[int], P: set[int], X: set[int]) -> None:
         if not P and not X:
-            key = (len(R), float(w[R].sum()) if R else 0.0, -0.5 * float(cost[np.ix_(R, R)].sum()) if R else 0.0)
+            key = (len(R), -0.5 * float(cost[np.ix_(R, R)].sum()) if R else 0.0, float(w[R].sum()) if R else 0.0)
             if key > best[0] or (key == best[0] and sorted(R) < best[1]):
                 best[0], best[1] = key, sorted(R)
             return
@@ -261,9 +262,11 @@ def graph_consistency(
     ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
     :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
     :func:`max_consistent_set`; ties between cliques of one size go to the most consistent one
-    (the smallest sum of ``m_ab²`` over its pairs).
+    (the smallest sum of ``m_ab²`` over its pairs), then to the one that agrees best with the
+    odometry (the smallest sum of ``m_k``: of two inconsistent loops alone, the one the
+    odometry supports).
     """
-    from swiftjax.posegraph import Problem, chain_poses
+    from swiftjax.posegraph import chain_poses
 
     edges = np.asarray(problem.edges, np.int64)
     E = len(edges)
@@ -304,10 +307,9 @@ def graph_consistency(
     ok = m <= threshold
     alone = m_odo <= threshold if odometry_check else np.ones(M, bool)
     ok &= alone[:, None] & alone[None, :]
-    clique = [k for k in max_consistent_set(ok, pair_cost=np.where(ok, m**2, 0)) if alone[k]]
+    clique = [k for k in max_consistent_set(ok, -m_odo, pair_cost=np.where(ok, m**2, 0)) if alone[k]]
     kept[loop] = np.isin(np.arange(M), clique)
-    out = Problem(problem.poses, problem.edges, problem.measurements, problem.information, problem.fixed,
-                  problem.robust, mask & kept)
+    out = dataclasses.replace(problem, edge_mask=jnp.asarray(mask & kept))
     return GraphConsistency(kept, loop, m, m_odo, threshold, out)
 
 
@@ -338,8 +340,6 @@ def consistent_solve(
     a second GNC solve (the rest stay out).  ``Result.inlier_weights`` are GNC's (0 for the
     edges left out), ``gnc_iterations`` its outer iterations (of the last GNC solve).
     """
-    import dataclasses
-
     from swiftjax import posegraph
 
     check = graph_consistency(problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability,
