@@ -221,10 +221,10 @@ def _distances(poses, clean, extent):
 
 def _alternating(prob, options: list[dict], repeat: int):
     """Best-of-``repeat`` result per option set, the solvers alternating (compiled once first)."""
-    best = [posegraph.optimize(prob, **kw) for kw in options]
+    best = [posegraph.optimize(prob, throw=False, **kw) for kw in options]  # LM on false loops may not converge
     for _ in range(repeat):
         for k, kw in enumerate(options):
-            r = posegraph.optimize(prob, **kw)
+            r = posegraph.optimize(prob, throw=False, **kw)
             best[k] = r if r.solve_seconds < best[k].solve_seconds else best[k]
     return best
 
