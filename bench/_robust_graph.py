@@ -1,5 +1,9 @@
 """Pose-graph level of the loop-robustness benchmark: false loop edges in a KITTI-like chunk graph.
 
+``kitti_chunk_graph(route=..., generator=...)`` builds the same graph on KITTI 05 or 08 and with
+the other kinds of false edges of :data:`GENERATORS` (``bench/bench_robust_backend.py`` runs them
+all); what follows describes the default (KITTI 00, ``random``).
+
 The graph: the KITTI 00 ground-truth trajectory (``$SWIFTJAX_SHARED/data/trajectories/KITTI_00_gt.txt``)
 cut into the pipeline's chunk schedule (75 frames, overlap 30: 101 chunks), one Sim(3) node per
 chunk (its first camera, with a log-scale random walk of 0.01 per chunk as VGGT's scale drift),
@@ -49,7 +53,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from swiftjax import posegraph, sim3  # noqa: E402
 from swiftjax.posegraph import gnc  # noqa: E402
 
-__all__ = ["kitti_chunk_graph", "run", "markdown", "main"]
+__all__ = ["kitti_chunk_graph", "clean_solve", "run", "markdown", "main"]
 
 CHUNK, OVERLAP = 75, 30
 NUM_TRUE = 10
@@ -57,16 +61,18 @@ LEVELS = (0.5, 1.0, 2.0)
 NOISE = np.array([0.10, 0.10, 0.10, 0.005, 0.005, 0.005, 0.005])
 
 
-def _shared(shared_dir=None) -> pathlib.Path:
+def _shared(shared_dir=None, route: str = "00") -> pathlib.Path:
     for c in [shared_dir, os.environ.get("SWIFTJAX_SHARED"), REPO.parent / "shared", "/work/shared"]:
-        if c and (pathlib.Path(c) / "data" / "trajectories" / "KITTI_00_gt.txt").is_file():
+        if c and (pathlib.Path(c) / "data" / "trajectories" / f"KITTI_{route}_gt.txt").is_file():
             return pathlib.Path(c)
-    raise SystemExit("KITTI_00_gt.txt not found: set SWIFTJAX_SHARED to the folder holding data/")
+    raise SystemExit(f"KITTI_{route}_gt.txt not found: set SWIFTJAX_SHARED to the folder holding data/")
 
 
-def _true_loops(pos: np.ndarray, num: int, min_sep: int = 8, radius: float = 15.0) -> list[tuple[int, int]]:
-    """``num`` revisit pairs ``(a, b)``, ``b - a >= min_sep``, first cameras within ``radius``: the
-    closest pair first, then greedily those sharing no chunk with a chosen one."""
+def _true_loops(pos: np.ndarray, num: int, min_sep: int = 8, radius: float = 15.0,
+                minimum: int = 5) -> list[tuple[int, int]]:
+    """Up to ``num`` (at least ``minimum``) revisit pairs ``(a, b)``, ``b - a >= min_sep``, first
+    cameras within ``radius``: the closest pair first, then greedily those sharing no chunk with a
+    chosen one."""
     d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
     a, b = np.nonzero((np.subtract.outer(np.arange(len(pos)), np.arange(len(pos))) <= -min_sep) & (d < radius))
     order = np.argsort(d[a, b])
@@ -77,17 +83,87 @@ def _true_loops(pos: np.ndarray, num: int, min_sep: int = 8, radius: float = 15.
             chosen.append((i, j))
         if len(chosen) == num:
             break
-    if len(chosen) < num:
-        raise RuntimeError(f"only {len(chosen)} true loops found in the KITTI 00 chunk graph")
+    if len(chosen) < minimum:
+        raise RuntimeError(f"only {len(chosen)} true loops found in the chunk graph")
     return sorted(chosen)
 
 
-def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20) -> dict:
-    """The chunk graph with a pool of ``max_false`` false loops (levels take its first ``k``)."""
+#: Kinds of false loop edges (``kitti_chunk_graph(generator=...)``).
+GENERATORS = ("random", "clustered", "slight")
+CLUSTER = NUM_TRUE // 2  # false edges per look-alike cluster: half the true loops
+
+
+def _same_place(rng, k: int) -> np.ndarray:
+    """``k`` hallucinated "same place" edges: identity rotation and scale, translation ~ N(0, 2 m)."""
+    out = np.zeros((k, 8))
+    out[:, :3] = rng.normal(size=(k, 3)) * 2.0
+    out[:, 6:8] = 1.0
+    return out
+
+
+def _false_random(rng, truth, d, taken, count):
+    """Random chunk pairs >= 150 m apart, each saying "same place" (independent of each other)."""
+    n, pairs = len(truth), []
+    while len(pairs) < count:
+        i, j = sorted(int(v) for v in rng.integers(0, n, 2))
+        if j - i >= 8 and d[i, j] > 150 and (i, j) not in taken:
+            taken.add((i, j))
+            pairs.append((i, j))
+    return pairs, _same_place(rng, count), False
+
+
+def _false_clustered(rng, truth, d, taken, count):
+    """Look-alike streets: clusters of :data:`CLUSTER` edges ``(a + i, b + i)`` between two regions
+    >= 150 m apart, the first saying "same place" (``Z_0``), the others what the same wrong world
+    motion ``W = S_a Z_0 S_b^-1`` implies (``Z_i = S_{a+i}^-1 W S_{b+i}``): mutually consistent."""
+    n, pairs, meas = len(truth), [], []
+    with jax.enable_x64(True):
+        while len(pairs) < count:
+            k = min(CLUSTER, count - len(pairs))
+            a, b = sorted(int(v) for v in rng.integers(0, n - k + 1, 2))
+            cand = [(a + i, b + i) for i in range(k)]
+            if b - a < 8 + k or any(d[p, q] <= 150 or (p, q) in taken for p, q in cand):
+                continue
+            z0 = _same_place(rng, 1)[0]
+            W = sim3.compose(sim3.compose(truth[a], z0), sim3.inverse(truth[b]))
+            for p, q in cand:
+                taken.add((p, q))
+                pairs.append((p, q))
+                meas.append(np.asarray(sim3.compose(sim3.inverse(truth[p]), sim3.compose(W, truth[q])), np.float64))
+    return pairs, np.stack(meas), True
+
+
+def _false_slight(rng, truth, d, taken, count):
+    """Slightly wrong loops: revisit pairs (>= 8 chunks apart, chosen among the nearest ``3 count``
+    not taken) whose measurement is the true relative pose times an error of 2-5 m and 2-5 degrees
+    (random directions)."""
+    n = len(truth)
+    a, b = np.nonzero(np.subtract.outer(np.arange(n), np.arange(n)) <= -8)
+    order = [(int(a[k]), int(b[k])) for k in np.argsort(d[a, b]) if (int(a[k]), int(b[k])) not in taken]
+    pick = rng.choice(min(3 * count, len(order)), count, replace=False)
+    pairs = [order[k] for k in sorted(pick)]
+    taken.update(pairs)
+    unit = rng.normal(size=(2, count, 3))
+    unit /= np.linalg.norm(unit, axis=-1, keepdims=True)
+    err = np.zeros((count, 7))
+    err[:, :3] = unit[0] * rng.uniform(2.0, 5.0, (count, 1))
+    err[:, 3:6] = unit[1] * np.deg2rad(rng.uniform(2.0, 5.0, (count, 1)))
+    with jax.enable_x64(True):
+        p, q = np.array(pairs).T
+        rel = sim3.compose(sim3.between(truth[p], truth[q]), sim3.exp(err))
+    return pairs, np.asarray(rel, np.float64), True
+
+
+def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20, route: str = "00",
+                      generator: str = "random") -> dict:
+    """The chunk graph of KITTI ``route`` with a pool of ``max_false`` false loops of one
+    ``generator`` (:data:`GENERATORS`; levels take its first ``k``).  ``num_true``: the true
+    loops found (:data:`NUM_TRUE`, or fewer on a route with fewer disjoint revisits: 9 on KITTI 08)."""
     from swiftjax.io.trajectory import read_kitti
 
+    make = {"random": _false_random, "clustered": _false_clustered, "slight": _false_slight}[generator]
     with jax.enable_x64(True):
-        P = read_kitti(_shared(shared_dir) / "data" / "trajectories" / "KITTI_00_gt.txt")
+        P = read_kitti(_shared(shared_dir, route) / "data" / "trajectories" / f"KITTI_{route}_gt.txt")
         rng = np.random.default_rng(seed)
         starts = np.arange(0, len(P) - OVERLAP, CHUNK - OVERLAP)
         starts = starts[starts + OVERLAP < len(P)][: 101]
@@ -99,29 +175,24 @@ def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20) ->
         loops = np.array(_true_loops(t, NUM_TRUE))
         d = np.linalg.norm(t[:, None] - t[None], axis=-1)
         taken = {tuple(e) for e in np.concatenate([odo, loops]).tolist()}
-        false = []
-        while len(false) < max_false:
-            i, j = sorted(int(v) for v in rng.integers(0, n, 2))
-            if j - i >= 8 and d[i, j] > 150 and (i, j) not in taken:
-                taken.add((i, j))
-                false.append((i, j))
-        edges = np.concatenate([odo, loops, np.array(false)]).astype(np.int64)
+        false, claimed, noisy = make(rng, truth, d, taken, max_false)
+        edges = np.concatenate([odo, loops, np.array(false, np.int64).reshape(-1, 2)]).astype(np.int64)
         kind = np.array(["odometry"] * len(odo) + ["loop"] * len(loops) + ["false"] * len(false))
         sigma = NOISE[None] * np.exp(0.5 * rng.normal(size=(len(edges), 1)))
         sigma[kind != "odometry"] *= 2.0
-        rel = np.asarray(sim3.between(truth[edges[:, 0]], truth[edges[:, 1]]), np.float64)
-        meas = np.array(sim3.compose(rel, sim3.exp(rng.normal(size=(len(edges), 7)) * sigma)), np.float64)
-        hallucinated = np.zeros((len(false), 8))
-        hallucinated[:, :3] = rng.normal(size=(len(false), 3)) * 2.0
-        hallucinated[:, 6:8] = 1.0
-        meas[kind == "false"] = hallucinated
+        rel = np.array(sim3.between(truth[edges[:, 0]], truth[edges[:, 1]]), np.float64)
+        rel[kind == "false"] = claimed
+        noise = sim3.exp(rng.normal(size=(len(edges), 7)) * sigma)
+        meas = np.array(sim3.compose(rel, noise), np.float64)
+        if not noisy:  # a hallucinated "same place" is the measurement itself
+            meas[kind == "false"] = claimed
         init = np.zeros_like(truth)
         init[0] = truth[0]
         for k in range(1, n):
             init[k] = np.asarray(sim3.normalize(sim3.compose(init[k - 1], meas[k - 1])), np.float64)
     extent = float(np.linalg.norm(t.max(0) - t.min(0)))
     return dict(truth=truth, initial=init, edges=edges, measurements=meas, sigma=sigma, kind=kind,
-                extent=extent, starts=starts)
+                extent=extent, starts=starts, route=route, generator=generator, num_true=len(loops))
 
 
 def _subgraph(g: dict, num_false: int, information: str):
@@ -131,6 +202,18 @@ def _subgraph(g: dict, num_false: int, information: str):
     return g["edges"][keep], g["measurements"][keep], info, g["kind"][keep]
 
 
+def clean_solve(g: dict, information: str):
+    """``(outlier-free solve, GNC threshold c)`` of one information setting (module docstring);
+    call under ``jax.enable_x64(True)``."""
+    edges, meas, info, kind = _subgraph(g, 0, information)
+    clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
+    clean = posegraph.optimize(clean_prob, rtol=1e-12)
+    if information == "matched":
+        return clean, gnc.DEFAULT_SCALE
+    r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
+    return clean, 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
+
+
 def _distances(poses, clean, extent):
     d = np.linalg.norm(np.asarray(poses)[:, :3] - np.asarray(clean)[:, :3], axis=1)
     return 100 * d.max() / extent, 100 * np.sqrt(np.mean(d**2)) / extent
@@ -138,10 +221,10 @@ def _distances(poses, clean, extent):
 
 def _alternating(prob, options: list[dict], repeat: int):
     """Best-of-``repeat`` result per option set, the solvers alternating (compiled once first)."""
-    best = [posegraph.optimize(prob, **kw) for kw in options]
+    best = [posegraph.optimize(prob, throw=False, **kw) for kw in options]  # LM on false loops may not converge
     for _ in range(repeat):
         for k, kw in enumerate(options):
-            r = posegraph.optimize(prob, **kw)
+            r = posegraph.optimize(prob, throw=False, **kw)
             best[k] = r if r.solve_seconds < best[k].solve_seconds else best[k]
     return best
 
@@ -189,14 +272,7 @@ def run(shared_dir=None, *, levels=LEVELS, seed: int = 0, repeat: int = 3, with_
     rows = []
     with jax.enable_x64(True):
         for information in ("matched", "equal"):
-            edges, meas, info, kind = _subgraph(g, 0, information)
-            clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
-            clean = posegraph.optimize(clean_prob, rtol=1e-12)
-            if information == "matched":
-                c = gnc.DEFAULT_SCALE
-            else:
-                r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
-                c = 3.0 * float(np.linalg.norm(r[kind == "loop"], axis=1).max())
+            clean, c = clean_solve(g, information)
             for level in levels:
                 num_false = int(round(level * NUM_TRUE))
                 edges, meas, info, kind = _subgraph(g, num_false, information)

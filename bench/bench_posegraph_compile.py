@@ -46,7 +46,7 @@ from swiftjax import posegraph
 try:
     from swiftjax.synthetic.pose_graphs import chain_graph
 except ImportError:  # a checkout from before the move (for A/B runs with --repo)
-    from swiftjax.posegraph.synthetic import chain_graph
+    from swiftjax.synthetic.pose_graphs import chain_graph
 kernel = None if sys.argv[1] == "none" else sys.argv[1]
 t_ready = time.perf_counter()
 with jax.enable_x64(True):

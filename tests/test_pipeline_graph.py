@@ -284,3 +284,23 @@ def test_warm_started_solve_reaches_the_cold_solution(x64):
     assert again.metrics["iterations"] < plain.metrics["iterations"]
     # (LM's stopping tolerance leaves ~5e-4 m on a 40 m loop at the same cost, to 1e-6)
     np.testing.assert_allclose(again.chunk_poses[:, :3], plain.chunk_poses[:, :3], atol=2e-3)
+
+
+@pytest.mark.filterwarnings("ignore:pose graph did not converge")  # GNC alone on the equal-weight graph
+@pytest.mark.parametrize("information", ["data", "equal"])
+def test_pcm_before_gnc_is_the_default_and_records_its_verdicts(x64, information):
+    """Two loop edges that contradict each other: PCM keeps the one the odometry supports (the
+    true loop), GNC never sees the false one, and the answer is the solve with the true loop
+    alone (same information).  ``graph_pcm=False`` is GNC alone (no verdicts recorded)."""
+    truth, temporal, loop_result = _chain_case()
+    T = len(truth)
+    ctx, log = _ctx(T, edge_information=information)
+    out = graph.run(ctx, temporal, loop_result)
+    assert out.metrics["graph_pcm"] and out.metrics["loop_pcm_kept"] == [True, False]
+    assert out.metrics["pcm_threshold"] > 0 and any("pairwise consistency" in line for line in log)
+    np.testing.assert_array_equal(out.inlier_weights, [1.0, 0.0])
+    only_true = loop_result._replace(records=loop_result.records[:1], edges=loop_result.edges[:1])
+    ref = graph.run(_ctx(T, robust_loops=None, edge_information=information)[0], temporal, only_true)
+    np.testing.assert_allclose(out.chunk_poses[:, :3], ref.chunk_poses[:, :3], atol=1e-6)
+    off = graph.run(_ctx(T, edge_information=information, graph_pcm=False)[0], temporal, loop_result)
+    assert not off.metrics["graph_pcm"] and "loop_pcm_kept" not in off.metrics

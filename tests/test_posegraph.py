@@ -465,20 +465,3 @@ def test_linear_solver_objects_agree(x64):
     np.testing.assert_allclose(x_pcg, x_dense, atol=1e-8)
     np.testing.assert_allclose(x_sp, x_dense, atol=1e-10)
     np.testing.assert_array_equal(x_dense, linear.solve_dense(lin.ne, damping)[0])
-
-
-def test_deprecated_names_warn():
-    import importlib
-    import sys
-
-    with pytest.warns(DeprecationWarning, match="LMResult"):
-        status = posegraph.STATUS
-    assert status[1] == "relative cost decrease <= rtol" and status[5].startswith("stalled")
-    sys.modules.pop("swiftjax.posegraph.synthetic", None)
-    with pytest.warns(DeprecationWarning, match="swiftjax.synthetic.pose_graphs"):
-        mod = importlib.import_module("swiftjax.posegraph.synthetic")
-    assert mod.circle_graph is circle_graph
-    g = circle_graph(6, seed=1)
-    with pytest.warns(DeprecationWarning, match="throw="):
-        res = posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements), check=True, max_steps=0)
-    assert not res.converged  # check= keeps the old contract: never raises on a failed solve

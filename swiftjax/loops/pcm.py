@@ -23,12 +23,37 @@ fine for the tens of candidates a sequence has; ties broken by the larger sum of
 consistency scores).  The per-edge covariances ``Σ_e`` come from a drift model
 (:func:`odometry_covariance`): VGGT's chunk-to-chunk error is model error (drift), which
 the alignment's own statistics do not see.
+
+**Before the robust solve** (:func:`graph_consistency`, Kimera-RPGO's recipe): the same test
+over *every* loop edge of a pose graph, against its odometry chain, so that GNC starts from the
+maximum consistent set and the rejected edges are out of the graph (``edge_mask`` False,
+weight 0).  The threshold is derived, not tuned (:func:`consistency_threshold`): under the
+hypothesis that ``a`` and ``b`` are both inliers and the covariances are right, ``m_ab²`` is
+chi-squared with 7 degrees of freedom; one falsely failed pair can drop a true loop from the
+clique, so the ``N = M (M − 1) / 2`` pair tests share the error budget ``1 − p`` (Bonferroni)::
+
+    threshold = sqrt(chi2_7⁻¹(1 − (1 − p) / N))          (p = 0.99: 5.36 for M = 10, 6.23 for M = 30)
+
+so that with probability ``>= p`` no pair of true loops is declared inconsistent.  What it
+cannot do: a group of false loops that agree with each other (look-alike streets matched
+chunk after chunk) and outnumber the true loops wins the clique; ``odometry_check=True`` adds
+Kimera's per-edge test (each loop against the odometry alone, ``m_k`` with ``Σ = P[[p, q)] +
+Ad Σ_Z Adᵀ``, the same threshold over ``N + M`` tests), which rejects such a group when the
+drift it implies is outside the odometry's covariance — and a true loop after more drift than
+the model allows, so it is off by default.
+
+:func:`consistent_solve` is the whole back end: PCM, then GNC-TLS on the consistent set.  When
+the solve's weights are not the noise model (equal weights, the authors' choice) GNC decides
+the inliers on the graph whitened by the noise model (where its chi-squared threshold means
+what it says) and a last plain solve with the caller's weights runs on those inliers.  A loop
+PCM left out that fits the solved map within GNC's bound gets a second look (it goes back in).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,7 +63,10 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from swiftjax import sim3
 from swiftjax._compile import quick_jit
 
-__all__ = ["odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set"]
+__all__ = [
+    "odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set",
+    "consistency_threshold", "GraphConsistency", "graph_consistency", "consistent_solve",
+]
 
 
 @jax.jit
@@ -125,12 +153,14 @@ def pairwise_consistency(
 def max_consistent_set(
     consistent: ArrayLike,  # bool [M, M]: checked here, with a ValueError (host boundary)
     weights: Sequence[float] | Float[ArrayLike, " M"] | None = None,
+    pair_cost: Float[ArrayLike, "M M"] | None = None,
 ) -> list[int]:
     """A maximum clique of the boolean consistency graph ``consistent [M, M]`` (host).
 
     Exact: Bron–Kerbosch with pivoting (Tomita et al. 2006), exponential in the worst case
     but instant for the tens of candidates of a sequence.  Among cliques of the maximum size
-    the one with the largest sum of ``weights`` wins (then the lexicographically smallest).
+    the one with the smallest sum of ``pair_cost [M, M]`` over its pairs wins (when given), then
+    the one with the largest sum of ``weights``, then the lexicographically smallest.
     The diagonal is ignored; an empty graph gives ``[]``.
     """
     A = np.asarray(consistent, bool)
@@ -139,12 +169,13 @@ def max_consistent_set(
         raise ValueError(f"max_consistent_set: consistent must be square, got {A.shape}")
     A = A & A.T & ~np.eye(m, dtype=bool)
     w = np.zeros(m) if weights is None else np.asarray(weights, np.float64)
+    cost = np.zeros((m, m)) if pair_cost is None else np.asarray(pair_cost, np.float64)
     nbrs = [set(np.flatnonzero(A[k]).tolist()) for k in range(m)]
-    best: list[Any] = [(-1, -np.inf), []]
+    best: list[Any] = [(-1, -np.inf, -np.inf), []]
 
     def expand(R: list[int], P: set[int], X: set[int]) -> None:
         if not P and not X:
-            key = (len(R), float(w[R].sum()) if R else 0.0)
+            key = (len(R), -0.5 * float(cost[np.ix_(R, R)].sum()) if R else 0.0, float(w[R].sum()) if R else 0.0)
             if key > best[0] or (key == best[0] and sorted(R) < best[1]):
                 best[0], best[1] = key, sorted(R)
             return
@@ -159,3 +190,182 @@ def max_consistent_set(
     if m:
         expand([], set(range(m)), set())
     return best[1]
+
+
+def consistency_threshold(num_loops: int, probability: float = 0.99, *, extra_tests: int = 0) -> float:
+    """The PCM bound on ``m_ab`` (module docstring): ``sqrt(chi2_7⁻¹(1 − (1 − p) / N))`` with
+    ``N = M (M − 1) / 2 + extra_tests`` (at least 1) tests sharing the error budget ``1 − p``."""
+    from scipy.stats import chi2
+
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"consistency probability must be in (0, 1), not {probability!r}")
+    tests = max(num_loops * (num_loops - 1) // 2 + extra_tests, 1)
+    return float(np.sqrt(chi2.isf((1.0 - probability) / tests, 7)))
+
+
+class GraphConsistency(NamedTuple):
+    """Outcome of :func:`graph_consistency` (host NumPy).
+
+    ``kept [E]``: False exactly for the loop edges outside the maximum consistent set (every
+    other edge True); ``loop_edges [M]``: the indices of the tested loop edges;
+    ``residuals [M, M]``: ``m_ab``; ``odometry_residuals [M]``: ``m_k`` against the odometry
+    alone (computed always, used with ``odometry_check``); ``threshold``; ``problem``: the input
+    with ``edge_mask &= kept`` (the graph GNC starts from); ``readmitted [E]`` (from
+    :func:`consistent_solve`, else None): the loop edges PCM left out that fitted the solved map
+    and went back into GNC.
+    """
+
+    kept: np.ndarray
+    loop_edges: np.ndarray
+    residuals: np.ndarray
+    odometry_residuals: np.ndarray
+    threshold: float
+    problem: Any
+    readmitted: np.ndarray | None = None
+
+
+def _chain_edges(edges: np.ndarray, plain: np.ndarray, num: int) -> np.ndarray:
+    """Index of the plain edge ``(t, t + 1)`` for every ``t < num − 1`` (ValueError if one is missing)."""
+    index = {(int(a), int(b)): k for k, (a, b) in enumerate(edges) if plain[k]}
+    missing = [t for t in range(num - 1) if (t, t + 1) not in index]
+    if missing:
+        raise ValueError(f"graph_consistency: no odometry edge ({missing[0]}, {missing[0] + 1}) among the "
+                         "non-robust edges (the test needs the chain t -> t + 1)")
+    return np.array([index[(t, t + 1)] for t in range(num - 1)], np.int64)
+
+
+def graph_consistency(
+    problem: Any,
+    covariance: Float[ArrayLike, "E 7 7"] | None = None,
+    *,
+    num_chain_nodes: int | None = None,
+    probability: float = 0.99,
+    odometry_check: bool = False,
+) -> GraphConsistency:
+    """Pairwise consistency of every loop edge of a pose graph before its robust solve (host).
+
+    Args:
+        problem: a :class:`swiftjax.posegraph.Problem`; its loop edges are the ``robust`` ones
+            (both ends below ``num_chain_nodes``), its odometry the non-robust edges
+            ``(t, t + 1)``, ``t < num_chain_nodes − 1`` (all must be present).  Other edges
+            (priors, an anchor) are neither tested nor used.
+        covariance: ``[E, 7, 7]`` covariance of each edge's right perturbation; default the
+            inverse of ``problem.information`` (right when the information matches the noise).
+            Give the noise model here when the solve's weights do not describe the noise (equal
+            weights).
+        num_chain_nodes: the chain's length (default every node).
+        probability: ``p`` of :func:`consistency_threshold`.
+        odometry_check: also reject a loop whose own cycle with the odometry fails (module
+            docstring).
+
+    A loop edge ``(a, b)`` with ``a > b`` is tested as ``(b, a)`` with ``Z⁻¹`` and covariance
+    ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
+    :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
+    :func:`max_consistent_set`; ties between cliques of one size go to the most consistent one
+    (the smallest sum of ``m_ab²`` over its pairs), then to the one that agrees best with the
+    odometry (the smallest sum of ``m_k``: of two inconsistent loops alone, the one the
+    odometry supports).
+    """
+    from swiftjax.posegraph import chain_poses
+
+    edges = np.asarray(problem.edges, np.int64)
+    E = len(edges)
+    mask = np.asarray(problem.edge_mask, bool)
+    robust = np.asarray(problem.robust, bool) & mask
+    T = problem.num_nodes if num_chain_nodes is None else int(num_chain_nodes)
+    meas = np.asarray(problem.measurements, np.float64)
+    if covariance is None:
+        info = np.asarray(problem.information, np.float64)
+        cov = np.linalg.inv(np.where(mask[:, None, None], info, np.eye(7)))
+    else:
+        cov = np.asarray(covariance, np.float64)
+        if cov.shape != (E, 7, 7):
+            raise ValueError(f"graph_consistency: covariance has shape {cov.shape}; expected [E, 7, 7] = [{E}, 7, 7]")
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    chain = _chain_edges(edges, mask & ~robust, T)
+    loop = np.flatnonzero(robust & (edges.max(1) < T) & (edges[:, 0] != edges[:, 1]))
+    M = len(loop)
+    kept = np.ones(E, bool)
+    with jax.enable_x64(True):
+        X = chain_poses(meas[chain])
+        nodes, Z, L = edges[loop], meas[loop], cov[loop]
+        flip = nodes[:, 0] > nodes[:, 1]
+        if flip.any():
+            Ad = np.asarray(sim3.adjoint(jnp.asarray(Z[flip])))
+            Z[flip] = np.asarray(sim3.inverse(jnp.asarray(Z[flip])))
+            L[flip] = Ad @ L[flip] @ np.swapaxes(Ad, -1, -2)
+            nodes[flip] = nodes[flip][:, ::-1]
+        # a virtual identity loop (0, 0) with zero covariance: its pair with loop k is loop k's
+        # cycle with the odometry alone
+        nodes = np.concatenate([nodes, [[0, 0]]])
+        Z = np.concatenate([Z, np.asarray(sim3.identity((1,), jnp.float64))])
+        L = np.concatenate([L, np.zeros((1, 7, 7))])
+        m = np.asarray(pairwise_consistency(jnp.asarray(X), jnp.asarray(cov[chain]), jnp.asarray(nodes),
+                                            jnp.asarray(Z), jnp.asarray(L)), np.float64)
+    m, m_odo = m[:M, :M], m[:M, M]
+    threshold = consistency_threshold(M, probability, extra_tests=M if odometry_check else 0)
+    ok = m <= threshold
+    alone = m_odo <= threshold if odometry_check else np.ones(M, bool)
+    ok &= alone[:, None] & alone[None, :]
+    clique = [k for k in max_consistent_set(ok, -m_odo, pair_cost=np.where(ok, m**2, 0)) if alone[k]]
+    kept[loop] = np.isin(np.arange(M), clique)
+    out = dataclasses.replace(problem, edge_mask=jnp.asarray(mask & kept))
+    return GraphConsistency(kept, loop, m, m_odo, threshold, out)
+
+
+def consistent_solve(
+    problem: Any,
+    covariance: Float[ArrayLike, "E 7 7"] | None = None,
+    *,
+    num_chain_nodes: int | None = None,
+    probability: float = 0.99,
+    odometry_check: bool = False,
+    **options: Any,
+) -> tuple[Any, GraphConsistency]:
+    """PCM over every loop edge (:func:`graph_consistency`), then GNC-TLS on the consistent set:
+    ``(Result, GraphConsistency)`` (host; Kimera-RPGO's recipe).
+
+    ``options`` go to :func:`swiftjax.posegraph.optimize` (``kernel`` is ``"gnc"``; its
+    ``kernel_scale`` is the inlier threshold in the noise model's whitened units).  With
+    ``covariance`` None the noise model is ``problem.information`` and this is one GNC solve on
+    ``problem`` with the PCM-rejected edges out.  With a ``covariance`` (the noise model when the
+    solve's information is something else, e.g. equal weights): GNC runs on the problem with
+    ``information = covariance⁻¹`` to decide the inliers, then plain least squares with
+    ``problem.information`` on the edges it kept, from the same start.
+
+    Second look: a maximum clique is one of possibly several, and loops that are slightly wrong
+    pass many pair tests, so the clique can hold them and leave a true loop out.  After the
+    first GNC solve every loop edge PCM left out is tested against the solved map (``s_e =
+    r_eᵀ Ω_e r_e <= c²``, the same chi-squared bound as GNC's) and those that fit go back in for
+    a second GNC solve (the rest stay out).  ``Result.inlier_weights`` are GNC's (0 for the
+    edges left out), ``gnc_iterations`` its outer iterations (of the last GNC solve).
+    """
+    from swiftjax import posegraph
+
+    check = graph_consistency(problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability,
+                              odometry_check=odometry_check)
+    options = {**options, "kernel": "gnc"}
+    c = posegraph.GraphOptions(kernel="gnc", kernel_scale=options.get("kernel_scale")).scale
+    decide = check.problem
+    if covariance is not None:  # GNC decides on the graph whitened by the noise model
+        cov = np.asarray(covariance, np.float64)
+        info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        info = jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), np.asarray(problem.poses).dtype)
+        decide = dataclasses.replace(decide, information=info)
+    res = posegraph.optimize(decide, **options)
+    # second look: a loop PCM left out that fits the solved map (s <= c^2) comes back, and GNC reruns
+    out = np.zeros(problem.num_edges, bool)
+    out[check.loop_edges] = ~check.kept[check.loop_edges]
+    r = np.asarray(res.residuals, np.float64)
+    s = np.einsum("ei,eij,ej->e", r, np.asarray(decide.information, np.float64), r)
+    readmitted = out & (s <= c * c)
+    if readmitted.any():
+        decide = dataclasses.replace(decide, edge_mask=jnp.asarray(np.asarray(decide.edge_mask) | readmitted))
+        res = posegraph.optimize(decide, **options)
+    check = check._replace(readmitted=readmitted)
+    if covariance is None:
+        return res, check
+    inliers = np.asarray(decide.edge_mask) & (res.inlier_weights >= 0.5)
+    final = posegraph.optimize(dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)),
+                               **{**options, "kernel": None})
+    return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check

@@ -55,7 +55,9 @@ class PipelineConfig:
     graph: ``robust_loops`` (``"gnc"``: graduated non-convexity with truncated least squares on
     the loop edges, :mod:`swiftjax.posegraph.gnc`; ``"huber"``, ``"cauchy"``, or ``None``, the
     authors' plain least squares), ``robust_scale`` (the kernel's scale / GNC's inlier threshold
-    in whitened units; default ``sqrt(chi2_7^-1(0.99))``), ``edge_information`` (``"data"``: every
+    in whitened units; default ``sqrt(chi2_7^-1(0.99))``), ``graph_pcm`` (with GNC: pairwise
+    consistency of every loop edge against the odometry first, GNC on the maximum consistent
+    set, :func:`swiftjax.loops.pcm.consistent_solve`; False: GNC alone), ``edge_information`` (``"data"``: every
     edge's information from its own alignment, :func:`swiftjax.pipeline.graph.edge_information`;
     ``"equal"``: identity for every edge, the authors' choice), ``edge_pixels_per_sample`` (the
     pixels per independent residual in that information: one 14 x 14 ViT patch), ``max_lm_steps``.  Output: ``point_conf_ratio``
@@ -157,6 +159,10 @@ class PipelineConfig:
     robust_scale: float = option(
         _GRAPH.scale, "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
         low=0.0, low_open=True, stage="graph",
+    )
+    graph_pcm: bool = option(
+        True, "pose graph: pairwise consistency of every loop edge against the odometry before GNC, which starts "
+        "from the maximum consistent set (Kimera-RPGO); false: GNC alone", stage="graph",
     )
     edge_information: str = option(
         "data", "edge information: data (drift model + each alignment's own statistics) or equal "

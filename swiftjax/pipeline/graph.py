@@ -4,7 +4,11 @@ Without loop closure the chunk poses are the chained temporal edges
 (:func:`swiftjax.posegraph.chain_poses`); with loop edges, a global Sim(3)
 Levenberg-Marquardt over every chunk (:func:`swiftjax.posegraph.optimize`) starts from that
 chain, temporal edges plain (never down-weighted), loop edges robust: GNC-TLS by default
-(``robust_loops``), with the inlier threshold ``robust_scale`` in whitened units.
+(``robust_loops``), with the inlier threshold ``robust_scale`` in whitened units.  Before GNC
+(``graph_pcm``, default on) every loop edge goes through pairwise consistency against the
+odometry (:func:`swiftjax.loops.pcm.consistent_solve`): GNC starts from the maximum consistent
+set, the other loop edges are out (weight 0; ``metrics["loop_pcm_kept"]``).  With equal
+weights the test and GNC's decision use the drift model below as the noise model.
 
 Edge information (``edge_information = "data"``): each edge's covariance is the drift model of
 :mod:`swiftjax.loop_verification` (``odometry_covariance`` / ``loop_covariance``: translation
@@ -42,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align_covariance, metric, posegraph, sim3
+from swiftjax.loops import pcm
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
@@ -92,6 +97,20 @@ def _inverse(m: np.ndarray) -> np.ndarray:
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
+def _drift_covariance(temporal: TemporalResult, loops: LoopResult) -> tuple[np.ndarray, np.ndarray]:
+    """The drift model's covariances ``([T-1, 7, 7], [L, 7, 7])`` of the temporal and loop edges."""
+    drift = lv.VerificationConfig()
+    with jax.enable_x64(True):
+        odo = np.asarray(lv.odometry_covariance(
+            jnp.asarray(temporal.relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
+        ), np.float64)
+        lc = np.asarray(lv.loop_covariance(
+            jnp.asarray(np.stack([e.Z for e in loops.edges])), drift.loop_sigma_rot, drift.loop_sigma_trans,
+            drift.loop_sigma_scale,
+        ), np.float64) if loops.edges else np.zeros((0, 7, 7))
+    return odo, lc
+
+
 def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> np.ndarray | None:
     """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
 
@@ -113,15 +132,7 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
         raise RuntimeError("pose graph: the loop edges do not match the accepted loop records")
     loop_info = [e.information if e.information is not None else loop_information(r, pps)
                  for r, e in zip(accepted, loops.edges)]
-    drift = lv.VerificationConfig()
-    with jax.enable_x64(True):
-        odo = np.asarray(lv.odometry_covariance(
-            jnp.asarray(temporal.relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
-        ), np.float64)
-        lc = np.asarray(lv.loop_covariance(
-            jnp.asarray(np.stack([e.Z for e in loops.edges])), drift.loop_sigma_rot, drift.loop_sigma_trans,
-            drift.loop_sigma_scale,
-        ), np.float64) if loops.edges else np.zeros((0, 7, 7))
+    odo, lc = _drift_covariance(temporal, loops)
     safe = np.where(valid[:, None, None], info, np.eye(7))
     odo = odo + np.where(valid[:, None, None], _inverse(safe), 0.0)
     lc = np.stack([c if x is None else c + _inverse(x) for c, x in zip(lc, loop_info)]) if loops.edges else lc
@@ -255,7 +266,18 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                     )
                 else:
                     problem = scale_prior_problem(start, np.asarray(edges, np.int32), meas, information, robust, priors)
-                res, chunk_poses = _solve(problem, config, config.robust_loops)
+                check = None
+                if config.graph_pcm and config.robust_loops == "gnc":
+                    cov = None
+                    if information is None:  # equal weights: the drift model is the noise model
+                        cov = np.linalg.inv(np.asarray(problem.information, np.float64))
+                        cov[:T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops))
+                    posegraph.validate(problem)
+                    res, check = pcm.consistent_solve(problem, cov, num_chain_nodes=T, max_steps=config.max_lm_steps,
+                                                      kernel_scale=config.robust_scale, throw=False)
+                    chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
+                else:
+                    res, chunk_poses = _solve(problem, config, config.robust_loops)
                 chunk_poses = chunk_poses[:T]
                 r = np.asarray(res.residuals, np.float64)[T - 1:T - 1 + L]
             om = np.asarray(problem.information, np.float64)[T - 1:T - 1 + L]
@@ -268,7 +290,14 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                 "loop_inlier_weights": inlier_weights.tolist(),
                 "loop_whitened_residuals": np.sqrt(np.einsum("ei,eij,ej->e", r, om, r)).tolist(),
                 "loops_rejected": int(np.sum(inlier_weights < 0.5)),
+                "graph_pcm": check is not None,
             })
+            if check is not None:
+                kept = check.kept[T - 1:T - 1 + L]
+                graph_metrics.update({"loop_pcm_kept": kept.tolist(), "pcm_threshold": check.threshold})
+                if not kept.all():
+                    ctx.log(f"pose graph: {int((~kept).sum())} of {L} loop edge(s) inconsistent with the others "
+                            "and the odometry (pairwise consistency): out before GNC")
             if config.robust_loops is not None and np.any(inlier_weights < 0.5):
                 ctx.log(f"pose graph: {int(np.sum(inlier_weights < 0.5))} of {len(inlier_weights)} loop edge(s) "
                         f"down-weighted as outliers ({config.robust_loops})")

@@ -76,10 +76,3 @@ __all__ = [
     "validate",
 ]
 
-
-def __getattr__(name: str):
-    if name == "STATUS":  # deprecated alias
-        from swiftjax.posegraph.solver import deprecated_status
-
-        return deprecated_status()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

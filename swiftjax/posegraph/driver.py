@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -343,7 +342,6 @@ def optimize(
     *,
     throw: bool = True,
     pad: bool = True,
-    check: bool | None = None,
     **overrides,
 ) -> Result:
     """Solve the Sim(3) pose graph by Levenberg–Marquardt (see :mod:`swiftjax.posegraph.solver`).
@@ -360,7 +358,6 @@ def optimize(
             before any work) and raise :class:`SolveError` if the solve does not converge;
             False: no host checks, the outcome is in :attr:`Result.result` / ``converged``.
         pad: pad to the size bucket (compile once per bucket); False compiles for the exact size.
-        check: deprecated (validation only, never raises on a failed solve); use ``throw``.
 
     Returns:
         :class:`Result` with the unpadded poses.
@@ -372,12 +369,7 @@ def optimize(
     """
     options = _resolve_options(options, overrides)
     raise_on_failure = bool(throw)
-    if check is not None:
-        warnings.warn("optimize(check=...) is deprecated; use throw=", DeprecationWarning, stacklevel=2)
-        validate_input, raise_on_failure = bool(check), False
-    else:
-        validate_input = bool(throw)
-    if validate_input:
+    if raise_on_failure:
         validate(problem)
     n, e = problem.num_nodes, problem.num_edges
     nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)

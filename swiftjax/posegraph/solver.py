@@ -37,7 +37,6 @@ exact gradient.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -316,30 +315,3 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
 def residual_fn(poses: Float[Array, "n 8"], problem: Problem) -> Float[Array, "e 7"]:
     """The residual function handed to ``optimistix.least_squares`` (``[E, 7]``)."""
     return residuals(poses, problem)
-
-
-def _status_table() -> dict[int, str]:
-    return {
-        0: "running",
-        1: LMResult[LMResult.relative_decrease],
-        2: LMResult[LMResult.absolute_decrease],
-        3: LMResult[LMResult.small_gradient],
-        4: LMResult[LMResult.rounding_level],
-        5: LMResult[LMResult.stalled],
-    }
-
-
-def deprecated_status(stacklevel: int = 3) -> dict[int, str]:
-    """The former ``STATUS`` table (deprecated alias; warns)."""
-    warnings.warn(
-        "STATUS is deprecated; use swiftjax.posegraph.LMResult (Result.result, LMState.result)",
-        DeprecationWarning,
-        stacklevel=stacklevel,
-    )
-    return _status_table()
-
-
-def __getattr__(name: str):
-    if name == "STATUS":
-        return deprecated_status()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
