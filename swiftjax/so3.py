@@ -53,27 +53,6 @@ __all__ = [
     "project",
 ]
 
-#: Old names kept for one release: ``name -> new name`` (module ``__getattr__`` warns).
-_DEPRECATED = {
-    "multiply": "compose",
-    "conjugate": "inverse",
-    "rotate": "act",
-    "multiply_components": "compose_components",
-    "conjugate_components": "inverse_components",
-    "rotate_components": "act_components",
-}
-
-
-def __getattr__(name: str):
-    if name in _DEPRECATED:
-        import warnings
-
-        new = _DEPRECATED[name]
-        warnings.warn(f"swiftjax.so3.{name} is deprecated; use swiftjax.so3.{new}", DeprecationWarning, stacklevel=2)
-        return globals()[new]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def _small_angle_eps(dtype: jnp.dtype) -> float:
     """Squared-angle threshold below which the Taylor branches are exact to rounding."""
     return 1e-7 if jnp.finfo(dtype).bits <= 32 else 1e-14
