@@ -20,6 +20,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["CheckpointError", "LoadReport", "key_differences", "mismatch_error", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
 
 IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
@@ -27,7 +29,7 @@ _PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
 _MAX_LISTED = 15
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(SwiftjaxError, RuntimeError):
     """A checkpoint could not be read or does not fit the model."""
 
 

@@ -1,7 +1,8 @@
 """The ``swiftjax`` command: ``demo``, ``reconstruct``, ``batch``, ``view``, ``evaluate``, ``export-onnx``.
 
-Bad input ends with a one-line ``swiftjax: error: ...`` and exit status 2, never a
-traceback (``--debug`` shows it).  JAX's persistent compilation cache is enabled
+Bad input (a :class:`~swiftjax.errors.SwiftjaxError`, an ``OSError`` naming its file) ends
+with a one-line ``swiftjax: error: ...`` and exit status 2 (``--debug`` shows its traceback);
+anything else is a bug and keeps its traceback (exit status 1).  JAX's persistent compilation cache is enabled
 (``$SWIFTJAX_CACHE_DIR``, default ``~/.cache/swiftjax/jax``), so only the first run of a
 given shape pays for XLA compilation.
 """
@@ -20,10 +21,12 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["main"]
 
 
-class CliError(Exception):
+class CliError(SwiftjaxError):
     """A user-facing error: printed as one line, exit status 2."""
 
 
@@ -131,8 +134,9 @@ def _common_run_options(parser: argparse.ArgumentParser) -> None:
 
 def _check_executor_args(args: argparse.Namespace) -> float:
     """Validate the execution options; returns the CPUs per Ray worker."""
-    if args.workers < 1:
-        raise CliError(f"--workers must be >= 1, got {args.workers}")
+    from swiftjax.pipeline.executors import check_workers
+
+    check_workers(args.workers)
     if args.gpus_per_worker < 0:
         raise CliError(f"--gpus-per-worker must be >= 0, got {args.gpus_per_worker:g}")
     if args.executor == "local":
@@ -887,17 +891,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _enable_compilation_cache()
-    from swiftjax.io.images import InputError
-    from swiftjax.io.trajectory import TrajectoryFormatError
-    from swiftjax.pipeline import RunDirError
-
-    from swiftjax.pipeline.batch import BatchError
-    from swiftjax.pipeline.executors import ExecutorError
-
-    # Errors that stay user errors wherever they arise (checkpoint errors are recognised by
-    # _is_user_error without importing torch here).
-    user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ExecutorError, BatchError, ValueError,
-                   OSError)
     try:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
@@ -911,11 +904,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         _quiesce()
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
-    except (*user_errors, MemoryError, ImportError) as err:
-        if args.debug:
-            raise
+    except Exception as err:
+        if args.debug or not _prints_one_line(err):
+            raise  # a bug: its traceback, exit status 1
         print(f"swiftjax: error: {_error_line(err)}", file=sys.stderr)
         return 2
+
+
+#: Top-level packages of the optional extras (pyproject.toml): a missing one is a one-line error.
+_EXTRA_PACKAGES = frozenset({"torch", "onnx", "onnxruntime", "cv2", "safetensors", "viser", "ray", "cvxopt"})
+
+
+def _prints_one_line(err: BaseException) -> bool:
+    """A user-facing error: a :class:`~swiftjax.errors.SwiftjaxError`, an ``OSError`` naming its
+    file, running out of memory, or a missing optional extra.  Anything else is a bug."""
+    if isinstance(err, (SwiftjaxError, MemoryError)):
+        return True
+    if isinstance(err, OSError):
+        return err.filename is not None
+    return isinstance(err, ModuleNotFoundError) and (err.name or "").split(".")[0] in _EXTRA_PACKAGES
 
 
 def _error_line(err: BaseException) -> str:

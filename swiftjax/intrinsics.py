@@ -42,6 +42,8 @@ from typing import Literal
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = [
     "IntrinsicsError",
     "CameraIntrinsics",
@@ -60,7 +62,7 @@ __all__ = [
 Mode = Literal["crop", "pad"]
 
 
-class IntrinsicsError(ValueError):
+class IntrinsicsError(SwiftjaxError, ValueError):
     """An intrinsics file that cannot be used (the message names the file, line and problem)."""
 
 

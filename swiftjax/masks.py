@@ -30,6 +30,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.intrinsics import PreprocessGeometry, map_mask
 
 __all__ = ["MaskError", "MaskDirectory", "sky_mask", "network_sky_mask", "keep_mask", "SKY_RULES"]
@@ -40,7 +41,7 @@ SKY_RULES = ("cues", "network")
 _EXTENSIONS = (".png", ".PNG")
 
 
-class MaskError(ValueError):
+class MaskError(SwiftjaxError, ValueError):
     """A mask folder that does not fit the frames (names the folder / file and the problem)."""
 
 

@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.sampling import Reservoir
 
 __all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port", "request_refusal"]
@@ -74,7 +75,7 @@ LEGEND = (
 POSE_SETS = ("loop closure", "no loop closure")
 
 
-class ViewerError(RuntimeError):
+class ViewerError(SwiftjaxError, RuntimeError):
     """The run directory cannot be shown (missing, not a swiftjax run) or the port is taken."""
 
 

@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from swiftjax import _faults
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 from swiftjax.prediction import ChunkPrediction
 
@@ -84,7 +85,7 @@ _NAME = re.compile(r"^(chunk|loop|tail)_(\d{5,})\.npz$")
 _READ_ERRORS = (Exception,)
 
 
-class ChunkCorruptError(ValueError):
+class ChunkCorruptError(SwiftjaxError, ValueError):
     """A chunk file whose bytes are not those written: unreadable, or a CRC32 mismatch.
 
     Attributes:

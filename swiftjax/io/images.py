@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = [
     "IMAGE_EXTENSIONS",
     "FrameSource",
@@ -60,7 +62,7 @@ _GLOB_CHARS = re.compile(r"[*?\[]")
 _SEEK_FORWARD_MAX = 64  # video: grab up to this many frames forward instead of seeking
 
 
-class InputError(ValueError):
+class InputError(SwiftjaxError, ValueError):
     """The user's input (frames, files) is unusable; the message is one line naming the file."""
 
 

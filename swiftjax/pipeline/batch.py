@@ -25,13 +25,14 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["Sequence", "BatchError", "read_list", "sequence_folders", "run_batch", "batch_table"]
 
 
-class BatchError(ValueError):
+class BatchError(SwiftjaxError, ValueError):
     """The batch's list or folder is unusable (before any sequence runs)."""
 
 
@@ -243,8 +244,9 @@ def run_batch(
         raise BatchError("the batch has no sequence")
     if len(set(names)) != len(names):
         raise BatchError(f"sequence names must be unique, got {names}")
-    if workers < 1:
-        raise BatchError(f"--workers must be >= 1, got {workers}")
+    from swiftjax.pipeline.executors import check_workers
+
+    check_workers(workers)
     for name in names:
         _run_dir(out, name)
     if out.exists() and not out.is_dir():
