@@ -242,7 +242,8 @@ def _empty_result(result: Any, config: Any) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
 
     out = args.out = _out_dir(args.out)
     if args.batch is not None:
@@ -276,7 +277,7 @@ _DEMO_MAX_SIDE = 4096
 
 def _demo_batch(args: argparse.Namespace) -> int:
     """``demo --batch K``: K synthetic routes (seeds ``seed .. seed + K - 1``) as a batch."""
-    from swiftjax import demo
+    from swiftjax.synthetic import demo
     from swiftjax.pipeline import batch
 
     if args.batch < 1:
@@ -646,7 +647,7 @@ class _RotationError(CliError):
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from swiftjax import evaluation
     from swiftjax.io import trajectory
-    from swiftjax.report import markdown_table
+    from swiftjax.io.tables import markdown_table
 
     est_path, ref_path = args.estimate, args.reference
     unit = _check_evaluate_order(ref_path, est_path)

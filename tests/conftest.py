@@ -140,7 +140,8 @@ SMALL_RUN_CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_
 @pytest.fixture(scope="session")
 def small_loop_run(tmp_path_factory):
     """``(run_dir, RunResult)`` of a finished synthetic loop run (42x140 frames, 9 chunks)."""
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
     from swiftjax.synthetic.routes import loop_route
 
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)

@@ -242,7 +242,8 @@ def test_original_resolution_undoes_the_preprocessing(tmp_path, mode, size):
 
 
 def test_original_resolution_needs_input_images(tmp_path):
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
 
     run = demo.loop_route_run(20)
     with pytest.raises(ValueError, match="needs the input images"):

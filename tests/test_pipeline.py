@@ -13,7 +13,8 @@ import json
 import numpy as np
 import pytest
 
-from swiftjax import chunks, demo, evaluation, pipeline
+from swiftjax import chunks, evaluation, pipeline
+from swiftjax.synthetic import demo
 from swiftjax.io import ply, trajectory
 from swiftjax.synthetic.routes import loop_route
 

@@ -13,6 +13,7 @@ Modules:
 * :mod:`swiftjax.align.irls`: VGGT-Long's IRLS baseline.
 * :mod:`swiftjax.align.options`: :class:`AlignOptions`, the stage's defaults.
 * :mod:`swiftjax.align.checks`: host-side input checks.
+* :mod:`swiftjax.align.covariance`: information matrices of alignment and loop edges.
 """
 
 from swiftjax.align.options import AlignOptions
@@ -27,7 +28,7 @@ from swiftjax.align.chunk_pair import (
     pose_based_estimate,
 )
 from swiftjax.align.irls import IRLSInfo, irls_chunk_pair, irls_sim3
-from swiftjax.align import chunk_pair as _chunk_pair, irls as _irls
+from swiftjax.align import chunk_pair as _chunk_pair, covariance, irls as _irls
 
 __all__ = [
     "AlignOptions",

@@ -82,7 +82,7 @@ class AlignInfo(NamedTuple):
         src_mean, src_covariance: ``[3]``, ``[3, 3]`` weighted mean and covariance of the source
             points (chunk ``t+1``'s reliable overlap points, in chunk ``t+1`` units): with ``S``'s
             scale, ``num_points`` and ``rms`` they give the edge's information matrix
-            (:func:`swiftjax.align_covariance.alignment_information`).  Zeros if no point is used.
+            (:func:`swiftjax.align.covariance.alignment_information`).  Zeros if no point is used.
         scale_ratio: ``rho``, the factor chunk ``t+1``'s overlap depths were multiplied by
             before eq. 2 (:func:`~swiftjax.align.overlap_scale_ratio`; 1 with
             ``overlap_scale="none"``).

@@ -41,7 +41,7 @@ class Sequence:
     """One sequence of a batch.
 
     ``spec``: a picklable recipe whose ``build()`` returns the predictor (e.g.
-    :class:`inference.predictor.ImageSpec`, :class:`swiftjax.demo.OracleSpec`);
+    :class:`inference.predictor.ImageSpec`, :class:`swiftjax.synthetic.demo.OracleSpec`);
     ``ground_truth``: ``[N, 4, 4]`` poses, a trajectory file (``gt_format``), or None;
     ``timestamps``: a times file (as ``reconstruct --timestamps``), or None: the frames'
     own times (a video's), else the frame index.
@@ -325,7 +325,7 @@ def _json_default(value: Any) -> Any:
 def batch_table(rows: Seq[dict[str, Any]]) -> str:
     """The summary table: sequence, status, frames, loops, ATE (where ground truth was
     given), time, and the error of a failed sequence."""
-    from swiftjax.report import markdown_table
+    from swiftjax.io.tables import markdown_table
 
     body = [
         [r["sequence"], r["status"], r.get("frames", ""), r.get("loops", ""),

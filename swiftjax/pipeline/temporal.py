@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import _faults, align, loops, metric, sim3
+from swiftjax import _faults, align, loops, metric_scale, sim3
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.export import chunk_points_jit, export_points, finish_frames, write_frames
@@ -145,7 +145,7 @@ def run(ctx: RunContext) -> TemporalResult:
                     frames_written = write_frames(ctx, frames[:count], pred)  # the frames it owns, colmap/images/
                 if heights is not None:
                     with timer("metric scale"):
-                        gh = metric.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
+                        gh = metric_scale.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
                                                         conf_ratio=config.conf_ratio)
                         heights[t] = float(gh.height)
                         points["ground_height"] = np.asarray(heights[t])
