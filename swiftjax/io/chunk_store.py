@@ -42,8 +42,7 @@ member, raises :class:`ChunkCorruptError` naming the file, the field and the fra
 the pipeline can report it and predict the chunk again.  The checksums cost a fraction of
 the write itself (``bench/bench_io.py``, docs/performance/io.md).
 
-float16 halves the biggest arrays (a KITTI chunk, 75x154x518 with images and 1024-D
-descriptors: 42 MB instead of 66 MB).  Rounding moves a depth ``d`` by at most
+float16 halves the biggest arrays (docs/performance/io.md).  Rounding moves a depth ``d`` by at most
 ``4.9e-4 d``: at VGGT-scale depths (``d`` of order 1-10) that is <= 0.005, <= 2.5 % of the
 reliability mask's absolute threshold ``lambda_D = 0.2``, so only pairs already within
 ``~5e-4 d`` of the threshold can change side.  ``ChunkStore(..., half=False)`` keeps float32.
