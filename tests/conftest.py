@@ -24,7 +24,7 @@ import pathlib
 # The modules of array functions are listed one by one.  Left out on purpose: the option
 # modules (swiftjax.loops.options, swiftjax.posegraph.options: host-boundary dataclasses whose
 # __post_init__ raises a ValueError naming the bad value, which a Literal annotation checked
-# first would hide) and the packages' __init__ / deprecated alias modules.  Inside the listed
+# first would hide) and the packages' __init__ modules.  Inside the listed
 # modules the host-boundary checkers take ArrayLike / Any for the same reason (sim3.check,
 # fit_whitening, detect_loops, Problem(...)): their own ValueError is what callers see.
 import jaxtyping
@@ -33,6 +33,9 @@ JAXTYPED_MODULES = [
     "swiftjax.sim3",
     "swiftjax.so3",
     "swiftjax.camera",
+    "swiftjax.metric_scale",
+    "swiftjax.align.umeyama",
+    "swiftjax.align.chunk_pair",
     "swiftjax.align.mask",
     "swiftjax.align.irls",
     "swiftjax.align.checks",

@@ -302,7 +302,7 @@ def _align_once(
     conf_ratio: Array,
     min_points: Array,
     fallback_depth_threshold: Array,
-    use_scale_ratio: Array,
+    use_scale_ratio: Array | bool,
     user_keep: Array | None = None,
 ) -> tuple[Array, AlignInfo]:
     dtype = prev.depth.dtype
@@ -497,7 +497,7 @@ def align_chunk_pairs(
     *,
     options: AlignOptions | None = None,
     mask: Bool[ArrayLike, "P O H W"] | None = None,
-    **overrides: float | int | None,
+    **overrides: float | int | str | bool | None,
 ) -> tuple[Float[Array, "P 8"], AlignInfo]:
     """:func:`align_chunk_pair` for ``P`` pairs at once (``jax.vmap``, one jitted call).
 
