@@ -123,7 +123,7 @@ def _torch_load(p: Path) -> object:
                         f"cannot read torch checkpoint {p} (truncated or corrupt?): {_pickle_reason(e2)}"
                     ) from e2
                 raise CheckpointError(f"refused to load {p} (unsafe pickle: {_pickle_reason(e2)})") from e2
-            except Exception as e2:  # noqa: BLE001 - report any reader failure uniformly
+            except Exception as e2:  # report any reader failure uniformly
                 raise CheckpointError(f"cannot read torch checkpoint {p}: {e2}") from e2
         raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
     except (EOFError, OSError, ValueError) as e:

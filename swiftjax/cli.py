@@ -12,14 +12,16 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import importlib
 import os
 import pathlib
 import sys
 import time
-import tomllib
 import warnings
 from collections.abc import Sequence
 from typing import Any
+
+import tomllib
 
 from swiftjax.errors import SwiftjaxError
 
@@ -277,8 +279,8 @@ _DEMO_MAX_SIDE = 4096
 
 def _demo_batch(args: argparse.Namespace) -> int:
     """``demo --batch K``: K synthetic routes (seeds ``seed .. seed + K - 1``) as a batch."""
-    from swiftjax.synthetic import demo
     from swiftjax.pipeline import batch
+    from swiftjax.synthetic import demo
 
     if args.batch < 1:
         raise CliError(f"--batch must be >= 1, got {args.batch}")
@@ -327,7 +329,7 @@ class _LiveView:
 
 def _import_viewer() -> Any:
     try:
-        import viser  # noqa: F401
+        importlib.import_module("viser")
     except ImportError:
         raise CliError("the viewer needs viser: pip install 'swiftjax[view]'") from None
     from swiftjax import viewer
@@ -480,7 +482,7 @@ def _check_runner_options(args: argparse.Namespace, check_device: bool = True) -
         config = _model_config(args, backbone)
         try:
             backbone.impl.check_checkpoint(backbone, weights, config)
-        except Exception as err:  # noqa: BLE001 - CheckpointError, without importing torch to name it
+        except Exception as err:  # CheckpointError, without importing torch to name it
             if _is_user_error(err):
                 raise CliError(_one_line(err)) from None
             raise
@@ -508,7 +510,7 @@ def _make_runner(args: argparse.Namespace, spec: Any) -> Any:
 
     try:
         return build_runner(spec.weights, spec.backend, spec.device, spec.dtype, spec.model_config, spec.model)
-    except Exception as err:  # noqa: BLE001 - checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
+    except Exception as err:  # checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
         if _is_user_error(err):
             raise CliError(_one_line(err)) from None
         if args.backend == "onnx":
@@ -759,7 +761,7 @@ class _HelpFormatter(argparse.HelpFormatter):
         text = action.help or ""
         if "default" in text or not action.option_strings or action.default in (None, argparse.SUPPRESS):
             return text
-        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):  # noqa: SLF001
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
             return text
         return f"{text} (default: %(default)s)"
 

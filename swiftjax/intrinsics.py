@@ -110,7 +110,7 @@ class CameraIntrinsics:
                 f"{where}: principal point ({self.cx:g}, {self.cy:g}) lies outside the {width}x{height} image"
             )
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)
 
 

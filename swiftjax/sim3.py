@@ -62,6 +62,7 @@ which has no division by ``theta`` at all.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -290,7 +291,7 @@ def _apply_poly(x: Array, y: Array, z: Array, omega: so3.Vec3, v: so3.Vec3) -> s
     """``(x I + y K + z K^2) v`` with ``K = [omega]x``, via two cross products."""
     wv = so3.cross(omega, v)
     wwv = so3.cross(omega, wv)
-    return tuple(x * v[k] + y * wv[k] + z * wwv[k] for k in range(3))  # type: ignore[return-value]
+    return tuple(x * v[k] + y * wv[k] + z * wwv[k] for k in range(3))
 
 
 #: Elements per block of the ``"blocked"`` layout of :func:`_map_components`.
@@ -299,7 +300,10 @@ _BLOCK = 1024
 _MAP_BLOCK = 8192
 
 
-def _map_components(fn, x: Array, k_out: int, layout: str = "flat", valid=None) -> Array:
+def _map_components(
+    fn: Callable[[tuple[Array, ...]], tuple[Array, ...]], x: Array, k_out: int, layout: str = "flat",
+    valid: Callable[[tuple[Array, ...]], Array] | None = None,
+) -> Array:
     """``fn`` (component tuple -> component tuple) applied to ``x [..., k]``: ``[..., k_out]``.
 
     With ``valid`` (component tuple -> bool), elements where it is false come out all-NaN; the
@@ -657,7 +661,7 @@ def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None 
     yq, zq, xs, ys, zs = (v[..., None] for v in (yq, zq, xs, ys, zs))
 
     eye = jnp.eye(3, dtype=dtype)
-    outer = lambda a, b: a[..., :, None] * b[..., None, :]  # noqa: E731
+    outer = lambda a, b: a[..., :, None] * b[..., None, :]
     k = so3.hat(w)
     k2 = outer(w, w) - theta_sq[..., None, None] * eye  # K^2 = w w^T - theta^2 I
     winv = x * eye + y * k + z * k2
@@ -667,7 +671,7 @@ def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None 
     g_q = yq * wt + zq * wwt
     big_m = -y * so3.hat(t) + z * (wdt * eye + outer(w, t) - 2.0 * outer(t, w)) + 2.0 * outer(g_q, w)
     m = xs * t + ys * wt + zs * wwt
-    jso3 = so3._jlog_from(theta_sq, k, k2, eye)  # noqa: SLF001 - one formula for both groups
+    jso3 = so3._jlog_from(theta_sq, k, k2, eye)  # one formula for both groups
 
     top = jnp.concatenate([s[..., None, None] * _mat3(winv, so3.as_matrix(E[..., 3:7])), _mat3(big_m, jso3), m[..., None]], -1)
     middle = jnp.concatenate([jnp.zeros_like(jso3), jso3, jnp.zeros(s.shape + (3, 1), dtype)], -1)

@@ -175,13 +175,13 @@ def act_components(q: Quat, x: Vec3) -> Vec3:
     two_over_n = 2.0 / (dot(v, v) + w * w)
     uv = cross(v, x)
     uuv = cross(v, uv)
-    return tuple(x[k] + two_over_n * (w * uv[k] + uuv[k]) for k in range(3))  # type: ignore[return-value]
+    return tuple(x[k] + two_over_n * (w * uv[k] + uuv[k]) for k in range(3))
 
 
 # ------------------------------------------------------------------------- public API
 
 
-def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, "..."]:
+def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, ...]:
     """The identity quaternion ``(0, 0, 0, 1)`` with shape ``[*batch_shape, 4]``."""
     return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dtype), (*batch_shape, 4))
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from _extras import require_extra
 
 MISSING = "swiftjax_no_such_extra"

@@ -34,8 +34,8 @@ import sys
 import tempfile
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -205,7 +205,7 @@ def _exif_orientation(im: Any) -> int:
     """The EXIF orientation tag (1 = as stored; 5-8 = rotated by 90 degrees) of an open image."""
     try:
         return int(im.getexif().get(0x0112, 1) or 1)
-    except Exception:  # noqa: BLE001 - a malformed EXIF block is not our concern here
+    except Exception:  # a malformed EXIF block is not our concern here
         return 1
 
 
@@ -262,7 +262,7 @@ class ImageFiles(FrameSource):
 
         try:
             im = Image.open(path)
-        except Exception as e:  # noqa: BLE001 - not a format Pillow knows: let OpenCV try
+        except Exception as e:  # not a format Pillow knows: let OpenCV try
             img = self._imread(path)
             if img is None:
                 why = (str(e).splitlines() or [""])[0]
@@ -279,7 +279,7 @@ class ImageFiles(FrameSource):
             if decode:
                 try:
                     im.load()
-                except Exception as e:  # noqa: BLE001 - truncated / corrupt data
+                except Exception as e:  # truncated / corrupt data
                     why = (str(e).splitlines() or [""])[0]
                     raise InputError(f"{path}: cannot decode image ({why})") from None
         if w <= 0 or h <= 0:

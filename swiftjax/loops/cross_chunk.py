@@ -138,7 +138,7 @@ def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: 
         view = inside & jnp.isfinite(D)
         good = view & (jnp.abs(z - D) <= tol * D)
         front = view & (z < (1 - tol) * D)
-        count = lambda m: jnp.sum(m, dtype=jnp.int32)  # noqa: E731
+        count = lambda m: jnp.sum(m, dtype=jnp.int32)
         return (seen | view, agree | good, n_seen + count(view), n_agree + count(good),
                 n_front + count(front)), None
 
@@ -151,7 +151,7 @@ def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: 
     num = jnp.sum(ok).astype(jnp.int32)
     num_seen = jnp.sum(seen).astype(jnp.int32)
     num_agree = jnp.sum(agree).astype(jnp.int32)
-    ratio = lambda a, b: jnp.where(b > 0, a.astype(dtype) / jnp.maximum(b, 1).astype(dtype), 0)  # noqa: E731
+    ratio = lambda a, b: jnp.where(b > 0, a.astype(dtype) / jnp.maximum(b, 1).astype(dtype), 0)
     return ConsistencyInfo(
         num_points=num, num_seen=num_seen, num_agree=num_agree, pairs_seen=n_seen,
         pairs_agree=n_agree, pairs_front=n_front, overlap=ratio(num_seen, num),
@@ -182,7 +182,7 @@ def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConf
 
 
 def dense_consistency(
-    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, "8"], K_ref: Float[ArrayLike, "3 3"],
+    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, 8], K_ref: Float[ArrayLike, "3 3"],
     config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
 ) -> ConsistencyInfo:
     """How many reliable points of ``src`` land on agreeing depth in ``dst`` under ``S``.

@@ -42,7 +42,7 @@ class OracleNoise:
     mover_depth: float = 0.05  # log-std of a car's depth factor, drawn per (chunk, car)
 
     @classmethod
-    def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> "OracleNoise":
+    def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> OracleNoise:
         """No error at all: depths, poses and intrinsics are the truth in the chunk gauge."""
         return cls(
             depth_units=depth_units, scale_jitter=scale_jitter, drift_rot=0.0, drift_scale=0.0,

@@ -103,7 +103,12 @@ from swiftjax.synthetic.covisibility import covisibility as _covisibility
 from swiftjax.synthetic.noise import Hallucination, OracleNoise
 from swiftjax.synthetic.pixel_noise import PixelParams, pixel_block
 from swiftjax.synthetic.render import (
-    chunk_candidates, composite_movers, frame_movers, frame_planes, render_frames, render_movers,
+    chunk_candidates,
+    composite_movers,
+    frame_movers,
+    frame_planes,
+    render_frames,
+    render_movers,
 )
 from swiftjax.synthetic.se3_np import se3_power, so3_exp
 from swiftjax.synthetic.world import World
@@ -466,7 +471,7 @@ class VGGTOracle:
         F = self.block
         n_blk = -(-S // F)
         pad = n_blk * F - S
-        padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a  # noqa: E731
+        padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a
         ft, dft = padi(f), padi(depth_factor)
         scalars = np.asarray(
             [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
