@@ -254,7 +254,7 @@ def chunk_ground_height(
 
     Shapes as :func:`ground_points` (``frame_heights`` / ``inlier_fraction`` are
     ``[ceil(S / frame_stride)]``).  Defaults: every 5th frame, 4 x 8-pixel grid (at 518 x 154:
-    ~1,300 candidates below the horizon), 64 hypotheses -- ~0.1 s a KITTI chunk.  One jitted
+    ~1,300 candidates below the horizon), 64 hypotheses.  One jitted
     call; recompiles per ``(S, H, W)``, dtype, ``keep`` given or not, and the static
     arguments.  ``key`` defaults to ``PRNGKey(0)`` (deterministic)."""
     fs = slice(None, None, frame_stride)
