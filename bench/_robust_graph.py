@@ -16,7 +16,7 @@ Noise: every edge has its own level (``sigma_e = f_e (0.10 m, 0.005 rad, 0.005)`
 ``f_e = exp(N(0, 0.5^2))``; loops twice that), like alignments with different point counts and
 residuals.  Two information settings on the same measurements:
 
-* ``matched`` — ``Omega_e = diag(sigma_e)^-2`` (what :mod:`swiftjax.align_covariance` aims at);
+* ``matched`` — ``Omega_e = diag(sigma_e)^-2`` (what :mod:`swiftjax.align.covariance` aims at);
 * ``equal`` — ``Omega_e = I`` (the authors' pose graph).
 
 Solvers, each compared with the *same* setting's outlier-free solve (plain LM without the false

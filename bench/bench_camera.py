@@ -40,7 +40,8 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from common import markdown_table, write_results  # noqa: E402
 
-from swiftjax import demo, evaluation, masks, pipeline  # noqa: E402
+from swiftjax import evaluation, masks, pipeline  # noqa: E402
+from swiftjax.synthetic import demo  # noqa: E402
 from swiftjax.io.ply import read_ply  # noqa: E402
 from swiftjax.synthetic.world import CAR, SKY  # noqa: E402
 

@@ -24,7 +24,8 @@ import time
 import numpy as np
 
 from common import markdown_table, write_results
-from swiftjax import demo, pipeline
+from swiftjax import pipeline
+from swiftjax.synthetic import demo
 
 
 def _run(frames: int, out: pathlib.Path, colmap: bool) -> tuple[float, pipeline.RunResult]:

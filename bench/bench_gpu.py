@@ -392,7 +392,7 @@ def write_frames(folder: pathlib.Path, frames: int, hw: tuple[int, int], oracle:
     t0 = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
     if oracle:
-        from swiftjax.demo import loop_route_run
+        from swiftjax.synthetic.demo import loop_route_run
 
         predictor = loop_route_run(frames, image_hw=hw, aliasing=0.0).predictor
         batches = (np.arange(s, min(s + 50, frames)) for s in range(0, frames, 50))

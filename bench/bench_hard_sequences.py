@@ -65,7 +65,8 @@ def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> lis
 
 
 def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
-    from swiftjax import chunks, demo, evaluation, pipeline
+    from swiftjax import chunks, evaluation, pipeline
+    from swiftjax.synthetic import demo
     from swiftjax.io.trajectory import read_kitti
     from swiftjax.synthetic import places
 

@@ -51,7 +51,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 
 
 def _make_run(route: str, level: float):
-    from swiftjax import demo
+    from swiftjax.synthetic import demo
 
     if route == "demo":
         return demo.loop_route_run(aliasing=level)

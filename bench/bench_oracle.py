@@ -42,7 +42,7 @@ from common import best_of, markdown_table, write_results  # noqa: E402
 
 from swiftjax.chunks import chunk_schedule  # noqa: E402
 from swiftjax.io.trajectory import read_kitti  # noqa: E402
-from swiftjax.synthetic import oracle as oracle_mod  # noqa: E402
+from swiftjax.synthetic import pixel_noise  # noqa: E402
 from swiftjax.synthetic.oracle import VGGTOracle, kitti_intrinsics  # noqa: E402
 from swiftjax.synthetic.render import render_numpy  # noqa: E402
 from swiftjax.synthetic.world import build_world  # noqa: E402
@@ -86,16 +86,17 @@ def render_block_call(mod, world, P, frames, H, W):
     return lambda: mod.render_frames(*args, height=H, width=W)
 
 
-def pixel_block_call(mod, orc, frames):
-    """A zero-argument call of ``mod._pixels`` on the true render of ``frames``."""
+def pixel_block_call(kernel, params, orc, frames):
+    """A zero-argument call of the pixel kernel ``kernel`` (with its parameter tuple ``params``) on
+    the true render of ``frames``."""
     z, sem, inst = orc.render_truth(frames)
     nz = orc.noise
     scalars = np.asarray(
         [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
          nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share], np.float32)
-    p = mod._PixelParams(np.uint32(1), np.uint32(2), frames.astype(np.int32),
+    p = params(np.uint32(1), np.uint32(2), frames.astype(np.int32),
                          np.full(len(frames), 0.05, np.float32), np.float32(0.05), np.float32(1e-3), scalars)
-    return lambda: mod._pixels(z, sem, inst, p)
+    return lambda: kernel(z, sem, inst, p)
 
 
 def best_alternating(calls: list, repeat: int) -> list[float]:
@@ -142,10 +143,11 @@ def main() -> None:
     # ---- one render block and one pixel block, current vs previous
     frames = np.arange(1500, 1515)
     orc = VGGTOracle(world, P)
-    calls = [render_block_call(render_mod, world, P, frames, H, W), pixel_block_call(oracle_mod, orc, frames)]
+    calls = [render_block_call(render_mod, world, P, frames, H, W),
+             pixel_block_call(pixel_noise.pixel_block, pixel_noise.PixelParams, orc, frames)]
     if prev is not None:
         calls += [render_block_call(sys.modules["_previous_render"], world, P, frames, H, W),
-                  pixel_block_call(prev, orc, frames)]
+                  pixel_block_call(prev._pixels, prev._PixelParams, orc, frames)]
     for c in calls:
         c()  # compile
     overflow = int(np.asarray(calls[0]().tile_overflow).sum())

@@ -41,7 +41,8 @@ import json, os, pathlib, resource, sys, time
 import jax
 jax.config.update("jax_compilation_cache_dir", os.environ["SWIFTJAX_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-from swiftjax import demo, pipeline
+from swiftjax import pipeline
+from swiftjax.synthetic import demo
 from swiftjax.pipeline.executors import LocalExecutor
 shared, frames, out, method = pathlib.Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 prefetch = int(sys.argv[5])

@@ -43,7 +43,8 @@ import numpy as np
 import jax
 jax.config.update("jax_compilation_cache_dir", os.environ["SWIFTJAX_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-from swiftjax import chunks, demo, pipeline
+from swiftjax import chunks, pipeline
+from swiftjax.synthetic import demo
 from swiftjax.pipeline import executors
 from swiftjax.prediction import ChunkPrediction
 

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from swiftjax.report import markdown_table  # noqa: F401  (re-exported for the bench scripts)
+from swiftjax.io.tables import markdown_table  # noqa: F401  (re-exported for the bench scripts)
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 

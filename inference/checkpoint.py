@@ -20,6 +20,8 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["CheckpointError", "LoadReport", "key_differences", "mismatch_error", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
 
 IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
@@ -27,7 +29,7 @@ _PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
 _MAX_LISTED = 15
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(SwiftjaxError, RuntimeError):
     """A checkpoint could not be read or does not fit the model."""
 
 
@@ -121,7 +123,7 @@ def _torch_load(p: Path) -> object:
                         f"cannot read torch checkpoint {p} (truncated or corrupt?): {_pickle_reason(e2)}"
                     ) from e2
                 raise CheckpointError(f"refused to load {p} (unsafe pickle: {_pickle_reason(e2)})") from e2
-            except Exception as e2:  # noqa: BLE001 - report any reader failure uniformly
+            except Exception as e2:  # report any reader failure uniformly
                 raise CheckpointError(f"cannot read torch checkpoint {p}: {e2}") from e2
         raise CheckpointError(f"cannot read torch checkpoint {p} (truncated or corrupt?): {e}") from e
     except (EOFError, OSError, ValueError) as e:

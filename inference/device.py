@@ -16,13 +16,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 if TYPE_CHECKING:
     import torch
 
 __all__ = ["GPUMemoryError", "fused_attention", "largest_chunk_that_fits", "to_device", "to_host"]
 
 
-class GPUMemoryError(ValueError):
+class GPUMemoryError(SwiftjaxError, ValueError):
     """A chunk does not fit in the device's memory (the message gives the largest that does)."""
 
 

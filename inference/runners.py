@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.prediction import ChunkPrediction
 
 from .device import GPUMemoryError
@@ -52,7 +53,7 @@ _OUTPUTS = {"pose_enc": "camera head pose encoding", "depth": "depth head depth"
             "conf": "confidence", "camera_poses": "camera poses", "dino_patch_tokens": "DINO patch tokens"}
 
 
-class ModelOutputError(ValueError):
+class ModelOutputError(SwiftjaxError, ValueError):
     """The model predicted non-finite values (the message names the model and the output)."""
 
 

@@ -70,7 +70,7 @@ def _as_sim3(T: Array) -> Array:
 def unproject(
     depth: Real[ArrayLike, "*d H W"],
     K: Real[ArrayLike, "*k 3 3"],
-    cam_to_world: Real[ArrayLike, "..."] | None = None,  # [..., 8] or [..., 3|4, 4]: checked below
+    cam_to_world: Real[ArrayLike, ...] | None = None,  # [..., 8] or [..., 3|4, 4]: checked below
 ) -> Float[Array, "... H W 3"]:
     """Depth maps to 3D points.
 
@@ -163,7 +163,7 @@ def world_cameras(chunk_pose: Real[ArrayLike, "*batch 8"], extrinsic: Real[Array
     return jnp.concatenate([top, bottom], axis=-2)
 
 
-def focal_ratio(K_src: Real[ArrayLike, "*s 3 3"], K_ref: Real[ArrayLike, "*r 3 3"]) -> Float[Array, "..."]:
+def focal_ratio(K_src: Real[ArrayLike, "*s 3 3"], K_ref: Real[ArrayLike, "*r 3 3"]) -> Float[Array, ...]:
     """``½ (fx_ref / fx_src + fy_ref / fy_src)``: ``[..., 3, 3], [..., 3, 3] -> [...]`` (eq. 1)."""
     K_src, K_ref = jnp.asarray(K_src), jnp.asarray(K_ref)
     return 0.5 * (K_ref[..., 0, 0] / K_src[..., 0, 0] + K_ref[..., 1, 1] / K_src[..., 1, 1])

@@ -1,7 +1,8 @@
 """The ``swiftjax`` command: ``demo``, ``reconstruct``, ``batch``, ``view``, ``evaluate``, ``export-onnx``.
 
-Bad input ends with a one-line ``swiftjax: error: ...`` and exit status 2, never a
-traceback (``--debug`` shows it).  JAX's persistent compilation cache is enabled
+Bad input (a :class:`~swiftjax.errors.SwiftjaxError`, an ``OSError`` naming its file) ends
+with a one-line ``swiftjax: error: ...`` and exit status 2 (``--debug`` shows its traceback);
+anything else is a bug and keeps its traceback (exit status 1).  JAX's persistent compilation cache is enabled
 (``$SWIFTJAX_CACHE_DIR``, default ``~/.cache/swiftjax/jax``), so only the first run of a
 given shape pays for XLA compilation.
 """
@@ -11,19 +12,23 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import importlib
 import os
 import pathlib
 import sys
 import time
-import tomllib
 import warnings
 from collections.abc import Sequence
 from typing import Any
 
+import tomllib
+
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["main"]
 
 
-class CliError(Exception):
+class CliError(SwiftjaxError):
     """A user-facing error: printed as one line, exit status 2."""
 
 
@@ -131,8 +136,9 @@ def _common_run_options(parser: argparse.ArgumentParser) -> None:
 
 def _check_executor_args(args: argparse.Namespace) -> float:
     """Validate the execution options; returns the CPUs per Ray worker."""
-    if args.workers < 1:
-        raise CliError(f"--workers must be >= 1, got {args.workers}")
+    from swiftjax.pipeline.executors import check_workers
+
+    check_workers(args.workers)
     if args.gpus_per_worker < 0:
         raise CliError(f"--gpus-per-worker must be >= 0, got {args.gpus_per_worker:g}")
     if args.executor == "local":
@@ -238,7 +244,8 @@ def _empty_result(result: Any, config: Any) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
 
     out = args.out = _out_dir(args.out)
     if args.batch is not None:
@@ -272,8 +279,8 @@ _DEMO_MAX_SIDE = 4096
 
 def _demo_batch(args: argparse.Namespace) -> int:
     """``demo --batch K``: K synthetic routes (seeds ``seed .. seed + K - 1``) as a batch."""
-    from swiftjax import demo
     from swiftjax.pipeline import batch
+    from swiftjax.synthetic import demo
 
     if args.batch < 1:
         raise CliError(f"--batch must be >= 1, got {args.batch}")
@@ -322,7 +329,7 @@ class _LiveView:
 
 def _import_viewer() -> Any:
     try:
-        import viser  # noqa: F401
+        importlib.import_module("viser")
     except ImportError:
         raise CliError("the viewer needs viser: pip install 'swiftjax[view]'") from None
     from swiftjax import viewer
@@ -475,7 +482,7 @@ def _check_runner_options(args: argparse.Namespace, check_device: bool = True) -
         config = _model_config(args, backbone)
         try:
             backbone.impl.check_checkpoint(backbone, weights, config)
-        except Exception as err:  # noqa: BLE001 - CheckpointError, without importing torch to name it
+        except Exception as err:  # CheckpointError, without importing torch to name it
             if _is_user_error(err):
                 raise CliError(_one_line(err)) from None
             raise
@@ -503,7 +510,7 @@ def _make_runner(args: argparse.Namespace, spec: Any) -> Any:
 
     try:
         return build_runner(spec.weights, spec.backend, spec.device, spec.dtype, spec.model_config, spec.model)
-    except Exception as err:  # noqa: BLE001 - checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
+    except Exception as err:  # checkpoint, onnxruntime (InvalidProtobuf, Fail, ...) errors
         if _is_user_error(err):
             raise CliError(_one_line(err)) from None
         if args.backend == "onnx":
@@ -642,7 +649,7 @@ class _RotationError(CliError):
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from swiftjax import evaluation
     from swiftjax.io import trajectory
-    from swiftjax.report import markdown_table
+    from swiftjax.io.tables import markdown_table
 
     est_path, ref_path = args.estimate, args.reference
     unit = _check_evaluate_order(ref_path, est_path)
@@ -754,7 +761,7 @@ class _HelpFormatter(argparse.HelpFormatter):
         text = action.help or ""
         if "default" in text or not action.option_strings or action.default in (None, argparse.SUPPRESS):
             return text
-        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):  # noqa: SLF001
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
             return text
         return f"{text} (default: %(default)s)"
 
@@ -887,17 +894,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _enable_compilation_cache()
-    from swiftjax.io.images import InputError
-    from swiftjax.io.trajectory import TrajectoryFormatError
-    from swiftjax.pipeline import RunDirError
-
-    from swiftjax.pipeline.batch import BatchError
-    from swiftjax.pipeline.executors import ExecutorError
-
-    # Errors that stay user errors wherever they arise (checkpoint errors are recognised by
-    # _is_user_error without importing torch here).
-    user_errors = (CliError, InputError, RunDirError, TrajectoryFormatError, ExecutorError, BatchError, ValueError,
-                   OSError)
     try:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
@@ -911,11 +907,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         _quiesce()
         print("swiftjax: interrupted (finished chunks are kept; re-run to resume)", file=sys.stderr)
         return 130
-    except (*user_errors, MemoryError, ImportError) as err:
-        if args.debug:
-            raise
+    except Exception as err:
+        if args.debug or not _prints_one_line(err):
+            raise  # a bug: its traceback, exit status 1
         print(f"swiftjax: error: {_error_line(err)}", file=sys.stderr)
         return 2
+
+
+#: Top-level packages of the optional extras (pyproject.toml): a missing one is a one-line error.
+_EXTRA_PACKAGES = frozenset({"torch", "onnx", "onnxruntime", "cv2", "safetensors", "viser", "ray", "cvxopt"})
+
+
+def _prints_one_line(err: BaseException) -> bool:
+    """A user-facing error: a :class:`~swiftjax.errors.SwiftjaxError`, an ``OSError`` naming its
+    file, running out of memory, or a missing optional extra.  Anything else is a bug."""
+    if isinstance(err, (SwiftjaxError, MemoryError)):
+        return True
+    if isinstance(err, OSError):
+        return err.filename is not None
+    return isinstance(err, ModuleNotFoundError) and (err.name or "").split(".")[0] in _EXTRA_PACKAGES
 
 
 def _error_line(err: BaseException) -> str:

@@ -86,7 +86,7 @@ class ErrorStats(NamedTuple):
     sse: float
 
     @staticmethod
-    def of(e: np.ndarray) -> "ErrorStats":
+    def of(e: np.ndarray) -> ErrorStats:
         e = np.asarray(e, np.float64)
         return ErrorStats(
             rmse=float(np.sqrt(np.mean(e**2))),

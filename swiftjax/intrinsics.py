@@ -42,6 +42,8 @@ from typing import Literal
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = [
     "IntrinsicsError",
     "CameraIntrinsics",
@@ -60,7 +62,7 @@ __all__ = [
 Mode = Literal["crop", "pad"]
 
 
-class IntrinsicsError(ValueError):
+class IntrinsicsError(SwiftjaxError, ValueError):
     """An intrinsics file that cannot be used (the message names the file, line and problem)."""
 
 
@@ -108,7 +110,7 @@ class CameraIntrinsics:
                 f"{where}: principal point ({self.cx:g}, {self.cy:g}) lies outside the {width}x{height} image"
             )
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, float]:
         return dataclasses.asdict(self)
 
 

@@ -30,6 +30,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.intrinsics import PreprocessGeometry, map_mask
 
 __all__ = ["MaskError", "MaskDirectory", "sky_mask", "network_sky_mask", "keep_mask", "SKY_RULES"]
@@ -40,7 +41,7 @@ SKY_RULES = ("cues", "network")
 _EXTENSIONS = (".png", ".PNG")
 
 
-class MaskError(ValueError):
+class MaskError(SwiftjaxError, ValueError):
     """A mask folder that does not fit the frames (names the folder / file and the problem)."""
 
 
@@ -87,9 +88,9 @@ class MaskDirectory:
     def __len__(self) -> int:
         return len(self.paths)
 
-    def fingerprint(self) -> list[list]:
+    def fingerprint(self) -> list[list[str | int]]:
         """``[name, bytes, mtime_ns]`` per mask file (a changed mask changes the run)."""
-        out = []
+        out: list[list[str | int]] = []
         for p in self.paths:
             st = p.stat()
             out.append([p.name, int(st.st_size), int(st.st_mtime_ns)])
@@ -106,7 +107,7 @@ class MaskDirectory:
             try:
                 with Image.open(p) as im:
                     size = im.size
-            except Exception as err:  # noqa: BLE001 - any decoder failure names the file
+            except Exception as err:  # any decoder failure names the file
                 raise MaskError(f"mask {p} cannot be read: {err}") from None
             if size != (w, h):
                 raise MaskError(f"mask {p} is {size[0]}x{size[1]} but the images are {w}x{h}")
@@ -124,7 +125,7 @@ class MaskDirectory:
         try:
             with Image.open(p) as im:
                 a = np.asarray(im)
-        except Exception as err:  # noqa: BLE001 - any decoder failure names the file
+        except Exception as err:  # any decoder failure names the file
             raise MaskError(f"mask {p} cannot be read: {err}") from None
         if a.ndim == 3:
             a = a[..., :3].max(axis=-1) if a.shape[2] >= 3 else a[..., 0]
@@ -180,7 +181,7 @@ def network_sky_mask(conf: ArrayLike) -> Array:
 
 def keep_mask(
     depth: ArrayLike, conf: ArrayLike, user: ArrayLike | None = None, drop_sky: bool = False,
-    sky_rule: str = "cues", **sky_options
+    sky_rule: str = "cues", **sky_options: float
 ) -> Array | None:
     """The combined keep-mask ``[S, H, W]`` (user mask AND not sky), or ``None`` when neither
     is asked for (the caller then uses every pixel, with no extra compile).  ``sky_rule``:

@@ -42,6 +42,8 @@ import numbers
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = [
     "OptionError",
     "Spec",
@@ -71,7 +73,7 @@ _KEY = "swiftjax.option"
 INT_LIMIT = 2**31 - 1
 
 
-class OptionError(ValueError):
+class OptionError(SwiftjaxError, ValueError):
     """An option value that the schema refuses; the message is one line naming the option."""
 
 

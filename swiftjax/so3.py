@@ -53,27 +53,6 @@ __all__ = [
     "project",
 ]
 
-#: Old names kept for one release: ``name -> new name`` (module ``__getattr__`` warns).
-_DEPRECATED = {
-    "multiply": "compose",
-    "conjugate": "inverse",
-    "rotate": "act",
-    "multiply_components": "compose_components",
-    "conjugate_components": "inverse_components",
-    "rotate_components": "act_components",
-}
-
-
-def __getattr__(name: str):
-    if name in _DEPRECATED:
-        import warnings
-
-        new = _DEPRECATED[name]
-        warnings.warn(f"swiftjax.so3.{name} is deprecated; use swiftjax.so3.{new}", DeprecationWarning, stacklevel=2)
-        return globals()[new]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def _small_angle_eps(dtype: jnp.dtype) -> float:
     """Squared-angle threshold below which the Taylor branches are exact to rounding."""
     return 1e-7 if jnp.finfo(dtype).bits <= 32 else 1e-14
@@ -196,13 +175,13 @@ def act_components(q: Quat, x: Vec3) -> Vec3:
     two_over_n = 2.0 / (dot(v, v) + w * w)
     uv = cross(v, x)
     uuv = cross(v, uv)
-    return tuple(x[k] + two_over_n * (w * uv[k] + uuv[k]) for k in range(3))  # type: ignore[return-value]
+    return tuple(x[k] + two_over_n * (w * uv[k] + uuv[k]) for k in range(3))
 
 
 # ------------------------------------------------------------------------- public API
 
 
-def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, "..."]:
+def identity(batch_shape: tuple[int, ...] = (), dtype: DTypeLike = jnp.float32) -> Float[Array, ...]:
     """The identity quaternion ``(0, 0, 0, 1)`` with shape ``[*batch_shape, 4]``."""
     return jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=dtype), (*batch_shape, 4))
 

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from swiftjax.pipeline.reader import POSE_SETS
+from swiftjax.errors import SwiftjaxError
 from swiftjax.sampling import Reservoir
 
 __all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port", "request_refusal"]
@@ -73,7 +74,7 @@ LEGEND = (
 )
 
 
-class ViewerError(RuntimeError):
+class ViewerError(SwiftjaxError, RuntimeError):
     """The run directory cannot be shown (missing, not a swiftjax run) or the port is taken."""
 
 

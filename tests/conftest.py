@@ -24,7 +24,7 @@ import pathlib
 # The modules of array functions are listed one by one.  Left out on purpose: the option
 # modules (swiftjax.loops.options, swiftjax.posegraph.options: host-boundary dataclasses whose
 # __post_init__ raises a ValueError naming the bad value, which a Literal annotation checked
-# first would hide) and the packages' __init__ / deprecated alias modules.  Inside the listed
+# first would hide) and the packages' __init__ modules.  Inside the listed
 # modules the host-boundary checkers take ArrayLike / Any for the same reason (sim3.check,
 # fit_whitening, detect_loops, Problem(...)): their own ValueError is what callers see.
 import jaxtyping
@@ -33,6 +33,9 @@ JAXTYPED_MODULES = [
     "swiftjax.sim3",
     "swiftjax.so3",
     "swiftjax.camera",
+    "swiftjax.metric_scale",
+    "swiftjax.align.umeyama",
+    "swiftjax.align.chunk_pair",
     "swiftjax.align.mask",
     "swiftjax.align.irls",
     "swiftjax.align.checks",
@@ -140,7 +143,8 @@ SMALL_RUN_CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_
 @pytest.fixture(scope="session")
 def small_loop_run(tmp_path_factory):
     """``(run_dir, RunResult)`` of a finished synthetic loop run (42x140 frames, 9 chunks)."""
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
     from swiftjax.synthetic.routes import loop_route
 
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)

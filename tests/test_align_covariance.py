@@ -1,4 +1,4 @@
-"""Edge information from alignment statistics (:mod:`swiftjax.align_covariance`): the closed-form
+"""Edge information from alignment statistics (:mod:`swiftjax.align.covariance`): the closed-form
 Hessian against autodiff, the covariance against a Monte Carlo of the Umeyama estimate and of the
 loop-edge composition, the AlignInfo moments against explicit points, degenerate inputs."""
 
@@ -11,7 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from swiftjax import align, align_covariance as ac, camera, sim3
+from swiftjax import align, camera, sim3
+from swiftjax.align import covariance as ac
 
 from test_align import make_pair
 

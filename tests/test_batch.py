@@ -25,7 +25,7 @@ def test_a_dotdot_line_is_named_after_the_folder_it_resolves_to(tmp_path):
 
 @pytest.mark.parametrize("name", ["..", ".", "", "a/b", "../x"])
 def test_run_batch_refuses_names_that_leave_out(tmp_path, name):
-    from swiftjax import demo
+    from swiftjax.synthetic import demo
 
     out = tmp_path / "batch" / "out"
     job = batch.Sequence(name, demo.loop_route_run(10).predictor.spec())

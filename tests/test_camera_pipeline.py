@@ -15,7 +15,8 @@ import warnings
 import numpy as np
 import pytest
 
-from swiftjax import demo, evaluation, pipeline
+from swiftjax import evaluation, pipeline
+from swiftjax.synthetic import demo
 from swiftjax.io import ply
 from swiftjax.synthetic.routes import loop_route
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from _extras import require_extra
 from swiftjax.io.colmap import world_to_camera_qt, write_colmap, write_colmap_text
 
 W, H = 518, 154
@@ -94,7 +95,7 @@ def test_independent_reader(tmp_path):
 
 
 def test_pycolmap_reads_model_and_projection_convention(tmp_path):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     c2w, ks, names, pts, cols, errs = _scene()
     out = write_colmap_text(tmp_path / "m", c2w, ks, names, (W, H), pts, cols, errs)
     rec = pycolmap.Reconstruction(str(out))
@@ -124,7 +125,7 @@ def test_pycolmap_reads_model_and_projection_convention(tmp_path):
 
 
 def test_no_points_and_pixel_offset_zero(tmp_path):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     c2w, ks, names, *_ = _scene(n=2)
     write_colmap_text(tmp_path, c2w, ks, names, np.array([[W, H], [W, H]]), pixel_offset=0.0)
     rec = pycolmap.Reconstruction(str(tmp_path))
@@ -181,7 +182,7 @@ def _observed_scene(n=5, m=300, seed=1):
 def test_observations_reproject_in_pycolmap(tmp_path, fmt):
     """Every point has a one-element track; its 2-D point is the pixel centre (+0.5) it came
     from, and the 3-D point reprojects there through pycolmap's camera and pose."""
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     c2w, ks, names, pts, cols, errs, img, uv = _observed_scene()
     write_colmap(tmp_path, c2w, ks, names, (W, H), pts, cols, errs, observations=(img, uv),
                  binary=fmt == "binary", text=fmt == "text")
@@ -208,7 +209,7 @@ def test_observations_reproject_in_pycolmap(tmp_path, fmt):
 
 
 def test_binary_and_text_models_agree(tmp_path):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     c2w, ks, names, pts, cols, errs, img, uv = _observed_scene(seed=4)
     write_colmap(tmp_path, c2w, ks, names, (W, H), pts, cols, errs, observations=(img, uv), text=True)
     (tmp_path / "bin").mkdir()

@@ -9,7 +9,7 @@ import shutil
 
 from swiftjax.pipeline.report import summary_table
 from swiftjax.pipeline.rundir import StageTimer, progress_bar
-from swiftjax.report import format_fixed, text_table
+from swiftjax.io.tables import format_fixed, text_table
 
 SCIENTIFIC = re.compile(r"\d[eE][+-]?\d")
 
@@ -50,7 +50,8 @@ def test_summary_reads_as_a_table_in_pipeline_order(small_loop_run):
 
 
 def test_rerun_says_resumed(small_loop_run, tmp_path):
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
     from swiftjax.synthetic.routes import loop_route
     from tests.conftest import SMALL_RUN_CONFIG
 

@@ -10,7 +10,8 @@ import shutil
 import numpy as np
 import pytest
 
-from swiftjax import demo, pipeline
+from swiftjax import pipeline
+from swiftjax.synthetic import demo
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.engine import Prefix, Reconstruction
 from swiftjax.pipeline.live import LIVE_NAME, LiveLog

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from _extras import require_extra
 from swiftjax.evaluation import ate, chamfer, rpe, umeyama_alignment
 from swiftjax.io.trajectory import read_kitti, read_tum
 
-evo = pytest.importorskip("evo")
+evo = require_extra("evo")
 from evo.core import metrics, sync  # noqa: E402
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D  # noqa: E402
 

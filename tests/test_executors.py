@@ -19,7 +19,8 @@ import numpy as np
 import psutil
 import pytest
 
-from swiftjax import chunks, demo, pipeline
+from swiftjax import chunks, pipeline
+from swiftjax.synthetic import demo
 from swiftjax.pipeline.executors import ExecutorError, LocalExecutor, RayExecutor, start_local_ray
 from test_pipeline_stages import CONFIG, IMAGE_HW, assert_same_outputs, reference, route  # noqa: F401 (fixtures)
 

@@ -186,7 +186,8 @@ def test_chunk_descriptors_reverse_pass_matches(shared_dir):
     """Two oracle chunks of synthetic KITTI 08 driving one street in opposite directions:
     their signatures are closer than those of chunks of other streets, the Scan Context yaw
     is ~180 degrees from the forward axes, and no signature is NaN.  Too few points: invalid."""
-    from swiftjax import align, chunks, demo
+    from swiftjax import align, chunks
+    from swiftjax.synthetic import demo
     from swiftjax.io.trajectory import read_kitti
 
     poses = read_kitti(shared_dir / "data" / "trajectories" / "KITTI_08_gt.txt")[:2000]

@@ -21,6 +21,8 @@ import shlex
 import numpy as np
 import pytest
 
+from _extras import require_extra
+
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 #: simple_trainer.py's Config defaults for the flags the Parser reads.
 GSPLAT_DEFAULTS = {"data_dir": "data/360_v2/garden", "data_factor": 4}
@@ -82,7 +84,7 @@ def gsplat_parser_steps(data_dir: pathlib.Path, factor: int) -> tuple[list[str],
 
 
 def test_readme_gsplat_command_loads_the_run(small_loop_run):
-    pytest.importorskip("pycolmap")
+    require_extra("pycolmap")
     out, result = small_loop_run
     flags = gsplat_flags(readme_gsplat_command())
     assert flags["data_dir"] == "runs/demo/colmap"  # the README's own demo run
@@ -101,7 +103,7 @@ def test_readme_gsplat_command_loads_the_run(small_loop_run):
 def test_gsplat_default_factor_needs_the_flag(small_loop_run):
     """Without ``--data_factor 1`` gsplat's default looks for ``images_4/``: the error the
     issue reported, reproduced by the replayed steps (so they are faithful to it)."""
-    pytest.importorskip("pycolmap")
+    require_extra("pycolmap")
     out, _ = small_loop_run
     flags = gsplat_flags(["python", "examples/simple_trainer.py", "default", "--data_dir", str(out / "colmap")])
     assert flags["data_factor"] == 4

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import types
-import warnings
 import zlib
 from typing import Callable
 
@@ -285,19 +284,6 @@ def test_gradients_forward_reverse_and_numerical_agree(group, batch, regime):
     assert_close(np.sum(v * ju), np.sum(vj * u), scale=10)  # forward vs reverse
     numeric = _central_difference(lambda t: _f_jit(group, t, y, p), xi, u)
     assert_close(ju, numeric, scale=1e4)  # forward vs numerical
-
-
-# ------------------------------------------------------------------------ deprecations
-
-
-@pytest.mark.parametrize("old, new", [("multiply", "compose"), ("conjugate", "inverse"), ("rotate", "act")])
-def test_so3_old_names_are_deprecated_aliases(old, new):
-    with pytest.warns(DeprecationWarning, match=f"so3.{new}"):
-        fn = getattr(so3, old)
-    assert fn is getattr(so3, new)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        so3.compose(so3.identity(), so3.identity())
 
 
 def test_annotated_shapes_are_enforced():

@@ -1,5 +1,5 @@
-"""LoopOptions (defaults written once), the schedule-taking loop-chunk API, ``throw=`` and the
-deprecated spellings of swiftjax.loops."""
+"""LoopOptions (defaults written once), the schedule-taking loop-chunk API and ``throw=`` of
+swiftjax.loops."""
 
 from __future__ import annotations
 
@@ -103,27 +103,17 @@ def test_detect_and_fit_throw_false_skip_the_host_check():
     assert not np.all(np.isfinite(np.asarray(w.projection)))
 
 
-def test_schedule_api_and_its_deprecated_spelling_agree():
+def test_loop_chunk_frames_takes_the_schedule_and_vmaps_over_the_ends():
     sched = chunk_schedule(400)
-    new = L.loop_chunk_frames(250, 72, sched)
-    with pytest.warns(DeprecationWarning, match="pass the ChunkSchedule"):
-        old = L.loop_chunk_frames(250, 72, sched.starts, 75, 400, 10)
-    with pytest.warns(DeprecationWarning):
-        kw = L.loop_chunk_frames(250, 72, sched.starts, chunk_size=75, n_frames=400, half_window=10)
-    for a, b in zip(new, old):
-        np.testing.assert_array_equal(a, b)
-    for a, b in zip(new, kw):
-        np.testing.assert_array_equal(a, b)
-    pairs = np.array([[300, 100], [310, 95], [390, 20], [-1, -1]], np.int32)
-    cand = L.LoopCandidates(pairs, np.array([0.9, 0.8, 0.6, -np.inf], np.float32), np.int32(3), np.bool_(False))
-    with pytest.warns(DeprecationWarning):
-        old = L.filter_by_chunks(cand, sched.starts, 75, 400)
-    assert L.filter_by_chunks(cand, sched).to_list() == old.to_list()
     with pytest.raises(TypeError, match="unexpected keyword"):
         L.loop_chunk_frames(1, 2, sched, chunk_size=75)
-    # vmap over the ends, schedule closed over
-    lc = jax.vmap(lambda a, b: L.loop_chunk_frames(a, b, sched))(np.array([399, 250]), np.array([0, 50]))
-    assert lc.frames.shape == (2, 40)
+    # vmap over the ends, schedule closed over: row by row the single calls
+    ends_i, ends_j = np.array([399, 250]), np.array([0, 50])
+    lc = jax.vmap(lambda a, b: L.loop_chunk_frames(a, b, sched))(ends_i, ends_j)
+    for k in range(2):
+        one = L.loop_chunk_frames(int(ends_i[k]), int(ends_j[k]), sched)
+        for a, b in zip(lc, one):
+            np.testing.assert_array_equal(np.asarray(a)[k], b)
 
 
 def test_chunk_of_arrays():
@@ -147,11 +137,24 @@ def test_loop_verification_is_a_deprecated_alias():
 
 
 def test_loops_keeps_its_public_names():
+    import __future__
+    import sys
+    import types
+
     before = ["frame_descriptor", "power_normalize", "Whitening", "fit_whitening", "whiten", "LoopCandidates",
               "ThresholdCalibration", "calibrate_threshold", "detect_loops", "LoopChunk", "loop_chunk_frames",
               "filter_by_chunks", "loop_edge", "Loop", "find_loops", "DEFAULT_THRESHOLD", "AUTHORS_THRESHOLD",
               "DEFAULT_FALSE_ALARMS", "THRESHOLD_RULES"]
     assert set(before) <= set(L.__all__)
+    assert len(L.__all__) == len(set(L.__all__))
+    # __all__ is exactly what the package exposes (a name imported but not listed, or listed but gone, fails)
+    exposed = {n for n, v in vars(L).items() if not n.startswith("_")
+               and not isinstance(v, (types.ModuleType, __future__._Feature))}
+    assert exposed == set(L.__all__)
+    # each function and class is the one its defining submodule of swiftjax.loops holds under that name
     for name in L.__all__:
-        assert getattr(L, name) is not None
+        obj = getattr(L, name)
+        if isinstance(obj, (type, types.FunctionType)) or hasattr(obj, "__wrapped__"):
+            assert obj.__module__.startswith("swiftjax.loops."), name
+            assert getattr(sys.modules[obj.__module__], name) is obj, name
     assert dataclasses.is_dataclass(L.LoopOptions) and L.LoopOptions.__dataclass_params__.frozen

@@ -194,20 +194,6 @@ def test_dense_consistency_true_edge_agrees_wrong_edge_does_not():
     assert float(bad.agreement) < 0.5 * float(good.agreement)
 
 
-def test_dense_consistency_deprecated_keywords_still_work():
-    src, dst, S = scene(seed=2)
-    new = V.dense_consistency(src, dst, S, K, ALL_PIXELS)
-    with pytest.warns(DeprecationWarning, match=r"stride=\.\.\., neighbours=\.\.\.\) is deprecated: pass config="):
-        old = V.dense_consistency(src, dst, S, K, stride=1, neighbours=0)
-    assert all(np.array_equal(a, b) for a, b in zip(new, old))
-    with pytest.warns(DeprecationWarning):  # a keyword overrides the config's field
-        old = V.cross_chunk_consistency(*(align.ChunkFrames(*(np.asarray(a)[None] for a in f)) for f in (src, dst)),
-                                        S[None], K, V.VerificationConfig(stride=3), stride=1, neighbours=0)
-    assert int(old.i_to_j.pairs_agree[0]) == int(new.pairs_agree)
-    with pytest.raises(TypeError, match="unexpected keyword argument 'strides'"):
-        V.dense_consistency(src, dst, S, K, strides=2)
-
-
 def test_dense_consistency_nonfinite_edge_and_empty_source():
     src, dst, S = scene(seed=3)
     nan = V.dense_consistency(src, dst, np.full(8, np.nan), K)

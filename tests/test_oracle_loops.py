@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from swiftjax import camera, sim3
 from swiftjax.synthetic import places
 from swiftjax.synthetic.covisibility import covisibility, covisibility_mutual
-from swiftjax.synthetic.oracle import Hallucination, OracleNoise, VGGTOracle, _se3_power, _so3_exp_np
+from swiftjax.synthetic import Hallucination, OracleNoise, VGGTOracle
+from swiftjax.synthetic.se3_np import se3_power, so3_exp
 from test_synthetic import HW, exact, route, world  # noqa: F401  (shared fixtures)
 
 
@@ -104,17 +105,17 @@ def test_hallucination_weight_and_geodesic_blend():
     H = np.eye(4)
     for angle in (0.3, 2.0, np.pi - 1e-4):  # a false loop may face the other way
         axis = rng.normal(size=3)
-        H[:3, :3] = _so3_exp_np(angle * axis / np.linalg.norm(axis))
+        H[:3, :3] = so3_exp(angle * axis / np.linalg.norm(axis))
         H[:3, 3] = rng.normal(size=3) * 30
-        half, third = _se3_power(H, 0.5), _se3_power(H, 1 / 3)
+        half, third = se3_power(H, 0.5), se3_power(H, 1 / 3)
         np.testing.assert_allclose(half @ half, H, atol=1e-9)  # Exp(w Log H): a one-parameter subgroup
         np.testing.assert_allclose(third @ third @ third, H, atol=1e-9)
-        np.testing.assert_allclose(_se3_power(H, 1.0), H, atol=1e-9)
-        np.testing.assert_allclose(_se3_power(H, 0.0), np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(se3_power(H, 1.0), H, atol=1e-9)
+        np.testing.assert_allclose(se3_power(H, 0.0), np.eye(4), atol=1e-12)
         # against sim3's float64 Exp/Log (an independent implementation)
         with jax.enable_x64(True):
             ref = np.asarray(_sim3_power(jnp.asarray(H), 0.37))
-        np.testing.assert_allclose(_se3_power(H, 0.37), ref, atol=1e-8)
+        np.testing.assert_allclose(se3_power(H, 0.37), ref, atol=1e-8)
 
 
 def test_true_loop_chunk_is_unchanged(world, route):
@@ -183,7 +184,7 @@ def test_partial_overlap_blends_between_honest_and_hallucinated(world, route):
     truth = o.loop_chunk_truth(frames)
     assert 0.0 < truth.weight < 1.0
     assert truth.weight == pytest.approx(hz.weight(truth.covisibility))
-    np.testing.assert_allclose(truth.rebase, _se3_power(truth.full_rebase, truth.weight), atol=1e-12)
+    np.testing.assert_allclose(truth.rebase, se3_power(truth.full_rebase, truth.weight), atol=1e-12)
     pred = o.predict_chunk(frames)
     T_pred = np.asarray(camera.camera_to_world(pred.extrinsic), np.float64)
     G = o.true_chunk_gauge(frames)
@@ -272,7 +273,7 @@ def test_depth_seen_from_the_other_side_carries_the_same_errors():
     the facades from their other end) carries VGGT's per-pixel errors as the outbound frames'
     do: after the chunk scale is divided out, the log depth error has the same spread (not 0,
     not larger)."""
-    from swiftjax import demo
+    from swiftjax.synthetic import demo
 
     out = []
     for k in range(160):

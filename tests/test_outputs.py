@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from _extras import require_extra
 from swiftjax.io import images
 
 
@@ -67,7 +68,7 @@ def test_bad_timestamps_files(tmp_path, text, match):
 def test_colmap_model_is_trainer_ready(small_loop_run):
     """The layout gsplat and nerfstudio load; pycolmap reads it; every image observes points
     and every observation reprojects to its 3-D point; images exist at the camera's size."""
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     from PIL import Image
 
     from swiftjax.io import trajectory
@@ -242,7 +243,8 @@ def test_original_resolution_undoes_the_preprocessing(tmp_path, mode, size):
 
 
 def test_original_resolution_needs_input_images(tmp_path):
-    from swiftjax import demo, pipeline
+    from swiftjax import pipeline
+    from swiftjax.synthetic import demo
 
     run = demo.loop_route_run(20)
     with pytest.raises(ValueError, match="needs the input images"):
@@ -259,7 +261,7 @@ def test_original_resolution_end_to_end_with_tiny_vggt(tmp_path, golden_dir):
     (The crop geometry is checked in ``test_original_resolution_undoes_the_preprocessing``.)"""
     mode = "pad"
     pytest.importorskip("torch")
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     from PIL import Image
 
     from inference import VGGT, VGGTConfig, load_checkpoint

@@ -13,7 +13,9 @@ import json
 import numpy as np
 import pytest
 
-from swiftjax import chunks, demo, evaluation, pipeline
+from _extras import require_extra
+from swiftjax import chunks, evaluation, pipeline
+from swiftjax.synthetic import demo
 from swiftjax.io import ply, trajectory
 from swiftjax.synthetic.routes import loop_route
 
@@ -147,7 +149,7 @@ def test_point_cloud_lies_on_the_true_surfaces(result, small_run):
 
 
 def test_colmap_model_reads_back(result):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = require_extra("pycolmap")
     rec = pycolmap.Reconstruction(str(result.run_dir / "colmap" / "sparse" / "0"))
     assert rec.num_reg_images() == result.num_frames
     assert rec.num_points3D() > 100

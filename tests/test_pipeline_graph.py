@@ -9,7 +9,8 @@ import jax
 import numpy as np
 import pytest
 
-from swiftjax import align, align_covariance as ac, loops, posegraph, sim3
+from swiftjax import align, loops, posegraph, sim3
+from swiftjax.align import covariance as ac
 from swiftjax.pipeline import PipelineConfig, chain_poses, graph
 from swiftjax.pipeline.alignment import info_dict as _info_dict
 from swiftjax.pipeline.results import LoopEdge, LoopResult, TemporalResult
@@ -187,7 +188,7 @@ def test_scale_priors_undo_the_chain_drift_that_the_median_cannot(x64):
                          edge_information="equal")  # (zero-length edges: the drift model is singular)
     prior = graph.run(ctx, temporal, LoopResult([], []))
     chain = graph.chain_poses(temporal.relative)
-    m, _ = __import__("swiftjax.metric", fromlist=["x"]).combine_scales(temporal.ground_heights, chain[:, 7], H)
+    m, _ = __import__("swiftjax.metric_scale", fromlist=["x"]).combine_scales(temporal.ground_heights, chain[:, 7], H)
     err_prior = np.abs(np.log(prior.chunk_poses_no_loops[:, 7]) - true_log_s).max()
     err_median = np.abs(np.log(m * chain[:, 7]) - true_log_s).max()
     assert err_prior < 0.03 < err_median
@@ -229,14 +230,14 @@ def test_scale_priors_with_loop_edges_keep_the_robust_loop_verdicts(x64):
 def test_the_prior_problem_passes_validation_and_singular_information_would_not(x64):
     """The pose graph refuses positive semi-definite (singular) information: the scale-only prior
     carries eps = 1e-9 of its weight on the other six entries to stay positive definite."""
-    from swiftjax import metric
+    from swiftjax import metric_scale
 
     truth, temporal, H, _, _ = _scale_case()
     T = len(truth)
     chain = graph.chain_poses(temporal.relative)
-    priors = metric.scale_priors(temporal.ground_heights, chain[:, 7], H, 0.02)
+    priors = metric_scale.scale_priors(temporal.ground_heights, chain[:, 7], H, 0.02)
     edges = np.array([(t, t + 1) for t in range(T - 1)], np.int32)
-    args = (metric.apply_scale(chain, priors.start_factor), edges, temporal.relative, None, np.zeros(T - 1, bool), priors)
+    args = (metric_scale.apply_scale(chain, priors.start_factor), edges, temporal.relative, None, np.zeros(T - 1, bool), priors)
     problem = graph.scale_prior_problem(*args)
     posegraph.validate(problem)
     assert problem.num_nodes == T + 1 and bool(problem.fixed[T]) and not np.asarray(problem.fixed[:T]).any()

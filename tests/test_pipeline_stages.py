@@ -16,7 +16,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from swiftjax import demo, pipeline
+from swiftjax import pipeline
+from swiftjax.synthetic import demo
 from swiftjax.synthetic.routes import loop_route
 from test_pipeline import CountingPredictor, FailingPredictor, Interrupted
 

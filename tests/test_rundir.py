@@ -13,7 +13,8 @@ import shutil
 import numpy as np
 import pytest
 
-from swiftjax import demo, pipeline
+from swiftjax import pipeline
+from swiftjax.synthetic import demo
 from swiftjax.io.atomic import temp_files
 from swiftjax.pipeline import rundir
 from swiftjax.synthetic.routes import loop_route

@@ -11,7 +11,7 @@ import pytest
 
 from swiftjax import camera, sim3
 from swiftjax.synthetic import places
-from swiftjax.synthetic.oracle import OracleNoise, VGGTOracle, kitti_intrinsics
+from swiftjax.synthetic import OracleNoise, VGGTOracle, kitti_intrinsics
 from swiftjax.synthetic.render import chunk_candidates, frame_planes, render_frames, render_numpy
 from swiftjax.synthetic.routes import loop_route
 from swiftjax.synthetic.world import BUILDING, GROUND, POLE, SKY, TREE, WorldConfig, build_world

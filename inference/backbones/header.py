@@ -13,6 +13,8 @@ import os
 import struct
 from typing import Any
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["read_header", "checkpoint_header", "compare_shapes", "describe_family", "HeaderError", "FAMILY_TEXT"]
 
 _ITEMSIZE = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1,
@@ -20,7 +22,7 @@ _ITEMSIZE = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16":
 _MAX_HEADER = 100 << 20
 
 
-class HeaderError(ValueError):
+class HeaderError(SwiftjaxError, ValueError):
     """Not a readable, complete safetensors file (one line naming the file)."""
 
 

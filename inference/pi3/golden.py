@@ -21,7 +21,6 @@ positions) must be exact.
 
 from __future__ import annotations
 
-import json
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path

@@ -85,7 +85,7 @@ class Pi3X(Pi3Base):
         return tokens
 
     def _pose_injector(self, prep: PreparedConditions, views: int, patches_hw: tuple[int, int],
-                       trace: Trace | None):  # noqa: ANN202 - a closure for Pi3Base.decode
+                       trace: Trace | None):  # a closure for Pi3Base.decode
         mask = prep.mask_pose  # [B, N]
         if not self.static_graph and not bool(mask.any()):
             return None

@@ -13,11 +13,10 @@ Modules:
 * :mod:`swiftjax.align.irls`: VGGT-Long's IRLS baseline.
 * :mod:`swiftjax.align.options`: :class:`AlignOptions`, the stage's defaults.
 * :mod:`swiftjax.align.checks`: host-side input checks.
+* :mod:`swiftjax.align.covariance`: information matrices of alignment and loop edges.
 """
 
-from swiftjax.align.options import AlignOptions
-from swiftjax.align.umeyama import UmeyamaInfo, umeyama
-from swiftjax.align.mask import frame_conf_mean, masked_median, overlap_scale_ratio, reliability_mask
+from swiftjax.align import covariance as covariance  # the submodule, as align.covariance
 from swiftjax.align.chunk_pair import (
     AlignInfo,
     ChunkFrames,
@@ -27,7 +26,9 @@ from swiftjax.align.chunk_pair import (
     pose_based_estimate,
 )
 from swiftjax.align.irls import IRLSInfo, irls_chunk_pair, irls_sim3
-from swiftjax.align import chunk_pair as _chunk_pair, irls as _irls
+from swiftjax.align.mask import frame_conf_mean, masked_median, overlap_scale_ratio, reliability_mask
+from swiftjax.align.options import AlignOptions
+from swiftjax.align.umeyama import UmeyamaInfo, umeyama
 
 __all__ = [
     "AlignOptions",
@@ -37,6 +38,13 @@ __all__ = [
     "reliability_mask",
     "overlap_scale_ratio",
     "masked_median",
-    *_irls.__all__,
-    *_chunk_pair.__all__,
+    "IRLSInfo",
+    "irls_sim3",
+    "irls_chunk_pair",
+    "AlignInfo",
+    "ChunkFrames",
+    "align_chunk_pair",
+    "align_chunk_pair_checked",
+    "align_chunk_pairs",
+    "pose_based_estimate",
 ]

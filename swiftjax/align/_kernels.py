@@ -21,15 +21,18 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 from jax import Array
+from jax.typing import DTypeLike
 
 from swiftjax._compile import LIGHT_COMPILE, quick_jit
 
+_ffi_kernels: Any
 try:  # the optional compiled extension
-    from swiftjax.align import _ffi_kernels
+    from swiftjax.align import _ffi_kernels  # type: ignore[attr-defined,no-redef]  # built by setup
 except ImportError:  # pragma: no cover - depends on the install
     _ffi_kernels = None
 
@@ -38,14 +41,14 @@ __all__ = ["available", "compiler_options", "fused", "jit", "pixel_moments", "um
 _registered = False
 
 
-def available(dtype) -> bool:
+def available(dtype: DTypeLike) -> bool:
     """Whether the fused kernel serves ``dtype`` arrays now (float32, extension built, not disabled)."""
     if _ffi_kernels is None or os.environ.get("SWIFTJAX_ALIGN_KERNEL", "auto") == "jax":
         return False
-    return jnp.dtype(dtype) == jnp.float32
+    return bool(jnp.dtype(dtype) == jnp.float32)
 
 
-def compiler_options(dtype) -> dict | None:
+def compiler_options(dtype: DTypeLike | None) -> dict[str, Any] | None:
     """XLA options of a program whose moment passes run on ``dtype`` arrays:
     :data:`swiftjax._compile.LIGHT_COMPILE` when the fused kernels do the work (:func:`available`,
     CPU backend), else None (XLA's defaults: the pure-JAX passes are the hot loop)."""
@@ -53,7 +56,7 @@ def compiler_options(dtype) -> dict | None:
     return LIGHT_COMPILE if fast else None
 
 
-def jit(fun: Callable, **jit_kwargs) -> Callable:
+def jit(fun: Callable[..., Any], **jit_kwargs: Any) -> Callable[..., Any]:
     """``jax.jit(fun)`` whose compile fits the path a call takes.
 
     The options are :func:`compiler_options` of the first floating argument's dtype: when the
@@ -64,7 +67,7 @@ def jit(fun: Callable, **jit_kwargs) -> Callable:
     quick, full = quick_jit(fun, options=LIGHT_COMPILE, **jit_kwargs), jax.jit(fun, **jit_kwargs)
 
     @functools.wraps(fun)
-    def call(*args, **kwargs):
+    def call(*args: Any, **kwargs: Any) -> Any:
         leaves = jax.tree_util.tree_leaves((args, kwargs))
         dtype = next((jnp.result_type(x) for x in leaves if jnp.issubdtype(jnp.result_type(x), jnp.floating)), None)
         return (full if compiler_options(dtype) is None else quick)(*args, **kwargs)
@@ -80,7 +83,9 @@ def _register() -> None:
         _registered = True
 
 
-def fused(target: str, out_shapes: Callable, reference: Callable, *args: Array):
+def fused(
+    target: str, out_shapes: Callable[..., Any], reference: Callable[..., Any], *args: Array
+) -> Any:
     """``reference(*args)``, computed by the FFI ``target`` on CPU when :func:`available`.
 
     ``out_shapes(*args)`` gives the outputs' ``jax.ShapeDtypeStruct``s (those of
@@ -93,18 +98,18 @@ def fused(target: str, out_shapes: Callable, reference: Callable, *args: Array):
     call = jax.ffi.ffi_call(target, out_shapes(*args), vmap_method="broadcast_all")
 
     @jax.custom_jvp
-    def f(*a):
+    def f(*a: Array) -> Any:
         return jax.lax.platform_dependent(*a, cpu=call, default=reference)
 
     @f.defjvp
-    def f_jvp(primals, tangents):
+    def f_jvp(primals: tuple[Array, ...], tangents: tuple[Array, ...]) -> tuple[Any, Any]:
         return f(*primals), jax.jvp(reference, primals, tangents)[1]
 
     return f(*args)
 
 
 def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array,
-                  reference: Callable):
+                  reference: Callable[..., Any]) -> tuple[Array, Array]:
     """Per-frame pixel moments ``(S [F, 6, 3, 3], n [F])`` (``n`` int32 reliable-pixel counts).
 
     ``dp, dc, cp, cc [F, H, W]``, ``params [F, 6] = (r_p, r_c, e_p, e_c, gamma, lam)``,
@@ -114,12 +119,14 @@ def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut:
     """
     f, h, w = dp.shape[-3:]
     lead = dp.shape[:-3]
-    shapes = lambda *a: (  # noqa: E731
+    shapes = lambda *a: (
         jax.ShapeDtypeStruct((*lead, f, 6, 3, 3), dp.dtype), jax.ShapeDtypeStruct((*lead, f), jnp.int32))
     return fused("swiftjax_pixel_moments", shapes, reference, dp, dc, cp, cc, params, ut, vt)
 
 
-def umeyama_moments(src: Array, dst: Array, w: Array, centres: Array, reference: Callable):
+def umeyama_moments(
+    src: Array, dst: Array, w: Array, centres: Array, reference: Callable[..., Any]
+) -> tuple[Array, Array]:
     """``(T [..., 18], n [...])``: the centred weighted sums and count of a batched Umeyama problem.
 
     ``src, dst [..., N, 3]``, ``w [..., N]`` (unsanitised: points with ``w <= 0`` or a
@@ -127,6 +134,6 @@ def umeyama_moments(src: Array, dst: Array, w: Array, centres: Array, reference:
     same arguments and returns the same.
     """
     lead = w.shape[:-1]
-    shapes = lambda *a: (  # noqa: E731
+    shapes = lambda *a: (
         jax.ShapeDtypeStruct((*lead, 18), src.dtype), jax.ShapeDtypeStruct(lead, jnp.int32))
     return fused("swiftjax_umeyama_moments", shapes, reference, src, dst, w, centres)

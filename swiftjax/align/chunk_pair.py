@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import ArrayLike, Bool, Float, Int, Real
+from jax.typing import DTypeLike
+from jaxtyping import ArrayLike, Bool, Float, Real
 
 from swiftjax import camera, sim3, so3
 from swiftjax._reductions import variadic_sum
@@ -60,7 +61,7 @@ class ChunkFrames(NamedTuple):
     extrinsic: Array
 
     @classmethod
-    def from_prediction(cls, pred, index=slice(None)) -> "ChunkFrames":
+    def from_prediction(cls, pred: Any, index: Any = slice(None)) -> ChunkFrames:
         """Frames ``index`` (a slice or index array) of a :class:`~swiftjax.prediction.ChunkPrediction`."""
         return cls(pred.depth[index], pred.conf[index], pred.intrinsic[index], pred.extrinsic[index])
 
@@ -82,7 +83,7 @@ class AlignInfo(NamedTuple):
         src_mean, src_covariance: ``[3]``, ``[3, 3]`` weighted mean and covariance of the source
             points (chunk ``t+1``'s reliable overlap points, in chunk ``t+1`` units): with ``S``'s
             scale, ``num_points`` and ``rms`` they give the edge's information matrix
-            (:func:`swiftjax.align_covariance.alignment_information`).  Zeros if no point is used.
+            (:func:`swiftjax.align.covariance.alignment_information`).  Zeros if no point is used.
         scale_ratio: ``rho``, the factor chunk ``t+1``'s overlap depths were multiplied by
             before eq. 2 (:func:`~swiftjax.align.overlap_scale_ratio`; 1 with
             ``overlap_scale="none"``).
@@ -101,7 +102,7 @@ class AlignInfo(NamedTuple):
     scale_ratio: Array
 
 
-def _chunk_geometry(frames: ChunkFrames, K_ref: Array):
+def _chunk_geometry(frames: ChunkFrames, K_ref: Array) -> tuple[Array, Array, Array]:
     """Per-frame ``(focal ratio r [O], B = R_c2w K_ref^-1 [O,3,3], centre c [O,3])``.
 
     World point of pixel ``(u, v)`` of frame ``f``: ``x = r_f D (B_f (u, v, 1)) + c_f``,
@@ -114,7 +115,9 @@ def _chunk_geometry(frames: ChunkFrames, K_ref: Array):
     return r, B, c2w[..., :3, 3]
 
 
-def _points_soa(depth: Array, r: Array, B: Array, c: Array, centre: Array, u: Array, v: Array):
+def _points_soa(
+    depth: Array, r: Array, B: Array, c: Array, centre: Array, u: Array, v: Array
+) -> tuple[Array, Array, Array]:
     """Centred world points as three ``[O, H, W]`` components (see :func:`_chunk_geometry`)."""
     e = (slice(None), None, None)
     d = r[e] * depth
@@ -122,12 +125,12 @@ def _points_soa(depth: Array, r: Array, B: Array, c: Array, centre: Array, u: Ar
     for i in range(3):
         ray = B[:, i, 0][e] * u + B[:, i, 1][e] * v + B[:, i, 2][e]
         out.append(d * ray + (c[:, i] - centre[i])[e])
-    return tuple(out)
+    return out[0], out[1], out[2]
 
 
 def pose_based_estimate(
     prev_extrinsic: Real[ArrayLike, "O 3 4"], cur_extrinsic: Real[ArrayLike, "O 3 4"]
-) -> tuple[Float[Array, "8"], Bool[Array, ""]]:
+) -> tuple[Float[Array, 8], Bool[Array, ""]]:
     """``S_{t->t+1}`` from the overlap cameras alone (the fallback when Umeyama is invalid).
 
     Each overlap frame has a camera-to-world pose in both chunks, ``P_f`` (chunk t) and
@@ -175,13 +178,14 @@ def _gram_index(which: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pw = {"yx": zip(da.ravel(), db.ravel()), "xx": ((0, i + j) for i, j in zip(da.ravel(), db.ravel())),
           "yy": ((i + j, 0) for i, j in zip(da.ravel(), db.ravel()))}[which]
     img = np.array([_IMG[ij] for ij in pw]).reshape(6, 6)
-    return tuple(x.astype(np.int32) for x in (img, _PHI_U[a] + _PHI_U[b], _PHI_V[a] + _PHI_V[b]))
+    k, l = _PHI_U[a] + _PHI_U[b], _PHI_V[a] + _PHI_V[b]
+    return img.astype(np.int32), k.astype(np.int32), l.astype(np.int32)
 
 
 _G_YX, _G_XX, _G_YY = (_gram_index(k) for k in ("yx", "xx", "yy"))
 
 
-def _pixel_grid(h: int, w: int, dtype) -> tuple[Array, Array, Array]:
+def _pixel_grid(h: int, w: int, dtype: DTypeLike) -> tuple[Array, Array, Array]:
     """``u~ [W]``, ``v~ [H]`` in ``[-1, 1]`` and ``T [3, 3]`` with ``(u, v, 1) = T (u~, v~, 1)``."""
     u0, v0 = (w - 1) / 2, (h - 1) / 2
     su, sv = max(u0, 1.0), max(v0, 1.0)
@@ -210,7 +214,9 @@ def _pixel_moments(ok: Array, a: Array, b: Array, ut: Array, vt: Array) -> tuple
     return S, n
 
 
-def _masked_pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array):
+def _masked_pixel_moments(
+    dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array
+) -> tuple[Array, Array]:
     """:func:`_pixel_moments` of the reliable pixels (eq. 2) of ``[O, H, W]`` depths and
     confidences, from the per-frame ``params [O, 6] = (r_p, r_c, e_p, e_c, gamma, lam)``:
     focal ratios, normalised-depth centres, confidence ratio (threshold ``gamma`` times the
@@ -265,7 +271,7 @@ def _source_moments(m: _Moments, sxx3: Array) -> tuple[Array, Array]:
     return jnp.where(ok, mx + m.cx, 0), jnp.where(ok, cov, 0)
 
 
-def _frame_depth_centre(depth: Array, r: Array, sub: tuple) -> Array:
+def _frame_depth_centre(depth: Array, r: Array, sub: tuple[Any, ...]) -> Array:
     """Rough per-frame centre of the normalised depth: mean of a strided subsample ``[O]``."""
     d = r[:, None, None] * depth[sub]
     fin = jnp.isfinite(d)
@@ -302,7 +308,7 @@ def _align_once(
     conf_ratio: Array,
     min_points: Array,
     fallback_depth_threshold: Array,
-    use_scale_ratio: Array,
+    use_scale_ratio: Array | bool,
     user_keep: Array | None = None,
 ) -> tuple[Array, AlignInfo]:
     dtype = prev.depth.dtype
@@ -326,7 +332,10 @@ def _align_once(
     rho = jax.lax.stop_gradient(jnp.where(use_scale_ratio, rho, 1).astype(dtype))
     r_c, c_c = rho * r_c, rho * c_c
 
-    def mask(depth_p, depth_c, conf_p, conf_c, rp, rc, lam, user):
+    def mask(
+        depth_p: Array, depth_c: Array, conf_p: Array, conf_c: Array, rp: Array, rc: Array, lam: Array,
+        user: Array | None,
+    ) -> Array:
         m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio)
         return m if user is None else m & user
 
@@ -357,10 +366,10 @@ def _align_once(
         & jnp.all(jnp.isfinite(B_p), (-2, -1)) & jnp.all(jnp.isfinite(B_c), (-2, -1))
         & jnp.all(jnp.isfinite(c_p), -1) & jnp.all(jnp.isfinite(c_c), -1)
     )
-    keep = lambda a: jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0)  # noqa: E731
+    keep = lambda a: jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0)
     ut, vt, T = _pixel_grid(h, w, dtype)
-    My = _affine_maps(*(keep(a) for a in (B_p, c_p, e_p)), cy, T)
-    Mx = _affine_maps(*(keep(a) for a in (B_c, c_c, e_c)), cx, T)
+    My = _affine_maps(keep(B_p), keep(c_p), keep(e_p), cy, T)
+    Mx = _affine_maps(keep(B_c), keep(c_c), keep(e_c), cx, T)
 
     # The mask (eq. 2) and the deltas of every frame from one [O, 7] table of per-frame
     # parameters: a dropped frame gets lam = -1 (nothing passes), a pixel the user masks out a
@@ -368,7 +377,7 @@ def _align_once(
     dp = prev.depth if user_keep is None else jnp.where(user_keep, prev.depth, jnp.nan)
     gamma = jnp.broadcast_to(jnp.asarray(conf_ratio, dtype), r_p.shape)
 
-    def moments(lam):
+    def moments(lam: Array) -> tuple[Array, Array]:
         lam_f = jnp.where(frame_ok, lam, -1).astype(dtype)
         params = jnp.stack([r_p, r_c, e_p, e_c, gamma, lam_f], -1)
         S, n = _kernels.pixel_moments(dp, cur.depth, prev.conf, cur.conf, params, ut, vt, _masked_pixel_moments)
@@ -406,11 +415,11 @@ _align_core_jit = _kernels.jit(_align_core)
 _align_core_batched = _kernels.jit(jax.vmap(_align_core, in_axes=(0, 0, 0, None, None, None, None, None, 0)))
 
 
-def _as_frames(x, dtype=None) -> ChunkFrames:
+def _as_frames(x: Any, dtype: DTypeLike | None = None) -> ChunkFrames:
     return ChunkFrames(*(jnp.asarray(getattr(x, f), dtype) for f in ChunkFrames._fields))
 
 
-def _core_arguments(prev, cur, K_ref, options: AlignOptions):
+def _core_arguments(prev: Any, cur: Any, K_ref: Any, options: AlignOptions) -> tuple[Any, ...]:
     """Both chunks' frames in one floating dtype (the depth's; float32 for integer depth) and
     every option as a traced array, in the order of :func:`_align_core`."""
     prev = _as_frames(prev)
@@ -427,7 +436,7 @@ def _core_arguments(prev, cur, K_ref, options: AlignOptions):
     )
 
 
-def _resolve(options: AlignOptions | None, **overrides) -> AlignOptions:
+def _resolve(options: AlignOptions | None, **overrides: Any) -> AlignOptions:
     """``options`` (default :class:`AlignOptions`) with the keywords given (not ``None``) applied."""
     return (AlignOptions() if options is None else options).replace(**overrides)
 
@@ -443,7 +452,7 @@ def align_chunk_pair(
     min_points: int | None = None,
     fallback_depth_threshold: float | None = None,
     mask: Bool[ArrayLike, "O H W"] | None = None,
-) -> tuple[Float[Array, "8"], AlignInfo]:
+) -> tuple[Float[Array, 8], AlignInfo]:
     """``S_{t->t+1}`` (maps chunk t+1 coordinates into chunk t) from the overlap frames.
 
     ``prev`` holds the LAST ``O`` frames of chunk ``t`` and ``cur`` the FIRST ``O`` frames of
@@ -497,7 +506,7 @@ def align_chunk_pairs(
     *,
     options: AlignOptions | None = None,
     mask: Bool[ArrayLike, "P O H W"] | None = None,
-    **overrides: float | int | None,
+    **overrides: float | int | str | bool | None,
 ) -> tuple[Float[Array, "P 8"], AlignInfo]:
     """:func:`align_chunk_pair` for ``P`` pairs at once (``jax.vmap``, one jitted call).
 
@@ -520,8 +529,8 @@ def align_chunk_pair_checked(
     throw: bool = True,
     options: AlignOptions | None = None,
     mask: Bool[ArrayLike, "O H W"] | None = None,
-    **overrides,
-) -> tuple[Float[Array, "8"], AlignInfo]:
+    **overrides: Any,
+) -> tuple[Float[Array, 8], AlignInfo]:
     """Host-level :func:`align_chunk_pair`: validates inputs first, warns on a fallback.
 
     Args:

@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -62,7 +62,7 @@ def irls_sim3(
     delta: float | Real[Array, ""] = 0.1,  # traced when given (jit without static arguments)
     max_iters: int | Int[Array, ""] = 5,
     tol: float | Real[Array, ""] = 1e-9,
-) -> tuple[Float[Array, "8"], IRLSInfo]:
+) -> tuple[Float[Array, 8], IRLSInfo]:
     """VGGT-Long's robust IRLS Sim(3) (``robust_weighted_estimate_sim3``), the baseline.
 
     Faithful port, for comparison only (one problem, ``src``/``dst`` ``[N, 3]``)::
@@ -94,16 +94,16 @@ def irls_sim3(
     dst = jnp.where(ok[..., None], dst, 0)
     dt = src.dtype
 
-    def huber(r):
+    def huber(r: Array) -> Array:
         return jnp.where(r <= delta, 0.5 * r * r, delta * (r - 0.5 * delta))
 
     s, R, t = _vggt_long_weighted_sim3(src, dst, w0)
 
-    def cond(state):
+    def cond(state: Any) -> Any:
         k, _, _, _, _, done = state
         return (k < max_iters) & ~done
 
-    def body(state):
+    def body(state: Any) -> Any:
         k, s, R, t, prev_err, _ = state
         pred = s * src @ R.T + t
         r = jnp.linalg.norm(dst - pred, axis=-1)
@@ -115,7 +115,7 @@ def irls_sim3(
         angle = jnp.arccos(jnp.clip((jnp.trace(R_n @ R.T) - 1) / 2, -1.0, 1.0))
         err = jnp.sum(huber(r) * w0)
         done = ((change < tol) & (angle < jnp.deg2rad(0.1))) | (jnp.abs(prev_err - err) < tol * prev_err)
-        keep = lambda old, new: jnp.where(done, old, new)  # noqa: E731
+        keep = lambda old, new: jnp.where(done, old, new)
         return (k + 1, keep(s, s_n), keep(R, R_n), keep(t, t_n), jnp.where(done, prev_err, err), done)
 
     state = (jnp.int32(0), s, R, t, jnp.asarray(jnp.inf, dt), jnp.asarray(False))
@@ -130,7 +130,7 @@ def irls_chunk_pair(
     K_ref: Float[Array, "3 3"],
     depth_threshold: Float[Array, ""],
     conf_ratio: Float[Array, ""],
-) -> tuple[Float[Array, "8"], IRLSInfo, Int[Array, ""]]:
+) -> tuple[Float[Array, 8], IRLSInfo, Int[Array, ""]]:
     """VGGT-Long's IRLS Sim(3) (:func:`irls_sim3`) on the same reliable overlap points as
     :func:`align_chunk_pair` (the comparison baseline).
 

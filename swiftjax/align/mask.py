@@ -46,7 +46,7 @@ def frame_conf_mean(conf: Real[ArrayLike, "*frames H W"]) -> Float[Array, "*fram
     conf = jnp.asarray(conf)
     flat = conf.reshape(*conf.shape[:-2], -1)
 
-    def masked(flat):
+    def masked(flat: Array) -> Array:
         fin = jnp.isfinite(flat)
         total, count = variadic_sum((jnp.where(fin, flat, 0), fin.astype(jnp.int32)), -1)
         return total / count.astype(total.dtype)
@@ -55,7 +55,7 @@ def frame_conf_mean(conf: Real[ArrayLike, "*frames H W"]) -> Float[Array, "*fram
     return jax.lax.cond(jnp.all(jnp.isfinite(plain)), lambda f: plain, masked, flat)
 
 
-def masked_median(values: Real[ArrayLike, "..."], keep: Bool[ArrayLike, "..."]) -> tuple[Float[Array, ""], Array]:
+def masked_median(values: Real[ArrayLike, ...], keep: Bool[ArrayLike, ...]) -> tuple[Float[Array, ""], Array]:
     """Median of ``values[keep]`` with fixed shapes: ``(median, count)`` (NaN, 0 when nothing is kept).
 
     ``values`` and ``keep`` are flattened; the kept values are sorted to the front (the others
@@ -111,11 +111,11 @@ def reliability_mask(
     depth_b: Real[ArrayLike, "*frames H W"],
     conf_a: Real[ArrayLike, "*frames H W"],
     conf_b: Real[ArrayLike, "*frames H W"],
-    depth_threshold: float | Real[ArrayLike, "..."] = AlignOptions.depth_threshold,
-    conf_ratio: float | Real[ArrayLike, "..."] = AlignOptions.conf_ratio,
+    depth_threshold: float | Real[ArrayLike, ...] = AlignOptions.depth_threshold,
+    conf_ratio: float | Real[ArrayLike, ...] = AlignOptions.conf_ratio,
     conf_mean_a: Real[ArrayLike, "*frames"] | None = None,
     conf_mean_b: Real[ArrayLike, "*frames"] | None = None,
-    scale_ratio: float | Real[ArrayLike, "..."] = 1.0,
+    scale_ratio: float | Real[ArrayLike, ...] = 1.0,
 ) -> Bool[Array, "*frames H W"]:
     """Reliable overlap pixels (paper eq. 2): bool ``[..., H, W]``.
 

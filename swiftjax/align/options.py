@@ -59,11 +59,11 @@ class AlignOptions:
         if self.overlap_scale not in OVERLAP_SCALE_RULES:
             raise ValueError(f"AlignOptions: overlap_scale must be one of {OVERLAP_SCALE_RULES}, got {self.overlap_scale!r}")
 
-    def replace(self, **changes: Any) -> "AlignOptions":
+    def replace(self, **changes: Any) -> AlignOptions:
         """A copy with ``changes`` applied (``None`` values are ignored)."""
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
-    def for_loop(self) -> "AlignOptions":
+    def for_loop(self) -> AlignOptions:
         """The options of a loop-chunk alignment: ``depth_threshold = loop_depth_threshold``,
         and the retry threshold never tighter than it."""
         return dataclasses.replace(
@@ -73,7 +73,7 @@ class AlignOptions:
         )
 
     @classmethod
-    def from_config(cls, config: Any) -> "AlignOptions":
+    def from_config(cls, config: Any) -> AlignOptions:
         """The fields of ``config`` (e.g. a :class:`~swiftjax.pipeline.PipelineConfig`) that
         share their names with this class's."""
         return cls(**{f.name: getattr(config, f.name) for f in dataclasses.fields(cls)})

@@ -97,7 +97,7 @@ def _rough_centre(p: Array, w: Array) -> Array:
     return jnp.where((wsum > 0)[..., None], c_w, c_u)
 
 
-def _moment_terms(xc: tuple[Array, Array, Array], yc: tuple[Array, Array, Array], w: Array, ok: Array):
+def _moment_terms(xc: tuple[Array, ...], yc: tuple[Array, ...], w: Array, ok: Array) -> tuple[Array, ...]:
     """The 19 per-point terms ``(w, w x, w y, w y x^T, w|x|^2, w|y|^2, ok)`` (x, y already centred, 0 where not ok)."""
     wx = tuple(w * a for a in xc)
     wy = tuple(w * b for b in yc)
@@ -172,7 +172,7 @@ def _centred_sums(src: Array, dst: Array, w: Array, centres: Array) -> tuple[Arr
     ok = _valid_points(src, dst, w)
     cx, cy = centres[..., :3], centres[..., 3:]
 
-    def terms(sl: slice, shape: tuple[int, ...]):
+    def terms(sl: slice, shape: tuple[int, ...]) -> tuple[Array, ...]:
         okb = ok[..., sl].reshape(shape)
         wb = jnp.where(okb, w[..., sl].reshape(shape), 0)
         e = (Ellipsis,) + (None,) * (len(shape) - ok.ndim + 1)

@@ -42,8 +42,7 @@ member, raises :class:`ChunkCorruptError` naming the file, the field and the fra
 the pipeline can report it and predict the chunk again.  The checksums cost a fraction of
 the write itself (``bench/bench_io.py``, docs/performance/io.md).
 
-float16 halves the biggest arrays (a KITTI chunk, 75x154x518 with images and 1024-D
-descriptors: 42 MB instead of 66 MB).  Rounding moves a depth ``d`` by at most
+float16 halves the biggest arrays (docs/performance/io.md).  Rounding moves a depth ``d`` by at most
 ``4.9e-4 d``: at VGGT-scale depths (``d`` of order 1-10) that is <= 0.005, <= 2.5 % of the
 reliability mask's absolute threshold ``lambda_D = 0.2``, so only pairs already within
 ``~5e-4 d`` of the threshold can change side.  ``ChunkStore(..., half=False)`` keeps float32.
@@ -62,6 +61,7 @@ from typing import Any
 import numpy as np
 
 from swiftjax import _faults
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 from swiftjax.prediction import ChunkPrediction
 
@@ -84,7 +84,7 @@ _NAME = re.compile(r"^(chunk|loop|tail)_(\d{5,})\.npz$")
 _READ_ERRORS = (Exception,)
 
 
-class ChunkCorruptError(ValueError):
+class ChunkCorruptError(SwiftjaxError, ValueError):
     """A chunk file whose bytes are not those written: unreadable, or a CRC32 mismatch.
 
     Attributes:

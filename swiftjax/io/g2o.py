@@ -33,6 +33,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = ["G2oGraph", "G2oError", "read_g2o", "write_g2o"]
 
 _VERTEX = "VERTEX_SE3:QUAT"
@@ -40,7 +42,7 @@ _EDGE = "EDGE_SE3:QUAT"
 _TRIU = np.triu_indices(6)
 
 
-class G2oError(ValueError):
+class G2oError(SwiftjaxError, ValueError):
     """A malformed g2o file."""
 
 

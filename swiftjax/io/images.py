@@ -34,11 +34,13 @@ import sys
 import tempfile
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
+
+from swiftjax.errors import SwiftjaxError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -60,7 +62,7 @@ _GLOB_CHARS = re.compile(r"[*?\[]")
 _SEEK_FORWARD_MAX = 64  # video: grab up to this many frames forward instead of seeking
 
 
-class InputError(ValueError):
+class InputError(SwiftjaxError, ValueError):
     """The user's input (frames, files) is unusable; the message is one line naming the file."""
 
 
@@ -203,7 +205,7 @@ def _exif_orientation(im: Any) -> int:
     """The EXIF orientation tag (1 = as stored; 5-8 = rotated by 90 degrees) of an open image."""
     try:
         return int(im.getexif().get(0x0112, 1) or 1)
-    except Exception:  # noqa: BLE001 - a malformed EXIF block is not our concern here
+    except Exception:  # a malformed EXIF block is not our concern here
         return 1
 
 
@@ -260,7 +262,7 @@ class ImageFiles(FrameSource):
 
         try:
             im = Image.open(path)
-        except Exception as e:  # noqa: BLE001 - not a format Pillow knows: let OpenCV try
+        except Exception as e:  # not a format Pillow knows: let OpenCV try
             img = self._imread(path)
             if img is None:
                 why = (str(e).splitlines() or [""])[0]
@@ -277,7 +279,7 @@ class ImageFiles(FrameSource):
             if decode:
                 try:
                     im.load()
-                except Exception as e:  # noqa: BLE001 - truncated / corrupt data
+                except Exception as e:  # truncated / corrupt data
                     why = (str(e).splitlines() or [""])[0]
                     raise InputError(f"{path}: cannot decode image ({why})") from None
         if w <= 0 or h <= 0:

@@ -103,7 +103,7 @@ def plot_trajectory(
     est = _positions(estimate, "estimate")
     ref = None if reference is None else _positions(reference, "reference")
     free = None if no_loops is None else _positions(no_loops, "no_loops")
-    pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)  # noqa: E731
+    pairs = lambda x: np.zeros((0, 2), np.int64) if x is None else np.asarray(x, np.int64).reshape(-1, 2)
     lp, rj = pairs(loops), pairs(rejected)
     for name, p in (("loops", lp), ("rejected", rj)):
         if p.size and (p.min() < 0 or p.max() >= len(est)):
@@ -188,7 +188,7 @@ def plot_points(
     if len(pts) > max_points:
         pts, rgb = pts[:: -(-len(pts) // max_points)], rgb[:: -(-len(pts) // max_points)]
     order = np.argsort(sign * pts[:, vertical], kind="stable")
-    x = lambda p: p[..., a]  # noqa: E731
+    x = lambda p: p[..., a]
 
     # Frame the cloud without its farthest 0.5 % (sky, stray depth) and the whole trajectory.
     uv_cam = np.stack([x(est), est[:, b]], axis=1)

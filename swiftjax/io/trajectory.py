@@ -34,6 +34,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 
 __all__ = [
@@ -52,7 +53,7 @@ __all__ = [
 PathLike = str | os.PathLike
 
 
-class TrajectoryFormatError(ValueError):
+class TrajectoryFormatError(SwiftjaxError, ValueError):
     """A malformed trajectory file; the message names the file and the line."""
 
 

@@ -31,10 +31,8 @@ target frames with ``lax.scan``.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import warnings
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -49,8 +47,6 @@ __all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_co
 
 _DEFAULTS = VerificationConfig()
 _ALIGN = align.AlignOptions()  # conf_ratio: λ_γ, the alignment's (eq. 2)
-#: The options the dense test reads from its VerificationConfig (keywords of the former signature).
-_DEPRECATED = ("stride", "depth_tolerance", "neighbours")
 
 
 class ConsistencyInfo(NamedTuple):
@@ -142,7 +138,7 @@ def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: 
         view = inside & jnp.isfinite(D)
         good = view & (jnp.abs(z - D) <= tol * D)
         front = view & (z < (1 - tol) * D)
-        count = lambda m: jnp.sum(m, dtype=jnp.int32)  # noqa: E731
+        count = lambda m: jnp.sum(m, dtype=jnp.int32)
         return (seen | view, agree | good, n_seen + count(view), n_agree + count(good),
                 n_front + count(front)), None
 
@@ -155,7 +151,7 @@ def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: 
     num = jnp.sum(ok).astype(jnp.int32)
     num_seen = jnp.sum(seen).astype(jnp.int32)
     num_agree = jnp.sum(agree).astype(jnp.int32)
-    ratio = lambda a, b: jnp.where(b > 0, a.astype(dtype) / jnp.maximum(b, 1).astype(dtype), 0)  # noqa: E731
+    ratio = lambda a, b: jnp.where(b > 0, a.astype(dtype) / jnp.maximum(b, 1).astype(dtype), 0)
     return ConsistencyInfo(
         num_points=num, num_seen=num_seen, num_agree=num_agree, pairs_seen=n_seen,
         pairs_agree=n_agree, pairs_front=n_front, overlap=ratio(num_seen, num),
@@ -175,24 +171,6 @@ def _dense_consistency_jit(src, dst, S, K_ref, conf_ratio, depth_tolerance, stri
     return _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride, neighbours)
 
 
-def _config(config: VerificationConfig | None, deprecated: dict[str, Any], fn: str) -> VerificationConfig:
-    """``config`` (default ``VerificationConfig()``) with the deprecated keyword spellings
-    ``stride=, depth_tolerance=, neighbours=`` folded in (with a ``DeprecationWarning``)."""
-    config = _DEFAULTS if config is None else config
-    if deprecated:
-        unknown = sorted(set(deprecated) - set(_DEPRECATED))
-        if unknown:
-            raise TypeError(f"{fn}() got an unexpected keyword argument {unknown[0]!r}")
-        given = ", ".join(f"{k}=..." for k in deprecated)
-        warnings.warn(
-            f"{fn}(..., {given}) is deprecated: pass config=VerificationConfig({given})",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        config = dataclasses.replace(config, **deprecated)
-    return config
-
-
 def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConfig) -> tuple:
     """The jitted programs' arguments: frames and numbers in the source's float dtype, then the
     static ``stride`` and ``neighbours``."""
@@ -204,8 +182,8 @@ def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConf
 
 
 def dense_consistency(
-    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, "8"], K_ref: Float[ArrayLike, "3 3"],
-    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio, **deprecated: Any,
+    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, 8], K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
 ) -> ConsistencyInfo:
     """How many reliable points of ``src`` land on agreeing depth in ``dst`` under ``S``.
 
@@ -227,8 +205,6 @@ def dense_consistency(
             * ``depth_tolerance``: relative depth agreement ``τ``.
         conf_ratio: ``λ_γ``, as eq. 2 (both sides; default the alignment's,
             ``AlignOptions().conf_ratio``).
-        **deprecated: ``stride=``, ``depth_tolerance=``, ``neighbours=`` as keywords (the former
-            signature) still work, with a ``DeprecationWarning``; they override ``config``.
 
     Returns:
         :class:`ConsistencyInfo` (module docstring for the equations).  A non-finite ``S``
@@ -238,7 +214,7 @@ def dense_consistency(
     ``stride`` and ``neighbours``; the other options are traced.  Cost: ``G`` passes over the
     ``P`` source points (``lax.scan``), each a projection and one gather.
     """
-    config = _config(config, deprecated, "dense_consistency")
+    config = _DEFAULTS if config is None else config
     return _dense_consistency_jit(*_traced_args(src, dst, S_dst_src, K_ref, conf_ratio, config))
 
 
@@ -269,7 +245,7 @@ def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, ne
 
 def cross_chunk_consistency(
     side_i: align.ChunkFrames, side_j: align.ChunkFrames, Z: Float[ArrayLike, "M 8"], K_ref: Float[ArrayLike, "3 3"],
-    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio, **deprecated: Any,
+    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
 ) -> CrossCheck:
     """Both directions of :func:`dense_consistency` for ``M`` loop candidates at once (vmap).
 
@@ -279,11 +255,11 @@ def cross_chunk_consistency(
             in the pipeline the ``2h`` frames the loop chunk's first half overlaps.
         side_j: the same for chunk ``c_j`` around ``j``.
         Z: ``[M, 8]`` loop edges mapping ``c_i`` into ``c_j`` (:func:`swiftjax.loops.loop_edge`).
-        K_ref, config, conf_ratio, **deprecated: as :func:`dense_consistency`.
+        K_ref, config, conf_ratio: as :func:`dense_consistency`.
 
     Returns:
         :class:`CrossCheck` with ``[M]`` fields.  Recompiles per ``(M, F, H, W)``, dtype,
         ``stride`` and ``neighbours``.
     """
-    config = _config(config, deprecated, "cross_chunk_consistency")
+    config = _DEFAULTS if config is None else config
     return _cross_jit(*_traced_args(side_i, side_j, Z, K_ref, conf_ratio, config))

@@ -21,7 +21,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from jaxtyping import Array, ArrayLike, Float
 
 from swiftjax.loops._checks import _check_finite, _is_concrete

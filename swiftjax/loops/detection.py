@@ -15,7 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-
 from jaxtyping import ArrayLike, Float
 
 from swiftjax.loops._checks import _check_finite, _is_concrete

@@ -12,9 +12,9 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from swiftjax.chunks import ChunkSchedule
+from swiftjax.loops import detection
 from swiftjax.loops._checks import _check_finite
 from swiftjax.loops.descriptors import fit_whitening, power_normalize, whiten
-from swiftjax.loops import detection
 from swiftjax.loops.detection import detect_loops
 from swiftjax.loops.loop_chunk import _loop_chunks, filter_by_chunks
 from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions, check_values

@@ -79,7 +79,7 @@ reverse pairs registered to 1.5°/3.3 m); the pipeline keeps the two-start regis
 **Failure modes.**  (1) Too few reliable points (night, blur, a chunk of sky): no signature,
 recorded, the chunk proposes nothing.  (2) A camera that is not level (steep ramps, a
 handheld camera): ``u`` is wrong by the tilt, the grid smears; the road-plane fit of
-:mod:`swiftjax.metric` would be the better gravity there.  (3) Anchors far apart (revisit
+:mod:`swiftjax.metric_scale` would be the better gravity there.  (3) Anchors far apart (revisit
 offset by more than a few anchor spacings sideways, e.g. the other side of a dual carriageway):
 the grids differ by more than a rotation.  (4) Self-similar streets (identical blocks, long
 straight roads with uniform facades): signatures alias; the registration's structure test,
@@ -416,7 +416,7 @@ class Registration(NamedTuple):
         scale_ratio: ``s / s₀``.
         valid: every Umeyama solve valid and everything finite.
         src_mean, src_covariance: ``[..., 3]``, ``[..., 3, 3]`` of the inliers (source units),
-            the statistics of :func:`swiftjax.align_covariance.umeyama_information`.
+            the statistics of :func:`swiftjax.align.covariance.umeyama_information`.
         num_points: int32 source points used.
     """
 

@@ -10,8 +10,7 @@
 from __future__ import annotations
 
 import functools
-import warnings
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -60,42 +59,9 @@ def _chunk_window(f, starts, ends, half_window: int):
     return c.astype(jnp.int32), w0, ok
 
 
-def _schedule_args(
-    fn: str, schedule: Any, args: tuple, kwargs: dict[str, Any], names: tuple[str, ...], defaults: tuple
-) -> tuple[jax.Array, jax.Array, tuple]:
-    """``(starts, ends, the values of names)`` from ``fn(..., schedule, *args, **kwargs)``.
-
-    ``schedule`` is a :class:`~swiftjax.chunks.ChunkSchedule`; the deprecated form passes
-    ``chunk_starts, chunk_size, n_frames`` instead (the ends are then ``min(start + chunk_size,
-    n_frames)``, what the schedule stores).
-    """
-    legacy = not isinstance(schedule, ChunkSchedule)
-    params = (("chunk_size", "n_frames") if legacy else ()) + names
-    if len(args) > len(params):
-        raise TypeError(f"{fn}() takes at most {len(params) + 3 - (fn == 'filter_by_chunks')} positional arguments")
-    values = dict(zip(params, args))
-    for key, value in kwargs.items():
-        if key not in params:
-            raise TypeError(f"{fn}() got an unexpected keyword argument {key!r}")
-        if key in values:
-            raise TypeError(f"{fn}() got multiple values for argument {key!r}")
-        values[key] = value
-    for key, value in zip(names, defaults):
-        values.setdefault(key, value)
-    if not legacy:
-        starts, ends = jnp.asarray(schedule.starts, jnp.int32), jnp.asarray(schedule.ends, jnp.int32)
-    else:
-        missing = [k for k in ("chunk_size", "n_frames") if k not in values]
-        if missing:
-            raise TypeError(f"{fn}() needs a ChunkSchedule (or the deprecated chunk_starts, chunk_size, n_frames)")
-        warnings.warn(
-            f"{fn}(..., chunk_starts, chunk_size, n_frames) is deprecated: pass the ChunkSchedule",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        starts = jnp.asarray(schedule, jnp.int32)
-        ends = jnp.minimum(starts + values["chunk_size"], values["n_frames"])
-    return starts, ends, tuple(values[k] for k in names)
+def _bounds(schedule: ChunkSchedule) -> tuple[jax.Array, jax.Array]:
+    """``(starts, ends)`` of ``schedule`` as int32 device arrays."""
+    return jnp.asarray(schedule.starts, jnp.int32), jnp.asarray(schedule.ends, jnp.int32)
 
 
 @functools.partial(jax.jit, static_argnames=("half_window",))
@@ -112,7 +78,7 @@ def _loop_chunk_frames(i, j, starts, ends, half_window: int) -> LoopChunk:
 
 
 def loop_chunk_frames(
-    i: Int[ArrayLike, ""], j: Int[ArrayLike, ""], schedule: ChunkSchedule | Int[ArrayLike, " T"], *args, **kwargs
+    i: Int[ArrayLike, ""], j: Int[ArrayLike, ""], schedule: ChunkSchedule, half_window: int = _DEFAULTS.half_window
 ) -> LoopChunk:
     """Frames of the loop-centric chunk of loop ``(i, j)``: ``loop_chunk_frames(i, j, schedule,
     half_window=10)`` (20 + 20 = 40 frames).
@@ -125,15 +91,12 @@ def loop_chunk_frames(
 
     Args:
         i, j: int scalars (or batch with ``jax.vmap``).
-        schedule: the :class:`~swiftjax.chunks.ChunkSchedule` of the sequence.  Deprecated:
-            ``chunk_starts, chunk_size, n_frames`` in its place.
+        schedule: the :class:`~swiftjax.chunks.ChunkSchedule` of the sequence.
         half_window: static int ``h`` (default ``LoopOptions().half_window``).
 
     Recompiles per number of chunks ``T`` and ``half_window``.
     """
-    starts, ends, (half_window,) = _schedule_args(
-        "loop_chunk_frames", schedule, args, kwargs, ("half_window",), (_DEFAULTS.half_window,)
-    )
+    starts, ends = _bounds(schedule)
     return _loop_chunk_frames(i, j, starts, ends, half_window)
 
 
@@ -163,19 +126,16 @@ def _filter_by_chunks(candidates: LoopCandidates, starts, ends) -> LoopCandidate
     return LoopCandidates(pairs, scores, count, candidates.truncated, candidates.threshold)
 
 
-def filter_by_chunks(
-    candidates: LoopCandidates, schedule: ChunkSchedule | Int[ArrayLike, " T"], *args, **kwargs
-) -> LoopCandidates:
+def filter_by_chunks(candidates: LoopCandidates, schedule: ChunkSchedule) -> LoopCandidates:
     """The authors' post-processing of NMS output: drop pairs whose two frames lie in one
-    temporal chunk of ``schedule`` (a :class:`~swiftjax.chunks.ChunkSchedule`; deprecated:
-    ``chunk_starts, chunk_size, n_frames``), and keep only the best-scoring loop per pair of
+    temporal chunk of ``schedule`` (a :class:`~swiftjax.chunks.ChunkSchedule`), and keep only the best-scoring loop per pair of
     chunks ``(c_i, c_j)`` (chunks assigned as in :func:`loop_chunk_frames`).  Order (by score)
     is preserved.
 
     ``O(M²)`` comparisons over the ``M`` candidate rows (``M`` is a few hundred).  One jitted
     call; recompiles per ``M`` and number of chunks.
     """
-    starts, ends, () = _schedule_args("filter_by_chunks", schedule, args, kwargs, (), ())
+    starts, ends = _bounds(schedule)
     return _filter_by_chunks(candidates, starts, ends)
 
 

@@ -25,13 +25,14 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["Sequence", "BatchError", "read_list", "sequence_folders", "run_batch", "batch_table"]
 
 
-class BatchError(ValueError):
+class BatchError(SwiftjaxError, ValueError):
     """The batch's list or folder is unusable (before any sequence runs)."""
 
 
@@ -40,7 +41,7 @@ class Sequence:
     """One sequence of a batch.
 
     ``spec``: a picklable recipe whose ``build()`` returns the predictor (e.g.
-    :class:`inference.predictor.ImageSpec`, :class:`swiftjax.demo.OracleSpec`);
+    :class:`inference.predictor.ImageSpec`, :class:`swiftjax.synthetic.demo.OracleSpec`);
     ``ground_truth``: ``[N, 4, 4]`` poses, a trajectory file (``gt_format``), or None;
     ``timestamps``: a times file (as ``reconstruct --timestamps``), or None: the frames'
     own times (a video's), else the frame index.
@@ -243,8 +244,9 @@ def run_batch(
         raise BatchError("the batch has no sequence")
     if len(set(names)) != len(names):
         raise BatchError(f"sequence names must be unique, got {names}")
-    if workers < 1:
-        raise BatchError(f"--workers must be >= 1, got {workers}")
+    from swiftjax.pipeline.executors import check_workers
+
+    check_workers(workers)
     for name in names:
         _run_dir(out, name)
     if out.exists() and not out.is_dir():
@@ -323,7 +325,7 @@ def _json_default(value: Any) -> Any:
 def batch_table(rows: Seq[dict[str, Any]]) -> str:
     """The summary table: sequence, status, frames, loops, ATE (where ground truth was
     given), time, and the error of a failed sequence."""
-    from swiftjax.report import markdown_table
+    from swiftjax.io.tables import markdown_table
 
     body = [
         [r["sequence"], r["status"], r.get("frames", ""), r.get("loops", ""),

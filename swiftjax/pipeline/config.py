@@ -14,7 +14,7 @@ from typing import Any
 from swiftjax import loops, options
 from swiftjax.align import AlignOptions as _ALIGN
 from swiftjax.align.options import OVERLAP_SCALE_RULES
-from swiftjax.metric import METRIC_COMBINE
+from swiftjax.metric_scale import METRIC_COMBINE
 from swiftjax.options import option
 from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
 from swiftjax.posegraph.options import PIPELINE as _GRAPH
@@ -71,7 +71,7 @@ class PipelineConfig:
     the original image size), ``metric`` (``"camera-height=H"`` in metres, ``"gt"``, or ``"model"``: the metric network's
     own metres; every output in metres), ``metric_combine`` (how ``camera-height`` combines the chunks' factors:
     ``"median"`` of their votes, one factor for the world, or ``"prior"``: a prior on each
-    chunk's scale in the pose graph, :mod:`swiftjax.metric`), ``metric_prior_sigma`` (that
+    chunk's scale in the pose graph, :mod:`swiftjax.metric_scale`), ``metric_prior_sigma`` (that
     prior's standard deviation on one chunk's log-scale), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
     """
 
@@ -230,7 +230,7 @@ class PipelineConfig:
             raise options.OptionError(
                 f"invalid option overlap: {self.overlap}; allowed: 1 <= overlap < chunk_size ({self.chunk_size})"
             )
-        from swiftjax.metric import parse_metric
+        from swiftjax.metric_scale import parse_metric
 
         try:
             parse_metric(self.metric)

@@ -42,6 +42,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.prediction import ChunkPrediction
 
 __all__ = [
@@ -56,6 +57,7 @@ __all__ = [
     "import_ray",
     "start_local_ray",
     "check_ray_address",
+    "check_workers",
     "prediction_nbytes",
 ]
 
@@ -64,8 +66,14 @@ __all__ = [
 Prepare = Callable[[ChunkPrediction], ChunkPrediction]
 
 
-class ExecutorError(RuntimeError):
+class ExecutorError(SwiftjaxError, RuntimeError):
     """An executor cannot be set up (missing extra, unreachable cluster, bad option)."""
+
+
+def check_workers(workers: int) -> None:
+    """``--workers`` (Ray actors) must be at least 1; :class:`ExecutorError` otherwise."""
+    if workers < 1:
+        raise ExecutorError(f"--workers must be >= 1, got {workers}")
 
 
 @dataclasses.dataclass
@@ -381,8 +389,7 @@ class RayExecutor:
         max_restarts: int = 3,
         max_task_retries: int = 3,
     ) -> None:
-        if workers < 1:
-            raise ExecutorError(f"--workers must be >= 1, got {workers}")
+        check_workers(workers)
         if gpus_per_worker < 0 or cpus_per_worker < 0:
             raise ExecutorError("--gpus-per-worker and CPUs per worker must be >= 0")
         if max_in_flight is not None and max_in_flight < 1:

@@ -14,15 +14,15 @@ Edge information (``edge_information = "data"``): each edge's covariance is the 
 :mod:`swiftjax.loop_verification` (``odometry_covariance`` / ``loop_covariance``: translation
 error proportional to the edge's length, fixed rotation and log-scale errors — VGGT's model
 error, which point statistics cannot see) plus its own alignment's estimation covariance
-(:func:`swiftjax.align_covariance.umeyama_information`: reliable-point count, residual RMS, the
+(:func:`swiftjax.align.covariance.umeyama_information`: reliable-point count, residual RMS, the
 source points' spread, ``edge_pixels_per_sample`` pixels per independent residual; a loop edge
-combines its two half alignments, :func:`swiftjax.align_covariance.loop_edge_information`).  An
+combines its two half alignments, :func:`swiftjax.align.covariance.loop_edge_information`).  An
 edge whose alignment has no usable statistics (the pose fallback, IRLS alignment, a run
 directory from before these statistics were recorded) keeps the drift model alone, and the run
 says so.  ``edge_information = "equal"``: identity for every edge (the authors' choice).
 
 Metric scale as pose-graph priors (``--metric camera-height=H`` with ``metric_combine =
-"prior"``, :func:`swiftjax.metric.scale_priors`): the graph gains a fixed anchor node ``A``
+"prior"``, :func:`swiftjax.metric_scale.scale_priors`): the graph gains a fixed anchor node ``A``
 (identity, the metric world) and, per chunk ``t`` with a road fit, an edge ``(A, t)`` measuring
 ``Z_t = (t_t^0, q_t^0, m_t)`` (the start pose's rotation and translation, the chunk's metric
 factor ``m_t = H / h_t`` as scale) with information ``diag(eps w, ..., eps w, w)``, ``w =
@@ -45,7 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align_covariance, metric, posegraph, sim3
+from swiftjax import metric_scale, posegraph, sim3
+from swiftjax.align import covariance
 from swiftjax.loops import pcm
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
@@ -69,7 +70,7 @@ def edge_information(records: list[dict[str, Any]], pixels_per_sample: float) ->
     S = get("S", (8,))
     S[~ok, 6:8] = 1.0
     with jax.enable_x64(True):
-        out = align_covariance.umeyama_information(
+        out = covariance.umeyama_information(
             S[:, 7], get("num_points", ()), get("rms", ()), get("src_mean", (3,)), get("src_covariance", (3, 3)),
             pixels_per_sample=pixels_per_sample,
         )
@@ -85,8 +86,8 @@ def loop_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
     if not valid.all():
         return None
     with jax.enable_x64(True):
-        E = align_covariance.EdgeInformation
-        out = align_covariance.loop_edge_information(
+        E = covariance.EdgeInformation
+        out = covariance.loop_edge_information(
             np.asarray(halves[0]["S"]), E(info[0], np.bool_(True)), np.asarray(halves[1]["S"]), E(info[1], np.bool_(True))
         )
         return np.asarray(out.information, np.float64) if bool(out.valid) else None
@@ -148,7 +149,7 @@ PIN_SIGMA = 1e-3  # the anchor edge's standard deviation on chunk 0's rotation a
 
 def scale_prior_problem(
     start: np.ndarray, edges: np.ndarray, measurements: np.ndarray, information: np.ndarray | None,
-    robust: np.ndarray, priors: metric.ScalePriors, *, pin_sigma: float = PIN_SIGMA, eps: float = PRIOR_EPS,
+    robust: np.ndarray, priors: metric_scale.ScalePriors, *, pin_sigma: float = PIN_SIGMA, eps: float = PRIOR_EPS,
 ) -> posegraph.Problem:
     """The pose graph with per-chunk scale priors (module docstring): nodes ``0 .. T-1`` the
     chunks (none fixed), node ``T`` the fixed identity anchor; edges: the given ones, then
@@ -184,7 +185,7 @@ def scale_prior_problem(
     )
 
 
-def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) -> metric.ScalePriors | None:
+def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) -> metric_scale.ScalePriors | None:
     """The scale priors of ``--metric camera-height=H`` with ``metric_combine = "prior"``, else None."""
     camera = getattr(ctx, "camera", None)
     spec = None if camera is None else camera.metric
@@ -192,7 +193,7 @@ def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) 
         return None
     if temporal.ground_heights is None:
         raise RuntimeError("pose graph: --metric camera-height without the chunks' ground heights")
-    return metric.scale_priors(temporal.ground_heights, chain[:, 7], spec[1], ctx.config.metric_prior_sigma)
+    return metric_scale.scale_priors(temporal.ground_heights, chain[:, 7], spec[1], ctx.config.metric_prior_sigma)
 
 
 def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
@@ -239,7 +240,7 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
         if loops.edges or priors is not None:
             information = _graph_information(ctx, temporal, loops)
         if priors is not None:
-            start = metric.apply_scale(chunk_poses_no_loops, priors.start_factor)
+            start = metric_scale.apply_scale(chunk_poses_no_loops, priors.start_factor)
             tedges = np.array([(t, t + 1) for t in range(T - 1)], np.int32).reshape(-1, 2)
             with jax.enable_x64(True):
                 res0, poses0 = _solve(scale_prior_problem(

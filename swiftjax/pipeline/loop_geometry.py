@@ -20,7 +20,7 @@ Each candidate is a record marked ``source = "geometry"`` with its registration'
 (``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread); a
 registration that fails its own test (:func:`swiftjax.loops.geometric.registration_reason`) is
 rejected with that reason before verification.  The accepted edge's information comes from
-the registration's own residuals (:func:`swiftjax.align_covariance.umeyama_information` on its
+the registration's own residuals (:func:`swiftjax.align.covariance.umeyama_information` on its
 inliers).  The records are recomputed on every run (nothing is cached in the manifest).
 """
 
@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import align, align_covariance
+from swiftjax import align
+from swiftjax.align import covariance
 from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
@@ -193,7 +194,7 @@ def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
         return None
     reg, unit = stats
     with jax.enable_x64(True):
-        out = align_covariance.umeyama_information(
+        out = covariance.umeyama_information(
             np.float64(np.asarray(reg.S)[7]), np.float64(reg.num_inliers), np.float64(reg.rms) * unit,
             np.asarray(reg.src_mean, np.float64), np.asarray(reg.src_covariance, np.float64),
             pixels_per_sample=pixels_per_sample,

@@ -51,7 +51,7 @@ class OraclePredictor:
 
     def spec(self) -> Any:
         """What a worker rebuilds this predictor from (:mod:`~swiftjax.pipeline.executors`):
-        the recipe given (e.g. :class:`swiftjax.demo.OracleSpec`), else this predictor."""
+        the recipe given (e.g. :class:`swiftjax.synthetic.demo.OracleSpec`), else this predictor."""
         if self._spec is not None:
             return self._spec
         from swiftjax.pipeline.executors import SelfSpec

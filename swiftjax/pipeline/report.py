@@ -173,7 +173,7 @@ def summary_table(result: RunResult) -> str:
     """The end-of-run summary, as a terminal table: sizes, ATE with and without loop closure
     (with a ground truth), the time per stage in pipeline order (seconds, positional
     notation), then where the outputs are and the command that shows them."""
-    from swiftjax.report import text_table
+    from swiftjax.io.tables import text_table
 
     m = result.metrics
     unit = "metres" if m.get("unit") == "metres" else "up to scale (no --metric)"

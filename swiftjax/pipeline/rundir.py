@@ -64,6 +64,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from swiftjax import _faults, chunks, options
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io import chunk_store as _chunk_store
 from swiftjax.io.atomic import atomic_write, temp_files
 from swiftjax.io.chunk_store import ChunkStore
@@ -98,7 +99,7 @@ MANIFEST_VERSION = 3  # 3: per-stage fingerprints, checksummed chunk files, exac
 LOCK_NAME = ".swiftjax.lock"
 
 
-class RunDirError(RuntimeError):
+class RunDirError(SwiftjaxError, RuntimeError):
     """The run directory belongs to a different input or configuration (or is unusable)."""
 
 

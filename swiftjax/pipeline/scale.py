@@ -1,15 +1,15 @@
 """The metric-scale step (``--metric``): after the pose graph, before the export.
 
 * ``camera-height=H``: each temporal chunk's camera height above the road ``h_t`` (chunk
-  units, :func:`swiftjax.metric.chunk_ground_height`, measured by the temporal stage) votes
+  units, :func:`swiftjax.metric_scale.chunk_ground_height`, measured by the temporal stage) votes
   ``H / (h_t s_t)`` metres per world unit, ``s_t`` the scale of its chunk-to-world pose; the
-  factor is the median vote (:func:`swiftjax.metric.combine_scales`); with ``metric_combine =
+  factor is the median vote (:func:`swiftjax.metric_scale.combine_scales`); with ``metric_combine =
   "prior"`` the pose graph already put a prior on each chunk's scale and solved in metres
   (:mod:`swiftjax.pipeline.graph`), so nothing is scaled here.
 * ``gt``: the scale of the Sim(3) (Umeyama) alignment of the camera centres to the given
   ground truth (for evaluation: the trajectory's shape stays the estimate's).
 
-The world is then stretched by the factor (:func:`swiftjax.metric.apply_scale` on every
+The world is then stretched by the factor (:func:`swiftjax.metric_scale.apply_scale` on every
 chunk pose), so the poses, the point cloud and the COLMAP model are all in metres.  The
 loop-closed and chain-only poses get their own factors (their ``s_t`` differ).
 The result (:class:`~swiftjax.pipeline.results.ScaleResult`) records ``unit``, the factors and
@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import metric
+from swiftjax import metric_scale
 from swiftjax.camera import world_cameras
 from swiftjax.pipeline.results import UNIT_METRE, UP_TO_SCALE, GraphResult, ScaleResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
@@ -53,8 +53,8 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
             info = {"method": "model (the metric network's depth, chunk 0's metres)"}
         elif kind == "camera-height":
             assert temporal.ground_heights is not None
-            m, stats = metric.combine_scales(temporal.ground_heights, graph.chunk_poses[:, 7], height)
-            m0, _ = metric.combine_scales(temporal.ground_heights, graph.chunk_poses_no_loops[:, 7], height)
+            m, stats = metric_scale.combine_scales(temporal.ground_heights, graph.chunk_poses[:, 7], height)
+            m0, _ = metric_scale.combine_scales(temporal.ground_heights, graph.chunk_poses_no_loops[:, 7], height)
             info: dict[str, Any] = {"method": f"camera-height={height:g}", "combine": "median", **stats,
                                     "chunk_heights": [None if not np.isfinite(h) else float(h)
                                                       for h in temporal.ground_heights]}
@@ -68,8 +68,8 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
     record = {"unit": UNIT_METRE, "metres_per_unit": m, "metres_per_unit_no_loops": m0, **info}
     ctx.log(f"metric scale ({info['method']}): {m:.6g} m per VGGT unit")
     scaled = graph._replace(
-        chunk_poses=metric.apply_scale(graph.chunk_poses, m),
-        chunk_poses_no_loops=metric.apply_scale(graph.chunk_poses_no_loops, m0),
+        chunk_poses=metric_scale.apply_scale(graph.chunk_poses, m),
+        chunk_poses_no_loops=metric_scale.apply_scale(graph.chunk_poses_no_loops, m0),
     )
     return ScaleResult(scaled, record, UNIT_METRE)
 

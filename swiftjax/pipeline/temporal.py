@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import _faults, align, metric
+from swiftjax import _faults, align, metric_scale
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.pipeline.alignment import align_pair, both
@@ -129,7 +129,7 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                     points, frames_written = chunk_export(frames[:count], pred, depth_d, conf_d, mask_d, K_ref)
                 if heights is not None:
                     with timer("metric scale"):
-                        gh = metric.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
+                        gh = metric_scale.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
                                                         conf_ratio=config.conf_ratio)
                         heights[t] = float(gh.height)
                         points["ground_height"] = np.asarray(heights[t])

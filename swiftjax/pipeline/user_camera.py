@@ -29,7 +29,7 @@ import numpy as np
 
 from swiftjax import intrinsics as _intrinsics
 from swiftjax import masks as _masks
-from swiftjax import metric as _metric
+from swiftjax import metric_scale
 
 __all__ = ["UserCamera"]
 
@@ -61,7 +61,7 @@ class UserCamera:
     @classmethod
     def from_config(cls, config: Any, predictor: Any) -> UserCamera:
         """Validate and load every camera option (errors name the file and the problem)."""
-        metric = _metric.parse_metric(config.metric)
+        metric = metric_scale.parse_metric(config.metric)
         needs_geometry = config.intrinsics is not None or config.mask_dir is not None
         geometry = None
         describe = getattr(predictor, "preprocess_geometry", None)

@@ -40,6 +40,7 @@ from jaxtyping import Float
 
 from swiftjax import sim3
 from swiftjax._compile import QUICK_COMPILE
+from swiftjax.errors import SwiftjaxError
 from swiftjax.posegraph import gnc, sparse_direct
 from swiftjax.posegraph.factors import cost
 from swiftjax.posegraph.initialization import chordal_initialization
@@ -122,7 +123,7 @@ _CONVERGED = frozenset(result_index(r) for r in CONVERGED)
 _RUNNING = result_index(LMResult.nonlinear_max_steps_reached)
 
 
-class SolveError(RuntimeError):
+class SolveError(SwiftjaxError, RuntimeError):
     """The solve did not converge (``throw=True``); ``result`` holds the :class:`Result`."""
 
     def __init__(self, message: str, result: Result):

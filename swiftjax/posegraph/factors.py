@@ -73,8 +73,8 @@ def residual_jacobian_factors(
 ) -> tuple[Float[Array, "e 7"], Float[Array, "e 7 7"], Float[Array, "e 7 7"]]:
     """``(r [E, 7], Jr^-1(r) [E, 7, 7], Ad(S_j^-1 S_i) [E, 7, 7])``: ``J_j = Jr^-1``, ``J_i = -Jr^-1 Ad``."""
     # The barrier materialises the gathered edge errors once: without it XLA duplicates their
-    # gather and compositions into every fusion of log, jlog and the adjoint (the dense path's
-    # linearisation compiled in 0.56 s instead of 0.39 s; docs/performance/posegraph.md).
+    # gather and compositions into every fusion of log, jlog and the adjoint
+    # (docs/performance/posegraph.md, "Barriers").
     err, si, sj = jax.lax.optimization_barrier(_edge_errors(poses, problem))
     r = sim3.log(err)
     return r, sim3.jlog(r, err), sim3.adjoint(sim3.between(sj, si))

@@ -29,6 +29,7 @@ from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Int
 
 # The robust kernels live in their own module; their names stay importable from here.
+from swiftjax.errors import SwiftjaxError
 from swiftjax.posegraph.kernels import (  # noqa: F401
     KERNEL_CODES,
     RobustKernel,
@@ -52,7 +53,7 @@ __all__ = [
 ]
 
 
-class ProblemError(ValueError):
+class ProblemError(SwiftjaxError, ValueError):
     """An invalid pose-graph input, raised on the host before any work starts."""
 
 

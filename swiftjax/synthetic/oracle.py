@@ -89,7 +89,6 @@ measured by ``bench/bench_oracle.py`` (docs/performance/synthetic.md).
 from __future__ import annotations
 
 import collections
-import dataclasses
 import zlib
 from typing import NamedTuple
 
@@ -101,10 +100,18 @@ from swiftjax import sim3
 from swiftjax.prediction import ChunkPrediction
 from swiftjax.synthetic import places
 from swiftjax.synthetic.covisibility import covisibility as _covisibility
+from swiftjax.synthetic.noise import Hallucination, OracleNoise
+from swiftjax.synthetic.pixel_noise import PixelParams, pixel_block
 from swiftjax.synthetic.render import (
-    chunk_candidates, composite_movers, frame_movers, frame_planes, render_frames, render_movers,
+    chunk_candidates,
+    composite_movers,
+    frame_movers,
+    frame_planes,
+    render_frames,
+    render_movers,
 )
-from swiftjax.synthetic.world import CAR, SKY, World
+from swiftjax.synthetic.se3_np import se3_power, so3_exp
+from swiftjax.synthetic.world import World
 
 __all__ = ["Hallucination", "LoopChunkTruth", "OracleNoise", "VGGTOracle", "kitti_intrinsics"]
 
@@ -114,85 +121,6 @@ def kitti_intrinsics(width: int = 518, height: int = 154) -> np.ndarray:
     resized to ``width x height``: ``[3, 3]`` float64."""
     sx, sy = width / 1241.0, height / 376.0
     return np.array([[718.856 * sx, 0.0, 607.1928 * sx], [0.0, 718.856 * sy, 185.2157 * sy], [0.0, 0.0, 1.0]])
-
-
-@dataclasses.dataclass(frozen=True)
-class OracleNoise:
-    """Every error of the oracle (module docstring); defaults make drift visible without loops.
-
-    Angles in radians, ``*_m`` in metres, depth noise relative, pose translation in chunk units.
-    """
-
-    depth_units: float = 2.0
-    scale_jitter: float = 0.03
-    drift_rot: float = 1e-4  # rad per frame, per axis
-    drift_scale: float = 4e-4  # log-scale per frame
-    pose_rot: float = 2e-4
-    pose_trans: float = 2e-3
-    focal: float = 0.02
-    focal_depth_coupling: float = 1.0
-    depth_rel: float = 0.01
-    depth_rel_ref_m: float = 20.0
-    depth_bias: float = 0.005
-    edge_log_ratio: float = 0.1
-    edge_conf: float = 0.15
-    gross_fraction: float = 0.01
-    gross_log: float = 0.7
-    sky_depth_m: float = 300.0
-    conf_max: float = 20.0
-    conf_falloff_m: float = 25.0
-    chunk_share: float = 0.5
-    mover_depth: float = 0.05  # log-std of a car's depth factor, drawn per (chunk, car)
-
-    @classmethod
-    def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> "OracleNoise":
-        """No error at all: depths, poses and intrinsics are the truth in the chunk gauge."""
-        return cls(
-            depth_units=depth_units, scale_jitter=scale_jitter, drift_rot=0.0, drift_scale=0.0,
-            pose_rot=0.0, pose_trans=0.0, focal=0.0, depth_rel=0.0, depth_bias=0.0,
-            edge_log_ratio=np.inf, gross_fraction=0.0,
-        )
-
-
-@dataclasses.dataclass(frozen=True)
-class Hallucination:
-    """How a loop-centric chunk whose halves share no view comes back (module docstring).
-
-    Attributes:
-        covis_low: mutual co-visibility at or below which the second half is fully re-based.
-        covis_high: at or above which the chunk is honest (bit-identical to ``hallucination=None``).
-        rot: standard deviation per axis of the offset ``Delta``'s rotation, radians.
-        trans_m: standard deviation per axis of its translation, metres.
-        conf_factor: factor on ``conf - 1`` at full hallucination (``w = 1``).
-        stride: pixel step of the co-visibility sample grid.
-        rel_tol: relative depth agreement of the co-visibility test.
-    """
-
-    covis_low: float = 0.05
-    covis_high: float = 0.3
-    rot: float = 0.02
-    trans_m: float = 0.3
-    conf_factor: float = 0.5
-    stride: int = 8
-    rel_tol: float = 0.1
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.covis_low < self.covis_high:
-            raise ValueError(
-                f"Hallucination needs 0 <= covis_low < covis_high, got {self.covis_low}, {self.covis_high}"
-            )
-        if self.rot < 0 or self.trans_m < 0 or not 0 < self.conf_factor <= 1:
-            raise ValueError(
-                f"Hallucination needs rot, trans_m >= 0 and conf_factor in (0, 1], got {self.rot}, "
-                f"{self.trans_m}, {self.conf_factor}"
-            )
-        if self.stride < 1 or self.rel_tol <= 0:
-            raise ValueError(f"Hallucination needs stride >= 1, rel_tol > 0, got {self.stride}, {self.rel_tol}")
-
-    def weight(self, covisibility: float) -> float:
-        """``w = smoothstep((c_high - c) / (c_high - c_low))``: 1 at ``c <= c_low``, 0 at ``c >= c_high``."""
-        u = min(max((self.covis_high - float(covisibility)) / (self.covis_high - self.covis_low), 0.0), 1.0)
-        return u * u * (3.0 - 2.0 * u)
 
 
 class LoopChunkTruth(NamedTuple):
@@ -211,184 +139,6 @@ class LoopChunkTruth(NamedTuple):
     weight: float
     rebase: np.ndarray
     full_rebase: np.ndarray
-
-
-def _se3_power(H: np.ndarray, w: float) -> np.ndarray:
-    """``Exp(w Log H)`` of a rigid ``[4, 4]`` motion, float64: with ``omega = Log R`` (any angle up
-    to pi, via SciPy's rotation vector) and ``V(omega) = I + (1 - cos t)/t^2 [omega] + (t - sin t)/t^3
-    [omega]^2``, ``Log H = (V(omega)^-1 t, omega)`` and the result is ``(exp(w omega), V(w omega) w rho)``."""
-    from scipy.spatial.transform import Rotation
-
-    def V(om: np.ndarray) -> np.ndarray:
-        th = float(np.linalg.norm(om))
-        Kx = np.array([[0.0, -om[2], om[1]], [om[2], 0.0, -om[0]], [-om[1], om[0], 0.0]])
-        if th < 1e-8:
-            return np.eye(3) + 0.5 * Kx + Kx @ Kx / 6.0
-        return np.eye(3) + (1 - np.cos(th)) / th**2 * Kx + (th - np.sin(th)) / th**3 * (Kx @ Kx)
-
-    omega = Rotation.from_matrix(H[:3, :3]).as_rotvec()
-    rho = np.linalg.solve(V(omega), H[:3, 3])
-    out = np.eye(4)
-    out[:3, :3] = _so3_exp_np(w * omega)
-    out[:3, 3] = V(w * omega) @ (w * rho)
-    return out
-
-
-# ------------------------------------------------------------------- counter-based noise
-# jax.random's threefry costs ~10-20 ns per number on CPU and a chunk needs ~30 M of them;
-# a counter-based integer hash (lowbias32) gives them for a few integer ops each.
-
-
-def _mix(x: jax.Array) -> jax.Array:
-    """lowbias32 integer hash (uint32 -> uint32)."""
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x7FEB352D)
-    x = x ^ (x >> 15)
-    x = x * jnp.uint32(0x846CA68B)
-    return x ^ (x >> 16)
-
-
-def _approx_normal(h: jax.Array) -> jax.Array:
-    """Zero-mean unit-variance noise from one uint32: the sum of its 4 bytes (Irwin-Hall, |n| <= 3.46)."""
-    m = jnp.uint32(0xFF)
-    s = (h & m) + ((h >> 8) & m) + ((h >> 16) & m) + (h >> 24)
-    return (s.astype(jnp.float32) - 510.0) * jnp.float32(1.0 / np.sqrt(4 * (256.0**2 - 1) / 12))
-
-
-def _u16(h: jax.Array, high: bool) -> jax.Array:
-    """A uniform in [0, 1) from 16 bits of ``h``."""
-    bits = (h >> 16) if high else (h & jnp.uint32(0xFFFF))
-    return bits.astype(jnp.float32) * jnp.float32(1.0 / 65536.0)
-
-
-class _PixelParams(NamedTuple):
-    frame_key: jax.Array  # uint32 [] keyed by seed
-    chunk_key: jax.Array  # uint32 [] keyed by (seed, frames)
-    frames: jax.Array  # [F] int32
-    depth_factor: jax.Array  # [F] sigma_c s_k (1+eps)^coupling
-    sigma: jax.Array  # [] chunk units per metre
-    bias: jax.Array  # [] per chunk unit
-    scalars: jax.Array  # [10] noise scalars
-
-
-def _upsample_patches(x: jax.Array, H: int, W: int, p: int = 14) -> jax.Array:
-    """``[F, ceil(H/p), ceil(W/p)]`` -> ``[F, H, W]`` by repetition (a broadcast, no gather)."""
-    F, hp, wp = x.shape
-    y = jnp.broadcast_to(x[:, :, None, :, None], (F, hp, p, wp, p)).reshape(F, hp * p, wp * p)
-    return y[:, :H, :W]
-
-
-_PALETTE = np.array(  # per semantic id: sky (unused), ground, building, pole, tree, car
-    [[0.0, 0.0, 0.0], [0.42, 0.42, 0.44], [0.72, 0.62, 0.52], [0.35, 0.35, 0.38], [0.20, 0.45, 0.18],
-     [0.70, 0.12, 0.10]],
-    np.float32,
-)
-_FACADES = np.array(
-    [[0.72, 0.62, 0.52], [0.80, 0.78, 0.70], [0.60, 0.45, 0.38], [0.55, 0.58, 0.62]], np.float32
-)
-
-
-def _albedo(sem: jax.Array, inst: jax.Array) -> jax.Array:
-    """``[F, H, W, 3]`` surface colour from semantic id and instance (where-chains, no gathers)."""
-    h = _mix(inst.astype(jnp.uint32) + jnp.uint32(0x2545F491))
-    base = jnp.zeros((*sem.shape, 3), jnp.float32)
-    for k in range(1, len(_PALETTE)):
-        base = jnp.where((sem == k)[..., None], _PALETTE[k], base)
-    pick = h & jnp.uint32(3)
-    for k in range(len(_FACADES)):
-        base = jnp.where(((sem == 2) & (pick == k))[..., None], _FACADES[k], base)
-    return base * (0.85 + 0.3 * _u16(h, True))[..., None]
-
-
-@jax.jit
-def _pixels(z: jax.Array, sem: jax.Array, inst: jax.Array, p: _PixelParams):
-    """Depth, confidence and colour of ``F`` frames from their true depth ``[F, H, W]``.
-
-    One jitted function per ``(F, H, W)``.  Noise (module docstring): per pixel, one hash of
-    ``(frame key, frame, pixel)`` and one of ``(chunk key, frame, pixel)``, each giving an
-    approximately normal value, plus re-mixed hashes for the uniforms; patch noise is drawn
-    per 14x14 patch and repeated.
-
-    Two stages: the terms that read other pixels (the 4-neighbourhood of the log-depth, the
-    patch noise repeated over 14x14 pixels) are computed first, inside a ``lax.cond`` branch
-    (always taken, but XLA neither fuses nor CSEs across it), and everything else is one
-    purely elementwise kernel.  Fused together, XLA treated every pixel value as re-used
-    and materialised the expensive intermediates (``exp``, ``log``): 1.5-2x slower.
-    """
-    (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff,
-     share, mover_depth) = (p.scalars[i] for i in range(11))
-    F, H, W = z.shape
-    fr = _mix(p.frames.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))[:, None, None]
-    kf = _mix(p.frame_key ^ fr)  # [F, 1, 1] per-frame bases
-    kc = _mix(p.chunk_key ^ fr)
-    a, b = jnp.sqrt(1.0 - share), jnp.sqrt(share)
-
-    def neighbourhood_terms(z, sem):
-        zf = jnp.where(sem == SKY, sky_m, z)  # finite stand-in for the sky
-        # discontinuities: max |log z - log z_nb| over the 4-neighbourhood
-        lz = jnp.log(zf)
-        pad = jnp.pad(lz, ((0, 0), (1, 1), (1, 1)), mode="edge")
-        nbs = [pad[:, 0:-2, 1:-1], pad[:, 2:, 1:-1], pad[:, 1:-1, 0:-2], pad[:, 1:-1, 2:]]
-        lmax = jnp.maximum(jnp.maximum(nbs[0], nbs[1]), jnp.maximum(nbs[2], nbs[3]))
-        lmin = jnp.minimum(jnp.minimum(nbs[0], nbs[1]), jnp.minimum(nbs[2], nbs[3]))
-        edge = jnp.maximum(lmax - lz, lz - lmin) > edge_lr
-        hp, wp = -(-H // 14), -(-W // 14)
-        pidx = (jnp.arange(hp, dtype=jnp.uint32)[:, None] * jnp.uint32(wp)
-                + jnp.arange(wp, dtype=jnp.uint32)[None, :])[None]
-        pf = _mix(kf ^ (pidx + jnp.uint32(0x1B873593)))
-        pc = _mix(kc ^ (pidx + jnp.uint32(0x1B873593)))
-        n_pat = _upsample_patches(a * _approx_normal(pf) + b * _approx_normal(pc), H, W)
-        c_pat = _upsample_patches(_approx_normal(_mix(pc + jnp.uint32(7))), H, W)
-        # the largest neighbouring log-depth at discontinuities, -inf elsewhere
-        return jnp.where(edge, lmax, -jnp.inf), n_pat, c_pat
-
-    lmax_edge, n_pat, c_pat = jax.lax.cond(p.sigma > -1.0, neighbourhood_terms, neighbourhood_terms, z, sem)
-    edge = lmax_edge > -jnp.inf
-    sky = sem == SKY
-    zf = jnp.where(sky, sky_m, z)
-    # ---- noise
-    pix = (jnp.arange(H, dtype=jnp.uint32)[:, None] * jnp.uint32(W) + jnp.arange(W, dtype=jnp.uint32)[None, :])[None]
-    hf = _mix(kf ^ pix)  # frame-keyed
-    hc = _mix(kc ^ pix)  # chunk-keyed
-    hg = _mix(hf + jnp.uint32(0x68E31DA4))  # frame-keyed uniforms (gross errors)
-    hq = _mix(hc + jnp.uint32(0xB5297A4D))  # chunk-keyed extras (confidence, flying pixels)
-    n_depth = 0.6 * n_pat + 0.8 * (a * _approx_normal(hf) + b * _approx_normal(hc))
-    n_conf = 0.6 * c_pat + 0.8 * _approx_normal(hq)
-    # ---- depth
-    far_nb = jnp.minimum(jnp.exp(lmax_edge), sky_m)
-    zt = jnp.where(edge, zf + _u16(hq, False) * (far_nb - zf), zf)  # flying pixels
-    rel = depth_rel * (1.0 + zt / rel_ref)
-    d = zt * p.depth_factor[:, None, None] * (1.0 + p.bias * zt * p.sigma) * jnp.exp(rel * n_depth)
-    gross = _u16(hg, False) < gross_frac
-    d = jnp.where(gross, d * jnp.exp(gross_log * (2.0 * _u16(hg, True) - 1.0)), d)
-    # moving cars: one depth factor per (chunk, car), so two chunks disagree on them
-    n_car = _approx_normal(_mix(p.chunk_key ^ (inst.astype(jnp.uint32) * jnp.uint32(0x9E3779B9) + jnp.uint32(0x3C6EF372))))
-    d = jnp.where(sem == CAR, d * jnp.exp(mover_depth * n_car), d)
-    # ---- confidence
-    conf = 1.0 + conf_max * jnp.exp(-zf / falloff) * jnp.exp(0.25 * n_conf)
-    conf = jnp.where(edge, 1.0 + (conf - 1.0) * edge_conf, conf)
-    conf = jnp.where(sky, 1.0 + 0.05 * _u16(hq, True), conf)
-    # ---- colour: a palette per semantic class, varied per instance (hash), distance shading
-    albedo = _albedo(sem, inst)
-    shade = (0.55 + 0.45 * jnp.exp(-zf / 60.0))[..., None]
-    rows = (jnp.arange(H, dtype=jnp.float32) / H)[None, :, None, None]
-    sky_rgb = jnp.asarray([0.55, 0.70, 0.92], jnp.float32) + rows * jnp.asarray([0.2, 0.15, 0.05])
-    rgb = jnp.where(sky[..., None], sky_rgb, albedo * shade) * (1.0 + 0.04 * n_pat[..., None])
-    img = jnp.clip(jnp.round(rgb * 255.0), 0, 255).astype(jnp.uint8)
-    return d.astype(jnp.float32), conf.astype(jnp.float32), img
-
-
-def _so3_exp_np(w: np.ndarray) -> np.ndarray:
-    """Rodrigues, ``[..., 3] -> [..., 3, 3]`` float64."""
-    w = np.asarray(w, np.float64)
-    th = np.linalg.norm(w, axis=-1)[..., None, None]
-    Kx = np.zeros((*w.shape[:-1], 3, 3))
-    Kx[..., 0, 1], Kx[..., 0, 2], Kx[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    Kx = Kx - np.swapaxes(Kx, -1, -2)
-    small = th < 1e-8
-    A = np.where(small, 1.0, np.sin(th) / np.where(small, 1.0, th))
-    B = np.where(small, 0.5, (1 - np.cos(th)) / np.where(small, 1.0, th**2))
-    return np.eye(3) + A * Kx + B * (Kx @ Kx)
 
 
 class _Block(NamedTuple):
@@ -628,11 +378,11 @@ class VGGTOracle:
         w = hz.weight(c)
         rng = self._chunk_rng(f, 5)
         delta = np.eye(4)
-        delta[:3, :3] = _so3_exp_np(rng.normal(scale=hz.rot, size=3))
+        delta[:3, :3] = so3_exp(rng.normal(scale=hz.rot, size=3))
         delta[:3, 3] = rng.normal(scale=hz.trans_m, size=3)
         Ta, Tb = self.poses[A[len(A) // 2]], self.poses[B[len(B) // 2]]
         H1 = Ta @ delta @ np.linalg.inv(Tb)
-        H = eye if w == 0.0 else (H1 if w == 1.0 else _se3_power(H1, w))
+        H = eye if w == 0.0 else (H1 if w == 1.0 else se3_power(H1, w))
         out = LoopChunkTruth(k, c, w, H, H1)
         self._loop_truth[key] = out
         while len(self._loop_truth) > 256:
@@ -699,13 +449,13 @@ class VGGTOracle:
         R_ck = R0.T @ T[:, :3, :3]
         t_ck = sigma * (T[:, :3, 3] - c0) @ R0
         k = np.arange(S, dtype=np.float64)
-        R_D = _so3_exp_np(k[:, None] * w_c)
+        R_D = so3_exp(k[:, None] * w_c)
         s_k = np.exp(k * delta_c)
         jr = np.array([self._frame_rng(i, 4).normal(size=3) for i in f]) * nz.pose_rot
         jt = self._chunk_rng(f, 4).normal(size=(S, 3)) * nz.pose_trans
         jr[0] = 0.0
         jt[0] = 0.0
-        R_pred = R_D @ R_ck @ _so3_exp_np(jr)
+        R_pred = R_D @ R_ck @ so3_exp(jr)
         t_pred = s_k[:, None] * np.einsum("sij,sj->si", R_D, t_ck) + jt
         extrinsic = np.concatenate(
             [np.swapaxes(R_pred, 1, 2), -np.einsum("sji,sj->si", R_pred, t_pred)[..., None]], axis=2
@@ -721,7 +471,7 @@ class VGGTOracle:
         F = self.block
         n_blk = -(-S // F)
         pad = n_blk * F - S
-        padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a  # noqa: E731
+        padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a
         ft, dft = padi(f), padi(depth_factor)
         scalars = np.asarray(
             [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
@@ -737,11 +487,11 @@ class VGGTOracle:
                 z, sem, inst = blk.depth, blk.semantic, blk.instance
             else:
                 z, sem, inst = (np.stack([np.asarray(blocks[i // F][k])[i % F] for i in fj]) for k in range(3))
-            p = _PixelParams(
+            p = PixelParams(
                 np.uint32(self._frame_key), ckey, fj.astype(np.int32),
                 dft[j * F:(j + 1) * F].astype(np.float32), np.float32(sigma), np.float32(bias_c), scalars,
             )
-            outs.append(_pixels(z, sem, inst, p))
+            outs.append(pixel_block(z, sem, inst, p))
         depth = np.concatenate([np.asarray(o[0]) for o in outs])[:S]
         conf = np.concatenate([np.asarray(o[1]) for o in outs])[:S]
         if truth.weight > 0.0:

@@ -50,7 +50,7 @@ To turn it on::
 
     segs = plant_aliasing(cam_to_world, rate=0.3)              # ~30 % extra false candidates
     cfg = PlaceTokenConfig(aliasing=segs)                      # alias_strength 0.9
-    # or: swiftjax.demo.loop_route_run(aliasing=0.3) / trajectory_run(..., aliasing=0.3)
+    # or: swiftjax.synthetic.demo.loop_route_run(aliasing=0.3) / trajectory_run(..., aliasing=0.3)
 
 Everything random about a frame is keyed by its **global frame id** (``jax.random.fold_in``),
 so the same frame seen in a temporal chunk and in a loop-centric chunk gets bit-identical

@@ -144,7 +144,7 @@ def chunk_candidates(
     box_id[: len(bi)] = bi
     cyl_id = np.full(n_cyl, -1, np.int32)
     cyl_id[: len(ci)] = ci
-    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731  (NumPy: no device dispatch per field)
+    f32 = lambda a: np.asarray(a, np.float32)  # NumPy: no device dispatch per field
     return Candidates(
         basis=f32(B),
         box_center=f32(pad(world.box_center[bi] - origin, n_box, 1e6)),
@@ -346,7 +346,7 @@ def render_frames(
     Cc = mc[..., 0] ** 2 + mc[..., 1] ** 2 - rc**2
     okc = okc & (Cc > 0)
     cyl_code = cand.cyl_semantic[csel] | ((num_boxes + cand.cyl_id[csel] + 1) << 3)
-    P = lambda a: a[..., None]  # noqa: E731  per-(frame, tile) value -> broadcast over pixels
+    P = lambda a: a[..., None]  # per-(frame, tile) value -> broadcast over pixels
 
     def ground_t():
         den = P(n_g[:, 0:1]) * g1 + P(n_g[:, 1:2]) * g2 + P(n_g[:, 2:3]) * g3
@@ -455,7 +455,7 @@ def frame_movers(world: World, frames: np.ndarray, origin: np.ndarray, k: int = 
             out_a[rows, j] = axes[rows, idx[rows]]
             out_h[rows, j] = half[rows, idx[rows]]
             out_id[rows, j] = idx[rows]
-    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    f32 = lambda a: np.asarray(a, np.float32)
     return f32(out_c), f32(out_a), f32(out_h), out_id
 
 

@@ -233,7 +233,7 @@ def build_world(cam_to_world: np.ndarray, config: WorldConfig = WorldConfig()) -
     positions = T[:, :3, 3]
     route = _route(positions, up, cfg)
     total = route.s[-1]
-    U = lambda r: rng.uniform(r[0], r[1])  # noqa: E731
+    U = lambda r: rng.uniform(r[0], r[1])
 
     centers, axes, halves = [], [], []
     for side in (+1.0, -1.0):  # +1: left (up x forward), -1: right

@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from swiftjax import metric
+from swiftjax import metric_scale
 
 
 def _road_scene(rng, n_road=2500, n_wall=600, n_junk=400, h=1.65, tilt=(0.04, 0.08), noise=0.01):
@@ -35,7 +35,7 @@ def _fit(x, w=None, seed=0):
     xp = np.zeros((N, 3), np.float32)
     wp = np.zeros(N, np.float32)
     xp[: len(x)], wp[: len(x)] = x, w
-    return metric.fit_plane(xp, wp, jax.random.PRNGKey(seed))
+    return metric_scale.fit_plane(xp, wp, jax.random.PRNGKey(seed))
 
 
 def _lsq_plane(x):
@@ -109,7 +109,7 @@ def test_batched_fit_is_per_frame():
     scenes = [_road_scene(rng, h=h, noise=0.0) for h in (1.0, 1.65, 2.5)]
     m = min(len(s[0]) for s in scenes)
     x = np.stack([s[0][:m] for s in scenes]).astype(np.float32)
-    fit = metric.fit_plane(x, np.ones(x.shape[:2], np.float32), jax.random.PRNGKey(7))
+    fit = metric_scale.fit_plane(x, np.ones(x.shape[:2], np.float32), jax.random.PRNGKey(7))
     assert fit.offset.shape == (3,) and bool(np.all(fit.valid))
     np.testing.assert_allclose(-np.asarray(fit.offset), [1.0, 1.65, 2.5], rtol=1e-4)
 
@@ -127,7 +127,7 @@ def test_chunk_height_on_the_exact_oracle_is_the_true_gauge():
                         tokens=False)
     frames = np.arange(10, 30)
     pred = oracle.predict_chunk(frames)
-    gh = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, stride=2, frame_stride=1)
+    gh = metric_scale.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, stride=2, frame_stride=1)
     s_true = oracle.true_chunk_gauge(frames)[7]
     pl = ground_planes(world, poses[frames, :3, 3])
     h_true = np.sum(pl[:, :3] * poses[frames, :3, 3], 1) - pl[:, 3]  # ~1.65 m
@@ -137,19 +137,19 @@ def test_chunk_height_on_the_exact_oracle_is_the_true_gauge():
     # a keep-mask removing the bottom half of every frame leaves no road
     keep = np.ones(pred.depth.shape, bool)
     keep[:, 28:] = False
-    gh0 = metric.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, keep, stride=2, frame_stride=1)
+    gh0 = metric_scale.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, keep, stride=2, frame_stride=1)
     assert int(gh0.num_valid) == 0 and np.isnan(float(gh0.height))
 
 
 def test_combine_scales_median_ignores_bad_chunks():
     h = np.array([1.0, 1.1, np.nan, 0.9, 10.0, 1.0])  # chunk units
     s = np.array([1.0, 1.1, 1.0, 0.9, 1.0, 1.0])  # chunk-to-world scales
-    m, stats = metric.combine_scales(h, s, 1.65)
+    m, stats = metric_scale.combine_scales(h, s, 1.65)
     votes = 1.65 / (h * s)
     assert m == pytest.approx(np.nanmedian(votes))
     assert stats["chunks_voting"] == 5 and stats["chunks"] == 6
     with pytest.raises(ValueError, match="no chunk has a valid road-plane fit"):
-        metric.combine_scales([np.nan, np.nan], [1.0, 1.0], 1.65)
+        metric_scale.combine_scales([np.nan, np.nan], [1.0, 1.0], 1.65)
 
 
 def test_apply_scale_stretches_the_world():
@@ -164,32 +164,32 @@ def test_apply_scale_stretches_the_world():
     def act(S, x):
         return S[:, 7:8] * Rotation.from_quat(S[:, 3:7]).apply(x) + S[:, :3]
 
-    S2 = metric.apply_scale(S, 2.5)
+    S2 = metric_scale.apply_scale(S, 2.5)
     np.testing.assert_allclose(act(S2, x), 2.5 * act(S, x), rtol=1e-12)
     np.testing.assert_array_equal(S2[:, 3:7], S[:, 3:7])
 
 
 @pytest.mark.parametrize("value, expect", [(None, None), ("gt", ("gt", None)), ("camera-height=1.65", ("camera-height", 1.65))])
 def test_parse_metric(value, expect):
-    assert metric.parse_metric(value) == expect
+    assert metric_scale.parse_metric(value) == expect
 
 
 @pytest.mark.parametrize("value", ["camera-height=0", "camera-height=-1", "camera-height=abc", "height=1.6", "metres"])
 def test_parse_metric_refuses(value):
     with pytest.raises(ValueError, match="--metric"):
-        metric.parse_metric(value)
+        metric_scale.parse_metric(value)
 
 
 def test_scale_priors_gate_gross_votes_and_refuse_bad_input():
     h = np.array([1.0, 1.1, np.nan, 0.9, 3.0, 1.05])  # chunk 2 saw no road, chunk 4 a wall
     s = np.ones(6)
-    p = metric.scale_priors(h, s, 1.65, sigma=0.02)
+    p = metric_scale.scale_priors(h, s, 1.65, sigma=0.02)
     np.testing.assert_array_equal(p.used, [True, True, False, True, False, True])
     np.testing.assert_allclose(p.log_scale[p.used], np.log(1.65 / h[p.used]))
     np.testing.assert_allclose(p.weight, np.where(p.used, 1 / 0.02**2, 0.0))
-    assert p.start_factor == metric.combine_scales(h, s, 1.65)[0]
+    assert p.start_factor == metric_scale.combine_scales(h, s, 1.65)[0]
     assert p.stats["chunks_gated"] == 1 and p.stats["chunks_voting"] == 5
     with pytest.raises(ValueError, match="sigma must be > 0"):
-        metric.scale_priors(h, s, 1.65, sigma=0.0)
+        metric_scale.scale_priors(h, s, 1.65, sigma=0.0)
     with pytest.raises(ValueError, match="no chunk has a valid road-plane fit"):
-        metric.scale_priors(np.full(3, np.nan), np.ones(3), 1.65, sigma=0.02)
+        metric_scale.scale_priors(np.full(3, np.nan), np.ones(3), 1.65, sigma=0.02)

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
+from numpy.typing import ArrayLike as HostArrayLike
 
 from swiftjax import camera
 
@@ -253,7 +254,7 @@ def chunk_ground_height(
 
     Shapes as :func:`ground_points` (``frame_heights`` / ``inlier_fraction`` are
     ``[ceil(S / frame_stride)]``).  Defaults: every 5th frame, 4 x 8-pixel grid (at 518 x 154:
-    ~1,300 candidates below the horizon), 64 hypotheses -- ~0.1 s a KITTI chunk.  One jitted
+    ~1,300 candidates below the horizon), 64 hypotheses.  One jitted
     call; recompiles per ``(S, H, W)``, dtype, ``keep`` given or not, and the static
     arguments.  ``key`` defaults to ``PRNGKey(0)`` (deterministic)."""
     fs = slice(None, None, frame_stride)
@@ -269,7 +270,7 @@ def chunk_ground_height(
 
 
 def combine_scales(
-    chunk_heights: ArrayLike, chunk_scales: ArrayLike, camera_height: float
+    chunk_heights: HostArrayLike, chunk_scales: HostArrayLike, camera_height: float
 ) -> tuple[float, dict]:
     """Metres per world unit from every chunk's ground height: ``median_t (H / h_t / s_t)``.
 
@@ -315,7 +316,7 @@ class ScalePriors(NamedTuple):
 
 
 def scale_priors(
-    chunk_heights: ArrayLike, chunk_scales: ArrayLike, camera_height: float, sigma: float, gate: float = 5.0
+    chunk_heights: HostArrayLike, chunk_scales: HostArrayLike, camera_height: float, sigma: float, gate: float = 5.0
 ) -> ScalePriors:
     """The pose-graph scale priors of ``metric_combine = "prior"`` (module docstring).
 
@@ -340,7 +341,7 @@ def scale_priors(
     return ScalePriors(np.where(used, log_m, np.nan), weight, used, start, stats)
 
 
-def apply_scale(poses: ArrayLike, m: float) -> np.ndarray:
+def apply_scale(poses: HostArrayLike, m: float) -> np.ndarray:
     """``M_m o S`` for Sim(3) poses ``[..., 8]``: translation and scale times ``m`` (the world
     stretched by ``m``; rotations unchanged).  Host NumPy float64."""
     S = np.array(poses, np.float64, copy=True)

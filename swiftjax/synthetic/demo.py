@@ -72,7 +72,7 @@ def trajectory_run(
     ``aliasing``: a rate for :func:`~swiftjax.synthetic.places.plant_aliasing` (as many pairs
     as fit, seed ``seed``) or explicit ``(s_a, s_b, L)`` segment pairs; ``alias_strength``:
     their ``lambda`` (default :data:`~swiftjax.synthetic.places.DEFAULT_ALIAS_STRENGTH`).
-    ``hallucination``: a :class:`~swiftjax.synthetic.oracle.Hallucination`, ``"default"``, or
+    ``hallucination``: a :class:`~swiftjax.synthetic.noise.Hallucination`, ``"default"``, or
     ``None`` (honest loop chunks).  The planted pairs are in
     ``run.aliasing`` and in the predictor's fingerprint.  ``moving_cars``: cars driving along
     the road (:mod:`swiftjax.synthetic.world`; their true masks are the oracle's semantic
@@ -80,7 +80,8 @@ def trajectory_run(
     """
     options = {k: v for k, v in locals().items() if k != "cam_to_world"}  # OracleSpec: every keyword
     from swiftjax.synthetic import places
-    from swiftjax.synthetic.oracle import Hallucination, OracleNoise, VGGTOracle
+    from swiftjax.synthetic.noise import Hallucination, OracleNoise
+    from swiftjax.synthetic.oracle import VGGTOracle
     from swiftjax.synthetic.world import WorldConfig, build_world
 
     poses = np.asarray(cam_to_world, np.float64)

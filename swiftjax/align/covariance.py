@@ -38,7 +38,7 @@ Every function is pure, jit-able and takes leading batch axes; each compiles onc
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +46,9 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from swiftjax import sim3, so3
+
+if TYPE_CHECKING:
+    from swiftjax.align.chunk_pair import AlignInfo
 
 __all__ = [
     "EdgeInformation",
@@ -154,7 +157,7 @@ def umeyama_information_from_points(
     S: ArrayLike,
     num_points: ArrayLike,
     rms: ArrayLike,
-    **options,
+    **options: ArrayLike,
 ) -> EdgeInformation:
     """:func:`umeyama_information` of an :func:`swiftjax.align.umeyama` solve from its source points
     (``src [..., N, 3]``, ``weights [..., N]`` or None, ``S [..., 8]`` and the solve's
@@ -164,7 +167,7 @@ def umeyama_information_from_points(
 
 
 @jax.jit
-def alignment_information(S: ArrayLike, info, **options) -> EdgeInformation:
+def alignment_information(S: ArrayLike, info: AlignInfo, **options: ArrayLike) -> EdgeInformation:
     """Information of an :func:`swiftjax.align.align_chunk_pair` edge from its ``(S, AlignInfo)``.
 
     Invalid (``valid`` False) also when the alignment fell back to the camera poses
@@ -196,7 +199,7 @@ def loop_edge_information(
     S_i = jnp.asarray(S_i_loop)
     valid = info_i.valid & info_j.valid
     eye = jnp.eye(7, dtype=S_i.dtype)
-    safe = lambda a: jnp.where(valid[..., None, None], a, eye)  # noqa: E731
+    safe = lambda a: jnp.where(valid[..., None, None], a, eye)
     cov = _covariance(safe(info_i.information)) + _covariance(safe(info_j.information))
     ad = sim3.adjoint(S_i)
     cov_z = ad @ cov @ jnp.swapaxes(ad, -1, -2)
