@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import warnings
 
 import jax
 import numpy as np
@@ -133,17 +132,11 @@ def test_chunk_of_arrays():
     assert isinstance(sched.chunk_of(5), int)
 
 
-def test_loop_verification_is_a_deprecated_alias():
-    lv = importlib.import_module("swiftjax.loop_verification")
-    with pytest.warns(DeprecationWarning, match="swiftjax.loops.verification"):
-        assert lv.verify_candidates is V.verify_candidates
-    with pytest.warns(DeprecationWarning):
-        assert lv.VerificationConfig is VerificationConfig
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with pytest.raises(AttributeError):
-            lv.no_such_name  # noqa: B018
-    assert set(lv.__all__) == set(V.__all__)
+def test_loop_verification_lives_in_the_loops_package_only():
+    # the top-level compatibility module is gone (issue 31): one import path
+    with pytest.raises(ModuleNotFoundError, match="swiftjax.loop_verification"):
+        importlib.import_module("swiftjax.loop_verification")
+    assert importlib.import_module("swiftjax.loops.verification").verify_candidates is V.verify_candidates
 
 
 def test_loops_keeps_its_public_names():

@@ -46,7 +46,7 @@ class PipelineConfig:
     ``loop_false_alarms``; ``"fixed"``: ``loop_threshold``, the cosine of the whitened
     descriptors; ``"authors"``: 0.98 with the whitening fitted on g0), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
     ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Loop
-    verification (:mod:`swiftjax.loop_verification`): ``loop_verification`` (``"geometric"``:
+    verification (:mod:`swiftjax.loops.verification`): ``loop_verification`` (``"geometric"``:
     every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
     pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
     candidate above the threshold is an edge), ``loop_agreement`` (``"null"``: the dense

@@ -7,7 +7,7 @@ chain, temporal edges plain (never down-weighted), loop edges robust: GNC-TLS by
 (``robust_loops``), with the inlier threshold ``robust_scale`` in whitened units.
 
 Edge information (``edge_information = "data"``): each edge's covariance is the drift model of
-:mod:`swiftjax.loop_verification` (``odometry_covariance`` / ``loop_covariance``: translation
+:mod:`swiftjax.loops.verification` (``odometry_covariance`` / ``loop_covariance``: translation
 error proportional to the edge's length, fixed rotation and log-scale errors — VGGT's model
 error, which point statistics cannot see) plus its own alignment's estimation covariance
 (:func:`swiftjax.align_covariance.umeyama_information`: reliable-point count, residual RMS, the
@@ -108,7 +108,7 @@ def _inverse(m: np.ndarray) -> np.ndarray:
 def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> np.ndarray | None:
     """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
 
-    ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loop_verification`
+    ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loops.verification`
     (VGGT's chunk-to-chunk model error, which an alignment's point statistics cannot see; see
     docs/performance/pipeline.md for what the statistics alone give)
     plus the alignment's own estimation covariance (large only for weak alignments: few reliable
