@@ -133,9 +133,15 @@ def test_chunk_of_arrays():
 
 
 def test_loop_verification_lives_in_the_loops_package_only():
-    # the top-level compatibility module is gone (issue 31): one import path
-    with pytest.raises(ModuleNotFoundError, match="swiftjax.loop_verification"):
-        importlib.import_module("swiftjax.loop_verification")
+    # the top-level compatibility module is gone (issue 31): one import path, named everywhere
+    import pathlib
+
+    import swiftjax
+
+    root = pathlib.Path(swiftjax.__file__).parent
+    assert not (root / "loop_verification.py").exists()
+    stale = [p.name for p in root.rglob("*.py") if "swiftjax.loop_verification" in p.read_text(encoding="utf-8")]
+    assert stale == []
     assert importlib.import_module("swiftjax.loops.verification").verify_candidates is V.verify_candidates
 
 
