@@ -13,7 +13,7 @@ import pytest
 from swiftjax import loops as L
 from swiftjax.chunks import chunk_schedule
 from swiftjax.loops import verification as V
-from swiftjax.loops.options import LoopOptions, VerificationConfig
+from swiftjax.loops.options import LoopOptions
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.loop_closure import loop_options
 
