@@ -6,7 +6,7 @@ look-alike place pairs planted at ``--levels`` (0, 0.1, 0.3, 0.5: that many extr
 candidates per true loop chunk pair, :func:`swiftjax.synthetic.places.plant_aliasing`).
 
 For each route and level the pipeline runs ONCE with the default configuration (geometric
-verification, :mod:`swiftjax.loop_verification`, and the default pose graph); the other arms
+verification, :mod:`swiftjax.loops.verification`, and the default pose graph); the other arms
 reuse that run's candidates, their loop edges and the temporal chain (same run, same numbers):
 
 * ``ours``: the pipeline's own result (accepted candidates only, the default kernel);
@@ -17,6 +17,15 @@ reuse that run's candidates, their loop edges and the temporal chain (same run, 
   verifier achieves with this run's candidates.  Planted look-alike tokens may sit inside a
   true loop region and move the detector onto other true pairs, so the alias-free run's ATE
   is not always reachable by any verifier; this arm separates that from verification.
+
+* ``fixed 0.55, plain``: the same records re-decided with the fixed dense bound
+  (``agreement_rule = "fixed"``, the rule the per-candidate null test replaced), no kernel;
+  against ``verified, plain`` (the null test, the default) it isolates the dense rule.
+
+Routes ``kitti05``, ``kitti06``, ``kitti08`` (ground truth from ``$SWIFTJAX_SHARED``) run
+through :func:`swiftjax.demo.trajectory_run` with the same aliasing levels.  A second table
+gives per route and level the true candidates the truth filter keeps, how many of them and
+how many false ones each dense rule accepts, and both rules' ATE.
 
 Per arm: candidates, accepted, precision (accepted candidates that are true revisits,
 :func:`~swiftjax.synthetic.places.evaluate_loops`, ±25 frames), recall of the ground-truth
@@ -50,12 +59,34 @@ from common import markdown_table, write_results
 HERE = pathlib.Path(__file__).resolve().parent
 
 
+ROUTES = ("demo", "kitti00", "kitti05", "kitti06", "kitti08")
+
+
 def _make_run(route: str, level: float):
     from swiftjax.synthetic import demo
+    from swiftjax.io.trajectory import read_kitti
 
     if route == "demo":
         return demo.loop_route_run(aliasing=level)
-    return demo.kitti00_run(_shared(), aliasing=level)
+    if route == "kitti00":
+        return demo.kitti00_run(_shared(), aliasing=level)
+    poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{route[-2:]}_gt.txt")
+    return demo.trajectory_run(poses, name=route, aliasing=level)
+
+
+def fixed_verdicts(cands: list[dict], relative: np.ndarray) -> list[bool]:
+    """Each candidate's verdict under the fixed dense bound (``agreement_rule = "fixed"``,
+    0.55) from the same records' numbers: the rule the null test replaced."""
+    from swiftjax.loops import verification as lv
+    from swiftjax.posegraph import chain_poses
+
+    rows = [k for k, r in enumerate(cands) if "Z" in r and "dense_agreement" in r]
+    out = [False] * len(cands)
+    decisions = lv.verify_candidates([cands[k] for k in rows], chain_poses(relative), relative,
+                                     lv.VerificationConfig(agreement_rule="fixed"))
+    for k, d in zip(rows, decisions):
+        out[k] = d.accepted
+    return out
 
 
 def graph_poses(relative: np.ndarray, loop_edges: list[tuple[int, int, np.ndarray]], max_steps: int,
@@ -109,10 +140,12 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
     with_edge = [r for r in cands if "Z" in r]
     truth = places.evaluate_loops(np.asarray([(r["i"], r["j"]) for r in cands], np.int64).reshape(-1, 2),
                                   gt_pairs, tolerance=25)
+    fixed = fixed_verdicts(cands, relative)
     arms = {
         "ours": [r for r in cands if r["accepted"]],
         "authors": with_edge,
         "verified, plain": [r for r in cands if r["accepted"]],
+        "fixed 0.55, plain": [r for r, ok in zip(cands, fixed) if ok],
         "truth filter": [r for r, ok in zip(cands, truth.correct) if ok and "Z" in r],
     }
     out = {"route": route, "level": level, "planted_pairs": [list(s) for s in run.aliasing],
@@ -127,17 +160,26 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
             ate = float(res.metrics["ate_rmse"])
         else:
             poses, _ = graph_poses(relative, [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in chosen],
-                                   config.max_lm_steps)
+                                   config.max_lm_steps, throw=False)
             ate = float(evaluation.ate(_centres(res, schedule, poses), gt).rmse)
         out["arms"][name] = {"accepted": len(chosen), "correct": int(ev.n_correct), "precision": ev.precision,
                              "region_recall": ev.region_recall, "regions_found": int(ev.n_regions_found),
                              "ate_rmse": ate}
     out["ate_rmse_no_loops"] = float(res.metrics["ate_rmse_no_loops"])
+    # the dense agreement's rule: null test (the run's) against the fixed 0.55, same records
+    keep = [bool(ok) and "Z" in r for r, ok in zip(cands, truth.correct)]
+    out["agreement_rules"] = {
+        rule: {"true_accepted": sum(a and k for a, k in zip(acc, keep)), "truth_filter": sum(keep),
+               "false_accepted": sum(a and not ok for a, ok in zip(acc, truth.correct))}
+        for rule, acc in (("null", [r["accepted"] for r in cands]), ("fixed", fixed))
+    }
     out["candidate_records"] = [
         {"i": r["i"], "j": r["j"], "score": r["score"], "true": bool(c), "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])),
          "accepted": r["accepted"], "reason": r["reason"],
-         **{k: r.get(k) for k in ("dense_agreement", "dense_overlap", "quality_min_fraction", "pcm_residual")}}
-        for r, c in zip(cands, truth.correct)
+         "accepted_fixed": f,
+         **{k: r.get(k) for k in ("dense_agreement", "dense_overlap", "null_mean", "null_std", "null_threshold",
+                                  "null_kappa", "quality_min_fraction", "pcm_residual")}}
+        for r, c, f in zip(cands, truth.correct, fixed)
     ]
     return out
 
@@ -151,7 +193,7 @@ def _relative(run_dir: pathlib.Path, T: int) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--routes", nargs="+", default=["demo", "kitti00"], choices=["demo", "kitti00"])
+    parser.add_argument("--routes", nargs="+", default=["demo", "kitti00"], choices=ROUTES)
     parser.add_argument("--levels", type=float, nargs="+", default=[0.0, 0.1, 0.3, 0.5])
     parser.add_argument("--kitti-levels", type=float, nargs="+", default=None,
                         help="levels for KITTI 00 (default: --levels)")
@@ -188,6 +230,18 @@ def main() -> None:
     table = markdown_table(["route", "aliasing", "rule", "candidates", "true cand.", "accepted", "precision",
                             "regions found", "ATE (m)", "ATE / alias-free"], rows)
     print(table)
+    # the dense agreement's rule: true candidates the truth filter keeps that each rule accepts
+    rule_rows = []
+    for r in records:
+        n, f = r["agreement_rules"]["null"], r["agreement_rules"]["fixed"]
+        ate = lambda k: r["arms"][k]["ate_rmse"]  # noqa: E731
+        rule_rows.append([r["route"], f"{r['level']:.0%}", r["candidates"], n["truth_filter"],
+                          f"{f['true_accepted']} / {f['false_accepted']}", f"{n['true_accepted']} / {n['false_accepted']}",
+                          f"{ate('fixed 0.55, plain'):.3f}", f"{ate('verified, plain'):.3f}",
+                          f"{100 * (ate('verified, plain') / ate('fixed 0.55, plain') - 1):+.1f} %"])
+    rule_table = markdown_table(["route", "aliasing", "candidates", "true (truth filter)", "fixed 0.55: true / false acc.",
+                                 "null: true / false acc.", "ATE fixed (m)", "ATE null (m)", "null vs fixed"], rule_rows)
+    print(rule_table)
     # dense-score distributions (the verification thresholds)
     dist = {"true": [], "false": []}
     for r in records:
@@ -196,7 +250,7 @@ def main() -> None:
                 dist["true" if c["true"] else "false"].append(c["dense_agreement"])
     summary = {k: ({"n": len(v), "min": min(v), "max": max(v)} if v else {"n": 0}) for k, v in dist.items()}
     print("dense agreement of candidates:", summary)
-    payload = {"records": records, "table": table, "dense_agreement": summary}
+    payload = {"records": records, "table": table, "rule_table": rule_table, "dense_agreement": summary}
     path = write_results("loop_robustness", payload)
     print(f"wrote {path}")
     if (HERE / "_robust_graph.py").exists() and not args.skip_graph:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import warnings
 
 import jax
 import numpy as np
@@ -14,7 +13,7 @@ import pytest
 from swiftjax import loops as L
 from swiftjax.chunks import chunk_schedule
 from swiftjax.loops import verification as V
-from swiftjax.loops.options import LoopOptions, VerificationConfig
+from swiftjax.loops.options import LoopOptions
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.loop_closure import loop_options
 
@@ -123,17 +122,17 @@ def test_chunk_of_arrays():
     assert isinstance(sched.chunk_of(5), int)
 
 
-def test_loop_verification_is_a_deprecated_alias():
-    lv = importlib.import_module("swiftjax.loop_verification")
-    with pytest.warns(DeprecationWarning, match="swiftjax.loops.verification"):
-        assert lv.verify_candidates is V.verify_candidates
-    with pytest.warns(DeprecationWarning):
-        assert lv.VerificationConfig is VerificationConfig
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with pytest.raises(AttributeError):
-            lv.no_such_name  # noqa: B018
-    assert set(lv.__all__) == set(V.__all__)
+def test_loop_verification_lives_in_the_loops_package_only():
+    # the top-level compatibility module is gone (issue 31): one import path, named everywhere
+    import pathlib
+
+    import swiftjax
+
+    root = pathlib.Path(swiftjax.__file__).parent
+    assert not (root / "loop_verification.py").exists()
+    stale = [p.name for p in root.rglob("*.py") if "swiftjax.loop_verification" in p.read_text(encoding="utf-8")]
+    assert stale == []
+    assert importlib.import_module("swiftjax.loops.verification").verify_candidates is V.verify_candidates
 
 
 def test_loops_keeps_its_public_names():

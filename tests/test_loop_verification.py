@@ -1,4 +1,4 @@
-"""Tests for swiftjax.loop_verification against float64 NumPy loops and Monte Carlo draws."""
+"""Tests for swiftjax.loops.verification against float64 NumPy loops and Monte Carlo draws."""
 
 from __future__ import annotations
 

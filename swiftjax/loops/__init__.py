@@ -26,6 +26,7 @@ Modules, one idea each:
   earlier frames), with ``find_loops`` itself as the final pass;
 * :mod:`swiftjax.loops.verification`: geometric verification of the candidates, the
   decision rule (:mod:`swiftjax.loops.cross_chunk`: the dense cross-chunk test;
+  :mod:`swiftjax.loops.null`: its null distribution per candidate;
   :mod:`swiftjax.loops.pcm`: pairwise consistency of loop edges).
 
 ``frame_descriptor`` runs per chunk as tokens arrive (the pipeline never holds all tokens:
@@ -43,6 +44,7 @@ from swiftjax.loops.detection import LoopCandidates, ThresholdCalibration, calib
 from swiftjax.loops.find import Loop, find_loops
 from swiftjax.loops.loop_chunk import LoopChunk, filter_by_chunks, loop_chunk_frames, loop_edge
 from swiftjax.loops.options import (
+    AGREEMENT_RULES,
     AUTHORS_THRESHOLD,
     DEFAULT_FALSE_ALARMS,
     DEFAULT_THRESHOLD,
@@ -53,6 +55,7 @@ from swiftjax.loops.options import (
 
 __all__ = [
     "LoopOptions",
+    "AGREEMENT_RULES",
     "frame_descriptor",
     "power_normalize",
     "Whitening",

@@ -26,6 +26,7 @@ __all__ = [
     "FIT_ON",
     "NMS_RULES",
     "VERIFICATION_RULES",
+    "AGREEMENT_RULES",
 ]
 
 #: Cosine threshold on *whitened* descriptors ẑ (d′ = 512) for ``rule="fixed"``.  The
@@ -56,21 +57,41 @@ NMS_RULES = ("pair", "frame")
 #: ``"none"``: every candidate above the threshold is a loop edge (the authors' rule).
 VERIFICATION_RULES = ("geometric", "none")
 
+#: How the dense agreement of a candidate is judged: ``"null"`` against the agreement the same
+#: two chunks give under clearly wrong edges (:mod:`swiftjax.loops.null`, no tuned constant);
+#: ``"fixed"``: against ``min_agreement`` (0.55, read off KITTI 00 and the demo).
+AGREEMENT_RULES = ("null", "fixed")
+
 
 @dataclasses.dataclass(frozen=True)
 class VerificationConfig:
     """Thresholds of :func:`~swiftjax.loops.verification.verify_candidates`.
 
     Chosen from measured distributions of true and false candidates (the numbers and the
-    benchmarks behind them: ``docs/performance/loops.md``).  ``min_agreement = 0.55`` sits
-    in the gap between the true and false candidates' dense scores, on the precision side;
+    benchmarks behind them: ``docs/performance/loops.md``).  The dense agreement is judged per
+    candidate against its own null distribution (``agreement_rule = "null"``,
+    :mod:`swiftjax.loops.null`: the one-sided prediction bound at false-alarm rate
+    ``null_false_alarm`` and a chance-corrected agreement of at least ``null_min_kappa``, over ``null_samples`` edges shifted sideways by
+    ``null_min_shift``..``null_max_shift`` of the median depth); ``agreement_rule = "fixed"`` uses
+    ``min_agreement = 0.55``, which sits in the gap between the true and false candidates'
+    dense scores of KITTI 00 and the demo, on the precision side (another route's true
+    candidates scored 0.34-0.44: it does not transfer);
     ``pcm_threshold`` is ``sqrt(χ²_7(0.999))``; the drift sigmas are of the order of the
     measured temporal-edge and loop-edge errors of the synthetic routes (real VGGT's drift is
     not measured here: they are options).
 
     Attributes:
-        min_agreement: the smaller direction's ``agreement`` (pairs in view whose depth
-            agrees) must reach this.
+        agreement_rule: :data:`AGREEMENT_RULES`.
+        min_agreement: ``agreement_rule = "fixed"`` (and the fallback of ``"null"`` when
+            fewer than three null edges see the other chunk): the smaller direction's
+            ``agreement`` (pairs in view whose depth agrees) must reach this.
+        null_samples: ``K``, null edges per candidate (even, >= 4).
+        null_false_alarm: ``α``, the probability that a chance agreement passes the null's
+            significance test.
+        null_min_kappa: ``κ_min``, the least chance-corrected agreement
+            ``(a − m) / (1 − m)`` (Landis and Koch's "fair").
+        null_min_shift, null_max_shift: the null edges' sideways offsets, fractions of the
+            target chunk's median depth.
         min_overlap: the smaller direction's ``overlap`` (reliable points seen at all).
         depth_tolerance: relative depth agreement ``τ``.
         stride: source pixel subsampling of the dense test.
@@ -84,7 +105,13 @@ class VerificationConfig:
             (:func:`~swiftjax.loops.verification.loop_covariance`).
     """
 
+    agreement_rule: str = "null"
     min_agreement: float = 0.55
+    null_samples: int = 16
+    null_false_alarm: float = 0.01
+    null_min_kappa: float = 0.2
+    null_min_shift: float = 0.15
+    null_max_shift: float = 0.4
     min_overlap: float = 0.2
     depth_tolerance: float = 0.05
     stride: int = 4
@@ -98,6 +125,20 @@ class VerificationConfig:
     loop_sigma_rot: float = 0.015
     loop_sigma_trans: float = 0.05
     loop_sigma_scale: float = 0.03
+
+    def __post_init__(self) -> None:
+        if self.agreement_rule not in AGREEMENT_RULES:
+            raise ValueError("VerificationConfig: agreement_rule must be "
+                             + " or ".join(map(repr, AGREEMENT_RULES)) + f", got {self.agreement_rule!r}")
+        if self.null_samples < 4 or self.null_samples % 2:
+            raise ValueError(f"VerificationConfig: null_samples must be even and >= 4, got {self.null_samples}")
+        if not 0.0 < self.null_false_alarm < 1.0:
+            raise ValueError(f"VerificationConfig: null_false_alarm must be in (0, 1), got {self.null_false_alarm}")
+        if not 0.0 <= self.null_min_kappa < 1.0:
+            raise ValueError(f"VerificationConfig: null_min_kappa must be in [0, 1), got {self.null_min_kappa}")
+        if not 0.0 < self.null_min_shift <= self.null_max_shift:
+            raise ValueError("VerificationConfig: need 0 < null_min_shift <= null_max_shift, got "
+                             f"{self.null_min_shift}, {self.null_max_shift}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,9 @@ S_{c_i}``).  VGGT given two sets of frames that share no view still returns one 
 reconstruction, so ``Z`` alone proves nothing.  Three tests that do not trust the loop chunk:
 
 1. **Cross-chunk dense consistency** (:mod:`swiftjax.loops.cross_chunk`): the temporal
-   chunks' own depths around both ends must agree under ``Z``.
+   chunks' own depths around both ends must agree under ``Z``, more than the same two chunks
+   agree by chance under clearly wrong edges (:mod:`swiftjax.loops.null`; or, with
+   ``agreement_rule = "fixed"``, more than the constant ``min_agreement``).
 2. **Loop-chunk quality** (:func:`loop_chunk_quality`): each half's alignment to its temporal
    chunk must be a valid Umeyama solve (no pose fallback) on enough reliable points
    (``fraction_used``), with its residual recorded.
@@ -16,8 +18,9 @@ reconstruction, so ``Z`` alone proves nothing.  Three tests that do not trust th
    odometry between their ends must close a cycle, within the odometry's drift.
 
 This module holds the decision rule (:func:`verify_candidates`, thresholds in
-:class:`VerificationConfig`) and re-exports the tests' functions.  The thresholds were
-chosen from measured distributions of true and false candidates (docs/performance/loops.md).
+:class:`VerificationConfig`) and re-exports the tests' functions.  The fixed thresholds were
+chosen from measured distributions of true and false candidates (docs/performance/loops.md);
+the dense agreement's bound is calibrated per candidate by default.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from jaxtyping import ArrayLike, Float
 
 from swiftjax import align, sim3
 from swiftjax.loops.cross_chunk import ConsistencyInfo, CrossCheck, cross_chunk_consistency, dense_consistency
+from swiftjax.loops.null import NullCheck, chance_corrected, null_consistency, null_threshold
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.loops.pcm import loop_covariance, max_consistent_set, odometry_covariance, pairwise_consistency
 
@@ -41,6 +45,10 @@ __all__ = [
     "dense_consistency",
     "CrossCheck",
     "cross_chunk_consistency",
+    "NullCheck",
+    "null_consistency",
+    "null_threshold",
+    "chance_corrected",
     "LoopQuality",
     "loop_chunk_quality",
     "candidate_numbers",
@@ -103,7 +111,10 @@ def candidate_numbers(
     c_j; ``info_i``/``info_j`` the halves' alignment diagnostics (:func:`loop_chunk_quality`).
     Keys: ``dense_agreement``, ``dense_overlap`` (the smaller direction's), ``dense_i_to_j``
     and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
-    ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``.
+    ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``; with
+    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, NaN when fewer
+    than three null edges see the other chunk), ``null_mean``, ``null_std``, ``null_samples``
+    (``K'``) and ``null_kappa`` (the chance-corrected agreement; :mod:`swiftjax.loops.null`).
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))  # noqa: E731
@@ -112,6 +123,13 @@ def candidate_numbers(
     plain = lambda info: {k: float(np.asarray(v)[0]) if np.asarray(v).dtype.kind == "f" else int(np.asarray(v)[0])  # noqa: E731
                           for k, v in info._asdict().items()}
     q = loop_chunk_quality(info_i, info_j)
+    null = {}
+    if config.agreement_rule == "null":
+        nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
+        score, overlap, seen = (np.asarray(a)[0] for a in nc)
+        th = null_threshold(score, overlap, seen, config.null_false_alarm, config.min_overlap)
+        null = {"null_threshold": th.threshold, "null_mean": th.mean, "null_std": th.std, "null_samples": th.samples,
+                "null_kappa": chance_corrected(float(np.asarray(cc.score)[0]), th.mean)}
     return {
         "dense_agreement": float(np.asarray(cc.score)[0]),
         "dense_overlap": float(min(np.asarray(cc.i_to_j.overlap)[0], np.asarray(cc.j_to_i.overlap)[0])),
@@ -121,6 +139,7 @@ def candidate_numbers(
         "quality_min_points": int(q.min_points),
         "quality_min_fraction": float(q.min_fraction),
         "quality_max_rms": float(q.max_rms),
+        **null,
     }
 
 
@@ -151,6 +170,22 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
     if overlap < config.min_overlap:
         return (f"the temporal chunks do not see each other under the edge: overlap {overlap:.3f} "
                 f"< {config.min_overlap}")
+    if config.agreement_rule == "null":
+        tau = float(r.get("null_threshold", math.nan))
+        if math.isfinite(tau):
+            null = f"null {float(r['null_mean']):.3f} +- {float(r['null_std']):.3f}"
+            if agreement <= tau:
+                return (f"depths agree no better than under wrong edges: agreement {agreement:.3f} <= "
+                        f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g})")
+            kappa = chance_corrected(agreement, float(r["null_mean"]))
+            if kappa < config.null_min_kappa:
+                return (f"depths agree little more than under wrong edges: chance-corrected agreement "
+                        f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null})")
+            return None
+        if agreement < config.min_agreement:  # the null is not computable: the fixed bound
+            return (f"depths disagree across the loop: agreement {agreement:.3f} < {config.min_agreement} "
+                    "(no null: fewer than three wrong edges see the other chunk)")
+        return None
     if agreement < config.min_agreement:
         return f"depths disagree across the loop: agreement {agreement:.3f} < {config.min_agreement}"
     return None
@@ -167,8 +202,13 @@ def verify_candidates(
     Each record needs ``chunk_i``, ``chunk_j``, ``Z`` (``[8]``, c_i into c_j),
     ``dense_agreement`` and ``dense_overlap`` (the smaller direction's, :class:`CrossCheck`;
     NaN when they could not be computed), ``quality_valid`` and ``quality_min_fraction``
-    (:class:`LoopQuality`).  The rule, in order: a non-finite ``Z``, an invalid or thin
-    loop-chunk alignment, no overlap or disagreeing depths reject the candidate; the
+    (:class:`LoopQuality`), and with ``agreement_rule = "null"`` ``null_threshold``,
+    ``null_mean``, ``null_std`` (:func:`candidate_numbers`; a record without them falls back
+    to ``min_agreement``).  The rule, in order: a non-finite ``Z``, an invalid or thin
+    loop-chunk alignment, no overlap or depths that agree no better than under wrong edges
+    (``dense_agreement <= null_threshold`` or a chance-corrected agreement below
+    ``null_min_kappa``; ``"fixed"``: ``< min_agreement``) reject the
+    candidate; the
     survivors (two or more) go through PCM and only a maximum consistent set is kept (ties:
     larger total ``dense_agreement``).
 

@@ -46,11 +46,12 @@ class PipelineConfig:
     ``loop_false_alarms``; ``"fixed"``: ``loop_threshold``, the cosine of the whitened
     descriptors; ``"authors"``: 0.98 with the whitening fitted on g0), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
     ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Loop
-    verification (:mod:`swiftjax.loop_verification`): ``loop_verification`` (``"geometric"``:
+    verification (:mod:`swiftjax.loops.verification`): ``loop_verification`` (``"geometric"``:
     every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
     pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
-    candidate above the threshold is an edge), ``loop_min_agreement`` (the dense test's
-    bound), ``loop_pcm`` (the pairwise test), ``loop_geometry`` (geometric candidates beside the
+    candidate above the threshold is an edge), ``loop_agreement`` (``"null"``: the dense
+    agreement judged against the candidate's own null distribution, :mod:`swiftjax.loops.null`;
+    ``"fixed"``: ``loop_min_agreement``, the dense test's fixed bound), ``loop_pcm`` (the pairwise test), ``loop_geometry`` (geometric candidates beside the
     tokens', :mod:`swiftjax.loops.geometric`).  Pose
     graph: ``robust_loops`` (``"gnc"``: graduated non-convexity with truncated least squares on
     the loop edges, :mod:`swiftjax.posegraph.gnc`; ``"huber"``, ``"cauchy"``, or ``None``, the
@@ -145,6 +146,11 @@ class PipelineConfig:
     loop_min_agreement: float = option(
         _LOOPS.verification_config.min_agreement, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0,
         stage="loops",
+    )
+    loop_agreement: str = option(
+        _LOOPS.verification_config.agreement_rule, "loop verification: null (the dense agreement must beat what the same "
+        "two chunks give under clearly wrong edges, per candidate) or fixed (must reach loop_min_agreement)",
+        choices=loops.AGREEMENT_RULES, stage="loops",
     )
     loop_pcm: bool = option(_LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops")
     loop_geometry: bool = option(

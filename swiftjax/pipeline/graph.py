@@ -11,7 +11,7 @@ set, the other loop edges are out (weight 0; ``metrics["loop_pcm_kept"]``).  Wit
 weights the test and GNC's decision use the drift model below as the noise model.
 
 Edge information (``edge_information = "data"``): each edge's covariance is the drift model of
-:mod:`swiftjax.loop_verification` (``odometry_covariance`` / ``loop_covariance``: translation
+:mod:`swiftjax.loops.verification` (``odometry_covariance`` / ``loop_covariance``: translation
 error proportional to the edge's length, fixed rotation and log-scale errors — VGGT's model
 error, which point statistics cannot see) plus its own alignment's estimation covariance
 (:func:`swiftjax.align.covariance.umeyama_information`: reliable-point count, residual RMS, the
@@ -115,7 +115,7 @@ def _drift_covariance(temporal: TemporalResult, loops: LoopResult) -> tuple[np.n
 def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> np.ndarray | None:
     """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
 
-    ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loop_verification`
+    ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loops.verification`
     (VGGT's chunk-to-chunk model error, which an alignment's point statistics cannot see; see
     docs/performance/pipeline.md for what the statistics alone give)
     plus the alignment's own estimation covariance (large only for weak alignments: few reliable

@@ -103,7 +103,8 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
                     manifest.data["loop_edges"][key] = record
                     manifest.save()  # recorded (fsync'd) before the next loop chunk
                     _faults.point("loop-recorded", len(loop_records))
-                if config.loop_verification == "geometric" and "dense_agreement" not in record:
+                if config.loop_verification == "geometric" and not (
+                        "dense_agreement" in record and (config.loop_agreement == "fixed" or "null_threshold" in record)):
                     record.update(_verification_numbers(ctx, lp, record, K_ref))
                     manifest.save()
                 loop_records.append(record)
@@ -180,7 +181,8 @@ def loop_options(config: PipelineConfig) -> loops.LoopOptions:
         min_separation=config.loop_min_separation, nms_radius=config.loop_nms_radius, top_k=config.loop_top_k,
         half_window=config.loop_half_window,
         verification=config.loop_verification,
-        verification_config=lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm),
+        verification_config=lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm,
+                                                  agreement_rule=config.loop_agreement),
     )
 
 

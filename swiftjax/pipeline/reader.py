@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
+
 __all__ = [
     "POSE_SETS", "RunReadError", "read_json", "read_manifest", "read_chunk_poses", "chained_prefix",
     "loop_candidates", "frame_names", "read_live_poses",
@@ -25,7 +27,7 @@ __all__ = [
 POSE_SETS = ("loop closure", "no loop closure")
 
 
-class RunReadError(ValueError):
+class RunReadError(SwiftjaxError, ValueError):
     """A run directory (or one of its records) cannot be read; the message names it."""
 
 

@@ -127,7 +127,8 @@ def _metrics(
 def _candidate(r: dict[str, Any]) -> dict[str, Any]:
     """A loop candidate's numbers for ``metrics.json`` (NaN as null)."""
     keys = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason", "source", "dense_agreement",
-            "dense_overlap", "quality_min_fraction", "quality_max_rms", "pcm_residual", "registration")
+            "dense_overlap", "null_threshold", "null_mean", "null_std", "null_samples", "null_kappa", "quality_min_fraction",
+            "quality_max_rms", "pcm_residual", "registration")
     finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v  # noqa: E731
     return {k: finite(r[k]) for k in keys if k in r}
 

@@ -1,0 +1,188 @@
+"""The dense test's null distribution: how well do THESE two chunks agree under a wrong edge?
+
+The cross-chunk dense test (:mod:`swiftjax.loops.cross_chunk`) scores a candidate edge ``Z``
+(c_i coordinates into c_j's) by ``a(Z) = min(agreement_{i→j}, agreement_{j→i})``.  What a
+false edge scores depends on the scene: two different streets superimposed at camera height
+agree wherever both have road (and on straight facades), a dense alley agrees less, a wide
+square with few points in view more.  A constant bound on ``a`` (``min_agreement = 0.55``, read
+off one route) therefore sits in the wrong place on another route.  Instead each candidate is
+compared with the agreement the SAME two clouds give under ``K`` edges that are clearly wrong
+but keep what every street shares:
+
+**Null edges.**  ``Z_k = P_k Z`` with ``P_k`` a sideways translation in c_j coordinates,
+across the target frames' direction of travel, by a fraction of the scene's depth::
+
+    u   = −normalize(Σ_g R_g[1, :])               up: minus the cameras' mean y axis (OpenCV, y down)
+    f   = normalize((I − u uᵀ) Σ_g R_g[2, :])     the cameras' mean viewing direction, horizontal
+    P_k = translation by δ_k d̃ (u × f)           d̃: median normalised depth of the target's reliable pixels
+    δ_k = ±(δ_min + (δ_max − δ_min) · l / (K/2 − 1)),  l = 0 … K/2 − 1
+
+A street superimposed on itself shifted sideways keeps its road plane (at camera height) and
+its direction, and the cameras still look at the other chunk's surfaces (the overlap stays
+high, so ``agreement`` is measured on pairs in view), but every façade, pole and tree moves
+off its counterpart by ``δ d̃``, several times the depth tolerance ``τ d̃``: ``a(Z_k)`` is the
+agreement of these two clouds superimposed as two DIFFERENT streets are, which is what a
+hallucinated loop edge does (VGGT puts both halves' cameras on one road, heading the same
+way).  The other perturbations are worse models of that: along the road a straight street
+is self-similar (its façades keep agreeing), and rotations about the vertical either still
+agree near the axis (small angles) or turn the cloud out of view (large ones: on the demo's
+candidates 30–90° leave 4–7 % overlap).  ``δ_min = 0.15`` is three depth tolerances (a
+façade at depth ``d̃`` moved by ``0.15 d̃`` disagrees), ``δ_max = 0.4`` keeps most of the
+cloud in view.  The offsets are fixed, not random: the test is deterministic and one
+compile serves every candidate.
+
+**Decision** (host level, :func:`null_threshold`, :func:`chance_corrected`).  With the ``K'``
+null samples whose ``overlap`` reaches ``min_overlap`` (the others mapped the cloud out of view
+and say nothing about chance agreement), mean ``m`` and sample deviation ``s``, the candidate
+is accepted when both hold::
+
+    a(Z) > τ = m + t_{K'−1}(1 − α) · s · sqrt(1 + 1/K')          not chance
+    κ = (a(Z) − m) / (1 − m) >= κ_min                            more than chance, by enough
+
+``τ`` is the one-sided upper prediction bound of one more draw from the null (Student's ``t``
+with ``K' − 1`` degrees of freedom: ``m`` and ``s`` are estimated from ``K'`` draws): an
+agreement that is one more chance draw passes with probability ``α = 0.01``; with ``K = 16``,
+``τ = m + 2.68 s``.  ``s`` has a floor, the standard error of a proportion ``m`` on the fewest
+pairs in view of one null sample.  The significance test alone is not enough: a hallucinated
+edge is not a random wrong edge but an alignment that superimposes two look-alike streets as
+well as the loop chunk could (kerb-line poles and trees at the same offsets, the road), so
+it beats the null by many ``s`` while still agreeing little (synthetic KITTI 00, 50 %
+aliasing: a false candidate at ``a = 0.17`` over a null of ``0.037 ± 0.014``).  ``κ`` is
+Cohen's chance-corrected agreement, the fraction of the pairs that do not agree by chance
+that agree under ``Z``; ``κ_min = 0.2`` is the lower end of Landis and Koch's "fair"
+agreement (below it: "slight").  Measured (``bench/bench_loop_robustness.py``): false
+candidates ``κ <= 0.15``, true ones ``κ >= 0.4``; the held-out real route's true candidates
+at ``a = 0.34–0.44`` over false ones at 0.04–0.05 have ``κ ≈ 0.3–0.4``, where the constant
+0.55 rejected them.
+
+Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batched with
+``vmap`` over the ``K`` null edges and the ``M`` candidates; fixed shapes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from swiftjax import align, sim3
+from swiftjax._compile import LIGHT_COMPILE, quick_jit
+from swiftjax.loops.cross_chunk import _ALIGN, _dense_consistency, _normalised, _traced_args
+from swiftjax.loops.options import VerificationConfig
+
+__all__ = ["null_offsets", "null_edges", "NullCheck", "null_consistency", "NullThreshold", "null_threshold",
+           "chance_corrected"]
+
+
+def null_offsets(samples: int, min_shift: float, max_shift: float) -> np.ndarray:
+    """The ``K = samples`` (even, >= 4) sideways offsets ``δ_k`` of the null edges ``[K]``
+    (fractions of the median depth): ``K/2`` evenly spaced in ``[min_shift, max_shift]``,
+    each with both signs."""
+    half = np.linspace(min_shift, max_shift, samples // 2)
+    return np.concatenate([half, -half])
+
+
+def null_edges(
+    Z: Float[ArrayLike, "8"], dst_extrinsic: Float[ArrayLike, "G 3 4"], depth: Float[ArrayLike, ""],
+    offsets: Float[ArrayLike, "K"],
+) -> Float[jax.Array, "K 8"]:
+    """The null edges ``Z_k = P_k Z`` (module docstring): ``Z [8]`` maps the source chunk into
+    the target chunk, ``dst_extrinsic [G, 3, 4]`` the target frames (world-to-camera in the
+    target chunk), ``depth`` the scene depth ``d̃`` (target chunk units), ``offsets [K]``
+    ``δ_k``.  Returns ``[K, 8]``; jit-able, recompiles per ``G``, ``K`` and dtype."""
+    Z = jnp.asarray(Z)
+    E = jnp.asarray(dst_extrinsic, Z.dtype)
+    unit = lambda v: v / jnp.maximum(jnp.linalg.norm(v), jnp.finfo(Z.dtype).tiny)  # noqa: E731
+    up = unit(-jnp.sum(E[:, 1, :3], axis=0))  # world direction of camera g's y axis: R_g[1, :]
+    ahead = jnp.sum(E[:, 2, :3], axis=0)
+    side = unit(jnp.cross(up, unit(ahead - up * jnp.dot(up, ahead))))
+    t = (jnp.asarray(offsets, Z.dtype) * jnp.asarray(depth, Z.dtype))[:, None] * side  # [K, 3]
+    P = jnp.concatenate([t, jnp.broadcast_to(sim3.identity(dtype=Z.dtype)[3:], (t.shape[0], 5))], axis=-1)
+    return sim3.compose(P, Z)
+
+
+class NullCheck(NamedTuple):
+    """:func:`null_consistency` of ``M`` candidates under ``K`` null edges each.
+
+    Attributes:
+        score: ``[M, K]`` ``min`` of both directions' ``agreement`` under each null edge.
+        overlap: ``[M, K]`` ``min`` of both directions' ``overlap``.
+        pairs_seen: int32 ``[M, K]`` ``min`` of both directions' pairs in view.
+    """
+
+    score: jax.Array
+    overlap: jax.Array
+    pairs_seen: jax.Array
+
+
+@quick_jit(options=LIGHT_COMPILE, static_argnames=("stride", "neighbours"))
+def _null_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, offsets, stride, neighbours):
+    def edge(fi, fj, z):
+        a = _dense_consistency(fi, fj, z, K_ref, conf_ratio, depth_tolerance, stride, neighbours)
+        b = _dense_consistency(fj, fi, sim3.inverse(z), K_ref, conf_ratio, depth_tolerance, stride, neighbours)
+        return (jnp.minimum(a.agreement, b.agreement), jnp.minimum(a.overlap, b.overlap),
+                jnp.minimum(a.pairs_seen, b.pairs_seen))
+
+    def candidate(fi, fj, z):
+        d = _normalised(fj, K_ref, conf_ratio)[:, ::stride, ::stride]
+        nulls = null_edges(z, fj.extrinsic, jnp.nanmedian(d), offsets)
+        return NullCheck(*jax.vmap(edge, in_axes=(None, None, 0))(fi, fj, nulls))
+
+    return jax.vmap(candidate)(side_i, side_j, Z)
+
+
+def null_consistency(
+    side_i: align.ChunkFrames, side_j: align.ChunkFrames, Z: Float[ArrayLike, "M 8"], K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
+) -> NullCheck:
+    """The dense test of :func:`~swiftjax.loops.cross_chunk.cross_chunk_consistency` under the
+    ``K = config.null_samples`` null edges of each of ``M`` candidates (arguments as there).
+
+    Returns :class:`NullCheck` with ``[M, K]`` fields.  Recompiles per ``(M, F, H, W)``,
+    dtype, ``K``, ``stride`` and ``neighbours``.  Cost: ``K`` times the candidate's own test.
+    """
+    config = VerificationConfig() if config is None else config
+    args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
+    offsets = jnp.asarray(null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift),
+                          args[0].depth.dtype)
+    return _null_jit(*args[:6], offsets, *args[6:])
+
+
+class NullThreshold(NamedTuple):
+    """:func:`null_threshold`'s result: ``threshold`` τ (NaN when fewer than three null samples
+    see the other chunk), the null's ``mean`` and ``std`` (with its floor), ``samples`` ``K'``."""
+
+    threshold: float
+    mean: float
+    std: float
+    samples: int
+
+
+def null_threshold(
+    score: Float[ArrayLike, "K"], overlap: Float[ArrayLike, "K"], pairs_seen: Float[ArrayLike, "K"],
+    false_alarm: float, min_overlap: float,
+) -> NullThreshold:
+    """``τ = m + t_{K'−1}(1 − α) s sqrt(1 + 1/K')`` over the null samples in view (host level;
+    module docstring).  ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the
+    fewest pairs in view among them."""
+    from scipy import stats
+
+    score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
+    use = np.isfinite(score) & (overlap >= min_overlap) & (seen > 0)
+    k = int(use.sum())
+    if k < 3:
+        return NullThreshold(math.nan, math.nan, math.nan, k)
+    m = float(score[use].mean())
+    s = max(float(score[use].std(ddof=1)), math.sqrt(m * (1 - m) / float(seen[use].min())))
+    t = float(stats.t.ppf(1.0 - false_alarm, k - 1))
+    return NullThreshold(m + t * s * math.sqrt(1.0 + 1.0 / k), m, s, k)
+
+
+def chance_corrected(agreement: float, null_mean: float) -> float:
+    """Cohen's ``κ = (a − m) / (1 − m)``: the fraction of the pairs that do not agree by chance
+    (``m``, the null's mean agreement) that agree under the candidate edge (``a``)."""
+    return (agreement - null_mean) / max(1.0 - null_mean, 1e-12)

@@ -1,0 +1,200 @@
+"""Tests for swiftjax.loops.null (the dense test's per-candidate null) against NumPy loops."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_loop_verification import K, chain_problem, record, ref_dense, scene
+
+from swiftjax import align, sim3
+from swiftjax.loops import null as N
+from swiftjax.loops import verification as V
+
+# -------------------------------------------------------------------------- references
+
+
+def ref_quat_matrix(q):
+    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def ref_null_edges(Z, dst, K_ref, stride, conf_ratio, offsets):
+    """The null edges from the docstring, in float64 NumPy with explicit loops."""
+    depth, conf, Ks, E = (np.asarray(a, np.float64) for a in dst)
+    up, ahead = np.zeros(3), np.zeros(3)
+    for g in range(E.shape[0]):
+        up -= E[g, 1, :3]  # camera y axis in chunk coordinates (OpenCV: y down)
+        ahead += E[g, 2, :3]
+    up /= np.linalg.norm(up)
+    ahead -= up * (up @ ahead)
+    ahead /= np.linalg.norm(ahead)
+    side = np.cross(up, ahead)
+    values = []
+    for g in range(E.shape[0]):
+        r = 0.5 * (K_ref[0, 0] / Ks[g, 0, 0] + K_ref[1, 1] / Ks[g, 1, 1])
+        mean = np.mean(conf[g][np.isfinite(conf[g])])
+        for v in range(0, depth.shape[1], stride):
+            for u in range(0, depth.shape[2], stride):
+                d, c = r * depth[g, v, u], conf[g, v, u]
+                if np.isfinite(d) and d > 0 and np.isfinite(c) and c > conf_ratio * mean:
+                    values.append(d)
+    median = float(np.median(values))
+    Z = np.asarray(Z, np.float64)
+    R, t, s = ref_quat_matrix(Z[3:7]), Z[:3], Z[7]
+    out = []
+    for delta in offsets:  # y' = (s R x + t) + delta d side
+        out.append((R, t + delta * median * side, s))
+    return out
+
+
+def as_sim3(R, t, s):
+    with jax.enable_x64(True):
+        return np.asarray(sim3.from_rst(jnp.asarray(R), jnp.asarray(t), jnp.asarray(s)))
+
+
+def ref_score(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours):
+    """``min`` of both directions' agreement and overlap, from :func:`ref_dense`."""
+    R, t, s = ref_quat_matrix(S[3:7]), S[:3], S[7]
+    inv = as_sim3(R.T, -(R.T @ t) / s, 1 / s)
+    a = ref_dense(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours)
+    b = ref_dense(dst, src, inv, K_ref, stride, conf_ratio, tol, neighbours)
+    agree = lambda x: x["pairs_agree"] / x["pairs_seen"] if x["pairs_seen"] else 0.0  # noqa: E731
+    over = lambda x: x["num_seen"] / x["num_points"] if x["num_points"] else 0.0  # noqa: E731
+    return min(agree(a), agree(b)), min(over(a), over(b)), min(a["pairs_seen"], b["pairs_seen"])
+
+
+# ---------------------------------------------------------------------------- null edges
+
+
+def test_null_offsets_are_symmetric_and_spaced():
+    got = N.null_offsets(8, 0.15, 0.4)
+    np.testing.assert_allclose(got, [0.15, 0.2333333, 0.3166667, 0.4, -0.15, -0.2333333, -0.3166667, -0.4], rtol=1e-6)
+
+
+def test_null_consistency_matches_numpy_loops(x64):
+    src, dst, S = scene(seed=11)
+    cfg = V.VerificationConfig(stride=2, neighbours=2, null_samples=4, null_min_shift=0.1, null_max_shift=0.3)
+    offsets = N.null_offsets(4, 0.1, 0.3)
+    want = [ref_score(src, dst, as_sim3(*e), K, 2, 0.5, cfg.depth_tolerance, 2)
+            for e in ref_null_edges(S, dst, K, 2, 0.5, offsets)]
+    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))  # noqa: E731
+    got = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
+    assert got.score.shape == (1, 4)
+    for k, (score, overlap, seen) in enumerate(want):
+        assert float(got.score[0, k]) == pytest.approx(score, abs=1e-12), k
+        assert float(got.overlap[0, k]) == pytest.approx(overlap, abs=1e-12), k
+        assert int(got.pairs_seen[0, k]) == seen, k
+    # the null edges are wrong: each agrees less than the true edge
+    true = ref_score(src, dst, np.asarray(S), K, 2, 0.5, cfg.depth_tolerance, 2)[0]
+    assert max(w[0] for w in want) < 0.8 * true
+
+
+# ------------------------------------------------------------------------------ decision
+
+
+def test_null_threshold_is_the_t_prediction_bound():
+    rng = np.random.default_rng(0)
+    score = 0.2 + 0.03 * rng.standard_normal(16)
+    overlap = np.full(16, 0.8)
+    seen = np.full(16, 10**6)  # the binomial floor is negligible
+    got = N.null_threshold(score, overlap, seen, 0.01, 0.2)
+    m, s = np.mean(score), np.std(score, ddof=1)
+    t_15_099 = 2.6025  # Student's t, 15 degrees of freedom, upper 1 % (tables)
+    assert got.samples == 16 and got.mean == pytest.approx(m) and got.std == pytest.approx(s)
+    assert got.threshold == pytest.approx(m + t_15_099 * s * math.sqrt(1 + 1 / 16), abs=2e-4)
+    # samples out of view are left out; fewer than three: no threshold
+    overlap[:6] = 0.1
+    part = N.null_threshold(score, overlap, seen, 0.01, 0.2)
+    t_9_099 = 2.8214
+    assert part.samples == 10 and part.mean == pytest.approx(np.mean(score[6:]))
+    s10 = np.std(score[6:], ddof=1)
+    assert part.threshold == pytest.approx(np.mean(score[6:]) + t_9_099 * s10 * math.sqrt(1.1), abs=2e-4)
+    overlap[:14] = 0.0
+    assert math.isnan(N.null_threshold(score, overlap, seen, 0.01, 0.2).threshold)
+    # identical null draws: the spread is floored by a proportion's standard error
+    flat = N.null_threshold(np.full(8, 0.3), np.ones(8), np.full(8, 400), 0.01, 0.2)
+    assert flat.std == pytest.approx(math.sqrt(0.3 * 0.7 / 400))
+
+
+def test_chance_corrected_agreement():
+    assert N.chance_corrected(0.4, 0.05) == pytest.approx(0.35 / 0.95)
+    assert N.chance_corrected(0.3, 0.3) == pytest.approx(0.0)
+
+
+def null_record(ci, cj, Z, agreement, mean, std, samples=16):
+    t = {16: 2.6025}[samples]
+    r = record(ci, cj, Z, agreement=agreement)
+    r.update(null_mean=mean, null_std=std, null_samples=samples,
+             null_threshold=mean + t * std * math.sqrt(1 + 1 / samples))
+    return r
+
+
+def test_null_rule_accepts_a_low_true_agreement_and_rejects_a_chance_one(x64):
+    rel, X, nodes, Z = chain_problem(4)
+    p, q = (int(v) for v in nodes[0])
+    recs = [
+        null_record(q, p, Z[0], 0.40, 0.05, 0.02),   # true, below 0.55, far above its null
+        null_record(q, p, Z[0], 0.30, 0.30, 0.03),   # false: its null agrees as much
+        null_record(q, p, Z[0], 0.17, 0.037, 0.014),  # hallucinated: significant, but kappa 0.138
+    ]
+    null = V.verify_candidates(recs, X, rel, V.VerificationConfig(pcm=False))
+    fixed = V.verify_candidates(recs, X, rel, V.VerificationConfig(pcm=False, agreement_rule="fixed"))
+    assert [d.accepted for d in null] == [True, False, False]
+    assert [d.accepted for d in fixed] == [False, False, False]
+    assert "no better than under wrong edges" in null[1].reason and "0.300 <= " in null[1].reason
+    assert "chance-corrected agreement 0.138 < 0.2" in null[2].reason
+    # a record without its null (e.g. written by an older version) falls back to the fixed bound
+    old = record(q, p, Z[0], agreement=0.5)
+    assert "no null" in V.verify_candidates([old], X, rel)[0].reason
+
+
+def test_fixed_rule_gives_the_former_verdicts(x64):
+    rel, X, nodes, Z = chain_problem(4)
+    p, q = (int(v) for v in nodes[0])
+    recs = [null_record(q, p, Z[0], a, 0.05, 0.02) for a in (0.2, 0.54, 0.549, 0.55, 0.56, 0.9)]
+    got = V.verify_candidates(recs, X, rel, V.VerificationConfig(pcm=False, agreement_rule="fixed"))
+    assert [d.accepted for d in got] == [False, False, False, True, True, True]
+    assert got[1].reason == "depths disagree across the loop: agreement 0.540 < 0.55"
+
+
+def test_candidate_numbers_carry_the_null():
+    src, dst, S = scene(seed=7)
+    half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
+    cfg = V.VerificationConfig(null_samples=4)
+    out = V.candidate_numbers(src, dst, S, K, half, half, cfg)
+    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))  # noqa: E731
+    nc = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
+    th = N.null_threshold(nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap)
+    assert out["null_samples"] == th.samples and out["null_mean"] == pytest.approx(th.mean)
+    assert out["null_kappa"] == pytest.approx(N.chance_corrected(out["dense_agreement"], th.mean))
+    assert out["null_threshold"] == pytest.approx(th.threshold) and out["null_std"] == pytest.approx(th.std)
+    fixed = V.candidate_numbers(src, dst, S, K, half, half, V.VerificationConfig(agreement_rule="fixed"))
+    assert not any(k.startswith("null_") for k in fixed)
+
+
+@pytest.mark.parametrize("kw,match", [
+    ({"agreement_rule": "tuned"}, "agreement_rule must be 'null' or 'fixed'"),
+    ({"null_samples": 5}, "null_samples must be even"),
+    ({"null_false_alarm": 0.0}, "null_false_alarm must be in"),
+    ({"null_min_kappa": 1.0}, "null_min_kappa must be in"),
+    ({"null_min_shift": 0.5, "null_max_shift": 0.2}, "null_min_shift <= null_max_shift"),
+])
+def test_verification_config_rejects_bad_null_options(kw, match):
+    with pytest.raises(ValueError, match=match):
+        V.VerificationConfig(**kw)
+
+
+def test_pipeline_option_reaches_the_verification_config():
+    from swiftjax.pipeline import PipelineConfig
+    from swiftjax.pipeline.loop_closure import loop_options
+
+    assert loop_options(PipelineConfig()).verification_config.agreement_rule == "null"
+    assert loop_options(PipelineConfig(loop_agreement="fixed")).verification_config.agreement_rule == "fixed"
+    with pytest.raises(ValueError, match="loop_agreement"):
+        PipelineConfig(loop_agreement="tuned")
