@@ -1,6 +1,8 @@
 """The demo's outputs are the ones recorded before the pipeline was re-shaped into stages.
 
-``tests/data/demo_outputs.json`` was written from a run of main (commit c404600) by
+``tests/data/demo_outputs.json`` was written from a run of main (commit c404600; re-recorded when
+the manifest and ``metrics.json`` gained the pairwise-consistency and null-test fields, every
+pose, point and loop verdict unchanged) by
 ``python tests/test_demo_outputs.py RUN_DIR > tests/data/demo_outputs.json`` after
 ``swiftjax <DEMO args> --out RUN_DIR``.  It holds, per output file, a small summary instead of
 the file: the text with its numbers taken out (a SHA-256, exact) and the numbers (compared with
