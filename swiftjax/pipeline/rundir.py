@@ -480,7 +480,7 @@ def check_binding(store: ChunkStore, kind: str, t: int, want: dict[str, np.ndarr
     got = store.load_extra(kind, t, names=tuple(want))
     if set(got) != set(want):
         raise _chunk_store.ChunkMismatchError(path, "it records no chunk index, frames or fingerprint "
-                                              "(written by an older swiftjax or not by this run)")
+                                              "(not written by this run)")
     if int(got["chunk_index"]) != t:
         raise _chunk_store.ChunkMismatchError(path, f"it holds chunk {int(got['chunk_index'])}, not chunk {t}")
     if not np.array_equal(got["frames"], want["frames"]):
