@@ -566,6 +566,8 @@ def _reconstruct_live(args: argparse.Namespace, rec: Any, frames: Any, times: An
             rec.add_frame(frame.path if args.follow else None, time=times(frame.index))
     finally:
         signal.signal(signal.SIGINT, previous)
+    if rec.num_frames == 0:
+        raise CliError(f"{args.input}: stopped before any frame arrived: nothing to reconstruct")
     print(f"swiftjax: {rec.num_frames} frames arrived (ended by {frames.ended_by}); final pass")
     return rec.finish()
 
