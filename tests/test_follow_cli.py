@@ -152,3 +152,17 @@ def test_follow_flag_errors_are_one_line(tmp_path, golden_dir, capsys):
         err = capsys.readouterr().err.strip()
         assert code == 2 and fragment in err and len(err.splitlines()) == 1, (argv, err)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_frame_of_another_size_mid_run_is_one_line(tmp_path, golden_dir, capsys):
+    from swiftjax.cli import main
+
+    folder = tmp_path / "rec"
+    frames = _frames(3)
+    frames[2] = frames[2][:, :200]
+    with Recorder(folder, frames, fps=50.0) as rec:
+        rec.wait()
+    code = main(_argv(folder, tmp_path / "out", golden_dir, "--follow")[3:])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "000002.png: frame is 200x60 but the frames before it are 220x60" in err
