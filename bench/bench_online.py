@@ -28,7 +28,6 @@ issue 30's next step), so the step time, and with it the latency, grows with the
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 import tempfile
@@ -181,4 +180,4 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    json.dumps(main(), default=float)
+    main()
