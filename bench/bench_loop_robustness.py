@@ -23,7 +23,7 @@ reuse that run's candidates, their loop edges and the temporal chain (same run, 
   against ``verified, plain`` (the null test, the default) it isolates the dense rule.
 
 Routes ``kitti05``, ``kitti06``, ``kitti08`` (ground truth from ``$SWIFTJAX_SHARED``) run
-through :func:`swiftjax.demo.trajectory_run` with the same aliasing levels.  A second table
+through :func:`swiftjax.synthetic.demo.trajectory_run` with the same aliasing levels.  A second table
 gives per route and level the true candidates the truth filter keeps, how many of them and
 how many false ones each dense rule accepts, and both rules' ATE.
 

@@ -61,6 +61,17 @@ class ImagePredictor:
     def predict(self, frames: np.ndarray) -> ChunkPrediction:
         return self.runner.predict(self._frames.load(frames))
 
+    def append(self, path: str | os.PathLike[str]) -> None:
+        """One more frame, the image file ``path`` (a growing folder: the live engine,
+        :class:`swiftjax.pipeline.engine.Reconstruction`); read and preprocessed like the
+        others when a chunk takes it.  The source must be image files."""
+        append = getattr(self.source, "append", None)
+        if append is None or not isinstance(path, (str, os.PathLike)):
+            raise TypeError(f"ImagePredictor.append takes an image file's path into image files, got "
+                            f"{type(path).__name__} for a {type(self.source).__name__} source")
+        append(path)
+        self.num_frames = len(self.source)
+
     def prefetch(self, frames: np.ndarray) -> None:
         """Start decoding a scheduled chunk's frames (:class:`inference.frames.FrameLoader`)
         while earlier chunks predict; the executor calls it when it schedules the chunk."""

@@ -337,6 +337,14 @@ class ImageFiles(FrameSource):
         if size is not None and tuple(img.shape[:2]) != tuple(size):
             raise InputError(f"{path}: decodes to {img.shape[1]}x{img.shape[0]} but its header says {size[1]}x{size[0]}")
 
+    def append(self, path: PathLike, name: str | None = None) -> None:
+        """Add one more file as the last frame (a folder that grows: ``--follow``)."""
+        path = pathlib.Path(path)
+        self.paths.append(path)
+        self.names.append(name if name is not None else path.name)
+        if self._sizes is not None:
+            self._sizes.append(None)
+
     def subset(self, keep: Sequence[int]) -> ImageFiles:
         out = ImageFiles([self.paths[i] for i in keep], [self.names[i] for i in keep], self.description)
         if self._sizes is not None:

@@ -77,15 +77,18 @@ class Reconstruction:
     (``add_frame(image)`` hands the image to ``predictor.append`` for a predictor on a growing
     frame source; a predictor that knows its frames, e.g. the synthetic oracle, takes
     ``add_frame()``).  ``ground_truth [N, 4, 4]``: optional, for the runs' metrics.
+    ``timestamps_note``: where the ``time`` given to :meth:`add_frame` comes from
+    (``poses_tum.txt``'s header, as ``reconstruct``'s).
     """
 
     def __init__(
         self, run_dir: str | pathlib.Path, predictor: Any, config: PipelineConfig = PipelineConfig(), *,
         ground_truth: np.ndarray | None = None, executor: Any = None, overwrite: bool = False,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = print, timestamps_note: str | None = None,
     ) -> None:
         self.run_dir, self.predictor, self.config = pathlib.Path(run_dir), predictor, config
         self.ground_truth, self.executor, self.overwrite, self.log = ground_truth, executor, overwrite, log
+        self.timestamps_note = timestamps_note
         self.num_frames = 0
         self.times: list[float] = []
         self._timed = False  # a time was given (else poses_tum.txt says: the frame index)
@@ -138,7 +141,8 @@ class Reconstruction:
         gt = None if self.ground_truth is None else np.asarray(self.ground_truth)[:n]
         result = reconstruct(
             Prefix(self.predictor, n), self.run_dir, self.config, ground_truth=gt, overwrite=self.overwrite,
-            progress=False, timestamps=self.times if self._timed else None, log=self.log, executor=self.executor,
+            progress=False, timestamps=self.times if self._timed else None, timestamps_note=self.timestamps_note,
+            log=self.log, executor=self.executor,
         )
         self.overwrite = False  # the first step replaced what was there
         if self._live is None:
