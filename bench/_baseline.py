@@ -20,8 +20,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def _source(path: str) -> str | None:
     try:
-        return subprocess.run(["git", "-C", str(ROOT), "show", f"{PREVIOUS_COMMIT}:{path}"],
-                              check=True, capture_output=True, text=True).stdout
+        return subprocess.run(
+            ["git", "-C", str(ROOT), "show", f"{PREVIOUS_COMMIT}:{path}"], check=True, capture_output=True, text=True
+        ).stdout
     except (OSError, subprocess.CalledProcessError):
         return None
 

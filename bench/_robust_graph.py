@@ -50,8 +50,8 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from swiftjax import posegraph, sim3  # noqa: E402
-from swiftjax.posegraph import gnc  # noqa: E402
+from swiftjax import posegraph, sim3
+from swiftjax.posegraph import gnc
 
 __all__ = ["kitti_chunk_graph", "clean_solve", "run", "markdown", "main"]
 
@@ -68,8 +68,9 @@ def _shared(shared_dir=None, route: str = "00") -> pathlib.Path:
     raise SystemExit(f"KITTI_{route}_gt.txt not found: set SWIFTJAX_SHARED to the folder holding data/")
 
 
-def _true_loops(pos: np.ndarray, num: int, min_sep: int = 8, radius: float = 15.0,
-                minimum: int = 5) -> list[tuple[int, int]]:
+def _true_loops(
+    pos: np.ndarray, num: int, min_sep: int = 8, radius: float = 15.0, minimum: int = 5
+) -> list[tuple[int, int]]:
     """Up to ``num`` (at least ``minimum``) revisit pairs ``(a, b)``, ``b - a >= min_sep``, first
     cameras within ``radius``: the closest pair first, then greedily those sharing no chunk with a
     chosen one."""
@@ -154,8 +155,9 @@ def _false_slight(rng, truth, d, taken, count):
     return pairs, np.asarray(rel, np.float64), True
 
 
-def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20, route: str = "00",
-                      generator: str = "random") -> dict:
+def kitti_chunk_graph(
+    shared_dir=None, *, seed: int = 0, max_false: int = 20, route: str = "00", generator: str = "random"
+) -> dict:
     """The chunk graph of KITTI ``route`` with a pool of ``max_false`` false loops of one
     ``generator`` (:data:`GENERATORS`; levels take its first ``k``).  ``num_true``: the true
     loops found (:data:`NUM_TRUE`, or fewer on a route with fewer disjoint revisits: 9 on KITTI 08)."""
@@ -166,7 +168,7 @@ def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20, ro
         P = read_kitti(_shared(shared_dir, route) / "data" / "trajectories" / f"KITTI_{route}_gt.txt")
         rng = np.random.default_rng(seed)
         starts = np.arange(0, len(P) - OVERLAP, CHUNK - OVERLAP)
-        starts = starts[starts + OVERLAP < len(P)][: 101]
+        starts = starts[starts + OVERLAP < len(P)][:101]
         n = len(starts)
         R, t = P[starts, :3, :3], P[starts, :3, 3]
         log_s = np.concatenate([[0.0], np.cumsum(0.01 * rng.normal(size=n - 1))])
@@ -191,8 +193,19 @@ def kitti_chunk_graph(shared_dir=None, *, seed: int = 0, max_false: int = 20, ro
         for k in range(1, n):
             init[k] = np.asarray(sim3.normalize(sim3.compose(init[k - 1], meas[k - 1])), np.float64)
     extent = float(np.linalg.norm(t.max(0) - t.min(0)))
-    return dict(truth=truth, initial=init, edges=edges, measurements=meas, sigma=sigma, kind=kind,
-                extent=extent, starts=starts, route=route, generator=generator, num_true=len(loops))
+    return dict(
+        truth=truth,
+        initial=init,
+        edges=edges,
+        measurements=meas,
+        sigma=sigma,
+        kind=kind,
+        extent=extent,
+        starts=starts,
+        route=route,
+        generator=generator,
+        num_true=len(loops),
+    )
 
 
 def _subgraph(g: dict, num_false: int, information: str):
@@ -232,7 +245,6 @@ def _alternating(prob, options: list[dict], repeat: int):
 def _gtsam(g, edges, meas, info, kind, repeat, c=None):
     """GTSAM LM (``c`` None) or GncLMOptimizer (TLS, threshold ``c``, odometry known inliers)."""
     import gtsam
-
     from _gtsam_baseline import build_graph, from_gtsam
 
     n = len(g["initial"])
@@ -277,43 +289,76 @@ def run(shared_dir=None, *, levels=LEVELS, seed: int = 0, repeat: int = 3, with_
                 num_false = int(round(level * NUM_TRUE))
                 edges, meas, info, kind = _subgraph(g, num_false, information)
                 prob = posegraph.Problem(g["initial"], edges, meas, information=info, robust=kind != "odometry")
-                solvers = (("LM", {}), ("Cauchy", dict(kernel="cauchy", kernel_scale=c)),
-                           ("GNC", dict(kernel="gnc", kernel_scale=c)))
+                solvers = (
+                    ("LM", {}),
+                    ("Cauchy", dict(kernel="cauchy", kernel_scale=c)),
+                    ("GNC", dict(kernel="gnc", kernel_scale=c)),
+                )
                 best = _alternating(prob, [kw for _, kw in solvers], repeat)
                 base = None
                 for (solver, kw), res in zip(solvers, best):
                     dmax, drms = _distances(res.poses, clean.poses, g["extent"])
                     w = res.inlier_weights
                     base = res.solve_seconds if solver == "LM" else base
-                    rows.append(dict(
-                        information=information, false_loops=num_false, level=level, solver=f"ours {solver}",
-                        threshold=c if kw else None, dist_max_pct=dmax, dist_rms_pct=drms,
-                        seconds=res.solve_seconds, x_lm=res.solve_seconds / base, converged=res.converged,
-                        steps=res.num_steps, gnc_iterations=res.gnc_iterations,
-                        false_rejected=int(np.sum(w[kind == "false"] < 0.5)),
-                        true_kept=int(np.sum(w[kind == "loop"] >= 0.5)),
-                    ))
+                    rows.append(
+                        dict(
+                            information=information,
+                            false_loops=num_false,
+                            level=level,
+                            solver=f"ours {solver}",
+                            threshold=c if kw else None,
+                            dist_max_pct=dmax,
+                            dist_rms_pct=drms,
+                            seconds=res.solve_seconds,
+                            x_lm=res.solve_seconds / base,
+                            converged=res.converged,
+                            steps=res.num_steps,
+                            gnc_iterations=res.gnc_iterations,
+                            false_rejected=int(np.sum(w[kind == "false"] < 0.5)),
+                            true_kept=int(np.sum(w[kind == "loop"] >= 0.5)),
+                        )
+                    )
                 if with_gtsam:
                     for solver, cc in (("LM", None), ("GncLM (TLS)", c)):
                         poses, secs, w = _gtsam(g, edges, meas, info, kind, repeat, cc)
                         dmax, drms = _distances(poses, clean.poses, g["extent"])
-                        rows.append(dict(
-                            information=information, false_loops=num_false, level=level,
-                            solver=f"GTSAM {solver}", threshold=cc, dist_max_pct=dmax, dist_rms_pct=drms,
-                            seconds=secs, x_lm=secs / base, converged=None, steps=None, gnc_iterations=None,
-                            false_rejected=None if w is None else int(np.sum(w[kind == "false"] < 0.5)),
-                            true_kept=None if w is None else int(np.sum(w[kind == "loop"] >= 0.5)),
-                        ))
-    return dict(rows=rows, num_nodes=len(g["truth"]), num_true_loops=NUM_TRUE, extent_m=g["extent"],
-                seed=seed, repeat=repeat, load_average=os.getloadavg())
+                        rows.append(
+                            dict(
+                                information=information,
+                                false_loops=num_false,
+                                level=level,
+                                solver=f"GTSAM {solver}",
+                                threshold=cc,
+                                dist_max_pct=dmax,
+                                dist_rms_pct=drms,
+                                seconds=secs,
+                                x_lm=secs / base,
+                                converged=None,
+                                steps=None,
+                                gnc_iterations=None,
+                                false_rejected=None if w is None else int(np.sum(w[kind == "false"] < 0.5)),
+                                true_kept=None if w is None else int(np.sum(w[kind == "loop"] >= 0.5)),
+                            )
+                        )
+    return dict(
+        rows=rows,
+        num_nodes=len(g["truth"]),
+        num_true_loops=NUM_TRUE,
+        extent_m=g["extent"],
+        seed=seed,
+        repeat=repeat,
+        load_average=os.getloadavg(),
+    )
 
 
 def markdown(result: dict) -> str:
-    head = ("| information | false loops | solver | max dist % extent | RMS dist % | time ms | × our LM "
-            "| false rejected | true kept |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    head = (
+        "| information | false loops | solver | max dist % extent | RMS dist % | time ms | × our LM "
+        "| false rejected | true kept |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+    )
     lines = [head]
     for r in result["rows"]:
-        opt = lambda v: "–" if v is None else str(v)  # noqa: E731
+        opt = lambda v: "–" if v is None else str(v)
         lines.append(
             f"| {r['information']} | {r['false_loops']} ({100 * r['level']:.0f} %) | {r['solver']} "
             f"| {r['dist_max_pct']:.3f} | {r['dist_rms_pct']:.3f} | {1e3 * r['seconds']:.1f} | {r['x_lm']:.2f} "

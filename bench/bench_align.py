@@ -43,12 +43,12 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+import jax
+import jax.numpy as jnp
+from scipy.spatial.transform import Rotation
 
-from swiftjax import align, camera, sim3  # noqa: E402
-from swiftjax.align import _kernels, chunk_pair  # noqa: E402
+from swiftjax import align, camera, sim3
+from swiftjax.align import _kernels, chunk_pair
 
 H, W = 154, 518
 
@@ -86,7 +86,7 @@ def make_overlap(o: int, seed: int = 0, s_true: float = 1.004):
     Dc = np.where(bad, Dc + rng.uniform(1, 5, (o, H, W)), Dc)
     cp_ = 1 + rng.random((o, H, W)) * 4
     cc_ = 1 + rng.random((o, H, W)) * 4
-    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+    f32 = lambda a: np.ascontiguousarray(a, np.float32)
     prev = align.ChunkFrames(f32(Dp), f32(cp_), f32(Kp), f32(Ep))
     cur = align.ChunkFrames(f32(Dc), f32(cc_), f32(Kc), f32(Ec))
     return prev, cur, K_ref.astype(np.float32), (R_S, t_S, s_true)
@@ -94,6 +94,7 @@ def make_overlap(o: int, seed: int = 0, s_true: float = 1.004):
 
 def numpy_points_and_mask(prev, cur, K_ref, lam=0.2, ratio=0.5):
     """NumPy (float64) mask + unprojection as VGGT-Long-style code does it."""
+
     def pts(fr):
         r = 0.5 * (K_ref[0, 0] / fr.intrinsic[:, 0, 0] + K_ref[1, 1] / fr.intrinsic[:, 1, 1])
         d = fr.depth.astype(np.float64) * r[:, None, None]
@@ -274,7 +275,9 @@ def run_case(o: int, repeats: int, slow_repeats: int) -> dict:
 
     roof_align = jax.jit(lambda p, c: sum(jnp.sum(a) for a in (*p, *c)))
     roof_align(prev, cur).block_until_ready()
-    res["align_roofline_s"] = best_of(lambda: roof_align(prev, cur), 3 * repeats, "roof")  # the roofline is the fastest read: more tries
+    res["align_roofline_s"] = best_of(
+        lambda: roof_align(prev, cur), 3 * repeats, "roof"
+    )  # the roofline is the fastest read: more tries
     res["align_roofline_cpu_s"] = _CPU["roof"]
     arrays_np = [np.asarray(a) for a in (*prev_np, *cur_np)]
     res["align_roofline_numpy_s"] = best_of(lambda: [np.sum(a) for a in arrays_np], repeats)
@@ -376,8 +379,15 @@ def formulations(o: int, repeats: int) -> list[dict]:
 
     def images(dp, dc, cp, cc, tp, tc, ep, ec):
         x = (Ellipsis, None, None)
-        ok = (jnp.isfinite(dp) & jnp.isfinite(dc) & jnp.isfinite(cp) & jnp.isfinite(cc)
-              & (jnp.abs(dp - dc) < lam) & (cp > tp[x]) & (cc > tc[x]))
+        ok = (
+            jnp.isfinite(dp)
+            & jnp.isfinite(dc)
+            & jnp.isfinite(cp)
+            & jnp.isfinite(cc)
+            & (jnp.abs(dp - dc) < lam)
+            & (cp > tp[x])
+            & (cc > tc[x])
+        )
         a = jnp.where(ok, dp - ep[x], 0)
         b = jnp.where(ok, dc - ec[x], 0)
         m = ok.astype(dp.dtype)
@@ -431,9 +441,12 @@ def formulations(o: int, repeats: int) -> list[dict]:
     }
     if _kernels._ffi_kernels is not None:
         ones = jnp.ones((o,), jnp.float32)
-        params = jnp.stack([ones, ones, e_p, e_c, jnp.full((o,), 0.5, jnp.float32), jnp.full((o,), lam, jnp.float32)], -1)
+        params = jnp.stack(
+            [ones, ones, e_p, e_c, jnp.full((o,), 0.5, jnp.float32), jnp.full((o,), lam, jnp.float32)], -1
+        )
         cands["fused FFI kernel (jax.ffi, C++)"] = lambda *a: _kernels.pixel_moments(
-            a[0], a[1], a[2], a[3], params, ut, vt, chunk_pair._masked_pixel_moments)[0]
+            a[0], a[1], a[2], a[3], params, ut, vt, chunk_pair._masked_pixel_moments
+        )[0]
     roof = jax.jit(lambda *a: sum(jnp.sum(x) for x in a[:4]))
     roof(*args).block_until_ready()
     t_roof = best_of(lambda: roof(*args), 3 * repeats, "roof")
@@ -445,10 +458,23 @@ def formulations(o: int, repeats: int) -> list[dict]:
         got = np.asarray(f(*args), np.float64).reshape(o, 6, 3, 3)
         t = best_of(lambda: f(*args), max(3, repeats // 3), name)
         err = float(np.max(np.abs(got - ref) / (np.abs(ref) + 1e-3 * np.abs(ref).max())))
-        out.append({"formulation": name, "s": t, "cpu_s": _CPU[name], "over_roofline": t / t_roof,
-                    "cpu_over_roofline_cpu": _CPU[name] / c_roof, "max_rel_diff_vs_variadic": err,
-                    "roofline_s": t_roof, "roofline_cpu_s": c_roof})
-        print(f"  {name}: {1e3 * t:.1f} ms (cpu {1e3 * _CPU[name]:.1f} ms), {t / t_roof:.1f}x roofline", file=sys.stderr, flush=True)
+        out.append(
+            {
+                "formulation": name,
+                "s": t,
+                "cpu_s": _CPU[name],
+                "over_roofline": t / t_roof,
+                "cpu_over_roofline_cpu": _CPU[name] / c_roof,
+                "max_rel_diff_vs_variadic": err,
+                "roofline_s": t_roof,
+                "roofline_cpu_s": c_roof,
+            }
+        )
+        print(
+            f"  {name}: {1e3 * t:.1f} ms (cpu {1e3 * _CPU[name]:.1f} ms), {t / t_roof:.1f}x roofline",
+            file=sys.stderr,
+            flush=True,
+        )
     return out
 
 
@@ -472,10 +498,15 @@ def table(rows: list[dict]) -> str:
 
 
 def formulation_table(rows: list[dict]) -> str:
-    out = ["| pixel-moment formulation (O = 30) | time | ÷ roofline (wall / cpu) | max rel. diff |", "|---|---|---|---|"]
+    out = [
+        "| pixel-moment formulation (O = 30) | time | ÷ roofline (wall / cpu) | max rel. diff |",
+        "|---|---|---|---|",
+    ]
     for r in rows:
-        out.append(f"| {r['formulation']} | {1e3 * r['s']:.1f} ms | {r['over_roofline']:.1f} / "
-                   f"{r['cpu_over_roofline_cpu']:.1f} | {r['max_rel_diff_vs_variadic']:.0e} |")
+        out.append(
+            f"| {r['formulation']} | {1e3 * r['s']:.1f} ms | {r['over_roofline']:.1f} / "
+            f"{r['cpu_over_roofline_cpu']:.1f} | {r['max_rel_diff_vs_variadic']:.0e} |"
+        )
     return "\n".join(out)
 
 
@@ -484,8 +515,9 @@ def main() -> None:
     ap.add_argument("--overlaps", type=int, nargs="+", default=[10, 30, 60])
     ap.add_argument("--repeats", type=int, default=15, help="best-of repeats for jitted runs (>= 10)")
     ap.add_argument("--slow-repeats", type=int, default=3, help="best-of repeats for the NumPy baselines")
-    ap.add_argument("--formulations-overlap", type=int, default=30,
-                    help="O of the pixel-moment formulation comparison (0: skip it)")
+    ap.add_argument(
+        "--formulations-overlap", type=int, default=30, help="O of the pixel-moment formulation comparison (0: skip it)"
+    )
     ap.add_argument("--out", type=pathlib.Path, default=ROOT / "bench" / "results")
     args = ap.parse_args()
 

@@ -38,12 +38,12 @@ import time
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from common import markdown_table, write_results  # noqa: E402
+from common import markdown_table, write_results
 
-from swiftjax import evaluation, masks, pipeline  # noqa: E402
-from swiftjax.synthetic import demo  # noqa: E402
-from swiftjax.io.ply import read_ply  # noqa: E402
-from swiftjax.synthetic.world import CAR, SKY  # noqa: E402
+from swiftjax import evaluation, masks, pipeline
+from swiftjax.io.ply import read_ply
+from swiftjax.synthetic import demo
+from swiftjax.synthetic.world import CAR, SKY
 
 
 def _shared() -> pathlib.Path:
@@ -55,7 +55,7 @@ def true_surfaces(oracle, frames: np.ndarray, stride: int = 4, max_points: int =
     """World points of the true static surfaces seen by ``frames`` (sky and cars excluded)."""
     out = []
     for k in range(0, len(frames), 15):
-        f = frames[k:k + 15]
+        f = frames[k : k + 15]
         pts, valid = oracle.true_world_points(f)
         _, sem, _ = oracle.render_truth(f)
         keep = valid & (sem != CAR) & (sem != SKY)
@@ -74,8 +74,13 @@ def evaluate(res, gt: np.ndarray, surfaces: np.ndarray) -> dict:
         a = evaluation.ate(est, gt[:, :3, 3], align=align)
         cloud = a.scale * pts @ a.rotation.T + a.translation
         ch = evaluation.chamfer(cloud, surfaces, max_points=200_000)
-        out[align] = {"ate": a.rmse, "scale": a.scale, "accuracy": ch.accuracy, "completeness": ch.completeness,
-                      "accuracy_median": ch.accuracy_median}
+        out[align] = {
+            "ate": a.rmse,
+            "scale": a.scale,
+            "accuracy": ch.accuracy,
+            "completeness": ch.completeness,
+            "accuracy_median": ch.accuracy_median,
+        }
     out["ate_no_loops"] = evaluation.ate(res.cam_to_world_no_loops[:, :3, 3], gt[:, :3, 3]).rmse
     out["alignment"] = res.metrics["alignment"]
     out["metric_scale"] = res.metrics.get("metric_scale")
@@ -89,8 +94,11 @@ def metric_scores(res, gt: np.ndarray) -> dict:
     out = {}
     for name, c2w in (("loops", res.cam_to_world), ("no_loops", res.cam_to_world_no_loops)):
         a = evaluation.ate(c2w[:, :3, 3], gt[:, :3, 3])
-        out[name] = {"scale_error": 1.0 / a.scale - 1.0, "ate_se3": evaluation.ate(c2w[:, :3, 3], gt[:, :3, 3], "se3").rmse,
-                     "ate_sim3": a.rmse}
+        out[name] = {
+            "scale_error": 1.0 / a.scale - 1.0,
+            "ate_se3": evaluation.ate(c2w[:, :3, 3], gt[:, :3, 3], "se3").rmse,
+            "ate_sim3": a.rmse,
+        }
     out["pose_graph_seconds"] = res.timings.get("pose graph")
     return out
 
@@ -98,8 +106,15 @@ def metric_scores(res, gt: np.ndarray) -> dict:
 def reconstruct(run, out: pathlib.Path, config, overwrite: bool = True) -> object:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    res = pipeline.reconstruct(run.predictor, out, config, ground_truth=run.ground_truth, progress=False,
-                               overwrite=overwrite, log=lambda s: None)
+    res = pipeline.reconstruct(
+        run.predictor,
+        out,
+        config,
+        ground_truth=run.ground_truth,
+        progress=False,
+        overwrite=overwrite,
+        log=lambda s: None,
+    )
     res.wall = time.perf_counter() - t0
     res.load_before = load
     print(f"  {out.name}: {res.wall:.0f} s (load {load:.1f})", flush=True)
@@ -119,7 +134,7 @@ def write_masks(oracle, n: int, folder: pathlib.Path, boxes: bool) -> None:
             if boxes:
                 for c in np.unique(inst[i][~keep]):
                     rows, cols = np.nonzero(inst[i] == c)
-                    keep[max(rows.min() - 2, 0):rows.max() + 3, max(cols.min() - 2, 0):cols.max() + 3] = False
+                    keep[max(rows.min() - 2, 0) : rows.max() + 3, max(cols.min() - 2, 0) : cols.max() + 3] = False
             Image.fromarray(np.where(keep, 255, 0).astype(np.uint8)).save(folder / f"{frame:06d}.png")
 
 
@@ -134,7 +149,11 @@ def sky_scores(oracle, n: int, chunks: int = 6) -> dict:
         tp += int((sky & truth).sum())
         fp += int((sky & ~truth).sum())
         fn += int((~sky & truth).sum())
-    return {"precision": tp / max(tp + fp, 1), "recall": tp / max(tp + fn, 1), "sky_fraction": (tp + fn) / (75 * chunks * 154 * 518)}
+    return {
+        "precision": tp / max(tp + fp, 1),
+        "recall": tp / max(tp + fn, 1),
+        "sky_fraction": (tp + fn) / (75 * chunks * 154 * 518),
+    }
 
 
 def main() -> None:
@@ -142,10 +161,17 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="first N frames of KITTI 00 (default: all 4,541)")
     ap.add_argument("--cars", type=int, default=150, help="moving cars in the masks world")
     ap.add_argument("--gt-every", type=int, default=5, help="true surfaces from every k-th frame")
-    ap.add_argument("--only", default="k,masks", help="comma list of: k (tables 1-2), scale (table 2 alone), masks (table 3)")
-    ap.add_argument("--prior-sigmas", default="0.01,0.02,0.05", help="metric_prior_sigma values of table 2's prior runs")
-    ap.add_argument("--mask-variants", default="no mask,true car masks,box car masks,drop sky",
-                    help="comma list of the masks table's runs")
+    ap.add_argument(
+        "--only", default="k,masks", help="comma list of: k (tables 1-2), scale (table 2 alone), masks (table 3)"
+    )
+    ap.add_argument(
+        "--prior-sigmas", default="0.01,0.02,0.05", help="metric_prior_sigma values of table 2's prior runs"
+    )
+    ap.add_argument(
+        "--mask-variants",
+        default="no mask,true car masks,box car masks,drop sky",
+        help="comma list of the masks table's runs",
+    )
     ap.add_argument("--work", type=pathlib.Path, default=None, help="run directories (default: a temp folder)")
     args = ap.parse_args()
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -175,26 +201,64 @@ def main() -> None:
         r["metric"] = metric_scores(res, run.ground_truth)
         metric_dir = res.run_dir
         rk = payload["runs"]
-        rows = [[name, r["sim3"]["ate"], r["ate_no_loops"], r["sim3"]["accuracy"], r["sim3"]["completeness"],
-                 r["load_average_before"]] for name, r in rk.items()]
-        print(markdown_table(["K_ref", "ATE m (Sim(3))", "ATE no loops m", "accuracy m", "completeness m", "load"], rows))
+        rows = [
+            [
+                name,
+                r["sim3"]["ate"],
+                r["ate_no_loops"],
+                r["sim3"]["accuracy"],
+                r["sim3"]["completeness"],
+                r["load_average_before"],
+            ]
+            for name, r in rk.items()
+        ]
+        print(
+            markdown_table(["K_ref", "ATE m (Sim(3))", "ATE no loops m", "accuracy m", "completeness m", "load"], rows)
+        )
         # the same predictions, the chunks' factors as pose-graph priors (only graph + export re-run)
-        payload["scale"] = {"median": {**r["metric"], "accuracy_se3": r["se3"]["accuracy"],
-                                       "metric_scale": r["metric_scale"]}}
+        payload["scale"] = {
+            "median": {**r["metric"], "accuracy_se3": r["se3"]["accuracy"], "metric_scale": r["metric_scale"]}
+        }
         for sigma in [float(v) for v in args.prior_sigmas.split(",") if v]:
             cfg = dataclasses.replace(metric_cfg, metric_combine="prior", metric_prior_sigma=sigma)
             res = reconstruct(run, metric_dir, cfg, overwrite=False)
             ev = evaluate(res, run.ground_truth, surfaces)
-            payload["scale"][f"prior sigma={sigma:g}"] = {**metric_scores(res, run.ground_truth),
-                                                          "accuracy_se3": ev["se3"]["accuracy"],
-                                                          "metric_scale": res.metrics["metric_scale"],
-                                                          "load_average_before": res.load_before}
-        rows = [[name, v["loops"]["scale_error"], v["loops"]["ate_se3"], v["loops"]["ate_sim3"],
-                 v["no_loops"]["scale_error"], v["no_loops"]["ate_se3"], v["no_loops"]["ate_sim3"], v["accuracy_se3"],
-                 v["pose_graph_seconds"]] for name, v in payload["scale"].items()]
-        print(markdown_table(["--metric-combine", "scale error", "ATE m SE(3) (no scale)", "ATE m Sim(3)",
-                              "no loops: scale error", "no loops: ATE m SE(3)", "no loops: ATE m Sim(3)",
-                              "accuracy m SE(3)", "pose graph s"], rows))
+            payload["scale"][f"prior sigma={sigma:g}"] = {
+                **metric_scores(res, run.ground_truth),
+                "accuracy_se3": ev["se3"]["accuracy"],
+                "metric_scale": res.metrics["metric_scale"],
+                "load_average_before": res.load_before,
+            }
+        rows = [
+            [
+                name,
+                v["loops"]["scale_error"],
+                v["loops"]["ate_se3"],
+                v["loops"]["ate_sim3"],
+                v["no_loops"]["scale_error"],
+                v["no_loops"]["ate_se3"],
+                v["no_loops"]["ate_sim3"],
+                v["accuracy_se3"],
+                v["pose_graph_seconds"],
+            ]
+            for name, v in payload["scale"].items()
+        ]
+        print(
+            markdown_table(
+                [
+                    "--metric-combine",
+                    "scale error",
+                    "ATE m SE(3) (no scale)",
+                    "ATE m Sim(3)",
+                    "no loops: scale error",
+                    "no loops: ATE m SE(3)",
+                    "no loops: ATE m Sim(3)",
+                    "accuracy m SE(3)",
+                    "pose graph s",
+                ],
+                rows,
+            )
+        )
 
     if "masks" in only:
         run = demo.kitti00_run(_shared(), frames=args.frames, moving_cars=args.cars)
@@ -216,11 +280,25 @@ def main() -> None:
                 continue
             res = reconstruct(run, work / name.replace(" ", "_"), cfg)
             payload["runs"]["cars: " + name] = evaluate(res, run.ground_truth, surfaces)
-        rows = [[name, r["sim3"]["ate"], r["ate_no_loops"], r["sim3"]["accuracy"], r["sim3"]["completeness"],
-                 r["alignment"]["mean_points"], r["load_average_before"]]
-                for name, r in payload["runs"].items() if name.startswith("cars: ")]
-        print(markdown_table(["masks", "ATE m", "ATE no loops m", "accuracy m", "completeness m",
-                              "reliable points / pair", "load"], rows))
+        rows = [
+            [
+                name,
+                r["sim3"]["ate"],
+                r["ate_no_loops"],
+                r["sim3"]["accuracy"],
+                r["sim3"]["completeness"],
+                r["alignment"]["mean_points"],
+                r["load_average_before"],
+            ]
+            for name, r in payload["runs"].items()
+            if name.startswith("cars: ")
+        ]
+        print(
+            markdown_table(
+                ["masks", "ATE m", "ATE no loops m", "accuracy m", "completeness m", "reliable points / pair", "load"],
+                rows,
+            )
+        )
         print("sky rule vs the sky label:", payload["sky"])
     print(write_results("camera", payload))
 

@@ -53,10 +53,14 @@ def _install_listeners() -> dict[str, Any]:
     def span(event: str, start: float, end: float, **kw: Any) -> None:
         if event == COMPILE:
             main = threading.current_thread() is threading.main_thread()
-            rec["compiles"].append({
-                "fun": kw.get("fun_name", "?"), "s": end - start, "t": start,
-                "stage": rec["stage"][-1] if main else "predict (thread)",
-            })
+            rec["compiles"].append(
+                {
+                    "fun": kw.get("fun_name", "?"),
+                    "s": end - start,
+                    "t": start,
+                    "stage": rec["stage"][-1] if main else "predict (thread)",
+                }
+            )
 
     def duration(event: str, secs: float, **kw: Any) -> None:
         if event == TRACE:
@@ -83,7 +87,7 @@ def _wrap_stage_timer(rec: dict[str, Any]) -> None:
     inner = rundir.StageTimer.__call__
 
     @contextlib.contextmanager
-    def call(self, name):  # noqa: ANN001
+    def call(self, name):
         main = threading.current_thread() is threading.main_thread()
         if main:
             rec["stage"].append(name)
@@ -109,9 +113,15 @@ def _child_demo(out: str, result: str, extra: list[str]) -> None:
     metrics = json.loads((pathlib.Path(out) / "metrics.json").read_text())
     ru = __import__("resource").getrusage(__import__("resource").RUSAGE_SELF)
     rec.pop("stage")
-    rec.update(code=code, import_s=t_imported - t_start, main_s=t_end - t_imported,
-               cpu_s=ru.ru_utime + ru.ru_stime, timings=metrics.get("timings_seconds", {}),
-               pose_graph=metrics.get("pose_graph", {}), ate=metrics.get("ate"))
+    rec.update(
+        code=code,
+        import_s=t_imported - t_start,
+        main_s=t_end - t_imported,
+        cpu_s=ru.ru_utime + ru.ru_stime,
+        timings=metrics.get("timings_seconds", {}),
+        pose_graph=metrics.get("pose_graph", {}),
+        ate=metrics.get("ate"),
+    )
     pathlib.Path(result).write_text(json.dumps(rec, default=float))
 
 
@@ -129,7 +139,7 @@ def _child_notebook(result: str) -> None:
     rng = np.random.default_rng(0)
     rows = []
 
-    def timed(name: str, fn) -> None:  # noqa: ANN001
+    def timed(name: str, fn) -> None:
         n0 = len(rec["compiles"])
         t = time.perf_counter()
         jax.block_until_ready(fn())
@@ -138,8 +148,16 @@ def _child_notebook(result: str) -> None:
         jax.block_until_ready(fn())
         second = time.perf_counter() - t
         comp = rec["compiles"][n0:]
-        rows.append({"call": name, "first_s": first, "second_s": second, "programs": len(comp),
-                     "compile_s": sum(c["s"] for c in comp), "functions": sorted({c["fun"] for c in comp})})
+        rows.append(
+            {
+                "call": name,
+                "first_s": first,
+                "second_s": second,
+                "programs": len(comp),
+                "compile_s": sum(c["s"] for c in comp),
+                "functions": sorted({c["fun"] for c in comp}),
+            }
+        )
 
     xi = jnp.asarray(rng.normal(size=(1000, 7)) * 0.3, jnp.float32)
     timed("sim3.exp [1000, 7]", lambda: sim3.exp(xi))
@@ -163,8 +181,7 @@ def _child_notebook(result: str) -> None:
     meas = np.concatenate([rel, np.array([[n - 1.0, 0, 0, 0, 0, 0, 1, 1]])])
     with jax.enable_x64(True):
         problem = posegraph.Problem(jnp.asarray(poses), edges, jnp.asarray(meas))
-        timed(f"posegraph.optimize ({n} nodes, {len(edges)} edges, float64)",
-              lambda: posegraph.optimize(problem).poses)
+        timed(f"posegraph.optimize ({n} nodes, {len(edges)} edges, float64)", lambda: posegraph.optimize(problem).poses)
     rec["rows"] = rows
     rec.pop("stage")
     pathlib.Path(result).write_text(json.dumps(rec, default=float))
@@ -177,8 +194,13 @@ def _run_child(args: list[str], env: dict[str, str], timeout: float) -> tuple[di
     with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
         result = fh.name
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, __file__, "--child", *args, "--result", result], env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", *args, "--result", result],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         sys.stderr.write(proc.stdout[-4000:] + proc.stderr[-4000:])
@@ -198,14 +220,24 @@ def _summarise(data: dict[str, Any], wall: float, load: tuple[float, float]) -> 
     top = sorted(((sum(v), len(v), k) for k, v in by_fun.items()), reverse=True)
     small = [c for c in comp if c["s"] < 0.25]
     return {
-        "wall_s": wall, "import_s": data["import_s"], "main_s": data["main_s"], "cpu_s": data["cpu_s"],
-        "load_before": load[0], "load_after": load[1],
-        "programs": len(comp), "cache_hits": data["cache_hits"],
-        "compile_s": sum(c["s"] for c in comp), "trace_s": data["trace_s"], "lower_s": data["lower_s"],
-        "small_programs": len(small), "small_compile_s": sum(c["s"] for c in small),
-        "timings": data["timings"], "compile_by_stage": by_stage,
+        "wall_s": wall,
+        "import_s": data["import_s"],
+        "main_s": data["main_s"],
+        "cpu_s": data["cpu_s"],
+        "load_before": load[0],
+        "load_after": load[1],
+        "programs": len(comp),
+        "cache_hits": data["cache_hits"],
+        "compile_s": sum(c["s"] for c in comp),
+        "trace_s": data["trace_s"],
+        "lower_s": data["lower_s"],
+        "small_programs": len(small),
+        "small_compile_s": sum(c["s"] for c in small),
+        "timings": data["timings"],
+        "compile_by_stage": by_stage,
         "top_functions": [{"fun": k, "compile_s": s, "count": n} for s, n, k in top[:25]],
-        "pose_graph_compile_s": data["pose_graph"].get("compile_seconds"), "ate": data.get("ate"),
+        "pose_graph_compile_s": data["pose_graph"].get("compile_seconds"),
+        "ate": data.get("ate"),
         "compiles": comp,
     }
 
@@ -252,26 +284,44 @@ def main() -> None:
                 out = args.out or str(work / "demo")
                 child_env = dict(env, SWIFTJAX_CACHE_DIR=str(cache))
                 load0 = os.getloadavg()[0]
-                data, wall = _run_child(["demo", "--out", out, "--demo-args=" + args.demo_args], child_env,
-                                        args.timeout)
+                data, wall = _run_child(
+                    ["demo", "--out", out, "--demo-args=" + args.demo_args], child_env, args.timeout
+                )
                 s = _summarise(data, wall, (load0, os.getloadavg()[0]))
                 s.update(mode=mode, repeat=r)
                 runs.append(s)
-                print(f"[{mode} #{r}] wall {wall:.1f} s, demo {s['main_s']:.1f} s, compile {s['compile_s']:.1f} s "
-                      f"in {s['programs']} programs, load {load0:.1f}->{s['load_after']:.1f}", flush=True)
+                print(
+                    f"[{mode} #{r}] wall {wall:.1f} s, demo {s['main_s']:.1f} s, compile {s['compile_s']:.1f} s "
+                    f"in {s['programs']} programs, load {load0:.1f}->{s['load_after']:.1f}",
+                    flush=True,
+                )
         notebook = None
         if not args.no_notebook:
             load0 = os.getloadavg()[0]
             nb_env = dict(env)
             nb_env.pop("SWIFTJAX_CACHE_DIR", None)
             data, wall = _run_child(["notebook"], nb_env, args.timeout)
-            notebook = {"wall_s": wall, "import_s": data["import_s"], "rows": data["rows"],
-                        "load_before": load0, "load_after": os.getloadavg()[0]}
+            notebook = {
+                "wall_s": wall,
+                "import_s": data["import_s"],
+                "rows": data["rows"],
+                "load_before": load0,
+                "load_after": os.getloadavg()[0],
+            }
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
-    stages = ["predict", "predict (loop chunks)", "align", "loop detection", "loop chunks", "loop verification",
-              "pose graph", "chunk store", "export"]
+    stages = [
+        "predict",
+        "predict (loop chunks)",
+        "align",
+        "loop detection",
+        "loop chunks",
+        "loop verification",
+        "pose graph",
+        "chunk store",
+        "export",
+    ]
     header = ["", *[f"{s['mode']} #{s['repeat']}" for s in runs]]
     rows = [
         ["process wall (s)", *[f"{s['wall_s']:.1f}" for s in runs]],
@@ -285,9 +335,15 @@ def main() -> None:
         ["pose graph compile_seconds", *[f"{s['pose_graph_compile_s'] or 0:.2f}" for s in runs]],
     ]
     for st in stages:
-        rows.append([f"stage {st}: wall / compile (s)",
-                     *[f"{s['timings'].get(st, 0):.1f} / {s['compile_by_stage'].get(st, 0):.1f}" for s in runs]])
-    rows.append(["compile on prediction thread (s)", *[f"{s['compile_by_stage'].get('predict (thread)', 0):.1f}" for s in runs]])
+        rows.append(
+            [
+                f"stage {st}: wall / compile (s)",
+                *[f"{s['timings'].get(st, 0):.1f} / {s['compile_by_stage'].get(st, 0):.1f}" for s in runs],
+            ]
+        )
+    rows.append(
+        ["compile on prediction thread (s)", *[f"{s['compile_by_stage'].get('predict (thread)', 0):.1f}" for s in runs]]
+    )
     rows.append(["compile outside stages (s)", *[f"{s['compile_by_stage'].get('(setup)', 0):.1f}" for s in runs]])
     rows.append(["load average before -> after", *[f"{s['load_before']:.1f} -> {s['load_after']:.1f}" for s in runs]])
     print()
@@ -295,17 +351,43 @@ def main() -> None:
     if runs:
         cold = next((s for s in runs if s["mode"] == "cold"), runs[0])
         print(f"\nlargest compiles ({cold['mode']} #{cold['repeat']}):")
-        print(markdown_table(["function", "programs", "compile (s)"],
-                             [[t["fun"], str(t["count"]), f"{t['compile_s']:.2f}"] for t in cold["top_functions"][:15]]))
+        print(
+            markdown_table(
+                ["function", "programs", "compile (s)"],
+                [[t["fun"], str(t["count"]), f"{t['compile_s']:.2f}"] for t in cold["top_functions"][:15]],
+            )
+        )
     if notebook:
-        print(f"\nnotebook, fresh process, no persistent cache (import {notebook['import_s']:.1f} s, load "
-              f"{notebook['load_before']:.1f}):")
-        print(markdown_table(["first call", "first (s)", "second (s)", "programs", "compile (s)"],
-                             [[r["call"], f"{r['first_s']:.3f}", f"{r['second_s']:.4f}", str(r["programs"]),
-                               f"{r['compile_s']:.2f}"] for r in notebook["rows"]]))
-    path = write_results("coldstart", {"label": args.label, "xla_flags": env.get("XLA_FLAGS", ""),
-                                       "demo_args": args.demo_args, "runs": runs, "notebook": notebook,
-                                       "loadavg_end": os.getloadavg()})
+        print(
+            f"\nnotebook, fresh process, no persistent cache (import {notebook['import_s']:.1f} s, load "
+            f"{notebook['load_before']:.1f}):"
+        )
+        print(
+            markdown_table(
+                ["first call", "first (s)", "second (s)", "programs", "compile (s)"],
+                [
+                    [
+                        r["call"],
+                        f"{r['first_s']:.3f}",
+                        f"{r['second_s']:.4f}",
+                        str(r["programs"]),
+                        f"{r['compile_s']:.2f}",
+                    ]
+                    for r in notebook["rows"]
+                ],
+            )
+        )
+    path = write_results(
+        "coldstart",
+        {
+            "label": args.label,
+            "xla_flags": env.get("XLA_FLAGS", ""),
+            "demo_args": args.demo_args,
+            "runs": runs,
+            "notebook": notebook,
+            "loadavg_end": os.getloadavg(),
+        },
+    )
     print(f"\nwrote {path}")
 
 

@@ -22,8 +22,8 @@ import tempfile
 import time
 
 import numpy as np
-
 from common import markdown_table, write_results
+
 from swiftjax import pipeline
 from swiftjax.synthetic import demo
 
@@ -31,8 +31,14 @@ from swiftjax.synthetic import demo
 def _run(frames: int, out: pathlib.Path, colmap: bool) -> tuple[float, pipeline.RunResult]:
     run = demo.loop_route_run(frames)
     t0 = time.perf_counter()
-    result = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(colmap=colmap),
-                                  ground_truth=run.ground_truth, progress=False, log=lambda _: None)
+    result = pipeline.reconstruct(
+        run.predictor,
+        out,
+        pipeline.PipelineConfig(colmap=colmap),
+        ground_truth=run.ground_truth,
+        progress=False,
+        log=lambda _: None,
+    )
     return time.perf_counter() - t0, result
 
 
@@ -55,9 +61,13 @@ def _reprojection(out: pathlib.Path) -> dict[str, float]:
     a, b = np.asarray(err_ref), np.asarray(err_own)
     f = per_frame[:, 0]
     return {
-        "points": len(a), "K_ref_median_px": float(np.median(a)), "K_ref_max_px": float(a.max()),
-        "own_K_median_px": float(np.median(b)), "own_K_p95_px": float(np.percentile(b, 95)),
-        "own_K_max_px": float(b.max()), "fx_spread_percent": float(100 * (f.max() - f.min()) / np.median(f)),
+        "points": len(a),
+        "K_ref_median_px": float(np.median(a)),
+        "K_ref_max_px": float(a.max()),
+        "own_K_median_px": float(np.median(b)),
+        "own_K_p95_px": float(np.percentile(b, 95)),
+        "own_K_max_px": float(b.max()),
+        "fx_spread_percent": float(100 * (f.max() - f.min()) / np.median(f)),
     }
 
 
@@ -70,16 +80,20 @@ def _encoders(images: np.ndarray) -> dict[str, tuple[float, float]]:
             buf = io.BytesIO()
             Image.fromarray(im).save(buf, format=fmt, **kw)
             return buf.tell()
+
         return enc
 
-    encoders = {"PNG, Pillow, level 1 (the export)": pil("PNG", compress_level=1),
-                "PNG, Pillow, level 6": pil("PNG", compress_level=6),
-                "JPEG q95, Pillow": pil("JPEG", quality=95)}
+    encoders = {
+        "PNG, Pillow, level 1 (the export)": pil("PNG", compress_level=1),
+        "PNG, Pillow, level 6": pil("PNG", compress_level=6),
+        "JPEG q95, Pillow": pil("JPEG", quality=95),
+    }
     try:
         import cv2
 
-        encoders["PNG, OpenCV, level 1"] = lambda im: len(cv2.imencode(".png", im[..., ::-1],
-                                                                       [cv2.IMWRITE_PNG_COMPRESSION, 1])[1])
+        encoders["PNG, OpenCV, level 1"] = lambda im: len(
+            cv2.imencode(".png", im[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 1])[1]
+        )
     except ImportError:
         pass
     out = {}
@@ -107,8 +121,9 @@ def main() -> None:
         for k in range(args.repeat):
             for colmap in (True, False):  # alternating, fresh directories
                 wall, res = _run(args.frames, d / f"r{k}{int(colmap)}", colmap)
-                runs[colmap].append({"wall_s": wall, "export_s": res.timings["export"],
-                                     "predict_s": res.timings["predict"]})
+                runs[colmap].append(
+                    {"wall_s": wall, "export_s": res.timings["export"], "predict_s": res.timings["predict"]}
+                )
                 if colmap:
                     last = (d / f"r{k}{int(colmap)}", res)
         assert last is not None
@@ -120,21 +135,40 @@ def main() -> None:
     on = {k: min(r[k] for r in runs[True]) for k in runs[True][0]}
     off = {k: min(r[k] for r in runs[False]) for k in runs[False][0]}
     predict_ms = 1e3 * on["predict_s"] / args.frames
-    results.update(reprojection=reproj, encoders=enc, colmap_on=runs[True], colmap_off=runs[False],
-                   images_mb=size_mb, load_average_end=os.getloadavg())
+    results.update(
+        reprojection=reproj,
+        encoders=enc,
+        colmap_on=runs[True],
+        colmap_off=runs[False],
+        images_mb=size_mb,
+        load_average_end=os.getloadavg(),
+    )
 
-    print(markdown_table(["camera in the model", "median px", "max px"], [
-        ["shared K_ref (the export)", reproj["K_ref_median_px"], reproj["K_ref_max_px"]],
-        ["each frame's own K", reproj["own_K_median_px"], reproj["own_K_max_px"]],
-    ]))
+    print(
+        markdown_table(
+            ["camera in the model", "median px", "max px"],
+            [
+                ["shared K_ref (the export)", reproj["K_ref_median_px"], reproj["K_ref_max_px"]],
+                ["each frame's own K", reproj["own_K_median_px"], reproj["own_K_max_px"]],
+            ],
+        )
+    )
     print(f"per-frame fx spread: {reproj['fx_spread_percent']:.2f} % of the median; {reproj['points']} points")
-    print(markdown_table(["frame encoder", "ms / frame", "KB / frame", "vs predict / frame"], [
-        [name, ms, kb, ms / predict_ms] for name, (ms, kb) in enc.items()
-    ]))
-    print(markdown_table(["", "COLMAP on", "COLMAP off", "on - off"], [
-        ["export stage (s)", on["export_s"], off["export_s"], on["export_s"] - off["export_s"]],
-        ["whole run (s)", on["wall_s"], off["wall_s"], on["wall_s"] - off["wall_s"]],
-    ]))
+    print(
+        markdown_table(
+            ["frame encoder", "ms / frame", "KB / frame", "vs predict / frame"],
+            [[name, ms, kb, ms / predict_ms] for name, (ms, kb) in enc.items()],
+        )
+    )
+    print(
+        markdown_table(
+            ["", "COLMAP on", "COLMAP off", "on - off"],
+            [
+                ["export stage (s)", on["export_s"], off["export_s"], on["export_s"] - off["export_s"]],
+                ["whole run (s)", on["wall_s"], off["wall_s"], on["wall_s"] - off["wall_s"]],
+            ],
+        )
+    )
     print(f"colmap/images: {size_mb:.1f} MB for {args.frames} frames; load {results['load_average_start']}")
     write_results("colmap_export", results)
 

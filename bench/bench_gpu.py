@@ -50,7 +50,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from flops import vggt_chunk_flops  # noqa: E402
+from flops import vggt_chunk_flops
 
 LOG: list[str] = []
 
@@ -219,8 +219,9 @@ def depth_difference(a: np.ndarray, b: np.ndarray) -> float:
 # sections
 
 
-def chunk_sweep(model: Any, config: Any, device: Any, chunks: list[int], hw: tuple[int, int], dtype: Any,
-                rate: float, repeat: int) -> list[dict[str, Any]]:
+def chunk_sweep(
+    model: Any, config: Any, device: Any, chunks: list[int], hw: tuple[int, int], dtype: Any, rate: float, repeat: int
+) -> list[dict[str, Any]]:
     """Section 2: seconds, FLOP/s and memory per chunk size (bf16 autocast, the default runner)."""
     import torch
     from torch.nn.attention import sdpa_kernel
@@ -230,7 +231,11 @@ def chunk_sweep(model: Any, config: Any, device: Any, chunks: list[int], hw: tup
     rows = []
     for s in chunks:
         flops = vggt_chunk_flops(config, s, *hw)
-        row: dict[str, Any] = {"frames": s, "tflop": flops["total"] / 1e12, "aggregator_tflop": flops["aggregator"] / 1e12}
+        row: dict[str, Any] = {
+            "frames": s,
+            "tflop": flops["total"] / 1e12,
+            "aggregator_tflop": flops["aggregator"] / 1e12,
+        }
         x = torch.rand(1, s, 3, *hw, device=device)
         try:
             if device.type == "cuda":
@@ -243,37 +248,59 @@ def chunk_sweep(model: Any, config: Any, device: Any, chunks: list[int], hw: tup
                     with clock.measure() as t:
                         run(x)
                     times.append(t[0])
-                    with clock.measure() as t, torch.inference_mode(), torch.autocast(
-                            device_type=device.type, dtype=dtype, enabled=dtype != torch.float32):
+                    with (
+                        clock.measure() as t,
+                        torch.inference_mode(),
+                        torch.autocast(device_type=device.type, dtype=dtype, enabled=dtype != torch.float32),
+                    ):
                         model.aggregator(x)
                     agg_times.append(t[0])
             sec, agg = min(times), min(agg_times)
-            row.update(seconds=sec, frames_per_s=s / sec, tflops=flops["total"] / sec / 1e12,
-                       fraction_of_matmul=flops["total"] / sec / rate, aggregator_seconds=agg,
-                       aggregator_fraction_of_matmul=flops["aggregator"] / agg / rate)
+            row.update(
+                seconds=sec,
+                frames_per_s=s / sec,
+                tflops=flops["total"] / sec / 1e12,
+                fraction_of_matmul=flops["total"] / sec / rate,
+                aggregator_seconds=agg,
+                aggregator_fraction_of_matmul=flops["aggregator"] / agg / rate,
+            )
             if device.type == "cuda":
-                row.update(peak_allocated_gb=torch.cuda.max_memory_allocated() / 2**30,
-                           peak_reserved_gb=torch.cuda.max_memory_reserved() / 2**30)
+                row.update(
+                    peak_allocated_gb=torch.cuda.max_memory_allocated() / 2**30,
+                    peak_reserved_gb=torch.cuda.max_memory_reserved() / 2**30,
+                )
         except torch.OutOfMemoryError as err:
             row.update(error=f"out of memory: {str(err).splitlines()[0]}")
         finally:
             del x
         rows.append(row)
-        log(f"  S = {s:4d}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                                           for k, v in row.items() if k != "frames"))
+        log(
+            f"  S = {s:4d}: "
+            + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "frames")
+        )
     return rows
 
 
-def precision_modes(make_model: Callable[[], Any], device: Any, frames: int, hw: tuple[int, int],
-                    dtype: Any, repeat: int, images: Any = None) -> list[dict[str, Any]]:
+def precision_modes(
+    make_model: Callable[[], Any],
+    device: Any,
+    frames: int,
+    hw: tuple[int, int],
+    dtype: Any,
+    repeat: int,
+    images: Any = None,
+) -> list[dict[str, Any]]:
     """Section 3: float32 vs bf16 autocast vs bf16 weights on the same input (``images``
     ``[1, S, 3, H, W]``, default random)."""
     import torch
     from torch.nn.attention import sdpa_kernel
 
     clock = Clock(device)
-    x = images if images is not None else torch.rand(
-        1, frames, 3, *hw, device=device, generator=torch.Generator(device=device).manual_seed(1))
+    x = (
+        images
+        if images is not None
+        else torch.rand(1, frames, 3, *hw, device=device, generator=torch.Generator(device=device).manual_seed(1))
+    )
     rows, ref = [], None
     for mode in ("float32", "autocast", "weights"):
         run = Precision(make_model(), mode, dtype)
@@ -287,30 +314,40 @@ def precision_modes(make_model: Callable[[], Any], device: Any, frames: int, hw:
                 times.append(t[0])
         depth = out["depth"].float().cpu().numpy()
         pose = out["pose_enc"].float().cpu().numpy()
-        row = {"mode": mode, "seconds": min(times), "attention_backend": which_attention_backend(
-            device, mode_dtype, run.model.config.embed_dim, run.model.config.num_heads)}
+        row = {
+            "mode": mode,
+            "seconds": min(times),
+            "attention_backend": which_attention_backend(
+                device, mode_dtype, run.model.config.embed_dim, run.model.config.num_heads
+            ),
+        }
         if ref is None:
             ref = (depth, pose)
         else:
             rot, trans = pose_difference(pose, ref[1])
-            row.update(depth_median_rel_diff=depth_difference(depth, ref[0]), rotation_diff_deg=rot,
-                       translation_diff=trans)
+            row.update(
+                depth_median_rel_diff=depth_difference(depth, ref[0]), rotation_diff_deg=rot, translation_diff=trans
+            )
         rows.append(row)
-        log(f"  {mode:>8}: " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                                         for k, v in row.items() if k != "mode"))
+        log(
+            f"  {mode:>8}: "
+            + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "mode")
+        )
         del run
         if device.type == "cuda":
             torch.cuda.empty_cache()
     return rows
 
 
-def compile_measure(model: Any, device: Any, frames: int, hw: tuple[int, int], dtype: Any, repeat: int) -> dict[str, Any]:
+def compile_measure(
+    model: Any, device: Any, frames: int, hw: tuple[int, int], dtype: Any, repeat: int
+) -> dict[str, Any]:
     """``torch.compile`` of the aggregator: first call (compile) and steady seconds vs eager."""
     import torch
 
     clock = Clock(device)
     x = torch.rand(1, frames, 3, *hw, device=device)
-    ctx = lambda: torch.autocast(device_type=device.type, dtype=dtype, enabled=dtype != torch.float32)  # noqa: E731
+    ctx = lambda: torch.autocast(device_type=device.type, dtype=dtype, enabled=dtype != torch.float32)
     with torch.inference_mode(), ctx():
         model.aggregator(x)
         eager = []
@@ -362,13 +399,19 @@ def golden_on_device(golden: pathlib.Path, device: Any) -> dict[str, Any]:
     ref = np.load(golden / "tiny_golden.npz")
     with torch.inference_mode():
         out = model(images)
-    got = {"patch_tokens": out["patch_tokens"], "pose_enc": out["pose_enc"], "depth": out["depth"],
-           "depth_conf": out["depth_conf"]}
+    got = {
+        "patch_tokens": out["patch_tokens"],
+        "pose_enc": out["pose_enc"],
+        "depth": out["depth"],
+        "depth_conf": out["depth_conf"],
+    }
     checks = [compare(device.type, k, v.float().cpu().numpy(), ref[k]) for k, v in got.items() if k in TOLERANCES]
     for c in checks:
         log(f"  {c.name:<14} max abs {c.max_abs:.2e} max rel {c.max_rel:.2e} {'ok' if c.passed else 'FAIL'}")
-    return {"passed": all(c.passed for c in checks),
-            "checks": [{"name": c.name, "max_abs": c.max_abs, "max_rel": c.max_rel, "passed": c.passed} for c in checks]}
+    return {
+        "passed": all(c.passed for c in checks),
+        "checks": [{"name": c.name, "max_abs": c.max_abs, "max_rel": c.max_rel, "passed": c.passed} for c in checks],
+    }
 
 
 class TimedRunner:
@@ -405,8 +448,17 @@ def write_frames(folder: pathlib.Path, frames: int, hw: tuple[int, int], oracle:
     return time.perf_counter() - t0
 
 
-def end_to_end(model: Any, device: Any, dtype: Any, frames: int, chunk: int, overlap: int, render_hw: tuple[int, int],
-               workdir: pathlib.Path, oracle: bool = True) -> dict[str, Any]:
+def end_to_end(
+    model: Any,
+    device: Any,
+    dtype: Any,
+    frames: int,
+    chunk: int,
+    overlap: int,
+    render_hw: tuple[int, int],
+    workdir: pathlib.Path,
+    oracle: bool = True,
+) -> dict[str, Any]:
     """Section 5: the whole pipeline over PNG files with the random-weight model."""
     from inference.predictor import ImagePredictor
     from inference.runners import TorchRunner
@@ -425,13 +477,25 @@ def end_to_end(model: Any, device: Any, dtype: Any, frames: int, chunk: int, ove
     busy = float(sum(runner.seconds))
     new_frames_per_chunk = chunk - overlap
     predict_only = new_frames_per_chunk / (busy / len(runner.seconds))
-    row = {"frames": frames, "chunks": len(runner.seconds), "render_seconds": render_s, "wall_seconds": wall,
-           "predict_seconds": busy, "predict_share": busy / wall, "gpu_idle_share": 1 - busy / wall,
-           "frames_per_s": frames / wall, "predict_only_new_frames_per_s": predict_only,
-           "e2e_over_predict_only": (frames / wall) / predict_only,
-           "stage_seconds": {k: float(v) for k, v in result.timings.items()}}
-    log("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()
-                         if k != "stage_seconds"))
+    row = {
+        "frames": frames,
+        "chunks": len(runner.seconds),
+        "render_seconds": render_s,
+        "wall_seconds": wall,
+        "predict_seconds": busy,
+        "predict_share": busy / wall,
+        "gpu_idle_share": 1 - busy / wall,
+        "frames_per_s": frames / wall,
+        "predict_only_new_frames_per_s": predict_only,
+        "e2e_over_predict_only": (frames / wall) / predict_only,
+        "stage_seconds": {k: float(v) for k, v in result.timings.items()},
+    }
+    log(
+        "  "
+        + ", ".join(
+            f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "stage_seconds"
+        )
+    )
     log("  stages: " + ", ".join(f"{k} {v:.2f} s" for k, v in row["stage_seconds"].items()))
     return row
 
@@ -461,8 +525,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--golden", type=pathlib.Path, default=None, help="folder in the golden/vggt layout")
     ap.add_argument("--e2e-frames", type=int, default=600)
     ap.add_argument("--e2e-render", default="376x1241", help="HxW of the PNG frames (KITTI's size)")
-    ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=None,
-                    help="measure torch.compile of the aggregator (default: on CUDA)")
+    ap.add_argument(
+        "--compile",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="measure torch.compile of the aggregator (default: on CUDA)",
+    )
     ap.add_argument("--json", type=pathlib.Path, default=None)
     ap.add_argument("--log", type=pathlib.Path, default=None)
     args = ap.parse_args(argv)
@@ -481,8 +549,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     hw = (args.height, args.width)
     render_hw = tuple(int(v) for v in args.e2e_render.split("x"))
     started = time.perf_counter()
-    results: dict[str, Any] = {"smoke": args.smoke, "device": str(device), "torch": torch.__version__,
-                               "cuda": torch.version.cuda, "image_hw": list(hw)}
+    results: dict[str, Any] = {
+        "smoke": args.smoke,
+        "device": str(device),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "image_hw": list(hw),
+    }
     if device.type == "cuda":
         props = torch.cuda.get_device_properties(device)
         results.update(device_name=props.name, device_memory_gb=props.total_memory / 2**30)
@@ -502,27 +575,40 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     results["chunks"] = chunk_sweep(model, config, device, args.chunks, hw, dtype, rate, args.repeat)
 
     log(f"== precision modes at S = {args.modes_chunk}")
-    results["precision"] = precision_modes(lambda: random_vggt(config, device), device, args.modes_chunk, hw, dtype,
-                                           args.repeat)
+    results["precision"] = precision_modes(
+        lambda: random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat
+    )
     if args.compile if args.compile is not None else device.type == "cuda":
         log(f"== torch.compile of the aggregator at S = {args.modes_chunk}")
-        results["compile"] = compile_measure(random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat)
+        results["compile"] = compile_measure(
+            random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat
+        )
 
     if golden is not None:
         log(f"== tiny golden VGGT on {device.type} (float32) against {golden}")
         results["golden"] = golden_on_device(golden, device)
         log("== precision modes on the tiny golden VGGT (its seeded weights and images)")
         images = golden_images(golden, device)
-        results["precision_golden"] = precision_modes(lambda: golden_model(golden, device), device, images.shape[1],
-                                                      tuple(images.shape[-2:]), dtype, args.repeat, images=images)
+        results["precision_golden"] = precision_modes(
+            lambda: golden_model(golden, device),
+            device,
+            images.shape[1],
+            tuple(images.shape[-2:]),
+            dtype,
+            args.repeat,
+            images=images,
+        )
     else:
         log("== golden: skipped (no golden/vggt folder: --golden DIR)")
 
     chunk, overlap = (6, 2) if args.smoke else (75, 30)
-    log(f"== end to end: {args.e2e_frames} PNG frames ({render_hw[1]}x{render_hw[0]}), chunk {chunk}, overlap {overlap}")
+    log(
+        f"== end to end: {args.e2e_frames} PNG frames ({render_hw[1]}x{render_hw[0]}), chunk {chunk}, overlap {overlap}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
-        results["end_to_end"] = end_to_end(model, device, dtype, args.e2e_frames, chunk, overlap, render_hw,
-                                           pathlib.Path(tmp), oracle=not args.smoke)
+        results["end_to_end"] = end_to_end(
+            model, device, dtype, args.e2e_frames, chunk, overlap, render_hw, pathlib.Path(tmp), oracle=not args.smoke
+        )
     results["total_seconds"] = time.perf_counter() - started
     log(f"== done in {results['total_seconds']:.0f} s")
 

@@ -34,7 +34,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from bench_loop_robustness import _centres, _relative, graph_poses
 from bench_pipeline import _shared
 from common import markdown_table, write_results
@@ -66,9 +65,8 @@ def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> lis
 
 def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     from swiftjax import chunks, evaluation, pipeline
-    from swiftjax.synthetic import demo
     from swiftjax.io.trajectory import read_kitti
-    from swiftjax.synthetic import places
+    from swiftjax.synthetic import demo, places
 
     poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
     if frames:
@@ -78,8 +76,15 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     config = pipeline.PipelineConfig(loop_geometry=True)
     load = os.getloadavg()
     t0 = time.perf_counter()
-    res = pipeline.reconstruct(run.predictor, out_dir, config, ground_truth=run.ground_truth, progress=False,
-                               overwrite=True, log=lambda s: None)
+    res = pipeline.reconstruct(
+        run.predictor,
+        out_dir,
+        config,
+        ground_truth=run.ground_truth,
+        progress=False,
+        overwrite=True,
+        log=lambda s: None,
+    )
     wall = time.perf_counter() - t0
     schedule = chunks.chunk_schedule(res.num_frames, config.chunk_size, config.overlap)
     gt = run.ground_truth[:, :3, 3]
@@ -88,7 +93,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     regions = places.revisit_regions(run.ground_truth, min_separation=sep)
     relative = _relative(out_dir, schedule.num_chunks)
     cands = res.loop_candidates
-    pair = lambda rs: np.asarray([(r["i"], r["j"]) for r in rs], np.int64).reshape(-1, 2)  # noqa: E731
+    pair = lambda rs: np.asarray([(r["i"], r["j"]) for r in rs], np.int64).reshape(-1, 2)
     correct = places.evaluate_loops(pair(cands), anyp, tolerance=25).correct
     arms = {
         "tokens (defaults)": [r for r in cands if r["accepted"] and r.get("source", "tokens") == "tokens"],
@@ -98,16 +103,28 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     timings = res.timings
     new = sum(float(v) for k, v in timings.items() if k.startswith("loop geometry"))
     geometry = wall - float(timings.get("predict", 0.0)) - float(timings.get("predict (loop chunks)", 0.0)) - new
-    out = {"sequence": seq, "frames": res.num_frames, "chunks": res.num_chunks, "aliasing": aliasing,
-           "wall_seconds": wall, "load_average_before": load, "loop_geometry_seconds": new,
-           "geometry_seconds": geometry, "loop_geometry_fraction": new / geometry if geometry > 0 else None,
-           "timings": timings, "ate_rmse_no_loops": float(res.metrics["ate_rmse_no_loops"]),
-           "ate_rmse_pipeline": float(res.metrics["ate_rmse"]),
-           "candidates": {s: sum(r.get("source", "tokens") == s for r in cands) for s in ("tokens", "geometry")},
-           "true_candidates": {s: int(sum(c for r, c in zip(cands, correct) if r.get("source", "tokens") == s))
-                               for s in ("tokens", "geometry")},
-           "regions": {d: int(len(np.unique(regions[d][1]))) for d in ("same", "reverse")}, "arms": {}}
-    edges_of = lambda rs: [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in rs]  # noqa: E731
+    out = {
+        "sequence": seq,
+        "frames": res.num_frames,
+        "chunks": res.num_chunks,
+        "aliasing": aliasing,
+        "wall_seconds": wall,
+        "load_average_before": load,
+        "loop_geometry_seconds": new,
+        "geometry_seconds": geometry,
+        "loop_geometry_fraction": new / geometry if geometry > 0 else None,
+        "timings": timings,
+        "ate_rmse_no_loops": float(res.metrics["ate_rmse_no_loops"]),
+        "ate_rmse_pipeline": float(res.metrics["ate_rmse"]),
+        "candidates": {s: sum(r.get("source", "tokens") == s for r in cands) for s in ("tokens", "geometry")},
+        "true_candidates": {
+            s: int(sum(c for r, c in zip(cands, correct) if r.get("source", "tokens") == s))
+            for s in ("tokens", "geometry")
+        },
+        "regions": {d: int(len(np.unique(regions[d][1]))) for d in ("same", "reverse")},
+        "arms": {},
+    }
+    edges_of = lambda rs: [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in rs]
     truth = truth_edges(run.predictor.oracle, schedule, run.ground_truth, sep)
     for name, chosen in [*arms.items(), ("truth edges", None)]:
         edges = truth if chosen is None else edges_of(chosen)
@@ -116,8 +133,11 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
         row = {"accepted": len(edges), "ate_rmse": ate, "converged": converged}
         if chosen is not None:
             ev = places.evaluate_loops(pair(chosen), anyp, tolerance=25)
-            row.update(precision=ev.precision, correct=int(ev.n_correct),
-                       by_source={s: sum(r.get("source", "tokens") == s for r in chosen) for s in ("tokens", "geometry")})
+            row.update(
+                precision=ev.precision,
+                correct=int(ev.n_correct),
+                by_source={s: sum(r.get("source", "tokens") == s for r in chosen) for s in ("tokens", "geometry")},
+            )
             for d in ("same", "reverse"):
                 p, lab = regions[d]
                 e = places.evaluate_loops(pair(chosen), p, tolerance=25, regions=lab)
@@ -125,9 +145,16 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
                 row[f"regions_found_{d}"] = int(e.n_regions_found)
         out["arms"][name] = row
     out["candidate_records"] = [
-        {"i": r["i"], "j": r["j"], "source": r.get("source", "tokens"), "true": bool(c),
-         "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])), "accepted": r["accepted"], "reason": r["reason"],
-         **{k: r.get(k) for k in ("score", "dense_agreement", "dense_overlap", "pcm_residual", "registration")}}
+        {
+            "i": r["i"],
+            "j": r["j"],
+            "source": r.get("source", "tokens"),
+            "true": bool(c),
+            "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])),
+            "accepted": r["accepted"],
+            "reason": r["reason"],
+            **{k: r.get(k) for k in ("score", "dense_agreement", "dense_overlap", "pcm_residual", "registration")},
+        }
         for r, c in zip(cands, correct)
     ]
     return out
@@ -137,17 +164,38 @@ def table(records: list[dict]) -> str:
     rows = []
     for r in records:
         for name, a in r["arms"].items():
-            rec = lambda d: "-" if a.get(f"recall_{d}") is None else f"{a[f'regions_found_{d}']}/{r['regions'][d]}"  # noqa: E731
-            rows.append([
-                r["sequence"], r["frames"], name,
-                f"{r['candidates']['tokens']}/{r['candidates']['geometry']}" if name != "truth edges" else "-",
-                a["accepted"], "-" if "precision" not in a else f"{a['precision']:.2f}", rec("same"), rec("reverse"),
-                f"{a['ate_rmse']:.2f}", f"{r['ate_rmse_no_loops']:.2f}",
-                f"{r['loop_geometry_seconds']:.1f} ({100 * (r['loop_geometry_fraction'] or 0):.0f} %)",
-            ])
-    return markdown_table(["seq", "frames", "arm", "cand. tokens/geometry", "accepted", "precision",
-                           "same-dir. regions", "reverse regions", "ATE (m)", "ATE no loops (m)",
-                           "geometry stage s (% of geometry)"], rows)
+            rec = lambda d: "-" if a.get(f"recall_{d}") is None else f"{a[f'regions_found_{d}']}/{r['regions'][d]}"
+            rows.append(
+                [
+                    r["sequence"],
+                    r["frames"],
+                    name,
+                    f"{r['candidates']['tokens']}/{r['candidates']['geometry']}" if name != "truth edges" else "-",
+                    a["accepted"],
+                    "-" if "precision" not in a else f"{a['precision']:.2f}",
+                    rec("same"),
+                    rec("reverse"),
+                    f"{a['ate_rmse']:.2f}",
+                    f"{r['ate_rmse_no_loops']:.2f}",
+                    f"{r['loop_geometry_seconds']:.1f} ({100 * (r['loop_geometry_fraction'] or 0):.0f} %)",
+                ]
+            )
+    return markdown_table(
+        [
+            "seq",
+            "frames",
+            "arm",
+            "cand. tokens/geometry",
+            "accepted",
+            "precision",
+            "same-dir. regions",
+            "reverse regions",
+            "ATE (m)",
+            "ATE no loops (m)",
+            "geometry stage s (% of geometry)",
+        ],
+        rows,
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -158,16 +206,21 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     if args.quick:
         args.sequences, args.frames = ["08"], args.frames or 500
-    jax.config.update("jax_compilation_cache_dir",
-                      os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")))
+    jax.config.update(
+        "jax_compilation_cache_dir",
+        os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")),
+    )
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         for seq in args.sequences:
             rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq)
             records.append(rec)
-            print(f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
-                  f"(load {rec['load_average_before'][0]:.1f})", flush=True)
+            print(
+                f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
+                f"(load {rec['load_average_before'][0]:.1f})",
+                flush=True,
+            )
     text = table(records)
     print(text)
     payload = {"records": records, "table": text, "quick": bool(args.quick)}

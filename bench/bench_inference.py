@@ -39,16 +39,32 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common import markdown_table, write_results  # noqa: E402
+from common import markdown_table, write_results
 
 CONFIGS: dict[str, dict[str, object]] = {
     "tiny": dict(
-        embed_dim=64, depth=6, num_heads=4, dino_depth=2, dino_num_heads=4, camera_trunk_depth=4, camera_num_heads=4,
-        dpt_features=32, dpt_out_channels=(16, 32, 64, 64), dpt_intermediate_layer_idx=(1, 3, 4, 5),
+        embed_dim=64,
+        depth=6,
+        num_heads=4,
+        dino_depth=2,
+        dino_num_heads=4,
+        camera_trunk_depth=4,
+        camera_num_heads=4,
+        dpt_features=32,
+        dpt_out_channels=(16, 32, 64, 64),
+        dpt_intermediate_layer_idx=(1, 3, 4, 5),
     ),
     "mid": dict(
-        embed_dim=384, depth=12, num_heads=6, dino_depth=12, dino_num_heads=6, camera_trunk_depth=2, camera_num_heads=6,
-        dpt_features=128, dpt_out_channels=(48, 96, 192, 384), dpt_intermediate_layer_idx=(2, 5, 8, 11),
+        embed_dim=384,
+        depth=12,
+        num_heads=6,
+        dino_depth=12,
+        dino_num_heads=6,
+        camera_trunk_depth=2,
+        camera_num_heads=6,
+        dpt_features=128,
+        dpt_out_channels=(48, 96, 192, 384),
+        dpt_intermediate_layer_idx=(2, 5, 8, 11),
     ),
 }
 
@@ -108,14 +124,41 @@ def child(args: argparse.Namespace) -> None:
             runner.predict(x)
             best = min(best, time.perf_counter() - t0)
     peak = _status_mb("VmHWM")
-    print(json.dumps(dict(seconds=best, rss_loaded_mb=loaded, peak_mb=peak,
-                          peak_increase_mb=max(peak - loaded, 0.0), params=n_params)))
+    print(
+        json.dumps(
+            dict(
+                seconds=best,
+                rss_loaded_mb=loaded,
+                peak_mb=peak,
+                peak_increase_mb=max(peak - loaded, 0.0),
+                params=n_params,
+            )
+        )
+    )
 
 
 def _run_child(args: argparse.Namespace, config: str, backend: str, onnx: str) -> dict[str, float]:
-    cmd = [sys.executable, __file__, "--child", "--config", config, "--backend", backend, "--onnx", onnx,
-           "--frames", str(args.frames), "--height", str(args.height), "--width", str(args.width),
-           "--repeat", str(args.repeat), "--threads", str(args.threads)]
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        "--config",
+        config,
+        "--backend",
+        backend,
+        "--onnx",
+        onnx,
+        "--frames",
+        str(args.frames),
+        "--height",
+        str(args.height),
+        "--width",
+        str(args.width),
+        "--repeat",
+        str(args.repeat),
+        "--threads",
+        str(args.threads),
+    ]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=REPO)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -135,8 +178,13 @@ class Row:
 
 
 KITTI_HW = {"vggt": (154, 518), "da3": (154, 504), "pi3": (154, 504)}
-MANIFEST = {"da3-small": "da3-small", "da3-base": "da3-base", "da3-large": "da3-large", "da3-giant": "da3-giant",
-            "da3-nested-giant-large": "da3nested-giant-large"}
+MANIFEST = {
+    "da3-small": "da3-small",
+    "da3-base": "da3-base",
+    "da3-large": "da3-large",
+    "da3-giant": "da3-giant",
+    "da3-nested-giant-large": "da3nested-giant-large",
+}
 
 
 def _random_model(name: str):  # type: ignore[no-untyped-def]
@@ -250,10 +298,25 @@ def presets_main(args: argparse.Namespace) -> None:
     rows, records = [], []
     for preset in args.presets:
         frames = min(args.frames, caps.get(preset, args.frames))
-        runs = [("torch", d) for d in args.dtypes] + ([("onnxruntime", "float32")] if preset in args.onnx_presets else [])
+        runs = [("torch", d) for d in args.dtypes] + (
+            [("onnxruntime", "float32")] if preset in args.onnx_presets else []
+        )
         for backend, dtype in runs:
-            cmd = [sys.executable, __file__, "--child", "--preset", preset, "--backend", backend, "--dtype", dtype,
-                   "--frames", str(frames), "--threads", str(args.threads)]
+            cmd = [
+                sys.executable,
+                __file__,
+                "--child",
+                "--preset",
+                preset,
+                "--backend",
+                backend,
+                "--dtype",
+                dtype,
+                "--frames",
+                str(frames),
+                "--threads",
+                str(args.threads),
+            ]
             try:
                 out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=args.timeout, check=True)
                 r = json.loads(out.stdout.strip().splitlines()[-1])
@@ -270,19 +333,40 @@ def presets_main(args: argparse.Namespace) -> None:
             if "error" in r:
                 rows.append([preset, backend, dtype, frames, "-", "-", "-", "-", r["error"]])
             else:
-                rows.append([preset, backend, dtype, frames, r["params"] / 1e6, r["seconds"], frames / r["seconds"],
-                             r["peak_mb"] / 1024, "" if r.get("manifest_params") in (None, r["params"]) else
-                             f"manifest {r['manifest_params']}"])
-    print(f"\nBackbones on this CPU ({args.threads} threads), random weights, one chunk of KITTI-shaped frames "
-          f"(DA3 504x154, VGGT 518x154), runner.predict after a 3-frame warm-up; peak = child's peak RSS\n")
-    print(markdown_table(["model", "backend", "dtype", "frames", "params (M)", "seconds", "frames/s", "peak GiB", "note"],
-                         rows))
-    path = write_results("inference_backbones", {"args": {k: v for k, v in vars(args).items()
-                                                           if k in ("presets", "frames", "max_frames", "dtypes",
-                                                                    "onnx_presets", "threads")},
-                                                  "rows": records})
+                rows.append(
+                    [
+                        preset,
+                        backend,
+                        dtype,
+                        frames,
+                        r["params"] / 1e6,
+                        r["seconds"],
+                        frames / r["seconds"],
+                        r["peak_mb"] / 1024,
+                        "" if r.get("manifest_params") in (None, r["params"]) else f"manifest {r['manifest_params']}",
+                    ]
+                )
+    print(
+        f"\nBackbones on this CPU ({args.threads} threads), random weights, one chunk of KITTI-shaped frames "
+        f"(DA3 504x154, VGGT 518x154), runner.predict after a 3-frame warm-up; peak = child's peak RSS\n"
+    )
+    print(
+        markdown_table(
+            ["model", "backend", "dtype", "frames", "params (M)", "seconds", "frames/s", "peak GiB", "note"], rows
+        )
+    )
+    path = write_results(
+        "inference_backbones",
+        {
+            "args": {
+                k: v
+                for k, v in vars(args).items()
+                if k in ("presets", "frames", "max_frames", "dtypes", "onnx_presets", "threads")
+            },
+            "rows": records,
+        },
+    )
     print(f"\nresults: {path.relative_to(REPO)}")
-
 
 
 def main() -> None:
@@ -293,12 +377,24 @@ def main() -> None:
     p.add_argument("--width", type=int, default=518)
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--presets", nargs="*", default=None, metavar="MODEL",
-                   help="full-size --model presets with random weights instead of the configs (no names: all)")
-    p.add_argument("--max-frames", nargs="*", default=[], metavar="PRESET=N", help="--presets: frames cap of a slow preset")
+    p.add_argument(
+        "--presets",
+        nargs="*",
+        default=None,
+        metavar="MODEL",
+        help="full-size --model presets with random weights instead of the configs (no names: all)",
+    )
+    p.add_argument(
+        "--max-frames", nargs="*", default=[], metavar="PRESET=N", help="--presets: frames cap of a slow preset"
+    )
     p.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"], help="--presets: torch compute dtypes")
-    p.add_argument("--onnx-presets", nargs="*", default=["da3-small"], metavar="PRESET",
-                   help="--presets: those also run with onnxruntime")
+    p.add_argument(
+        "--onnx-presets",
+        nargs="*",
+        default=["da3-small"],
+        metavar="PRESET",
+        help="--presets: those also run with onnxruntime",
+    )
     p.add_argument("--timeout", type=float, default=900.0, help="--presets: seconds per child")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--preset", default=None, help=argparse.SUPPRESS)
@@ -311,8 +407,14 @@ def main() -> None:
         (preset_child if args.preset else child)(args)
         return
     if args.presets is not None:
-        args.presets = args.presets or ["da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large",
-                                        "vggt-1b"]
+        args.presets = args.presets or [
+            "da3-small",
+            "da3-base",
+            "da3-large",
+            "da3-giant",
+            "da3-nested-giant-large",
+            "vggt-1b",
+        ]
         presets_main(args)
         return
 
@@ -326,32 +428,75 @@ def main() -> None:
         for config in args.configs:
             onnx = str(Path(tmp) / f"{config}.onnx")
             t0 = time.perf_counter()
-            report = export_onnx(_build(config), onnx, frames=2, height=args.height, width=args.width,
-                                 dynamic_frames=True, verify=False)
+            report = export_onnx(
+                _build(config), onnx, frames=2, height=args.height, width=args.width, dynamic_frames=True, verify=False
+            )
             export_s = time.perf_counter() - t0
             from inference.onnx_export import verify_onnx
 
             errs = verify_onnx(_build(config), report.path, [args.frames], args.height, args.width)[args.frames]
             t = _run_child(args, config, "torch", onnx)
             o = _run_child(args, config, "onnxruntime", onnx)
-            rows.append(Row(config, t["params"] / 1e6, args.frames / t["seconds"], args.frames / o["seconds"],
-                            t["peak_mb"], o["peak_mb"], t["peak_increase_mb"], o["peak_increase_mb"], export_s, errs))
+            rows.append(
+                Row(
+                    config,
+                    t["params"] / 1e6,
+                    args.frames / t["seconds"],
+                    args.frames / o["seconds"],
+                    t["peak_mb"],
+                    o["peak_mb"],
+                    t["peak_increase_mb"],
+                    o["peak_increase_mb"],
+                    export_s,
+                    errs,
+                )
+            )
             print(f"{config}: done", file=sys.stderr)
 
-    headers = ["config", "params (M)", "torch fps", "ORT fps", "ORT/torch speed", "torch peak MB", "ORT peak MB",
-               "ORT/torch peak", "torch +MB", "ORT +MB", "export s", "max abs err depth / pose"]
+    headers = [
+        "config",
+        "params (M)",
+        "torch fps",
+        "ORT fps",
+        "ORT/torch speed",
+        "torch peak MB",
+        "ORT peak MB",
+        "ORT/torch peak",
+        "torch +MB",
+        "ORT +MB",
+        "export s",
+        "max abs err depth / pose",
+    ]
     table = [
-        [r.config, r.params_m, r.torch_fps, r.ort_fps, r.ort_fps / r.torch_fps, r.torch_peak_mb, r.ort_peak_mb,
-         r.ort_peak_mb / r.torch_peak_mb, r.torch_inc_mb, r.ort_inc_mb, r.export_s,
-         f"{r.max_err['depth']:.1e} / {r.max_err['pose_enc']:.1e}"]
+        [
+            r.config,
+            r.params_m,
+            r.torch_fps,
+            r.ort_fps,
+            r.ort_fps / r.torch_fps,
+            r.torch_peak_mb,
+            r.ort_peak_mb,
+            r.ort_peak_mb / r.torch_peak_mb,
+            r.torch_inc_mb,
+            r.ort_inc_mb,
+            r.export_s,
+            f"{r.max_err['depth']:.1e} / {r.max_err['pose_enc']:.1e}",
+        ]
         for r in rows
     ]
-    print(f"\nVGGT CPU inference, {args.frames} frames of {args.width}x{args.height}, {args.threads} threads, "
-          f"best of {args.repeat}; peak = the child process's peak RSS during inference (model loaded), "
-          f"+MB = that peak minus the RSS after loading\n")
+    print(
+        f"\nVGGT CPU inference, {args.frames} frames of {args.width}x{args.height}, {args.threads} threads, "
+        f"best of {args.repeat}; peak = the child process's peak RSS during inference (model loaded), "
+        f"+MB = that peak minus the RSS after loading\n"
+    )
     print(markdown_table(headers, table))
-    path = write_results("inference", {"args": {k: v for k, v in vars(args).items() if k not in ("child", "config", "backend", "onnx")},
-                                       "rows": [dataclasses.asdict(r) for r in rows]})
+    path = write_results(
+        "inference",
+        {
+            "args": {k: v for k, v in vars(args).items() if k not in ("child", "config", "backend", "onnx")},
+            "rows": [dataclasses.asdict(r) for r in rows],
+        },
+    )
     print(f"\nresults: {path.relative_to(REPO)}")
 
 

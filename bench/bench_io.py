@@ -21,8 +21,8 @@ import struct
 import tempfile
 
 import numpy as np
-
 from common import best_of, markdown_table, write_results
+
 from swiftjax.io.chunk_store import ChunkStore
 from swiftjax.io.colmap import write_colmap
 from swiftjax.io.images import list_frames, validate

@@ -52,7 +52,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from bench_pipeline import _shared
 from common import markdown_table, write_results
 
@@ -63,8 +62,8 @@ ROUTES = ("demo", "kitti00", "kitti05", "kitti06", "kitti08")
 
 
 def _make_run(route: str, level: float):
-    from swiftjax.synthetic import demo
     from swiftjax.io.trajectory import read_kitti
+    from swiftjax.synthetic import demo
 
     if route == "demo":
         return demo.loop_route_run(aliasing=level)
@@ -82,15 +81,17 @@ def fixed_verdicts(cands: list[dict], relative: np.ndarray) -> list[bool]:
 
     rows = [k for k, r in enumerate(cands) if "Z" in r and "dense_agreement" in r]
     out = [False] * len(cands)
-    decisions = lv.verify_candidates([cands[k] for k in rows], chain_poses(relative), relative,
-                                     lv.VerificationConfig(agreement_rule="fixed"))
+    decisions = lv.verify_candidates(
+        [cands[k] for k in rows], chain_poses(relative), relative, lv.VerificationConfig(agreement_rule="fixed")
+    )
     for k, d in zip(rows, decisions):
         out[k] = d.accepted
     return out
 
 
-def graph_poses(relative: np.ndarray, loop_edges: list[tuple[int, int, np.ndarray]], max_steps: int,
-                throw: bool = True) -> tuple[np.ndarray, bool]:
+def graph_poses(
+    relative: np.ndarray, loop_edges: list[tuple[int, int, np.ndarray]], max_steps: int, throw: bool = True
+) -> tuple[np.ndarray, bool]:
     """Chunk poses of the temporal chain plus ``loop_edges`` ``(a, b, Z)``: plain LM, equal
     weights, no kernel; ``(poses [T, 8], converged)``.  ``throw=False``: a graph that did not
     converge in ``max_steps`` keeps its last iterate and says so instead of raising."""
@@ -116,8 +117,10 @@ def _centres(result, schedule, chunk_poses: np.ndarray) -> np.ndarray:
 
     owner = np.searchsorted(schedule.starts, np.arange(result.num_frames), side="right") - 1
     with jax.enable_x64(True):
-        local = sim3.act(sim3.inverse(jnp.asarray(result.chunk_poses_no_loops[owner])),
-                         jnp.asarray(result.cam_to_world_no_loops[:, :3, 3]))
+        local = sim3.act(
+            sim3.inverse(jnp.asarray(result.chunk_poses_no_loops[owner])),
+            jnp.asarray(result.cam_to_world_no_loops[:, :3, 3]),
+        )
         return np.asarray(sim3.act(jnp.asarray(chunk_poses[owner]), local))
 
 
@@ -129,8 +132,15 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
     config = pipeline.PipelineConfig()
     t0 = time.perf_counter()
     load = os.getloadavg()
-    res = pipeline.reconstruct(run.predictor, out_dir, config, ground_truth=run.ground_truth,
-                               progress=False, overwrite=True, log=lambda s: None)
+    res = pipeline.reconstruct(
+        run.predictor,
+        out_dir,
+        config,
+        ground_truth=run.ground_truth,
+        progress=False,
+        overwrite=True,
+        log=lambda s: None,
+    )
     wall = time.perf_counter() - t0
     schedule = chunks.chunk_schedule(res.num_frames, config.chunk_size, config.overlap)
     gt = run.ground_truth[:, :3, 3]
@@ -138,8 +148,9 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
     relative = _relative(out_dir, schedule.num_chunks)
     cands = res.loop_candidates
     with_edge = [r for r in cands if "Z" in r]
-    truth = places.evaluate_loops(np.asarray([(r["i"], r["j"]) for r in cands], np.int64).reshape(-1, 2),
-                                  gt_pairs, tolerance=25)
+    truth = places.evaluate_loops(
+        np.asarray([(r["i"], r["j"]) for r in cands], np.int64).reshape(-1, 2), gt_pairs, tolerance=25
+    )
     fixed = fixed_verdicts(cands, relative)
     arms = {
         "ours": [r for r in cands if r["accepted"]],
@@ -148,37 +159,77 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
         "fixed 0.55, plain": [r for r, ok in zip(cands, fixed) if ok],
         "truth filter": [r for r, ok in zip(cands, truth.correct) if ok and "Z" in r],
     }
-    out = {"route": route, "level": level, "planted_pairs": [list(s) for s in run.aliasing],
-           "frames": res.num_frames, "chunks": res.num_chunks, "wall_seconds": wall,
-           "load_average_before": load, "candidates": len(cands),
-           "true_candidates": int(truth.n_correct), "gt_regions": int(truth.n_regions),
-           "regions_proposed": int(truth.n_regions_found), "arms": {}}
+    out = {
+        "route": route,
+        "level": level,
+        "planted_pairs": [list(s) for s in run.aliasing],
+        "frames": res.num_frames,
+        "chunks": res.num_chunks,
+        "wall_seconds": wall,
+        "load_average_before": load,
+        "candidates": len(cands),
+        "true_candidates": int(truth.n_correct),
+        "gt_regions": int(truth.n_regions),
+        "regions_proposed": int(truth.n_regions_found),
+        "arms": {},
+    }
     for name, chosen in arms.items():
-        ev = places.evaluate_loops(np.asarray([(r["i"], r["j"]) for r in chosen], np.int64).reshape(-1, 2),
-                                   gt_pairs, tolerance=25)
+        ev = places.evaluate_loops(
+            np.asarray([(r["i"], r["j"]) for r in chosen], np.int64).reshape(-1, 2), gt_pairs, tolerance=25
+        )
         if name == "ours":
             ate = float(res.metrics["ate_rmse"])
         else:
-            poses, _ = graph_poses(relative, [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in chosen],
-                                   config.max_lm_steps, throw=False)
+            poses, _ = graph_poses(
+                relative,
+                [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in chosen],
+                config.max_lm_steps,
+                throw=False,
+            )
             ate = float(evaluation.ate(_centres(res, schedule, poses), gt).rmse)
-        out["arms"][name] = {"accepted": len(chosen), "correct": int(ev.n_correct), "precision": ev.precision,
-                             "region_recall": ev.region_recall, "regions_found": int(ev.n_regions_found),
-                             "ate_rmse": ate}
+        out["arms"][name] = {
+            "accepted": len(chosen),
+            "correct": int(ev.n_correct),
+            "precision": ev.precision,
+            "region_recall": ev.region_recall,
+            "regions_found": int(ev.n_regions_found),
+            "ate_rmse": ate,
+        }
     out["ate_rmse_no_loops"] = float(res.metrics["ate_rmse_no_loops"])
     # the dense agreement's rule: null test (the run's) against the fixed 0.55, same records
     keep = [bool(ok) and "Z" in r for r, ok in zip(cands, truth.correct)]
     out["agreement_rules"] = {
-        rule: {"true_accepted": sum(a and k for a, k in zip(acc, keep)), "truth_filter": sum(keep),
-               "false_accepted": sum(a and not ok for a, ok in zip(acc, truth.correct))}
+        rule: {
+            "true_accepted": sum(a and k for a, k in zip(acc, keep)),
+            "truth_filter": sum(keep),
+            "false_accepted": sum(a and not ok for a, ok in zip(acc, truth.correct)),
+        }
         for rule, acc in (("null", [r["accepted"] for r in cands]), ("fixed", fixed))
     }
     out["candidate_records"] = [
-        {"i": r["i"], "j": r["j"], "score": r["score"], "true": bool(c), "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])),
-         "accepted": r["accepted"], "reason": r["reason"],
-         "accepted_fixed": f,
-         **{k: r.get(k) for k in ("dense_agreement", "dense_overlap", "null_mean", "null_std", "null_threshold",
-                                  "null_kappa", "quality_min_fraction", "pcm_residual")}}
+        {
+            "i": r["i"],
+            "j": r["j"],
+            "score": r["score"],
+            "true": bool(c),
+            "distance_m": float(np.linalg.norm(gt[r["i"]] - gt[r["j"]])),
+            "accepted": r["accepted"],
+            "reason": r["reason"],
+            "accepted_fixed": f,
+            **{
+                k: r.get(k)
+                for k in (
+                    "dense_agreement",
+                    "dense_overlap",
+                    "null_mean",
+                    "null_std",
+                    "null_threshold",
+                    "null_kappa",
+                    "quality_min_fraction",
+                    "pcm_residual",
+                )
+            },
+        }
         for r, c, f in zip(cands, truth.correct, fixed)
     ]
     return out
@@ -195,14 +246,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--routes", nargs="+", default=["demo", "kitti00"], choices=ROUTES)
     parser.add_argument("--levels", type=float, nargs="+", default=[0.0, 0.1, 0.3, 0.5])
-    parser.add_argument("--kitti-levels", type=float, nargs="+", default=None,
-                        help="levels for KITTI 00 (default: --levels)")
+    parser.add_argument(
+        "--kitti-levels", type=float, nargs="+", default=None, help="levels for KITTI 00 (default: --levels)"
+    )
     parser.add_argument("--quick-graph", action="store_true", help="one repetition in the pose-graph section")
     parser.add_argument("--skip-graph", action="store_true", help="no pose-graph section (bench/_robust_graph.py)")
     args = parser.parse_args()
 
-    jax.config.update("jax_compilation_cache_dir",
-                      os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")))
+    jax.config.update(
+        "jax_compilation_cache_dir",
+        os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")),
+    )
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     records = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -213,10 +267,13 @@ def main() -> None:
                 records.append(rec)
                 o = rec["arms"]["ours"]
                 a = rec["arms"]["authors"]
-                print(f"{route} aliasing {level:.0%}: {rec['candidates']} candidates ({rec['true_candidates']} true); "
-                      f"ours {o['accepted']} accepted, precision {o['precision']:.2f}, recall {o['region_recall']:.2f}, "
-                      f"ATE {o['ate_rmse']:.3f} m; authors precision {a['precision']:.2f}, ATE {a['ate_rmse']:.3f} m "
-                      f"({rec['wall_seconds']:.0f} s, load {rec['load_average_before'][0]:.1f})", flush=True)
+                print(
+                    f"{route} aliasing {level:.0%}: {rec['candidates']} candidates ({rec['true_candidates']} true); "
+                    f"ours {o['accepted']} accepted, precision {o['precision']:.2f}, recall {o['region_recall']:.2f}, "
+                    f"ATE {o['ate_rmse']:.3f} m; authors precision {a['precision']:.2f}, ATE {a['ate_rmse']:.3f} m "
+                    f"({rec['wall_seconds']:.0f} s, load {rec['load_average_before'][0]:.1f})",
+                    flush=True,
+                )
     # ATE relative to the same arm's alias-free run
     base = {(r["route"], k): r["arms"][k]["ate_rmse"] for r in records if r["level"] == 0 for k in r["arms"]}
     rows = []
@@ -224,23 +281,68 @@ def main() -> None:
         for k, a in r["arms"].items():
             b = base.get((r["route"], k))
             a["ate_ratio_to_alias_free"] = a["ate_rmse"] / b if b else None
-            rows.append([r["route"], f"{r['level']:.0%}", k, r["candidates"], r["true_candidates"], a["accepted"],
-                         f"{a['precision']:.2f}", f"{a['regions_found']}/{r['gt_regions']}", f"{a['ate_rmse']:.3f}",
-                         "-" if a["ate_ratio_to_alias_free"] is None else f"{a['ate_ratio_to_alias_free']:.2f}"])
-    table = markdown_table(["route", "aliasing", "rule", "candidates", "true cand.", "accepted", "precision",
-                            "regions found", "ATE (m)", "ATE / alias-free"], rows)
+            rows.append(
+                [
+                    r["route"],
+                    f"{r['level']:.0%}",
+                    k,
+                    r["candidates"],
+                    r["true_candidates"],
+                    a["accepted"],
+                    f"{a['precision']:.2f}",
+                    f"{a['regions_found']}/{r['gt_regions']}",
+                    f"{a['ate_rmse']:.3f}",
+                    "-" if a["ate_ratio_to_alias_free"] is None else f"{a['ate_ratio_to_alias_free']:.2f}",
+                ]
+            )
+    table = markdown_table(
+        [
+            "route",
+            "aliasing",
+            "rule",
+            "candidates",
+            "true cand.",
+            "accepted",
+            "precision",
+            "regions found",
+            "ATE (m)",
+            "ATE / alias-free",
+        ],
+        rows,
+    )
     print(table)
     # the dense agreement's rule: true candidates the truth filter keeps that each rule accepts
     rule_rows = []
     for r in records:
         n, f = r["agreement_rules"]["null"], r["agreement_rules"]["fixed"]
-        ate = lambda k: r["arms"][k]["ate_rmse"]  # noqa: E731
-        rule_rows.append([r["route"], f"{r['level']:.0%}", r["candidates"], n["truth_filter"],
-                          f"{f['true_accepted']} / {f['false_accepted']}", f"{n['true_accepted']} / {n['false_accepted']}",
-                          f"{ate('fixed 0.55, plain'):.3f}", f"{ate('verified, plain'):.3f}",
-                          f"{100 * (ate('verified, plain') / ate('fixed 0.55, plain') - 1):+.1f} %"])
-    rule_table = markdown_table(["route", "aliasing", "candidates", "true (truth filter)", "fixed 0.55: true / false acc.",
-                                 "null: true / false acc.", "ATE fixed (m)", "ATE null (m)", "null vs fixed"], rule_rows)
+        ate = lambda k: r["arms"][k]["ate_rmse"]
+        rule_rows.append(
+            [
+                r["route"],
+                f"{r['level']:.0%}",
+                r["candidates"],
+                n["truth_filter"],
+                f"{f['true_accepted']} / {f['false_accepted']}",
+                f"{n['true_accepted']} / {n['false_accepted']}",
+                f"{ate('fixed 0.55, plain'):.3f}",
+                f"{ate('verified, plain'):.3f}",
+                f"{100 * (ate('verified, plain') / ate('fixed 0.55, plain') - 1):+.1f} %",
+            ]
+        )
+    rule_table = markdown_table(
+        [
+            "route",
+            "aliasing",
+            "candidates",
+            "true (truth filter)",
+            "fixed 0.55: true / false acc.",
+            "null: true / false acc.",
+            "ATE fixed (m)",
+            "ATE null (m)",
+            "null vs fixed",
+        ],
+        rule_rows,
+    )
     print(rule_table)
     # dense-score distributions (the verification thresholds)
     dist = {"true": [], "false": []}

@@ -40,13 +40,13 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from bench.bench_place_recognition import load_kitti00, synthetic_descriptors  # noqa: E402
-from bench.common import markdown_table, write_results  # noqa: E402
-from swiftjax import loops as L  # noqa: E402
-from swiftjax.loops import descriptors, detection, loop_chunk  # noqa: E402
-from swiftjax.chunks import chunk_schedule  # noqa: E402
-from swiftjax.synthetic import places  # noqa: E402
-from swiftjax.synthetic.routes import loop_route  # noqa: E402
+from bench.bench_place_recognition import load_kitti00, synthetic_descriptors
+from bench.common import markdown_table, write_results
+from swiftjax import loops as L
+from swiftjax.chunks import chunk_schedule
+from swiftjax.loops import descriptors, detection, loop_chunk
+from swiftjax.synthetic import places
+from swiftjax.synthetic.routes import loop_route
 
 GENERATORS = {
     "default (d 1024, K 16)": {},
@@ -71,8 +71,9 @@ def every_candidate(Z, sched):
     threshold), loops between neighbouring chunks dropped: ``(pairs [M, 2], scores [M])``."""
     kept = L.filter_by_chunks(L.detect_loops(Z, -1.0, max_loops=4096), sched)
     c = int(kept.count)
-    lc = loop_chunk._loop_chunks(np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts, np.int32),
-                                 np.asarray(sched.ends, np.int32), 10)
+    lc = loop_chunk._loop_chunks(
+        np.maximum(np.asarray(kept.pairs), 0), np.asarray(sched.starts, np.int32), np.asarray(sched.ends, np.int32), 10
+    )
     ok = (np.abs(np.asarray(lc.chunk_i) - np.asarray(lc.chunk_j)) >= 2)[:c] & np.asarray(lc.valid)[:c]
     return np.asarray(kept.pairs)[:c][ok], np.asarray(kept.scores)[:c][ok]
 
@@ -105,17 +106,31 @@ def run(name, poses, config, fit_on, sched, gt, regions):
         found, det = detect(rule=rule)
         seconds = time.perf_counter() - t0
         p, nf, nr, nc = evaluate(found, gt, regions)
-        out[rule] = {"threshold": det["threshold"], "precision": p, "regions_found": nf, "regions": nr,
-                     "candidates": nc, "seconds": seconds, "ok": bool(p == 1.0 and nf == nr)}
+        out[rule] = {
+            "threshold": det["threshold"],
+            "precision": p,
+            "regions_found": nf,
+            "regions": nr,
+            "candidates": nc,
+            "seconds": seconds,
+            "ok": bool(p == 1.0 and nf == nr),
+        }
     # the safe window and the fitted null, on the descriptors the rules saw
     Z = np.asarray(det["z"])
     hi, lo = safe_window(*every_candidate(Z, sched), gt, regions)
     best = np.asarray(_best(descriptors._l2(Z), 100, 1, detection._default_block_rows(len(Z)))[0])[:, 0]
     cal = L.calibrate_threshold(best)
     mu, sigma = float(cal.mu), float(cal.sigma)
-    out["window"] = {"hi": hi, "lo": lo, "k_hi": (hi - mu) / sigma, "k_lo": (lo - mu) / sigma,
-                     "mu": mu, "sigma": sigma, "k": float(cal.k),
-                     "k_fixed": (L.DEFAULT_THRESHOLD - mu) / sigma}
+    out["window"] = {
+        "hi": hi,
+        "lo": lo,
+        "k_hi": (hi - mu) / sigma,
+        "k_lo": (lo - mu) / sigma,
+        "mu": mu,
+        "sigma": sigma,
+        "k": float(cal.k),
+        "k_fixed": (L.DEFAULT_THRESHOLD - mu) / sigma,
+    }
     return out
 
 
@@ -134,8 +149,11 @@ def main() -> None:
         gt = places.ground_truth_loops(poses)
         regions = places.loop_regions(gt)
         loop_frames = np.unique(gt).size
-        print(f"{rname}: {n} frames, {len(gt)} true pairs in {int(regions.max()) + 1} regions, "
-              f"{100 * (1 - loop_frames / n):.0f} % of frames without a revisit", flush=True)
+        print(
+            f"{rname}: {n} frames, {len(gt)} true pairs in {int(regions.max()) + 1} regions, "
+            f"{100 * (1 - loop_frames / n):.0f} % of frames without a revisit",
+            flush=True,
+        )
         for seed in args.seeds:
             for gname, kw in GENERATORS.items():
                 cfg = dataclasses.replace(places.PlaceTokenConfig(seed=seed), **kw)
@@ -145,29 +163,62 @@ def main() -> None:
 
                     def cell(rule):
                         x = r[rule]
-                        return (f"{x['precision']:.2f} / {x['regions_found']}/{x['regions']} @ {x['threshold']:.3f}"
-                                + ("" if x["ok"] else " x"))
+                        return f"{x['precision']:.2f} / {x['regions_found']}/{x['regions']} @ {x['threshold']:.3f}" + (
+                            "" if x["ok"] else " x"
+                        )
 
-                    window = (f"({w['hi']:.3f}, {w['lo']:.3f}) k ({w['k_hi']:.1f}, {w['k_lo']:.1f})"
-                              if w["lo"] > w["hi"] else f"none ({w['lo']:.3f} <= {w['hi']:.3f})")
-                    rows.append([rname, seed, gname, "g1 (ours)" if fit_on == "power" else "g0 (authors)",
-                                 cell("fixed"), cell("adaptive"), cell("authors") if "authors" in r else "-",
-                                 window, f"{w['k']:.2f}", f"{w['k_fixed']:.1f}"])
+                    window = (
+                        f"({w['hi']:.3f}, {w['lo']:.3f}) k ({w['k_hi']:.1f}, {w['k_lo']:.1f})"
+                        if w["lo"] > w["hi"]
+                        else f"none ({w['lo']:.3f} <= {w['hi']:.3f})"
+                    )
+                    rows.append(
+                        [
+                            rname,
+                            seed,
+                            gname,
+                            "g1 (ours)" if fit_on == "power" else "g0 (authors)",
+                            cell("fixed"),
+                            cell("adaptive"),
+                            cell("authors") if "authors" in r else "-",
+                            window,
+                            f"{w['k']:.2f}",
+                            f"{w['k_fixed']:.1f}",
+                        ]
+                    )
                     print(" | ".join(str(c) for c in rows[-1]), flush=True)
-                    results.append({"route": rname, "seed": seed, "generator": gname, "config": kw,
-                                    "fit_on": fit_on, **r})
-    headers = ["route", "seed", "generator", "whitening fit", "fixed 0.43: P / regions @ tau",
-               "adaptive: P / regions @ tau", "authors 0.98", "safe window (score, k)", "k adaptive",
-               "k of 0.43"]
+                    results.append(
+                        {"route": rname, "seed": seed, "generator": gname, "config": kw, "fit_on": fit_on, **r}
+                    )
+    headers = [
+        "route",
+        "seed",
+        "generator",
+        "whitening fit",
+        "fixed 0.43: P / regions @ tau",
+        "adaptive: P / regions @ tau",
+        "authors 0.98",
+        "safe window (score, k)",
+        "k adaptive",
+        "k of 0.43",
+    ]
     print(markdown_table(headers, rows))
-    ok = lambda rule: sum(x[rule]["ok"] for x in results if rule in x)  # noqa: E731
+    ok = lambda rule: sum(x[rule]["ok"] for x in results if rule in x)
     separable = [x for x in results if x["window"]["lo"] > x["window"]["hi"]]
-    print(f"P = 1 with every region: fixed {ok('fixed')}/{len(results)}, adaptive {ok('adaptive')}/{len(results)}, "
-          f"authors {ok('authors')}/{len(results) // 2}; cases some threshold separates: {len(separable)}")
-    path = write_results("loop_threshold", {
-        "load_average": list(os.getloadavg()), "false_alarms": L.DEFAULT_FALSE_ALARMS,
-        "default_threshold": L.DEFAULT_THRESHOLD, "authors_threshold": L.AUTHORS_THRESHOLD, "results": results,
-    })
+    print(
+        f"P = 1 with every region: fixed {ok('fixed')}/{len(results)}, adaptive {ok('adaptive')}/{len(results)}, "
+        f"authors {ok('authors')}/{len(results) // 2}; cases some threshold separates: {len(separable)}"
+    )
+    path = write_results(
+        "loop_threshold",
+        {
+            "load_average": list(os.getloadavg()),
+            "false_alarms": L.DEFAULT_FALSE_ALARMS,
+            "default_threshold": L.DEFAULT_THRESHOLD,
+            "authors_threshold": L.AUTHORS_THRESHOLD,
+            "results": results,
+        },
+    )
     print(f"wrote {path}")
 
 

@@ -30,22 +30,22 @@ if "--blas-threads" in sys.argv:  # must happen before numpy / jax load OpenBLAS
     os.environ["OPENBLAS_NUM_THREADS"] = sys.argv[sys.argv.index("--blas-threads") + 1]
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import pathlib  # noqa: E402
-import time  # noqa: E402
+import argparse
+import pathlib
+import time
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from bench.bench_place_recognition import load_kitti00, synthetic_descriptors  # noqa: E402
-from bench.common import best_of, markdown_table, write_results  # noqa: E402
-from swiftjax import loops as L  # noqa: E402
-from swiftjax.loops import detection  # noqa: E402
-from swiftjax.chunks import chunk_schedule  # noqa: E402
-from swiftjax.synthetic import places  # noqa: E402
+from bench.bench_place_recognition import load_kitti00, synthetic_descriptors
+from bench.common import best_of, markdown_table, write_results
+from swiftjax import loops as L
+from swiftjax.chunks import chunk_schedule
+from swiftjax.loops import detection
+from swiftjax.synthetic import places
 
 
 def np_descriptor(tokens: np.ndarray) -> np.ndarray:
@@ -59,7 +59,7 @@ def np_fit(G: np.ndarray, remove=1, dim=512, eps=1e-6):
     X = G - mu
     lam, Q = np.linalg.eigh(X.T @ X / len(G))
     lam, Q = lam[::-1], Q[:, ::-1]
-    return mu, Q[:, remove:remove + dim] / np.sqrt(lam[remove:remove + dim] + eps)
+    return mu, Q[:, remove : remove + dim] / np.sqrt(lam[remove : remove + dim] + eps)
 
 
 def timed_first(fn):
@@ -72,8 +72,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--skip-20k", action="store_true")
-    ap.add_argument("--blas-threads", type=int, default=None,
-                    help="OPENBLAS_NUM_THREADS for LAPACK (default 1, see the module docstring)")
+    ap.add_argument(
+        "--blas-threads",
+        type=int,
+        default=None,
+        help="OPENBLAS_NUM_THREADS for LAPACK (default 1, see the module docstring)",
+    )
     args = ap.parse_args()
     rep = args.repeat
     rows, out = [], {}
@@ -89,11 +93,16 @@ def main() -> None:
     t_read = best_of(lambda: read_once(tokens), rep)
     t_np = best_of(lambda: np_descriptor(tok_np), max(2, rep // 2))
     gbps = tokens.nbytes / t_desc / 1e9
-    rows.append(["g0 of one chunk 75x407x1024", f"{t_desc * 1e3:.1f} ms",
-                 f"{t_desc / t_read:.2f}x one read pass ({t_read * 1e3:.1f} ms); "
-                 f"NumPy {t_np / t_desc:.1f}x slower; {gbps:.1f} GB/s", f"{first:.2f}"])
+    rows.append(
+        [
+            "g0 of one chunk 75x407x1024",
+            f"{t_desc * 1e3:.1f} ms",
+            f"{t_desc / t_read:.2f}x one read pass ({t_read * 1e3:.1f} ms); "
+            f"NumPy {t_np / t_desc:.1f}x slower; {gbps:.1f} GB/s",
+            f"{first:.2f}",
+        ]
+    )
     out["descriptor_chunk"] = dict(t=t_desc, t_read_pass=t_read, t_numpy=t_np, first_call=first)
-
 
     # ---- KITTI 00 synthetic descriptors
     poses = load_kitti00()
@@ -112,8 +121,14 @@ def main() -> None:
         t_fit = best_of(lambda: L.fit_whitening(g1), rep)
         g1_np = np.asarray(g1)
         t_fit_np = best_of(lambda: np_fit(g1_np), max(2, rep // 2))
-        rows.append([f"fit_whitening N={n}, d=1024 -> 512", f"{t_fit * 1e3:.0f} ms",
-                     f"NumPy (same eigh) takes {t_fit_np / t_fit:.2f}x our time", f"{first:.2f}"])
+        rows.append(
+            [
+                f"fit_whitening N={n}, d=1024 -> 512",
+                f"{t_fit * 1e3:.0f} ms",
+                f"NumPy (same eigh) takes {t_fit_np / t_fit:.2f}x our time",
+                f"{first:.2f}",
+            ]
+        )
         w = L.fit_whitening(g1)
         Z = L.whiten(w, g1)
         t_wh = best_of(lambda: L.whiten(w, g1), rep)
@@ -128,8 +143,9 @@ def main() -> None:
         @jax.jit
         def gemm_tiles(z):
             zp = jnp.pad(z, ((0, -(-n // T) * T - n), (0, 0)))
-            return jax.lax.map(lambda t: jnp.max(
-                jax.lax.dynamic_slice_in_dim(zp, t * T, T, 0) @ z.T, axis=1), jnp.arange(-(-n // T)))
+            return jax.lax.map(
+                lambda t: jnp.max(jax.lax.dynamic_slice_in_dim(zp, t * T, T, 0) @ z.T, axis=1), jnp.arange(-(-n // T))
+            )
 
         gemm_tiles(Z)
         t_gemm_t = best_of(lambda: gemm_tiles(Z), rep)
@@ -137,27 +153,43 @@ def main() -> None:
         t_det = best_of(lambda: L.detect_loops(Z), rep)
         cand = L.detect_loops(Z)
         gflops = 2 * n * n * Z.shape[1] / t_gemm / 1e9
-        rows.append([f"detect_loops N={n}, d'=512 (top-8, NMS)", f"{t_det * 1e3:.0f} ms",
-                     f"{t_det / t_gemm:.2f}x the dense N*N*512 GEMM alone ({t_gemm * 1e3:.0f} ms, "
-                     f"{gflops:.0f} GFLOP/s); {t_det / t_gemm_t:.2f}x the same GEMM in {T}-row "
-                     f"tiles ({t_gemm_t * 1e3:.0f} ms); {int(cand.count)} pairs before chunk filter",
-                     f"{first:.2f}"])
-        out[f"n{n}"] = dict(t_fit=t_fit, t_fit_numpy=t_fit_np, t_whiten=t_wh, t_gemm=t_gemm,
-                            t_gemm_tiles=t_gemm_t, t_detect=t_det, detect_over_gemm=t_det / t_gemm, n_pairs=int(cand.count))
+        rows.append(
+            [
+                f"detect_loops N={n}, d'=512 (top-8, NMS)",
+                f"{t_det * 1e3:.0f} ms",
+                f"{t_det / t_gemm:.2f}x the dense N*N*512 GEMM alone ({t_gemm * 1e3:.0f} ms, "
+                f"{gflops:.0f} GFLOP/s); {t_det / t_gemm_t:.2f}x the same GEMM in {T}-row "
+                f"tiles ({t_gemm_t * 1e3:.0f} ms); {int(cand.count)} pairs before chunk filter",
+                f"{first:.2f}",
+            ]
+        )
+        out[f"n{n}"] = dict(
+            t_fit=t_fit,
+            t_fit_numpy=t_fit_np,
+            t_whiten=t_wh,
+            t_gemm=t_gemm,
+            t_gemm_tiles=t_gemm_t,
+            t_detect=t_det,
+            detect_over_gemm=t_det / t_gemm,
+            n_pairs=int(cand.count),
+        )
         if n == 4541:
             dense = best_of(lambda: L.detect_loops(Z, block_rows=n), rep)
-            rows.append(["  same, one dense N x N tile", f"{dense * 1e3:.0f} ms",
-                         f"{dense / t_gemm:.2f}x GEMM", "-"])
+            rows.append(["  same, one dense N x N tile", f"{dense * 1e3:.0f} ms", f"{dense / t_gemm:.2f}x GEMM", "-"])
             out[f"n{n}"]["t_detect_dense"] = dense
             sched = chunk_schedule(n)
             first = timed_first(lambda: L.find_loops(Gn, sched))
             t_e2e = best_of(lambda: L.find_loops(Gn, sched), rep)
             nl = len(L.find_loops(Gn, sched))
-            rows.append(["find_loops KITTI 00 (g0 -> loop list)", f"{t_e2e * 1e3:.0f} ms",
-                         f"{t_e2e / 1.19:.2f}x the paper's 1.19 s (GPU); {nl} loops; "
-                         f"{t_e2e / t_gemm:.2f}x GEMM", f"{first:.2f}"])
-            out["find_loops_kitti00"] = dict(t=t_e2e, vs_paper=t_e2e / 1.19, first_call=first,
-                                             n_loops=nl)
+            rows.append(
+                [
+                    "find_loops KITTI 00 (g0 -> loop list)",
+                    f"{t_e2e * 1e3:.0f} ms",
+                    f"{t_e2e / 1.19:.2f}x the paper's 1.19 s (GPU); {nl} loops; {t_e2e / t_gemm:.2f}x GEMM",
+                    f"{first:.2f}",
+                ]
+            )
+            out["find_loops_kitti00"] = dict(t=t_e2e, vs_paper=t_e2e / 1.19, first_call=first, n_loops=nl)
 
     print(markdown_table(["step", "best time", "vs same-run anchor", "first call s (compile)"], rows))
     out["openblas_num_threads"] = os.environ.get("OPENBLAS_NUM_THREADS")

@@ -35,12 +35,19 @@ import time
 from typing import Any
 
 import numpy as np
-
 from common import markdown_table, write_results
 
 #: The demo's configuration (tests/test_engine.py): 30-frame chunks on the 4 m demo route.
-DEMO_CONFIG = dict(chunk_size=30, overlap=10, loop_min_separation=50, loop_nms_radius=10, loop_half_window=8,
-                   point_stride=3, colmap_max_points=2_000, loop_threshold_rule="fixed")
+DEMO_CONFIG = dict(
+    chunk_size=30,
+    overlap=10,
+    loop_min_separation=50,
+    loop_nms_radius=10,
+    loop_half_window=8,
+    point_stride=3,
+    colmap_max_points=2_000,
+    loop_threshold_rule="fixed",
+)
 
 
 class FixedCost:
@@ -66,13 +73,18 @@ class FixedCost:
 
 def _same_files(a: pathlib.Path, b: pathlib.Path) -> list[str]:
     """The output files that differ between two run directories (see the module docstring)."""
-    files = {p.relative_to(a) for p in a.rglob("*") if p.is_file()} ^ {p.relative_to(b) for p in b.rglob("*")
-                                                                         if p.is_file()}
+    files = {p.relative_to(a) for p in a.rglob("*") if p.is_file()} ^ {
+        p.relative_to(b) for p in b.rglob("*") if p.is_file()
+    }
     differ = sorted(str(p) for p in files if p.name != "poses_live.jsonl")
     for p in sorted(a.rglob("*")):
         rel = p.relative_to(a)
-        if p.is_file() and (b / rel).is_file() and p.suffix != ".npz" and p.name not in ("metrics.json",
-                                                                                           "manifest.json"):
+        if (
+            p.is_file()
+            and (b / rel).is_file()
+            and p.suffix != ".npz"
+            and p.name not in ("metrics.json", "manifest.json")
+        ):
             if p.read_bytes() != (b / rel).read_bytes():
                 differ.append(str(rel))
     return differ
@@ -97,23 +109,40 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
         if rec.add_frame():
             now = time.monotonic()
             frames, c2w = rec.poses()
-            published[posed:len(frames)] = now
+            published[posed : len(frames)] = now
             posed = len(frames)
             step_ate = float(evaluation.ate(c2w, gt[:posed]).rmse)
-            steps.append({"frames": posed, "revision": rec.revision, "loops": len(rec.result.loops),
-                          "seconds": now - started, "ate_m": step_ate,
-                          "loop_pairs": [[int(lp["i"]), int(lp["j"])] for lp in rec.result.loops]})
-            print(f"  {label}: {posed} frames posed, step {now - started:.1f} s, revision {rec.revision}, "
-                  f"{len(rec.result.loops)} loops, live ATE {step_ate:.3f} m", flush=True)
+            steps.append(
+                {
+                    "frames": posed,
+                    "revision": rec.revision,
+                    "loops": len(rec.result.loops),
+                    "seconds": now - started,
+                    "ate_m": step_ate,
+                    "loop_pairs": [[int(lp["i"]), int(lp["j"])] for lp in rec.result.loops],
+                }
+            )
+            print(
+                f"  {label}: {posed} frames posed, step {now - started:.1f} s, revision {rec.revision}, "
+                f"{len(rec.result.loops)} loops, live ATE {step_ate:.3f} m",
+                flush=True,
+            )
     _, live_c2w = rec.poses()
-    live_ate = float(evaluation.ate(live_c2w, gt[:len(live_c2w)]).rmse) if len(live_c2w) >= 3 else float("nan")
+    live_ate = float(evaluation.ate(live_c2w, gt[: len(live_c2w)]).rmse) if len(live_c2w) >= 3 else float("nan")
     start_final = time.monotonic()
     final = rec.finish()
     published[posed:] = time.monotonic()  # the frames after the last chunk: posed by the final pass
     latency = published - (t0 + np.arange(n) / fps)
 
-    offline = pipeline.reconstruct(run.predictor, tmp / f"{label}-offline", config, ground_truth=gt, overwrite=True,
-                                   progress=False, log=lambda s: None)
+    offline = pipeline.reconstruct(
+        run.predictor,
+        tmp / f"{label}-offline",
+        config,
+        ground_truth=gt,
+        overwrite=True,
+        progress=False,
+        log=lambda s: None,
+    )
     identical_poses = bool(np.array_equal(final.cam_to_world, offline.cam_to_world))
     differ = _same_files(tmp / f"{label}-offline", tmp / f"{label}-live")
 
@@ -126,14 +155,28 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
     target = (B - O) / fps + 1.5 * (steps[0]["seconds"] if steps else float("nan"))
     p50, p95 = (float(v) for v in np.percentile(latency, [50, 95]))
     return {
-        "route": label, "frames": n, "cost_s": cost, "fps": fps, "chunk_size": B, "overlap": O,
-        "latency_p50_s": p50, "latency_p95_s": p95, "latency_max_s": float(np.max(latency)),
-        "latency_target_s": target, "latency_met": bool(p95 <= target),
-        "loop_closure_chunk_periods": loop_periods, "loop_met": None if loop_periods is None else loop_periods <= 2,
-        "revisions": rec.revision, "live_steps": len(steps), "steps": steps,
-        "final_pass_s": time.monotonic() - start_final, "live_ate_m": live_ate,
+        "route": label,
+        "frames": n,
+        "cost_s": cost,
+        "fps": fps,
+        "chunk_size": B,
+        "overlap": O,
+        "latency_p50_s": p50,
+        "latency_p95_s": p95,
+        "latency_max_s": float(np.max(latency)),
+        "latency_target_s": target,
+        "latency_met": bool(p95 <= target),
+        "loop_closure_chunk_periods": loop_periods,
+        "loop_met": None if loop_periods is None else loop_periods <= 2,
+        "revisions": rec.revision,
+        "live_steps": len(steps),
+        "steps": steps,
+        "final_pass_s": time.monotonic() - start_final,
+        "live_ate_m": live_ate,
         "offline_ate_m": float(evaluation.ate(offline.cam_to_world, gt).rmse),
-        "identical_poses": identical_poses, "differing_files": differ, "identical": identical_poses and not differ,
+        "identical_poses": identical_poses,
+        "differing_files": differ,
+        "identical": identical_poses and not differ,
         "slowest_oracle_predict_s": predictor.slowest,
     }
 
@@ -166,14 +209,46 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     run = demo.kitti00_run(_shared(), frames=args.kitti_frames)
                     config = pipeline.PipelineConfig()
                 runs.append(replay(run, config, cost, args.fps, pathlib.Path(tmp), f"{route}-{cost:g}s"))
-    rows = [[r["route"], r["frames"], r["cost_s"], r["latency_p50_s"], r["latency_p95_s"], r["latency_max_s"],
-             r["latency_target_s"], "yes" if r["latency_met"] else "NO",
-             "-" if r["loop_closure_chunk_periods"] is None else r["loop_closure_chunk_periods"], r["revisions"],
-             r["live_ate_m"], r["offline_ate_m"], "yes" if r["identical"] else "NO", r["slowest_oracle_predict_s"]]
-            for r in runs]
-    print(markdown_table(["run", "frames", "cost s", "latency p50 s", "p95 s", "max s", "target p95 s", "met",
-                          "loop closure (chunk periods)", "revisions", "live ATE m", "offline ATE m",
-                          "final = offline", "slowest oracle s"], rows))
+    rows = [
+        [
+            r["route"],
+            r["frames"],
+            r["cost_s"],
+            r["latency_p50_s"],
+            r["latency_p95_s"],
+            r["latency_max_s"],
+            r["latency_target_s"],
+            "yes" if r["latency_met"] else "NO",
+            "-" if r["loop_closure_chunk_periods"] is None else r["loop_closure_chunk_periods"],
+            r["revisions"],
+            r["live_ate_m"],
+            r["offline_ate_m"],
+            "yes" if r["identical"] else "NO",
+            r["slowest_oracle_predict_s"],
+        ]
+        for r in runs
+    ]
+    print(
+        markdown_table(
+            [
+                "run",
+                "frames",
+                "cost s",
+                "latency p50 s",
+                "p95 s",
+                "max s",
+                "target p95 s",
+                "met",
+                "loop closure (chunk periods)",
+                "revisions",
+                "live ATE m",
+                "offline ATE m",
+                "final = offline",
+                "slowest oracle s",
+            ],
+            rows,
+        )
+    )
     payload = {"argv": sys.argv[1:] if argv is None else argv, "runs": runs}
     if not args.no_write:
         print(f"wrote {write_results('online', payload)}")

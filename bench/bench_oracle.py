@@ -37,15 +37,15 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _baseline import PREVIOUS_COMMIT, load_previous_oracle  # noqa: E402
-from common import best_of, markdown_table, write_results  # noqa: E402
+from _baseline import PREVIOUS_COMMIT, load_previous_oracle
+from common import best_of, markdown_table, write_results
 
-from swiftjax.chunks import chunk_schedule  # noqa: E402
-from swiftjax.io.trajectory import read_kitti  # noqa: E402
-from swiftjax.synthetic import pixel_noise  # noqa: E402
-from swiftjax.synthetic.oracle import VGGTOracle, kitti_intrinsics  # noqa: E402
-from swiftjax.synthetic.render import render_numpy  # noqa: E402
-from swiftjax.synthetic.world import build_world  # noqa: E402
+from swiftjax.chunks import chunk_schedule
+from swiftjax.io.trajectory import read_kitti
+from swiftjax.synthetic import pixel_noise
+from swiftjax.synthetic.oracle import VGGTOracle, kitti_intrinsics
+from swiftjax.synthetic.render import render_numpy
+from swiftjax.synthetic.world import build_world
 
 
 def find_kitti() -> pathlib.Path:
@@ -80,9 +80,14 @@ def render_block_call(mod, world, P, frames, H, W):
     origin = P[frames[0], :3, 3]
     cand = mod.chunk_candidates(world, P[frames, :3, 3], origin)
     planes = mod.frame_planes(world, P[frames, :3, 3], origin)
-    args = (K.astype(np.float32), P[frames, :3, :3].astype(np.float32),
-            (P[frames, :3, 3] - origin).astype(np.float32), planes.astype(np.float32), cand,
-            np.int32(world.num_boxes))
+    args = (
+        K.astype(np.float32),
+        P[frames, :3, :3].astype(np.float32),
+        (P[frames, :3, 3] - origin).astype(np.float32),
+        planes.astype(np.float32),
+        cand,
+        np.int32(world.num_boxes),
+    )
     return lambda: mod.render_frames(*args, height=H, width=W)
 
 
@@ -92,10 +97,29 @@ def pixel_block_call(kernel, params, orc, frames):
     z, sem, inst = orc.render_truth(frames)
     nz = orc.noise
     scalars = np.asarray(
-        [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
-         nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share], np.float32)
-    p = params(np.uint32(1), np.uint32(2), frames.astype(np.int32),
-                         np.full(len(frames), 0.05, np.float32), np.float32(0.05), np.float32(1e-3), scalars)
+        [
+            nz.depth_rel,
+            nz.depth_rel_ref_m,
+            nz.edge_log_ratio,
+            nz.edge_conf,
+            nz.gross_fraction,
+            nz.gross_log,
+            nz.sky_depth_m,
+            nz.conf_max,
+            nz.conf_falloff_m,
+            nz.chunk_share,
+        ],
+        np.float32,
+    )
+    p = params(
+        np.uint32(1),
+        np.uint32(2),
+        frames.astype(np.int32),
+        np.full(len(frames), 0.05, np.float32),
+        np.float32(0.05),
+        np.float32(1e-3),
+        scalars,
+    )
     return lambda: kernel(z, sem, inst, p)
 
 
@@ -143,11 +167,15 @@ def main() -> None:
     # ---- one render block and one pixel block, current vs previous
     frames = np.arange(1500, 1515)
     orc = VGGTOracle(world, P)
-    calls = [render_block_call(render_mod, world, P, frames, H, W),
-             pixel_block_call(pixel_noise.pixel_block, pixel_noise.PixelParams, orc, frames)]
+    calls = [
+        render_block_call(render_mod, world, P, frames, H, W),
+        pixel_block_call(pixel_noise.pixel_block, pixel_noise.PixelParams, orc, frames),
+    ]
     if prev is not None:
-        calls += [render_block_call(sys.modules["_previous_render"], world, P, frames, H, W),
-                  pixel_block_call(prev._pixels, prev._PixelParams, orc, frames)]
+        calls += [
+            render_block_call(sys.modules["_previous_render"], world, P, frames, H, W),
+            pixel_block_call(prev._pixels, prev._PixelParams, orc, frames),
+        ]
     for c in calls:
         c()  # compile
     overflow = int(np.asarray(calls[0]().tile_overflow).sum())
@@ -173,9 +201,15 @@ def main() -> None:
             best_old = min(best_old, (w, c))
             w, c, _ = run_pass(orc, sched, m)
             best_new = min(best_new, (w, c))
-        ab = {"chunks": m, "current_s": best_new[0], "current_cpu_s": best_new[1],
-              "previous_s": best_old[0], "previous_cpu_s": best_old[1],
-              "speedup_wall": best_old[0] / best_new[0], "speedup_cpu": best_old[1] / best_new[1]}
+        ab = {
+            "chunks": m,
+            "current_s": best_new[0],
+            "current_cpu_s": best_new[1],
+            "previous_s": best_old[0],
+            "previous_cpu_s": best_old[1],
+            "speedup_wall": best_old[0] / best_new[0],
+            "speedup_cpu": best_old[1] / best_new[1],
+        }
 
     # ---- the full pass (cold caches each time; compilations counted)
     counter = _CompileCounter()
@@ -196,61 +230,86 @@ def main() -> None:
     seq_frames = int(sched.ends[n_chunks - 1])
     full_estimate = t_pass * sched.num_chunks / n_chunks
 
-    x = lambda a, b: f"x{a / b:.2f}" if a is not None else "n/a"  # noqa: E731
+    x = lambda a, b: f"x{a / b:.2f}" if a is not None else "n/a"
     rows = [
         ["world build (KITTI 00)", f"{t_world:.2f} s", f"{world.num_boxes} boxes, {world.num_cylinders} cylinders"],
         ["render, JAX, current (per frame)", f"{1e3 * t_render:.2f} ms", f"block of 15, tile overflow {overflow}"],
-        ["render, JAX, previous (per frame)", f"{1e3 * t_render_prev:.2f} ms" if t_render_prev else "n/a",
-         f"current is {x(t_render_prev, t_render)} faster"],
-        ["render, NumPy float64 reference (per frame)", f"{1e3 * t_np:.0f} ms", f"current is x{t_np / t_render:.0f} faster"],
+        [
+            "render, JAX, previous (per frame)",
+            f"{1e3 * t_render_prev:.2f} ms" if t_render_prev else "n/a",
+            f"current is {x(t_render_prev, t_render)} faster",
+        ],
+        [
+            "render, NumPy float64 reference (per frame)",
+            f"{1e3 * t_np:.0f} ms",
+            f"current is x{t_np / t_render:.0f} faster",
+        ],
         ["noise/conf/colour, current (per frame)", f"{1e3 * t_pix:.2f} ms", "block of 15"],
-        ["noise/conf/colour, previous (per frame)", f"{1e3 * t_pix_prev:.2f} ms" if t_pix_prev else "n/a",
-         f"current is {x(t_pix_prev, t_pix)} faster"],
+        [
+            "noise/conf/colour, previous (per frame)",
+            f"{1e3 * t_pix_prev:.2f} ms" if t_pix_prev else "n/a",
+            f"current is {x(t_pix_prev, t_pix)} faster",
+        ],
         ["oracle warm-up (compiles)", f"{t_compile:.1f} s", ""],
     ]
     if ab is not None:
         rows += [
-            [f"predict_chunk, first {ab['chunks']} chunks, previous", f"{ab['previous_s']:.2f} s",
-             f"{ab['previous_cpu_s']:.2f} CPU s"],
-            [f"predict_chunk, first {ab['chunks']} chunks, current", f"{ab['current_s']:.2f} s",
-             f"{ab['current_cpu_s']:.2f} CPU s; x{ab['speedup_wall']:.2f} wall, x{ab['speedup_cpu']:.2f} CPU"],
+            [
+                f"predict_chunk, first {ab['chunks']} chunks, previous",
+                f"{ab['previous_s']:.2f} s",
+                f"{ab['previous_cpu_s']:.2f} CPU s",
+            ],
+            [
+                f"predict_chunk, first {ab['chunks']} chunks, current",
+                f"{ab['current_s']:.2f} s",
+                f"{ab['current_cpu_s']:.2f} CPU s; x{ab['speedup_wall']:.2f} wall, x{ab['speedup_cpu']:.2f} CPU",
+            ],
         ]
     rows += [
-        [f"oracle pass, {n_chunks}/{sched.num_chunks} chunks (best of {len(passes)})", f"{t_pass:.1f} s",
-         f"{seq_frames / t_pass:.0f} sequence frames/s, {chunk_frames / t_pass:.0f} chunk frames/s"],
+        [
+            f"oracle pass, {n_chunks}/{sched.num_chunks} chunks (best of {len(passes)})",
+            f"{t_pass:.1f} s",
+            f"{seq_frames / t_pass:.0f} sequence frames/s, {chunk_frames / t_pass:.0f} chunk frames/s",
+        ],
         ["  CPU time of that pass (all threads)", f"{cpu_pass:.1f} s", f"{cpu_pass / t_pass:.2f} cores busy"],
         ["  XLA compilations during the passes", f"{counter.count}", "must be 0"],
-        ["full KITTI 00 pass" + (" (extrapolated)" if n_chunks < sched.num_chunks else ""),
-         f"{full_estimate:.1f} s", "target < 60 s"],
+        [
+            "full KITTI 00 pass" + (" (extrapolated)" if n_chunks < sched.num_chunks else ""),
+            f"{full_estimate:.1f} s",
+            "target < 60 s",
+        ],
     ]
     print(markdown_table(["step", "time", "note"], rows))
     load_end = load()
-    path = write_results("bench_oracle", {
-        "image_hw": [H, W],
-        "previous_commit": PREVIOUS_COMMIT if prev is not None else None,
-        "world_build_s": t_world,
-        "render_jax_per_frame_s": t_render,
-        "render_previous_per_frame_s": t_render_prev,
-        "render_speedup_vs_previous": (t_render_prev / t_render) if t_render_prev else None,
-        "render_tile_overflow": overflow,
-        "render_numpy_per_frame_s": t_np,
-        "render_speedup_vs_numpy": t_np / t_render,
-        "pixels_per_frame_s": t_pix,
-        "pixels_previous_per_frame_s": t_pix_prev,
-        "pixels_speedup_vs_previous": (t_pix_prev / t_pix) if t_pix_prev else None,
-        "oracle_compile_s": t_compile,
-        "ab_pass": ab,
-        "chunks": n_chunks,
-        "chunks_total": sched.num_chunks,
-        "pass_s": t_pass,
-        "pass_cpu_s": cpu_pass,
-        "passes_s": [p[0] for p in passes],
-        "sequence_frames_per_s": seq_frames / t_pass,
-        "chunk_frames_per_s": chunk_frames / t_pass,
-        "full_pass_estimate_s": full_estimate,
-        "compiles_during_pass": counter.count,
-        "load_average": {"start": load_start, "after_each_pass": load_pass, "end": load_end},
-    })
+    path = write_results(
+        "bench_oracle",
+        {
+            "image_hw": [H, W],
+            "previous_commit": PREVIOUS_COMMIT if prev is not None else None,
+            "world_build_s": t_world,
+            "render_jax_per_frame_s": t_render,
+            "render_previous_per_frame_s": t_render_prev,
+            "render_speedup_vs_previous": (t_render_prev / t_render) if t_render_prev else None,
+            "render_tile_overflow": overflow,
+            "render_numpy_per_frame_s": t_np,
+            "render_speedup_vs_numpy": t_np / t_render,
+            "pixels_per_frame_s": t_pix,
+            "pixels_previous_per_frame_s": t_pix_prev,
+            "pixels_speedup_vs_previous": (t_pix_prev / t_pix) if t_pix_prev else None,
+            "oracle_compile_s": t_compile,
+            "ab_pass": ab,
+            "chunks": n_chunks,
+            "chunks_total": sched.num_chunks,
+            "pass_s": t_pass,
+            "pass_cpu_s": cpu_pass,
+            "passes_s": [p[0] for p in passes],
+            "sequence_frames_per_s": seq_frames / t_pass,
+            "chunk_frames_per_s": chunk_frames / t_pass,
+            "full_pass_estimate_s": full_estimate,
+            "compiles_during_pass": counter.count,
+            "load_average": {"start": load_start, "after_each_pass": load_pass, "end": load_end},
+        },
+    )
     print(f"\nwrote {path.relative_to(ROOT)}  (load average: start {load_start}, passes {load_pass}, end {load_end})")
 
 

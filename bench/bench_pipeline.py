@@ -88,7 +88,10 @@ def run_child(frames: int, cache: str, out: str, method: str = "umeyama", prefet
     load = os.getloadavg()
     proc = subprocess.run(
         [sys.executable, "-c", CHILD, str(_shared()), str(frames), out, method, str(prefetch)],
-        capture_output=True, text=True, env=env, cwd=HERE,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=HERE,
     )
     if proc.returncode != 0:
         sys.exit(f"child run failed:\n{proc.stderr[-3000:]}")
@@ -101,11 +104,19 @@ def run_child(frames: int, cache: str, out: str, method: str = "umeyama", prefet
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, nargs="+", default=[600, 4541])
-    parser.add_argument("--irls-frames", type=int, default=4541,
-                        help="also run this many frames with VGGT-Long's IRLS alignment (0: skip)")
+    parser.add_argument(
+        "--irls-frames",
+        type=int,
+        default=4541,
+        help="also run this many frames with VGGT-Long's IRLS alignment (0: skip)",
+    )
     parser.add_argument("--skip-warmup", action="store_true", help="do not fill the compile cache first")
-    parser.add_argument("--prefetch", type=int, default=0,
-                        help="local executor prefetch depth (0: predict each chunk when it is asked for)")
+    parser.add_argument(
+        "--prefetch",
+        type=int,
+        default=0,
+        help="local executor prefetch depth (0: predict each chunk when it is asked for)",
+    )
     args = parser.parse_args()
 
     cache = os.environ.get("SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax"))
@@ -119,24 +130,59 @@ def main() -> None:
             rec["frames"], rec["alignment"], rec["prefetch"] = frames, method, args.prefetch
             records.append(rec)
             m = rec["metrics"]
-            print(f"{frames} frames, {method}: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
-                  f"loops {m['loops']}, ATE {m['ate_rmse']:.2f} m (no loops {m['ate_rmse_no_loops']:.2f} m), "
-                  f"load average {rec['load_average_before'][0]:.2f}", flush=True)
+            print(
+                f"{frames} frames, {method}: {rec['wall']:.1f} s, peak RSS {rec['peak_rss_mb']:.0f} MB, "
+                f"loops {m['loops']}, ATE {m['ate_rmse']:.2f} m (no loops {m['ate_rmse_no_loops']:.2f} m), "
+                f"load average {rec['load_average_before'][0]:.2f}",
+                flush=True,
+            )
 
-    stages = ["predict", "predict (loop chunks)", "align", "loop detection", "loop chunks", "loop verification",
-              "pose graph", "chunk store", "export"]
+    stages = [
+        "predict",
+        "predict (loop chunks)",
+        "align",
+        "loop detection",
+        "loop chunks",
+        "loop verification",
+        "pose graph",
+        "chunk store",
+        "export",
+    ]
     rows = []
     for rec in records:
         t = rec["metrics"]["timings_seconds"]
         geometry = sum(v for k, v in t.items() if not k.startswith("predict"))
         m = rec["metrics"]
         rows.append(
-            [rec["frames"], rec["alignment"], m["chunks"], m["loops"], *[float(t.get(s, 0.0)) for s in stages], geometry,
-             rec["wall"] - rec["predictor_seconds"], rec["peak_rss_mb"], m["ate_rmse_no_loops"], m["ate_rmse"],
-             m["ate_rmse_no_loops"] / m["ate_rmse"], rec["load_average_before"][0]]
+            [
+                rec["frames"],
+                rec["alignment"],
+                m["chunks"],
+                m["loops"],
+                *[float(t.get(s, 0.0)) for s in stages],
+                geometry,
+                rec["wall"] - rec["predictor_seconds"],
+                rec["peak_rss_mb"],
+                m["ate_rmse_no_loops"],
+                m["ate_rmse"],
+                m["ate_rmse_no_loops"] / m["ate_rmse"],
+                rec["load_average_before"][0],
+            ]
         )
-    headers = ["frames", "alignment", "chunks", "loops", *[f"{s} s" for s in stages], "geometry s (all but predict*)",
-               "wall - predictor s", "peak RSS MB", "ATE no loops m", "ATE loops m", "ATE ratio", "load avg"]
+    headers = [
+        "frames",
+        "alignment",
+        "chunks",
+        "loops",
+        *[f"{s} s" for s in stages],
+        "geometry s (all but predict*)",
+        "wall - predictor s",
+        "peak RSS MB",
+        "ATE no loops m",
+        "ATE loops m",
+        "ATE ratio",
+        "load avg",
+    ]
     print(markdown_table(headers, rows))
     path = write_results("pipeline", {"runs": records})
     print(f"\nwrote {path}")

@@ -35,10 +35,10 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from bench.common import markdown_table, write_results  # noqa: E402
-from swiftjax import loops as L  # noqa: E402
-from swiftjax.chunks import chunk_schedule  # noqa: E402
-from swiftjax.synthetic import places  # noqa: E402
+from bench.common import markdown_table, write_results
+from swiftjax import loops as L
+from swiftjax.chunks import chunk_schedule
+from swiftjax.synthetic import places
 
 AUTHORS_THRESHOLD = 0.98
 
@@ -111,8 +111,12 @@ def score_variant(Z, nms, gt, regions, sched, n_pairs_std=200_000, seed=0):
     rng = np.random.default_rng(seed)
     a, b = rng.integers(0, n, (2, n_pairs_std))
     far = np.abs(a - b) > 100
-    spread = float(np.std(np.einsum("nd,nd->n", Z[a[far]], Z[b[far]]) / (
-        np.linalg.norm(Z[a[far]], axis=1) * np.linalg.norm(Z[b[far]], axis=1))))
+    spread = float(
+        np.std(
+            np.einsum("nd,nd->n", Z[a[far]], Z[b[far]])
+            / (np.linalg.norm(Z[a[far]], axis=1) * np.linalg.norm(Z[b[far]], axis=1))
+        )
+    )
     return {
         "authors_th": at(AUTHORS_THRESHOLD),
         "ours_th": at(L.DEFAULT_THRESHOLD),
@@ -142,25 +146,44 @@ def main() -> None:
         for name, (Z, nms) in variants(G).items():
             r = score_variant(Z, nms, gt, regions, sched, seed=seed)
             lo, hi = r["window"]
-            rows.append([
-                seed, name,
-                f"{r['authors_th'][0]:.2f} / {r['authors_th'][1]}/{n_regions}",
-                f"{r['ours_th'][0]:.2f} / {r['ours_th'][1]}/{n_regions}",
-                f"({hi:.3f}, {lo:.3f})" if lo > hi else (
-                    "none (a region is never found)" if np.isneginf(lo)
-                    else f"none (weakest region {lo:.3f} <= false {hi:.3f})"),
-                f"{r['gap_std']:+.2f}" if np.isfinite(r["gap_std"]) else "-",
-            ])
+            rows.append(
+                [
+                    seed,
+                    name,
+                    f"{r['authors_th'][0]:.2f} / {r['authors_th'][1]}/{n_regions}",
+                    f"{r['ours_th'][0]:.2f} / {r['ours_th'][1]}/{n_regions}",
+                    f"({hi:.3f}, {lo:.3f})"
+                    if lo > hi
+                    else (
+                        "none (a region is never found)"
+                        if np.isneginf(lo)
+                        else f"none (weakest region {lo:.3f} <= false {hi:.3f})"
+                    ),
+                    f"{r['gap_std']:+.2f}" if np.isfinite(r["gap_std"]) else "-",
+                ]
+            )
             results.append({"seed": seed, "variant": name, "nms": nms, **r})
-    headers = ["seed", "descriptor", f"P / regions @ {AUTHORS_THRESHOLD}",
-               f"P / regions @ {L.DEFAULT_THRESHOLD}", "safe window (P=1, all regions)",
-               "gap / std(non-loop sim)"]
+    headers = [
+        "seed",
+        "descriptor",
+        f"P / regions @ {AUTHORS_THRESHOLD}",
+        f"P / regions @ {L.DEFAULT_THRESHOLD}",
+        "safe window (P=1, all regions)",
+        "gap / std(non-loop sim)",
+    ]
     print(markdown_table(headers, rows))
-    path = write_results("place_recognition", {
-        "n_frames": n, "n_gt_pairs": int(len(gt)), "n_regions": n_regions,
-        "config": dataclasses.asdict(places.PlaceTokenConfig()), "tokens_per_frame": args.tokens,
-        "default_threshold": L.DEFAULT_THRESHOLD, "results": results,
-    })
+    path = write_results(
+        "place_recognition",
+        {
+            "n_frames": n,
+            "n_gt_pairs": int(len(gt)),
+            "n_regions": n_regions,
+            "config": dataclasses.asdict(places.PlaceTokenConfig()),
+            "tokens_per_frame": args.tokens,
+            "default_threshold": L.DEFAULT_THRESHOLD,
+            "results": results,
+        },
+    )
     print(f"wrote {path}")
 
 

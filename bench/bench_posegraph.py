@@ -34,19 +34,33 @@ sys.path.insert(0, str(REPO))
 jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR", str(REPO / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
-from swiftjax import posegraph  # noqa: E402
-from swiftjax.io.g2o import read_g2o  # noqa: E402
-from swiftjax.synthetic.pose_graphs import chain_graph, circle_graph  # noqa: E402
+from swiftjax import posegraph
+from swiftjax.io.g2o import read_g2o
+from swiftjax.synthetic.pose_graphs import chain_graph, circle_graph
 
 
 def _graphs(quick: bool, shared: pathlib.Path | None):
     sizes = [100, 1000] if quick else [100, 1000, 5000, 20000]
     for n in sizes:
         g = circle_graph(n, seed=0)
-        yield f"circle N={n}", g.initial, g.edges, g.measurements, np.einsum("ei,ij->eij", g.information, np.eye(7)), np.arange(n) == 0
+        yield (
+            f"circle N={n}",
+            g.initial,
+            g.edges,
+            g.measurements,
+            np.einsum("ei,ij->eij", g.information, np.eye(7)),
+            np.arange(n) == 0,
+        )
     for n in [100] if quick else [100, 2000]:
         g = chain_graph(n, loop_every=300 if n > 300 else 30, seed=0)
-        yield f"chain N={n}", g.initial, g.edges, g.measurements, np.einsum("ei,ij->eij", g.information, np.eye(7)), np.arange(n) == 0
+        yield (
+            f"chain N={n}",
+            g.initial,
+            g.edges,
+            g.measurements,
+            np.einsum("ei,ij->eij", g.information, np.eye(7)),
+            np.arange(n) == 0,
+        )
     if shared is not None and not quick:
         for name in ["sphere2500", "parking-garage"]:
             g = read_g2o(shared / "data" / "posegraphs" / f"{name}.g2o")
@@ -68,13 +82,17 @@ def main() -> None:
     ap.add_argument("--rtol", type=float, default=1e-5, help="GTSAM's default relativeErrorTol")
     ap.add_argument("--max-steps", type=int, default=100)
     ap.add_argument(
-        "--gtsam-max-nodes", type=int, default=2500,
+        "--gtsam-max-nodes",
+        type=int,
+        default=2500,
         help="skip GTSAM above this size (random loops make its Cholesky dense: N=1,000 already takes ~100 s)",
     )
     ap.add_argument("--only", default="", help="substring filter on graph names")
     ap.add_argument("--damping", default="identity", choices=["identity", "marquardt"])
     ap.add_argument(
-        "--init", default="both", choices=["none", "chordal", "both"],
+        "--init",
+        default="both",
+        choices=["none", "chordal", "both"],
         help="LM start: the given poses (dead reckoning), our chordal initialisation, or one row of each "
         "(GTSAM always starts from the same poses as our LM: for 'chordal' it is handed our chordal start, free)",
     )
@@ -105,21 +123,35 @@ def _bench_graph(args, name, prob, init):
     """One row: ours and GTSAM from the same LM start, alternating run by run (best of ``--repeat``
     each), so that both see the same machine load; ours includes its initialisation's time."""
     opts = dict(
-        rtol=args.rtol, atol=0.0, max_steps=args.max_steps, damping=args.damping,
-        linear_solver=args.linear_solver, initialization=init,
+        rtol=args.rtol,
+        atol=0.0,
+        max_steps=args.max_steps,
+        damping=args.damping,
+        linear_solver=args.linear_solver,
+        initialization=init,
     )
     first = posegraph.optimize(prob, **opts)
     n = prob.num_nodes
     row = dict(
-        graph=name, init=init, nodes=n, edges=prob.num_edges, solver=first.linear_solver, bucket=list(first.bucket),
-        ours_compile_seconds=first.compile_seconds, ours_steps=first.num_steps,
-        ours_linear_iterations=first.linear_iterations, ours_cost=first.cost_final,
-        ours_converged=first.converged, ours_status=first.status, cost_initial=first.cost_initial,
+        graph=name,
+        init=init,
+        nodes=n,
+        edges=prob.num_edges,
+        solver=first.linear_solver,
+        bucket=list(first.bucket),
+        ours_compile_seconds=first.compile_seconds,
+        ours_steps=first.num_steps,
+        ours_linear_iterations=first.linear_iterations,
+        ours_cost=first.cost_final,
+        ours_converged=first.converged,
+        ours_status=first.status,
+        cost_initial=first.cost_initial,
         cost_start=first.cost_start,
     )
     with_gtsam = n <= args.gtsam_max_nodes
     if with_gtsam:
         from _gtsam_baseline import solve_gtsam
+
         from swiftjax.posegraph.initialization import chordal_initialization
 
         start, init_fn = prob.poses, None
@@ -144,9 +176,13 @@ def _bench_graph(args, name, prob, init):
         init_seconds = min(init_runs) if init_runs else 0.0
         cost_at_gtsam = float(posegraph.cost(jax.numpy.asarray(ref.poses), prob))
         row.update(
-            gtsam_seconds=min(g_runs) + init_seconds, gtsam_lm_seconds=min(g_runs), init_seconds=init_seconds,
-            gtsam_iterations=ref.iterations, gtsam_error=ref.error_final,
-            gtsam_cost=cost_at_gtsam, time_ratio=min(runs) / (min(g_runs) + init_seconds),
+            gtsam_seconds=min(g_runs) + init_seconds,
+            gtsam_lm_seconds=min(g_runs),
+            init_seconds=init_seconds,
+            gtsam_iterations=ref.iterations,
+            gtsam_error=ref.error_final,
+            gtsam_cost=cost_at_gtsam,
+            time_ratio=min(runs) / (min(g_runs) + init_seconds),
             cost_rel_vs_gtsam=(first.cost_final - cost_at_gtsam) / cost_at_gtsam,
         )
     return row

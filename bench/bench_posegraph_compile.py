@@ -71,7 +71,9 @@ print(json.dumps(dict(
 def run_once(kernel: str, repo: pathlib.Path = REPO) -> dict:
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(repo))
-        out = subprocess.run([sys.executable, "-c", CHILD, kernel], capture_output=True, text=True, env=env, check=True, cwd=repo)
+        out = subprocess.run(
+            [sys.executable, "-c", CHILD, kernel], capture_output=True, text=True, env=env, check=True, cwd=repo
+        )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -79,8 +81,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--kernel", default="gnc", choices=("gnc", "cauchy", "none"))
-    ap.add_argument("--baseline", type=pathlib.Path, default=None,
-                    help="another checkout (e.g. an older commit's worktree) run alternately with this one")
+    ap.add_argument(
+        "--baseline",
+        type=pathlib.Path,
+        default=None,
+        help="another checkout (e.g. an older commit's worktree) run alternately with this one",
+    )
     args = ap.parse_args()
     from bench.common import markdown_table, write_results
 
@@ -92,18 +98,27 @@ def main() -> None:
     rows = []
     for k, r in enumerate(runs):
         big = sorted(r["compiles"], key=lambda c: -c[1])[:3]
-        rows.append({
-            "run": k, "checkout": r["checkout"], "compile s": f"{r['compile_seconds']:.2f}", "first call s": f"{r['first_call_seconds']:.2f}",
-            "XLA programs": len(r["compiles"]), "largest": ", ".join(f"{n} {s:.2f}" for n, s in big),
-            "warm solve s": f"{r['solve_seconds_warm']:.3f}", "load": f"{r['load'][0]:.1f}",
-        })
+        rows.append(
+            {
+                "run": k,
+                "checkout": r["checkout"],
+                "compile s": f"{r['compile_seconds']:.2f}",
+                "first call s": f"{r['first_call_seconds']:.2f}",
+                "XLA programs": len(r["compiles"]),
+                "largest": ", ".join(f"{n} {s:.2f}" for n, s in big),
+                "warm solve s": f"{r['solve_seconds_warm']:.3f}",
+                "load": f"{r['load'][0]:.1f}",
+            }
+        )
     print(markdown_table(list(rows[0]), [list(r.values()) for r in rows]))
     best = {}
     for name, _ in checkouts:
         mine = [r for r in runs if r["checkout"] == name]
         best[name] = min(r["compile_seconds"] for r in mine)
-        print(f"{name}: best compile_seconds {best[name]:.2f} s (load {min(r['load'][0] for r in mine):.1f}-"
-              f"{max(r['load'][0] for r in mine):.1f})")
+        print(
+            f"{name}: best compile_seconds {best[name]:.2f} s (load {min(r['load'][0] for r in mine):.1f}-"
+            f"{max(r['load'][0] for r in mine):.1f})"
+        )
     write_results("posegraph_compile", {"kernel": args.kernel, "runs": runs, "best_compile_seconds": best})
 
 

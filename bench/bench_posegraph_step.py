@@ -33,11 +33,11 @@ sys.path.insert(0, str(REPO))
 jax.config.update("jax_compilation_cache_dir", os.environ.get("JAX_COMPILATION_CACHE_DIR", str(REPO / ".jax_cache")))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
-from bench.common import markdown_table, write_results  # noqa: E402
-from swiftjax import posegraph  # noqa: E402
-from swiftjax.io.g2o import read_g2o  # noqa: E402
-from swiftjax.posegraph import driver, sparse_direct  # noqa: E402
-from swiftjax.posegraph.problem import bucket_size, pad_problem  # noqa: E402
+from bench.common import markdown_table, write_results
+from swiftjax import posegraph
+from swiftjax.io.g2o import read_g2o
+from swiftjax.posegraph import driver, sparse_direct
+from swiftjax.posegraph.problem import bucket_size, pad_problem
 
 
 def _timer(fn):
@@ -57,18 +57,19 @@ def main() -> None:
     import cvxopt
     import cvxopt.cholmod as cholmod
     import gtsam
-
     from _gtsam_baseline import build_graph
 
     with jax.enable_x64(True):
         prob = posegraph.Problem(g.poses, g.edges, g.measurements, g.information, g.fixed)
         padded = pad_problem(prob, bucket_size(prob.num_nodes), bucket_size(prob.num_edges))
-        static = driver._Static(damping="identity", initialization="none")  # noqa: SLF001
-        params = {k: jax.numpy.asarray(v, jax.numpy.float64) for k, v in dict(
-            rtol=1e-5, atol=0.0, gtol=1e-10, lambda0=1e-5, kernel_scale=1.0).items()}
+        static = driver._Static(damping="identity", initialization="none")
+        params = {
+            k: jax.numpy.asarray(v, jax.numpy.float64)
+            for k, v in dict(rtol=1e-5, atol=0.0, gtol=1e-10, lambda0=1e-5, kernel_scale=1.0).items()
+        }
         params["kernel"] = jax.numpy.asarray(0, jax.numpy.int32)
         solver = posegraph.HostSparse()
-        bucket = driver._Bucket(padded, params, solver, static)  # noqa: SLF001
+        bucket = driver._Bucket(padded, params, solver, static)
         problem, y, state, _ = bucket.begin(padded, params, solver)
         zero = np.zeros((padded.num_nodes, 7))
         advance_c = functools.partial(bucket.step, problem, params, solver)
@@ -80,20 +81,22 @@ def main() -> None:
         values = pat.values(diag, off, damp)
         pat.solve(values, -grad.reshape(-1))  # builds the symbolic factorisation once
 
-        graph, gvalues = build_graph(*(np.asarray(a) for a in (g.poses, g.edges, g.measurements, g.information, g.fixed)))
+        graph, gvalues = build_graph(
+            *(np.asarray(a) for a in (g.poses, g.edges, g.measurements, g.information, g.fixed))
+        )
         gfg = graph.linearize(gvalues)
         ordering = gtsam.Ordering.ColamdGaussianFactorGraph(gfg)
         bayes = gfg.eliminateMultifrontal(ordering)
 
         def rhs_solve():
             x = cvxopt.matrix(-grad.reshape(-1))
-            cholmod.solve(pat._symbolic, x)  # noqa: SLF001
+            cholmod.solve(pat._symbolic, x)
             return np.asarray(x)
 
         ours = {
             "advance (XLA)": lambda: advance_c(y, state, zero, np.asarray(True)),
             "gather CSC values": lambda: pat.values(diag, off, damp),
-            "CHOLMOD numeric": lambda: cholmod.numeric(pat._matrix, pat._symbolic),  # noqa: SLF001
+            "CHOLMOD numeric": lambda: cholmod.numeric(pat._matrix, pat._symbolic),
             "CHOLMOD solve": rhs_solve,
         }
         theirs = {
@@ -115,14 +118,23 @@ def main() -> None:
     rows.append(["swiftjax", "**per step**", f"**{ours_total * 1e3:.2f}**"])
     rows += [["GTSAM", k, f"{best[k] * 1e3:.2f}"] for k in theirs]
     rows.append(["GTSAM", "**per iteration**", f"**{theirs_total * 1e3:.2f}**"])
-    print(f"{args.graph}: N = {prob.num_nodes}, E = {prob.num_edges}, bucket {padded.num_nodes}/{padded.num_edges}, "
-          f"CSC entries {pat.nnz}; best of {args.repeat}")
+    print(
+        f"{args.graph}: N = {prob.num_nodes}, E = {prob.num_edges}, bucket {padded.num_nodes}/{padded.num_edges}, "
+        f"CSC entries {pat.nnz}; best of {args.repeat}"
+    )
     print(markdown_table(["solver", "piece", "ms"], rows))
     print(f"ratio per step ours/GTSAM: {ours_total / theirs_total:.3f}")
-    path = write_results("posegraph_step", dict(
-        graph=args.graph, repeat=args.repeat, milliseconds={k: v * 1e3 for k, v in best.items()},
-        ours_ms=ours_total * 1e3, gtsam_ms=theirs_total * 1e3, ratio=ours_total / theirs_total,
-    ))
+    path = write_results(
+        "posegraph_step",
+        dict(
+            graph=args.graph,
+            repeat=args.repeat,
+            milliseconds={k: v * 1e3 for k, v in best.items()},
+            ours_ms=ours_total * 1e3,
+            gtsam_ms=theirs_total * 1e3,
+            ratio=ours_total / theirs_total,
+        ),
+    )
     print(f"wrote {path.relative_to(REPO)}")
 
 

@@ -49,11 +49,11 @@ HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
 
-import _robust_graph as rg  # noqa: E402
+import _robust_graph as rg
 
-from swiftjax import posegraph  # noqa: E402
-from swiftjax.loops import pcm  # noqa: E402
-from swiftjax.posegraph import gnc  # noqa: E402
+from swiftjax import posegraph
+from swiftjax.loops import pcm
+from swiftjax.posegraph import gnc
 
 SOLVERS = ("PCM+GNC", "GNC", "GTSAM GncLM")
 
@@ -75,9 +75,16 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
                 edges, meas, info, kind = rg._subgraph(g, int(round(level * g["num_true"])), information)
                 prob = posegraph.Problem(g["initial"], edges, meas, information=info, robust=kind != "odometry")
                 cov = None if information == "matched" else nominal_covariance(kind)
-                base = dict(route=g["route"], seed=g["seed"], generator=g["generator"], information=information,
-                            level=level, true_loops=g["num_true"], false_loops=int(np.sum(kind == "false")),
-                            threshold=c)
+                base = dict(
+                    route=g["route"],
+                    seed=g["seed"],
+                    generator=g["generator"],
+                    information=information,
+                    level=level,
+                    true_loops=g["num_true"],
+                    false_loops=int(np.sum(kind == "false")),
+                    threshold=c,
+                )
                 t0 = time.perf_counter()
                 res, check = pcm.consistent_solve(prob, cov, kernel_scale=gnc.DEFAULT_SCALE, throw=False)
                 out = {"PCM+GNC": (res.poses, res.inlier_weights, time.perf_counter() - t0)}
@@ -89,32 +96,60 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
                     out["GTSAM GncLM"] = (poses, w, secs)
                 for solver, (poses, w, secs) in out.items():
                     dmax, drms = rg._distances(poses, clean.poses, g["extent"])
-                    row = dict(base, solver=solver, dist_max_pct=dmax, dist_rms_pct=drms, seconds=secs,
-                               true_kept=int(np.sum(w[kind == "loop"] >= 0.5)),
-                               false_kept=int(np.sum(w[kind == "false"] >= 0.5)))
+                    row = dict(
+                        base,
+                        solver=solver,
+                        dist_max_pct=dmax,
+                        dist_rms_pct=drms,
+                        seconds=secs,
+                        true_kept=int(np.sum(w[kind == "loop"] >= 0.5)),
+                        false_kept=int(np.sum(w[kind == "false"] >= 0.5)),
+                    )
                     if solver == "PCM+GNC":
-                        row.update(pcm_threshold=check.threshold,
-                                   pcm_true_kept=int(np.sum(check.kept[kind == "loop"])),
-                                   pcm_false_kept=int(np.sum(check.kept[kind == "false"])))
+                        row.update(
+                            pcm_threshold=check.threshold,
+                            pcm_true_kept=int(np.sum(check.kept[kind == "loop"])),
+                            pcm_false_kept=int(np.sum(check.kept[kind == "false"])),
+                        )
                     rows.append(row)
     return rows
 
 
-def run(routes=("00", "08"), seeds=(0, 1), generators=rg.GENERATORS, levels=rg.LEVELS, with_gtsam=True,
-        shared_dir=None, log=print) -> dict:
+def run(
+    routes=("00", "08"),
+    seeds=(0, 1),
+    generators=rg.GENERATORS,
+    levels=rg.LEVELS,
+    with_gtsam=True,
+    shared_dir=None,
+    log=print,
+) -> dict:
     rows = []
     t0 = time.perf_counter()
     for route in routes:
         for seed in seeds:
             for generator in generators:
-                g = rg.kitti_chunk_graph(shared_dir, seed=seed, route=route, generator=generator,
-                                         max_false=int(round(max(levels) * rg.NUM_TRUE)))
+                g = rg.kitti_chunk_graph(
+                    shared_dir,
+                    seed=seed,
+                    route=route,
+                    generator=generator,
+                    max_false=int(round(max(levels) * rg.NUM_TRUE)),
+                )
                 g["seed"] = seed
                 rows += graph_rows(g, levels, with_gtsam)
                 log(f"KITTI {route} seed {seed} {generator}: {time.perf_counter() - t0:.0f} s")
-    return dict(rows=rows, routes=list(routes), seeds=list(seeds), generators=list(generators),
-                levels=list(levels), num_true_loops=rg.NUM_TRUE, load_average=os.getloadavg(),
-                seconds=time.perf_counter() - t0, summary=summary(rows))
+    return dict(
+        rows=rows,
+        routes=list(routes),
+        seeds=list(seeds),
+        generators=list(generators),
+        levels=list(levels),
+        num_true_loops=rg.NUM_TRUE,
+        load_average=os.getloadavg(),
+        seconds=time.perf_counter() - t0,
+        summary=summary(rows),
+    )
 
 
 def summary(rows: list[dict]) -> list[dict]:
@@ -122,23 +157,39 @@ def summary(rows: list[dict]) -> list[dict]:
     cells: dict[tuple, list[dict]] = {}
     for r in rows:
         cells.setdefault((r["route"], r["generator"], r["information"], r["level"], r["solver"]), []).append(r)
-    return [dict(route=k[0], generator=k[1], information=k[2], level=k[3], solver=k[4], seeds=len(v),
-                 true_loops=v[0]["true_loops"],
-                 dist_max_pct=max(r["dist_max_pct"] for r in v), true_kept_min=min(r["true_kept"] for r in v),
-                 false_kept_max=max(r["false_kept"] for r in v)) for k, v in cells.items()]
+    return [
+        dict(
+            route=k[0],
+            generator=k[1],
+            information=k[2],
+            level=k[3],
+            solver=k[4],
+            seeds=len(v),
+            true_loops=v[0]["true_loops"],
+            dist_max_pct=max(r["dist_max_pct"] for r in v),
+            true_kept_min=min(r["true_kept"] for r in v),
+            false_kept_max=max(r["false_kept"] for r in v),
+        )
+        for k, v in cells.items()
+    ]
 
 
 def markdown(result: dict) -> str:
     solvers = [s for s in SOLVERS if any(r["solver"] == s for r in result["summary"])]
     by = {(r["route"], r["generator"], r["information"], r["level"], r["solver"]): r for r in result["summary"]}
-    head = "| route | false edges | information | level | " + " | ".join(
-        f"{s}: max dist % / true kept / false kept" for s in solvers) + " |"
+    head = (
+        "| route | false edges | information | level | "
+        + " | ".join(f"{s}: max dist % / true kept / false kept" for s in solvers)
+        + " |"
+    )
     lines = [head.replace("| level |", "| level | true loops |"), "| --- " * (5 + len(solvers)) + "|"]
     for key in sorted({k[:4] for k in by}, key=lambda k: (k[0], rg.GENERATORS.index(k[1]), k[2], k[3])):
         cells = [by[key + (s,)] for s in solvers]
-        lines.append(f"| KITTI {key[0]} | {key[1]} | {key[2]} | {100 * key[3]:.0f} % | {cells[0]['true_loops']} | "
-                     + " | ".join(
-            f"{c['dist_max_pct']:.3f} / {c['true_kept_min']} / {c['false_kept_max']}" for c in cells) + " |")
+        lines.append(
+            f"| KITTI {key[0]} | {key[1]} | {key[2]} | {100 * key[3]:.0f} % | {cells[0]['true_loops']} | "
+            + " | ".join(f"{c['dist_max_pct']:.3f} / {c['true_kept_min']} / {c['false_kept_max']}" for c in cells)
+            + " |"
+        )
     return "\n".join(lines)
 
 

@@ -132,20 +132,30 @@ print(json.dumps(rec, default=float))
 
 
 def child(mode: str, frames: int, cache: str, out: str, cost: float = 0.0, workers: int = 0) -> dict:
-    env = dict(os.environ, SWIFTJAX_CACHE_DIR=os.environ.get(
-        "SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")))
+    env = dict(
+        os.environ,
+        SWIFTJAX_CACHE_DIR=os.environ.get(
+            "SWIFTJAX_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax")
+        ),
+    )
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     proc = subprocess.run(
         [sys.executable, "-c", CHILD, mode, str(_shared()), str(frames), cache, out, str(cost), str(workers)],
-        capture_output=True, text=True, env=env, cwd=HERE,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=HERE,
     )
     if proc.returncode != 0:
         sys.exit(f"child {mode} failed:\n{proc.stderr[-3000:]}")
     rec = json.loads(proc.stdout.strip().splitlines()[-1])
     rec.update(mode=mode, frames=frames, cost=cost, workers=workers)
-    print(f"{mode:>9} W={workers} {frames} frames: "
-          + (f"{rec['wall']:.1f} s, " if "wall" in rec else "")
-          + f"peak RSS {rec['peak_rss_mb']:.0f} MB, load {rec['load_average_before'][0]:.1f}", flush=True)
+    print(
+        f"{mode:>9} W={workers} {frames} frames: "
+        + (f"{rec['wall']:.1f} s, " if "wall" in rec else "")
+        + f"peak RSS {rec['peak_rss_mb']:.0f} MB, load {rec['load_average_before'][0]:.1f}",
+        flush=True,
+    )
     return rec
 
 
@@ -164,6 +174,7 @@ def main() -> None:
 
     records: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
+
         def cache_for(frames: int) -> str:
             path = os.path.join(tmp, f"cache{frames}")
             if not os.path.isdir(path):
@@ -213,8 +224,17 @@ def project(timings: dict, temporal: int, loop_chunks: int, gpu_cost: float, ove
         per = gpu_cost + (overhead_s if gpus > 1 else 0.0)
         stage_t = max(temporal * per / gpus, host_t)
         stage_l = max(loop_chunks * per / gpus, host_l)
-        rows.append([gpus, "local, prefetch" if gpus == 1 else f"ray, {gpus} workers", temporal + loop_chunks,
-                     stage_t, stage_l, rest, stage_t + stage_l + rest])
+        rows.append(
+            [
+                gpus,
+                "local, prefetch" if gpus == 1 else f"ray, {gpus} workers",
+                temporal + loop_chunks,
+                stage_t,
+                stage_l,
+                rest,
+                stage_t + stage_l + rest,
+            ]
+        )
     return rows
 
 
@@ -227,27 +247,63 @@ def report(args, runs: dict, overhead: dict, rss_small: dict | None, records: li
     final = sum(t.get(k, 0.0) for k in ("loop detection", "loop verification", "pose graph", "export"))
     rows = []
     for name, rec in runs.items():
-        label = {"plain": "plain oracle (local, no prefetch)", "zero": "zero cost (geometry)",
-                 "local0": "local, no prefetch", "local1": "local, prefetch 1"}.get(name, f"ray, {rec['workers']} workers")
+        label = {
+            "plain": "plain oracle (local, no prefetch)",
+            "zero": "zero cost (geometry)",
+            "local0": "local, no prefetch",
+            "local1": "local, prefetch 1",
+        }.get(name, f"ray, {rec['workers']} workers")
         if name == "local1":
             bound = 1.1 * max(predict_total, geometry)
         elif name.startswith("ray"):
             bound = 1.2 * predict_total / rec["workers"] + final
         else:
             bound = None
-        rows.append([label, rec["chunks"], rec["predictions"] - rec["chunks"], rec["predictions"], rec["wall"],
-                     "" if bound is None else f"{bound:.1f}", "" if bound is None else ("yes" if rec["wall"] <= bound else "NO"),
-                     rec["bytes"] / 2**20, rec["peak_rss_mb"], rec["load_average_before"][0]])
-    print(markdown_table(["configuration", "chunks", "loop chunks", "predictions", "wall s", "target s", "met",
-                          "MB to driver", "driver peak RSS MB", "load avg"], rows))
-    print(f"\npredict total {predict_total:.1f} s ({n_pred} x {args.cost} s), geometry (zero-cost run) "
-          f"{geometry:.1f} s, final stages {final:.1f} s")
+        rows.append(
+            [
+                label,
+                rec["chunks"],
+                rec["predictions"] - rec["chunks"],
+                rec["predictions"],
+                rec["wall"],
+                "" if bound is None else f"{bound:.1f}",
+                "" if bound is None else ("yes" if rec["wall"] <= bound else "NO"),
+                rec["bytes"] / 2**20,
+                rec["peak_rss_mb"],
+                rec["load_average_before"][0],
+            ]
+        )
+    print(
+        markdown_table(
+            [
+                "configuration",
+                "chunks",
+                "loop chunks",
+                "predictions",
+                "wall s",
+                "target s",
+                "met",
+                "MB to driver",
+                "driver peak RSS MB",
+                "load avg",
+            ],
+            rows,
+        )
+    )
+    print(
+        f"\npredict total {predict_total:.1f} s ({n_pred} x {args.cost} s), geometry (zero-cost run) "
+        f"{geometry:.1f} s, final stages {final:.1f} s"
+    )
     overhead_s = max(0.0, overhead["round_trip_ms"] - overhead["actor_ms"]) / 1e3
-    print(f"Ray overhead per chunk: {1e3 * overhead_s:.1f} ms (round trip {overhead['round_trip_ms']:.1f} ms, "
-          f"actor {overhead['actor_ms']:.1f} ms), {overhead['bytes_per_chunk'] / 2**20:.1f} MB per chunk")
+    print(
+        f"Ray overhead per chunk: {1e3 * overhead_s:.1f} ms (round trip {overhead['round_trip_ms']:.1f} ms, "
+        f"actor {overhead['actor_ms']:.1f} ms), {overhead['bytes_per_chunk'] / 2**20:.1f} MB per chunk"
+    )
     if rss_small:
-        print(f"driver peak RSS, Ray 2 workers: {rss_small['peak_rss_mb']:.0f} MB at {rss_small['frames']} frames, "
-              f"{runs['ray2']['peak_rss_mb'] if 'ray2' in runs else float('nan'):.0f} MB at {args.frames} frames")
+        print(
+            f"driver peak RSS, Ray 2 workers: {rss_small['peak_rss_mb']:.0f} MB at {rss_small['frames']} frames, "
+            f"{runs['ray2']['peak_rss_mb'] if 'ray2' in runs else float('nan'):.0f} MB at {args.frames} frames"
+        )
 
     headers = ["GPUs", "executor", "predictions", "temporal stage s", "loop stage s", "rest s", "projected wall s"]
     projections = {}
@@ -255,22 +311,32 @@ def report(args, runs: dict, overhead: dict, rss_small: dict | None, records: li
     if ref is not None:
         m = ref["metrics"]
         proj = project(m["timings_seconds"], m["chunks"], m["loops"], args.gpu_cost, overhead_s)
-        print(f"\nKITTI 00 projection, {args.gpu_cost} s per chunk on a GPU, host stage times of {ref['source']} "
-              f"(4,541 frames, load {ref['load_average_before'][0]:.2f}), Ray overhead as measured here:")
+        print(
+            f"\nKITTI 00 projection, {args.gpu_cost} s per chunk on a GPU, host stage times of {ref['source']} "
+            f"(4,541 frames, load {ref['load_average_before'][0]:.2f}), Ray overhead as measured here:"
+        )
         print(markdown_table(headers, proj))
         projections["reference"] = {"source": ref["source"], "rows": proj}
     scale = 4541 / args.frames  # this run's host times scaled to KITTI 00's length
     loops_here = n_pred - zero["chunks"]
-    proj = project({k: v * scale for k, v in t.items()}, round(zero["chunks"] * scale), round(loops_here * scale),
-                   args.gpu_cost, overhead_s)
-    print(f"\nKITTI 00 projection from this run's host stage times (x {scale:.2f}, load "
-          f"{zero['load_average_before'][0]:.1f}):")
+    proj = project(
+        {k: v * scale for k, v in t.items()},
+        round(zero["chunks"] * scale),
+        round(loops_here * scale),
+        args.gpu_cost,
+        overhead_s,
+    )
+    print(
+        f"\nKITTI 00 projection from this run's host stage times (x {scale:.2f}, load "
+        f"{zero['load_average_before'][0]:.1f}):"
+    )
     print(markdown_table(headers, proj))
     projections["this_run"] = proj
     if not write:
         return
-    path = write_results("scaleout", {"args": vars(args), "runs": records, "projection": projections,
-                                      "ray_overhead_s": overhead_s})
+    path = write_results(
+        "scaleout", {"args": vars(args), "runs": records, "projection": projections, "ray_overhead_s": overhead_s}
+    )
     print(f"\nwrote {path}")
 
 

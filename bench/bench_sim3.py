@@ -21,8 +21,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from common import best_of, compile_time, markdown_table, write_results
+
 from swiftjax import sim3, so3
 
 
@@ -58,19 +58,24 @@ def layout_transpose_once(fn):
 
 def layout_blocked(fn, block):
     """Components ``[N / block, block]``: the layout change stays inside one block."""
+
     def f(x):
         n, k = x.shape
         out = jnp.stack(fn(tuple(jnp.moveaxis(x.reshape(n // block, block, k), -1, 0))), -1)
         return out.reshape(n, -1)
+
     return jax.jit(f)
 
 
 def layout_lax_map(fn, block):
     """``lax.map`` over ``block``-element slices, each transposed to ``[k, block]`` and back."""
+
     def f(x):
         n, k = x.shape
         return jax.lax.map(lambda b: jnp.stack(fn(tuple(b.T)), -1), x.reshape(n // block, block, k)).reshape(n, -1)
+
     return jax.jit(f)
+
 
 # ----------------------------------------------------------------- NumPy baseline (same maths)
 
@@ -83,9 +88,7 @@ def _np_rotate(q, x):
 
 def _np_qmul(a, b):
     av, aw, bv, bw = a[..., :3], a[..., 3:4], b[..., :3], b[..., 3:4]
-    return np.concatenate(
-        [aw * bv + bw * av + np.cross(av, bv), aw * bw - np.sum(av * bv, -1, keepdims=True)], -1
-    )
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv), aw * bw - np.sum(av * bv, -1, keepdims=True)], -1)
 
 
 def _np_wcoef(theta_sq, sigma):
@@ -180,10 +183,29 @@ def main() -> None:
         c_np = cpu_best_of(np_fn, max(3, args.repeat // 3))
         rows.append([name, count, t_compile, t_jax * 1e3, t_np * 1e3, count / t_jax / 1e6, t_np / t_jax, c_np / c_jax])
         records.append(
-            dict(op=name, count=count, compile_s=t_compile, jax_s=t_jax, numpy_s=t_np, speedup=t_np / t_jax,
-                 jax_cpu_s=c_jax, numpy_cpu_s=c_np, cpu_speedup=c_np / c_jax, load=os.getloadavg())
+            dict(
+                op=name,
+                count=count,
+                compile_s=t_compile,
+                jax_s=t_jax,
+                numpy_s=t_np,
+                speedup=t_np / t_jax,
+                jax_cpu_s=c_jax,
+                numpy_cpu_s=c_np,
+                cpu_speedup=c_np / c_jax,
+                load=os.getloadavg(),
+            )
         )
-    headers = ["op (float32)", "elements", "compile s", "swiftjax ms", "NumPy ms", "M elem/s", "× NumPy", "× NumPy (CPU time)"]
+    headers = [
+        "op (float32)",
+        "elements",
+        "compile s",
+        "swiftjax ms",
+        "NumPy ms",
+        "M elem/s",
+        "× NumPy",
+        "× NumPy (CPU time)",
+    ]
     print(markdown_table(headers, rows))
 
     layouts = []
@@ -192,27 +214,51 @@ def main() -> None:
             parser.error("the layout table needs --n a multiple of 8192 (or pass --no-layouts)")
         xi_t, s_t = jax.device_put(np.ascontiguousarray(xi.T)), jax.device_put(np.ascontiguousarray(s_np.T))
         lrows = []
-        for op, fn, x_d, x_t, np_fn in [("exp", sim3._exp_c, xi_d, xi_t, lambda: np_exp(xi)),
-                                          ("log", sim3._log_c, s_d, s_t, lambda: np_log(s_np))]:
+        for op, fn, x_d, x_t, np_fn in [
+            ("exp", sim3._exp_c, xi_d, xi_t, lambda: np_exp(xi)),
+            ("log", sim3._log_c, s_d, s_t, lambda: np_log(s_np)),
+        ]:
             t_np = best_of(np_fn, max(3, args.repeat // 3))
             c_np = cpu_best_of(np_fn, max(3, args.repeat // 3))
-            variants = [("flat components, interleaving output fusion", layout_flat(fn), x_d),
-                        ("[k, N] in, [m, N] out (no interleave)", layout_soa(fn), x_t),
-                        ("transpose in, kernel, transpose out (3 programs)", layout_transpose_once(fn), x_d),
-                        *[(f"blocked [N/{b}, {b}] components", layout_blocked(fn, b), x_d) for b in (256, 1024, 4096)],
-                        ("lax.map over 8192-element blocks", layout_lax_map(fn, 8192), x_d),
-                        (f"library sim3.{op}", jax.jit(getattr(sim3, op)), x_d)]
+            variants = [
+                ("flat components, interleaving output fusion", layout_flat(fn), x_d),
+                ("[k, N] in, [m, N] out (no interleave)", layout_soa(fn), x_t),
+                ("transpose in, kernel, transpose out (3 programs)", layout_transpose_once(fn), x_d),
+                *[(f"blocked [N/{b}, {b}] components", layout_blocked(fn, b), x_d) for b in (256, 1024, 4096)],
+                ("lax.map over 8192-element blocks", layout_lax_map(fn, 8192), x_d),
+                (f"library sim3.{op}", jax.jit(getattr(sim3, op)), x_d),
+            ]
             for label, f, arg in variants:
                 t = best_of(lambda: f(arg), args.repeat)
                 c = cpu_best_of(lambda: f(arg), args.repeat)
                 lrows.append([op, label, t * 1e3, t_np / t, c * 1e3, c_np / c])
-                layouts.append(dict(op=op, layout=label, jax_s=t, numpy_s=t_np, speedup=t_np / t,
-                                    jax_cpu_s=c, numpy_cpu_s=c_np, cpu_speedup=c_np / c, load=os.getloadavg()))
+                layouts.append(
+                    dict(
+                        op=op,
+                        layout=label,
+                        jax_s=t,
+                        numpy_s=t_np,
+                        speedup=t_np / t,
+                        jax_cpu_s=c,
+                        numpy_cpu_s=c_np,
+                        cpu_speedup=c_np / c,
+                        load=os.getloadavg(),
+                    )
+                )
         print()
         print(markdown_table(["op", "layout", "wall ms", "× NumPy", "CPU ms", "× NumPy (CPU)"], lrows))
 
-    path = write_results("sim3", {"n": args.n, "points": args.points, "results": records, "layouts": layouts,
-                                  "load_before": load_before, "load_after": os.getloadavg()})
+    path = write_results(
+        "sim3",
+        {
+            "n": args.n,
+            "points": args.points,
+            "results": records,
+            "layouts": layouts,
+            "load_before": load_before,
+            "load_after": os.getloadavg(),
+        },
+    )
     print(f"\nwrote {path}")
 
 

@@ -54,7 +54,7 @@ def _dpt_flops(cfg: Any, height: int, width: int) -> int:
     total += 2 * h * w * oc[0] * oc[0] * 16 + 2 * h * w * oc[1] * oc[1] * 4  # transposed convs (k = stride)
     total += _conv(h4, w4, oc[3], oc[3], 3)
     total += sum(_conv(hh, ww, c, f, 3) for (hh, ww), c in zip(sizes, oc))  # layerN_rn
-    rcu = lambda hh, ww: 2 * _conv(hh, ww, f, f, 3)  # noqa: E731  (two 3x3 convs)
+    rcu = lambda hh, ww: 2 * _conv(hh, ww, f, f, 3)
     # refinenet4 (one unit) -> size of level 3; refinenets 3, 2, 1 (two units each); 1x1 out_conv
     # at the target size: level 3, 2, 1, then twice level 1.
     targets = [sizes[2], sizes[1], sizes[0], (8 * h, 8 * w)]
@@ -95,8 +95,13 @@ def vggt_chunk_flops(cfg: Any, frames: int, height: int, width: int) -> dict[str
     depth_head = frames * _dpt_flops(cfg, height, width)
     aggregator = dino + frame_attn + global_attn
     return {
-        "dino": dino, "frame_attention": frame_attn, "global_attention": global_attn, "aggregator": aggregator,
-        "camera_head": camera, "depth_head": depth_head, "total": aggregator + camera + depth_head,
+        "dino": dino,
+        "frame_attention": frame_attn,
+        "global_attention": global_attn,
+        "aggregator": aggregator,
+        "camera_head": camera,
+        "depth_head": depth_head,
+        "total": aggregator + camera + depth_head,
     }
 
 
@@ -117,8 +122,10 @@ def main(argv: list[str] | None = None) -> None:
     for s in args.frames:
         parts = vggt_chunk_flops(cfg, s, args.height, args.width)
         row = ", ".join(f"{k} {v / 1e12:.2f}" for k, v in parts.items())
-        print(f"  S = {s:4d}: {row}; floor at 790 TFLOP/s {parts['total'] / 790e12 * 1e3:.0f} ms "
-              f"({math.floor(s / (parts['total'] / 790e12)):d} frames/s)")
+        print(
+            f"  S = {s:4d}: {row}; floor at 790 TFLOP/s {parts['total'] / 790e12 * 1e3:.0f} ms "
+            f"({math.floor(s / (parts['total'] / 790e12)):d} frames/s)"
+        )
 
 
 if __name__ == "__main__":

@@ -63,7 +63,15 @@ def _modules(package_dir: pathlib.Path, dotted: str) -> list[tuple[str, pathlib.
 
 
 def _package_page(dotted: str, init: pathlib.Path) -> str:
-    lines = [f"# `{dotted}`", "", f"::: {dotted}", "    options:", "      members: false", "      show_root_heading: false", ""]
+    lines = [
+        f"# `{dotted}`",
+        "",
+        f"::: {dotted}",
+        "    options:",
+        "      members: false",
+        "      show_root_heading: false",
+        "",
+    ]
     for sub, path, is_pkg in _modules(init.parent, dotted):
         if is_pkg:  # a nested package: its docstring and its modules, one level deeper
             lines += [f"::: {sub}", "    options:", "      members: false", ""]
@@ -90,7 +98,7 @@ def _api() -> tuple[dict[str, str], list]:
         deprecated = []
         for dotted, path, is_pkg in entries:
             if _summary(path).startswith("Deprecated"):  # a moved module's alias: no page
-                deprecated.append(f"`{dotted}` ({_summary(path)[len('Deprecated'):].lstrip(': ')})")
+                deprecated.append(f"`{dotted}` ({_summary(path)[len('Deprecated') :].lstrip(': ')})")
                 continue
             uri = f"api/{dotted}.md"
             pages[uri] = _package_page(dotted, path) if is_pkg else _module_page(dotted)
@@ -133,7 +141,12 @@ def _options_page() -> str:
         names = [n for n, sp in specs.items() if sp.stage == stage]
         if not names:
             continue
-        lines += [f"## Stage `{stage}`", "", "| option (TOML key) | flag | default | accepts | what |", "| --- | --- | --- | --- | --- |"]
+        lines += [
+            f"## Stage `{stage}`",
+            "",
+            "| option (TOML key) | flag | default | accepts | what |",
+            "| --- | --- | --- | --- | --- |",
+        ]
         for n in names:
             sp, default = specs[n], fields[n].default
             flag = options.flag(n)
@@ -220,8 +233,10 @@ def _mathjax_dir() -> pathlib.Path:
     roots = list(spec.submodule_search_locations or []) if spec else []
     es5 = pathlib.Path(roots[0]) / "static" / "mathjax" / "es5" if roots else None
     if es5 is None or not (es5 / "tex-svg.js").is_file():
-        raise RuntimeError("MathJax is not installed: pip install -c constraints.txt -e '.[docs]' "
-                           "(django-static-mathjax ships MathJax 3's files)")
+        raise RuntimeError(
+            "MathJax is not installed: pip install -c constraints.txt -e '.[docs]' "
+            "(django-static-mathjax ships MathJax 3's files)"
+        )
     return es5
 
 

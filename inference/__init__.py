@@ -26,8 +26,20 @@ _NAMES = {
     "export_onnx": "onnx_export",
 }
 _SUBMODULES = (
-    "aggregator", "camera_head", "check_golden", "checkpoint", "config", "dino", "dpt", "layers",
-    "model", "onnx_export", "pose_encoding", "predictor", "preprocess", "runners",
+    "aggregator",
+    "camera_head",
+    "check_golden",
+    "checkpoint",
+    "config",
+    "dino",
+    "dpt",
+    "layers",
+    "model",
+    "onnx_export",
+    "pose_encoding",
+    "predictor",
+    "preprocess",
+    "runners",
 )
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)

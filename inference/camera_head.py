@@ -27,10 +27,14 @@ class CameraHead(nn.Module):
     delta to the raw encoding.  The activation is applied to the running sum each iteration.
     """
 
-    def __init__(self, dim_in: int, trunk_depth: int, num_heads: int, mlp_ratio: float, init_values: float = 0.01) -> None:
+    def __init__(
+        self, dim_in: int, trunk_depth: int, num_heads: int, mlp_ratio: float, init_values: float = 0.01
+    ) -> None:
         super().__init__()
         self.empty_pose_tokens = nn.Parameter(torch.zeros(1, 1, POSE_ENCODING_DIM))
-        self.trunk = nn.Sequential(*(Block(dim_in, num_heads, mlp_ratio, init_values=init_values) for _ in range(trunk_depth)))
+        self.trunk = nn.Sequential(
+            *(Block(dim_in, num_heads, mlp_ratio, init_values=init_values) for _ in range(trunk_depth))
+        )
         self.token_norm = nn.LayerNorm(dim_in)
         self.trunk_norm = nn.LayerNorm(dim_in)
         self.embed_pose = nn.Linear(POSE_ENCODING_DIM, dim_in)

@@ -169,7 +169,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m inference.check_golden", description=__doc__.split("\n\n")[0])
     parser.add_argument("directory", type=Path, help="folder with tiny_config.json, tiny_weights.safetensors, ...")
     parser.add_argument("--no-onnx", action="store_true", help="check torch only")
-    parser.add_argument("--onnx-path", type=Path, default=None, help="keep the exported graph at this path (DA3: a folder for its graphs)")
+    parser.add_argument(
+        "--onnx-path",
+        type=Path,
+        default=None,
+        help="keep the exported graph at this path (DA3: a folder for its graphs)",
+    )
     args = parser.parse_args(argv)
     required, run = _family(args.directory)
     missing = [n for n in required if not (args.directory / n).is_file()]

@@ -22,7 +22,15 @@ from torch import Tensor, nn
 
 from swiftjax.errors import SwiftjaxError
 
-__all__ = ["CheckpointError", "LoadReport", "key_differences", "mismatch_error", "IGNORED_PREFIXES", "load_checkpoint", "read_state_dict"]
+__all__ = [
+    "CheckpointError",
+    "LoadReport",
+    "key_differences",
+    "mismatch_error",
+    "IGNORED_PREFIXES",
+    "load_checkpoint",
+    "read_state_dict",
+]
 
 IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
 _PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
@@ -145,8 +153,14 @@ def key_differences(
     return missing, unexpected, mismatched
 
 
-def mismatch_error(path: str | os.PathLike[str], what: str, missing: list[str], unexpected: list[str],
-                   mismatched: list[str], hint: str = "the model config") -> CheckpointError:
+def mismatch_error(
+    path: str | os.PathLike[str],
+    what: str,
+    missing: list[str],
+    unexpected: list[str],
+    mismatched: list[str],
+    hint: str = "the model config",
+) -> CheckpointError:
     """The error listing a checkpoint's missing, unexpected and shape-mismatched keys (up to
     15 of each)."""
     parts = [f"checkpoint {os.fspath(path)} does not match the {what}:"]

@@ -84,8 +84,10 @@ class VGGTConfig:
         problems = []
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if f.name in _POSITIVE and value is not None and not (
-                isinstance(value, (int, float)) and not isinstance(value, bool) and value >= _POSITIVE[f.name]
+            if (
+                f.name in _POSITIVE
+                and value is not None
+                and not (isinstance(value, (int, float)) and not isinstance(value, bool) and value >= _POSITIVE[f.name])
             ):
                 problems.append(f"{f.name} must be >= {_POSITIVE[f.name]}, got {value!r}")
         if problems:  # the divisibility checks below would divide by zero or mislead
@@ -137,14 +139,41 @@ class VGGTConfig:
         base = cls()
         embed_dim = int(agg.get("embed_dim", base.embed_dim))
         _check_fixed(agg, {"qkv_bias": True, "proj_bias": True, "ffn_bias": True})
-        _check_fixed(vit, {"embed_dim": embed_dim, "num_register_tokens": agg.get("num_register_tokens", 4),
-                           "interpolate_antialias": True, "interpolate_offset": 0.0, "ffn_layer": "mlp",
-                           "qk_norm": False, "layernorm_eps": 1e-6})
-        _check_fixed(cam, {"dim_in": 2 * embed_dim, "pose_encoding_type": "absT_quaR_FoV",
-                           "trans_act": "linear", "quat_act": "linear", "fl_act": "relu"})
-        _check_fixed(dpt, {"dim_in": 2 * embed_dim, "output_dim": 2, "activation": "exp",
-                           "conf_activation": "expp1", "pos_embed": True, "feature_only": False,
-                           "down_ratio": 1, "patch_size": agg.get("patch_size", base.patch_size)})
+        _check_fixed(
+            vit,
+            {
+                "embed_dim": embed_dim,
+                "num_register_tokens": agg.get("num_register_tokens", 4),
+                "interpolate_antialias": True,
+                "interpolate_offset": 0.0,
+                "ffn_layer": "mlp",
+                "qk_norm": False,
+                "layernorm_eps": 1e-6,
+            },
+        )
+        _check_fixed(
+            cam,
+            {
+                "dim_in": 2 * embed_dim,
+                "pose_encoding_type": "absT_quaR_FoV",
+                "trans_act": "linear",
+                "quat_act": "linear",
+                "fl_act": "relu",
+            },
+        )
+        _check_fixed(
+            dpt,
+            {
+                "dim_in": 2 * embed_dim,
+                "output_dim": 2,
+                "activation": "exp",
+                "conf_activation": "expp1",
+                "pos_embed": True,
+                "feature_only": False,
+                "down_ratio": 1,
+                "patch_size": agg.get("patch_size", base.patch_size),
+            },
+        )
         chunk = d.get("depth_head_frames_chunk_size", base.dpt_frames_chunk_size)
         return cls(
             img_size=int(agg.get("img_size", base.img_size)),
@@ -185,9 +214,22 @@ class VGGTConfig:
 
 #: Smallest value of each size (``dpt_frames_chunk_size`` may also be ``None``).
 _POSITIVE = {
-    "img_size": 1, "patch_size": 1, "embed_dim": 1, "depth": 1, "num_heads": 1, "mlp_ratio": 0, "num_register_tokens": 0,
-    "aa_block_size": 1, "dino_depth": 1, "dino_num_heads": 1, "dino_mlp_ratio": 0, "camera_trunk_depth": 1,
-    "camera_num_heads": 1, "camera_mlp_ratio": 0, "camera_iterations": 1, "dpt_features": 1,
+    "img_size": 1,
+    "patch_size": 1,
+    "embed_dim": 1,
+    "depth": 1,
+    "num_heads": 1,
+    "mlp_ratio": 0,
+    "num_register_tokens": 0,
+    "aa_block_size": 1,
+    "dino_depth": 1,
+    "dino_num_heads": 1,
+    "dino_mlp_ratio": 0,
+    "camera_trunk_depth": 1,
+    "camera_num_heads": 1,
+    "camera_mlp_ratio": 0,
+    "camera_iterations": 1,
+    "dpt_features": 1,
     "dpt_frames_chunk_size": 1,
 }
 
@@ -195,28 +237,106 @@ _POSITIVE = {
 #: checked in each, and the top-level keys that only describe the file.  Anything else is a
 #: typo or another layout and is refused (it was ignored, and the checkpoint blamed).
 _SECTIONS = {
-    "aggregator_kwargs": {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "mlp_ratio",
-                          "num_register_tokens", "qkv_bias", "proj_bias", "ffn_bias", "patch_embed", "aa_order",
-                          "aa_block_size", "qk_norm", "rope_freq", "init_values"},
-    "patch_embed_vit": {"embed_dim", "depth", "num_heads", "mlp_ratio", "img_size", "patch_size",
-                        "num_register_tokens", "interpolate_antialias", "interpolate_offset", "block_chunks",
-                        "init_values", "ffn_layer", "qkv_bias", "proj_bias", "ffn_bias", "qk_norm", "layernorm_eps",
-                        "pos_embed_grid"},
-    "camera_head_kwargs": {"dim_in", "trunk_depth", "pose_encoding_type", "num_heads", "mlp_ratio", "init_values",
-                           "trans_act", "quat_act", "fl_act"},
-    "depth_head_kwargs": {"dim_in", "patch_size", "output_dim", "activation", "conf_activation", "features",
-                          "out_channels", "intermediate_layer_idx", "pos_embed", "feature_only", "down_ratio"},
+    "aggregator_kwargs": {
+        "img_size",
+        "patch_size",
+        "embed_dim",
+        "depth",
+        "num_heads",
+        "mlp_ratio",
+        "num_register_tokens",
+        "qkv_bias",
+        "proj_bias",
+        "ffn_bias",
+        "patch_embed",
+        "aa_order",
+        "aa_block_size",
+        "qk_norm",
+        "rope_freq",
+        "init_values",
+    },
+    "patch_embed_vit": {
+        "embed_dim",
+        "depth",
+        "num_heads",
+        "mlp_ratio",
+        "img_size",
+        "patch_size",
+        "num_register_tokens",
+        "interpolate_antialias",
+        "interpolate_offset",
+        "block_chunks",
+        "init_values",
+        "ffn_layer",
+        "qkv_bias",
+        "proj_bias",
+        "ffn_bias",
+        "qk_norm",
+        "layernorm_eps",
+        "pos_embed_grid",
+    },
+    "camera_head_kwargs": {
+        "dim_in",
+        "trunk_depth",
+        "pose_encoding_type",
+        "num_heads",
+        "mlp_ratio",
+        "init_values",
+        "trans_act",
+        "quat_act",
+        "fl_act",
+    },
+    "depth_head_kwargs": {
+        "dim_in",
+        "patch_size",
+        "output_dim",
+        "activation",
+        "conf_activation",
+        "features",
+        "out_channels",
+        "intermediate_layer_idx",
+        "pos_embed",
+        "feature_only",
+        "down_ratio",
+    },
 }
 _SCALARS = {"camera_head_num_iterations": int, "depth_head_frames_chunk_size": (int, type(None))}
 _DESCRIPTIVE = {
-    "upstream_repo", "upstream_commit", "torch_version", "dtype", "device", "input", "patch_embed_note",
-    "point_head", "track_head", "param_init", "num_params", "num_state_dict_entries", "state_dict_keys_in_order",
-    "observed_max_abs_diff", "sha256", "seed_torch_manual_seed_before_construction",
-    "seed_param_perturbation_generator", "seed_input_generator",
+    "upstream_repo",
+    "upstream_commit",
+    "torch_version",
+    "dtype",
+    "device",
+    "input",
+    "patch_embed_note",
+    "point_head",
+    "track_head",
+    "param_init",
+    "num_params",
+    "num_state_dict_entries",
+    "state_dict_keys_in_order",
+    "observed_max_abs_diff",
+    "sha256",
+    "seed_torch_manual_seed_before_construction",
+    "seed_param_perturbation_generator",
+    "seed_input_generator",
 }
 #: Keys whose value is an integer (bools and fractions refused), and numbers.
-_INTS = {"img_size", "patch_size", "embed_dim", "depth", "num_heads", "num_register_tokens", "aa_block_size",
-         "trunk_depth", "features", "dim_in", "output_dim", "down_ratio", "block_chunks"}
+_INTS = {
+    "img_size",
+    "patch_size",
+    "embed_dim",
+    "depth",
+    "num_heads",
+    "num_register_tokens",
+    "aa_block_size",
+    "trunk_depth",
+    "features",
+    "dim_in",
+    "output_dim",
+    "down_ratio",
+    "block_chunks",
+}
 _NUMBERS = {"mlp_ratio", "rope_freq", "init_values", "interpolate_offset", "layernorm_eps"}
 
 
@@ -233,7 +353,9 @@ def _check_layout(d: Any) -> None:
             close = difflib.get_close_matches(key, sorted(set(_SECTIONS) | set(_SCALARS)), n=1)
             raise ValueError(f"unknown key {key!r}" + (f" (did you mean {close[0]}?)" if close else ""))
         if key in _SCALARS and not (isinstance(value, _SCALARS[key]) and not isinstance(value, bool)):
-            raise ValueError(f"{key} must be an integer{' or null' if key.endswith('chunk_size') else ''}, got {value!r}")
+            raise ValueError(
+                f"{key} must be an integer{' or null' if key.endswith('chunk_size') else ''}, got {value!r}"
+            )
         if key not in _SECTIONS:
             continue
         if not isinstance(value, Mapping):
@@ -266,6 +388,5 @@ def _check_fixed(section: Mapping[str, Any], fixed: Mapping[str, Any]) -> None:
     for key, expected in fixed.items():
         if key in section and section[key] != expected:
             raise ValueError(
-                f"config sets {key}={section[key]!r}, but this VGGT implementation supports only "
-                f"{expected!r}"
+                f"config sets {key}={section[key]!r}, but this VGGT implementation supports only {expected!r}"
             )

@@ -192,7 +192,12 @@ class DPTHead(nn.Module):
             levels.append(self.resize_layers[i](x))
 
         sc = self.scratch
-        l1, l2, l3, l4 = sc.layer1_rn(levels[0]), sc.layer2_rn(levels[1]), sc.layer3_rn(levels[2]), sc.layer4_rn(levels[3])
+        l1, l2, l3, l4 = (
+            sc.layer1_rn(levels[0]),
+            sc.layer2_rn(levels[1]),
+            sc.layer3_rn(levels[2]),
+            sc.layer4_rn(levels[3]),
+        )
         out = sc.refinenet4(l4, None, size=_hw(l3))
         out = sc.refinenet3(out, l3, size=_hw(l2))
         out = sc.refinenet2(out, l2, size=_hw(l1))
@@ -208,8 +213,10 @@ class DPTHead(nn.Module):
         first = _at(tokens, self.intermediate_layer_idx[0])
         b = first.shape[0]
         if start != 0 or stop != first.shape[1]:
-            tokens = [t[:, start:stop] if i in self.intermediate_layer_idx and t is not None else None
-                      for i, t in enumerate(tokens)]
+            tokens = [
+                t[:, start:stop] if i in self.intermediate_layer_idx and t is not None else None
+                for i, t in enumerate(tokens)
+            ]
         logits = self.raw_logits(tokens, image_hw, patch_start_idx)
         depth = torch.exp(logits[:, :-1]).permute(0, 2, 3, 1)  # [B*S, H, W, 1]
         conf = 1 + torch.exp(logits[:, -1])
@@ -225,4 +232,3 @@ def _at(tokens: Sequence[Tensor | None], layer: int) -> Tensor:
 
 def _hw(x: Tensor) -> tuple[int, int]:
     return int(x.shape[2]), int(x.shape[3])
-

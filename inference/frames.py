@@ -37,8 +37,13 @@ class FrameLoader:
         serial_reads: read one frame at a time (a video's seeking reader).
     """
 
-    def __init__(self, read: Callable[[int], Any], preprocess: Callable[[list[Any]], np.ndarray],
-                 threads: int | None = None, serial_reads: bool = False) -> None:
+    def __init__(
+        self,
+        read: Callable[[int], Any],
+        preprocess: Callable[[list[Any]], np.ndarray],
+        threads: int | None = None,
+        serial_reads: bool = False,
+    ) -> None:
         self._read, self._preprocess = read, preprocess
         self._threads = threads or min(8, os.cpu_count() or 1)
         self._read_lock = threading.Lock() if serial_reads else None

@@ -12,7 +12,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["Attention", "Block", "LayerScale", "Mlp", "RopeTables", "rope_tables_2d", "frame_rope_tables", "apply_rope_2d"]
+__all__ = [
+    "Attention",
+    "Block",
+    "LayerScale",
+    "Mlp",
+    "RopeTables",
+    "rope_tables_2d",
+    "frame_rope_tables",
+    "apply_rope_2d",
+]
 
 
 class RopeTables(NamedTuple):

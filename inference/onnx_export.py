@@ -43,7 +43,9 @@ class ExportReport:
     max_abs_error: dict[int, dict[str, float]]
 
     def summary(self) -> str:
-        lines = [f"ONNX export {self.path} ({self.height}x{self.width}, frames={'dynamic' if self.dynamic_frames else self.frames})"]
+        lines = [
+            f"ONNX export {self.path} ({self.height}x{self.width}, frames={'dynamic' if self.dynamic_frames else self.frames})"
+        ]
         for s, errs in self.max_abs_error.items():
             lines.append(f"  S={s}: " + ", ".join(f"{k} {v:.2e}" for k, v in errs.items()))
         return "\n".join(lines)
@@ -143,6 +145,7 @@ def verify_onnx(
             ref = model(x[None], frames_chunk_size=None)
         got = runner.forward(x.numpy())
         result[s] = {
-            name: float(np.max(np.abs(got[name] - ref[name].numpy()))) for name in ONNX_OUTPUTS  # type: ignore[union-attr]
+            name: float(np.max(np.abs(got[name] - ref[name].numpy())))
+            for name in ONNX_OUTPUTS  # type: ignore[union-attr]
         }
     return result

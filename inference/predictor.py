@@ -37,8 +37,13 @@ class ImagePredictor:
     """
 
     def __init__(
-        self, source: Any, runner: Any, mode: str = "crop", spec: ImageSpec | None = None,
-        identity: dict[str, Any] | None = None, model: str | None = None,
+        self,
+        source: Any,
+        runner: Any,
+        mode: str = "crop",
+        spec: ImageSpec | None = None,
+        identity: dict[str, Any] | None = None,
+        model: str | None = None,
     ) -> None:
         from inference.backbones import get
 
@@ -49,8 +54,11 @@ class ImagePredictor:
         self.identity = identity or {}
         self.num_frames = len(source)
         self._spec = spec
-        self._frames = FrameLoader(source.read, lambda images: self.backbone.impl.preprocess(images, self.mode),
-                                   serial_reads=getattr(source, "paths", None) is None)  # a video seeks
+        self._frames = FrameLoader(
+            source.read,
+            lambda images: self.backbone.impl.preprocess(images, self.mode),
+            serial_reads=getattr(source, "paths", None) is None,
+        )  # a video seeks
 
     @property
     def runner(self) -> Any:
@@ -67,8 +75,10 @@ class ImagePredictor:
         others when a chunk takes it.  The source must be image files."""
         append = getattr(self.source, "append", None)
         if append is None or not isinstance(path, (str, os.PathLike)):
-            raise TypeError(f"ImagePredictor.append takes an image file's path into image files, got "
-                            f"{type(path).__name__} for a {type(self.source).__name__} source")
+            raise TypeError(
+                f"ImagePredictor.append takes an image file's path into image files, got "
+                f"{type(path).__name__} for a {type(self.source).__name__} source"
+            )
         append(path)
         self.num_frames = len(self.source)
 
@@ -102,8 +112,14 @@ class ImagePredictor:
         model = self.identity
         if not model and self._spec is not None:
             sp = self._spec
-            model = model_identity(sp.weights, backend=sp.backend, dtype=sp.dtype,
-                                   device_class=sp.device.split(":")[0], config=sp.model_config, model=sp.model)
+            model = model_identity(
+                sp.weights,
+                backend=sp.backend,
+                dtype=sp.dtype,
+                device_class=sp.device.split(":")[0],
+                config=sp.model_config,
+                model=sp.model,
+            )
         return {"frames": frames, "model": model, "preprocessing": {"mode": self.mode}}
 
     def images(self, frames: np.ndarray) -> np.ndarray:
@@ -129,8 +145,12 @@ class ImagePredictor:
 
 
 def build_runner(
-    weights: str | os.PathLike[str], backend: str = "torch", device: str = "cpu", dtype: str = "float32",
-    model_config: dict[str, Any] | None = None, model: str = "vggt-1b",
+    weights: str | os.PathLike[str],
+    backend: str = "torch",
+    device: str = "cpu",
+    dtype: str = "float32",
+    model_config: dict[str, Any] | None = None,
+    model: str = "vggt-1b",
 ) -> Any:
     """The runner of backbone ``model`` (:data:`inference.backbones.BACKBONES`; its preset, or
     ``model_config`` of its family) with ``weights`` loaded, or an
@@ -180,21 +200,29 @@ class ImageSpec:
     def runner_factory(self) -> Callable[[], Any]:
         """Loads the runner when called; one per process for the same weights, backend,
         device, dtype and model (a worker running many sequences loads the model once)."""
-        key = (self.model, self.weights, self.backend, self.device, self.dtype,
-               repr(sorted((self.model_config or {}).items())))
+        key = (
+            self.model,
+            self.weights,
+            self.backend,
+            self.device,
+            self.dtype,
+            repr(sorted((self.model_config or {}).items())),
+        )
 
         def load() -> Any:
             if key not in _RUNNERS:
-                _RUNNERS[key] = build_runner(self.weights, self.backend, self.device, self.dtype, self.model_config,
-                                             self.model)
+                _RUNNERS[key] = build_runner(
+                    self.weights, self.backend, self.device, self.dtype, self.model_config, self.model
+                )
             return _RUNNERS[key]
 
         return load
 
     def build(self, source: Any = None) -> ImagePredictor:
         """The predictor (the model is loaded at its first prediction)."""
-        return ImagePredictor(source if source is not None else self.source(), self.runner_factory(),
-                              mode=self.mode, spec=self)
+        return ImagePredictor(
+            source if source is not None else self.source(), self.runner_factory(), mode=self.mode, spec=self
+        )
 
 
 def weights_identity(path: Any) -> dict[str, Any]:
@@ -207,7 +235,12 @@ def weights_identity(path: Any) -> dict[str, Any]:
 
 
 def model_identity(
-    weights: Any, *, backend: str, dtype: str, device_class: str, config: dict[str, Any] | None,
+    weights: Any,
+    *,
+    backend: str,
+    dtype: str,
+    device_class: str,
+    config: dict[str, Any] | None,
     model: str = "vggt-1b",
 ) -> dict[str, Any]:
     """The model part of :meth:`ImagePredictor.fingerprint`: the backbone (name, family,
@@ -217,6 +250,9 @@ def model_identity(
     b = get(model)
     return {
         "backbone": {"name": b.name, "family": b.family, "preset": b.preset},
-        "weights": weights_identity(weights), "config": config, "backend": backend, "dtype": dtype,
+        "weights": weights_identity(weights),
+        "config": config,
+        "backend": backend,
+        "dtype": dtype,
         "device_class": device_class,
     }

@@ -34,8 +34,16 @@ from typing import Literal, Union
 
 import numpy as np
 
-__all__ = ["preprocess", "preprocess_da3", "load_image", "target_size_hw", "resize_rgb", "to_uint8_images",
-           "IMAGENET_MEAN", "IMAGENET_STD"]
+__all__ = [
+    "preprocess",
+    "preprocess_da3",
+    "load_image",
+    "target_size_hw",
+    "resize_rgb",
+    "to_uint8_images",
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
+]
 
 #: What Depth Anything 3's official API normalises with (outside the network).
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -283,7 +291,9 @@ def preprocess(
     if len(shapes) > 1:
         max_h = max(a.shape[1] for a in out)
         max_w = max(a.shape[2] for a in out)
-        warnings.warn(f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}", stacklevel=2)
+        warnings.warn(
+            f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}", stacklevel=2
+        )
         out = [_pad_white(a, max_h, max_w) for a in out]
     return np.stack(out)
 
@@ -333,8 +343,10 @@ def preprocess_da3(
         h = min(a.shape[1] for a in out)
         w = min(a.shape[2] for a in out)
         warnings.warn(f"images have different shapes {sorted(shapes)}; centre-cropping them to {h}x{w}", stacklevel=2)
-        out = [a[:, (a.shape[1] - h) // 2 : (a.shape[1] - h) // 2 + h, (a.shape[2] - w) // 2 : (a.shape[2] - w) // 2 + w]
-               for a in out]
+        out = [
+            a[:, (a.shape[1] - h) // 2 : (a.shape[1] - h) // 2 + h, (a.shape[2] - w) // 2 : (a.shape[2] - w) // 2 + w]
+            for a in out
+        ]
     return np.ascontiguousarray(np.stack(out))
 
 

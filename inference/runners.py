@@ -46,11 +46,20 @@ def _check_images(images: Any) -> np.ndarray:
 
 
 #: The model outputs a chunk uses, and what each is, for messages.
-_OUTPUTS = {"pose_enc": "camera head pose encoding", "depth": "depth head depth",
-            "depth_conf": "depth head confidence", "patch_tokens": "DINO patch tokens",
-            "extrinsics": "camera extrinsics", "intrinsics": "camera intrinsics",
-            "prealt_patch_tokens": "DINO patch tokens", "descriptors": "loop descriptors", "local_points": "local point map",
-            "conf": "confidence", "camera_poses": "camera poses", "dino_patch_tokens": "DINO patch tokens"}
+_OUTPUTS = {
+    "pose_enc": "camera head pose encoding",
+    "depth": "depth head depth",
+    "depth_conf": "depth head confidence",
+    "patch_tokens": "DINO patch tokens",
+    "extrinsics": "camera extrinsics",
+    "intrinsics": "camera intrinsics",
+    "prealt_patch_tokens": "DINO patch tokens",
+    "descriptors": "loop descriptors",
+    "local_points": "local point map",
+    "conf": "confidence",
+    "camera_poses": "camera poses",
+    "dino_patch_tokens": "DINO patch tokens",
+}
 
 
 class ModelOutputError(SwiftjaxError, ValueError):
@@ -72,8 +81,15 @@ def check_outputs(outputs: dict[str, np.ndarray], model: str = "VGGT") -> None:
             )
 
 
-def _to_prediction(images: np.ndarray, pose_enc: np.ndarray, depth: np.ndarray, conf: np.ndarray,
-                   tokens: np.ndarray, model: str = "VGGT", reduced: bool = False) -> ChunkPrediction:
+def _to_prediction(
+    images: np.ndarray,
+    pose_enc: np.ndarray,
+    depth: np.ndarray,
+    conf: np.ndarray,
+    tokens: np.ndarray,
+    model: str = "VGGT",
+    reduced: bool = False,
+) -> ChunkPrediction:
     """Model outputs for one scene (leading batch axis already removed) -> ChunkPrediction;
     :class:`ModelOutputError` naming ``model`` if any is non-finite.  ``tokens``: the DINO patch
     tokens ``[S, P, C]``, or (``reduced``) their descriptors ``[S, C]``."""
@@ -102,8 +118,13 @@ class TorchRunner:
             the runner's device type; the heads stay in float32, as upstream.
     """
 
-    def __init__(self, model: VGGT, device: str | torch.device = "cpu", dtype: torch.dtype | None = None,
-                 reduce_tokens: bool | None = None) -> None:
+    def __init__(
+        self,
+        model: VGGT,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype | None = None,
+        reduce_tokens: bool | None = None,
+    ) -> None:
         import torch
 
         self.device = torch.device(device)
@@ -149,8 +170,9 @@ class TorchRunner:
             wanted["patch_tokens"] = out["patch_tokens"][0]
         host = to_host(wanted)
         tokens = host["descriptors"] if self.reduce_tokens else host["patch_tokens"]
-        return _to_prediction(arr, host["pose_enc"], host["depth"], host["depth_conf"], tokens, self.name,
-                              reduced=self.reduce_tokens)
+        return _to_prediction(
+            arr, host["pose_enc"], host["depth"], host["depth_conf"], tokens, self.name, reduced=self.reduce_tokens
+        )
 
     def _memory_error(self, arr: np.ndarray) -> GPUMemoryError:
         import torch
@@ -169,7 +191,8 @@ class TorchRunner:
         return GPUMemoryError(
             f"{self.name}: a chunk of {s} frames of {w}x{h} does not fit in the memory of {self.device}; the largest "
             f"that fits, measured now, is {fits} frames: --chunk-size {fits} (and an --overlap below it)"
-            if fits else f"{self.name}: not even one frame of {w}x{h} fits in the memory of {self.device}"
+            if fits
+            else f"{self.name}: not even one frame of {w}x{h} fits in the memory of {self.device}"
         )
 
 
@@ -179,7 +202,9 @@ def ort_session(path: str | os.PathLike[str], providers: Sequence[str] | None = 
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = intra_op_threads
-    return ort.InferenceSession(os.fspath(path), sess_options=opts, providers=list(providers or ["CPUExecutionProvider"]))
+    return ort.InferenceSession(
+        os.fspath(path), sess_options=opts, providers=list(providers or ["CPUExecutionProvider"])
+    )
 
 
 class OnnxRunner:
@@ -192,8 +217,9 @@ class OnnxRunner:
         intra_op_threads: threads per operator (0 = onnxruntime's default).
     """
 
-    def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
-                 intra_op_threads: int = 0) -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], providers: Sequence[str] | None = None, intra_op_threads: int = 0
+    ) -> None:
         self.session = ort_session(path, providers, intra_op_threads)
         self.name = f"the ONNX graph {os.fspath(path)}"
         inp = self.session.get_inputs()[0]
@@ -223,5 +249,6 @@ class OnnxRunner:
         """See :class:`Runner`."""
         arr = _check_images(images)
         out = self.forward(arr)
-        return _to_prediction(arr, out["pose_enc"][0], out["depth"][0], out["depth_conf"][0], out["patch_tokens"][0],
-                              self.name)
+        return _to_prediction(
+            arr, out["pose_enc"][0], out["depth"][0], out["depth_conf"][0], out["patch_tokens"][0], self.name
+        )

@@ -38,7 +38,8 @@ def _variadic_sum_jvp(axis: int, primals, tangents):
     (operands,), (dots,) = primals, tangents
     ax = axis % operands[0].ndim
     out_dots = tuple(
-        jnp.sum(t, axis=ax) if jnp.issubdtype(o.dtype, jnp.inexact)
+        jnp.sum(t, axis=ax)
+        if jnp.issubdtype(o.dtype, jnp.inexact)
         else np.zeros(np.delete(o.shape, ax), jax.dtypes.float0)
         for o, t in zip(operands, dots)
     )

@@ -144,8 +144,10 @@ def sim3_to_extrinsic(cam_to_world: Real[ArrayLike, "*batch 8"]) -> Float[Array,
 
 
 @jax.jit
-def world_cameras(chunk_pose: Real[ArrayLike, "*batch 8"], extrinsic: Real[ArrayLike, "*batch 3 4"],
-                  ) -> Float[Array, "*batch 4 4"]:
+def world_cameras(
+    chunk_pose: Real[ArrayLike, "*batch 8"],
+    extrinsic: Real[ArrayLike, "*batch 3 4"],
+) -> Float[Array, "*batch 4 4"]:
     """Camera-to-world ``[..., 4, 4]`` with orthonormal rotation: a chunk-to-world ``S_t``
     composed with each camera of the chunk.
 

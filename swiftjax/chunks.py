@@ -63,9 +63,7 @@ def chunk_schedule(n_frames: int, chunk_size: int = 75, overlap: int = 30) -> Ch
     if chunk_size < 2:
         raise ValueError(f"chunk_size must be >= 2, got {chunk_size}")
     if not 1 <= overlap < chunk_size:
-        raise ValueError(
-            f"overlap must satisfy 1 <= overlap < chunk_size ({chunk_size}), got {overlap}"
-        )
+        raise ValueError(f"overlap must satisfy 1 <= overlap < chunk_size ({chunk_size}), got {overlap}")
     step = chunk_size - overlap
     starts = [0]
     while starts[-1] + chunk_size < n_frames:

@@ -59,7 +59,9 @@ def _add_method_options(parser: argparse.ArgumentParser) -> None:
     )
     options.add_arguments(group, PipelineConfig)
     parser.add_argument(
-        "--config", type=pathlib.Path, metavar="FILE",
+        "--config",
+        type=pathlib.Path,
+        metavar="FILE",
         help="TOML file of method parameters (top level or a [swiftjax] table; keys as the flags, with _)",
     )
 
@@ -74,12 +76,17 @@ def _pipeline_config(args: argparse.Namespace) -> Any:
         values.update(_read_config_table(args.config))
     flags = {f.name: getattr(args, f.name, None) for f in dataclasses.fields(PipelineConfig)}
     try:
-        config = options.from_sources(PipelineConfig, values, flags, file_name=str(args.config) if args.config else None)
+        config = options.from_sources(
+            PipelineConfig, values, flags, file_name=str(args.config) if args.config else None
+        )
     except (TypeError, ValueError) as err:
         raise CliError(f"invalid configuration: {err}") from err
     given = {k for k, v in flags.items() if v is not None} | set(values)
-    scaled = [f"{options.flag(f.name)} {getattr(config, f.name)}" for f in dataclasses.fields(PipelineConfig)
-              if f.name not in given and getattr(config, f.name) != f.default]
+    scaled = [
+        f"{options.flag(f.name)} {getattr(config, f.name)}"
+        for f in dataclasses.fields(PipelineConfig)
+        if f.name not in given and getattr(config, f.name) != f.default
+    ]
     if scaled:
         print(f"swiftjax: --chunk-size {config.chunk_size}: defaults scaled to fit it: {', '.join(scaled)}")
     return config
@@ -114,25 +121,43 @@ def _read_config_table(path: pathlib.Path) -> dict[str, Any]:
 
 
 def _common_run_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace a run directory that holds another input, model or configuration (deletes only "
-                             "the files its manifest records). What is fingerprinted: each input frame's content "
-                             "(name, size, SHA-256 of the whole file; a video: the video file's), the weights file's "
-                             "SHA-256 (whole file, cached by device, inode, size, mtime and ctime), the model "
-                             "configuration, backend, dtype, device class, preprocessing mode, --intrinsics and "
-                             "--mask-dir contents, and the options by stage: a changed temporal option needs "
-                             "--overwrite, a changed frame re-predicts only its chunks, loop options re-run the loop "
-                             "stage, pose-graph and export options (--colmap*, --voxel-size) re-run only those")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a run directory that holds another input, model or configuration (deletes only "
+        "the files its manifest records). What is fingerprinted: each input frame's content "
+        "(name, size, SHA-256 of the whole file; a video: the video file's), the weights file's "
+        "SHA-256 (whole file, cached by device, inode, size, mtime and ctime), the model "
+        "configuration, backend, dtype, device class, preprocessing mode, --intrinsics and "
+        "--mask-dir contents, and the options by stage: a changed temporal option needs "
+        "--overwrite, a changed frame re-predicts only its chunks, loop options re-run the loop "
+        "stage, pose-graph and export options (--colmap*, --voxel-size) re-run only those",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     group = parser.add_argument_group("execution (where the VGGT predictions run)")
-    group.add_argument("--executor", choices=("local", "ray"), default="local",
-                       help="local: this process, predicting the next chunk while the host aligns (default); "
-                            "ray: a pool of Ray actors (pip install 'swiftjax[ray]')")
-    group.add_argument("--workers", type=int, default=1, metavar="N", help="Ray actors, each with one model (default 1)")
-    group.add_argument("--gpus-per-worker", type=float, default=0.0, metavar="G",
-                       help="GPUs per Ray actor (default 0; 1 = one GPU each)")
-    group.add_argument("--ray-address", default=None, metavar="ADDR",
-                       help="join this Ray cluster (from 'ray start --head'); default: a local cluster on loopback")
+    group.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help="local: this process, predicting the next chunk while the host aligns (default); "
+        "ray: a pool of Ray actors (pip install 'swiftjax[ray]')",
+    )
+    group.add_argument(
+        "--workers", type=int, default=1, metavar="N", help="Ray actors, each with one model (default 1)"
+    )
+    group.add_argument(
+        "--gpus-per-worker",
+        type=float,
+        default=0.0,
+        metavar="G",
+        help="GPUs per Ray actor (default 0; 1 = one GPU each)",
+    )
+    group.add_argument(
+        "--ray-address",
+        default=None,
+        metavar="ADDR",
+        help="join this Ray cluster (from 'ray start --head'); default: a local cluster on loopback",
+    )
 
 
 def _check_executor_args(args: argparse.Namespace) -> float:
@@ -143,8 +168,15 @@ def _check_executor_args(args: argparse.Namespace) -> float:
     if args.gpus_per_worker < 0:
         raise CliError(f"--gpus-per-worker must be >= 0, got {args.gpus_per_worker:g}")
     if args.executor == "local":
-        ray_only = [flag for flag, used in (("--workers", args.workers != 1), ("--gpus-per-worker", args.gpus_per_worker),
-                                            ("--ray-address", args.ray_address is not None)) if used]
+        ray_only = [
+            flag
+            for flag, used in (
+                ("--workers", args.workers != 1),
+                ("--gpus-per-worker", args.gpus_per_worker),
+                ("--ray-address", args.ray_address is not None),
+            )
+            if used
+        ]
         if ray_only:
             raise CliError(f"{', '.join(ray_only)} need --executor ray")
     return 1.0 if args.gpus_per_worker == 0 else 0.0  # a GPU worker mostly waits for its GPU
@@ -157,8 +189,9 @@ def _make_executor(args: argparse.Namespace) -> Any:
     cpus = _check_executor_args(args)
     if args.executor == "local":
         return LocalExecutor()
-    return RayExecutor(args.workers, gpus_per_worker=args.gpus_per_worker, cpus_per_worker=cpus,
-                       address=args.ray_address)
+    return RayExecutor(
+        args.workers, gpus_per_worker=args.gpus_per_worker, cpus_per_worker=cpus, address=args.ray_address
+    )
 
 
 def _run_batch(args: argparse.Namespace, jobs: list[Any]) -> int:
@@ -168,8 +201,15 @@ def _run_batch(args: argparse.Namespace, jobs: list[Any]) -> int:
     cpus = _check_executor_args(args)
     config = _pipeline_config(args)
     rows = batch.run_batch(
-        jobs, args.out, config, executor=args.executor, workers=args.workers, gpus_per_worker=args.gpus_per_worker,
-        cpus_per_worker=cpus, ray_address=args.ray_address, overwrite=args.overwrite,
+        jobs,
+        args.out,
+        config,
+        executor=args.executor,
+        workers=args.workers,
+        gpus_per_worker=args.gpus_per_worker,
+        cpus_per_worker=cpus,
+        ray_address=args.ray_address,
+        overwrite=args.overwrite,
     )
     print(batch.batch_table(rows))
     print(f"{args.out / 'batch.json'}")
@@ -191,11 +231,19 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     args.input = "."  # _image_spec's input: replaced per sequence below
     spec = _image_spec(args)
     names = batch.unique_names([inp for inp, _ in items])
-    times = (batch.sequence_timestamps([inp for inp, _ in items], args.timestamps) if args.timestamps
-             else [None] * len(items))
+    times = (
+        batch.sequence_timestamps([inp for inp, _ in items], args.timestamps)
+        if args.timestamps
+        else [None] * len(items)
+    )
     jobs = [
-        batch.Sequence(name, dataclasses.replace(spec, input=os.path.abspath(inp)),
-                       os.path.abspath(gt) if gt else None, args.gt_format, t)
+        batch.Sequence(
+            name,
+            dataclasses.replace(spec, input=os.path.abspath(inp)),
+            os.path.abspath(gt) if gt else None,
+            args.gt_format,
+            t,
+        )
         for name, (inp, gt), t in zip(names, items, times)
     ]
     return _run_batch(args, jobs)
@@ -212,13 +260,12 @@ def _check_out_not_in_input(out: pathlib.Path, source: Any, folder: pathlib.Path
     """Refuse an output directory inside the input folder (outputs would mix with, and on the
     next run be read as, frames); ``folder``: a followed folder (no frame in it yet)."""
     roots = {pathlib.Path(p).parent.resolve() for p in getattr(source, "paths", [])} | (
-        {folder.resolve()} if folder is not None else set())
+        {folder.resolve()} if folder is not None else set()
+    )
     target = out.resolve()
     for root in roots:
         if target == root or target.is_relative_to(root):
-            raise CliError(
-                f"--out {out} is inside the input folder {root}: choose a directory outside the frames"
-            )
+            raise CliError(f"--out {out} is inside the input folder {root}: choose a directory outside the frames")
 
 
 # ---------------------------------------------------------------------------- commands
@@ -235,13 +282,23 @@ def _empty_result(result: Any, config: Any) -> int:
     cloud was exit 0), naming the options that drop pixels and were set."""
     if int(result.metrics.get("points", 1)) > 0:
         return 0
-    culprits = [f"{flag} {value}" for flag, value in (
-        ("--point-conf-ratio", config.point_conf_ratio), ("--mask-dir", config.mask_dir),
-        ("--drop-sky", config.drop_sky or None), ("--intrinsics", config.intrinsics), ("--voxel-size", config.voxel_size),
-    ) if value is not None and not (flag == "--point-conf-ratio" and value == 0.75)]
+    culprits = [
+        f"{flag} {value}"
+        for flag, value in (
+            ("--point-conf-ratio", config.point_conf_ratio),
+            ("--mask-dir", config.mask_dir),
+            ("--drop-sky", config.drop_sky or None),
+            ("--intrinsics", config.intrinsics),
+            ("--voxel-size", config.voxel_size),
+        )
+        if value is not None and not (flag == "--point-conf-ratio" and value == 0.75)
+    ]
     why = f"check {', '.join(culprits)}" if culprits else "the model's depths or confidences are unusable"
-    print(f"swiftjax: error: the run wrote 0 points (every pixel was dropped; {why}); the trajectory and the other "
-          f"outputs are in {result.run_dir}", file=sys.stderr)
+    print(
+        f"swiftjax: error: the run wrote 0 points (every pixel was dropped; {why}); the trajectory and the other "
+        f"outputs are in {result.run_dir}",
+        file=sys.stderr,
+    )
     return 1
 
 
@@ -266,8 +323,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     with contextlib.closing(_make_executor(args)) as executor, _LiveView(args) as live:
         run = demo.loop_route_run(args.frames, seed=args.seed, image_hw=(h, w), spacing_m=args.frame_spacing)
         result = pipeline.reconstruct(
-            run.predictor, out, config, ground_truth=run.ground_truth, overwrite=args.overwrite,
-            progress=not args.no_progress, executor=executor,
+            run.predictor,
+            out,
+            config,
+            ground_truth=run.ground_truth,
+            overwrite=args.overwrite,
+            progress=not args.no_progress,
+            executor=executor,
         )
         _print_summary(result)
         live.wait()
@@ -304,8 +366,9 @@ class _LiveView:
         if getattr(args, "view", False):
             viewer = _import_viewer()
             try:
-                self.live = viewer.LiveViewer(args.out, host=args.view_host, port=args.view_port,
-                                              max_points=args.view_max_points)
+                self.live = viewer.LiveViewer(
+                    args.out, host=args.view_host, port=args.view_port, max_points=args.view_max_points
+                )
             except viewer.ViewerError as err:
                 raise CliError(str(err)) from None
 
@@ -437,7 +500,9 @@ def _mode(args: argparse.Namespace, backbone: Any) -> str:
     if args.mode is None:
         return modes[0]
     if args.mode not in modes:
-        raise CliError(f"--mode {args.mode} is not a preprocessing of --model {backbone.name} (use {' or '.join(modes)})")
+        raise CliError(
+            f"--mode {args.mode} is not a preprocessing of --model {backbone.name} (use {' or '.join(modes)})"
+        )
     return args.mode
 
 
@@ -500,9 +565,16 @@ def _image_spec(args: argparse.Namespace, checked: bool = False) -> Any:
     backbone = _backbone(args)
     model_config = None if args.backend == "onnx" else _model_config(args, backbone)
     return ImageSpec(  # absolute paths: a worker may run elsewhere
-        input=os.path.abspath(args.input), weights=os.path.abspath(args.weights), backend=args.backend,
-        device=args.device, dtype=args.dtype, model_config=model_config, mode=_mode(args, backbone),
-        stride=args.stride, skip_bad=args.skip_bad, model=backbone.name,
+        input=os.path.abspath(args.input),
+        weights=os.path.abspath(args.weights),
+        backend=args.backend,
+        device=args.device,
+        dtype=args.dtype,
+        model_config=model_config,
+        mode=_mode(args, backbone),
+        stride=args.stride,
+        skip_bad=args.skip_bad,
+        model=backbone.name,
     )
 
 
@@ -528,12 +600,12 @@ def _is_user_error(err: BaseException) -> bool:
     )
 
 
-
-
 def _check_live_flags(args: argparse.Namespace) -> None:
     """``--follow``, ``--follow-timeout`` and ``--replay-fps``, before any work."""
     if args.follow and args.replay_fps is not None:
-        raise CliError("--follow and --replay-fps exclude each other (follow a growing folder, or replay a finished one)")
+        raise CliError(
+            "--follow and --replay-fps exclude each other (follow a growing folder, or replay a finished one)"
+        )
     if args.follow_timeout is not None and not args.follow:
         raise CliError("--follow-timeout needs --follow")
     if args.follow_timeout is not None and not (args.follow_timeout > 0 and math.isfinite(args.follow_timeout)):
@@ -543,9 +615,17 @@ def _check_live_flags(args: argparse.Namespace) -> None:
     if args.follow:
         if not pathlib.Path(args.input).is_dir():
             raise CliError(f"--follow {args.input}: not a folder (--follow watches a folder that a recorder fills)")
-        used = [flag for flag, on in (("--gt", args.gt is not None), ("--timestamps", args.timestamps is not None),
-                                      ("--stride", args.stride != 1), ("--skip-bad", args.skip_bad),
-                                      ("--executor ray", args.executor != "local")) if on]
+        used = [
+            flag
+            for flag, on in (
+                ("--gt", args.gt is not None),
+                ("--timestamps", args.timestamps is not None),
+                ("--stride", args.stride != 1),
+                ("--skip-bad", args.skip_bad),
+                ("--executor ray", args.executor != "local"),
+            )
+            if on
+        ]
         if used:
             raise CliError(f"{', '.join(used)} cannot be used with --follow (the frames are not known in advance)")
     if (args.follow or args.replay_fps is not None) and args.executor != "local":
@@ -560,8 +640,10 @@ def _reconstruct_live(args: argparse.Namespace, rec: Any, frames: Any, times: An
     import signal
 
     def stop(signum: int, frame: Any) -> None:
-        print("swiftjax: stopping at the next frame; the run finishes with the frames so far (Ctrl-C again to "
-              "interrupt)", file=sys.stderr)
+        print(
+            "swiftjax: stopping at the next frame; the run finishes with the frames so far (Ctrl-C again to interrupt)",
+            file=sys.stderr,
+        )
         frames.stop()
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
@@ -628,8 +710,11 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.replay_fps is not None:
         from swiftjax.io.follow import ReplaySource
 
-        live = ReplaySource(getattr(source, "paths", None) or args.input, args.replay_fps,
-                            stride=1 if hasattr(source, "paths") else args.stride)
+        live = ReplaySource(
+            getattr(source, "paths", None) or args.input,
+            args.replay_fps,
+            stride=1 if hasattr(source, "paths") else args.stride,
+        )
     if len(source) < config.chunk_size and not args.follow:
         print(f"swiftjax: {len(source)} frames, fewer than one chunk: running a single chunk")
     executor = _make_executor(args)
@@ -643,14 +728,29 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
             if args.follow or args.replay_fps is not None:
                 from swiftjax.pipeline.engine import Reconstruction
 
-                rec = Reconstruction(out, predictor, config, ground_truth=gt, executor=executor,
-                                     overwrite=args.overwrite, timestamps_note=note)
-                result = _reconstruct_live(args, rec, live, lambda k: float(k if args.follow else timestamps[k]),
-                                           check_size)
+                rec = Reconstruction(
+                    out,
+                    predictor,
+                    config,
+                    ground_truth=gt,
+                    executor=executor,
+                    overwrite=args.overwrite,
+                    timestamps_note=note,
+                )
+                result = _reconstruct_live(
+                    args, rec, live, lambda k: float(k if args.follow else timestamps[k]), check_size
+                )
             else:
                 result = pipeline.reconstruct(
-                    predictor, out, config, ground_truth=gt, overwrite=args.overwrite, progress=not args.no_progress,
-                    timestamps=timestamps, timestamps_note=note, executor=executor,
+                    predictor,
+                    out,
+                    config,
+                    ground_truth=gt,
+                    overwrite=args.overwrite,
+                    progress=not args.no_progress,
+                    timestamps=timestamps,
+                    timestamps_note=note,
+                    executor=executor,
                 )
             _print_summary(result)
             view.wait()
@@ -678,7 +778,8 @@ def _read_trajectory(path: pathlib.Path, fmt: str) -> tuple[Any, Any]:
         k = int(bad[0])
         raise _RotationError(
             f"{path}: pose {k} (of {len(rows)}, time {float(stamps[k])!r}) has a quaternion of norm {norms[k]:.6g}, "
-            f"not a unit quaternion ({bad.size} such poses)", zero=bool(np.any(norms[bad] < 1e-6)),
+            f"not a unit quaternion ({bad.size} such poses)",
+            zero=bool(np.any(norms[bad] < 1e-6)),
         )
     if np.any(order != np.arange(len(order))):
         print(f"swiftjax: {path}: rows are not in time order; taken in time order")
@@ -762,8 +863,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 f"only {len(i_ref)} of the {len(est)} poses of {est_path} match one of the {len(ref)} poses of "
                 f"{ref_path} within --max-diff {args.max_diff} s (--offset {args.offset} s); 3 are needed"
             )
-        print(f"associated {len(i_ref)} poses by timestamp ({est_path}: {len(est)}, {ref_path}: {len(ref)}; "
-              f"max diff {args.max_diff} s, offset {args.offset} s)")
+        print(
+            f"associated {len(i_ref)} poses by timestamp ({est_path}: {len(est)}, {ref_path}: {len(ref)}; "
+            f"max diff {args.max_diff} s, offset {args.offset} s)"
+        )
         est, ref = est[i_est], ref[i_ref]
     elif len(est) != len(ref):
         raise CliError(f"{est_path} has {len(est)} poses but {ref_path} has {len(ref)} (KITTI files pair by row)")
@@ -814,19 +917,35 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
 def _image_options(parser: argparse.ArgumentParser) -> None:
     """The model and the frames' preprocessing (reconstruct, batch)."""
-    parser.add_argument("--weights", required=True,
-                        help="weights of the --model network (VGGT: .pt/.pth/.safetensors, .onnx with --backend onnx; "
-                             "DA3: the official model.safetensors); required")
-    parser.add_argument("--model-config", type=pathlib.Path, default=None, metavar="FILE",
-                        help="a custom size of the --model network's family as JSON (the golden tiny_config.json "
-                             "layout of that family; default: the preset of --model)")
+    parser.add_argument(
+        "--weights",
+        required=True,
+        help="weights of the --model network (VGGT: .pt/.pth/.safetensors, .onnx with --backend onnx; "
+        "DA3: the official model.safetensors); required",
+    )
+    parser.add_argument(
+        "--model-config",
+        type=pathlib.Path,
+        default=None,
+        metavar="FILE",
+        help="a custom size of the --model network's family as JSON (the golden tiny_config.json "
+        "layout of that family; default: the preset of --model)",
+    )
     parser.add_argument("--backend", choices=("torch", "onnx"), default="torch", help="inference engine")
     parser.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N, mps")
-    parser.add_argument("--dtype", choices=("float32", "bfloat16", "float16"), default="float32",
-                        help="aggregator compute dtype (torch autocast; the heads stay float32)")
-    parser.add_argument("--mode", choices=("crop", "pad", "resize"), default=None,
-                        help="preprocessing: VGGT crop (default) or pad; DA3 resize (default: longer side 504, sides "
-                             "to the nearest multiple of 14, the official upper_bound_resize) or crop")
+    parser.add_argument(
+        "--dtype",
+        choices=("float32", "bfloat16", "float16"),
+        default="float32",
+        help="aggregator compute dtype (torch autocast; the heads stay float32)",
+    )
+    parser.add_argument(
+        "--mode",
+        choices=("crop", "pad", "resize"),
+        default=None,
+        help="preprocessing: VGGT crop (default) or pad; DA3 resize (default: longer side 504, sides "
+        "to the nearest multiple of 14, the official upper_bound_resize) or crop",
+    )
     parser.add_argument("--stride", type=int, default=1, help="use every k-th frame")
     parser.add_argument("--skip-bad", action="store_true", help="skip unreadable images with a warning")
     parser.add_argument("--gt-format", choices=("kitti", "tum"), default="kitti", help="ground-truth file format")
@@ -846,7 +965,8 @@ class _HelpFormatter(argparse.HelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="swiftjax", description="SwiftVGGT large-scale reconstruction (JAX geometry core).",
+        prog="swiftjax",
+        description="SwiftVGGT large-scale reconstruction (JAX geometry core).",
         formatter_class=_HelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -860,26 +980,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/demo", metavar="DIR", help="run directory")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world and oracle")
     p.add_argument("--image-size", default="154x518", metavar="HxW", help="synthetic camera image size")
-    p.add_argument("--frame-spacing", type=float, default=1.0, metavar="METRES",
-                   help="distance between frames along the route (4: the whole route in ~155 frames)")
-    p.add_argument("--batch", type=int, default=None, metavar="K",
-                   help="K routes (seeds SEED..SEED+K-1) as a batch of runs in OUT/route_NN (see 'swiftjax batch')")
+    p.add_argument(
+        "--frame-spacing",
+        type=float,
+        default=1.0,
+        metavar="METRES",
+        help="distance between frames along the route (4: the whole route in ~155 frames)",
+    )
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        metavar="K",
+        help="K routes (seeds SEED..SEED+K-1) as a batch of runs in OUT/route_NN (see 'swiftjax batch')",
+    )
     _common_run_options(p)
     _view_options(p)
     _add_method_options(p)
     p.set_defaults(func=_cmd_demo)
 
     p = add("batch", help="many sequences, each its own resumable run, spread over the workers")
-    p.add_argument("list", type=pathlib.Path,
-                   help="text file with one 'INPUT [GROUND_TRUTH]' per line (shell quoting: \"my seq\" gt.txt; '#' "
-                        "starts a comment at a line's start or after a space), or a folder of sequence folders "
-                        "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)")
-    p.add_argument("--out", type=pathlib.Path, required=True, metavar="DIR",
-                   help="one run directory per sequence, and batch.json; required")
-    p.add_argument("--timestamps", default=None, metavar="NAME",
-                   help="each sequence's times file for poses_tum.txt, found in its folder or beside its frames "
-                        "folder or video (e.g. rgb.txt; the format of reconstruct --timestamps; default: a video's "
-                        "own times, else the frame index)")
+    p.add_argument(
+        "list",
+        type=pathlib.Path,
+        help="text file with one 'INPUT [GROUND_TRUTH]' per line (shell quoting: \"my seq\" gt.txt; '#' "
+        "starts a comment at a line's start or after a space), or a folder of sequence folders "
+        "(frames in it or in its images/, ground truth in gt.txt, groundtruth.txt or poses.txt)",
+    )
+    p.add_argument(
+        "--out",
+        type=pathlib.Path,
+        required=True,
+        metavar="DIR",
+        help="one run directory per sequence, and batch.json; required",
+    )
+    p.add_argument(
+        "--timestamps",
+        default=None,
+        metavar="NAME",
+        help="each sequence's times file for poses_tum.txt, found in its folder or beside its frames "
+        "folder or video (e.g. rgb.txt; the format of reconstruct --timestamps; default: a video's "
+        "own times, else the frame index)",
+    )
     _image_options(p)
     _common_run_options(p)
     _add_method_options(p)
@@ -890,18 +1032,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="DIR", help="run directory (resumable); required")
     _image_options(p)
     p.add_argument("--gt", type=pathlib.Path, metavar="FILE", help="ground-truth poses for ATE (default: none)")
-    p.add_argument("--timestamps", type=pathlib.Path, metavar="FILE",
-                   help="per-frame times for poses_tum.txt: 'time name' lines (TUM rgb.txt) or one time per image "
-                        "(default: a video's own times, else the frame index)")
+    p.add_argument(
+        "--timestamps",
+        type=pathlib.Path,
+        metavar="FILE",
+        help="per-frame times for poses_tum.txt: 'time name' lines (TUM rgb.txt) or one time per image "
+        "(default: a video's own times, else the frame index)",
+    )
     group = p.add_argument_group("live input (poses while the frames arrive: poses_live.jsonl)")
-    group.add_argument("--follow", action="store_true",
-                       help="INPUT is a folder that a recorder fills: frames are taken once complete, in name order, "
-                            "until an END file appears in it, --follow-timeout, or Ctrl-C (then the run finishes with "
-                            "the frames so far); the finished run is the offline run of those frames")
-    group.add_argument("--follow-timeout", type=float, default=None, metavar="SECONDS",
-                       help="with --follow: end after this many seconds without a new frame (default: 60)")
-    group.add_argument("--replay-fps", type=float, default=None, metavar="FPS",
-                       help="replay INPUT (folder, glob or video) at FPS frames per second through the live engine")
+    group.add_argument(
+        "--follow",
+        action="store_true",
+        help="INPUT is a folder that a recorder fills: frames are taken once complete, in name order, "
+        "until an END file appears in it, --follow-timeout, or Ctrl-C (then the run finishes with "
+        "the frames so far); the finished run is the offline run of those frames",
+    )
+    group.add_argument(
+        "--follow-timeout",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="with --follow: end after this many seconds without a new frame (default: 60)",
+    )
+    group.add_argument(
+        "--replay-fps",
+        type=float,
+        default=None,
+        metavar="FPS",
+        help="replay INPUT (folder, glob or video) at FPS frames per second through the live engine",
+    )
     _common_run_options(p)
     _view_options(p)
     _add_method_options(p)
@@ -914,35 +1073,67 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-points", type=int, default=1_000_000, help="point budget (uniform sample)")
     p.set_defaults(func=_cmd_view)
 
-    p = add("prune", help="shrink a finished run directory: drop the chunk store's dense maps, keep every output",
-            description="Drop the depth and confidence maps from the chunk files of a finished run (most of "
-                        "chunks/). Every output is kept; 'swiftjax view' and re-runs with other export or pose-graph "
-                        "options still predict nothing; a re-run that needs the maps (other loop or temporal "
-                        "options, changed frames) predicts those chunks again.")
+    p = add(
+        "prune",
+        help="shrink a finished run directory: drop the chunk store's dense maps, keep every output",
+        description="Drop the depth and confidence maps from the chunk files of a finished run (most of "
+        "chunks/). Every output is kept; 'swiftjax view' and re-runs with other export or pose-graph "
+        "options still predict nothing; a re-run that needs the maps (other loop or temporal "
+        "options, changed frames) predicts those chunks again.",
+    )
     p.add_argument("run_dir", type=pathlib.Path, help="the --out folder of a finished run")
     p.set_defaults(func=_cmd_prune)
 
     p = add("evaluate", help="ATE / RPE of an estimated trajectory against a reference (evo's order: REF EST)")
-    p.add_argument("reference", type=pathlib.Path,
-                   help="reference (ground-truth) poses, FIRST as in evo_ape/evo_rpe; the errors are in its unit")
+    p.add_argument(
+        "reference",
+        type=pathlib.Path,
+        help="reference (ground-truth) poses, FIRST as in evo_ape/evo_rpe; the errors are in its unit",
+    )
     p.add_argument("estimate", type=pathlib.Path, help="estimated camera-to-world poses (e.g. a run's poses_kitti.txt)")
-    p.add_argument("--format", choices=("kitti", "tum"), default="kitti",
-                   help="file format (KITTI pairs poses by row, TUM by timestamp)")
-    p.add_argument("--align", choices=("sim3", "se3", "none"), default="sim3",
-                   help="alignment of the estimate before the errors (evo --align [--correct_scale])")
+    p.add_argument(
+        "--format",
+        choices=("kitti", "tum"),
+        default="kitti",
+        help="file format (KITTI pairs poses by row, TUM by timestamp)",
+    )
+    p.add_argument(
+        "--align",
+        choices=("sim3", "se3", "none"),
+        default="sim3",
+        help="alignment of the estimate before the errors (evo --align [--correct_scale])",
+    )
     p.add_argument("--delta", type=int, default=1, help="RPE frame offset")
-    p.add_argument("--max-diff", type=float, default=0.01, metavar="SECONDS",
-                   help="TUM: largest time difference of associated poses (evo's --t_max_diff)")
-    p.add_argument("--offset", type=float, default=0.0, metavar="SECONDS",
-                   help="TUM: time offset added to the estimate's timestamps (evo's --t_offset)")
-    p.add_argument("--fix-rotations", action="store_true",
-                   help="re-orthonormalise rotations that are not (reported), instead of an error")
+    p.add_argument(
+        "--max-diff",
+        type=float,
+        default=0.01,
+        metavar="SECONDS",
+        help="TUM: largest time difference of associated poses (evo's --t_max_diff)",
+    )
+    p.add_argument(
+        "--offset",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="TUM: time offset added to the estimate's timestamps (evo's --t_offset)",
+    )
+    p.add_argument(
+        "--fix-rotations",
+        action="store_true",
+        help="re-orthonormalise rotations that are not (reported), instead of an error",
+    )
     p.set_defaults(func=_cmd_evaluate)
 
     p = add("export-onnx", help="export VGGT to ONNX for onnxruntime")
     p.add_argument("--weights", required=True, help="VGGT weights (.pt/.pth/.safetensors); required")
-    p.add_argument("--model-config", type=pathlib.Path, default=None, metavar="FILE",
-                   help="VGGT architecture as JSON (default: VGGT-1B)")
+    p.add_argument(
+        "--model-config",
+        type=pathlib.Path,
+        default=None,
+        metavar="FILE",
+        help="VGGT architecture as JSON (default: VGGT-1B)",
+    )
     p.add_argument("--out", type=pathlib.Path, required=True, metavar="FILE", help="the .onnx file; required")
     p.add_argument("--frames", type=int, default=75, help="frames of the example input (the frame axis stays dynamic)")
     p.add_argument("--height", type=int, default=154, help="image height the graph is exported for")
@@ -955,9 +1146,18 @@ def build_parser() -> argparse.ArgumentParser:
 #: outside 1..65535 failed only when the viewer started (after the model load), 10**23 frames
 #: or a negative seed deep inside NumPy.  Method options have theirs in their schema.
 _INT_FLAGS = {
-    "port": (1, 65535), "view_port": (1, 65535), "workers": (1, 4096), "stride": (1, 10**6),
-    "frames": (1, 10**7), "seed": (0, 2**32 - 1), "batch": (1, 10**4), "delta": (1, 10**7),
-    "max_points": (1, 10**9), "view_max_points": (1, 10**9), "height": (1, 16_384), "width": (1, 16_384),
+    "port": (1, 65535),
+    "view_port": (1, 65535),
+    "workers": (1, 4096),
+    "stride": (1, 10**6),
+    "frames": (1, 10**7),
+    "seed": (0, 2**32 - 1),
+    "batch": (1, 10**4),
+    "delta": (1, 10**7),
+    "max_points": (1, 10**9),
+    "view_max_points": (1, 10**9),
+    "height": (1, 16_384),
+    "width": (1, 16_384),
 }
 
 

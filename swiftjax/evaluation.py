@@ -191,7 +191,9 @@ def _check_align(align: str) -> str:
     return align
 
 
-def umeyama_alignment(src: np.ndarray, dst: np.ndarray, align: Alignment = "sim3") -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, align: Alignment = "sim3"
+) -> tuple[np.ndarray, np.ndarray, float]:
     """``(R [3, 3], t [3], s)`` minimising ``sum |dst - (s R src + t)|^2`` in float64.
 
     ``align="sim3"`` is :func:`swiftjax.align.umeyama` run under ``jax.enable_x64(True)``;

@@ -137,8 +137,15 @@ def _check_focal(fx: float, fy: float, where: str) -> None:
 
 _COLMAP_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "OPENCV": 8}
 _COLMAP_OTHER = {
-    "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE", "FULL_OPENCV", "FOV", "SIMPLE_RADIAL_FISHEYE",
-    "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE",
+    "SIMPLE_RADIAL",
+    "RADIAL",
+    "OPENCV_FISHEYE",
+    "FULL_OPENCV",
+    "FOV",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "THIN_PRISM_FISHEYE",
+    "RAD_TAN_THIN_PRISM_FISHEYE",
 }
 
 
@@ -345,6 +352,7 @@ def da3_preprocess_geometry(
         raise ValueError(f"DA3 preprocessing mode must be 'resize' or 'crop', got {mode!r}")
     h1, w1 = da3_sizes(height, width, process_res)
     if mode == "resize":
+
         def nearest(x: int) -> int:
             down = (x // patch) * patch
             return down + patch if (down + patch - x) <= (x - down) else down
@@ -365,11 +373,13 @@ def da3_preprocess_geometry(
 def _affine(geom: PreprocessGeometry) -> np.ndarray:
     """``A [3, 3]`` with ``(u', v', 1) = A (u, v, 1)`` (integer pixel centres, module docstring)."""
     sx, sy = geom.scale_xy
-    return np.array([
-        [sx, 0.0, 0.5 * sx - 0.5 + geom.left],
-        [0.0, sy, 0.5 * sy - 0.5 + geom.top],
-        [0.0, 0.0, 1.0],
-    ])
+    return np.array(
+        [
+            [sx, 0.0, 0.5 * sx - 0.5 + geom.left],
+            [0.0, sy, 0.5 * sy - 0.5 + geom.top],
+            [0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def map_points(uv: np.ndarray, geom: PreprocessGeometry) -> np.ndarray:
@@ -409,5 +419,5 @@ def map_mask(mask: np.ndarray, geom: PreprocessGeometry) -> np.ndarray:
     r0, c0 = max(geom.top, 0), max(geom.left, 0)  # destination
     s0, t0 = max(-geom.top, 0), max(-geom.left, 0)  # source
     nh, nw = min(H - s0, mh - r0), min(W - t0, mw - c0)
-    out[r0:r0 + nh, c0:c0 + nw] = resized[s0:s0 + nh, t0:t0 + nw]
+    out[r0 : r0 + nh, c0 : c0 + nw] = resized[s0 : s0 + nh, t0 : t0 + nw]
     return out

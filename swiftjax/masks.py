@@ -59,7 +59,9 @@ class MaskDirectory:
     when read (:class:`MaskError` naming the file).
     """
 
-    def __init__(self, directory: str | os.PathLike[str], frame_names: Sequence[str], geometry: PreprocessGeometry) -> None:
+    def __init__(
+        self, directory: str | os.PathLike[str], frame_names: Sequence[str], geometry: PreprocessGeometry
+    ) -> None:
         self.directory = pathlib.Path(directory)
         if self.directory.exists() and not self.directory.is_dir():
             raise MaskError(f"--mask-dir {self.directory} is a file: give the folder of masks (one PNG per frame)")
@@ -180,8 +182,12 @@ def network_sky_mask(conf: ArrayLike) -> Array:
 
 
 def keep_mask(
-    depth: ArrayLike, conf: ArrayLike, user: ArrayLike | None = None, drop_sky: bool = False,
-    sky_rule: str = "cues", **sky_options: float
+    depth: ArrayLike,
+    conf: ArrayLike,
+    user: ArrayLike | None = None,
+    drop_sky: bool = False,
+    sky_rule: str = "cues",
+    **sky_options: float,
 ) -> Array | None:
     """The combined keep-mask ``[S, H, W]`` (user mask AND not sky), or ``None`` when neither
     is asked for (the caller then uses every pixel, with no extra compile).  ``sky_rule``:
@@ -191,4 +197,3 @@ def keep_mask(
         not_sky = ~(network_sky_mask(conf) if sky_rule == "network" else sky_mask(depth, conf, **sky_options))
         keep = not_sky if keep is None else keep & not_sky
     return keep
-

@@ -98,8 +98,9 @@ def _weighted_plane(x: Array, w: Array, up: Array) -> tuple[Array, Array]:
     return n, jnp.dot(n, mu)
 
 
-def _fit_one(x: Array, w: Array, key: Array, up: Array, num_hypotheses: int, iterations: int,
-             tau: Array, cos_tilt: Array) -> PlaneFit:
+def _fit_one(
+    x: Array, w: Array, key: Array, up: Array, num_hypotheses: int, iterations: int, tau: Array, cos_tilt: Array
+) -> PlaneFit:
     dtype = x.dtype
     ok = (w > 0) & jnp.all(jnp.isfinite(x), -1) & jnp.isfinite(w)
     w = jnp.where(ok, w, 0).astype(dtype)
@@ -193,8 +194,13 @@ def fit_plane(
 
 
 def ground_points(
-    depth: ArrayLike, conf: ArrayLike, intrinsic: ArrayLike, K_ref: ArrayLike, keep: ArrayLike | None = None,
-    conf_ratio: float | ArrayLike = 0.5, stride: int | tuple[int, int] = 4,
+    depth: ArrayLike,
+    conf: ArrayLike,
+    intrinsic: ArrayLike,
+    K_ref: ArrayLike,
+    keep: ArrayLike | None = None,
+    conf_ratio: float | ArrayLike = 0.5,
+    stride: int | tuple[int, int] = 4,
 ) -> tuple[Array, Array]:
     """Candidate road points of each frame in its camera frame, on a pixel grid of ``stride``
     rows x columns (one int: both).
@@ -244,9 +250,19 @@ class GroundHeight(NamedTuple):
 
 @functools.partial(jax.jit, static_argnames=("stride", "frame_stride", "num_hypotheses", "iterations"))
 def chunk_ground_height(
-    depth: ArrayLike, conf: ArrayLike, intrinsic: ArrayLike, K_ref: ArrayLike, keep: ArrayLike | None = None,
-    key: ArrayLike | None = None, *, conf_ratio: float | ArrayLike = 0.5, stride: int | tuple[int, int] = (4, 8),
-    frame_stride: int = 5, num_hypotheses: int = 64, iterations: int = 8, inlier_scale: float | ArrayLike = 0.05,
+    depth: ArrayLike,
+    conf: ArrayLike,
+    intrinsic: ArrayLike,
+    K_ref: ArrayLike,
+    keep: ArrayLike | None = None,
+    key: ArrayLike | None = None,
+    *,
+    conf_ratio: float | ArrayLike = 0.5,
+    stride: int | tuple[int, int] = (4, 8),
+    frame_stride: int = 5,
+    num_hypotheses: int = 64,
+    iterations: int = 8,
+    inlier_scale: float | ArrayLike = 0.05,
     max_tilt_deg: float | ArrayLike = 30.0,
 ) -> GroundHeight:
     """The camera's height above the road in a chunk: per-frame :func:`fit_plane` on
@@ -259,12 +275,20 @@ def chunk_ground_height(
     arguments.  ``key`` defaults to ``PRNGKey(0)`` (deterministic)."""
     fs = slice(None, None, frame_stride)
     keep = None if keep is None else jnp.asarray(keep)[fs]
-    pts, w = ground_points(jnp.asarray(depth)[fs], jnp.asarray(conf)[fs], jnp.asarray(intrinsic)[fs], K_ref, keep,
-                           conf_ratio, stride)
+    pts, w = ground_points(
+        jnp.asarray(depth)[fs], jnp.asarray(conf)[fs], jnp.asarray(intrinsic)[fs], K_ref, keep, conf_ratio, stride
+    )
     S = pts.shape[0]
     key = jax.random.PRNGKey(0) if key is None else key
-    fit = fit_plane(pts.reshape(S, -1, 3), w.reshape(S, -1), key, num_hypotheses=num_hypotheses,
-                    iterations=iterations, inlier_scale=inlier_scale, max_tilt_deg=max_tilt_deg)
+    fit = fit_plane(
+        pts.reshape(S, -1, 3),
+        w.reshape(S, -1),
+        key,
+        num_hypotheses=num_hypotheses,
+        iterations=iterations,
+        inlier_scale=inlier_scale,
+        max_tilt_deg=max_tilt_deg,
+    )
     h = jnp.where(fit.valid, -fit.offset, jnp.nan)
     return GroundHeight(jnp.nanmedian(h), h, jnp.sum(fit.valid).astype(jnp.int32), fit.inlier_fraction)
 

@@ -147,8 +147,16 @@ def option(
     if stage not in STAGES:
         raise ValueError(f"option stage must be one of {STAGES}, got {stage!r}")
     s = Spec(
-        kind=kind, help=help, stage=stage, low=low, high=high, low_open=low_open, high_open=high_open,
-        choices=tuple(choices) if choices is not None else None, optional=optional, finite=finite,
+        kind=kind,
+        help=help,
+        stage=stage,
+        low=low,
+        high=high,
+        low_open=low_open,
+        high_open=high_open,
+        choices=tuple(choices) if choices is not None else None,
+        optional=optional,
+        finite=finite,
     )
     if default is not None or not optional:
         coerce(s, "default", default)  # a default outside its own schema is a programming error
@@ -349,11 +357,17 @@ def add_arguments(parser: argparse.ArgumentParser | Any, cls: Any) -> None:
         default = "none" if f.default is None else (str(f.default).lower() if s.kind is bool else f.default)
         if s.kind is bool:
             parser.add_argument(
-                flag(f.name), dest=f.name, action=argparse.BooleanOptionalAction, default=None,
+                flag(f.name),
+                dest=f.name,
+                action=argparse.BooleanOptionalAction,
+                default=None,
                 help=f"{s.help} (default: {default})",
             )
         else:
             parser.add_argument(
-                flag(f.name), dest=f.name, default=None, metavar=_metavar(f.name, s),
+                flag(f.name),
+                dest=f.name,
+                default=None,
+                metavar=_metavar(f.name, s),
                 help=f"{s.help}; {s.allowed(f.name)} (default: {default})",
             )

@@ -51,17 +51,11 @@ class ChunkPrediction:
             if got != shape:
                 raise ValueError(f"ChunkPrediction.{name} has shape {got}, expected {shape}")
         if self.descriptors is not None and np.shape(self.descriptors)[0] != s:
-            raise ValueError(
-                f"ChunkPrediction.descriptors has {np.shape(self.descriptors)[0]} rows for {s} frames"
-            )
+            raise ValueError(f"ChunkPrediction.descriptors has {np.shape(self.descriptors)[0]} rows for {s} frames")
         if self.patch_tokens is not None and np.shape(self.patch_tokens)[0] != s:
-            raise ValueError(
-                f"ChunkPrediction.patch_tokens has {np.shape(self.patch_tokens)[0]} frames, expected {s}"
-            )
+            raise ValueError(f"ChunkPrediction.patch_tokens has {np.shape(self.patch_tokens)[0]} frames, expected {s}")
         if self.images is not None and tuple(np.shape(self.images)) != (s, h, w, 3):
-            raise ValueError(
-                f"ChunkPrediction.images has shape {np.shape(self.images)}, expected {(s, h, w, 3)}"
-            )
+            raise ValueError(f"ChunkPrediction.images has shape {np.shape(self.images)}, expected {(s, h, w, 3)}")
 
     @property
     def num_frames(self) -> int:

@@ -301,7 +301,10 @@ _MAP_BLOCK = 8192
 
 
 def _map_components(
-    fn: Callable[[tuple[Array, ...]], tuple[Array, ...]], x: Array, k_out: int, layout: str = "flat",
+    fn: Callable[[tuple[Array, ...]], tuple[Array, ...]],
+    x: Array,
+    k_out: int,
+    layout: str = "flat",
     valid: Callable[[tuple[Array, ...]], Array] | None = None,
 ) -> Array:
     """``fn`` (component tuple -> component tuple) applied to ``x [..., k]``: ``[..., k_out]``.
@@ -322,6 +325,7 @@ def _map_components(
 
     docs/performance/sim3.md has the measurements behind the choice per function.
     """
+
     def apply(c: tuple[Array, ...], axis: int) -> Array:
         out = jnp.stack(jnp.broadcast_arrays(*fn(c)), axis=axis)
         return out if valid is None else jnp.where(jnp.expand_dims(valid(c), axis), out, jnp.nan)
@@ -389,9 +393,7 @@ def as_matrix(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 4 4"]:
     S = jnp.asarray(S)
     sr = scale(S)[..., None, None] * so3.as_matrix(quaternion(S))
     top = jnp.concatenate([sr, translation(S)[..., :, None]], axis=-1)
-    bottom = jnp.broadcast_to(
-        jnp.array([0, 0, 0, 1], dtype=S.dtype), (*S.shape[:-1], 1, 4)
-    )
+    bottom = jnp.broadcast_to(jnp.array([0, 0, 0, 1], dtype=S.dtype), (*S.shape[:-1], 1, 4))
     return jnp.concatenate([top, bottom], axis=-2)
 
 
@@ -471,7 +473,9 @@ def check(S: ArrayLike, name: str = "S", unit_tol: float | None = None) -> None:
 
 
 @jax.jit
-def to_rst(S: Real[ArrayLike, "*batch 8"]) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3"], Float[Array, "*batch"]]:
+def to_rst(
+    S: Real[ArrayLike, "*batch 8"],
+) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3"], Float[Array, "*batch"]]:
     """``(R [..., 3, 3], t [..., 3], s [...])`` of ``S``."""
     S = jnp.asarray(S)
     return so3.as_matrix(quaternion(S)), translation(S), scale(S)
@@ -503,9 +507,9 @@ def from_matrix(M: Real[ArrayLike, "*batch _ 4"]) -> Float[Array, "*batch 8"]:
 def adjoint(S: Real[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 7 7"]:
     """Adjoint ``[..., 8] -> [..., 7, 7]`` with ``S o exp(xi) o S^-1 = exp(Ad(S) xi)``::
 
-        Ad(S) = [[s R, [t]x R, -t],
-                 [0,   R,       0],
-                 [0,   0,       1]]
+    Ad(S) = [[s R, [t]x R, -t],
+             [0,   R,       0],
+             [0,   0,       1]]
     """
     S = jnp.asarray(S)
     R, t, s = to_rst(S)
@@ -534,16 +538,19 @@ def _winv_series(sigma: Array, theta_sq: Array) -> tuple[tuple[Array, Array], tu
     ``|w|``, ``z`` to 6, ``theta^2`` counting two; the partials are these polynomials' own)."""
     s2, q = sigma * sigma, theta_sq
     y = -0.5 + sigma * (
-        1 / 6 + s2 * (-1 / 180 + s2 * (1 / 5040 - s2 / 151200))
+        1 / 6
+        + s2 * (-1 / 180 + s2 * (1 / 5040 - s2 / 151200))
         + q * (1 / 180 + s2 * (-1 / 1512 + s2 / 21600) + q * (1 / 5040 - s2 / 21600 + q / 151200))
     )
     z = (
-        1 / 12 + s2 * (-1 / 120 + s2 * (1 / 2016 - s2 / 43200))
+        1 / 12
+        + s2 * (-1 / 120 + s2 * (1 / 2016 - s2 / 43200))
         + q * (1 / 720 + s2 * (-1 / 2016 + s2 / 17280) + q * (1 / 30240 - s2 / 43200 + q / 1209600))
     )
     x_s = -0.5 + sigma * (1 / 6 + s2 * (-1 / 180 + s2 * (1 / 5040 - s2 / 151200)))  # G'(sigma)
     y_s = (
-        1 / 6 + s2 * (-1 / 60 + s2 * (1 / 1008 - s2 / 21600))
+        1 / 6
+        + s2 * (-1 / 60 + s2 * (1 / 1008 - s2 / 21600))
         + q * (1 / 180 + s2 * (-1 / 504 + s2 / 4320) + q * (1 / 5040 - s2 / 7200 + q / 151200))
     )
     z_s = sigma * (-1 / 60 + s2 * (1 / 504 - s2 / 7200) + q * (-1 / 1008 + s2 / 4320 - q / 21600))
@@ -621,7 +628,11 @@ def _winv_partials(half: so3.HalfAngle, sigma: Array, s: Array) -> tuple[tuple[A
 def _mat3(a: Array, b: Array) -> Array:
     """``a @ b`` for ``[..., 3, 3]`` as elementwise multiply-adds (XLA:CPU runs a batched dot
     as one library call per matrix)."""
-    return a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :] + a[..., :, 2, None] * b[..., None, 2, :]
+    return (
+        a[..., :, 0, None] * b[..., None, 0, :]
+        + a[..., :, 1, None] * b[..., None, 1, :]
+        + a[..., :, 2, None] * b[..., None, 2, :]
+    )
 
 
 @jax.jit
@@ -673,7 +684,9 @@ def jlog(xi: Real[ArrayLike, "*batch 7"], S: Real[ArrayLike, "*batch 8"] | None 
     m = xs * t + ys * wt + zs * wwt
     jso3 = so3._jlog_from(theta_sq, k, k2, eye)  # one formula for both groups
 
-    top = jnp.concatenate([s[..., None, None] * _mat3(winv, so3.as_matrix(E[..., 3:7])), _mat3(big_m, jso3), m[..., None]], -1)
+    top = jnp.concatenate(
+        [s[..., None, None] * _mat3(winv, so3.as_matrix(E[..., 3:7])), _mat3(big_m, jso3), m[..., None]], -1
+    )
     middle = jnp.concatenate([jnp.zeros_like(jso3), jso3, jnp.zeros(s.shape + (3, 1), dtype)], -1)
     bottom = jnp.broadcast_to(jnp.eye(7, dtype=dtype)[6], s.shape + (1, 7))
     return jnp.concatenate([top, middle, bottom], -2)

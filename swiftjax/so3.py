@@ -53,6 +53,7 @@ __all__ = [
     "project",
 ]
 
+
 def _small_angle_eps(dtype: jnp.dtype) -> float:
     """Squared-angle threshold below which the Taylor branches are exact to rounding."""
     return 1e-7 if jnp.finfo(dtype).bits <= 32 else 1e-14
@@ -304,9 +305,7 @@ def from_matrix(r: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     m10, m11, m12 = r[..., 1, 0], r[..., 1, 1], r[..., 1, 2]
     m20, m21, m22 = r[..., 2, 0], r[..., 2, 1], r[..., 2, 2]
     # Pivots 4x^2, 4y^2, 4z^2, 4w^2 (each up to the common factor).
-    pivots = jnp.stack(
-        [1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22, 1 + m00 + m11 + m22], -1
-    )
+    pivots = jnp.stack([1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22, 1 + m00 + m11 + m22], -1)
     cands = jnp.stack(
         [
             jnp.stack([pivots[..., 0], m01 + m10, m02 + m20, m21 - m12], -1),
@@ -349,7 +348,11 @@ def project(m: Real[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     d = jnp.where(_det3(u) * _det3(vt) < 0, -1.0, 1.0).astype(m.dtype)
     # R_ij = sum_k U_ik D_k V^T_kj, D = (1, 1, d), elementwise over the batch.
     u = u.at[..., :, 2].multiply(d[..., None])
-    r = u[..., :, 0, None] * vt[..., None, 0, :] + u[..., :, 1, None] * vt[..., None, 1, :] + u[..., :, 2, None] * vt[..., None, 2, :]
+    r = (
+        u[..., :, 0, None] * vt[..., None, 0, :]
+        + u[..., :, 1, None] * vt[..., None, 1, :]
+        + u[..., :, 2, None] * vt[..., None, 2, :]
+    )
     return from_matrix(r)
 
 

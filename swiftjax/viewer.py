@@ -40,14 +40,12 @@ import ipaddress
 import pathlib
 import socket
 import threading
-import time
 import urllib.parse
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 
-from swiftjax.pipeline.reader import POSE_SETS
 from swiftjax.errors import SwiftjaxError
 from swiftjax.sampling import Reservoir
 
@@ -56,8 +54,19 @@ __all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run",
 
 #: Distinct colours for per-chunk colouring (matplotlib's tab10, as uint8).
 _CHUNK_COLOURS = np.array(
-    [[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
-     [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8,
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [127, 127, 127],
+        [188, 189, 34],
+        [23, 190, 207],
+    ],
+    np.uint8,
 )
 _ACCEPTED = (40, 170, 60)
 _REJECTED = (220, 30, 30)
@@ -139,8 +148,9 @@ class _Chunk:
     image_hw: tuple[int, int]
 
 
-def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
-             cache: dict[int, _Chunk] | None = None) -> RunView:
+def read_run(
+    run_dir: str | pathlib.Path, reservoir: Reservoir | None = None, cache: dict[int, _Chunk] | None = None
+) -> RunView:
     """Read the run's placement; chunk files not in ``cache`` are read once each (their points
     merged into ``reservoir``, their frames and extrinsics kept in ``cache``)."""
     from swiftjax.io import trajectory
@@ -159,8 +169,9 @@ def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
     if poses is not None:
         count = min(len(p) for p in poses.values()) if poses else 0
         if not all(c in done for c in range(count)):
-            raise ViewerError(f"{run_dir / 'chunk_poses.json'} has {count} chunk poses but the chunk store lacks "
-                              "some of them")
+            raise ViewerError(
+                f"{run_dir / 'chunk_poses.json'} has {count} chunk poses but the chunk store lacks some of them"
+            )
         chunk_ids = list(range(count))
         final = True
     else:
@@ -196,12 +207,18 @@ def read_run(run_dir: str | pathlib.Path, reservoir: Reservoir | None = None,
     gt = trajectory.read_kitti(gt_path) if gt_path.is_file() else None
     first = cache.get(0)
     return RunView(
-        run_dir=run_dir, chunks=chunk_ids, poses=poses,
+        run_dir=run_dir,
+        chunks=chunk_ids,
+        poses=poses,
         frames=np.concatenate(frames) if frames else np.zeros(0, np.int64),
         frame_chunk=np.concatenate(owner) if owner else np.zeros(0, np.int64),
         extrinsic=np.concatenate(extrinsic) if extrinsic else np.zeros((0, 3, 4), np.float32),
-        K=first.K if first else np.eye(3), image_hw=first.image_hw if first else (1, 1),
-        loops=reader.loop_candidates(manifest), ground_truth=gt, names=reader.frame_names(run_dir), final=final,
+        K=first.K if first else np.eye(3),
+        image_hw=first.image_hw if first else (1, 1),
+        loops=reader.loop_candidates(manifest),
+        ground_truth=gt,
+        names=reader.frame_names(run_dir),
+        final=final,
     )
 
 
@@ -329,9 +346,17 @@ class Viewer:
     checkboxes, a status line.
     """
 
-    def __init__(self, run_dir: str | pathlib.Path, *, host: str = "127.0.0.1", port: int = 8080,
-                 max_points: int = 1_000_000, max_frustums: int = 200, point_size: float | None = None,
-                 log: Callable[[str], None] = print) -> None:
+    def __init__(
+        self,
+        run_dir: str | pathlib.Path,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        max_points: int = 1_000_000,
+        max_frustums: int = 200,
+        point_size: float | None = None,
+        log: Callable[[str], None] = print,
+    ) -> None:
         self.run_dir = pathlib.Path(run_dir)
         open_manifest(self.run_dir)  # a clear error before the server starts
         check_port(host, port)
@@ -355,8 +380,14 @@ class Viewer:
         gui = self.server.gui
         self.status = gui.add_markdown("reading the run ...")
         self.legend = gui.add_markdown(LEGEND)
-        self.conf_slider = gui.add_slider("confidence percentile", min=0, max=99, step=1, initial_value=0,
-                                          hint="hide the least confident points (percentile of the shown sample)")
+        self.conf_slider = gui.add_slider(
+            "confidence percentile",
+            min=0,
+            max=99,
+            step=1,
+            initial_value=0,
+            hint="hide the least confident points (percentile of the shown sample)",
+        )
         self.colour = gui.add_dropdown("colour", ("image", "chunk"), initial_value="image")
         self.loop_toggle = gui.add_checkbox("loop closure", True, hint="chunk poses after the pose graph")
         self.show_frustums = gui.add_checkbox("cameras", True)
@@ -463,8 +494,9 @@ class Viewer:
                 xyz, rgb = xyz[keep], rgb[keep]
             size = self._point_size or 0.002 * self._scale(xyz if len(xyz) else np.zeros((1, 3)))
             # float32: float16 would quantise a 500-unit route to 0.25-unit steps.
-            self.server.scene.add_point_cloud("/cloud", xyz, rgb, point_size=size, point_shape="circle",
-                                              precision="float32")
+            self.server.scene.add_point_cloud(
+                "/cloud", xyz, rgb, point_size=size, point_shape="circle", precision="float32"
+            )
 
     def _draw_frustums(self, view: RunView, c2w: np.ndarray, extent: float) -> None:
         from swiftjax.io.trajectory import matrix_to_quaternion
@@ -481,10 +513,16 @@ class Viewer:
         for k in range(0, len(c2w), step):
             frame = int(view.frames[k])
             scene.add_camera_frustum(
-                f"/frustums/{frame:06d}", fov=fov, aspect=w / h, scale=0.015 * extent,
+                f"/frustums/{frame:06d}",
+                fov=fov,
+                aspect=w / h,
+                scale=0.015 * extent,
                 color=_CHUNK_COLOURS[view.frame_chunk[k] % len(_CHUNK_COLOURS)],
-                image=self._thumbnail(view, frame), wxyz=q[k], position=c2w[k, :3, 3],
-                thickness=1.5, thickness_units="screen",
+                image=self._thumbnail(view, frame),
+                wxyz=q[k],
+                position=c2w[k, :3, 3],
+                thickness=1.5,
+                thickness_units="screen",
             )
 
     def _thumbnail(self, view: RunView, frame: int) -> np.ndarray | None:
@@ -520,8 +558,9 @@ class Viewer:
             if pairs:
                 p = np.asarray(pairs)
                 seg = np.stack([centres[p[:, 0]], centres[p[:, 1]]], axis=1)
-                scene.add_line_segments(f"/loops/{node}", seg, colour, thickness=4.0 if accepted else 2.0,
-                                        thickness_units="screen")
+                scene.add_line_segments(
+                    f"/loops/{node}", seg, colour, thickness=4.0 if accepted else 2.0, thickness_units="screen"
+                )
 
     def _draw_ground_truth(self, view: RunView, centres: np.ndarray) -> None:
         from swiftjax.evaluation import umeyama_alignment
@@ -549,8 +588,14 @@ class Viewer:
         self.server.stop()
 
 
-def serve(run_dir: str | pathlib.Path, *, host: str = "127.0.0.1", port: int = 8080,
-          max_points: int = 1_000_000, log: Callable[[str], None] = print) -> Viewer:
+def serve(
+    run_dir: str | pathlib.Path,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    max_points: int = 1_000_000,
+    log: Callable[[str], None] = print,
+) -> Viewer:
     """Start a :class:`Viewer` on ``run_dir`` (returns at once; the server runs in threads)."""
     viewer = Viewer(run_dir, host=host, port=port, max_points=max_points, log=log)
     if host not in ("127.0.0.1", "localhost", "::1"):
@@ -563,8 +608,16 @@ class LiveViewer:
     """A :class:`Viewer` started once the run directory has a manifest, polling in a thread
     (``swiftjax reconstruct ... --view``)."""
 
-    def __init__(self, run_dir: str | pathlib.Path, *, host: str, port: int, max_points: int,
-                 log: Callable[[str], None] = print, interval: float = 1.0) -> None:
+    def __init__(
+        self,
+        run_dir: str | pathlib.Path,
+        *,
+        host: str,
+        port: int,
+        max_points: int,
+        log: Callable[[str], None] = print,
+        interval: float = 1.0,
+    ) -> None:
         self.run_dir = pathlib.Path(run_dir)
         self.viewer: Viewer | None = None
         self._args = dict(host=host, port=port, max_points=max_points, log=log)
@@ -578,7 +631,7 @@ class LiveViewer:
             if (self.run_dir / "manifest.json").is_file():
                 try:
                     self.viewer = serve(self.run_dir, **self._args)
-                except Exception as err:  # noqa: BLE001 - the run goes on without a viewer
+                except Exception as err:
                     self._args["log"](f"swiftjax view: error: {err}")
                     return
                 break

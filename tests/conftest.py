@@ -60,18 +60,14 @@ JAXTYPED_MODULES = [
     "swiftjax.posegraph.driver",
 ]
 # PEP 484's numeric tower (an ``int`` where ``float`` is annotated, as mypy and pyright accept it).
-jaxtyping.install_import_hook(
-    JAXTYPED_MODULES, "beartype.beartype(conf=beartype.BeartypeConf(is_pep484_tower=True))"
-)
+jaxtyping.install_import_hook(JAXTYPED_MODULES, "beartype.beartype(conf=beartype.BeartypeConf(is_pep484_tower=True))")
 
-import jax  # noqa: E402
-import pytest  # noqa: E402
+import jax
+import pytest
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 
-CACHE = os.environ.get(
-    "JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests")
-)
+CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests"))
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
@@ -136,8 +132,9 @@ def pi3_golden_dir(shared_dir: pathlib.Path) -> pathlib.Path:
 
 
 #: ``small_loop_run``'s configuration (``test_pipeline.py``'s CONFIG).
-SMALL_RUN_CONFIG = dict(chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
-                        colmap_max_points=5_000)
+SMALL_RUN_CONFIG = dict(
+    chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2, colmap_max_points=5_000
+)
 
 
 @pytest.fixture(scope="session")
@@ -150,6 +147,12 @@ def small_loop_run(tmp_path_factory):
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
     run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
     out = tmp_path_factory.mktemp("small_loop_run") / "run"
-    result = pipeline.reconstruct(run.predictor, out, pipeline.PipelineConfig(**SMALL_RUN_CONFIG),
-                                  ground_truth=run.ground_truth, progress=False, log=lambda _: None)
+    result = pipeline.reconstruct(
+        run.predictor,
+        out,
+        pipeline.PipelineConfig(**SMALL_RUN_CONFIG),
+        ground_truth=run.ground_truth,
+        progress=False,
+        log=lambda _: None,
+    )
     return out, result

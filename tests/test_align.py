@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -127,7 +127,7 @@ def test_umeyama_float32_large_cloud_accuracy_vs_float64():
     rng = np.random.default_rng(10)
     n = 2_400_000
     R, t, s = _random_sim3(rng, 10)
-    x = (rng.normal(size=(n, 3)) * np.array([20.0, 3.0, 15.0]) + np.array([100.0, -20.0, 80.0]))
+    x = rng.normal(size=(n, 3)) * np.array([20.0, 3.0, 15.0]) + np.array([100.0, -20.0, 80.0])
     y = s * x @ R.T + t
     S, info = umeyama_jit(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32))
     rot, se, te = _errors(S, R, t, s)
@@ -151,9 +151,7 @@ def test_umeyama_batched_matches_individual():
         np.testing.assert_allclose(np.asarray(Sb[k]), np.asarray(Sk), atol=1e-5)
 
 
-@pytest.mark.parametrize(
-    "case", ["zero_weights", "identical", "collinear", "nan_points", "two_points"]
-)
+@pytest.mark.parametrize("case", ["zero_weights", "identical", "collinear", "nan_points", "two_points"])
 def test_umeyama_degenerate_inputs_are_invalid_and_finite(case):
     rng = np.random.default_rng(12)
     x = rng.normal(size=(200, 3)).astype(np.float32)
@@ -209,7 +207,7 @@ def test_umeyama_rejects_bad_shapes():
 
 # ------------------------------------------------------------------ mask and chunk pairs
 
-from swiftjax import camera  # noqa: E402
+from swiftjax import camera
 
 
 def test_reliability_mask_hand_computed():
@@ -280,7 +278,13 @@ def np_scale_ratio(dp, dc, cp, cc, conf_ratio=0.5):
         for y in range(dp.shape[1]):
             for x in range(dp.shape[2]):
                 a, b, ca, cb = float(dp[f, y, x]), float(dc[f, y, x]), float(cp[f, y, x]), float(cc[f, y, x])
-                if all(np.isfinite([a, b, ca, cb])) and a > 0 and b > 0 and ca > conf_ratio * ma and cb > conf_ratio * mb:
+                if (
+                    all(np.isfinite([a, b, ca, cb]))
+                    and a > 0
+                    and b > 0
+                    and ca > conf_ratio * ma
+                    and cb > conf_ratio * mb
+                ):
                     logs.append(np.log(a) - np.log(b))
     if not logs:
         return 1.0
@@ -351,8 +355,11 @@ def test_reliability_mask_scale_ratio_matches_numpy(x64):
     for f in range(2):
         for y in range(5):
             for x in range(6):
-                ref[f, y, x] = (abs(da[f, y, x] - rho * db[f, y, x]) < 0.2 and ca[f, y, x] > 0.5 * ca[f].mean()
-                                and cb[f, y, x] > 0.5 * cb[f].mean())
+                ref[f, y, x] = (
+                    abs(da[f, y, x] - rho * db[f, y, x]) < 0.2
+                    and ca[f, y, x] > 0.5 * ca[f].mean()
+                    and cb[f, y, x] > 0.5 * cb[f].mean()
+                )
     np.testing.assert_array_equal(m, ref)
     assert ref.sum() > 0.25 * ref.size  # about every confident pixel (noise 0.05 x 3.5 < 0.2)
     assert not np.asarray(align.reliability_mask(da, db, ca, cb, 0.2, 0.5)).any()  # as written: none
@@ -384,7 +391,9 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
     K_ref = K_ref.copy()
     K_ref[0, 1], K_ref[0, 2], K_ref[1, 2] = 0.7, 9.0, 13.0
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median"))
+    S, info = align.align_chunk_pair(
+        prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median")
+    )
     (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref, scale=True)
     Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
     np.testing.assert_allclose(Rg, R_r, atol=1e-11)
@@ -395,7 +404,9 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
     rho = float(info.scale_ratio)
-    assert rho == pytest.approx(np_scale_ratio(*(np.asarray(a)[_core_subsample(*dp.shape)] for a in (dp, dc, prev.conf, cur.conf))), rel=1e-12)
+    assert rho == pytest.approx(
+        np_scale_ratio(*(np.asarray(a)[_core_subsample(*dp.shape)] for a in (dp, dc, prev.conf, cur.conf))), rel=1e-12
+    )
     m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5, scale_ratio=rho)).reshape(-1)
     Xp = np.asarray(camera.unproject(dp, K_ref, camera.camera_to_world(prev.extrinsic))).reshape(-1, 3)[m]
     Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)[m]
@@ -414,7 +425,7 @@ def test_align_chunk_pair_float32_far_from_origin_large_overlap():
     rng = np.random.default_rng(2)
     prev = prev._replace(depth=prev.depth * (1 + 0.003 * rng.normal(size=prev.depth.shape)))
     (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref)  # float64
-    f32 = lambda fr: align.ChunkFrames(*(np.asarray(a, np.float32) for a in fr))  # noqa: E731
+    f32 = lambda fr: align.ChunkFrames(*(np.asarray(a, np.float32) for a in fr))
     S, info = align.align_chunk_pair(f32(prev), f32(cur), K_ref.astype(np.float32), min_points=100)
     assert S.dtype == jnp.float32 and bool(info.valid)
     assert abs(int(info.num_points) - n_ref) <= 1e-4 * n_ref  # float32 vs float64 mask ties
@@ -435,7 +446,10 @@ def test_align_chunk_pair_fallback_threshold_and_batch():
     # Shift cur's depth by 0.22 (scale-free): nothing passes at 0.2, all inliers at 0.25
     # (the authors' eq. 2: a ratio would absorb part of the shift).
     authors = align.AlignOptions(overlap_scale="none")
-    cur = cur._replace(depth=cur.depth + 0.22 / (0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1]))[:, None, None])
+    cur = cur._replace(
+        depth=cur.depth
+        + 0.22 / (0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1]))[:, None, None]
+    )
     S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=authors)
     assert bool(info.used_fallback_threshold) and float(info.depth_threshold) == pytest.approx(0.25)
     assert bool(info.valid) and int(info.num_points) > 100 and float(info.scale_ratio) == 1.0
@@ -478,7 +492,9 @@ def test_align_chunk_pair_nan_pixels_never_reach_S(x64):
     ep[1, 0, 3] = np.nan
     S2, info2 = align.align_chunk_pair(prev._replace(extrinsic=ep), cur, K_ref, min_points=100)
     _, n_ref = _reference_pair(prev, cur, K_ref)
-    n_frame1 = _reference_pair(*(f._replace(**{k: getattr(f, k)[1:2] for k in f._fields}) for f in (prev, cur)), K_ref)[1]
+    n_frame1 = _reference_pair(*(f._replace(**{k: getattr(f, k)[1:2] for k in f._fields}) for f in (prev, cur)), K_ref)[
+        1
+    ]
     assert bool(info2.valid) and int(info2.num_points) == n_ref - n_frame1
     rot, se, te = _errors(S2, R, t, s)
     assert rot < 1e-9 and se < 1e-9 and te < 1e-9

@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_align import make_pair
 
 from swiftjax import align, camera, sim3
 from swiftjax.align import covariance as ac
-
-from test_align import make_pair
 
 
 def _random_S(rng, rot=0.5, trans=2.0, log_s=0.3):
@@ -71,7 +70,9 @@ def test_exact_gauss_newton_hessian(x64):
     H = np.asarray(_half_hessian(Z, x, y, np.ones(25)))
     out = ac.umeyama_information_from_points(x, None, Z, 25, 1.0, rms_floor=0.0)
     # Omega = H / sigma^2 with sigma^2 = W rms^2 / (3 n - 7), W = n = 25, rms = 1
-    np.testing.assert_allclose(np.asarray(out.information) * 25 / (3 * 25 - 7), H, rtol=1e-10, atol=1e-10 * np.abs(H).max())
+    np.testing.assert_allclose(
+        np.asarray(out.information) * 25 / (3 * 25 - 7), H, rtol=1e-10, atol=1e-10 * np.abs(H).max()
+    )
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +133,7 @@ def test_loop_edge_information_matches_monte_carlo(x64):
         return scale * (a @ a.T + 7 * np.eye(7))
 
     om_i, om_j = spd(1e5), spd(3e4)
-    info = lambda om: ac.EdgeInformation(jnp.asarray(om), jnp.asarray(True))  # noqa: E731
+    info = lambda om: ac.EdgeInformation(jnp.asarray(om), jnp.asarray(True))
     out = ac.loop_edge_information(S_i, info(om_i), S_j, info(om_j))
     assert bool(out.valid)
     k = 20_000
@@ -154,11 +155,15 @@ def test_align_info_moments_equal_explicit_points(x64):
     prev, cur, K_ref, _ = make_pair(seed=11, o=5, h=20, w=33)
     rng = np.random.default_rng(1)
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median"))
+    S, info = align.align_chunk_pair(
+        prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median")
+    )
     assert float(info.scale_ratio) != 1.0  # the moments are mapped back to chunk t+1's units
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
     dc = camera.normalize_depth(cur.depth, cur.intrinsic, K_ref)
-    m = np.asarray(align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5, scale_ratio=float(info.scale_ratio))).reshape(-1)  # eq. 2 after the rescale
+    m = np.asarray(
+        align.reliability_mask(dp, dc, prev.conf, cur.conf, 0.2, 0.5, scale_ratio=float(info.scale_ratio))
+    ).reshape(-1)  # eq. 2 after the rescale
     Xc = np.asarray(camera.unproject(dc, K_ref, camera.camera_to_world(cur.extrinsic))).reshape(-1, 3)[m]
     np.testing.assert_allclose(np.asarray(info.src_mean), Xc.mean(0), rtol=1e-10)
     np.testing.assert_allclose(np.asarray(info.src_covariance), np.cov(Xc.T, bias=True), rtol=1e-9, atol=1e-12)

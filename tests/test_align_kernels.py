@@ -8,11 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_align import make_pair
 
 from swiftjax import align
 from swiftjax.align import _kernels, chunk_pair
-
-from test_align import make_pair
 
 if _kernels._ffi_kernels is None and os.environ.get("CI"):
     raise RuntimeError("CI must build the fused align kernels (pip install -e . with a C++17 compiler)")
@@ -97,12 +96,16 @@ def test_gauge_jump_3p5x_kernel_and_jax(monkeypatch):
     assert int(i_k.num_points) == int(i_j.num_points) == 0 and bool(i_k.pose_fallback)
     fn, args = _core(prev, cur, K_ref, min_points=100)  # "auto": the authors' keep 0 < min_points, redone
     (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
-    conf_ok = ((prev.conf > 0.5 * prev.conf.mean((1, 2), keepdims=True))
-               & (cur.conf > 0.5 * cur.conf.mean((1, 2), keepdims=True)) & np.isfinite(dc))
+    conf_ok = (
+        (prev.conf > 0.5 * prev.conf.mean((1, 2), keepdims=True))
+        & (cur.conf > 0.5 * cur.conf.mean((1, 2), keepdims=True))
+        & np.isfinite(dc)
+    )
     assert int(i_k.num_points) == int(i_j.num_points) == int(conf_ok.sum())  # every confident pixel
     assert float(i_k.scale_ratio) == pytest.approx(3.5, rel=1e-5)
     _close(S_k, S_j)
     from swiftjax import sim3
+
     Rg, tg, sg = (np.asarray(a, np.float64) for a in sim3.to_rst(S_k))
     np.testing.assert_allclose(Rg, R, atol=1e-4)
     np.testing.assert_allclose(tg, t, atol=1e-3 * max(1, np.abs(t).max()))
@@ -112,7 +115,9 @@ def test_gauge_jump_3p5x_kernel_and_jax(monkeypatch):
 def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
     prev, cur, K_ref, _ = make_pair(seed=3, s=1.0, dtype=np.float32)
     r = 0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1])
-    cur = cur._replace(depth=cur.depth + 0.22 / r[:, None, None])  # only the fallback threshold passes (eq. 2 as written)
+    cur = cur._replace(
+        depth=cur.depth + 0.22 / r[:, None, None]
+    )  # only the fallback threshold passes (eq. 2 as written)
     fn, args = _core(prev, cur, K_ref, min_points=100, overlap_scale="none")
     (S_k, i_k), (S_j, i_j) = _both(monkeypatch, fn, *args)
     assert bool(i_k.used_fallback_threshold) and int(i_k.num_points) == int(i_j.num_points)
@@ -160,8 +165,10 @@ def test_kernels_are_deterministic_and_isas_agree():
     try:
         for name in ISAS:
             kernels.set_isa(name)
-            runs = [(align.align_chunk_pair(prev, cur, K_ref, min_points=100)[0], align.umeyama(x, y, w)[0])
-                    for _ in range(3)]
+            runs = [
+                (align.align_chunk_pair(prev, cur, K_ref, min_points=100)[0], align.umeyama(x, y, w)[0])
+                for _ in range(3)
+            ]
             for S_pair, S_um in runs[1:]:
                 np.testing.assert_array_equal(np.asarray(S_pair), np.asarray(runs[0][0]))
                 np.testing.assert_array_equal(np.asarray(S_um), np.asarray(runs[0][1]))

@@ -75,7 +75,7 @@ def test_first_and_saddle_differ_only_where_the_network_differs(golden):
     1 swap tokens and differ by more (random weights do not put the reference camera at I)."""
     a = _h(da3_backbone.rebase_extrinsics(golden["first_extrinsics"][0]).astype(np.float64))
     b = _h(da3_backbone.rebase_extrinsics(golden["saddle_extrinsics"][0]).astype(np.float64))
-    rel = lambda E: E[3] @ np.linalg.inv(E[2])  # noqa: E731
+    rel = lambda E: E[3] @ np.linalg.inv(E[2])
     assert np.abs(rel(a) - rel(b)).max() < 2e-3
     assert np.abs(a[1] - b[1]).max() > 1e-2
     assert int(golden["saddle_ref_view_idx"][0]) == 1 and int(golden["first_ref_view_idx"][0]) == 0
@@ -129,8 +129,16 @@ def test_confidence_semantics_hold_for_da3(golden, run):
     conf = golden[run + "depth_conf"][0].astype(np.float64)
     assert conf.min() >= 1.0
     depth = golden[run + "depth"][0]
-    ours = np.asarray(reliability_mask(jnp.asarray(depth[:2]), jnp.asarray(depth[2:]), jnp.asarray(conf[:2], jnp.float32),
-                                       jnp.asarray(conf[2:], jnp.float32), 1e9, 0.5))
+    ours = np.asarray(
+        reliability_mask(
+            jnp.asarray(depth[:2]),
+            jnp.asarray(depth[2:]),
+            jnp.asarray(conf[:2], jnp.float32),
+            jnp.asarray(conf[2:], jnp.float32),
+            1e9,
+            0.5,
+        )
+    )
     want = np.zeros_like(ours)
     for f in range(2):
         ma, mb = conf[f].mean(), conf[f + 2].mean()
@@ -142,13 +150,16 @@ def test_confidence_semantics_hold_for_da3(golden, run):
 # ---------------------------------------------------------------------------- preprocessing
 
 
-@pytest.mark.parametrize("hw, mode, model_hw", [
-    ((376, 1241), "resize", (154, 504)),  # KITTI
-    ((1200, 1600), "resize", (378, 504)),  # the official README's example
-    ((377, 504), "crop", (364, 504)),  # the official docstring's crop example
-    ((504, 504), "resize", (504, 504)),
-    ((30, 40), "resize", (378, 504)),  # enlarged
-])
+@pytest.mark.parametrize(
+    "hw, mode, model_hw",
+    [
+        ((376, 1241), "resize", (154, 504)),  # KITTI
+        ((1200, 1600), "resize", (378, 504)),  # the official README's example
+        ((377, 504), "crop", (364, 504)),  # the official docstring's crop example
+        ((504, 504), "resize", (504, 504)),
+        ((30, 40), "resize", (378, 504)),  # enlarged
+    ],
+)
 def test_da3_sizes_follow_the_official_rule(hw, mode, model_hw):
     assert da3_preprocess_geometry(*hw, mode).model_hw == model_hw
 
@@ -168,7 +179,7 @@ def test_preprocess_da3_equals_opencv_steps_and_the_intrinsics_map():
     H0, W0 = 376, 1241
     yy, xx = np.mgrid[0:H0, 0:W0]
     u, v = 400.3, 180.6
-    img = (255 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 9.0 ** 2))).astype(np.float64)
+    img = (255 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 9.0**2))).astype(np.float64)
     rgb = np.repeat(np.clip(np.round(img), 0, 255).astype(np.uint8)[:, :, None], 3, axis=2)
     ours = preprocess_da3([rgb])[0]
     step = cv2.resize(rgb, (504, 153), interpolation=cv2.INTER_AREA)
@@ -176,8 +187,11 @@ def test_preprocess_da3_equals_opencv_steps_and_the_intrinsics_map():
     np.testing.assert_array_equal(ours, step.transpose(2, 0, 1).astype(np.float32) / 255.0)
     geom = da3_preprocess_geometry(H0, W0)
     # blob centre from a float resize (no 8-bit rounding) against the map
-    f = cv2.resize(cv2.resize(img.astype(np.float32), (504, 153), interpolation=cv2.INTER_AREA), (504, 154),
-                   interpolation=cv2.INTER_CUBIC)
+    f = cv2.resize(
+        cv2.resize(img.astype(np.float32), (504, 153), interpolation=cv2.INTER_AREA),
+        (504, 154),
+        interpolation=cv2.INTER_CUBIC,
+    )
     w = np.clip(f, 0, None) ** 2
     ys, xs = np.mgrid[0:154, 0:504]
     centre = np.array([(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()])
@@ -269,7 +283,10 @@ def test_a_nan_in_da3_weights_is_named_by_the_model(da3_dir, golden):
     cfg = da3_backbone.load_config(b, da3_dir / "tiny_config.json")
     runner = da3_backbone.build_runner(b, str(da3_dir / "tiny_weights.safetensors"), "cpu", "float32", cfg)
     with torch.no_grad():
-        runner.model.state_dict()[next(k for k in runner.model.state_dict() if k.startswith("head.") and
-                                       k.endswith("weight"))].fill_(float("nan"))
-    with pytest.raises(ModelOutputError, match=r"da3-small \(.*tiny_weights.safetensors, float32\) predicted non-finite"):
+        runner.model.state_dict()[
+            next(k for k in runner.model.state_dict() if k.startswith("head.") and k.endswith("weight"))
+        ].fill_(float("nan"))
+    with pytest.raises(
+        ModelOutputError, match=r"da3-small \(.*tiny_weights.safetensors, float32\) predicted non-finite"
+    ):
         runner.predict(golden["images_raw"][0])

@@ -5,14 +5,11 @@ model, and the same trajectory through the Ray executor."""
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
-
 from test_faults import _env
 
 torch = pytest.importorskip("torch")
@@ -21,12 +18,23 @@ pytestmark = pytest.mark.slow
 
 try:
     import inference.da3  # noqa: F401
+
     HAVE_DA3 = True
 except ImportError:
     HAVE_DA3 = False
 needs_da3 = pytest.mark.skipif(not HAVE_DA3, reason="inference.da3 missing")
 
-FLAGS = ("--chunk-size", "8", "--overlap", "3", "--min-points", "10", "--no-loop-closure", "--no-colmap", "--no-progress")
+FLAGS = (
+    "--chunk-size",
+    "8",
+    "--overlap",
+    "3",
+    "--min-points",
+    "10",
+    "--no-loop-closure",
+    "--no-colmap",
+    "--no-progress",
+)
 
 
 @pytest.fixture(scope="module")
@@ -51,15 +59,24 @@ def _run(frames, out, *extra, fault=None):
 
 def _tiny(da3_dir, nested=False):
     weights = "tiny_nested_weights.safetensors" if nested else "tiny_weights.safetensors"
-    return ("--model", "da3-nested-giant-large" if nested else "da3-small", "--model-config",
-            str(da3_dir / "tiny_config.json"), "--weights", str(da3_dir / weights))
+    return (
+        "--model",
+        "da3-nested-giant-large" if nested else "da3-small",
+        "--model-config",
+        str(da3_dir / "tiny_config.json"),
+        "--weights",
+        str(da3_dir / weights),
+    )
 
 
 def _snapshot(d):
     """Every file's size and time, but the run directory's lock (taken by every run that opens it)
     and a killed run's half-written temporary files (swept by the next run that opens it)."""
-    return {p: (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(d.rglob("*"))
-            if p.is_file() and p.name != ".swiftjax.lock" and ".tmp" not in p.name}
+    return {
+        p: (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in sorted(d.rglob("*"))
+        if p.is_file() and p.name != ".swiftjax.lock" and ".tmp" not in p.name
+    }
 
 
 @needs_da3
@@ -76,7 +93,9 @@ def test_da3_small_runs_resumes_and_refuses_another_model(tmp_path, frames, da3_
     before = _snapshot(out)
     other = _run(frames, out, *_tiny(da3_dir, nested=True))
     assert other.returncode == 2 and other.stderr.count("\n") == 1, other.stderr
-    assert "different model (backbone, config, weights); options model" in other.stderr and "--overwrite" in other.stderr
+    assert (
+        "different model (backbone, config, weights); options model" in other.stderr and "--overwrite" in other.stderr
+    )
     assert _snapshot(out) == before
 
     again = _run(frames, out, *_tiny(da3_dir))
@@ -116,19 +135,78 @@ def test_bad_input_is_one_line_before_any_prediction(tmp_path, frames, da3_dir, 
         cv2.imwrite(str(thin / f"{k:04d}.png"), np.full((4, 2000, 3), 100, np.uint8))
     cfg = str(da3_dir / "tiny_config.json")
     cases = [
-        ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(golden_dir / "tiny_weights.safetensors")],
-         "is a VGGT checkpoint, not what --model da3-small needs"),
-        ([str(frames), "--model", "vggt-1b", "--model-config", str(golden_dir / "tiny_config.json"),
-          "--weights", str(da3_dir / "tiny_weights.safetensors")], "is a Depth Anything 3 (any-view) checkpoint, not a VGGT one"),
-        ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(cut)], "cut.safetensors is truncated"),
-        ([str(frames), "--model", "da3-base", "--weights", str(da3_dir / "tiny_weights.safetensors")],
-         "does not match the da3-base model: missing"),
-        ([str(thin), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors")],
-         "--model da3-small cannot take the frames of"),
-        ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors"),
-          "--metric", "model"], "own scale needs a network that predicts metres"),
-        ([str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(da3_dir / "tiny_weights.safetensors"),
-          "--mode", "pad"], "--mode pad is not a preprocessing of --model da3-small"),
+        (
+            [
+                str(frames),
+                "--model",
+                "da3-small",
+                "--model-config",
+                cfg,
+                "--weights",
+                str(golden_dir / "tiny_weights.safetensors"),
+            ],
+            "is a VGGT checkpoint, not what --model da3-small needs",
+        ),
+        (
+            [
+                str(frames),
+                "--model",
+                "vggt-1b",
+                "--model-config",
+                str(golden_dir / "tiny_config.json"),
+                "--weights",
+                str(da3_dir / "tiny_weights.safetensors"),
+            ],
+            "is a Depth Anything 3 (any-view) checkpoint, not a VGGT one",
+        ),
+        (
+            [str(frames), "--model", "da3-small", "--model-config", cfg, "--weights", str(cut)],
+            "cut.safetensors is truncated",
+        ),
+        (
+            [str(frames), "--model", "da3-base", "--weights", str(da3_dir / "tiny_weights.safetensors")],
+            "does not match the da3-base model: missing",
+        ),
+        (
+            [
+                str(thin),
+                "--model",
+                "da3-small",
+                "--model-config",
+                cfg,
+                "--weights",
+                str(da3_dir / "tiny_weights.safetensors"),
+            ],
+            "--model da3-small cannot take the frames of",
+        ),
+        (
+            [
+                str(frames),
+                "--model",
+                "da3-small",
+                "--model-config",
+                cfg,
+                "--weights",
+                str(da3_dir / "tiny_weights.safetensors"),
+                "--metric",
+                "model",
+            ],
+            "own scale needs a network that predicts metres",
+        ),
+        (
+            [
+                str(frames),
+                "--model",
+                "da3-small",
+                "--model-config",
+                cfg,
+                "--weights",
+                str(da3_dir / "tiny_weights.safetensors"),
+                "--mode",
+                "pad",
+            ],
+            "--mode pad is not a preprocessing of --model da3-small",
+        ),
     ]
     for argv, fragment in cases:
         code = cli.main(["reconstruct", *argv, "--out", str(out), *FLAGS])

@@ -39,8 +39,9 @@ def test_batch_out_at_a_file_is_one_line(tmp_path, capsys):
     (tmp_path / "list.txt").write_text("frames\n")
     (tmp_path / "w.pt").write_bytes(b"")
     (tmp_path / "out").write_text("a file")
-    code = cli.main(["batch", str(tmp_path / "list.txt"), "--weights", str(tmp_path / "w.pt"),
-                     "--out", str(tmp_path / "out")])
+    code = cli.main(
+        ["batch", str(tmp_path / "list.txt"), "--weights", str(tmp_path / "w.pt"), "--out", str(tmp_path / "out")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "--out" in err and "is a file" in err and "File exists" not in err
     assert (tmp_path / "out").read_text() == "a file"
@@ -49,7 +50,7 @@ def test_batch_out_at_a_file_is_one_line(tmp_path, capsys):
 def test_list_lines_take_shell_quoting_and_hash_inside_names(tmp_path):
     """`my seq` was split into INPUT and GT; `take#1` was cut at `#`."""
     (tmp_path / "list.txt").write_text(
-        '"my seq/images" \'gt files/my seq.txt\'   # quoted\n'
+        "\"my seq/images\" 'gt files/my seq.txt'   # quoted\n"
         "take#1/frames\n"
         "with\\ space/frames gt.txt#not-a-comment\n"
         "  # a comment line\n"
@@ -111,7 +112,17 @@ def test_batch_timestamps_name_a_file_in_each_sequence(tmp_path, monkeypatch, ca
     np.testing.assert_allclose(seen["rgb_2"][0], [200.0, 200.5, 201.0])
     assert "rgb.txt" in seen["rgb"][1]
     (tmp_path / "b" / "rgb.txt").unlink()
-    code = cli.main(["batch", str(tmp_path / "list.txt"), "--weights", str(tmp_path / "w.pt"),
-                     "--out", str(tmp_path / "out2"), "--timestamps", "rgb.txt"])
+    code = cli.main(
+        [
+            "batch",
+            str(tmp_path / "list.txt"),
+            "--weights",
+            str(tmp_path / "w.pt"),
+            "--out",
+            str(tmp_path / "out2"),
+            "--timestamps",
+            "rgb.txt",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "has no rgb.txt" in err and "b/rgb" in err and not (tmp_path / "out2").exists()

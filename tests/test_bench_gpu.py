@@ -24,8 +24,17 @@ def test_bench_gpu_smoke_runs_every_section(tmp_path, shared_dir):
     from flops import vggt_chunk_flops
 
     out = tmp_path / "gpu.json"
-    results = bench_gpu.main(["--smoke", "--golden", str(shared_dir / "golden" / "vggt"), "--json", str(out),
-                              "--log", str(tmp_path / "gpu.log")])
+    results = bench_gpu.main(
+        [
+            "--smoke",
+            "--golden",
+            str(shared_dir / "golden" / "vggt"),
+            "--json",
+            str(out),
+            "--log",
+            str(tmp_path / "gpu.log"),
+        ]
+    )
     assert json.loads(out.read_text())["chunks"] == json.loads(json.dumps(results["chunks"], default=float))
     assert "== end to end" in (tmp_path / "gpu.log").read_text()
     config = bench_gpu.tiny_config(shared_dir / "golden" / "vggt")

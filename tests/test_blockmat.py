@@ -28,7 +28,7 @@ def test_products_equal_numpy(operands):
 
 def test_unfused_returns_fn_value_and_is_not_fused(operands):
     a, b, _ = operands
-    fn = lambda x, y: (blockmat.bmm(x, y), -x)  # noqa: E731
+    fn = lambda x, y: (blockmat.bmm(x, y), -x)
     got = jax.jit(lambda x, y: blockmat.unfused(fn, x, y))(a, b)
     want = fn(a, b)
     for g, w in zip(got, want):

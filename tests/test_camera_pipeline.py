@@ -16,13 +16,19 @@ import numpy as np
 import pytest
 
 from swiftjax import evaluation, pipeline
-from swiftjax.synthetic import demo
 from swiftjax.io import ply
+from swiftjax.synthetic import demo
 from swiftjax.synthetic.routes import loop_route
 
 CONFIG = pipeline.PipelineConfig(
-    chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
-    colmap_max_points=5_000, loop_closure=False, colmap_text=True,
+    chunk_size=40,
+    overlap=15,
+    loop_min_separation=60,
+    loop_nms_radius=10,
+    point_stride=2,
+    colmap_max_points=5_000,
+    loop_closure=False,
+    colmap_text=True,
 )
 IMAGE_HW = (42, 140)
 
@@ -63,17 +69,29 @@ def _write_masks(folder, n, blank):
 def camera_run(small_run, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("camera")
     K = small_run.predictor.oracle.K
-    (tmp / "K.txt").write_text(f"# the world's camera\n{float(K[0, 0])!r} {float(K[1, 1])!r} {float(K[0, 2])!r} {float(K[1, 2])!r}\n")
+    (tmp / "K.txt").write_text(
+        f"# the world's camera\n{float(K[0, 0])!r} {float(K[1, 1])!r} {float(K[0, 2])!r} {float(K[1, 2])!r}\n"
+    )
     n = small_run.predictor.num_frames
     overlap0 = set(range(25, 40))  # chunk 0's last / chunk 1's first 15 frames
     _write_masks(tmp / "masks", n, overlap0)
     config = dataclasses.replace(
-        CONFIG, intrinsics=str(tmp / "K.txt"), metric="camera-height=1.65", drop_sky=True, mask_dir=str(tmp / "masks"),
+        CONFIG,
+        intrinsics=str(tmp / "K.txt"),
+        metric="camera-height=1.65",
+        drop_sky=True,
+        mask_dir=str(tmp / "masks"),
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = pipeline.reconstruct(small_run.predictor, tmp / "run", config, ground_truth=small_run.ground_truth,
-                                   progress=False, log=lambda s: None)
+        res = pipeline.reconstruct(
+            small_run.predictor,
+            tmp / "run",
+            config,
+            ground_truth=small_run.ground_truth,
+            progress=False,
+            log=lambda s: None,
+        )
     res.caught = [str(w.message) for w in caught]
     res.config = config
     res.K = K
@@ -98,7 +116,8 @@ def test_metric_outputs_are_in_metres(camera_run, small_run):
         assert any("metres" in ln for ln in head) and not any("up to scale" in ln for ln in head)
     on_disk = json.loads((camera_run.run_dir / "metrics.json").read_text())
     assert on_disk["unit"] == "metres" and on_disk["metric_scale"]["metres_per_unit"] == pytest.approx(
-        m["metric_scale"]["metres_per_unit"])
+        m["metric_scale"]["metres_per_unit"]
+    )
     # the exported cloud is metric too: its points lie on the true surfaces within a metre or so
     xyz = ply.read_ply(camera_run.run_dir / "points.ply").points
     oracle = small_run.predictor.oracle
@@ -112,8 +131,11 @@ def test_metric_outputs_are_in_metres(camera_run, small_run):
 def test_known_intrinsics_are_the_reference_and_the_colmap_camera(camera_run):
     head = (camera_run.run_dir / "intrinsics.txt").read_text()
     assert "K_ref = the given intrinsics (plain file" in head
-    cams = [ln for ln in (camera_run.run_dir / "colmap" / "sparse" / "0" / "cameras.txt").read_text().splitlines()
-            if ln and not ln.startswith("#")]
+    cams = [
+        ln
+        for ln in (camera_run.run_dir / "colmap" / "sparse" / "0" / "cameras.txt").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    ]
     assert len(cams) == 1
     _, model, w, h, *p = cams[0].split()
     K = camera_run.K
@@ -130,8 +152,14 @@ def test_scale_priors_in_the_pose_graph_rerun_only_the_graph_and_export(camera_r
     config = dataclasses.replace(camera_run.config, metric_combine="prior")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = pipeline.reconstruct(_spy(small_run.predictor, calls), camera_run.run_dir, config,
-                                   ground_truth=small_run.ground_truth, progress=False, log=lambda s: None)
+        res = pipeline.reconstruct(
+            _spy(small_run.predictor, calls),
+            camera_run.run_dir,
+            config,
+            ground_truth=small_run.ground_truth,
+            progress=False,
+            log=lambda s: None,
+        )
     assert not calls
     m = res.metrics
     assert m["unit"] == "metres" and m["metric_scale"]["combine"] == "prior"
@@ -151,8 +179,13 @@ def test_changed_masks_or_intrinsics_refuse_to_resume(camera_run, small_run):
     mask = camera_run.run_dir.parent / "masks" / "000003.png"
     os.utime(mask, ns=(0, 0))
     with pytest.raises(RunDirError, match="different input"):
-        pipeline.reconstruct(small_run.predictor, camera_run.run_dir, camera_run.config,
-                             ground_truth=small_run.ground_truth, progress=False)
+        pipeline.reconstruct(
+            small_run.predictor,
+            camera_run.run_dir,
+            camera_run.config,
+            ground_truth=small_run.ground_truth,
+            progress=False,
+        )
 
 
 def test_bad_options_fail_before_any_work(small_run, tmp_path):
@@ -161,14 +194,16 @@ def test_bad_options_fail_before_any_work(small_run, tmp_path):
     spy = _spy(small_run.predictor, calls)  # every call below must fail before predicting
 
     with pytest.raises(ValueError, match="principal point .* outside the 140x42 image"):
-        pipeline.reconstruct(spy, tmp_path / "a", dataclasses.replace(CONFIG, intrinsics=str(tmp_path / "K.txt")),
-                             progress=False)
+        pipeline.reconstruct(
+            spy, tmp_path / "a", dataclasses.replace(CONFIG, intrinsics=str(tmp_path / "K.txt")), progress=False
+        )
     with pytest.raises(ValueError, match="--metric gt needs the ground-truth poses"):
         pipeline.reconstruct(spy, tmp_path / "b", dataclasses.replace(CONFIG, metric="gt"), progress=False)
     with pytest.raises(ValueError, match="lacks"):
         (tmp_path / "m").mkdir()
-        pipeline.reconstruct(spy, tmp_path / "c", dataclasses.replace(CONFIG, mask_dir=str(tmp_path / "m")),
-                             progress=False)
+        pipeline.reconstruct(
+            spy, tmp_path / "c", dataclasses.replace(CONFIG, mask_dir=str(tmp_path / "m")), progress=False
+        )
     with pytest.raises(ValueError, match="--metric must be"):
         dataclasses.replace(CONFIG, metric="height=2")
     assert not calls
@@ -178,8 +213,18 @@ def test_cli_demo_refuses_a_bad_intrinsics_file_in_one_line(tmp_path, capsys):
     from swiftjax.cli import main
 
     (tmp_path / "K.txt").write_text("1 RADIAL 518 154 300 259 77 0.1 0.01\n")
-    code = main(["demo", "--frames", "50", "--out", str(tmp_path / "run"), "--intrinsics", str(tmp_path / "K.txt"),
-                 "--no-progress"])
+    code = main(
+        [
+            "demo",
+            "--frames",
+            "50",
+            "--out",
+            str(tmp_path / "run"),
+            "--intrinsics",
+            str(tmp_path / "K.txt"),
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "'RADIAL' is not supported" in err[0]
 
@@ -187,8 +232,20 @@ def test_cli_demo_refuses_a_bad_intrinsics_file_in_one_line(tmp_path, capsys):
 def test_cli_refuses_a_bad_metric_combine_in_one_line(tmp_path, capsys):
     from swiftjax.cli import main
 
-    code = main(["demo", "--frames", "50", "--out", str(tmp_path / "run"), "--metric", "camera-height=1.65",
-                 "--metric-combine", "mean", "--no-progress"])
+    code = main(
+        [
+            "demo",
+            "--frames",
+            "50",
+            "--out",
+            str(tmp_path / "run"),
+            "--metric",
+            "camera-height=1.65",
+            "--metric-combine",
+            "mean",
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--metric-combine" in err[0] and "median, prior" in err[0]
     assert not (tmp_path / "run").exists()

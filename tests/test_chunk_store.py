@@ -188,13 +188,18 @@ def test_partial_load_reads_and_checks_only_the_selected_frames(tmp_path):
     raw = bytearray(path.read_bytes())
     start = bytes(raw).find(pred.depth[0].tobytes())  # frame 0 of depth, stored float32
     assert start > 0
-    raw[start:start + 4] = np.float32(-7.0).tobytes()
+    raw[start : start + 4] = np.float32(-7.0).tobytes()
     path.write_bytes(bytes(raw))
     np.testing.assert_array_equal(store.load("chunk", 0, frames=[1, 2]).depth, pred.depth[1:3])
-    with pytest.raises(cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file: depth frame 0 fails its CRC32"):
+    with pytest.raises(
+        cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file: depth frame 0 fails its CRC32"
+    ):
         store.load("chunk", 0, frames=[0])
-    for read in (lambda: store.load("chunk", 0), lambda: store.load_array("chunk", 0, "depth", frames=slice(0, 2)),
-                 lambda: store.verify("chunk", 0)):
+    for read in (
+        lambda: store.load("chunk", 0),
+        lambda: store.load_array("chunk", 0, "depth", frames=slice(0, 2)),
+        lambda: store.verify("chunk", 0),
+    ):
         with pytest.raises(cs.ChunkCorruptError, match=r"chunk_00000\.npz: corrupt chunk file: depth") as info:
             read()
         assert info.value.field == "depth" and info.value.path == path
@@ -221,15 +226,25 @@ def test_a_flipped_byte_in_any_stored_array_is_named(tmp_path, compress):
     clean = path.read_bytes()
     with zipfile.ZipFile(path) as zf:
         members = [(i.filename[:-4], i.header_offset, i.compress_size) for i in zf.infolist()]
-    assert {m for m, _, _ in members} >= {"depth", "conf", "extrinsic", "intrinsic", "descriptors", "patch_tokens",
-                                            "images", "extra__frames", "extra__points_xyz", "crc32__depth"}
+    assert {m for m, _, _ in members} >= {
+        "depth",
+        "conf",
+        "extrinsic",
+        "intrinsic",
+        "descriptors",
+        "patch_tokens",
+        "images",
+        "extra__frames",
+        "extra__points_xyz",
+        "crc32__depth",
+    }
     for name, header, size in members:
         path.write_bytes(clean)
-        local = clean[header:header + 30]
+        local = clean[header : header + 30]
         data_start = header + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
         # Inside the member's data: its last frame (uncompressed), the middle of the deflate stream.
         _flip(path, data_start + (size // 2 if compress else size - 3))
-        field = name[len("crc32__"):] if name.startswith("crc32__") else name
+        field = name[len("crc32__") :] if name.startswith("crc32__") else name
         with pytest.raises(cs.ChunkCorruptError) as info:
             store.verify("chunk", 0)
         assert info.value.path == path and f"{path}: corrupt chunk file" in str(info.value)
@@ -348,8 +363,11 @@ def test_drop_dense_keeps_every_other_array_checked_and_load_says_why(tmp_path):
     extra = store.load_extra("chunk", 2, names=("frames",))
     assert list(extra) == ["frames"] and np.array_equal(extra["frames"], np.arange(8, 12))
     store.verify("chunk", 2)  # every remaining array passes its CRC32
-    with pytest.raises(cs.ChunkMismatchError, match=r"chunk_00002.npz: not this run's chunk file: its depth and "
-                                                    r"confidence maps were dropped"):
+    with pytest.raises(
+        cs.ChunkMismatchError,
+        match=r"chunk_00002.npz: not this run's chunk file: its depth and "
+        r"confidence maps were dropped",
+    ):
         store.load("chunk", 2)
     assert isinstance(cs.ChunkMismatchError(path, "x"), cs.ChunkCorruptError)  # re-predicted like a corrupt file
 

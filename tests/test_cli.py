@@ -29,7 +29,9 @@ def _assert_one_line_error(code, err, *fragments):
 
 def test_reconstruct_empty_folder(capsys, tmp_path):
     (tmp_path / "empty").mkdir()
-    code, _, err = run_cli(capsys, "reconstruct", str(tmp_path / "empty"), "--weights", "w.pt", "--out", str(tmp_path / "o"))
+    code, _, err = run_cli(
+        capsys, "reconstruct", str(tmp_path / "empty"), "--weights", "w.pt", "--out", str(tmp_path / "o")
+    )
     _assert_one_line_error(code, err, "empty")
 
 
@@ -40,7 +42,9 @@ def test_reconstruct_corrupt_image_named(capsys, tmp_path):
     for k in range(3):
         cv2.imwrite(str(folder / f"{k:03d}.png"), np.full((20, 30, 3), 40 * k, np.uint8))
     (folder / "003.png").write_bytes(b"not a png")
-    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "o"))
+    code, _, err = run_cli(
+        capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "o")
+    )
     _assert_one_line_error(code, err, "003.png")
 
 
@@ -60,7 +64,9 @@ def test_reconstruct_missing_weights(capsys, tmp_path):
     folder.mkdir()
     for k in range(2):
         cv2.imwrite(str(folder / f"{k}.png"), np.zeros((20, 30, 3), np.uint8))
-    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "o"))
+    code, _, err = run_cli(
+        capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "o")
+    )
     _assert_one_line_error(code, err, "nope.pt", "does not exist")
 
 
@@ -85,7 +91,7 @@ def test_config_file_values_are_overridden_by_options(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text("[swiftjax]\nchunk_size = 60\noverlap = 20\n")
     args = cli.build_parser().parse_args(["demo", "--config", str(cfg), "--overlap", "25"])
-    conf = cli._pipeline_config(args)  # noqa: SLF001
+    conf = cli._pipeline_config(args)
     assert (conf.chunk_size, conf.overlap) == (60, 25)
 
 
@@ -135,7 +141,10 @@ def _frames(tmp_path, n=3):
         (["--device", "banana"], ["--device 'banana' is not a torch device"]),
         (["--device", "cuda"], ["--device cuda:", "use --device cpu"]),
         (["--backend", "onnx"], ["--backend onnx needs an .onnx file"]),
-        (["--dtype", "bfloat16", "--backend", "onnx", "--weights", "W.onnx"], ["--dtype bfloat16 needs --backend torch"]),
+        (
+            ["--dtype", "bfloat16", "--backend", "onnx", "--weights", "W.onnx"],
+            ["--dtype bfloat16 needs --backend torch"],
+        ),
     ],
 )
 def test_device_and_backend_errors_are_one_line(capsys, tmp_path, extra, fragments):
@@ -169,8 +178,9 @@ def test_corrupt_weights_are_one_line_and_not_called_unsafe(capsys, tmp_path, na
     folder = _frames(tmp_path)
     (tmp_path / name).write_bytes(payload)
     backend = ["--backend", "onnx"] if name.endswith(".onnx") else []
-    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / name),
-                           "--out", str(tmp_path / "o"), *backend)
+    code, _, err = run_cli(
+        capsys, "reconstruct", str(folder), "--weights", str(tmp_path / name), "--out", str(tmp_path / "o"), *backend
+    )
     _assert_one_line_error(code, err, *fragments)
     assert "unsafe" not in err and "refused" not in err
 
@@ -180,8 +190,17 @@ def test_model_config_errors(capsys, tmp_path):
     folder = _frames(tmp_path)
     (tmp_path / "w.safetensors").write_bytes(b"\x00" * 3)
     (tmp_path / "cfg.json").write_text("{not json")
-    code, _, err = run_cli(capsys, "reconstruct", str(folder), "--weights", str(tmp_path / "w.safetensors"),
-                           "--out", str(tmp_path / "o"), "--model-config", str(tmp_path / "cfg.json"))
+    code, _, err = run_cli(
+        capsys,
+        "reconstruct",
+        str(folder),
+        "--weights",
+        str(tmp_path / "w.safetensors"),
+        "--out",
+        str(tmp_path / "o"),
+        "--model-config",
+        str(tmp_path / "cfg.json"),
+    )
     _assert_one_line_error(code, err, "--model-config", "cfg.json", "is not a VGGT config")
 
 
@@ -189,10 +208,10 @@ def test_model_config_errors(capsys, tmp_path):
     "toml, fragments",
     [
         ("min_points = 1e400\n", ["min_points", "inf", "an integer with 3 <= value <= 100000000"]),
-        ("loop_closure = \"no\"\n", ["loop_closure", "'no' is not a boolean"]),
+        ('loop_closure = "no"\n', ["loop_closure", "'no' is not a boolean"]),
         ("overlap = true\n", ["overlap", "True is not a number"]),
         ("chunk_size = 60.7\n", ["chunk_size", "60.7 is not an integer"]),
-        ("robust_loops = \"nope\"\n", ["robust_loops", "one of gnc, cauchy, huber (or none)"]),
+        ('robust_loops = "nope"\n', ["robust_loops", "one of gnc, cauchy, huber (or none)"]),
         ("\x00\x01binary", ["not valid TOML"]),
     ],
 )
@@ -247,29 +266,38 @@ def test_evaluate_binary_and_bad_rotation_files(capsys, tmp_path):
     trajectory.write_kitti(tmp_path / "scaled.txt", scaled)
     code, _, err = run_cli(capsys, "evaluate", str(tmp_path / "ref.txt"), str(tmp_path / "scaled.txt"))
     _assert_one_line_error(code, err, "scaled.txt", "pose 10 (of 40)", "--fix-rotations")
-    code, out, err = run_cli(capsys, "evaluate", str(tmp_path / "ref.txt"), str(tmp_path / "scaled.txt"),
-                             "--fix-rotations")
+    code, out, err = run_cli(
+        capsys, "evaluate", str(tmp_path / "ref.txt"), str(tmp_path / "scaled.txt"), "--fix-rotations"
+    )
     assert code == 0 and "rotations re-orthonormalised" in out and "scaled.txt" in out
     (tmp_path / "zeroq.txt").write_text("".join(f"{k} 0 0 {k} 0 0 0 {0 if k == 3 else 1}\n" for k in range(6)))
-    code, _, err = run_cli(capsys, "evaluate", str(tmp_path / "zeroq.txt"), str(tmp_path / "zeroq.txt"),
-                           "--format", "tum", "--fix-rotations")
+    code, _, err = run_cli(
+        capsys,
+        "evaluate",
+        str(tmp_path / "zeroq.txt"),
+        str(tmp_path / "zeroq.txt"),
+        "--format",
+        "tum",
+        "--fix-rotations",
+    )
     _assert_one_line_error(code, err, "zeroq.txt", "pose 3", "norm 0")
 
 
 def test_help_shows_defaults_choices_and_descriptions():
     parser = cli.build_parser()
-    sub = parser._subparsers._group_actions[0].choices  # noqa: SLF001
+    sub = parser._subparsers._group_actions[0].choices
     texts = {name: p.format_help() for name, p in sub.items()}
     for name, p in sub.items():
-        for action in p._actions:  # noqa: SLF001
+        for action in p._actions:
             if action.option_strings and action.dest != "help":
                 assert action.help, (name, action.option_strings)
     for command, flags in {
-        "demo": ["--out", "--seed"], "reconstruct": ["--backend", "--dtype", "--mode", "--gt-format"],
+        "demo": ["--out", "--seed"],
+        "reconstruct": ["--backend", "--dtype", "--mode", "--gt-format"],
         "evaluate": ["--format", "--align", "--delta", "--max-diff", "--offset"],
         "export-onnx": ["--frames", "--height", "--width"],
     }.items():
         for flag in flags:
-            action = next(a for a in sub[command]._actions if flag in a.option_strings)  # noqa: SLF001
-            assert "default" in sub[command]._get_formatter()._expand_help(action), (command, flag)  # noqa: SLF001
+            action = next(a for a in sub[command]._actions if flag in a.option_strings)
+            assert "default" in sub[command]._get_formatter()._expand_help(action), (command, flag)
     assert "{umeyama,irls}" in texts["demo"] and "{gnc,cauchy,huber,none}" in texts["reconstruct"]

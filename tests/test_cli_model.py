@@ -8,7 +8,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from test_faults import _env
 
 torch = pytest.importorskip("torch")
@@ -20,9 +19,29 @@ def _reconstruct(frames, out, weights, config, *extra, fault=None):
     import subprocess
     import sys
 
-    argv = [sys.executable, "-m", "swiftjax.cli", "reconstruct", str(frames), "--weights", str(weights),
-            "--model-config", str(config), "--out", str(out), "--chunk-size", "8", "--overlap", "3",
-            "--min-points", "10", "--no-loop-closure", "--no-colmap", "--no-progress", *extra]
+    argv = [
+        sys.executable,
+        "-m",
+        "swiftjax.cli",
+        "reconstruct",
+        str(frames),
+        "--weights",
+        str(weights),
+        "--model-config",
+        str(config),
+        "--out",
+        str(out),
+        "--chunk-size",
+        "8",
+        "--overlap",
+        "3",
+        "--min-points",
+        "10",
+        "--no-loop-closure",
+        "--no-colmap",
+        "--no-progress",
+        *extra,
+    ]
     return subprocess.run(argv, env=_env(fault), capture_output=True, text=True, timeout=600)
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _extras import require_extra
 from scipy.spatial.transform import Rotation
 
-from _extras import require_extra
 from swiftjax.io.colmap import world_to_camera_qt, write_colmap, write_colmap_text
 
 W, H = 518, 154
@@ -184,10 +184,23 @@ def test_observations_reproject_in_pycolmap(tmp_path, fmt):
     from, and the 3-D point reprojects there through pycolmap's camera and pose."""
     pycolmap = require_extra("pycolmap")
     c2w, ks, names, pts, cols, errs, img, uv = _observed_scene()
-    write_colmap(tmp_path, c2w, ks, names, (W, H), pts, cols, errs, observations=(img, uv),
-                 binary=fmt == "binary", text=fmt == "text")
+    write_colmap(
+        tmp_path,
+        c2w,
+        ks,
+        names,
+        (W, H),
+        pts,
+        cols,
+        errs,
+        observations=(img, uv),
+        binary=fmt == "binary",
+        text=fmt == "text",
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == (
-        ["cameras.bin", "images.bin", "points3D.bin"] if fmt == "binary" else ["cameras.txt", "images.txt", "points3D.txt"]
+        ["cameras.bin", "images.bin", "points3D.bin"]
+        if fmt == "binary"
+        else ["cameras.txt", "images.txt", "points3D.txt"]
     )
     rec = pycolmap.Reconstruction(str(tmp_path))
     assert (rec.num_images(), rec.num_points3D()) == (5, 300)
@@ -218,8 +231,9 @@ def test_binary_and_text_models_agree(tmp_path):
         p.rename(tmp_path / ("bin" if p.suffix == ".bin" else "txt") / p.name)
     a, b = (pycolmap.Reconstruction(str(tmp_path / d)) for d in ("bin", "txt"))
     for i in a.images:
-        np.testing.assert_allclose(a.images[i].cam_from_world().matrix(), b.images[i].cam_from_world().matrix(),
-                                   atol=1e-15)
+        np.testing.assert_allclose(
+            a.images[i].cam_from_world().matrix(), b.images[i].cam_from_world().matrix(), atol=1e-15
+        )
         np.testing.assert_array_equal([p.xy for p in a.images[i].points2D], [p.xy for p in b.images[i].points2D])
     for c in a.cameras:
         np.testing.assert_array_equal(a.cameras[c].params, b.cameras[c].params)
@@ -242,5 +256,12 @@ def test_image_names_are_png_unique_and_without_white_space():
 
     names = ["a.jpg", "a.png", "b.JPG", "sub/c.tif", "000001.png", "noext", "IMG 7.jpg", "tab\tx.png"]
     assert image_names(names) == [
-        "a.jpg.png", "a.png", "b.png", "sub/c.png", "000001.png", "noext.png", "IMG_7.png", "tab_x.png",
+        "a.jpg.png",
+        "a.png",
+        "b.png",
+        "sub/c.png",
+        "000001.png",
+        "noext.png",
+        "IMG_7.png",
+        "tab_x.png",
     ]

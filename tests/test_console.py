@@ -7,9 +7,9 @@ from __future__ import annotations
 import re
 import shutil
 
+from swiftjax.io.tables import format_fixed, text_table
 from swiftjax.pipeline.report import summary_table
 from swiftjax.pipeline.rundir import StageTimer, progress_bar
-from swiftjax.io.tables import format_fixed, text_table
 
 SCIENTIFIC = re.compile(r"\d[eE][+-]?\d")
 
@@ -37,10 +37,10 @@ def test_summary_reads_as_a_table_in_pipeline_order(small_loop_run):
     assert "|" not in text and not SCIENTIFIC.search(text), text
     assert lines[-1] == f"next:    swiftjax view {out}"
     assert lines[-2].startswith(f"outputs: {out}  (points.ply")
-    rows = lines[1:lines.index("time per stage (s)")]
+    rows = lines[1 : lines.index("time per stage (s)")]
     assert len({len(r) for r in rows}) == 1, rows  # one value column
     assert any(r.split()[:1] == ["unit"] and "up to scale" in r for r in rows)
-    timed = [r.rsplit(None, 1)[0].strip() for r in lines[lines.index("time per stage (s)") + 1:-2]]
+    timed = [r.rsplit(None, 1)[0].strip() for r in lines[lines.index("time per stage (s)") + 1 : -2]]
     assert timed[-1] == "total" and len(timed) >= 6
     order = list(StageTimer.ORDER)
     assert [order.index(k) for k in timed[:-1]] == sorted(order.index(k) for k in timed[:-1]), timed
@@ -61,8 +61,14 @@ def test_rerun_says_resumed(small_loop_run, tmp_path):
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
     run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
     lines: list[str] = []
-    pipeline.reconstruct(run.predictor, copy, pipeline.PipelineConfig(**SMALL_RUN_CONFIG),
-                         ground_truth=run.ground_truth, progress=False, log=lines.append)
+    pipeline.reconstruct(
+        run.predictor,
+        copy,
+        pipeline.PipelineConfig(**SMALL_RUN_CONFIG),
+        ground_truth=run.ground_truth,
+        progress=False,
+        log=lines.append,
+    )
     T = result.num_chunks
     assert f"swiftjax: resumed {T}/{T} chunks from {copy / 'chunks'}" in lines, lines
 

@@ -44,7 +44,7 @@ def test_official_file_loads_and_fills_the_six_aliases(da3_dir, tiny_state):
     load_da3_checkpoint(net, da3_dir / "tiny_weights.safetensors")
     sd = net.state_dict()
     for k in range(4):  # one shared LayerNorm under four names, equal to the stored .0.2 tensor
-        assert torch.equal(sd[ALIAS.format(k)[len("model."):]], tiny_state[ALIAS.format(0)])
+        assert torch.equal(sd[ALIAS.format(k)[len("model.") :]], tiny_state[ALIAS.format(0)])
     assert sd[ALIAS.format(3)[6:]].data_ptr() == sd[ALIAS.format(0)[6:]].data_ptr()
     assert sorted(expected_checkpoint_keys(net)) == sorted(tiny_state)
 
@@ -79,7 +79,10 @@ def test_aliases_present_and_equal_are_accepted(da3_dir, tiny_state, tmp_path):
     "edit, message",
     [
         (lambda s: s.pop("model.cam_dec.fc_t.weight"), "1 missing key(s): model.cam_dec.fc_t.weight"),
-        (lambda s: s.update({"model.head.extra.weight": torch.zeros(2)}), "1 unexpected key(s): model.head.extra.weight"),
+        (
+            lambda s: s.update({"model.head.extra.weight": torch.zeros(2)}),
+            "1 unexpected key(s): model.head.extra.weight",
+        ),
         (lambda s: s.update({"model.cam_dec.fc_t.bias": torch.zeros(4)}), "model.cam_dec.fc_t.bias (4,) vs model (3,)"),
         (lambda s: s.update({ALIAS.format(2): s[ALIAS.format(0)] + 1}), "alias(es) differing"),
         (lambda s: s.pop(ALIAS.format(0)), "missing key(s): model.head.scratch.output_conv2_aux.0.2.weight"),
@@ -95,7 +98,7 @@ def test_strict_refusals_name_the_keys(da3_dir, tiny_state, tmp_path, edit, mess
 
 
 def test_wrong_prefix_is_refused(da3_dir, tiny_state, tmp_path):
-    state = {k[len("model."):]: v for k, v in tiny_state.items()}  # a bare network state_dict
+    state = {k[len("model.") :]: v for k, v in tiny_state.items()}  # a bare network state_dict
     with pytest.raises(CheckpointError, match="no key starts with 'model.'"):
         load_da3_checkpoint(tiny(da3_dir), write(tmp_path, state))
     state = {"module." + k: v for k, v in tiny_state.items()}
@@ -124,15 +127,18 @@ def test_preset_builds_on_meta_with_the_manifest(da3_dir, preset):
     manifest = json.loads((da3_dir / f"manifest_{preset}.json").read_text())
     cfg = PRESETS[preset]
     resolved = manifest["resolved_config"]
-    parsed = (NestedDA3Config.from_object_config(resolved) if "anyview" in resolved
-              else DA3Config.from_object_config(resolved))
+    parsed = (
+        NestedDA3Config.from_object_config(resolved)
+        if "anyview" in resolved
+        else DA3Config.from_object_config(resolved)
+    )
     assert parsed == cfg  # the hard-coded preset is the official yaml
     net = build_da3(preset)
     got = {k: tuple(v.shape) for k, v in net.state_dict().items()}
     want = {name: tuple(shape) for name, shape, _ in manifest["entries"]}
     # Names and shapes exactly (loading is by name; only the registration order inside the
     # fusion blocks, shared with VGGT's, differs from the official state_dict order).
-    assert got == want, (sorted(set(got) ^ set(want))[:10])
+    assert got == want, sorted(set(got) ^ set(want))[:10]
     assert sum(p.numel() for p in net.parameters()) == manifest["total_params"]
     assert len(expected_checkpoint_keys(net)) == manifest["expected_checkpoint_keys_count"]
     dropped = {("model." + n) for g in alias_groups(net) for n in g[1:]}

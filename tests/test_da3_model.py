@@ -21,8 +21,22 @@ from inference.da3.raypose import cameras_from_rays
 from inference.da3.refview import balance_scores, reference_order, restore_order
 
 STRATEGIES = {"first_": "first", "saddle_": "saddle_balanced", "middle_": "middle"}
-RUN_KEYS = ("depth", "depth_conf", "extrinsics", "intrinsics", "head_depth", "ray", "ray_conf", "feats_tokens",
-            "feats_cam_tokens", "block_outputs", "pose_enc", "ref_view_idx", "ref_select_cls_tokens", "ref_balance_scores")
+RUN_KEYS = (
+    "depth",
+    "depth_conf",
+    "extrinsics",
+    "intrinsics",
+    "head_depth",
+    "ray",
+    "ray_conf",
+    "feats_tokens",
+    "feats_cam_tokens",
+    "block_outputs",
+    "pose_enc",
+    "ref_view_idx",
+    "ref_select_cls_tokens",
+    "ref_balance_scores",
+)
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +96,12 @@ def test_strategy_runs_equal_golden(model, golden, tolerance, prefix):
     np.testing.assert_array_equal(out["view_order"][0], golden[prefix + "view_order"])
     # Our prealt tokens are in input order; the official export keeps the internal order.
     internal = golden[prefix + "prealt_patch_tokens"]
-    assert_key(prefix + "prealt_patch_tokens", out["prealt_patch_tokens"],
-               internal[:, np.argsort(golden[prefix + "view_order"])], tolerance)
+    assert_key(
+        prefix + "prealt_patch_tokens",
+        out["prealt_patch_tokens"],
+        internal[:, np.argsort(golden[prefix + "view_order"])],
+        tolerance,
+    )
 
 
 def test_saddle_picks_a_view_other_than_first_and_moves_the_frame(model, golden):
@@ -112,8 +130,13 @@ def test_ray_pose_equals_golden(model, golden, tolerance, prefix):
     strategy = STRATEGIES[prefix.split("raypose_")[0]]
     drawn = run(model, golden, strategy, use_ray_pose=True)  # global RNG seeded as the generator
     np.testing.assert_array_equal(drawn["ransac_sample_idx"], golden[prefix + "ransac_sample_idx"])
-    injected = run(model, golden, strategy, use_ray_pose=True,
-                   ransac_sample_idx=torch.from_numpy(golden[prefix + "ransac_sample_idx"]))
+    injected = run(
+        model,
+        golden,
+        strategy,
+        use_ray_pose=True,
+        ransac_sample_idx=torch.from_numpy(golden[prefix + "ransac_sample_idx"]),
+    )
     for out in (drawn, injected):
         for k in ("extrinsics", "intrinsics", "ransac_homography"):
             assert_key(prefix + k, out[k], golden[prefix + k], tolerance)
@@ -121,10 +144,18 @@ def test_ray_pose_equals_golden(model, golden, tolerance, prefix):
 
 def test_ray_decoder_on_synthetic_rays(golden, tolerance):
     torch.manual_seed(2024)
-    rp = cameras_from_rays(torch.from_numpy(golden["raysynth_ray"]), torch.from_numpy(golden["raysynth_ray_conf"]),
-                           golden["images"].shape[-2:])
-    got = {"camray_c2w": rp.c2w, "camray_focal": rp.focal, "camray_pp": rp.pp, "extrinsics": rp.extrinsics,
-           "intrinsics": rp.intrinsics}
+    rp = cameras_from_rays(
+        torch.from_numpy(golden["raysynth_ray"]),
+        torch.from_numpy(golden["raysynth_ray_conf"]),
+        golden["images"].shape[-2:],
+    )
+    got = {
+        "camray_c2w": rp.c2w,
+        "camray_focal": rp.focal,
+        "camray_pp": rp.pp,
+        "extrinsics": rp.extrinsics,
+        "intrinsics": rp.intrinsics,
+    }
     for k, v in got.items():
         assert_key("raysynth_" + k, v.numpy(), golden["raysynth_" + k], tolerance)
     # View 0 has a centred principal point: recovered to noise level (independent of the golden).
@@ -136,7 +167,7 @@ def test_nested_model_equals_golden(nested, golden, tolerance):
     out = run(nested, golden)
     out["metric_sky"] = out["sky"]
     for key in (k for k in golden if k.startswith("nested_")):
-        assert_key(key, out[key[len("nested_"):]], golden[key], tolerance)
+        assert_key(key, out[key[len("nested_") :]], golden[key], tolerance)
     sky = out["sky"] >= 0.3
     assert 0 < sky.mean() < 1  # the data exercises sky filling
     assert np.all(out["depth_conf"][sky] == 1.0)

@@ -11,8 +11,8 @@ import torch
 
 pytest.importorskip("onnxruntime")
 
-from inference.da3 import DA3Config, NestedDA3Config, build_da3, load_da3_checkpoint  # noqa: E402
-from inference.da3.onnx import DA3OnnxRunner, export_da3_onnx  # noqa: E402
+from inference.da3 import DA3Config, NestedDA3Config, build_da3, load_da3_checkpoint
+from inference.da3.onnx import DA3OnnxRunner, export_da3_onnx
 
 
 @pytest.fixture(scope="module")

@@ -30,9 +30,28 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 RECORDING = REPO / "tests" / "data" / "demo_outputs.json"
 #: The demo run of tests/test_faults.py (155 frames, 8 chunks, one verified loop).
 DEMO = [
-    "demo", "--image-size", "28x98", "--frame-spacing", "4", "--chunk-size", "30", "--overlap", "10",
-    "--loop-min-separation", "50", "--loop-nms-radius", "10", "--loop-half-window", "8", "--point-stride", "3",
-    "--colmap-max-points", "2000", "--loop-threshold-rule", "fixed", "--no-progress",
+    "demo",
+    "--image-size",
+    "28x98",
+    "--frame-spacing",
+    "4",
+    "--chunk-size",
+    "30",
+    "--overlap",
+    "10",
+    "--loop-min-separation",
+    "50",
+    "--loop-nms-radius",
+    "10",
+    "--loop-half-window",
+    "8",
+    "--point-stride",
+    "3",
+    "--colmap-max-points",
+    "2000",
+    "--loop-threshold-rule",
+    "fixed",
+    "--no-progress",
 ]
 _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf)\b")
 #: Left out: timings, and the CRC32s of records (they follow the exact bits of the floats beside them).
@@ -102,8 +121,11 @@ def summarise(run_dir: pathlib.Path) -> dict[str, dict]:
             out[rel] = {name: _array(value) for name, value in cloud._asdict().items() if value is not None}
         elif path.suffix == ".npz":
             with zipfile.ZipFile(path) as z:
-                out[rel] = {name: _array(np.load(io.BytesIO(z.read(name)), allow_pickle=False))
-                            for name in sorted(z.namelist()) if not name.startswith("crc32__")}
+                out[rel] = {
+                    name: _array(np.load(io.BytesIO(z.read(name)), allow_pickle=False))
+                    for name in sorted(z.namelist())
+                    if not name.startswith("crc32__")
+                }
         elif path.suffix == ".png":
             image = np.asarray(Image.open(path))
             out[rel] = _array(image) if rel.startswith("colmap/") else {"shape": list(image.shape)}
@@ -131,8 +153,13 @@ def assert_matches(got: dict, want: dict, where: str = "") -> None:
 def run_demo(out: pathlib.Path) -> None:
     from test_faults import _env
 
-    proc = subprocess.run([sys.executable, "-m", "swiftjax.cli", *DEMO, "--out", str(out)], env=_env(),
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "swiftjax.cli", *DEMO, "--out", str(out)],
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 

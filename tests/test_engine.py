@@ -4,23 +4,28 @@ closes, and a finished run directory equal to the offline run of the same frames
 from __future__ import annotations
 
 import json
-import pathlib
 import shutil
 
 import numpy as np
 import pytest
+from test_pipeline_stages import assert_same_outputs
 
 from swiftjax import pipeline
-from swiftjax.synthetic import demo
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.engine import Prefix, Reconstruction
 from swiftjax.pipeline.live import LIVE_NAME, LiveLog
-from test_pipeline_stages import assert_same_outputs
+from swiftjax.synthetic import demo
 
 #: The CLI demo of tests/test_demo_outputs.py (155 frames, 8 chunks, one verified loop).
 CONFIG = pipeline.PipelineConfig(
-    chunk_size=30, overlap=10, loop_min_separation=50, loop_nms_radius=10, loop_half_window=8, point_stride=3,
-    colmap_max_points=2_000, loop_threshold_rule="fixed",
+    chunk_size=30,
+    overlap=10,
+    loop_min_separation=50,
+    loop_nms_radius=10,
+    loop_half_window=8,
+    point_stride=3,
+    colmap_max_points=2_000,
+    loop_threshold_rule="fixed",
 )
 
 
@@ -38,8 +43,11 @@ def test_live_log_survives_a_half_written_line(tmp_path):
     log.append([2], [0.2], c2w[2:], 1, "loop closure")
     log.close()
     got = reader.read_live_poses(tmp_path)
-    assert [(r["frame"], r["revision"], r["reason"]) for r in got] == [(0, 0, "new"), (1, 0, "new"),
-                                                                        (2, 1, "loop closure")]
+    assert [(r["frame"], r["revision"], r["reason"]) for r in got] == [
+        (0, 0, "new"),
+        (1, 0, "new"),
+        (2, 1, "loop closure"),
+    ]
     np.testing.assert_array_equal(got[2]["pose"], c2w[2, :3])
     lines = (tmp_path / LIVE_NAME).read_text().splitlines()
     assert all(json.loads(line) for line in lines) and len(lines) == 3
@@ -85,8 +93,9 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     assert sorted(first) == list(range(n))
     before, at = steps[closing - 1][0], steps[closing][0]  # the closing step publishes its new frames too
     assert [first[k]["reason"] for k in range(n)] == (
-        ["new"] * before + ["loop closure"] * (at - before) + ["new"] * (last_step - at) + ["final"] * (n - last_step))
-    for count, revision, c2w, result in steps:
+        ["new"] * before + ["loop closure"] * (at - before) + ["new"] * (last_step - at) + ["final"] * (n - last_step)
+    )
+    for count, revision, c2w, _result in steps:
         for k in range(count):
             latest = [r for r in records if r["frame"] == k and r["revision"] <= revision][-1]
             np.testing.assert_array_equal(latest["pose"], c2w[k, :3])
@@ -97,8 +106,9 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])
 
     # The finished run directory is the offline run of the same frames, file by file.
-    offline = pipeline.reconstruct(Prefix(run.predictor, n), offline_dir, CONFIG, ground_truth=run.ground_truth,
-                                   progress=False, log=lambda s: None)
+    offline = pipeline.reconstruct(
+        Prefix(run.predictor, n), offline_dir, CONFIG, ground_truth=run.ground_truth, progress=False, log=lambda s: None
+    )
     np.testing.assert_array_equal(offline.cam_to_world, final.cam_to_world)
     shutil.move(live_dir / LIVE_NAME, tmp_path / LIVE_NAME)
     assert_same_outputs(offline_dir, live_dir)

@@ -97,7 +97,9 @@ def test_a_bug_in_a_command_gets_a_traceback_and_exit_1():
 def test_a_user_error_through_the_command_is_one_line(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "swiftjax.cli", "evaluate", str(tmp_path / "ref.txt"), str(tmp_path / "est.txt")],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.startswith("swiftjax: error: ") and "Traceback" not in proc.stderr
@@ -108,7 +110,10 @@ def test_workers_below_one_is_checked_in_one_place(tmp_path):
     from swiftjax.pipeline import batch
     from swiftjax.pipeline.executors import ExecutorError, RayExecutor, check_workers
 
-    for call in (lambda: check_workers(0), lambda: RayExecutor(0),
-                 lambda: batch.run_batch([batch.Sequence("a", "x")], tmp_path / "out", workers=0)):
+    for call in (
+        lambda: check_workers(0),
+        lambda: RayExecutor(0),
+        lambda: batch.run_batch([batch.Sequence("a", "x")], tmp_path / "out", workers=0),
+    ):
         with pytest.raises(ExecutorError, match="--workers must be >= 1, got 0"):
             call()

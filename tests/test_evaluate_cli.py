@@ -45,9 +45,12 @@ def _run_files(tmp_path):
     est[:, :3, 3] = 0.1 * gt[:, :3, 3] + np.random.default_rng(1).normal(scale=0.05, size=(len(gt), 3))
     run = tmp_path / "run"
     run.mkdir()
-    export._write_trajectories(run, est, np.arange(len(est), dtype=float), results.UP_TO_SCALE, "frame index")  # noqa: SLF001
-    trajectory.write_kitti(run / "ground_truth_kitti.txt", gt, header=[
-        "the ground truth given to this run: camera-to-world poses as given (metres, its own frame)"])
+    export._write_trajectories(run, est, np.arange(len(est), dtype=float), results.UP_TO_SCALE, "frame index")
+    trajectory.write_kitti(
+        run / "ground_truth_kitti.txt",
+        gt,
+        header=["the ground truth given to this run: camera-to-world poses as given (metres, its own frame)"],
+    )
     return run, gt, est
 
 

@@ -6,15 +6,15 @@ import copy
 
 import numpy as np
 import pytest
+from _extras import require_extra
 from scipy.spatial.transform import Rotation
 
-from _extras import require_extra
 from swiftjax.evaluation import ate, chamfer, rpe, umeyama_alignment
 from swiftjax.io.trajectory import read_kitti, read_tum
 
 evo = require_extra("evo")
-from evo.core import metrics, sync  # noqa: E402
-from evo.core.trajectory import PosePath3D, PoseTrajectory3D  # noqa: E402
+from evo.core import metrics, sync
+from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 
 
 def _perturbed(P: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -224,10 +224,16 @@ def test_non_orthonormal_rotations_are_refused_or_fixed(kitti):
 
 def _evo_associate(t_ref, t_est, max_diff, offset):
     n_ref, n_est = len(t_ref), len(t_est)
-    ref = PoseTrajectory3D(positions_xyz=np.c_[np.arange(n_ref), np.zeros((n_ref, 2))],
-                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_ref, 1)), timestamps=t_ref)
-    est = PoseTrajectory3D(positions_xyz=np.c_[np.arange(n_est), np.zeros((n_est, 2))],
-                           orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_est, 1)), timestamps=t_est)
+    ref = PoseTrajectory3D(
+        positions_xyz=np.c_[np.arange(n_ref), np.zeros((n_ref, 2))],
+        orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_ref, 1)),
+        timestamps=t_ref,
+    )
+    est = PoseTrajectory3D(
+        positions_xyz=np.c_[np.arange(n_est), np.zeros((n_est, 2))],
+        orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (n_est, 1)),
+        timestamps=t_est,
+    )
     r, e = sync.associate_trajectories(ref, est, max_diff=max_diff, offset_2=offset)
     return r.positions_xyz[:, 0].astype(int), e.positions_xyz[:, 0].astype(int)
 
@@ -272,7 +278,8 @@ def test_tum_files_are_associated_by_timestamp_in_the_cli(tmp_path, capsys, shar
     t_est, P_est = read_tum(est_file)
     ref_a, est_a = sync.associate_trajectories(
         PoseTrajectory3D(poses_se3=list(P_ref), timestamps=t_ref),
-        PoseTrajectory3D(poses_se3=list(P_est), timestamps=t_est), max_diff=0.01,
+        PoseTrajectory3D(poses_se3=list(P_est), timestamps=t_est),
+        max_diff=0.01,
     )
     want = f"{ate(np.array(est_a.poses_se3), np.array(ref_a.poses_se3)).rmse:.3g}"
     stamps, rows = read_tum_raw(est_file)

@@ -18,11 +18,11 @@ import time
 import numpy as np
 import psutil
 import pytest
+from test_pipeline_stages import CONFIG, IMAGE_HW, assert_same_outputs, reference, route  # noqa: F401 (fixtures)
 
 from swiftjax import chunks, pipeline
-from swiftjax.synthetic import demo
 from swiftjax.pipeline.executors import ExecutorError, LocalExecutor, RayExecutor, start_local_ray
-from test_pipeline_stages import CONFIG, IMAGE_HW, assert_same_outputs, reference, route  # noqa: F401 (fixtures)
+from swiftjax.synthetic import demo
 
 ray = pytest.importorskip("ray")  # the test extra installs it; skipped only outside it
 
@@ -54,8 +54,9 @@ def cluster():
 
 def test_local_executor_without_prefetch_writes_the_same_outputs(route, reference, tmp_path):
     executor = LocalExecutor(prefetch=0)
-    pipeline.reconstruct(route.predictor, tmp_path / "sync", CONFIG, ground_truth=route.ground_truth,
-                         progress=False, executor=executor)
+    pipeline.reconstruct(
+        route.predictor, tmp_path / "sync", CONFIG, ground_truth=route.ground_truth, progress=False, executor=executor
+    )
     assert executor.stats.predictions == reference.num_chunks + len(reference.loops)
     assert_same_outputs(tmp_path / "sync", reference.run_dir)
 
@@ -118,8 +119,9 @@ def test_ray_executor_writes_the_local_outputs(cluster, route, reference, tmp_pa
     log = tmp_path / "predictions.log"
     predictor = Driver(route.predictor, LoggedSpec(route.predictor.spec(), log, 0.0))
     with RayExecutor(2) as executor:
-        pipeline.reconstruct(predictor, tmp_path / "ray", CONFIG, ground_truth=route.ground_truth,
-                             progress=False, executor=executor)
+        pipeline.reconstruct(
+            predictor, tmp_path / "ray", CONFIG, ground_truth=route.ground_truth, progress=False, executor=executor
+        )
         assert len({ray.get(a.pid.remote()) for a in executor.actors}) == 2
     assert ray.is_initialized()  # the executor did not own the cluster
     done = [line.split() for line in log.read_text().splitlines() if line.startswith("done")]
@@ -164,8 +166,9 @@ def test_killed_actor_is_restarted_and_no_recorded_chunk_is_predicted_again(clus
     log = tmp_path / "predictions.log"
     predictor = Driver(route.predictor, LoggedSpec(route.predictor.spec(), log, 0.4))
     with KillingExecutor(2, at=3, log=log) as executor:
-        pipeline.reconstruct(predictor, tmp_path / "killed", CONFIG, ground_truth=route.ground_truth,
-                             progress=False, executor=executor)
+        pipeline.reconstruct(
+            predictor, tmp_path / "killed", CONFIG, ground_truth=route.ground_truth, progress=False, executor=executor
+        )
         executor.killer.join()
         restarted = ray.get(executor.actors[0].pid.remote())
     assert executor.killed_pid is not None and str(restarted) != executor.killed_pid
@@ -175,8 +178,11 @@ def test_killed_actor_is_restarted_and_no_recorded_chunk_is_predicted_again(clus
     schedule = chunks.chunk_schedule(route.predictor.num_frames, CONFIG.chunk_size, CONFIG.overlap)
     keys = [f"{f[0]}-{f[-1]}" for f in (schedule.frames(t) for t in range(schedule.num_chunks))]
     # The kill interrupted a prediction of the killed actor, which the restarted one redid.
-    interrupted = [k for kind, k, pid in entries if kind == "start" and pid == executor.killed_pid
-                   and ["done", k, pid] not in entries]
+    interrupted = [
+        k
+        for kind, k, pid in entries
+        if kind == "start" and pid == executor.killed_pid and ["done", k, pid] not in entries
+    ]
     assert len(interrupted) == 1 and started[interrupted[0]] == 2 and done[interrupted[0]] == 1
     assert any(pid == str(restarted) for _, _, pid in entries)
     # Chunks taken (and so recorded) before the kill were predicted once; every chunk was.
@@ -287,7 +293,6 @@ def test_batch_cli_builds_one_image_sequence_per_line(tmp_path, monkeypatch, cap
     """``swiftjax batch LIST``: one ImageSpec job per line (absolute paths, ground truth), the
     execution options passed through, the table printed, exit 1 when a sequence failed."""
     from inference.predictor import ImageSpec
-
     from swiftjax import cli
     from swiftjax.pipeline import batch
 
@@ -297,12 +302,28 @@ def test_batch_cli_builds_one_image_sequence_per_line(tmp_path, monkeypatch, cap
 
     def fake_run_batch(jobs, out, config, **kwargs):
         seen.update(jobs=jobs, out=out, **kwargs)
-        return [{"sequence": "a", "status": "ok", "frames": 10, "loops": 0, "ate_rmse": 0.5, "seconds": 1.0},
-                {"sequence": "b", "status": "failed", "error": "InputError: no frames", "seconds": 0.1}]
+        return [
+            {"sequence": "a", "status": "ok", "frames": 10, "loops": 0, "ate_rmse": 0.5, "seconds": 1.0},
+            {"sequence": "b", "status": "failed", "error": "InputError: no frames", "seconds": 0.1},
+        ]
 
     monkeypatch.setattr(batch, "run_batch", fake_run_batch)
-    code = cli.main(["batch", str(tmp_path / "list.txt"), "--weights", str(tmp_path / "w.pt"), "--out",
-                     str(tmp_path / "out"), "--device", "cuda", "--dtype", "bfloat16", "--stride", "2"])
+    code = cli.main(
+        [
+            "batch",
+            str(tmp_path / "list.txt"),
+            "--weights",
+            str(tmp_path / "w.pt"),
+            "--out",
+            str(tmp_path / "out"),
+            "--device",
+            "cuda",
+            "--dtype",
+            "bfloat16",
+            "--stride",
+            "2",
+        ]
+    )
     assert code == 1
     out, err = capsys.readouterr()
     assert "| a | ok | 10 | 0 | 0.5 |" in out and "InputError: no frames" in out
@@ -310,6 +331,7 @@ def test_batch_cli_builds_one_image_sequence_per_line(tmp_path, monkeypatch, cap
     jobs = seen["jobs"]
     assert [j.name for j in jobs] == ["a", "b"]
     assert jobs[0].ground_truth == str(tmp_path / "gt/a.txt") and jobs[1].ground_truth is None
-    assert jobs[0].spec == ImageSpec(input=str(tmp_path / "a/images"), weights=str(tmp_path / "w.pt"), device="cuda",
-                                     dtype="bfloat16", stride=2)
+    assert jobs[0].spec == ImageSpec(
+        input=str(tmp_path / "a/images"), weights=str(tmp_path / "w.pt"), device="cuda", dtype="bfloat16", stride=2
+    )
     assert seen["executor"] == "local" and seen["workers"] == 1

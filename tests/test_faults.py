@@ -32,18 +32,37 @@ import zipfile
 
 import numpy as np
 import pytest
+from test_pipeline_stages import assert_same_outputs
 
 from swiftjax import chunks
 from swiftjax.io.atomic import temp_files
-from test_pipeline_stages import assert_same_outputs
 
 pytestmark = pytest.mark.slow
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 DEMO = [
-    "demo", "--image-size", "28x98", "--frame-spacing", "4", "--chunk-size", "30", "--overlap", "10",
-    "--loop-min-separation", "50", "--loop-nms-radius", "10", "--loop-half-window", "8", "--point-stride", "3",
-    "--colmap-max-points", "2000", "--loop-threshold-rule", "fixed", "--no-progress",
+    "demo",
+    "--image-size",
+    "28x98",
+    "--frame-spacing",
+    "4",
+    "--chunk-size",
+    "30",
+    "--overlap",
+    "10",
+    "--loop-min-separation",
+    "50",
+    "--loop-nms-radius",
+    "10",
+    "--loop-half-window",
+    "8",
+    "--point-stride",
+    "3",
+    "--colmap-max-points",
+    "2000",
+    "--loop-threshold-rule",
+    "fixed",
+    "--no-progress",
 ]
 N_FRAMES, CHUNK, OVERLAP = 155, 30, 10
 
@@ -55,16 +74,23 @@ def _env(fault: str | None = None) -> dict[str, str]:
         env["SWIFTJAX_FAULT"] = fault
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     # The test session's persistent compilation cache (tests/conftest.py) serves the CLI too.
-    env.setdefault("SWIFTJAX_CACHE_DIR", os.environ.get(
-        "JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests")))
+    env.setdefault(
+        "SWIFTJAX_CACHE_DIR",
+        os.environ.get("JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests")),
+    )
     env["OPENBLAS_NUM_THREADS"] = "1"
     return env
 
 
-def swiftjax(out: pathlib.Path, *extra: str, fault: str | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
+def swiftjax(
+    out: pathlib.Path, *extra: str, fault: str | None = None, timeout: float = 600
+) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "swiftjax.cli", *DEMO, "--out", str(out), *extra],
-        env=_env(fault), capture_output=True, text=True, timeout=timeout,
+        env=_env(fault),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 
@@ -98,12 +124,25 @@ def reference(tmp_path_factory) -> pathlib.Path:
 
 # (point, index) in the order a run reaches them; each resume runs to the next one.
 CHAIN = [
-    ("chunk-write", 2), ("chunk-predicted", 3), ("chunk-recorded", 4), ("chunk-write", 6),
-    ("temporal-done", None), ("loop-recorded", 0), ("loops-done", None), ("graph-done", None),
-    ("export-chunk", 3), ("export-done", None),
+    ("chunk-write", 2),
+    ("chunk-predicted", 3),
+    ("chunk-recorded", 4),
+    ("chunk-write", 6),
+    ("temporal-done", None),
+    ("loop-recorded", 0),
+    ("loops-done", None),
+    ("graph-done", None),
+    ("export-chunk", 3),
+    ("export-done", None),
 ]
-INT_CHAIN = [("chunk-write", 2), ("chunk-recorded", 4), ("temporal-done", None), ("loop-recorded", 0),
-             ("graph-done", None), ("export-chunk", 3)]
+INT_CHAIN = [
+    ("chunk-write", 2),
+    ("chunk-recorded", 4),
+    ("temporal-done", None),
+    ("loop-recorded", 0),
+    ("graph-done", None),
+    ("export-chunk", 3),
+]
 
 
 @pytest.mark.parametrize("sig, chain", [("KILL", CHAIN), ("INT", INT_CHAIN)], ids=["SIGKILL", "SIGINT"])
@@ -134,7 +173,7 @@ def _member_span(path: pathlib.Path, member: str) -> tuple[int, int]:
     with zipfile.ZipFile(path) as zf:
         info = zf.getinfo(member + ".npy")
     raw = path.read_bytes()
-    local = raw[info.header_offset:info.header_offset + 30]
+    local = raw[info.header_offset : info.header_offset + 30]
     start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
     return start, info.compress_size
 
@@ -167,9 +206,14 @@ def test_flipped_bytes_in_each_stored_array_are_named_and_repredicted(reference,
     ci, cj = loop["chunk_i"], loop["chunk_j"]
     others = [t for t in range(8) if t not in (ci, cj)]
     damage = {  # chunk -> (field, how)
-        ci: ("depth", "frames"), cj: ("conf", "frames"), others[0]: ("descriptors", "one"),
-        others[1]: ("intrinsic", "frames"), others[2]: ("extrinsic", "one"), others[3]: ("extra__points_xyz", "one"),
-        others[4]: ("crc32__points_conf", "one"), others[5]: (None, "truncate"),
+        ci: ("depth", "frames"),
+        cj: ("conf", "frames"),
+        others[0]: ("descriptors", "one"),
+        others[1]: ("intrinsic", "frames"),
+        others[2]: ("extrinsic", "one"),
+        others[3]: ("extra__points_xyz", "one"),
+        others[4]: ("crc32__points_conf", "one"),
+        others[5]: (None, "truncate"),
     }
     chunk_dir = out / "chunks"
     for t, (field, how) in damage.items():
@@ -201,8 +245,10 @@ def test_second_writer_is_refused_and_a_dead_holders_lock_is_taken_over(referenc
     """Defect 2: two runs on one directory both exited 0 with mixed-up results."""
     out = tmp_path / "run"
     holder = subprocess.Popen(
-        [sys.executable, "-m", "swiftjax.cli", *DEMO, "--out", str(out)], env=_env("chunk-recorded:1:STOP"),
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        [sys.executable, "-m", "swiftjax.cli", *DEMO, "--out", str(out)],
+        env=_env("chunk-recorded:1:STOP"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     try:
         deadline = time.monotonic() + 600
@@ -221,7 +267,9 @@ def test_second_writer_is_refused_and_a_dead_holders_lock_is_taken_over(referenc
         second = swiftjax(out, "--overlap", "12", "--overwrite")
         assert second.returncode == 2
         errors = [ln for ln in second.stderr.splitlines() if ln.startswith("swiftjax: error:")]
-        assert len(errors) == 1 and f"pid {holder.pid} on " in errors[0] and "in use by another swiftjax run" in errors[0]
+        assert (
+            len(errors) == 1 and f"pid {holder.pid} on " in errors[0] and "in use by another swiftjax run" in errors[0]
+        )
         assert "Traceback" not in second.stderr
     finally:
         holder.kill()
@@ -254,8 +302,14 @@ def test_a_user_folder_as_out_is_refused_and_left_as_it_was(tmp_path):
     """Issue 25 item 1: --out at a user's folder replaced 4 of its 5 files (and --overwrite
     deleted its chunks/*.npz)."""
     user = tmp_path / "mine"
-    files = {"points.ply": b"ply", "metrics.json": b"{}", "colmap/images/00000.png": b"png",
-             "colmap/sparse/0/cameras.bin": b"bin", "chunks/chunk_00007.npz": b"npz", "chunks/loop_00001.npz": b"npz"}
+    files = {
+        "points.ply": b"ply",
+        "metrics.json": b"{}",
+        "colmap/images/00000.png": b"png",
+        "colmap/sparse/0/cameras.bin": b"bin",
+        "chunks/chunk_00007.npz": b"npz",
+        "chunks/loop_00001.npz": b"npz",
+    }
     for rel, data in files.items():
         (user / rel).parent.mkdir(parents=True, exist_ok=True)
         (user / rel).write_bytes(data)
@@ -295,8 +349,14 @@ def test_swapped_and_foreign_chunks_an_edited_record_and_damaged_frames_are_name
     assert proc.returncode == 0, proc.stderr[-3000:]
     text = proc.stdout + proc.stderr
     assert "chunk_00001.npz: not this run's chunk file: it holds chunk 2, not chunk 1; predicting chunk 1 again" in text
-    assert "chunk_00006.npz: not this run's chunk file: it was predicted from another input, model or configuration" in text
-    assert "the record of edge (chunks 4/5) fails its checksum (edited or damaged): predicting chunks 4 and 5 again" in text
+    assert (
+        "chunk_00006.npz: not this run's chunk file: it was predicted from another input, model or configuration"
+        in text
+    )
+    assert (
+        "the record of edge (chunks 4/5) fails its checksum (edited or damaged): predicting chunks 4 and 5 again"
+        in text
+    )
     assert "000007.png (missing)" in text and "000065.png (damaged: fails its CRC32)" in text
     assert "Traceback" not in text
     assert_same_outputs(out, reference)
@@ -338,17 +398,47 @@ def test_weights_changed_after_the_first_mib_are_refused_and_every_export_option
 
     def run(*extra):
         return subprocess.run(
-            [sys.executable, "-m", "swiftjax.cli", "reconstruct", str(folder), "--weights", str(weights),
-             "--model-config", str(golden_dir / "tiny_config.json"), "--out", str(out), "--chunk-size", "4",
-             "--overlap", "2", "--min-points", "10", "--no-loop-closure", "--point-stride", "2", "--no-progress",
-             *extra], env=env, capture_output=True, text=True, timeout=600)
+            [
+                sys.executable,
+                "-m",
+                "swiftjax.cli",
+                "reconstruct",
+                str(folder),
+                "--weights",
+                str(weights),
+                "--model-config",
+                str(golden_dir / "tiny_config.json"),
+                "--out",
+                str(out),
+                "--chunk-size",
+                "4",
+                "--overlap",
+                "2",
+                "--min-points",
+                "10",
+                "--no-loop-closure",
+                "--point-stride",
+                "2",
+                "--no-progress",
+                *extra,
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
 
     first = run()
     assert first.returncode == 0, first.stderr[-3000:]
     frames_before = {p.name: p.read_bytes() for p in (out / "colmap" / "images").iterdir()}
     chunks_before = {p.name: p.stat().st_ino for p in (out / "chunks").iterdir()}
-    for extra in (("--colmap-original-resolution",), ("--colmap-text", "--voxel-size", "0.05"),
-                  ("--colmap-max-points", "50"), ("--no-colmap",), ()):
+    for extra in (
+        ("--colmap-original-resolution",),
+        ("--colmap-text", "--voxel-size", "0.05"),
+        ("--colmap-max-points", "50"),
+        ("--no-colmap",),
+        (),
+    ):
         proc = run(*extra)
         assert proc.returncode == 0, (extra, proc.stderr[-3000:])
         assert {p.name: p.stat().st_ino for p in (out / "chunks").iterdir()} == chunks_before, extra

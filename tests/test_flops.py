@@ -16,7 +16,7 @@ torch = pytest.importorskip("torch")
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
 
-from flops import block_flops, vggt_chunk_flops  # noqa: E402
+from flops import block_flops, vggt_chunk_flops
 
 
 @pytest.fixture(scope="module")

@@ -99,8 +99,11 @@ def test_file_stuck_incomplete_at_the_timeout_is_named(tmp_path):
     data = (tmp_path / "000001.png").read_bytes()
     (tmp_path / "000001.png").write_bytes(data[:100])  # the recorder hangs mid-file, no end marker
     got = []
-    with pytest.raises(follow.FollowError, match=r"000001\.png: still not a complete image after the follow timeout "
-                                                 r"of 0\.2 s"):
+    with pytest.raises(
+        follow.FollowError,
+        match=r"000001\.png: still not a complete image after the follow timeout "
+        r"of 0\.2 s",
+    ):
         for f in follow.FollowSource(tmp_path, timeout_s=0.2, poll_s=POLL):
             got.append(f)
     assert [f.name for f in got] == ["000000.png"]
@@ -126,8 +129,10 @@ def test_size_change_is_an_error_after_every_earlier_frame(tmp_path):
     assert [f.index for f in got] == [0, 1, 2, 3]  # nothing lost before the bad frame
     for f, img in zip(got, imgs):
         np.testing.assert_array_equal(f.image, img)
-    assert str(err.value) == (f"{tmp_path / '000004.png'}: frame is 32x20 but the frames before it are 32x24 "
-                              "(from 000000.png); all frames must have one size")
+    assert str(err.value) == (
+        f"{tmp_path / '000004.png'}: frame is 32x20 but the frames before it are 32x24 "
+        "(from 000000.png); all frames must have one size"
+    )
 
 
 def test_frame_deleted_after_it_was_read_is_harmless(tmp_path):
@@ -159,8 +164,11 @@ def test_truncated_file_at_the_end_marker_is_named(tmp_path):
     src = follow.FollowSource(tmp_path, timeout_s=5.0, poll_s=POLL)
     it = iter(src)
     assert next(it).index == 0
-    with pytest.raises(follow.FollowError, match=r"000001\.png: still not a complete image \(\d+ bytes\) when the end "
-                                                 "marker END appeared"):
+    with pytest.raises(
+        follow.FollowError,
+        match=r"000001\.png: still not a complete image \(\d+ bytes\) when the end "
+        "marker END appeared",
+    ):
         next(it)
 
 

@@ -13,12 +13,12 @@ import time
 
 import numpy as np
 import pytest
+from test_faults import _env
+from test_pipeline_stages import assert_same_outputs
 
 from swiftjax.io.follow import Recorder
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.live import LIVE_NAME
-from test_faults import _env
-from test_pipeline_stages import assert_same_outputs
 
 pytest.importorskip("torch")
 cv2 = pytest.importorskip("cv2")
@@ -32,10 +32,28 @@ def _frames(n: int = N) -> list[np.ndarray]:
 
 
 def _argv(input, out, golden_dir, *extra):
-    return [sys.executable, "-m", "swiftjax.cli", "reconstruct", str(input), "--weights",
-            str(golden_dir / "tiny_weights.safetensors"), "--model-config", str(golden_dir / "tiny_config.json"),
-            "--out", str(out), "--chunk-size", str(B), "--overlap", str(O), "--min-points", "10",
-            "--no-loop-closure", "--no-progress", *extra]
+    return [
+        sys.executable,
+        "-m",
+        "swiftjax.cli",
+        "reconstruct",
+        str(input),
+        "--weights",
+        str(golden_dir / "tiny_weights.safetensors"),
+        "--model-config",
+        str(golden_dir / "tiny_config.json"),
+        "--out",
+        str(out),
+        "--chunk-size",
+        str(B),
+        "--overlap",
+        str(O),
+        "--min-points",
+        "10",
+        "--no-loop-closure",
+        "--no-progress",
+        *extra,
+    ]
 
 
 def _wait_for(predicate, timeout_s: float, proc: subprocess.Popen) -> None:
@@ -59,8 +77,13 @@ def test_follow_publishes_while_recording_and_finishes_as_offline(tmp_path, gold
     folder, live_dir, offline_dir = tmp_path / "rec", tmp_path / "live", tmp_path / "offline"
     folder.mkdir()
     frames = _frames()
-    proc = subprocess.Popen(_argv(folder, live_dir, golden_dir, "--follow", "--follow-timeout", "120"),
-                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        _argv(folder, live_dir, golden_dir, "--follow", "--follow-timeout", "120"),
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         # The first chunk's frames, then nothing more until their poses are published.
         with Recorder(folder, frames[:B], fps=20.0, end_marker=None) as rec:
@@ -80,18 +103,25 @@ def test_follow_publishes_while_recording_and_finishes_as_offline(tmp_path, gold
 
     records = reader.read_live_poses(live_dir)
     assert [(r["frame"], r["reason"]) for r in records] == (
-        [(k, "new") for k in range(B + (B - O))] + [(k, "final") for k in range(N)])
+        [(k, "new") for k in range(B + (B - O))] + [(k, "final") for k in range(N)]
+    )
     # The finished run directory is the offline run of the same folder, file by file.
-    offline = subprocess.run(_argv(folder, offline_dir, golden_dir), env=_env(), capture_output=True, text=True,
-                             timeout=600)
+    offline = subprocess.run(
+        _argv(folder, offline_dir, golden_dir), env=_env(), capture_output=True, text=True, timeout=600
+    )
     assert offline.returncode == 0, offline.stderr[-2000:]
     shutil.move(live_dir / LIVE_NAME, tmp_path / LIVE_NAME)
     assert_same_outputs(offline_dir, live_dir)
 
     # --replay-fps: the finished folder at a frame rate through the same engine, the same run.
     replay_dir = tmp_path / "replay"
-    replay = subprocess.run(_argv(folder, replay_dir, golden_dir, "--replay-fps", "40"), env=_env(),
-                            capture_output=True, text=True, timeout=600)
+    replay = subprocess.run(
+        _argv(folder, replay_dir, golden_dir, "--replay-fps", "40"),
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert replay.returncode == 0, replay.stderr[-2000:]
     assert f"{N} frames arrived (ended by end)" in replay.stdout
     assert [r["frame"] for r in reader.read_live_poses(replay_dir) if r["reason"] == "final"] == list(range(N))
@@ -106,8 +136,13 @@ def test_sigint_finishes_a_complete_resumable_run(tmp_path, golden_dir):
     frames = _frames(11)
     with Recorder(folder, frames, fps=50.0, end_marker=None) as rec:  # no end marker: only SIGINT ends it
         rec.wait()
-    proc = subprocess.Popen(_argv(folder, out, golden_dir, "--follow"), env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        _argv(folder, out, golden_dir, "--follow"),
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         _wait_for(lambda: len(_live_frames(out)) >= B, 300, proc)
         proc.send_signal(signal.SIGINT)
@@ -125,8 +160,9 @@ def test_sigint_finishes_a_complete_resumable_run(tmp_path, golden_dir):
     again = subprocess.run(_argv(folder, out, golden_dir), env=_env(), capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-2000:]
     shutil.move(out / LIVE_NAME, tmp_path / LIVE_NAME)
-    fresh = subprocess.run(_argv(folder, tmp_path / "fresh", golden_dir), env=_env(), capture_output=True,
-                           text=True, timeout=600)
+    fresh = subprocess.run(
+        _argv(folder, tmp_path / "fresh", golden_dir), env=_env(), capture_output=True, text=True, timeout=600
+    )
     assert fresh.returncode == 0, fresh.stderr[-2000:]
     assert_same_outputs(tmp_path / "fresh", out)
 

@@ -39,8 +39,11 @@ def test_each_prefetched_frame_is_decoded_once_and_kept_until_taken():
     from inference.frames import FrameLoader
 
     reads = []
-    loader = FrameLoader(lambda k: reads.append(k) or np.full((2, 2, 3), k, np.uint8),
-                         lambda imgs: np.stack([i.transpose(2, 0, 1) for i in imgs]).astype(np.float32), threads=2)
+    loader = FrameLoader(
+        lambda k: reads.append(k) or np.full((2, 2, 3), k, np.uint8),
+        lambda imgs: np.stack([i.transpose(2, 0, 1) for i in imgs]).astype(np.float32),
+        threads=2,
+    )
     try:
         loader.prefetch([0, 1, 2])
         loader.prefetch([2, 3])

@@ -9,7 +9,12 @@ from swiftjax.io.g2o import G2oError, read_g2o, write_g2o
 
 
 def test_reads_shared_graphs_with_documented_sizes(shared_dir):
-    sizes = {"tinyGrid3D": (9, 11), "smallGrid3D": (125, 297), "sphere2500": (2500, 4949), "parking-garage": (1661, 6275)}
+    sizes = {
+        "tinyGrid3D": (9, 11),
+        "smallGrid3D": (125, 297),
+        "sphere2500": (2500, 4949),
+        "parking-garage": (1661, 6275),
+    }
     for name, (n, e) in sizes.items():
         g = read_g2o(shared_dir / "data" / "posegraphs" / f"{name}.g2o")
         assert g.poses.shape == (n, 8) and g.edges.shape == (e, 2)

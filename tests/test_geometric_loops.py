@@ -39,7 +39,7 @@ def _street(rng, n=3000):
     poles = rng.choice(6, m)
     cx = np.array([-12, -7, -1, 4, 9, 13.0])[poles]
     cy = np.array([-5, -6, -5.5, -7, -5, -6.5])[poles]
-    right = np.c_[cx + rng.normal(0, .2, m), cy + rng.normal(0, .2, m), rng.uniform(0, 3, m)]
+    right = np.c_[cx + rng.normal(0, 0.2, m), cy + rng.normal(0, 0.2, m), rng.uniform(0, 3, m)]
     return np.concatenate([road, left, right]).astype(np.float32)
 
 
@@ -65,7 +65,7 @@ def test_signature_is_rotation_invariant():
     for m in (1, 7, 18):
         phi = m * 2 * np.pi / S + 1e-4  # off the sector boundaries by a hair, in the same cell
         c, s = np.cos(phi), np.sin(phi)
-        rot = (q @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]], np.float32))
+        rot = q @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]], np.float32)
         g1, _ = G.polar_grid(rot, w, R, S, 20.0, 8.0)
         same = np.mean(np.isclose(np.asarray(g1), np.roll(np.asarray(g0), m, axis=1), atol=1e-5))
         assert same > 0.97  # only points within 1e-4 rad of a boundary may change cell
@@ -73,8 +73,16 @@ def test_signature_is_rotation_invariant():
         assert int(shift) == (-m) % S or int(shift) == m  # G_b[:, k + m*] = G_a[:, k]
     # another place: an open square (scattered blocks of other heights)
     sq = np.random.default_rng(7)
-    other, _ = G.polar_grid(np.c_[sq.uniform(-18, 18, (len(q), 2)), sq.choice([0, 0, 1, 5], len(q)) * sq.uniform(size=len(q))]
-                            .astype(np.float32), w, R, S, 20.0, 8.0)
+    other, _ = G.polar_grid(
+        np.c_[sq.uniform(-18, 18, (len(q), 2)), sq.choice([0, 0, 1, 5], len(q)) * sq.uniform(size=len(q))].astype(
+            np.float32
+        ),
+        w,
+        R,
+        S,
+        20.0,
+        8.0,
+    )
     sig = G.grid_signature(jnp.stack([g0, g1, other]))
     d_rot = 1 - float(sig[0] @ sig[1])
     d_other = 1 - float(sig[0] @ sig[2])
@@ -107,17 +115,30 @@ def test_register_recovers_a_known_sim3():
     src = _street(rng, 1500)
     S_true = _sim3(rng, 2.5)
     dst = np.asarray(sim3.act(S_true, src))
-    S0 = sim3.compose(S_true, sim3.from_rst(jnp.asarray(np.asarray(jax.scipy.linalg.expm(
-        jnp.asarray(np.cross(np.eye(3), [0, 0, 0.05])))), jnp.float32), jnp.asarray([0.3, -0.2, 0.0], jnp.float32), 1.03))
-    up = np.asarray(sim3.act(S_true, np.array([[0, 0, 1.0]], np.float32)) - sim3.act(S_true, np.zeros((1, 3), np.float32)))[0]
+    S0 = sim3.compose(
+        S_true,
+        sim3.from_rst(
+            jnp.asarray(np.asarray(jax.scipy.linalg.expm(jnp.asarray(np.cross(np.eye(3), [0, 0, 0.05])))), jnp.float32),
+            jnp.asarray([0.3, -0.2, 0.0], jnp.float32),
+            1.03,
+        ),
+    )
+    up = np.asarray(
+        sim3.act(S_true, np.array([[0, 0, 1.0]], np.float32)) - sim3.act(S_true, np.zeros((1, 3), np.float32))
+    )[0]
     up = up / np.linalg.norm(up)
     ground = float(up @ np.asarray(sim3.act(S_true, np.zeros((1, 3), np.float32)))[0])
     reg = G.register(src, np.ones(len(src)), dst, np.ones(len(dst)), S0, 2.5, up, ground, 1.0, 0.05, 0.3, iterations=12)
     np.testing.assert_allclose(np.asarray(sim3.as_matrix(reg.S)), np.asarray(sim3.as_matrix(S_true)), atol=2e-3)
     assert bool(reg.valid) and float(reg.rms) < 1e-3 and float(reg.inlier_ratio) > 0.99
     assert abs(float(reg.scale_ratio) - 1 / 1.03) < 1e-3
-    assert G.registration_reason({k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v
-                                  for k, v in reg._asdict().items()}, G.GeometryOptions(max_rms=0.01)) is None
+    assert (
+        G.registration_reason(
+            {k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v for k, v in reg._asdict().items()},
+            G.GeometryOptions(max_rms=0.01),
+        )
+        is None
+    )
 
 
 def _register_numpy(src, w_src, dst, w_dst, S0, unit, taus):
@@ -168,8 +189,17 @@ def test_degenerate_registration_is_rejected_and_finite():
     rng = np.random.default_rng(5)
     road = np.c_[rng.uniform(-20, 20, 800), rng.uniform(-4, 4, 800), np.zeros(800)].astype(np.float32)
     S0 = sim3.from_rst(jnp.eye(3), jnp.zeros(3), 1.0)
-    reg = G.register(road, np.ones(800), road + np.float32([3, 0, 0]), np.ones(800), S0, 1.0, np.float32([0, 0, 1]),
-                     0.0, iterations=8)
+    reg = G.register(
+        road,
+        np.ones(800),
+        road + np.float32([3, 0, 0]),
+        np.ones(800),
+        S0,
+        1.0,
+        np.float32([0, 0, 1]),
+        0.0,
+        iterations=8,
+    )
     assert np.all(np.isfinite(np.asarray(reg.S)))
     plain = {k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v for k, v in reg._asdict().items()}
     why = G.registration_reason(plain, G.GeometryOptions())
@@ -187,8 +217,8 @@ def test_chunk_descriptors_reverse_pass_matches(shared_dir):
     their signatures are closer than those of chunks of other streets, the Scan Context yaw
     is ~180 degrees from the forward axes, and no signature is NaN.  Too few points: invalid."""
     from swiftjax import align, chunks
-    from swiftjax.synthetic import demo
     from swiftjax.io.trajectory import read_kitti
+    from swiftjax.synthetic import demo
 
     poses = read_kitti(shared_dir / "data" / "trajectories" / "KITTI_08_gt.txt")[:2000]
     run = demo.trajectory_run(poses, name="k08")
@@ -245,18 +275,43 @@ def test_geometric_records_in_loops_txt_and_metrics(tmp_path):
     ``metrics.json``'s candidate list (marked ``source: geometry``), its reason on one line."""
     from swiftjax.pipeline import export, report
 
-    rec = {"i": 3000, "j": 120, "score": 0.7, "chunk_i": 66, "chunk_j": 2, "accepted": False,
-           "reason": "degenerate registration: 12 structure inliers, spread 0.004", "source": "geometry",
-           "Z": [0, 0, 0, 0, 0, 0, 1, 1.0],
-           "registration": {"inlier_ratio": 0.41, "rms": 0.12, "scale_ratio": 1.02, "spread": 0.004,
-                            "num_inliers": 300, "num_structure": 12, "num_points": 1024, "valid": True}}
-    tok = {"i": 900, "j": 100, "score": 0.9, "chunk_i": 20, "chunk_j": 2, "accepted": True, "reason": "verified",
-           "source": "tokens", "dense_agreement": 0.8}
+    rec = {
+        "i": 3000,
+        "j": 120,
+        "score": 0.7,
+        "chunk_i": 66,
+        "chunk_j": 2,
+        "accepted": False,
+        "reason": "degenerate registration: 12 structure inliers, spread 0.004",
+        "source": "geometry",
+        "Z": [0, 0, 0, 0, 0, 0, 1, 1.0],
+        "registration": {
+            "inlier_ratio": 0.41,
+            "rms": 0.12,
+            "scale_ratio": 1.02,
+            "spread": 0.004,
+            "num_inliers": 300,
+            "num_structure": 12,
+            "num_points": 1024,
+            "valid": True,
+        },
+    }
+    tok = {
+        "i": 900,
+        "j": 100,
+        "score": 0.9,
+        "chunk_i": 20,
+        "chunk_j": 2,
+        "accepted": True,
+        "reason": "verified",
+        "source": "tokens",
+        "dense_agreement": 0.8,
+    }
     export.write_loops(tmp_path / "loops.txt", [tok, rec])
     lines = (tmp_path / "loops.txt").read_text().splitlines()
     comments = [ln for ln in lines if ln.startswith("#")]
     header = comments[-1].lstrip("# ").split()  # the column names; "reason" (with spaces) closes each row
-    rows = [dict(zip(header, line.split(maxsplit=len(header) - 1))) for line in lines[len(comments):]]
+    rows = [dict(zip(header, line.split(maxsplit=len(header) - 1))) for line in lines[len(comments) :]]
     assert rows[1]["source"] == "geometry" and rows[0]["source"] == "tokens"
     assert rows[1]["registration.inlier_ratio"] == "0.41" and rows[0]["registration.inlier_ratio"] == "-"
     assert rows[1]["reason"] == "degenerate registration: 12 structure inliers, spread 0.004"
@@ -299,13 +354,17 @@ def test_yaw_step_is_the_closed_form_rotation_about_up():
     up /= np.linalg.norm(up)
     R = _rodrigues(up, 2.5)
     z = y @ R.T + [1.0, -2.0, 0.5]
-    D, ok = G._yaw_step(jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.ones(60), jnp.asarray(up, jnp.float32))
+    D, ok = G._yaw_step(
+        jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.ones(60), jnp.asarray(up, jnp.float32)
+    )
     M = np.asarray(sim3.as_matrix(D), np.float64)
     assert bool(ok)
     np.testing.assert_allclose(M[:3, :3], R, atol=1e-5)
     np.testing.assert_allclose(M[:3, 3], [1.0, -2.0, 0.5], atol=1e-4)
     # no weight: invalid, finite
-    D, ok = G._yaw_step(jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.zeros(60), jnp.asarray(up, jnp.float32))
+    D, ok = G._yaw_step(
+        jnp.asarray(y, jnp.float32), jnp.asarray(z, jnp.float32), jnp.zeros(60), jnp.asarray(up, jnp.float32)
+    )
     assert not bool(ok)
 
 
@@ -364,8 +423,14 @@ def test_register_hypotheses_finds_a_reverse_revisit(s_true):
     rng = np.random.default_rng(10)
     S_true, R_true, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, s_true, 0.7, 2.5)
     opts = G.GeometryOptions(rings=10, sectors=36, max_radius=20.0, tau_start=3.0, tau_end=0.15, iterations=30)
-    grid = lambda pts, a, B, h: G.polar_grid(G._normalised(jnp.asarray(pts), jnp.asarray(a), jnp.asarray(B), h),  # noqa: E731
-                                             np.ones(len(pts), np.float32), 10, 36, 20.0, 8.0)[0]
+    grid = lambda pts, a, B, h: G.polar_grid(
+        G._normalised(jnp.asarray(pts), jnp.asarray(a), jnp.asarray(B), h),
+        np.ones(len(pts), np.float32),
+        10,
+        36,
+        20.0,
+        8.0,
+    )[0]
     ga = jnp.stack([grid(src, a, Ba, 1.0) for a in aa])
     gb = jnp.stack([grid(dst, a, Bb, s_true) for a in ab])
     S0, anchors, yaw = G.coarse_hypotheses(ga, gb, aa, Ba, 1.0, ab, Bb, s_true)
@@ -393,8 +458,9 @@ def test_register_hypotheses_without_a_camera_height_is_rejected_not_nan():
     g = jnp.ones((5, 10, 36))
     S0, _, _ = G.coarse_hypotheses(g, g, aa, Ba, float("nan"), ab, Bb, 2.0)
     assert not np.isfinite(np.asarray(S0)).all()
-    reg, _, scores = G.register_hypotheses(src[:512], np.ones(512), dst[:1024], np.ones(1024), S0, 2.0,
-                                           Bb[:, 2], 0.0, G.GeometryOptions())
+    reg, _, scores = G.register_hypotheses(
+        src[:512], np.ones(512), dst[:1024], np.ones(1024), S0, 2.0, Bb[:, 2], 0.0, G.GeometryOptions()
+    )
     assert np.all(np.isfinite(np.asarray(reg.S))) and not bool(reg.valid) and np.all(np.asarray(scores) == -1)
     plain = {k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v for k, v in reg._asdict().items()}
     why = G.registration_reason(plain, G.GeometryOptions())

@@ -20,7 +20,6 @@ import shlex
 
 import numpy as np
 import pytest
-
 from _extras import require_extra
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
@@ -92,8 +91,9 @@ def test_readme_gsplat_command_loads_the_run(small_loop_run):
     assert len(paths) == result.num_frames and all(os.path.isfile(p) for p in paths)
     K_ref = result.intrinsics[0]
     # gsplat trains at the model's own camera: the K and size the run wrote, no rescale
-    np.testing.assert_allclose(K[[0, 1, 0, 1], [0, 1, 2, 2]],
-                               [K_ref[0, 0], K_ref[1, 1], K_ref[0, 2] + 0.5, K_ref[1, 2] + 0.5], rtol=1e-6)
+    np.testing.assert_allclose(
+        K[[0, 1, 0, 1], [0, 1, 2, 2]], [K_ref[0, 0], K_ref[1, 1], K_ref[0, 2] + 0.5, K_ref[1, 2] + 0.5], rtol=1e-6
+    )
     import pycolmap
 
     (cam,) = pycolmap.Reconstruction(str(out / "colmap" / "sparse" / "0")).cameras.values()

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 cv2 = pytest.importorskip("cv2")
-from PIL import Image  # noqa: E402
+from PIL import Image
 
-from swiftjax.io.images import (  # noqa: E402
+from swiftjax.io.images import (
     ImageFiles,
     InputError,
     VideoFrames,
@@ -158,7 +158,7 @@ def test_validate_corrupt_skip_and_mixed_sizes(tmp_path):
     with pytest.raises(InputError, match=r"0\.png is 8x6 but 2\.png is 8x10"):
         validate(list_frames(tmp_path))
     with pytest.raises(InputError, match="differ in size"):
-        list_frames(tmp_path).image_hw
+        _ = list_frames(tmp_path).image_hw
     (tmp_path / "2.png").unlink()
     (tmp_path / "3.png").unlink()
     assert len(validate(list_frames(tmp_path))) == 2
@@ -265,7 +265,7 @@ def test_jpeg_damaged_mid_file_is_refused_or_skipped(tmp_path):
         _smooth_jpeg(tmp_path / f"{k}.jpg", seed=k)
     raw = bytearray((tmp_path / "1.jpg").read_bytes())
     mid = len(raw) // 2
-    raw[mid:mid + 200] = bytes(200)
+    raw[mid : mid + 200] = bytes(200)
     (tmp_path / "1.jpg").write_bytes(bytes(raw))
     assert raw[-2:] == b"\xff\xd9"
     assert cv2.imread(str(tmp_path / "1.jpg")) is not None  # OpenCV returns pixels all the same
@@ -302,7 +302,8 @@ def test_glob_does_not_count_files_twice_through_a_link_loop(tmp_path):
         src = list_frames(str(tmp_path / "seq" / "**" / "*.png"))
     assert src.names == ["a/0.png", "a/1.png", "a/2.png", "a/3.png"]
     assert sorted(os.path.realpath(p) for p in src.paths) == sorted(
-        os.path.realpath(tmp_path / "seq" / "a" / f"{k}.png") for k in range(4))
+        os.path.realpath(tmp_path / "seq" / "a" / f"{k}.png") for k in range(4)
+    )
 
 
 def test_exif_rotated_frames_are_named_in_the_size_error(tmp_path):

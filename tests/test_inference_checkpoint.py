@@ -9,16 +9,24 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
-from safetensors.torch import save_file  # noqa: E402
+from safetensors.torch import save_file
 
-from inference.checkpoint import CheckpointError, load_checkpoint, read_state_dict  # noqa: E402
-from inference.config import VGGTConfig  # noqa: E402
-from inference.model import VGGT  # noqa: E402
+from inference.checkpoint import CheckpointError, load_checkpoint, read_state_dict
+from inference.config import VGGTConfig
+from inference.model import VGGT
 
 # A very small model: every test builds its own copy in milliseconds.
 SMALL = VGGTConfig(
-    embed_dim=32, depth=2, num_heads=2, dino_depth=1, dino_num_heads=2, camera_trunk_depth=1, camera_num_heads=2,
-    dpt_features=16, dpt_out_channels=(8, 8, 16, 16), dpt_intermediate_layer_idx=(0, 1, 1, 1),
+    embed_dim=32,
+    depth=2,
+    num_heads=2,
+    dino_depth=1,
+    dino_num_heads=2,
+    camera_trunk_depth=1,
+    camera_num_heads=2,
+    dpt_features=16,
+    dpt_out_channels=(8, 8, 16, 16),
+    dpt_intermediate_layer_idx=(0, 1, 1, 1),
 )
 
 
@@ -179,7 +187,9 @@ def test_integer_or_boolean_weights_are_refused_by_name(tmp_path: pathlib.Path, 
     key = "camera_head.pose_branch.fc2.bias"
     state[key] = torch.ones_like(state[key], dtype=dtype)
     torch.save(state, tmp_path / "w.pt")
-    with pytest.raises(CheckpointError, match=rf"1 tensor\(s\) of a non-floating-point dtype .*{key} \({str(dtype)[6:]}\)"):
+    with pytest.raises(
+        CheckpointError, match=rf"1 tensor\(s\) of a non-floating-point dtype .*{key} \({str(dtype)[6:]}\)"
+    ):
         load_checkpoint(_model(), tmp_path / "w.pt")
 
 
@@ -207,6 +217,9 @@ def test_non_finite_model_output_names_the_model_and_the_output() -> None:
     runner = TorchRunner(model)
     runner.name = "VGGT (w.safetensors, float32)"
     images = np.random.default_rng(0).random((2, 3, 28, 42)).astype(np.float32)
-    with pytest.raises(ModelOutputError, match=r"VGGT \(w.safetensors, float32\) predicted non-finite values .* "
-                                               r"camera head pose encoding \(pose_enc\) for 2 of 2 frames"):
+    with pytest.raises(
+        ModelOutputError,
+        match=r"VGGT \(w.safetensors, float32\) predicted non-finite values .* "
+        r"camera head pose encoding \(pose_enc\) for 2 of 2 frames",
+    ):
         runner.predict(images)

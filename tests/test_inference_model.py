@@ -11,17 +11,17 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from inference.check_golden import TOLERANCES, compare  # noqa: E402
-from inference.checkpoint import load_checkpoint  # noqa: E402
-from inference.config import VGGTConfig  # noqa: E402
-from inference.model import VGGT  # noqa: E402
-from inference.pose_encoding import (  # noqa: E402
+from inference.check_golden import TOLERANCES, compare
+from inference.checkpoint import load_checkpoint
+from inference.config import VGGTConfig
+from inference.model import VGGT
+from inference.pose_encoding import (
     extrinsics_intrinsics_to_pose_encoding,
     pose_encoding_to_extrinsics_intrinsics,
     quat_to_mat,
 )
-from inference.runners import TorchRunner  # noqa: E402
-from swiftjax.prediction import ChunkPrediction  # noqa: E402
+from inference.runners import TorchRunner
+from swiftjax.prediction import ChunkPrediction
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,11 @@ def test_config_from_json(golden_dir: pathlib.Path) -> None:
     assert (cfg.embed_dim, cfg.depth, cfg.num_heads, cfg.num_register_tokens) == (64, 6, 4, 4)
     assert (cfg.dino_depth, cfg.dino_num_heads) == (2, 4)
     assert (cfg.camera_trunk_depth, cfg.camera_num_heads, cfg.camera_iterations) == (4, 4, 4)
-    assert (cfg.dpt_features, cfg.dpt_out_channels, cfg.dpt_intermediate_layer_idx) == (32, (16, 32, 64, 64), (1, 3, 4, 5))
+    assert (cfg.dpt_features, cfg.dpt_out_channels, cfg.dpt_intermediate_layer_idx) == (
+        32,
+        (16, 32, 64, 64),
+        (1, 3, 4, 5),
+    )
     assert cfg.rope_freq == 100 and cfg.qk_norm and cfg.aa_order == ("frame", "global")
 
 
@@ -108,7 +112,10 @@ def test_1b_state_dict_equals_manifest(golden_dir: pathlib.Path) -> None:
         model = VGGT()
     got = [(n, tuple(t.shape), str(t.dtype).replace("torch.", "")) for n, t in model.state_dict().items()]
     assert got == expected  # names, shapes, dtypes and order
-    numel = {top: sum(int(np.prod(s)) for n, s, _ in got if n.startswith(top + ".")) for top in ("aggregator", "camera_head", "depth_head")}
+    numel = {
+        top: sum(int(np.prod(s)) for n, s, _ in got if n.startswith(top + "."))
+        for top in ("aggregator", "camera_head", "depth_head")
+    }
     assert numel == {k: v for k, v in manifest["numel_per_top_level_module"].items() if k in numel}
     assert numel["aggregator"] == 909_112_320
     assert dict(model.named_buffers()) == {}  # ImageNet mean/std are not state
@@ -120,7 +127,15 @@ def test_1b_state_dict_equals_manifest(golden_dir: pathlib.Path) -> None:
 
 @pytest.mark.parametrize(
     "name",
-    ["patch_tokens", "aggregated_tokens_all", "aggregated_tokens_dpt", "pose_enc", "pose_enc_list", "depth", "depth_conf"],
+    [
+        "patch_tokens",
+        "aggregated_tokens_all",
+        "aggregated_tokens_dpt",
+        "pose_enc",
+        "pose_enc_list",
+        "depth",
+        "depth_conf",
+    ],
 )
 def test_golden_outputs(traced: dict[str, Any], golden: dict[str, np.ndarray], tiny_model: VGGT, name: str) -> None:
     out = traced["out"]
@@ -142,18 +157,30 @@ def test_golden_outputs(traced: dict[str, Any], golden: dict[str, np.ndarray], t
 
 def test_golden_intermediates(traced: dict[str, Any], golden: dict[str, np.ndarray], tiny_model: VGGT) -> None:
     b, s, _, h, w = golden["images"].shape
-    np.testing.assert_allclose(traced["normalized_images"].numpy().reshape(b, s, 3, h, w), golden["normalized_images"], atol=1e-6)
+    np.testing.assert_allclose(
+        traced["normalized_images"].numpy().reshape(b, s, 3, h, w), golden["normalized_images"], atol=1e-6
+    )
     pos = tiny_model.aggregator.patch_embed.interpolate_pos_encoding(h // 14, w // 14).detach().numpy()
     np.testing.assert_allclose(pos, golden["dino_pos_embed_interpolated"], atol=1e-6)
     dino = traced["dino"]
     t = dino["x_prenorm"].shape[1]
-    np.testing.assert_allclose(traced["dino_x_prenorm"].numpy().reshape(b, s, t, -1), golden["dino_x_prenorm"], atol=1e-5)
-    np.testing.assert_allclose(dino["x_norm_clstoken"].numpy().reshape(b, s, -1), golden["dino_x_norm_clstoken"], atol=1e-5)
-    np.testing.assert_allclose(dino["x_norm_regtokens"].numpy().reshape(b, s, 4, -1), golden["dino_x_norm_regtokens"], atol=1e-5)
+    np.testing.assert_allclose(
+        traced["dino_x_prenorm"].numpy().reshape(b, s, t, -1), golden["dino_x_prenorm"], atol=1e-5
+    )
+    np.testing.assert_allclose(
+        dino["x_norm_clstoken"].numpy().reshape(b, s, -1), golden["dino_x_norm_clstoken"], atol=1e-5
+    )
+    np.testing.assert_allclose(
+        dino["x_norm_regtokens"].numpy().reshape(b, s, 4, -1), golden["dino_x_norm_regtokens"], atol=1e-5
+    )
     conv1 = traced["dpt_output_conv1"].numpy()
-    np.testing.assert_allclose(conv1.reshape(golden["dpt_output_conv1"].shape), golden["dpt_output_conv1"], atol=1e-4, rtol=1e-4)
+    np.testing.assert_allclose(
+        conv1.reshape(golden["dpt_output_conv1"].shape), golden["dpt_output_conv1"], atol=1e-4, rtol=1e-4
+    )
     raw = traced["dpt_output_conv2_raw"].numpy()
-    np.testing.assert_allclose(raw.reshape(golden["dpt_output_conv2_raw"].shape), golden["dpt_output_conv2_raw"], atol=1e-5)
+    np.testing.assert_allclose(
+        raw.reshape(golden["dpt_output_conv2_raw"].shape), golden["dpt_output_conv2_raw"], atol=1e-5
+    )
 
 
 def test_depth_head_chunking_matches_single_pass(tiny_model: VGGT, golden: dict[str, np.ndarray]) -> None:

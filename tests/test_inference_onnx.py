@@ -14,14 +14,14 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from safetensors.torch import load_file, save_file  # noqa: E402
+from safetensors.torch import load_file, save_file
 
-from inference.check_golden import Check, main, run_checks  # noqa: E402
-from inference.checkpoint import load_checkpoint  # noqa: E402
-from inference.config import VGGTConfig  # noqa: E402
-from inference.model import VGGT  # noqa: E402
-from inference.runners import OnnxRunner  # noqa: E402
-from swiftjax.prediction import ChunkPrediction  # noqa: E402
+from inference.check_golden import Check, main, run_checks
+from inference.checkpoint import load_checkpoint
+from inference.config import VGGTConfig
+from inference.model import VGGT
+from inference.runners import OnnxRunner
+from swiftjax.prediction import ChunkPrediction
 
 GOLDEN_FILES = ("tiny_config.json", "tiny_weights.safetensors", "tiny_images.npy", "tiny_golden.npz")
 
@@ -93,8 +93,9 @@ def test_check_golden_cli_passes(golden_dir: pathlib.Path, capsys: pytest.Captur
     assert "depth_conf" in out and "9/9 outputs within tolerance" in out and "FAIL" not in out
 
 
-def test_check_golden_cli_fails_on_wrong_weights(golden_dir: pathlib.Path, tmp_path: pathlib.Path,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_check_golden_cli_fails_on_wrong_weights(
+    golden_dir: pathlib.Path, tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     for name in GOLDEN_FILES:
         shutil.copy(golden_dir / name, tmp_path / name)
     weights = load_file(golden_dir / "tiny_weights.safetensors")

@@ -9,7 +9,7 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from inference.preprocess import load_image, preprocess, resize_rgb, target_size_hw, to_uint8_images  # noqa: E402
+from inference.preprocess import load_image, preprocess, resize_rgb, target_size_hw, to_uint8_images
 
 
 def _photos() -> dict[str, np.ndarray]:
@@ -31,7 +31,9 @@ def _upstream(img: np.ndarray, mode: str = "crop") -> np.ndarray:
     else:
         new_w = 518
         new_h = round(height * (new_w / width) / 14) * 14
-    arr = np.asarray(im.resize((new_w, new_h), Image.Resampling.BICUBIC)).transpose(2, 0, 1).astype(np.float32) / np.float32(255)
+    arr = np.asarray(im.resize((new_w, new_h), Image.Resampling.BICUBIC)).transpose(2, 0, 1).astype(
+        np.float32
+    ) / np.float32(255)
     if mode == "crop" and new_h > 518:
         start = (new_h - 518) // 2
         arr = arr[:, start : start + 518]
@@ -217,7 +219,11 @@ def test_mixed_sizes_padded_with_warning() -> None:
         out = preprocess([a, b])
     assert out.shape == (2, 3, 392, 518)
     top = (392 - 154) // 2
-    assert (out[1, :, :top] == 1.0).all() and (out[1, :, top : top + 154] == 0.0).all() and (out[1, :, top + 154 :] == 1.0).all()
+    assert (
+        (out[1, :, :top] == 1.0).all()
+        and (out[1, :, top : top + 154] == 0.0).all()
+        and (out[1, :, top + 154 :] == 1.0).all()
+    )
 
 
 def test_uint8_round_trip() -> None:

@@ -171,7 +171,9 @@ def _blob(h, w, u0, v0, sigma=5.0):
     return np.repeat((255 * g).round().astype(np.uint8)[..., None], 3, axis=2)
 
 
-@pytest.mark.parametrize("hw, mode", [((640, 480), "crop"), ((640, 480), "pad"), ((376, 1241), "crop"), ((480, 640), "pad")])
+@pytest.mark.parametrize(
+    "hw, mode", [((640, 480), "crop"), ((640, 480), "pad"), ((376, 1241), "crop"), ((480, 640), "pad")]
+)
 def test_a_dot_lands_where_the_map_says(hw, mode):
     """Independent check through the real preprocessing (PIL-exact bicubic): the centroid of a
     Gaussian blob after `inference.preprocess.preprocess` is `map_points` of its centre."""
@@ -186,7 +188,7 @@ def test_a_dot_lands_where_the_map_says(hw, mode):
     # the padding is white (1.0): look only at the resized image's area
     r0, c0 = max(g.top, 0), max(g.left, 0)
     area = np.zeros_like(out, bool)
-    area[r0:r0 + min(g.resized_hw[0], g.model_hw[0]), c0:c0 + g.resized_hw[1]] = True
+    area[r0 : r0 + min(g.resized_hw[0], g.model_hw[0]), c0 : c0 + g.resized_hw[1]] = True
     wgt = np.where(area, out, 0.0)
     wgt = np.where(wgt > 0.02, wgt, 0.0)
     vv, uu = np.mgrid[: out.shape[0], : out.shape[1]]

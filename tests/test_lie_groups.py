@@ -22,7 +22,7 @@ import dataclasses
 import functools
 import types
 import zlib
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -120,8 +120,9 @@ def lie_group_test(*dtypes: type, regimes: list[str] = REGIMES) -> Callable:
 def assert_close(actual, desired, dtype=np.float64, scale: float = 1.0, what: str = "") -> None:
     """The one tolerance of this file: ``atol = rtol = scale * eps(dtype)``-based."""
     tol = scale * (2e-4 if np.dtype(dtype) == np.float32 else 1e-9)
-    np.testing.assert_allclose(np.asarray(actual, np.float64), np.asarray(desired, np.float64),
-                               rtol=tol, atol=tol, err_msg=what)
+    np.testing.assert_allclose(
+        np.asarray(actual, np.float64), np.asarray(desired, np.float64), rtol=tol, atol=tol, err_msg=what
+    )
 
 
 @pytest.fixture(autouse=True)

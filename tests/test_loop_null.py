@@ -19,9 +19,13 @@ from swiftjax.loops import verification as V
 
 def ref_quat_matrix(q):
     x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def ref_null_edges(Z, dst, K_ref, stride, conf_ratio, offsets):
@@ -64,8 +68,8 @@ def ref_score(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours):
     inv = as_sim3(R.T, -(R.T @ t) / s, 1 / s)
     a = ref_dense(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours)
     b = ref_dense(dst, src, inv, K_ref, stride, conf_ratio, tol, neighbours)
-    agree = lambda x: x["pairs_agree"] / x["pairs_seen"] if x["pairs_seen"] else 0.0  # noqa: E731
-    over = lambda x: x["num_seen"] / x["num_points"] if x["num_points"] else 0.0  # noqa: E731
+    agree = lambda x: x["pairs_agree"] / x["pairs_seen"] if x["pairs_seen"] else 0.0
+    over = lambda x: x["num_seen"] / x["num_points"] if x["num_points"] else 0.0
     return min(agree(a), agree(b)), min(over(a), over(b)), min(a["pairs_seen"], b["pairs_seen"])
 
 
@@ -81,9 +85,11 @@ def test_null_consistency_matches_numpy_loops(x64):
     src, dst, S = scene(seed=11)
     cfg = V.VerificationConfig(stride=2, neighbours=2, null_samples=4, null_min_shift=0.1, null_max_shift=0.3)
     offsets = N.null_offsets(4, 0.1, 0.3)
-    want = [ref_score(src, dst, as_sim3(*e), K, 2, 0.5, cfg.depth_tolerance, 2)
-            for e in ref_null_edges(S, dst, K, 2, 0.5, offsets)]
-    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))  # noqa: E731
+    want = [
+        ref_score(src, dst, as_sim3(*e), K, 2, 0.5, cfg.depth_tolerance, 2)
+        for e in ref_null_edges(S, dst, K, 2, 0.5, offsets)
+    ]
+    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))
     got = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
     assert got.score.shape == (1, 4)
     for k, (score, overlap, seen) in enumerate(want):
@@ -130,8 +136,9 @@ def test_chance_corrected_agreement():
 def null_record(ci, cj, Z, agreement, mean, std, samples=16):
     t = {16: 2.6025}[samples]
     r = record(ci, cj, Z, agreement=agreement)
-    r.update(null_mean=mean, null_std=std, null_samples=samples,
-             null_threshold=mean + t * std * math.sqrt(1 + 1 / samples))
+    r.update(
+        null_mean=mean, null_std=std, null_samples=samples, null_threshold=mean + t * std * math.sqrt(1 + 1 / samples)
+    )
     return r
 
 
@@ -139,8 +146,8 @@ def test_null_rule_accepts_a_low_true_agreement_and_rejects_a_chance_one(x64):
     rel, X, nodes, Z = chain_problem(4)
     p, q = (int(v) for v in nodes[0])
     recs = [
-        null_record(q, p, Z[0], 0.40, 0.05, 0.02),   # true, below 0.55, far above its null
-        null_record(q, p, Z[0], 0.30, 0.30, 0.03),   # false: its null agrees as much
+        null_record(q, p, Z[0], 0.40, 0.05, 0.02),  # true, below 0.55, far above its null
+        null_record(q, p, Z[0], 0.30, 0.30, 0.03),  # false: its null agrees as much
         null_record(q, p, Z[0], 0.17, 0.037, 0.014),  # hallucinated: significant, but kappa 0.138
     ]
     null = V.verify_candidates(recs, X, rel, V.VerificationConfig(pcm=False))
@@ -168,7 +175,7 @@ def test_candidate_numbers_carry_the_null():
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
     cfg = V.VerificationConfig(null_samples=4)
     out = V.candidate_numbers(src, dst, S, K, half, half, cfg)
-    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))  # noqa: E731
+    one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))
     nc = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
     th = N.null_threshold(nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap)
     assert out["null_samples"] == th.samples and out["null_mean"] == pytest.approx(th.mean)
@@ -178,13 +185,16 @@ def test_candidate_numbers_carry_the_null():
     assert not any(k.startswith("null_") for k in fixed)
 
 
-@pytest.mark.parametrize("kw,match", [
-    ({"agreement_rule": "tuned"}, "agreement_rule must be 'null' or 'fixed'"),
-    ({"null_samples": 5}, "null_samples must be even"),
-    ({"null_false_alarm": 0.0}, "null_false_alarm must be in"),
-    ({"null_min_kappa": 1.0}, "null_min_kappa must be in"),
-    ({"null_min_shift": 0.5, "null_max_shift": 0.2}, "null_min_shift <= null_max_shift"),
-])
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        ({"agreement_rule": "tuned"}, "agreement_rule must be 'null' or 'fixed'"),
+        ({"null_samples": 5}, "null_samples must be even"),
+        ({"null_false_alarm": 0.0}, "null_false_alarm must be in"),
+        ({"null_min_kappa": 1.0}, "null_min_kappa must be in"),
+        ({"null_min_shift": 0.5, "null_max_shift": 0.2}, "null_min_shift <= null_max_shift"),
+    ],
+)
 def test_verification_config_rejects_bad_null_options(kw, match):
     with pytest.raises(ValueError, match=match):
         V.VerificationConfig(**kw)

@@ -9,6 +9,7 @@ import importlib
 import jax
 import numpy as np
 import pytest
+from test_loops import planted
 
 from swiftjax import loops as L
 from swiftjax.chunks import chunk_schedule
@@ -16,8 +17,6 @@ from swiftjax.loops import verification as V
 from swiftjax.loops.options import LoopOptions
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.loop_closure import loop_options
-
-from test_loops import planted
 
 
 def test_pipeline_config_takes_the_loop_defaults():
@@ -33,9 +32,14 @@ def test_function_defaults_come_from_loop_options():
 
     d = LoopOptions()
     sig = inspect.signature(L.detect_loops).parameters
-    assert (sig["threshold"].default, sig["min_separation"].default, sig["nms_radius"].default,
-            sig["top_k"].default, sig["nms"].default, sig["false_alarms"].default) == (
-        d.threshold, d.min_separation, d.nms_radius, d.top_k, d.nms, d.false_alarms)
+    assert (
+        sig["threshold"].default,
+        sig["min_separation"].default,
+        sig["nms_radius"].default,
+        sig["top_k"].default,
+        sig["nms"].default,
+        sig["false_alarms"].default,
+    ) == (d.threshold, d.min_separation, d.nms_radius, d.top_k, d.nms, d.false_alarms)
     sig = inspect.signature(L.fit_whitening).parameters
     assert (sig["remove"].default, sig["dim"].default, sig["eps"].default) == (d.remove, d.dim, d.eps)
     from swiftjax.align import AlignOptions
@@ -48,9 +52,14 @@ def test_function_defaults_come_from_loop_options():
 
 @pytest.mark.parametrize(
     "bad, match",
-    [({"rule": "auto"}, "rule must be one of"), ({"fit_on": "g0"}, "fit_on must be"),
-     ({"nms": "box"}, "nms must be"), ({"false_alarms": 1.0}, "false_alarms must be in"),
-     ({"top_k": 0}, "top_k must be >= 1"), ({"verification": "maybe"}, "verification must be")],
+    [
+        ({"rule": "auto"}, "rule must be one of"),
+        ({"fit_on": "g0"}, "fit_on must be"),
+        ({"nms": "box"}, "nms must be"),
+        ({"false_alarms": 1.0}, "false_alarms must be in"),
+        ({"top_k": 0}, "top_k must be >= 1"),
+        ({"verification": "maybe"}, "verification must be"),
+    ],
 )
 def test_loop_options_reject_bad_values(bad, match):
     with pytest.raises(ValueError, match="LoopOptions: " + match):
@@ -63,7 +72,7 @@ def test_find_loops_options_and_overrides_agree():
     a = L.find_loops(G, sched, dim=128, rule="fixed", threshold=0.7)
     b = L.find_loops(G, sched, LoopOptions(dim=128, rule="fixed", threshold=0.7))
     c = L.find_loops(G, sched, LoopOptions(dim=128), rule="fixed", threshold=0.7)  # keyword wins
-    key = lambda loops: [(lp.i, lp.j, lp.score, lp.frames.tolist()) for lp in loops]  # noqa: E731
+    key = lambda loops: [(lp.i, lp.j, lp.score, lp.frames.tolist()) for lp in loops]
     assert key(a) == key(b) == key(c) and len(a) == 2
 
 
@@ -76,8 +85,9 @@ def test_find_loops_throw_false_leaves_nonfinite_rows_out():
     with pytest.raises(ValueError, match="NaN or Inf"):
         L.find_loops(bad, sched, dim=128)
     with pytest.warns(UserWarning, match="2 descriptor row"):
-        loops, details = L.find_loops(bad, sched, dim=128, rule="fixed", threshold=0.7, throw=False,
-                                      return_details=True)
+        loops, details = L.find_loops(
+            bad, sched, dim=128, rule="fixed", threshold=0.7, throw=False, return_details=True
+        )
     np.testing.assert_array_equal(details["nonfinite_rows"], [3, 410])
     assert {(lp.i - lp.j) for lp in loops} == {350, 260}
     assert all(410 != lp.i and 3 != lp.j for lp in loops)
@@ -137,18 +147,39 @@ def test_loop_verification_lives_in_the_loops_package_only():
 
 def test_loops_keeps_its_public_names():
     import __future__
+
     import sys
     import types
 
-    before = ["frame_descriptor", "power_normalize", "Whitening", "fit_whitening", "whiten", "LoopCandidates",
-              "ThresholdCalibration", "calibrate_threshold", "detect_loops", "LoopChunk", "loop_chunk_frames",
-              "filter_by_chunks", "loop_edge", "Loop", "find_loops", "DEFAULT_THRESHOLD", "AUTHORS_THRESHOLD",
-              "DEFAULT_FALSE_ALARMS", "THRESHOLD_RULES"]
+    before = [
+        "frame_descriptor",
+        "power_normalize",
+        "Whitening",
+        "fit_whitening",
+        "whiten",
+        "LoopCandidates",
+        "ThresholdCalibration",
+        "calibrate_threshold",
+        "detect_loops",
+        "LoopChunk",
+        "loop_chunk_frames",
+        "filter_by_chunks",
+        "loop_edge",
+        "Loop",
+        "find_loops",
+        "DEFAULT_THRESHOLD",
+        "AUTHORS_THRESHOLD",
+        "DEFAULT_FALSE_ALARMS",
+        "THRESHOLD_RULES",
+    ]
     assert set(before) <= set(L.__all__)
     assert len(L.__all__) == len(set(L.__all__))
     # __all__ is exactly what the package exposes (a name imported but not listed, or listed but gone, fails)
-    exposed = {n for n, v in vars(L).items() if not n.startswith("_")
-               and not isinstance(v, (types.ModuleType, __future__._Feature))}
+    exposed = {
+        n
+        for n, v in vars(L).items()
+        if not n.startswith("_") and not isinstance(v, (types.ModuleType, __future__._Feature))
+    }
     assert exposed == set(L.__all__)
     # each function and class is the one its defining submodule of swiftjax.loops holds under that name
     for name in L.__all__:

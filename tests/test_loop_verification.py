@@ -60,10 +60,14 @@ def scene(seed=0, F=3, G=4, focal_jitter=0.03):
     scaled by the same factor (so eq. 1 undoes them).
     """
     rng = np.random.default_rng(seed)
-    planes = [(np.array([0.0, -1.0, 0.0]), -1.5), (np.array([1.0, 0.0, 0.3]) / np.hypot(1, 0.3), 3.0),
-              (np.array([0.0, 0.0, 1.0]), 9.0)]
-    src_c2w = np.stack([np.concatenate([rot(0.05 * rng.normal(size=3)), [[0.3 * k], [0.0], [0.5 * k]]], 1)
-                        for k in range(F)])
+    planes = [
+        (np.array([0.0, -1.0, 0.0]), -1.5),
+        (np.array([1.0, 0.0, 0.3]) / np.hypot(1, 0.3), 3.0),
+        (np.array([0.0, 0.0, 1.0]), 9.0),
+    ]
+    src_c2w = np.stack(
+        [np.concatenate([rot(0.05 * rng.normal(size=3)), [[0.3 * k], [0.0], [0.5 * k]]], 1) for k in range(F)]
+    )
     S = sim3_np(rot([0.1, -0.4, 0.2]), np.array([2.0, -0.5, 1.0]), 1.7)
     R_s, t_s, s_s = rot([0.1, -0.4, 0.2]), np.array([2.0, -0.5, 1.0]), 1.7
     # the same planes in chunk j coordinates: x' = s R x + t  ->  n'·x' = s d + n'·t, n' = R n
@@ -103,10 +107,14 @@ def ref_dense(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours):
     S = np.asarray(S, np.float64)
     q = S[3:7] / np.linalg.norm(S[3:7])
     x_, y_, z_, w_ = q
-    Rs = np.array([[1 - 2 * (y_ * y_ + z_ * z_), 2 * (x_ * y_ - z_ * w_), 2 * (x_ * z_ + y_ * w_)],
-                   [2 * (x_ * y_ + z_ * w_), 1 - 2 * (x_ * x_ + z_ * z_), 2 * (y_ * z_ - x_ * w_)],
-                   [2 * (x_ * z_ - y_ * w_), 2 * (y_ * z_ + x_ * w_), 1 - 2 * (x_ * x_ + y_ * y_)]])
-    act = lambda p: S[7] * Rs @ p + S[:3]  # noqa: E731
+    Rs = np.array(
+        [
+            [1 - 2 * (y_ * y_ + z_ * z_), 2 * (x_ * y_ - z_ * w_), 2 * (x_ * z_ + y_ * w_)],
+            [2 * (x_ * y_ + z_ * w_), 1 - 2 * (x_ * x_ + z_ * z_), 2 * (y_ * z_ - x_ * w_)],
+            [2 * (x_ * z_ - y_ * w_), 2 * (y_ * z_ + x_ * w_), 1 - 2 * (x_ * x_ + y_ * y_)],
+        ]
+    )
+    act = lambda p: S[7] * Rs @ p + S[:3]
 
     def normalised(depth, conf, Ks):
         out = np.full(depth.shape, np.nan)
@@ -161,8 +169,14 @@ def ref_dense(src, dst, S, K_ref, stride, conf_ratio, tol, neighbours):
                         p_front += 1
                 n_seen += seen
                 n_agree += agree
-    return dict(num_points=n_pts, num_seen=n_seen, num_agree=n_agree, pairs_seen=p_seen,
-                pairs_agree=p_agree, pairs_front=p_front)
+    return dict(
+        num_points=n_pts,
+        num_seen=n_seen,
+        num_agree=n_agree,
+        pairs_seen=p_seen,
+        pairs_agree=p_agree,
+        pairs_front=p_front,
+    )
 
 
 # ------------------------------------------------------------------------ dense tests
@@ -173,8 +187,9 @@ ALL_PIXELS = V.VerificationConfig(stride=1, neighbours=0)  # every source pixel,
 @pytest.mark.parametrize("stride,neighbours", [(1, 0), (2, 2)])
 def test_dense_consistency_matches_numpy_loops(x64, stride, neighbours):
     src, dst, S = scene(seed=1)
-    got = V.dense_consistency(src, dst, S, K, V.VerificationConfig(stride=stride, depth_tolerance=0.05,
-                                                                   neighbours=neighbours))
+    got = V.dense_consistency(
+        src, dst, S, K, V.VerificationConfig(stride=stride, depth_tolerance=0.05, neighbours=neighbours)
+    )
     want = ref_dense(src, dst, S, K, stride, 0.5, 0.05, neighbours)
     for k, v in want.items():
         assert int(getattr(got, k)) == v, k
@@ -205,7 +220,7 @@ def test_dense_consistency_nonfinite_edge_and_empty_source():
 
 def test_cross_chunk_consistency_batched_equals_both_directions():
     a, b = scene(seed=4), scene(seed=5)
-    stack = lambda x, y: align.ChunkFrames(*(np.stack([p, q]) for p, q in zip(x, y)))  # noqa: E731
+    stack = lambda x, y: align.ChunkFrames(*(np.stack([p, q]) for p, q in zip(x, y)))
     Z = np.stack([a[2], b[2]])
     cfg = V.VerificationConfig(stride=2, neighbours=2)
     cc = V.cross_chunk_consistency(stack(a[0], b[0]), stack(a[1], b[1]), Z, K, cfg)
@@ -244,7 +259,7 @@ def chain_problem(seed, T=12, loops=((1, 8), (2, 10), (0, 11), (4, 9))):
     nodes = np.asarray(loops, np.int32)
     Zm = np.linalg.inv(Xm[nodes[:, 0]]) @ Xm[nodes[:, 1]]
     with jax.enable_x64(True):
-        to = lambda A: np.asarray(sim3.from_matrix(jnp.asarray(A)))  # noqa: E731
+        to = lambda A: np.asarray(sim3.from_matrix(jnp.asarray(A)))
         return to(M), to(Xm), nodes, to(Zm)
 
 
@@ -258,7 +273,7 @@ def test_pairwise_consistency_residual_matches_explicit_cycle(x64):
     assert np.allclose(m, m.T) and np.all(np.diag(m) == 0)
     # explicit cycle with 4x4 matrices: Z_a^-1 (X_pa^-1 X_pb) Z_b (X_qb^-1 X_qa), conjugated
     # into the world frame by X_qa; covariance by explicit sums over each span's edges
-    mat = lambda S: np.asarray(sim3.as_matrix(jnp.asarray(S)))  # noqa: E731
+    mat = lambda S: np.asarray(sim3.as_matrix(jnp.asarray(S)))
     Xm, Zm, inv = mat(X), mat(Zn), np.linalg.inv
     pairs = list(itertools.combinations(range(len(Z)), 2))
     E = []
@@ -287,21 +302,26 @@ def test_pairwise_consistency_is_chi2_under_the_model(x64):
     n = 300
     d_odo = rng.normal(size=(n, len(rel), 7)) * np.sqrt(np.diagonal(odo, axis1=1, axis2=2))
     d_loop = rng.normal(size=(n, len(Z), 7)) * np.sqrt(np.diagonal(lc, axis1=1, axis2=2))
-    mat = lambda S: np.asarray(sim3.as_matrix(jnp.asarray(S)))  # noqa: E731
+    mat = lambda S: np.asarray(sim3.as_matrix(jnp.asarray(S)))
     rel_n = mat(rel) @ mat(sim3.exp(jnp.asarray(d_odo)))  # [n, E, 4, 4]
     Xs = [np.broadcast_to(np.eye(4), (n, 4, 4))]
     for e in range(len(rel)):
         Xs.append(Xs[-1] @ rel_n[:, e])
     Xs = np.asarray(sim3.from_matrix(jnp.asarray(np.stack(Xs, 1))))
     Zs = np.asarray(sim3.compose(jnp.asarray(Z), sim3.exp(jnp.asarray(d_loop))))
-    m = np.asarray(jax.vmap(V.pairwise_consistency, in_axes=(0, None, None, 0, None))(
-        jnp.asarray(Xs), jnp.asarray(odo), jnp.asarray(nodes), jnp.asarray(Zs), jnp.asarray(lc)))
+    m = np.asarray(
+        jax.vmap(V.pairwise_consistency, in_axes=(0, None, None, 0, None))(
+            jnp.asarray(Xs), jnp.asarray(odo), jnp.asarray(nodes), jnp.asarray(Zs), jnp.asarray(lc)
+        )
+    )
     iu = np.triu_indices(len(Z), 1)
     assert np.mean(m[:, iu[0], iu[1]] ** 2, axis=0) == pytest.approx(np.full(len(iu[0]), 7.0), rel=0.2)
     # a wrong loop (2 units off) is far outside
     Zw = Z.copy()
     Zw[1] = np.asarray(sim3.compose(jnp.asarray(Z[1]), sim3.exp(jnp.asarray([2.0, 0, 0, 0, 0, 0, 0]))))
-    mw = np.asarray(V.pairwise_consistency(jnp.asarray(X), jnp.asarray(odo), jnp.asarray(nodes), jnp.asarray(Zw), jnp.asarray(lc)))
+    mw = np.asarray(
+        V.pairwise_consistency(jnp.asarray(X), jnp.asarray(odo), jnp.asarray(nodes), jnp.asarray(Zw), jnp.asarray(lc))
+    )
     assert np.all(mw[1, [0, 2, 3]] > 3 * math.sqrt(7))
 
 
@@ -337,8 +357,15 @@ def test_max_consistent_set_matches_brute_force(seed):
 
 
 def record(ci, cj, Z, agreement=0.8, overlap=0.9, valid=True, fraction=0.5):
-    return {"chunk_i": ci, "chunk_j": cj, "Z": list(map(float, Z)), "dense_agreement": agreement,
-            "dense_overlap": overlap, "quality_valid": valid, "quality_min_fraction": fraction}
+    return {
+        "chunk_i": ci,
+        "chunk_j": cj,
+        "Z": list(map(float, Z)),
+        "dense_agreement": agreement,
+        "dense_overlap": overlap,
+        "quality_valid": valid,
+        "quality_min_fraction": fraction,
+    }
 
 
 def test_verify_candidates_rules_and_pcm(x64):
@@ -370,8 +397,9 @@ def test_candidate_numbers_from_record_dicts():
     src, dst, S = scene(seed=7)
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
     out = V.candidate_numbers(src, dst, S, K, half, dict(half, fraction_used=0.3, rms=0.05))
-    cc = V.cross_chunk_consistency(*(align.ChunkFrames(*(np.asarray(a)[None] for a in f)) for f in (src, dst)),
-                                   S[None], K)
+    cc = V.cross_chunk_consistency(
+        *(align.ChunkFrames(*(np.asarray(a)[None] for a in f)) for f in (src, dst)), S[None], K
+    )
     assert out["dense_agreement"] == pytest.approx(float(cc.score[0]))
     assert out["dense_i_to_j"]["pairs_agree"] == int(cc.i_to_j.pairs_agree[0])
     assert out["quality_valid"] and out["quality_min_fraction"] == pytest.approx(0.3)
@@ -421,18 +449,37 @@ def test_loops_txt_and_plot_with_rejected_candidates(tmp_path):
     from swiftjax.pipeline import export
 
     recs = [
-        {"i": 150, "j": 20, "score": 0.7, "chunk_i": 5, "chunk_j": 0, "align_i": {"num_points": 10},
-         "align_j": {"num_points": 12}, "dense_agreement": 0.8, "dense_overlap": 0.9, "accepted": True,
-         "reason": "verified"},
-        {"i": 60, "j": 30, "score": 0.5, "chunk_i": 2, "chunk_j": 1, "accepted": False,
-         "reason": "chunks 1 and 2 are neighbours (their temporal edge)"},
+        {
+            "i": 150,
+            "j": 20,
+            "score": 0.7,
+            "chunk_i": 5,
+            "chunk_j": 0,
+            "align_i": {"num_points": 10},
+            "align_j": {"num_points": 12},
+            "dense_agreement": 0.8,
+            "dense_overlap": 0.9,
+            "accepted": True,
+            "reason": "verified",
+        },
+        {
+            "i": 60,
+            "j": 30,
+            "score": 0.5,
+            "chunk_i": 2,
+            "chunk_j": 1,
+            "accepted": False,
+            "reason": "chunks 1 and 2 are neighbours (their temporal edge)",
+        },
     ]
     export.write_loops(tmp_path / "loops.txt", recs)
     lines = (tmp_path / "loops.txt").read_text().splitlines()
     keys = [x for x in lines if x.startswith("#")][-1][2:].split()
     assert keys[-1] == "reason"
     rows = [dict(zip(keys, x.split(maxsplit=len(keys) - 1))) for x in lines if not x.startswith("#")]
-    assert rows[0]["accepted"] == "yes" and rows[0]["dense_agreement"] == "0.8" and rows[0]["align_i.num_points"] == "10"
+    assert (
+        rows[0]["accepted"] == "yes" and rows[0]["dense_agreement"] == "0.8" and rows[0]["align_i.num_points"] == "10"
+    )
     assert rows[1]["accepted"] == "no" and rows[1]["dense_agreement"] == "-"
     assert rows[1]["reason"] == "chunks 1 and 2 are neighbours (their temporal edge)"  # readable, not snake_case
     assert "# 2 candidates, 1 accepted (edges of the pose graph), 1 rejected" in lines

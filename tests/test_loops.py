@@ -424,10 +424,12 @@ def test_synthetic_kitti00_every_region_no_false_loop(shared_dir):
     poses = read_kitti(shared_dir / "data" / "trajectories" / "KITTI_00_gt.txt")
     n = len(poses)
     params = places.make_place_params(places.PlaceTokenConfig(tokens_per_frame=16, seed=0))
-    G = np.concatenate([
-        np.asarray(L.frame_descriptor(places.place_tokens(params, poses[idx], idx)))
-        for idx in (np.minimum(np.arange(s, s + 75), n - 1) for s in range(0, n, 75))
-    ])[:n]
+    G = np.concatenate(
+        [
+            np.asarray(L.frame_descriptor(places.place_tokens(params, poses[idx], idx)))
+            for idx in (np.minimum(np.arange(s, s + 75), n - 1) for s in range(0, n, 75))
+        ]
+    )[:n]
     loops = L.find_loops(G, chunk_schedule(n))
     gt = places.ground_truth_loops(poses)
     ev = places.evaluate_loops(np.array([(lp.i, lp.j) for lp in loops]), gt)

@@ -48,8 +48,14 @@ def feed(det, chunks):
 def _same_loops(a, b):
     assert len(a) == len(b)
     for x, y in zip(a, b):
-        assert (x.i, x.j, x.chunk_i, x.chunk_j, x.local_i, x.local_j) == (y.i, y.j, y.chunk_i, y.chunk_j, y.local_i,
-                                                                          y.local_j)
+        assert (x.i, x.j, x.chunk_i, x.chunk_j, x.local_i, x.local_j) == (
+            y.i,
+            y.j,
+            y.chunk_i,
+            y.chunk_j,
+            y.local_i,
+            y.local_j,
+        )
         assert np.float32(x.score).tobytes() == np.float32(y.score).tobytes()
         np.testing.assert_array_equal(x.frames, y.frames)
 
@@ -185,9 +191,13 @@ def _write_run(run_dir, chunks, d):
     store = ChunkStore(run_dir)
     for t, (f, g) in enumerate(chunks):
         s = len(f)
-        pred = ChunkPrediction(np.ones((s, 2, 3), np.float32), np.ones((s, 2, 3), np.float32),
-                               np.zeros((s, 3, 4), np.float32), np.tile(np.eye(3, dtype=np.float32), (s, 1, 1)),
-                               descriptors=g[:, :d])
+        pred = ChunkPrediction(
+            np.ones((s, 2, 3), np.float32),
+            np.ones((s, 2, 3), np.float32),
+            np.zeros((s, 3, 4), np.float32),
+            np.tile(np.eye(3, dtype=np.float32), (s, 1, 1)),
+            descriptors=g[:, :d],
+        )
         store.save("chunk", t, pred, extra={"frames": np.asarray(f, np.int64)})
 
 

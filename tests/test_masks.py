@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from swiftjax import align, camera, intrinsics, masks
+from swiftjax import align, intrinsics, masks
 
 
 def _png(path, arr):
@@ -24,7 +24,7 @@ def test_mask_directory_matches_by_stem_and_maps_like_the_images(tmp_path):
     boxes = []
     for k, name in enumerate(names):
         m = np.full((640, 480), 255, np.uint8)
-        m[100 + 50 * k:300, 40:200] = 0  # a box to drop
+        m[100 + 50 * k : 300, 40:200] = 0  # a box to drop
         _png(tmp_path / (name[:-4] + ".png"), m)
         boxes.append(m > 127)
     md = masks.MaskDirectory(tmp_path, names, g)
@@ -83,7 +83,7 @@ def _pair(o=4, h=24, w=32, seed=0):
     prev = align.ChunkFrames(depth, conf, np.tile(K, (o, 1, 1)), E)
     s = 0.98  # eq. 2 compares the two chunks' depths: |6 (1 - s)| < 0.2
     cur = align.ChunkFrames(depth * s, conf, np.tile(K, (o, 1, 1)), np.concatenate([E[..., :3], E[..., 3:] * s], -1))
-    f32 = lambda fr: align.ChunkFrames(*(np.asarray(a, np.float32) for a in fr))  # noqa: E731
+    f32 = lambda fr: align.ChunkFrames(*(np.asarray(a, np.float32) for a in fr))
     return f32(prev), f32(cur), K.astype(np.float32), s
 
 
@@ -92,7 +92,7 @@ def test_mask_equals_removing_the_pixels():
     rng = np.random.default_rng(1)
     keep = rng.random(prev.depth.shape) < 0.6
     S_m, info_m = align.align_chunk_pair(prev, cur, K, min_points=10, mask=keep)
-    nan = lambda fr: fr._replace(depth=np.where(keep, fr.depth, np.nan).astype(np.float32))  # noqa: E731
+    nan = lambda fr: fr._replace(depth=np.where(keep, fr.depth, np.nan).astype(np.float32))
     S_n, info_n = align.align_chunk_pair(nan(prev), nan(cur), K, min_points=10)
     assert int(info_m.num_points) == int(info_n.num_points) == int(keep.sum())
     np.testing.assert_allclose(np.asarray(S_m), np.asarray(S_n), atol=2e-5)
@@ -102,7 +102,9 @@ def test_mask_equals_removing_the_pixels():
 def test_a_mask_removing_the_whole_overlap_falls_back_to_the_poses_with_a_warning():
     prev, cur, K, _ = _pair()
     keep = np.zeros(prev.depth.shape, bool)
-    with pytest.warns(RuntimeWarning, match=r"0 reliable points.*the mask keeps 0\.00% of its pixels.*overlap camera poses"):
+    with pytest.warns(
+        RuntimeWarning, match=r"0 reliable points.*the mask keeps 0\.00% of its pixels.*overlap camera poses"
+    ):
         S, info = align.align_chunk_pair_checked(prev, cur, K, min_points=10, mask=keep)
     assert bool(info.pose_fallback) and int(info.num_points) == 0
     S_pose, ok = align.pose_based_estimate(prev.extrinsic, cur.extrinsic)
@@ -152,8 +154,14 @@ def test_car_depth_is_consistent_within_a_frame_but_not_across_chunks(street):
     from swiftjax.synthetic.world import CAR
 
     world, poses, K, _ = street
-    oracle = VGGTOracle(world, poses, intrinsic=K, image_hw=HW, tokens=False,
-                        noise=dataclasses.replace(OracleNoise.off(), mover_depth=0.05))
+    oracle = VGGTOracle(
+        world,
+        poses,
+        intrinsic=K,
+        image_hw=HW,
+        tokens=False,
+        noise=dataclasses.replace(OracleNoise.off(), mover_depth=0.05),
+    )
     _, sem, _ = oracle.render_truth(np.arange(15, 45))
     a = oracle.predict_chunk(np.arange(0, 45)).depth[15:]
     b = oracle.predict_chunk(np.arange(15, 60)).depth[:30]

@@ -123,8 +123,9 @@ def test_chunk_height_on_the_exact_oracle_is_the_true_gauge():
     poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=0.3)
     world = build_world(poses, WorldConfig(seed=2))
     K = np.array([[120.0, 0, 69.5], [0, 120.0, 27.0], [0, 0, 1]])
-    oracle = VGGTOracle(world, poses, intrinsic=K, image_hw=(56, 140), noise=OracleNoise.off(scale_jitter=0.1),
-                        tokens=False)
+    oracle = VGGTOracle(
+        world, poses, intrinsic=K, image_hw=(56, 140), noise=OracleNoise.off(scale_jitter=0.1), tokens=False
+    )
     frames = np.arange(10, 30)
     pred = oracle.predict_chunk(frames)
     gh = metric_scale.chunk_ground_height(pred.depth, pred.conf, pred.intrinsic, K, stride=2, frame_stride=1)
@@ -169,7 +170,9 @@ def test_apply_scale_stretches_the_world():
     np.testing.assert_array_equal(S2[:, 3:7], S[:, 3:7])
 
 
-@pytest.mark.parametrize("value, expect", [(None, None), ("gt", ("gt", None)), ("camera-height=1.65", ("camera-height", 1.65))])
+@pytest.mark.parametrize(
+    "value, expect", [(None, None), ("gt", ("gt", None)), ("camera-height=1.65", ("camera-height", 1.65))]
+)
 def test_parse_metric(value, expect):
     assert metric_scale.parse_metric(value) == expect
 

@@ -58,9 +58,7 @@ def kernel_env(tmp_path_factory, shared_dir):
     mp.setenv("JUPYTER_PATH", os.pathsep.join(filter(None, [jupyter_path, os.environ.get("JUPYTER_PATH")])))
     # JAX's persistent compilation cache, exactly as tests/conftest.py configured this process.
     mp.setenv("JAX_COMPILATION_CACHE_DIR", str(jax.config.jax_compilation_cache_dir))
-    mp.setenv(
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(jax.config.jax_persistent_cache_min_compile_time_secs)
-    )
+    mp.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(jax.config.jax_persistent_cache_min_compile_time_secs))
     mp.setenv("SWIFTJAX_SHARED", str(shared_dir))  # notebook 0's tiny VGGT
     mp.setenv("PYDEVD_DISABLE_FILE_VALIDATION", "1")  # silence the debugger warning on kernel start
     spec = KernelSpecManager().get_kernel_spec("python3")
@@ -134,8 +132,11 @@ def test_tutorial_does_the_job(kernel_env, tmp_path, monkeypatch):
     pngs = [o for o in outputs if o.get("output_type") == "display_data" and "image/png" in o.get("data", {})]
     assert len(pngs) == 3, len(pngs)  # trajectory.png, points.png, the side view
     assert "10 frames of 400 x 120 pixels" in text and "next:    swiftjax view " in text
-    rows = {ln.rsplit(None, 1)[0].strip(): ln.rsplit(None, 1)[1] for ln in text.splitlines()
-            if ln.startswith("  ") and len(ln.split()) >= 2}
+    rows = {
+        ln.rsplit(None, 1)[0].strip(): ln.rsplit(None, 1)[1]
+        for ln in text.splitlines()
+        if ln.startswith("  ") and len(ln.split()) >= 2
+    }
     assert rows["frames"] == "10" and rows["chunks"] == "2", rows
     points = int(rows["points written"].replace(",", ""))
     assert points > 1000 and f"{points:,} points, 10 cameras" in text
@@ -152,7 +153,7 @@ def _slowest(nb, n: int = 3) -> str:
             start, end = t["iopub.execute_input"], t["shell.execute_reply"]
         except KeyError:
             return 0.0
-        parse = lambda s: datetime.fromisoformat(s.replace("Z", "+00:00"))  # noqa: E731
+        parse = lambda s: datetime.fromisoformat(s.replace("Z", "+00:00"))
         return (parse(end) - parse(start)).total_seconds()
 
     # Index 0 is the injected kernel check; notebook cell k is nb.cells[k + 1].

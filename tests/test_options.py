@@ -19,11 +19,11 @@ SPECS = options.specs(PipelineConfig)
 
 def test_every_field_has_a_schema_a_flag_and_a_description():
     parser = cli.build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, type(parser._subparsers._group_actions[0])))  # noqa: SLF001
+    sub = next(a for a in parser._actions if isinstance(a, type(parser._subparsers._group_actions[0])))
     for command in ("demo", "reconstruct"):
         p = sub.choices[command]
-        flags = {s for a in p._actions for s in a.option_strings}  # noqa: SLF001
-        helps = {s: a.help for a in p._actions for s in a.option_strings}  # noqa: SLF001
+        flags = {s for a in p._actions for s in a.option_strings}
+        helps = {s: a.help for a in p._actions for s in a.option_strings}
         for f in dataclasses.fields(PipelineConfig):
             s = SPECS[f.name]
             assert s.stage in options.STAGES and len(s.help) > 15, f.name
@@ -42,7 +42,10 @@ def test_every_field_has_a_schema_a_flag_and_a_description():
         ({"loop_closure": "no"}, "invalid option loop_closure (c.toml): 'no' is not a boolean; allowed: true or false"),
         ({"loop_closure": 1}, "loop_closure (c.toml): 1 is not a boolean"),
         ({"overlap": True}, "overlap (c.toml): True is not a number; allowed: an integer with 1 <= value <= 9999"),
-        ({"chunk_size": 60.7}, "chunk_size (c.toml): 60.7 is not an integer; allowed: an integer with 2 <= value <= 10000"),
+        (
+            {"chunk_size": 60.7},
+            "chunk_size (c.toml): 60.7 is not an integer; allowed: an integer with 2 <= value <= 10000",
+        ),
         ({"chunk_size": 60.0}, "chunk_size (c.toml): 60.0 is not an integer"),
         ({"min_points": math.inf}, "min_points (c.toml): inf"),  # what TOML makes of 1e400
         ({"conf_ratio": -1}, "conf_ratio (c.toml): -1 is out of range; allowed: a finite number with 0 <= value <= 10"),
@@ -103,7 +106,10 @@ def _check_accepted(cfg):
 
 
 _values = st.one_of(
-    st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True),
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from(["no", "yes", "true", "none", "huber", "irls", "1", "0.5", "", "nan", "1e400"]),
 )
 
@@ -120,9 +126,13 @@ def test_random_toml_values_never_reach_the_pipeline_unvalidated(table):
 
 
 @settings(deadline=None, max_examples=200)
-@given(st.dictionaries(st.sampled_from(sorted(n for n, s in SPECS.items() if s.kind is not bool)),
-                       st.text(max_size=8) | st.sampled_from(["-1", "1e400", "nan", "60.7", "none", "75", "0"]),
-                       max_size=3))
+@given(
+    st.dictionaries(
+        st.sampled_from(sorted(n for n, s in SPECS.items() if s.kind is not bool)),
+        st.text(max_size=8) | st.sampled_from(["-1", "1e400", "nan", "60.7", "none", "75", "0"]),
+        max_size=3,
+    )
+)
 def test_random_command_line_values_are_validated_like_toml(flags):
     argv = ["demo"]
     for name, text in flags.items():
@@ -132,7 +142,7 @@ def test_random_command_line_values_are_validated_like_toml(flags):
     except SystemExit:  # argparse refused the token itself (e.g. a value starting with '-')
         return
     try:
-        cfg = cli._pipeline_config(args)  # noqa: SLF001
+        cfg = cli._pipeline_config(args)
     except cli.CliError as err:
         assert "\n" not in str(err) and "invalid" in str(err)
         return

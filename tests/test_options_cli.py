@@ -25,7 +25,7 @@ def _one_line_error(code, err, *fragments, absent=()):
 
 
 def _config(*argv):
-    return cli._pipeline_config(cli.build_parser().parse_args(["demo", *argv]))  # noqa: SLF001
+    return cli._pipeline_config(cli.build_parser().parse_args(["demo", *argv]))
 
 
 def test_a_small_chunk_size_scales_the_loop_window_default():
@@ -40,10 +40,17 @@ def test_a_small_chunk_size_scales_the_loop_window_default():
 
 
 def test_cross_option_errors_name_the_flags_and_the_way_out(capsys, tmp_path):
-    code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "8", "--overlap", "3",
-                         "--loop-half-window", "6")
-    _one_line_error(code, err, "--loop-half-window: 6;", "--chunk-size / 2 (4)", "--no-loop-closure",
-                    absent=("loop_half_window", "chunk_size", "(the default"))
+    code, _, err = _main(
+        capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "8", "--overlap", "3", "--loop-half-window", "6"
+    )
+    _one_line_error(
+        code,
+        err,
+        "--loop-half-window: 6;",
+        "--chunk-size / 2 (4)",
+        "--no-loop-closure",
+        absent=("loop_half_window", "chunk_size", "(the default"),
+    )
     code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "20", "--overlap", "25")
     _one_line_error(code, err, "--overlap: 25;", "< --chunk-size (20)", absent=("(the default",))
     assert not (tmp_path / "o").exists()
@@ -52,24 +59,35 @@ def test_cross_option_errors_name_the_flags_and_the_way_out(capsys, tmp_path):
 def test_speak_marks_a_default_the_user_never_set():
     from swiftjax import options
 
-    line = options.speak("invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
-                         ["overlap", "chunk_size"], {"chunk_size": "cli"})
-    assert line == ("invalid option --overlap: 30 (the default: you did not set it); allowed: 1 <= --overlap < "
-                    "--chunk-size (20)")
-    line = options.speak("invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
-                         ["overlap", "chunk_size"], {"chunk_size": "file"}, "c.toml")
+    line = options.speak(
+        "invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+        ["overlap", "chunk_size"],
+        {"chunk_size": "cli"},
+    )
+    assert line == (
+        "invalid option --overlap: 30 (the default: you did not set it); allowed: 1 <= --overlap < --chunk-size (20)"
+    )
+    line = options.speak(
+        "invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+        ["overlap", "chunk_size"],
+        {"chunk_size": "file"},
+        "c.toml",
+    )
     assert "< chunk_size (20)" in line  # a key from the file keeps the file's spelling
 
 
-@pytest.mark.parametrize("argv, fragments", [
-    (["--chunk-size", str(10**23)], ["--chunk-size", "out of range", "<= 10000"]),
-    (["--point-stride", str(10**23)], ["--point-stride", "out of range", "<= 1024"]),
-    (["--colmap-max-points", str(10**40)], ["--colmap-max-points", "out of range"]),
-    (["--seed", "-1"], ["--seed must be >= 0, got -1"]),
-    (["--frames", str(10**23)], ["--frames must be <= "]),
-    (["--view", "--view-port", "99999"], ["--view-port must be <= 65535, got 99999"]),
-    (["--image-size", "100000x100000"], ["--image-size 100000x100000", "from 14 to 4096"]),
-])
+@pytest.mark.parametrize(
+    "argv, fragments",
+    [
+        (["--chunk-size", str(10**23)], ["--chunk-size", "out of range", "<= 10000"]),
+        (["--point-stride", str(10**23)], ["--point-stride", "out of range", "<= 1024"]),
+        (["--colmap-max-points", str(10**40)], ["--colmap-max-points", "out of range"]),
+        (["--seed", "-1"], ["--seed must be >= 0, got -1"]),
+        (["--frames", str(10**23)], ["--frames must be <= "]),
+        (["--view", "--view-port", "99999"], ["--view-port must be <= 65535, got 99999"]),
+        (["--image-size", "100000x100000"], ["--image-size 100000x100000", "from 14 to 4096"]),
+    ],
+)
 def test_huge_or_negative_integers_are_one_line(capsys, tmp_path, argv, fragments):
     code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", *argv)
     _one_line_error(code, err, *fragments)
@@ -79,10 +97,20 @@ def test_huge_or_negative_integers_are_one_line(capsys, tmp_path, argv, fragment
 def test_ports_are_checked_before_the_model_loads(capsys, tmp_path):
     for port in ("70000", "-1", "0"):
         code, _, err = _main(capsys, "view", tmp_path, "--port", port)
-        _one_line_error(code, err, f"--port must be", port)
+        _one_line_error(code, err, "--port must be", port)
     # the weights do not exist: the port is reported first, before anything is loaded
-    code, _, err = _main(capsys, "reconstruct", tmp_path, "--weights", tmp_path / "w.pt", "--out", tmp_path / "o",
-                         "--view", "--view-port", "99999")
+    code, _, err = _main(
+        capsys,
+        "reconstruct",
+        tmp_path,
+        "--weights",
+        tmp_path / "w.pt",
+        "--out",
+        tmp_path / "o",
+        "--view",
+        "--view-port",
+        "99999",
+    )
     _one_line_error(code, err, "--view-port must be <= 65535", absent=("w.pt",))
 
 
@@ -107,9 +135,23 @@ def test_toml_with_a_utf8_bom_is_read(tmp_path):
 
 def test_a_run_that_writes_no_point_is_not_done(capsys, tmp_path):
     """'done' over an empty cloud: exit 0 and "0 points written" with no warning."""
-    code, out, err = _main(capsys, "demo", "--frames", "12", "--chunk-size", "8", "--overlap", "3",
-                           "--no-loop-closure", "--no-colmap", "--no-progress", "--point-conf-ratio", "10",
-                           "--out", tmp_path / "o")
+    code, out, err = _main(
+        capsys,
+        "demo",
+        "--frames",
+        "12",
+        "--chunk-size",
+        "8",
+        "--overlap",
+        "3",
+        "--no-loop-closure",
+        "--no-colmap",
+        "--no-progress",
+        "--point-conf-ratio",
+        "10",
+        "--out",
+        tmp_path / "o",
+    )
     assert code == 1, err
     line = next(ln for ln in err.splitlines() if "0 points" in ln)
     assert "--point-conf-ratio 10" in line and str(tmp_path / "o") in line

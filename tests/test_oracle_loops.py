@@ -10,13 +10,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_synthetic import HW, exact, route, world  # noqa: F401  (shared fixtures)
 
 from swiftjax import camera, sim3
-from swiftjax.synthetic import places
+from swiftjax.synthetic import Hallucination, OracleNoise, VGGTOracle, places
 from swiftjax.synthetic.covisibility import covisibility, covisibility_mutual
-from swiftjax.synthetic import Hallucination, OracleNoise, VGGTOracle
 from swiftjax.synthetic.se3_np import se3_power, so3_exp
-from test_synthetic import HW, exact, route, world  # noqa: F401  (shared fixtures)
 
 
 def loop_frames(i, j, h=10):
@@ -63,8 +62,9 @@ def test_covisibility_matches_numpy_loop(exact, route, shift, stride):
     Ta[:, :3, 3] -= origin
     Tb[:, :3, 3] -= origin
     ref, n = ref_covisibility(da, Ta, db, Tb, exact.K, stride, 0.1)
-    got = float(covisibility(da, Ta.astype(np.float32), db, Tb.astype(np.float32),
-                             exact.K.astype(np.float32), stride, 0.1))
+    got = float(
+        covisibility(da, Ta.astype(np.float32), db, Tb.astype(np.float32), exact.K.astype(np.float32), stride, 0.1)
+    )
     assert n > 50
     # float32 projections may round a pixel-boundary point the other way: a point or two
     assert abs(got - ref) <= 2.0 / n
@@ -72,8 +72,12 @@ def test_covisibility_matches_numpy_loop(exact, route, shift, stride):
         assert got == pytest.approx(1.0, abs=0.02)  # a set sees itself
     if shift == 40:
         assert got == 0.0
-    mutual = min(got, float(covisibility(db, Tb.astype(np.float32), da, Ta.astype(np.float32),
-                                         exact.K.astype(np.float32), stride, 0.1)))
+    mutual = min(
+        got,
+        float(
+            covisibility(db, Tb.astype(np.float32), da, Ta.astype(np.float32), exact.K.astype(np.float32), stride, 0.1)
+        ),
+    )
     assert float(covisibility_mutual(da, Ta, db, Tb, exact.K, stride, 0.1)) == pytest.approx(mutual)
     assert exact.covisibility(A, B, mutual=True, stride=stride) == pytest.approx(mutual, abs=1e-6)
 
@@ -222,7 +226,7 @@ def test_aliasing_planted_deterministically_at_the_rate(route, shared_dir):
         assert len(s) == round(rate * c_true)
         for a, b, L in s:
             assert a - b > 100 + L
-            assert np.linalg.norm(p[a:a + L, None] - p[None, b:b + L], axis=-1).min() > 50.0
+            assert np.linalg.norm(p[a : a + L, None] - p[None, b : b + L], axis=-1).min() > 50.0
             pairs = np.stack([np.arange(a, a + L), np.arange(b, b + L)], 1)
             assert np.abs(pairs[:, None] - gtl[None]).max(-1).min() > 30  # Chebyshev to true pairs
             assert not places.evaluate_loops(pairs, gtl, regions=np.zeros(len(gtl), int)).correct.any()

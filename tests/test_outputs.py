@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from _extras import require_extra
+
 from swiftjax.io import images
 
 
@@ -33,8 +33,9 @@ def test_image_folder_timestamps(tmp_path):
     np.testing.assert_array_equal(ts, np.arange(6.0))
     assert note.startswith("frame index")
     # TUM rgb.txt: "timestamp name", any order, names matched (with --stride too).
-    (tmp_path / "rgb.txt").write_text("# timestamp filename\n" + "".join(
-        f"{100 + 0.5 * k:.6f} rgb/{k:03d}.png\n" for k in reversed(range(6))))
+    (tmp_path / "rgb.txt").write_text(
+        "# timestamp filename\n" + "".join(f"{100 + 0.5 * k:.6f} rgb/{k:03d}.png\n" for k in reversed(range(6)))
+    )
     np.testing.assert_allclose(images.read_timestamps(tmp_path / "rgb.txt", src), 100 + 0.5 * np.arange(6))
     strided = images.list_frames(tmp_path, stride=2)
     np.testing.assert_allclose(images.read_timestamps(tmp_path / "rgb.txt", strided, 2), [100, 101, 102])
@@ -182,8 +183,21 @@ def test_reconstruct_cli_passes_the_sources_times(tmp_path, monkeypatch):
 
     monkeypatch.setattr(cli, "_make_runner", lambda *args: None)
     monkeypatch.setattr(pipeline, "reconstruct", fake_reconstruct)
-    assert cli.main(["reconstruct", str(tmp_path / "drive.avi"), "--weights", str(tmp_path / "w.pt"),
-                     "--out", str(tmp_path / "run"), "--stride", "2"]) == 130
+    assert (
+        cli.main(
+            [
+                "reconstruct",
+                str(tmp_path / "drive.avi"),
+                "--weights",
+                str(tmp_path / "w.pt"),
+                "--out",
+                str(tmp_path / "run"),
+                "--stride",
+                "2",
+            ]
+        )
+        == 130
+    )
     np.testing.assert_allclose(seen["timestamps"], np.arange(0, 10, 2) / 5.0)
     assert "5 fps" in seen["timestamps_note"]
 
@@ -219,14 +233,17 @@ def test_original_resolution_undoes_the_preprocessing(tmp_path, mode, size):
         Image.new("RGB", (w0, h0), (10 * k, 20, 30)).save(tmp_path / f"f{k}.jpg")
     source = images.list_frames(tmp_path)
     geom = preprocess_geometry(h0, w0, mode)
-    ctx = SimpleNamespace(predictor=SimpleNamespace(source=source, mode=mode, frame_names=lambda: source.names),
-                          run_dir=tmp_path / "run", config=SimpleNamespace(colmap_original_resolution=True))
+    ctx = SimpleNamespace(
+        predictor=SimpleNamespace(source=source, mode=mode, frame_names=lambda: source.names),
+        run_dir=tmp_path / "run",
+        config=SimpleNamespace(colmap_original_resolution=True),
+    )
     h, w = geom.model_hw
     K_ref = np.array([[0.9 * w, 0, w / 2 - 3.0], [0, 0.9 * w, h / 2 + 2.0], [0, 0, 1]])
     rng = np.random.default_rng(0)
     pix = np.column_stack([rng.uniform(-0.5, w - 0.5, 500), rng.uniform(-0.5, h - 0.5, 500), np.ones(500)])
     x = rng.uniform(2, 5, (500, 1)) * (pix @ np.linalg.inv(K_ref).T)  # points seen in the model's image
-    proj = lambda K: (x @ K.T)[:, :2] / x[:, 2:]  # noqa: E731
+    proj = lambda K: (x @ K.T)[:, :2] / x[:, 2:]
     uv = proj(K_ref)
     K0, size0, uv0, keep = export._to_original_resolution(ctx, K_ref, (h, w), uv)
     assert size0 == (w0, h0)
@@ -248,8 +265,9 @@ def test_original_resolution_needs_input_images(tmp_path):
 
     run = demo.loop_route_run(20)
     with pytest.raises(ValueError, match="needs the input images"):
-        pipeline.reconstruct(run.predictor, tmp_path, pipeline.PipelineConfig(colmap_original_resolution=True),
-                             progress=False)
+        pipeline.reconstruct(
+            run.predictor, tmp_path, pipeline.PipelineConfig(colmap_original_resolution=True), progress=False
+        )
     assert not (tmp_path / "chunks").exists() or not any((tmp_path / "chunks").iterdir())  # no work done
 
 
@@ -278,8 +296,9 @@ def test_original_resolution_end_to_end_with_tiny_vggt(tmp_path, golden_dir):
     model = VGGT(VGGTConfig.from_json(golden_dir / "tiny_config.json"))
     load_checkpoint(model, golden_dir / "tiny_weights.safetensors")
     predictor = ImagePredictor(images.validate(images.list_frames(folder)), TorchRunner(model), mode=mode)
-    config = pipeline.PipelineConfig(chunk_size=4, overlap=1, min_points=10, loop_closure=False, point_stride=2,
-                                     colmap_original_resolution=True)
+    config = pipeline.PipelineConfig(
+        chunk_size=4, overlap=1, min_points=10, loop_closure=False, point_stride=2, colmap_original_resolution=True
+    )
     pipeline.reconstruct(predictor, tmp_path / "run", config, progress=False)
 
     data = tmp_path / "run" / "colmap"
@@ -307,7 +326,10 @@ def test_original_resolution_refuses_names_with_spaces_before_work(tmp_path):
 
     Image.new("RGB", (40, 30)).save(tmp_path / "IMG 1.jpg")
     source = images.list_frames(tmp_path)
-    ctx = SimpleNamespace(run_dir=tmp_path / "run", predictor=SimpleNamespace(source=source, frame_names=lambda: source.names),
-                          config=SimpleNamespace(colmap=True, colmap_original_resolution=True))
+    ctx = SimpleNamespace(
+        run_dir=tmp_path / "run",
+        predictor=SimpleNamespace(source=source, frame_names=lambda: source.names),
+        config=SimpleNamespace(colmap=True, colmap_original_resolution=True),
+    )
     with pytest.raises(ValueError, match="cannot hold white space: 'IMG 1.jpg'"):
         export.check(ctx)

@@ -11,9 +11,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from inference.backbones import pi3 as family  # noqa: E402
-from inference.pi3.golden import compare  # noqa: E402
-from swiftjax.prediction import ChunkPrediction  # noqa: E402
+from inference.backbones import pi3 as family
+from inference.pi3.golden import compare
+from swiftjax.prediction import ChunkPrediction
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,8 +82,14 @@ def test_pi3x_runner_uses_intrinsics_as_ray_condition(golden_dir) -> None:
     a, b = plain.predict(images), with_k.predict(images)
     assert np.abs(a.depth - b.depth).max() > 1e-4
     with pytest.raises(ValueError, match="needs π³X"):
-        family.build_runner(PI3, str(golden_dir / "tiny_weights.safetensors"), "cpu", "float32",
-                            family.load_config(PI3, golden_dir / "tiny_config.json"), intrinsics=K)
+        family.build_runner(
+            PI3,
+            str(golden_dir / "tiny_weights.safetensors"),
+            "cpu",
+            "float32",
+            family.load_config(PI3, golden_dir / "tiny_config.json"),
+            intrinsics=K,
+        )
 
 
 def test_check_checkpoint_refusals(golden_dir, tmp_path) -> None:

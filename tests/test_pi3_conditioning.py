@@ -11,16 +11,16 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from inference.pi3.conditioning import (  # noqa: E402
+from inference.pi3.conditioning import (
     Conditions,
     intrinsics_condition,
     official_intrinsics,
     overlap_pose_conditions,
     rays_from_intrinsics,
 )
-from inference.pi3.convert import metric_scale, to_chunk_prediction  # noqa: E402
-from inference.pi3.golden import _load, compare, golden_conditions  # noqa: E402
-from inference.pi3.preprocess import geometry  # noqa: E402
+from inference.pi3.convert import metric_scale, to_chunk_prediction
+from inference.pi3.golden import _load, compare, golden_conditions
+from inference.pi3.preprocess import geometry
 
 
 @pytest.fixture(scope="module")
@@ -118,8 +118,10 @@ def test_overlap_pose_condition_equals_the_official_path_when_rebased(tiny) -> N
     model, golden = tiny
     c2w = golden["cond.cond_input.poses"][0].astype(np.float64)
     rel = np.linalg.inv(c2w[0]) @ c2w
-    official = Conditions(poses=torch.from_numpy(np.concatenate([rel[:2], np.eye(4)[None].repeat(2, 0)]).astype(np.float32))[None],
-                          mask_pose=torch.tensor([[True, True, False, False]]))
+    official = Conditions(
+        poses=torch.from_numpy(np.concatenate([rel[:2], np.eye(4)[None].repeat(2, 0)]).astype(np.float32))[None],
+        mask_pose=torch.tensor([[True, True, False, False]]),
+    )
     ours = overlap_pose_conditions(np.linalg.inv(c2w[:2])[:, :3, :], 4)
     torch.testing.assert_close(ours.poses, official.poses, atol=1e-6, rtol=0)
     imgs = torch.from_numpy(golden["input_imgs"])

@@ -57,8 +57,7 @@ def _lstsq_reference(points: np.ndarray) -> np.ndarray:
 
 def test_intrinsics_recovered_exactly_from_a_known_pinhole() -> None:
     rng = np.random.default_rng(0)
-    K = np.array([[[310.0, 0, 251.3], [0, 295.0, 70.2], [0, 0, 1]],
-                  [[140.0, 0, 60.0], [0, 150.0, 80.0], [0, 0, 1]]])
+    K = np.array([[[310.0, 0, 251.3], [0, 295.0, 70.2], [0, 0, 1]], [[140.0, 0, 60.0], [0, 150.0, 80.0], [0, 0, 1]]])
     depth = rng.uniform(0.5, 40.0, (2, 154, 504))
     got = intrinsics_from_local_points(_camera_points(K, depth))
     np.testing.assert_allclose(got, K, rtol=1e-10, atol=1e-8)
@@ -168,8 +167,10 @@ def test_kept_fractions_on_the_oracle_match_vggt_scale() -> None:
     v_mask, v_points = _kept(vggt_conf)
     p_mask, p_points = _kept(confidence_from_logit(logit))
     e_mask, e_points = _kept(1.0 + np.exp(logit))
-    print(f"\noracle, VGGT 1+exp: mask {v_mask:.3f} points {v_points:.3f}; "
-          f"sigmoid of the same logit: mask {p_mask:.3f} points {p_points:.3f}")
+    print(
+        f"\noracle, VGGT 1+exp: mask {v_mask:.3f} points {v_points:.3f}; "
+        f"sigmoid of the same logit: mask {p_mask:.3f} points {p_points:.3f}"
+    )
     assert abs(e_mask - v_mask) < 1e-3  # the logit round trip is faithful
     assert p_mask >= v_mask - 0.1 and p_points >= v_points - 0.1
     # and the depth used by the conversion is the oracle's, unchanged, with its K recovered
@@ -196,8 +197,10 @@ def test_to_chunk_prediction_on_golden(golden) -> None:
 # ---- preprocessing --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("hw,expect", [((376, 1241), (266, 924)), ((480, 640), (434, 574)), ((154, 504), (280, 910)),
-                                       ((1000, 300), (924, 266))])
+@pytest.mark.parametrize(
+    "hw,expect",
+    [((376, 1241), (266, 924)), ((480, 640), (434, 574)), ((154, 504), (280, 910)), ((1000, 300), (924, 266))],
+)
 def test_official_target_size(hw, expect) -> None:
     h, w = target_size_hw(*hw)
     assert (h, w) == expect

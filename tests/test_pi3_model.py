@@ -10,12 +10,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from inference.checkpoint import CheckpointError  # noqa: E402
-from inference.pi3.checkpoint import load_pi3_checkpoint  # noqa: E402
-from inference.pi3.config import Pi3Config  # noqa: E402
-from inference.pi3.golden import PI3X_RUNS, compare, golden_conditions, torch_outputs  # noqa: E402
-from inference.pi3.model import Pi3  # noqa: E402
-from inference.pi3.pi3x import Pi3X  # noqa: E402
+from inference.checkpoint import CheckpointError
+from inference.pi3.checkpoint import load_pi3_checkpoint
+from inference.pi3.config import Pi3Config
+from inference.pi3.golden import PI3X_RUNS, compare, golden_conditions, torch_outputs
+from inference.pi3.model import Pi3
+from inference.pi3.pi3x import Pi3X
 
 
 @pytest.fixture(scope="module")
@@ -58,9 +58,18 @@ def pi3x_runs(pi3x: Pi3X, golden_dir: pathlib.Path) -> tuple[dict[str, np.ndarra
 
 
 PI3_KEYS = [
-    "points", "local_points", "conf", "camera_poses", "encoder_input_normalized", "dino_patch_tokens",
-    *[f"decoder_layer_{i:02d}" for i in range(10)], "decode_hidden_concat", "decode_pos",
-    "point_decoder_out", "conf_decoder_out", "camera_decoder_out",
+    "points",
+    "local_points",
+    "conf",
+    "camera_poses",
+    "encoder_input_normalized",
+    "dino_patch_tokens",
+    *[f"decoder_layer_{i:02d}" for i in range(10)],
+    "decode_hidden_concat",
+    "decode_pos",
+    "point_decoder_out",
+    "conf_decoder_out",
+    "camera_decoder_out",
 ]
 
 
@@ -97,8 +106,15 @@ def test_pi3x_conditioning_changes_the_output(pi3x_runs, run: str) -> None:
         assert "uncond.pose_inject_0_out" not in out
         np.testing.assert_array_equal(out["uncond.encode_norm_factor"], [1.0])
         return
-    for key in ("ray_embed_out", "depth_encoder_patch_tokens", "pose_inject_0_out", "pose_inject_1_out",
-                "encode_poses_normalized", "encode_norm_factor", "encode_hidden"):
+    for key in (
+        "ray_embed_out",
+        "depth_encoder_patch_tokens",
+        "pose_inject_0_out",
+        "pose_inject_1_out",
+        "encode_poses_normalized",
+        "encode_norm_factor",
+        "encode_hidden",
+    ):
         assert compare("torch", key, out[f"{run}.{key}"], golden[f"{run}.{key}"]).passed
     assert np.abs(out[f"{run}.points"] - out["uncond.points"]).max() > 1e-3
 
@@ -124,10 +140,13 @@ def test_partial_pose_mask_only_moves_posed_views(pi3x, golden_dir) -> None:
 # ---- full-size presets vs the official manifests -------------------------------------------
 
 
-@pytest.mark.parametrize("preset,manifest,params", [
-    ("pi3", "manifest_pi3.json", 958_696_732),
-    ("pi3x", "manifest_pi3x.json", 1_360_032_433),
-])
+@pytest.mark.parametrize(
+    "preset,manifest,params",
+    [
+        ("pi3", "manifest_pi3.json", 958_696_732),
+        ("pi3x", "manifest_pi3x.json", 1_360_032_433),
+    ],
+)
 def test_preset_matches_manifest_on_meta(golden_dir, preset: str, manifest: str, params: int) -> None:
     with open(golden_dir / manifest, encoding="utf-8") as f:
         entries = {name: tuple(shape) for name, shape, _ in json.load(f)["entries"]}
@@ -226,8 +245,13 @@ def test_pi3x_batch_of_scenes_equals_each_scene_alone(pi3x, golden_dir) -> None:
     imgs = torch.from_numpy(golden["input_imgs"])
     c = golden_conditions(golden, "condpartial")
     other = dataclasses.replace(c, depths=c.depths.flip(-1) * 2.0, mask_pose=torch.tensor([[True, True, False, False]]))
-    both = dataclasses.replace(c, **{f: torch.cat([getattr(c, f), getattr(other, f)]) for f in
-                                     ("intrinsics", "depths", "poses", "mask_depth", "mask_ray", "mask_pose")})
+    both = dataclasses.replace(
+        c,
+        **{
+            f: torch.cat([getattr(c, f), getattr(other, f)])
+            for f in ("intrinsics", "depths", "poses", "mask_depth", "mask_ray", "mask_pose")
+        },
+    )
     with torch.no_grad():
         batch = pi3x(torch.cat([imgs, imgs.flip(-1)]), both)
         first = pi3x(imgs, c)

@@ -10,9 +10,9 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnxruntime")
 
-from inference.pi3.golden import PI3X_RUNS, _load, compare, golden_conditions  # noqa: E402
-from inference.pi3.onnx import Pi3OnnxRunner, export_pi3_onnx  # noqa: E402
-from swiftjax.prediction import ChunkPrediction  # noqa: E402
+from inference.pi3.golden import PI3X_RUNS, _load, compare, golden_conditions
+from inference.pi3.onnx import Pi3OnnxRunner, export_pi3_onnx
+from swiftjax.prediction import ChunkPrediction
 
 
 @pytest.fixture(scope="module")

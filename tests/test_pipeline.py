@@ -12,15 +12,19 @@ import json
 
 import numpy as np
 import pytest
-
 from _extras import require_extra
+
 from swiftjax import chunks, evaluation, pipeline
-from swiftjax.synthetic import demo
 from swiftjax.io import ply, trajectory
+from swiftjax.synthetic import demo
 from swiftjax.synthetic.routes import loop_route
 
 CONFIG = pipeline.PipelineConfig(
-    chunk_size=40, overlap=15, loop_min_separation=60, loop_nms_radius=10, point_stride=2,
+    chunk_size=40,
+    overlap=15,
+    loop_min_separation=60,
+    loop_nms_radius=10,
+    point_stride=2,
     colmap_max_points=5_000,
 )
 IMAGE_HW = (42, 140)
@@ -65,9 +69,7 @@ def loop_chunks_predicted(result):
 def result(small_run, tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("run")
     predictor = CountingPredictor(small_run.predictor)
-    res = pipeline.reconstruct(
-        predictor, run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False
-    )
+    res = pipeline.reconstruct(predictor, run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False)
     res.calls = predictor.calls
     return res
 
@@ -100,17 +102,20 @@ def test_loop_candidates_are_verified_and_recorded(result, small_run):
     gap = {(r["i"], r["j"]): np.linalg.norm(gt[r["i"]] - gt[r["j"]]) for r in cands}
     false = [r for r in cands if gap[r["i"], r["j"]] > 20.0]
     assert false and not any(r["accepted"] for r in false)
-    assert all(any(w in r["reason"] for w in ("disagree", "than under wrong edges", "do not see", "pairwise"))
-               for r in false)
+    assert all(
+        any(w in r["reason"] for w in ("disagree", "than under wrong edges", "do not see", "pairwise")) for r in false
+    )
     assert [r for r in cands if r["accepted"]] == result.loops and len(result.loops) >= 1
     lines = (result.run_dir / "loops.txt").read_text().splitlines()
     keys = [x for x in lines if x.startswith("#")][-1][2:].split()
     rows = [dict(zip(keys, x.split(maxsplit=len(keys) - 1))) for x in lines if not x.startswith("#")]
     assert [(int(x["i"]), int(x["j"]), x["accepted"] == "yes", x["reason"]) for x in rows] == [
-        (r["i"], r["j"], r["accepted"], " ".join(r["reason"].split())) for r in cands]
+        (r["i"], r["j"], r["accepted"], " ".join(r["reason"].split())) for r in cands
+    ]
     metrics = json.loads((result.run_dir / "metrics.json").read_text())
     assert [(c["i"], c["j"], c["accepted"]) for c in metrics["loop_candidates"]] == [
-        (r["i"], r["j"], r["accepted"]) for r in cands]
+        (r["i"], r["j"], r["accepted"]) for r in cands
+    ]
     manifest = json.loads((result.run_dir / "manifest.json").read_text())
     for r in cands:
         if "align_i" in r:
@@ -158,9 +163,7 @@ def test_colmap_model_reads_back(result):
 
 def test_rerun_resumes_without_predicting(small_run, result):
     predictor = CountingPredictor(small_run.predictor)
-    again = pipeline.reconstruct(
-        predictor, result.run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False
-    )
+    again = pipeline.reconstruct(predictor, result.run_dir, CONFIG, ground_truth=small_run.ground_truth, progress=False)
     assert predictor.calls == 0
     np.testing.assert_array_equal(again.cam_to_world, result.cam_to_world)
 
@@ -177,8 +180,9 @@ def test_changed_config_or_input_is_refused_unless_overwrite(small_run, result, 
 
     copy = tmp_path / "copy"
     shutil.copytree(result.run_dir, copy)
-    out = pipeline.reconstruct(shorter.predictor, copy, dataclasses.replace(CONFIG, loop_closure=False),
-                               overwrite=True, progress=False)
+    out = pipeline.reconstruct(
+        shorter.predictor, copy, dataclasses.replace(CONFIG, loop_closure=False), overwrite=True, progress=False
+    )
     assert out.num_frames == 100
 
 
@@ -283,8 +287,8 @@ def test_chunk_files_hold_export_points_not_images(result):
         local = extra["points_xyz"].astype(np.float64)
         M = np.asarray(sim3.as_matrix(np.asarray(result.chunk_poses[t], np.float32)), np.float64)
         want = local @ M[:3, :3].T + M[:3, 3]
-        got = cloud.points[offset:offset + len(local)]
+        got = cloud.points[offset : offset + len(local)]
         np.testing.assert_allclose(got, want, atol=1e-5 * max(1.0, np.abs(want).max()))
-        np.testing.assert_array_equal(cloud.conf[offset:offset + len(local)], extra["points_conf"])
+        np.testing.assert_array_equal(cloud.conf[offset : offset + len(local)], extra["points_conf"])
         offset += len(local)
     assert offset == cloud.points.shape[0]

@@ -8,15 +8,14 @@ import types
 import jax
 import numpy as np
 import pytest
+from test_align import make_pair
 
-from swiftjax import align, loops, posegraph, sim3
+from swiftjax import align, posegraph, sim3
 from swiftjax.align import covariance as ac
 from swiftjax.pipeline import PipelineConfig, chain_poses, graph
 from swiftjax.pipeline.alignment import info_dict as _info_dict
 from swiftjax.pipeline.results import LoopEdge, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import StageTimer
-
-from test_align import make_pair
 
 
 def _record(S, info):
@@ -29,8 +28,9 @@ def test_edge_information_of_a_record_equals_the_core_function(x64):
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
     S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=50)
     rec = _record(S, info)
-    om, valid = graph.edge_information([rec, {k: v for k, v in rec.items() if k != "src_covariance"},
-                                        {**rec, "pose_fallback": True}], 196.0)
+    om, valid = graph.edge_information(
+        [rec, {k: v for k, v in rec.items() if k != "src_covariance"}, {**rec, "pose_fallback": True}], 196.0
+    )
     ref = ac.alignment_information(S, info, pixels_per_sample=196.0)
     np.testing.assert_array_equal(valid, [True, False, False])
     np.testing.assert_allclose(om[0], np.asarray(ref.information), rtol=1e-9)
@@ -59,12 +59,24 @@ def _chain_case(seed=0, T=12):
         relative = np.asarray(sim3.compose(rel, sim3.exp(noise)), np.float64)
         Z_true = np.asarray(sim3.between(truth[0], truth[T - 1]), np.float64)
         Z_false = np.array([0.5, 0, 0, 0, 0, 0, 1, 1.0])
-    stats = lambda: {"S": [0, 0, 0, 0, 0, 0, 1, 1.0], "num_points": 50_000, "rms": 0.05,  # noqa: E731
-                     "src_mean": [0.0, 0.0, 8.0], "src_covariance": np.diag([9.0, 1.0, 16.0]).tolist(),
-                     "pose_fallback": False}
+    stats = lambda: {
+        "S": [0, 0, 0, 0, 0, 0, 1, 1.0],
+        "num_points": 50_000,
+        "rms": 0.05,
+        "src_mean": [0.0, 0.0, 8.0],
+        "src_covariance": np.diag([9.0, 1.0, 16.0]).tolist(),
+        "pose_fallback": False,
+    }
     edges = [stats() for _ in range(T - 1)]
     records = [
-        {"chunk_i": T - 1, "chunk_j": 0, "Z": Z_true.tolist(), "accepted": True, "align_i": stats(), "align_j": stats()},
+        {
+            "chunk_i": T - 1,
+            "chunk_j": 0,
+            "Z": Z_true.tolist(),
+            "accepted": True,
+            "align_i": stats(),
+            "align_j": stats(),
+        },
         {"chunk_i": 8, "chunk_j": 3, "Z": Z_false.tolist(), "accepted": True, "align_i": stats(), "align_j": stats()},
         {"chunk_i": 6, "chunk_j": 1, "accepted": False, "reason": "rejected candidate, no edge"},
     ]
@@ -75,8 +87,12 @@ def _chain_case(seed=0, T=12):
 
 def _ctx(T, **config):
     log = []
-    ctx = types.SimpleNamespace(config=PipelineConfig(**config), schedule=types.SimpleNamespace(num_chunks=T),
-                                timer=StageTimer(), log=log.append)
+    ctx = types.SimpleNamespace(
+        config=PipelineConfig(**config),
+        schedule=types.SimpleNamespace(num_chunks=T),
+        timer=StageTimer(),
+        log=log.append,
+    )
     return ctx, log
 
 
@@ -112,12 +128,15 @@ def test_missing_statistics_fall_back_to_the_drift_model_and_say_so(x64):
     np.testing.assert_array_equal(out.inlier_weights, [1.0, 0.0])
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("robust_loops", "tls", "robust_loops"),
-    ("edge_information", "chi2", "edge_information"),
-    ("robust_scale", 0.0, "robust_scale"),
-    ("edge_pixels_per_sample", 0.5, "edge_pixels_per_sample"),
-])
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("robust_loops", "tls", "robust_loops"),
+        ("edge_information", "chi2", "edge_information"),
+        ("robust_scale", 0.0, "robust_scale"),
+        ("edge_pixels_per_sample", 0.5, "edge_pixels_per_sample"),
+    ],
+)
 def test_config_validation(field, value, match):
     with pytest.raises(ValueError, match=match):
         PipelineConfig(**{field: value})
@@ -161,16 +180,17 @@ def test_scale_priors_solve_the_log_scale_least_squares_problem(x64):
     truth, temporal, H, _, _ = _scale_case()
     T = len(truth)
     sigma = 0.05
-    ctx, _ = _metric_ctx(T, H, edge_information="equal", metric_combine="prior", metric_prior_sigma=sigma,
-                         loop_closure=False)
+    ctx, _ = _metric_ctx(
+        T, H, edge_information="equal", metric_combine="prior", metric_prior_sigma=sigma, loop_closure=False
+    )
     out = graph.run(ctx, temporal, LoopResult([], []))
     A = np.zeros((2 * T - 1, T))
     b = np.zeros(2 * T - 1)
     for t in range(T - 1):
         A[t, t], A[t, t + 1], b[t] = -1.0, 1.0, np.log(temporal.relative[t, 7])
     log_m = np.log(H / temporal.ground_heights)
-    A[T - 1:] = np.eye(T) / sigma
-    b[T - 1:] = log_m / sigma
+    A[T - 1 :] = np.eye(T) / sigma
+    b[T - 1 :] = log_m / sigma
     want = np.linalg.lstsq(A, b, rcond=None)[0]
     np.testing.assert_allclose(np.log(out.chunk_poses_no_loops[:, 7]), want, atol=1e-7)
     np.testing.assert_allclose(out.chunk_poses, out.chunk_poses_no_loops)  # no loops: the same poses
@@ -184,8 +204,9 @@ def test_scale_priors_undo_the_chain_drift_that_the_median_cannot(x64):
     truth, temporal, H, _, _ = _scale_case(T=12, seed=2)
     T = len(truth)
     true_log_s = np.log(truth[:, 7])
-    ctx, _ = _metric_ctx(T, H, metric_combine="prior", metric_prior_sigma=0.01, loop_closure=False,
-                         edge_information="equal")  # (zero-length edges: the drift model is singular)
+    ctx, _ = _metric_ctx(
+        T, H, metric_combine="prior", metric_prior_sigma=0.01, loop_closure=False, edge_information="equal"
+    )  # (zero-length edges: the drift model is singular)
     prior = graph.run(ctx, temporal, LoopResult([], []))
     chain = graph.chain_poses(temporal.relative)
     m, _ = __import__("swiftjax.metric_scale", fromlist=["x"]).combine_scales(temporal.ground_heights, chain[:, 7], H)
@@ -237,7 +258,14 @@ def test_the_prior_problem_passes_validation_and_singular_information_would_not(
     chain = graph.chain_poses(temporal.relative)
     priors = metric_scale.scale_priors(temporal.ground_heights, chain[:, 7], H, 0.02)
     edges = np.array([(t, t + 1) for t in range(T - 1)], np.int32)
-    args = (metric_scale.apply_scale(chain, priors.start_factor), edges, temporal.relative, None, np.zeros(T - 1, bool), priors)
+    args = (
+        metric_scale.apply_scale(chain, priors.start_factor),
+        edges,
+        temporal.relative,
+        None,
+        np.zeros(T - 1, bool),
+        priors,
+    )
     problem = graph.scale_prior_problem(*args)
     posegraph.validate(problem)
     assert problem.num_nodes == T + 1 and bool(problem.fixed[T]) and not np.asarray(problem.fixed[:T]).any()
@@ -245,12 +273,15 @@ def test_the_prior_problem_passes_validation_and_singular_information_would_not(
         posegraph.validate(graph.scale_prior_problem(*args, eps=0.0))
 
 
-@pytest.mark.parametrize("field, value, match", [
-    ("metric_combine", "mean", "metric_combine"),
-    ("metric_prior_sigma", 0.0, "metric_prior_sigma"),
-    ("metric_prior_sigma", float("nan"), "metric_prior_sigma"),
-    ("metric_prior_sigma", 2.0, "metric_prior_sigma"),
-])
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("metric_combine", "mean", "metric_combine"),
+        ("metric_prior_sigma", 0.0, "metric_prior_sigma"),
+        ("metric_prior_sigma", float("nan"), "metric_prior_sigma"),
+        ("metric_prior_sigma", 2.0, "metric_prior_sigma"),
+    ],
+)
 def test_metric_combine_validation(field, value, match):
     with pytest.raises(ValueError, match=match):
         PipelineConfig(**{field: value})
@@ -264,8 +295,9 @@ def test_warm_start_extends_the_previous_solution_by_the_chain(x64):
     np.testing.assert_allclose(graph.warm_start(chain[:5], temporal.relative), chain, rtol=0, atol=1e-12)
     moved = chain[:5].copy()
     moved[:, :3] += [1.0, 2.0, 3.0]  # a previous solution shifted: the new chunks follow it
-    np.testing.assert_allclose(graph.warm_start(moved, temporal.relative)[5:, :3], chain[5:, :3] + [1.0, 2.0, 3.0],
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        graph.warm_start(moved, temporal.relative)[5:, :3], chain[5:, :3] + [1.0, 2.0, 3.0], atol=1e-9
+    )
     with pytest.raises(ValueError, match="warm start of 13 chunk poses for a graph of 12"):
         graph.warm_start(np.tile(chain[:1], (13, 1)), temporal.relative)
 
@@ -276,7 +308,7 @@ def test_warm_started_solve_reaches_the_cold_solution(x64):
     T = len(truth)
     cold = graph.run(_ctx(T)[0], temporal, loop_result)
     # The last solution of the graph before its last chunk arrived, then the grown graph warm-started.
-    warm = graph.run(_ctx(T)[0], temporal, loop_result, warm=cold._replace(chunk_poses=cold.chunk_poses[:T - 1]))
+    warm = graph.run(_ctx(T)[0], temporal, loop_result, warm=cold._replace(chunk_poses=cold.chunk_poses[: T - 1]))
     np.testing.assert_allclose(warm.chunk_poses[:, :3], cold.chunk_poses[:, :3], atol=1e-5)
     # Plain least squares started at its own optimum: it starts at the optimal cost and stops at once.
     plain = graph.run(_ctx(T, robust_loops=None)[0], temporal, loop_result)

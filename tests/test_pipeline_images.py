@@ -51,4 +51,3 @@ def test_reconstruct_from_image_files_with_tiny_vggt(tmp_path, golden_dir):
     assert cam.width == 518 and cam.height % 14 == 0
     # The frames VGGT saw, at its resolution, beside the model.
     assert Image.open(tmp_path / "run" / "colmap" / "images" / "0013.png").size == (cam.width, cam.height)
-

@@ -15,15 +15,20 @@ import zipfile
 
 import numpy as np
 import pytest
+from test_pipeline import CountingPredictor, FailingPredictor, Interrupted
 
 from swiftjax import pipeline
 from swiftjax.synthetic import demo
 from swiftjax.synthetic.routes import loop_route
-from test_pipeline import CountingPredictor, FailingPredictor, Interrupted
 
 CONFIG = pipeline.PipelineConfig(
-    chunk_size=30, overlap=10, loop_min_separation=50, loop_nms_radius=10, loop_half_window=8,
-    point_stride=3, colmap_max_points=2_000,
+    chunk_size=30,
+    overlap=10,
+    loop_min_separation=50,
+    loop_nms_radius=10,
+    loop_half_window=8,
+    point_stride=3,
+    colmap_max_points=2_000,
 )
 IMAGE_HW = (28, 98)
 
@@ -31,8 +36,9 @@ IMAGE_HW = (28, 98)
 def _without_timings(metrics: dict) -> dict:
     out = dict(metrics)
     out.pop("timings_seconds", None)
-    out["pose_graph"] = {k: v for k, v in out.get("pose_graph", {}).items()
-                         if k not in ("compile_seconds", "solve_seconds")}
+    out["pose_graph"] = {
+        k: v for k, v in out.get("pose_graph", {}).items() if k not in ("compile_seconds", "solve_seconds")
+    }
     return out
 
 
@@ -102,8 +108,15 @@ def test_the_loop_stage_takes_its_candidates_from_the_source_it_is_given(route, 
         proposed.extend(found[:1])
         return found[:1]
 
-    res = pipeline.reconstruct(route.predictor, tmp_path / "run", CONFIG, ground_truth=route.ground_truth,
-                               progress=False, loop_candidates=first_only, log=lambda s: None)
+    res = pipeline.reconstruct(
+        route.predictor,
+        tmp_path / "run",
+        CONFIG,
+        ground_truth=route.ground_truth,
+        progress=False,
+        loop_candidates=first_only,
+        log=lambda s: None,
+    )
     assert seen == [(route.predictor.num_frames, reference.num_chunks)] and len(proposed) == 1
     assert [(r["i"], r["j"]) for r in res.loop_candidates] == [(proposed[0].i, proposed[0].j)]
     assert len(reference.loop_candidates) >= 2  # the default source proposes more

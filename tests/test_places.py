@@ -53,7 +53,7 @@ def test_place_signal_kernel(params):
         (pose(10.0, 20.0, 0.3), 1.0),
         (pose(10.0 + lp, 20.0, 0.3), np.exp(-0.5)),
         (pose(10.0, 20.0 + 2 * lp, 0.3), np.exp(-2.0)),
-        (pose(10.0, 20.0, 0.3 + lv), np.exp(-(2 * np.sin(lv / 2)) ** 2 / (2 * lv**2))),
+        (pose(10.0, 20.0, 0.3 + lv), np.exp(-((2 * np.sin(lv / 2)) ** 2) / (2 * lv**2))),
         (pose(10.0, 20.0, 0.3 + np.pi), 0.0),  # same place, driven the other way
         (pose(500.0, -300.0, 0.3), 0.0),
     ]
@@ -85,11 +85,9 @@ def test_token_statistics(params):
     # E|noise - mean noise|^2 = sigma^2 (1 - 1/K)
     assert np.mean(np.sum(noise**2, -1)) == pytest.approx(CFG.noise**2 * (1 - 1 / k), rel=0.05)
     burst = resid.mean(1)  # burst + mean noise
-    assert np.mean(np.sum(burst**2, -1)) == pytest.approx(
-        CFG.burst_strength**2 + CFG.noise**2 / k, rel=0.15
-    )
+    assert np.mean(np.sum(burst**2, -1)) == pytest.approx(CFG.burst_strength**2 + CFG.noise**2 / k, rel=0.15)
     # bursts are heavy tailed: few coordinates hold most of their energy
-    top = np.sort(burst**2, axis=1)[:, -int(0.03 * CFG.dim):].sum(1) / np.sum(burst**2, 1)
+    top = np.sort(burst**2, axis=1)[:, -int(0.03 * CFG.dim) :].sum(1) / np.sum(burst**2, 1)
     assert np.median(top) > 0.5
 
 
@@ -109,8 +107,7 @@ def _square_drive():
     lap = []
     for k in range(400):
         side, f = divmod(k, 100)
-        lap.append([(f, 0, np.pi / 2), (100, f, 0.0), (100 - f, 100, -np.pi / 2),
-                    (0, 100 - f, np.pi)][side])
+        lap.append([(f, 0, np.pi / 2), (100, f, 0.0), (100 - f, 100, -np.pi / 2), (0, 100 - f, np.pi)][side])
     back = [(x, z, yaw + np.pi) for x, z, yaw in lap[::-1]]
     return np.stack([pose(float(x), float(z), yaw) for x, z, yaw in lap + lap + back])
 
@@ -121,9 +118,7 @@ def test_ground_truth_loops_against_brute_force():
     p, v = poses[:, :3, 3], poses[:, :3, 2]
     n = len(poses)
     i, j = np.tril_indices(n, -1)
-    ok = (np.linalg.norm(p[i] - p[j], axis=1) < 3.0) & (np.sum(v[i] * v[j], 1) > np.cos(np.pi / 6)) & (
-        i - j > 100
-    )
+    ok = (np.linalg.norm(p[i] - p[j], axis=1) < 3.0) & (np.sum(v[i] * v[j], 1) > np.cos(np.pi / 6)) & (i - j > 100)
     ref = np.stack([i[ok], j[ok]], 1)
     ref = ref[np.lexsort((ref[:, 1], ref[:, 0]))]
     np.testing.assert_array_equal(pairs, ref)
@@ -195,8 +190,12 @@ def test_place_tokens_stay_heading_dependent():
         return m
 
     xs = np.linspace(0, 400, 40)
-    cams = np.stack([pose(x, 0.3) for x in xs] + [pose(x + 1.0, 0.3) for x in xs] + [pose(x, 0.3 + np.pi) for x in xs]
-                    + [pose(x + 200.0, 0.3) for x in xs])
+    cams = np.stack(
+        [pose(x, 0.3) for x in xs]
+        + [pose(x + 1.0, 0.3) for x in xs]
+        + [pose(x, 0.3 + np.pi) for x in xs]
+        + [pose(x + 200.0, 0.3) for x in xs]
+    )
     sig = np.asarray(places.place_signal(params, jnp.asarray(cams))).reshape(4, 40, -1)
     sig = sig / np.linalg.norm(sig, axis=-1, keepdims=True)
     same = np.mean(np.sum(sig[0] * sig[1], -1))

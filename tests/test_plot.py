@@ -15,9 +15,13 @@ from swiftjax.pipeline import report
 def _exported(out, result):
     cloud = read_ply(out / "points.ply")
     step = max(1, len(cloud.points) // 20_000)
-    return {"cam_to_world": result.cam_to_world, "cam_to_world_no_loops": result.cam_to_world_no_loops,
-            "sample_points": cloud.points[::step], "sample_colors": cloud.colors[::step],
-            "num_points": len(cloud.points)}
+    return {
+        "cam_to_world": result.cam_to_world,
+        "cam_to_world_no_loops": result.cam_to_world_no_loops,
+        "sample_points": cloud.points[::step],
+        "sample_colors": cloud.colors[::step],
+        "num_points": len(cloud.points),
+    }
 
 
 def _lines(ax):
@@ -60,7 +64,11 @@ def test_run_pictures_share_axes_and_unit(small_loop_run, tmp_path, unit):
     loops = [ln for ln in traj.get_lines() if ln.get_color() == "tab:red"]
     assert len(loops) == n_acc and all(ln.get_zorder() > est_line.get_zorder() for ln in loops)
     assert {t.get_text() for t in traj.get_legend().get_texts()} >= {
-        "ground truth", "with loop closure", "without loop closure", f"loop closures ({n_acc})"}
+        "ground truth",
+        "with loop closure",
+        "without loop closure",
+        f"loop closures ({n_acc})",
+    }
 
 
 def test_points_picture_is_never_mirrored(tmp_path):

@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from swiftjax.io.ply import PlyStreamWriter, ply_dtype, read_ply, voxel_downsample, write_ply
 from swiftjax.io import ply as ply_module
+from swiftjax.io.ply import PlyStreamWriter, ply_dtype, read_ply, voxel_downsample, write_ply
 
 
 def _cloud(n, seed=0):
@@ -183,8 +183,17 @@ def test_read_ascii_with_other_elements(tmp_path):
 
 def test_read_big_endian_with_preceding_element(tmp_path):
     p, c, k = _cloud(5)
-    dt = np.dtype([("x", ">f8"), ("y", ">f8"), ("z", ">f8"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                   ("confidence", ">f4")])
+    dt = np.dtype(
+        [
+            ("x", ">f8"),
+            ("y", ">f8"),
+            ("z", ">f8"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("confidence", ">f4"),
+        ]
+    )
     rec = np.empty(5, dt)
     for i, a in enumerate("xyz"):
         rec[a] = p[:, i]
@@ -272,8 +281,11 @@ def test_header_comments_none_blank(tmp_path):
     data = (tmp_path / "s.ply").read_bytes()
     head = data[: data.index(b"end_header\n")].decode().splitlines()
     comments = [ln.rstrip() for ln in head if ln.startswith("comment")]
-    assert comments == ["comment written by swiftjax", "comment unit: up to scale",
-                        "comment frame: the first camera's frame, OpenCV axes"]
+    assert comments == [
+        "comment written by swiftjax",
+        "comment unit: up to scale",
+        "comment frame: the first camera's frame, OpenCV axes",
+    ]
     assert all(ln.split(maxsplit=1)[1:] for ln in comments)
     np.testing.assert_array_equal(_spec_reader(tmp_path / "s.ply")["x"], np.ones(5))
     write_ply(tmp_path / "o.ply", np.zeros((2, 3)), comments=["unit: metres"])

@@ -67,9 +67,7 @@ def test_gradient_equals_autodiff_of_cost(x64):
     prob = _problem(g, robust=g.is_loop)
     poses = jnp.asarray(g.initial)
     lin_fn = jax.jit(lambda y, p, code: posegraph.linearize(y, p, code, 2.0))
-    grad_fn = jax.jit(
-        jax.grad(lambda d, code: posegraph.cost(sim3.compose(poses, sim3.exp(d)), prob, code, 2.0))
-    )
+    grad_fn = jax.jit(jax.grad(lambda d, code: posegraph.cost(sim3.compose(poses, sim3.exp(d)), prob, code, 2.0)))
     for code in range(3):  # none, Huber, Cauchy (traced kernel code: one compile)
         lin = lin_fn(poses, prob, jnp.int32(code))
         grad = grad_fn(jnp.zeros((10, 7)), jnp.int32(code))
@@ -164,9 +162,7 @@ def scipy_case():
 @pytest.mark.parametrize("linear_solver", ["dense", "pcg", "sparse"])
 def test_optimum_matches_scipy_reference(x64, scipy_case, linear_solver):
     g, (ref_cost, ref_mats) = scipy_case
-    res = posegraph.optimize(
-        _problem(g), rtol=1e-15, gtol=1e-13, linear_solver=linear_solver
-    )
+    res = posegraph.optimize(_problem(g), rtol=1e-15, gtol=1e-13, linear_solver=linear_solver)
     assert res.converged, res.status
     assert res.cost_final == pytest.approx(ref_cost, rel=1e-9)
     ours = np.stack([_matrix(p) for p in np.asarray(res.poses)])
@@ -211,8 +207,12 @@ def test_optimistix_least_squares_entry_point(x64):
     g = circle_graph(16, seed=5)
     prob = _problem(g)
     sol = optx.least_squares(
-        residual_fn, SparseSim3LM(rtol=1e-12, gtol=1e-12, linear_solver="pcg"), prob.poses, args=prob,
-        max_steps=50, throw=False,
+        residual_fn,
+        SparseSim3LM(rtol=1e-12, gtol=1e-12, linear_solver="pcg"),
+        prob.poses,
+        args=prob,
+        max_steps=50,
+        throw=False,
     )
     assert sol.result == optx.RESULTS.successful
     ref = posegraph.optimize(prob, rtol=1e-12, gtol=1e-12, linear_solver="pcg")
@@ -252,7 +252,10 @@ def test_information_forms_are_equivalent(x64):
     e = len(g.edges)
     w = np.linspace(1.0, 3.0, e)
     forms = [w, np.repeat(w[:, None], 7, 1), w[:, None, None] * np.eye(7)]
-    costs = [posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements, information=f)).cost_final for f in forms]
+    costs = [
+        posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements, information=f)).cost_final
+        for f in forms
+    ]
     assert costs[0] == pytest.approx(costs[1], rel=1e-12) and costs[0] == pytest.approx(costs[2], rel=1e-12)
     scalar = posegraph.Problem(g.initial, g.edges, g.measurements, information=2.0)
     ident = posegraph.Problem(g.initial, g.edges, g.measurements)

@@ -12,12 +12,16 @@ import scipy.optimize
 import scipy.stats
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_posegraph import (  # batched float64 NumPy Sim(3) helpers  # float64 NumPy Sim(3), no swiftjax code
+    _expm,
+    _hat,
+    _matrix,
+    _vee,
+)
 
 from swiftjax import posegraph, sim3
 from swiftjax.posegraph import gnc
 from swiftjax.synthetic.pose_graphs import circle_graph
-
-from test_posegraph import _expm, _hat, _matrix, _vee  # batched float64 NumPy Sim(3) helpers  # float64 NumPy Sim(3), no swiftjax code
 
 
 def _np_tls_weight(s: float, mu: float, c2: float) -> float:
@@ -169,8 +173,9 @@ def test_gnc_matches_numpy_reference(x64, gnc_case, linear_solver):
     g, edges, meas, info, robust, outlier, (ref_mats, ref_w, ref_it), clean = gnc_case
     prob = posegraph.Problem(g.initial, edges, meas, information=info, robust=robust)
     # The reference runs GTSAM's loop warm-started with every solve to convergence.
-    res = posegraph.optimize(prob, kernel="gnc", rtol=1e-14, linear_solver=linear_solver,
-                             gnc_inner_rtol=1e-14, gnc_restart=False)
+    res = posegraph.optimize(
+        prob, kernel="gnc", rtol=1e-14, linear_solver=linear_solver, gnc_inner_rtol=1e-14, gnc_restart=False
+    )
     assert res.converged, res.status
     assert res.gnc_iterations == ref_it
     np.testing.assert_allclose(res.inlier_weights, ref_w, atol=1e-6)
@@ -187,7 +192,7 @@ def test_gnc_vs_plain_and_cauchy_and_no_recompile(x64, gnc_case):
     g, edges, meas, info, robust, outlier, _, clean = gnc_case
     prob = posegraph.Problem(g.initial, edges, meas, information=info, robust=robust)
     dist = {}
-    for k, kernel in enumerate((None, "cauchy", "gnc")):
+    for kernel in (None, "cauchy", "gnc"):
         res = posegraph.optimize(prob, kernel=kernel, kernel_scale=None if kernel == "gnc" else 3.0)
         dist[kernel] = float(np.abs(np.asarray(res.poses)[:, :3] - np.asarray(clean.poses)[:, :3]).max())
         if kernel == "cauchy":  # IRLS weights at the result: the false loops are down-weighted
@@ -213,8 +218,9 @@ def test_outlier_free_graph_is_the_least_squares_answer(x64):
     np.testing.assert_array_equal(res.inlier_weights, 1.0)
     np.testing.assert_allclose(np.asarray(res.poses), np.asarray(plain.poses), atol=1e-8)
     # No robust edge at all: plain least squares too, whatever the threshold.
-    none = posegraph.optimize(posegraph.Problem(g.initial, g.edges, g.measurements, information=g.information),
-                              kernel="gnc", kernel_scale=0.1)
+    none = posegraph.optimize(
+        posegraph.Problem(g.initial, g.edges, g.measurements, information=g.information), kernel="gnc", kernel_scale=0.1
+    )
     assert none.gnc_iterations == 0
     np.testing.assert_allclose(np.asarray(none.poses), np.asarray(plain.poses), atol=1e-8)
 
@@ -230,13 +236,20 @@ def test_a_bad_odometry_edge_is_never_down_weighted(x64, gnc_case):
 
 def test_max_iterations_is_reported_not_raised(x64, gnc_case):
     g, edges, meas, info, robust, *_ = gnc_case
-    res = posegraph.optimize(posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
-                             kernel="gnc", gnc_max_iterations=1, throw=False)
+    res = posegraph.optimize(
+        posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
+        kernel="gnc",
+        gnc_max_iterations=1,
+        throw=False,
+    )
     assert not res.converged and res.status.startswith("GNC") and res.gnc_iterations == 1
     assert res.result == posegraph.LMResult.gnc_not_converged
     with pytest.raises(posegraph.SolveError, match="GNC: 1 outer iterations") as err:
-        posegraph.optimize(posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
-                           kernel="gnc", gnc_max_iterations=1)
+        posegraph.optimize(
+            posegraph.Problem(g.initial, edges, meas, information=info, robust=robust),
+            kernel="gnc",
+            gnc_max_iterations=1,
+        )
     assert err.value.result.gnc_iterations == 1
     assert np.all(np.isfinite(np.asarray(res.poses)))
 

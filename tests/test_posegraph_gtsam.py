@@ -17,16 +17,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_posegraph import _canon  # poses with the quaternion sign fixed (q and -q are one rotation)
 
 from swiftjax import posegraph, sim3
 from swiftjax.io.g2o import read_g2o
 from swiftjax.synthetic.pose_graphs import circle_graph
 
-from test_posegraph import _canon  # poses with the quaternion sign fixed (q and -q are one rotation)
-
 gtsam = pytest.importorskip("gtsam")
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
-from _gtsam_baseline import (  # noqa: E402
+from _gtsam_baseline import (
     TANGENT_PERMUTATION,
     from_gtsam,
     solve_gtsam,

@@ -14,7 +14,9 @@ from swiftjax.synthetic.pose_graphs import circle_graph
 
 
 def _problem(g, poses=None, **kw):
-    return posegraph.Problem(g.initial if poses is None else poses, g.edges, g.measurements, information=g.information, **kw)
+    return posegraph.Problem(
+        g.initial if poses is None else poses, g.edges, g.measurements, information=g.information, **kw
+    )
 
 
 def _rst(p):
@@ -43,7 +45,7 @@ def _numpy_chordal(g, fixed):
                 if fixed[node]:
                     rhs -= coef @ x_fixed[node]
                 else:
-                    row[:, b * col[node]:b * col[node] + b] += coef
+                    row[:, b * col[node] : b * col[node] + b] += coef
             a_rows.append(np.sqrt(w) * row)
             rhs_rows.append(np.sqrt(w) * rhs)
         sol = np.linalg.lstsq(np.concatenate(a_rows), np.concatenate(rhs_rows), rcond=None)[0]

@@ -38,7 +38,7 @@ def two_laps(*, seed=0, false="none", num_false=4, n_lap=24, radius=60.0, true_e
         truth[:, :3] = np.stack([radius * np.cos(ang), radius * np.sin(ang), 0.5 * rng.normal(size=n)], 1)
         odo = [(i, i + 1) for i in range(n - 1)]
         loops = [(i, i + n_lap) for i in range(0, n_lap, true_every)]
-        rel_of = lambda p, q: np.asarray(sim3.between(truth[p], truth[q]))  # noqa: E731
+        rel_of = lambda p, q: np.asarray(sim3.between(truth[p], truth[q]))
         if false == "clustered":
             a, b = 2, 38  # 30 and 180 degrees round the circle: ~100 m apart
             z0 = np.array([*rng.normal(size=3), 0, 0, 0, 1, 1.0])
@@ -70,8 +70,13 @@ def two_laps(*, seed=0, false="none", num_false=4, n_lap=24, radius=60.0, true_e
 def _problem(g, information=None, keep=None):
     keep = np.ones(len(g["edges"]), bool) if keep is None else keep
     info = g["information"] if information is None else information
-    return posegraph.Problem(g["initial"], g["edges"][keep], g["measurements"][keep], information=info[keep],
-                             robust=g["kind"][keep] != "odometry")
+    return posegraph.Problem(
+        g["initial"],
+        g["edges"][keep],
+        g["measurements"][keep],
+        information=info[keep],
+        robust=g["kind"][keep] != "odometry",
+    )
 
 
 def _extent(g):
@@ -168,10 +173,13 @@ def test_cycle_residuals_match_a_numpy_composition_of_sim3_matrices(x64):
 def test_the_kept_set_is_a_maximum_clique_by_enumeration(x64, seed):
     g = two_laps(false="clustered", num_false=4, seed=seed)
     g2 = two_laps(false="random", num_false=2, seed=seed)  # 6 true + 4 clustered + 2 random = 12 loops
-    g = {**g, "edges": np.concatenate([g["edges"], g2["edges"][g2["kind"] == "false"]]),
-         "measurements": np.concatenate([g["measurements"], g2["measurements"][g2["kind"] == "false"]]),
-         "information": np.concatenate([g["information"], g2["information"][g2["kind"] == "false"]]),
-         "kind": np.concatenate([g["kind"], g2["kind"][g2["kind"] == "false"]])}
+    g = {
+        **g,
+        "edges": np.concatenate([g["edges"], g2["edges"][g2["kind"] == "false"]]),
+        "measurements": np.concatenate([g["measurements"], g2["measurements"][g2["kind"] == "false"]]),
+        "information": np.concatenate([g["information"], g2["information"][g2["kind"] == "false"]]),
+        "kind": np.concatenate([g["kind"], g2["kind"][g2["kind"] == "false"]]),
+    }
     check = pcm.graph_consistency(_problem(g))
     M = len(check.loop_edges)
     assert M == 12

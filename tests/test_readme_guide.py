@@ -26,15 +26,24 @@ def test_benchmark_tables_moved_to_the_docs():
     assert len(table_rows) < 30, len(table_rows)
     assert "](docs/performance/index.md)" in _section("Benchmarks")
     assert '--8<-- "README.md:benchmarks"' not in PERFORMANCE  # the page holds the tables itself
-    for heading in ("### Sim(3) (`python bench/bench_sim3.py`)", "### Pose graph (`python bench/bench_posegraph.py`)",
-                    "### Measured (`python bench/bench_camera.py`)", "### VGGT inference on CPU"):
+    for heading in (
+        "### Sim(3) (`python bench/bench_sim3.py`)",
+        "### Pose graph (`python bench/bench_posegraph.py`)",
+        "### Measured (`python bench/bench_camera.py`)",
+        "### VGGT inference on CPU",
+    ):
         assert heading in PERFORMANCE and heading not in README, heading
 
 
 def test_your_images_section_and_tutorial():
     text = _section("Your own images, from Python")
-    for line in ("images.list_frames(", "build_runner(\"model.pt\", device=\"cuda\", dtype=\"bfloat16\")",
-                 "ImagePredictor(source, runner", "pipeline.reconstruct(predictor", "swiftjax view"):
+    for line in (
+        "images.list_frames(",
+        'build_runner("model.pt", device="cuda", dtype="bfloat16")',
+        "ImagePredictor(source, runner",
+        "pipeline.reconstruct(predictor",
+        "swiftjax view",
+    ):
         assert line in text, line
     assert "(notebooks/00_your_images.ipynb)" in text and (REPO / "notebooks" / "00_your_images.ipynb").is_file()
 
@@ -67,7 +76,7 @@ def test_bfloat16_keeps_weights_and_heads_float32(golden_dir):
 def test_viewer_caption_matches_the_viewer_default():
     from swiftjax import cli
 
-    caption = " ".join(README[README.index("![swiftjax view"):].split("\n\n")[1].split())
+    caption = " ".join(README[README.index("![swiftjax view") :].split("\n\n")[1].split())
     budget = int(re.search(r"--max-points (\d+)", caption).group(1))
     shown = int(re.search(r"([\d,]+) of the [\d.]+ M points", caption).group(1).replace(",", ""))
     assert shown == budget

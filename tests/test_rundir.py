@@ -12,18 +12,23 @@ import shutil
 
 import numpy as np
 import pytest
-
-from swiftjax import pipeline
-from swiftjax.synthetic import demo
-from swiftjax.io.atomic import temp_files
-from swiftjax.pipeline import rundir
-from swiftjax.synthetic.routes import loop_route
 from test_pipeline import CountingPredictor
 from test_pipeline_stages import assert_same_outputs
 
+from swiftjax import pipeline
+from swiftjax.io.atomic import temp_files
+from swiftjax.pipeline import rundir
+from swiftjax.synthetic import demo
+from swiftjax.synthetic.routes import loop_route
+
 CONFIG = pipeline.PipelineConfig(
-    chunk_size=30, overlap=10, loop_min_separation=50, loop_nms_radius=10, loop_half_window=8,
-    point_stride=3, colmap_max_points=2_000,
+    chunk_size=30,
+    overlap=10,
+    loop_min_separation=50,
+    loop_nms_radius=10,
+    loop_half_window=8,
+    point_stride=3,
+    colmap_max_points=2_000,
 )
 IMAGE_HW = (28, 98)
 
@@ -89,9 +94,16 @@ def test_stale_lock_is_taken_over(route, reference, tmp_path):
     assert (run_dir / rundir.LOCK_NAME).read_text() == ""  # released at the end
 
 
-@pytest.mark.parametrize("content, fragment", [("[]", "holds a JSON list"), ("null", "holds a JSON NoneType"),
-                                               ("{", "is unreadable"), ('{"version": 3}', "is damaged"),
-                                               ('{"version": 1}', "manifest version 1")])
+@pytest.mark.parametrize(
+    "content, fragment",
+    [
+        ("[]", "holds a JSON list"),
+        ("null", "holds a JSON NoneType"),
+        ("{", "is unreadable"),
+        ('{"version": 3}', "is damaged"),
+        ('{"version": 1}', "manifest version 1"),
+    ],
+)
 def test_bad_manifest_is_named_with_overwrite_suggested(route, tmp_path, content, fragment):
     (tmp_path / "manifest.json").write_text(content)
     with pytest.raises(rundir.RunDirError, match=fragment) as err:
@@ -103,16 +115,27 @@ def test_temp_files_of_a_killed_run_are_removed(route, reference, tmp_path):
     """Issue 25 item 2: the cleanup walked the whole tree and removed other runs' and the
     user's temp files; now only this run's temp names in its own folders, after validation."""
     run_dir = _copy(reference, tmp_path)
-    ours = [(run_dir, ".points.ply.abcd1234.tmp.ply"), (run_dir / "chunks", ".chunk_00002.npz.zz99yy88.tmp.npz"),
-            (run_dir / "colmap" / "sparse" / "0", ".images.txt.q1w2e3r4.tmp.txt")]
+    ours = [
+        (run_dir, ".points.ply.abcd1234.tmp.ply"),
+        (run_dir / "chunks", ".chunk_00002.npz.zz99yy88.tmp.npz"),
+        (run_dir / "colmap" / "sparse" / "0", ".images.txt.q1w2e3r4.tmp.txt"),
+    ]
     (run_dir / "other_run" / "chunks").mkdir(parents=True)
-    theirs = [(run_dir, ".report.docx.abcd1234.tmp"), (run_dir / "colmap", ".images.txt.q1w2e3r4.tmp.txt"),
-              (run_dir / "other_run" / "chunks", ".chunk_00001.npz.zz99yy88.tmp.npz")]
+    theirs = [
+        (run_dir, ".report.docx.abcd1234.tmp"),
+        (run_dir / "colmap", ".images.txt.q1w2e3r4.tmp.txt"),
+        (run_dir / "other_run" / "chunks", ".chunk_00001.npz.zz99yy88.tmp.npz"),
+    ]
     for d, name in ours + theirs:
         (d / name).write_bytes(b"partial")
     with pytest.raises(rundir.RunDirError, match="depth_threshold"):  # refused: nothing removed
-        pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, depth_threshold=0.3),
-                             progress=False, log=lambda s: None)
+        pipeline.reconstruct(
+            route.predictor,
+            run_dir,
+            dataclasses.replace(CONFIG, depth_threshold=0.3),
+            progress=False,
+            log=lambda s: None,
+        )
     assert all((d / name).exists() for d, name in ours + theirs)
     logs: list[str] = []
     pipeline.reconstruct(FramePredictor(route.predictor), run_dir, CONFIG, progress=False, log=logs.append)
@@ -125,14 +148,22 @@ def test_a_user_folder_is_refused_and_overwrite_deletes_only_the_runs_files(rout
     """Issue 25 item 1: --out at a user's folder replaced 4 of 5 files; --overwrite deleted the
     user's chunks/*.npz."""
     user = tmp_path / "user"
-    files = {"points.ply": b"mine", "metrics.json": b"{}", "colmap/images/00000.png": b"png",
-             "chunks/chunk_00007.npz": b"npz", "colmap/sparse/0/cameras.bin": b"bin"}
+    files = {
+        "points.ply": b"mine",
+        "metrics.json": b"{}",
+        "colmap/images/00000.png": b"png",
+        "chunks/chunk_00007.npz": b"npz",
+        "colmap/sparse/0/cameras.bin": b"bin",
+    }
     for rel, data in files.items():
         (user / rel).parent.mkdir(parents=True, exist_ok=True)
         (user / rel).write_bytes(data)
     for overwrite in (False, True):
-        with pytest.raises(rundir.RunDirError, match=r"is not empty and holds no swiftjax run \(no manifest.json; it holds "
-                                                    r"chunks, colmap, metrics.json"):
+        with pytest.raises(
+            rundir.RunDirError,
+            match=r"is not empty and holds no swiftjax run \(no manifest.json; it holds "
+            r"chunks, colmap, metrics.json",
+        ):
             pipeline.reconstruct(route.predictor, user, CONFIG, overwrite=overwrite, progress=False)
     assert sorted(str(p.relative_to(user)) for p in user.rglob("*") if p.is_file()) == sorted(files)
     assert all((user / rel).read_bytes() == data for rel, data in files.items())
@@ -141,8 +172,14 @@ def test_a_user_folder_is_refused_and_overwrite_deletes_only_the_runs_files(rout
     (run_dir / "notes.txt").write_text("mine")
     (run_dir / "colmap" / "images" / "my_photo.jpg").write_bytes(b"jpg")
     (run_dir / "chunks" / "README").write_text("mine")
-    res = pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, colmap=False), overwrite=True,
-                               progress=False, log=lambda s: None)
+    res = pipeline.reconstruct(
+        route.predictor,
+        run_dir,
+        dataclasses.replace(CONFIG, colmap=False),
+        overwrite=True,
+        progress=False,
+        log=lambda s: None,
+    )
     assert (run_dir / "notes.txt").read_text() == "mine" and (run_dir / "chunks" / "README").read_text() == "mine"
     assert (run_dir / "colmap" / "images" / "my_photo.jpg").read_bytes() == b"jpg"
     assert not list((run_dir / "colmap" / "images").glob("0*.png")) and not (run_dir / "colmap" / "sparse").exists()
@@ -168,13 +205,20 @@ def test_export_only_options_predict_nothing_and_leave_no_stale_output(route, re
 
     def run(*, ground_truth=None, **change):
         logs: list[str] = []
-        res = pipeline.reconstruct(p, run_dir, dataclasses.replace(CONFIG, **change), ground_truth=ground_truth,
-                                   progress=False, log=logs.append)
+        res = pipeline.reconstruct(
+            p,
+            run_dir,
+            dataclasses.replace(CONFIG, **change),
+            ground_truth=ground_truth,
+            progress=False,
+            log=logs.append,
+        )
         assert p.calls == 0, change  # no chunk (nor loop chunk) predicted
         np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
         files = {q.relative_to(run_dir).as_posix() for q in run_dir.rglob("*") if q.is_file()}
         assert set(_record(run_dir)["outputs"]) == {
-            f for f in files if not f.startswith("chunks/") and f not in (".swiftjax.lock", "manifest.json")}
+            f for f in files if not f.startswith("chunks/") and f not in (".swiftjax.lock", "manifest.json")
+        }
         return res, files, logs
 
     res, files, _ = run(ground_truth=gt, colmap_text=True, voxel_size=0.5, colmap_max_points=500)
@@ -213,8 +257,13 @@ def test_swapped_foreign_and_short_chunk_files_are_named_and_repredicted(route, 
     """Issue 25 items 5 and 26: chunk_00002.npz copied over chunk_00001.npz, or another run's
     chunk (another frame count), was used with exit 0 (or failed with 'shape mismatch')."""
     other = tmp_path / "other"
-    pipeline.reconstruct(route.predictor, other, dataclasses.replace(CONFIG, chunk_size=40, overlap=10),
-                         progress=False, log=lambda s: None)
+    pipeline.reconstruct(
+        route.predictor,
+        other,
+        dataclasses.replace(CONFIG, chunk_size=40, overlap=10),
+        progress=False,
+        log=lambda s: None,
+    )
     run_dir = _copy(reference, tmp_path)
     chunk_dir = run_dir / "chunks"
     shutil.copy(chunk_dir / "chunk_00002.npz", chunk_dir / "chunk_00001.npz")
@@ -272,11 +321,14 @@ def test_loop_option_change_reruns_only_the_loop_stage(route, reference, tmp_pat
     np.testing.assert_array_equal(res.cam_to_world, fresh.cam_to_world)
 
 
-@pytest.mark.parametrize("change, fragment", [
-    ({"depth_threshold": 0.3}, "options depth_threshold"),
-    ({"point_stride": 2}, "options point_stride"),
-    ({"chunk_size": 32}, "options chunk_size"),
-])
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        ({"depth_threshold": 0.3}, "options depth_threshold"),
+        ({"point_stride": 2}, "options point_stride"),
+        ({"chunk_size": 32}, "options chunk_size"),
+    ],
+)
 def test_temporal_option_change_is_refused(route, reference, tmp_path, change, fragment):
     with pytest.raises(rundir.RunDirError, match=fragment):
         pipeline.reconstruct(route.predictor, reference[0], dataclasses.replace(CONFIG, **change), progress=False)
@@ -328,11 +380,11 @@ class SkippingPredictor(FramePredictor):
 
     def fingerprint(self):
         frames = super().fingerprint()["frames"]
-        return {"frames": frames[:self.skip] + frames[self.skip + 1:], "model": "oracle"}
+        return {"frames": frames[: self.skip] + frames[self.skip + 1 :], "model": "oracle"}
 
     def frame_names(self):
         names = self.inner.frame_names()
-        return names[:self.skip] + names[self.skip + 1:]
+        return names[: self.skip] + names[self.skip + 1 :]
 
 
 def test_a_repaired_skipped_frame_repredicts_only_the_chunks_from_it(route, reference, tmp_path):
@@ -353,17 +405,23 @@ def test_a_repaired_skipped_frame_repredicts_only_the_chunks_from_it(route, refe
     chunk_of = {tuple(schedule.frames(t).tolist()): t for t in range(schedule.num_chunks)}
     redone = sorted(chunk_of[f] for f in p.predicted if f in chunk_of)
     assert redone == list(range(2, schedule.num_chunks))
-    assert any(f"the input has {n} frames instead of {n - 1} (first difference at 000075.png)" in line
-               and f"keeping chunk(s) 0-1, predicting chunk(s) 2-{schedule.num_chunks - 1} again" in line
-               for line in logs), logs
+    assert any(
+        f"the input has {n} frames instead of {n - 1} (first difference at 000075.png)" in line
+        and f"keeping chunk(s) 0-1, predicting chunk(s) 2-{schedule.num_chunks - 1} again" in line
+        for line in logs
+    ), logs
     np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
     assert_same_outputs(run_dir, reference[0])
     # and back: frame 75 left out again (fewer frames): the same chunks kept, the rest redone
     q = SkippingPredictor(route.predictor, 75)
     back = pipeline.reconstruct(q, run_dir, CONFIG, progress=False, log=lambda s: None)
-    fresh = pipeline.reconstruct(SkippingPredictor(route.predictor, 75), tmp_path / "fresh", CONFIG, progress=False,
-                                 log=lambda s: None)
-    assert len(q.predicted) - len(back.loops) == chunks.chunk_schedule(n - 1, CONFIG.chunk_size, CONFIG.overlap).num_chunks - 2
+    fresh = pipeline.reconstruct(
+        SkippingPredictor(route.predictor, 75), tmp_path / "fresh", CONFIG, progress=False, log=lambda s: None
+    )
+    assert (
+        len(q.predicted) - len(back.loops)
+        == chunks.chunk_schedule(n - 1, CONFIG.chunk_size, CONFIG.overlap).num_chunks - 2
+    )
     np.testing.assert_array_equal(back.cam_to_world, fresh.cam_to_world)
     assert_same_outputs(run_dir, tmp_path / "fresh")
 
@@ -408,12 +466,14 @@ def test_max_lm_steps_zero_and_one_in_metrics_json(route, reference, tmp_path):
     out = {}
     for steps in (0, 1):
         p = FramePredictor(route.predictor)
-        res = pipeline.reconstruct(p, run_dir, dataclasses.replace(CONFIG, max_lm_steps=steps), progress=False,
-                                   log=lambda s: None)
+        res = pipeline.reconstruct(
+            p, run_dir, dataclasses.replace(CONFIG, max_lm_steps=steps), progress=False, log=lambda s: None
+        )
         assert p.calls == 0
         out[steps] = json.loads((run_dir / "metrics.json").read_text())["pose_graph"]
         assert {k: out[steps][k] for k in ("cost_initial", "iterations")} == {
-            k: res.metrics["pose_graph"][k] for k in ("cost_initial", "iterations")}
+            k: res.metrics["pose_graph"][k] for k in ("cost_initial", "iterations")
+        }
     # (with GNC the reported costs are the last weighted solve's, so they depend on the steps
     # taken: not compared with the full run's)
     assert np.isfinite(out[0]["cost_initial"]) and out[0]["cost_initial"] > 0 and full["cost_initial"] > 0
@@ -422,9 +482,17 @@ def test_max_lm_steps_zero_and_one_in_metrics_json(route, reference, tmp_path):
 
 def test_overwrite_starts_afresh_and_removes_old_chunks(route, reference, tmp_path):
     run_dir = _copy(reference, tmp_path)
-    res = pipeline.reconstruct(route.predictor, run_dir, dataclasses.replace(CONFIG, chunk_size=40), overwrite=True,
-                               progress=False, log=lambda s: None)
-    assert sorted(int(p.stem.split("_")[1]) for p in (run_dir / "chunks").glob("chunk_*")) == list(range(res.num_chunks))
+    res = pipeline.reconstruct(
+        route.predictor,
+        run_dir,
+        dataclasses.replace(CONFIG, chunk_size=40),
+        overwrite=True,
+        progress=False,
+        log=lambda s: None,
+    )
+    assert sorted(int(p.stem.split("_")[1]) for p in (run_dir / "chunks").glob("chunk_*")) == list(
+        range(res.num_chunks)
+    )
 
 
 def test_rerun_of_a_finished_run_changes_nothing(route, reference, tmp_path):
@@ -507,7 +575,8 @@ def test_weights_and_frames_are_fingerprinted_by_their_whole_content(tmp_path, m
 
 
 def test_an_unusable_ground_truth_is_refused_before_the_run_and_an_evaluation_failure_keeps_the_outputs(
-        route, reference, tmp_path, monkeypatch, capsys):
+    route, reference, tmp_path, monkeypatch, capsys
+):
     """Issue 25 item 24: a collinear or too-short --gt failed only after the whole run,
     discarded the outputs, named no file and suggested align='none'."""
     from swiftjax import cli, evaluation
@@ -528,8 +597,18 @@ def test_an_unusable_ground_truth_is_refused_before_the_run_and_an_evaluation_fa
             Image.fromarray(np.full((20, 30, 3), 40 * k, np.uint8)).save(frames / f"{k:03d}.png")
         path = tmp_path / f"gt{len(rows)}.txt"
         path.write_text("".join(" ".join(f"{v:.6f}" for v in T[:3].ravel()) + "\n" for T in rows))
-        code = cli.main(["reconstruct", str(frames), "--weights", str(tmp_path / "none.pt"), "--gt", str(path),
-                         "--out", str(tmp_path / "cli")])
+        code = cli.main(
+            [
+                "reconstruct",
+                str(frames),
+                "--weights",
+                str(tmp_path / "none.pt"),
+                "--gt",
+                str(path),
+                "--out",
+                str(tmp_path / "cli"),
+            ]
+        )
         lines = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(lines) == 1 and f"ground-truth file {path}" in lines[0], lines
         assert fragment in lines[0] and "align=" not in lines[0], lines
@@ -541,8 +620,14 @@ def test_an_unusable_ground_truth_is_refused_before_the_run_and_an_evaluation_fa
 
     monkeypatch.setattr(evaluation, "ate", failing_ate)
     logs: list[str] = []
-    res = pipeline.reconstruct(FramePredictor(route.predictor), run_dir, CONFIG, ground_truth=route.ground_truth,
-                               progress=False, log=logs.append)
+    res = pipeline.reconstruct(
+        FramePredictor(route.predictor),
+        run_dir,
+        CONFIG,
+        ground_truth=route.ground_truth,
+        progress=False,
+        log=logs.append,
+    )
     assert "ate_rmse" not in res.metrics and any("ATE/RPE not computed (Umeyama" in ln for ln in logs)
     assert_same_outputs(run_dir, reference[0])
 
@@ -561,8 +646,9 @@ def test_prune_keeps_every_output_and_a_rerun_predicts_only_what_needs_the_maps(
     outputs = [q for q in (reference[0]).rglob("*") if q.is_file() and q.parent.name != "chunks"]
     assert all((run_dir / q.relative_to(reference[0])).read_bytes() == q.read_bytes() for q in outputs)
     p = FramePredictor(route.predictor)
-    res = pipeline.reconstruct(p, run_dir, dataclasses.replace(CONFIG, colmap_max_points=500), progress=False,
-                               log=lambda s: None)
+    res = pipeline.reconstruct(
+        p, run_dir, dataclasses.replace(CONFIG, colmap_max_points=500), progress=False, log=lambda s: None
+    )
     assert p.calls == 0  # export-only change: nothing predicted
     np.testing.assert_array_equal(res.cam_to_world, reference[1].cam_to_world)
     cfg = dataclasses.replace(CONFIG, loop_depth_threshold=0.5)  # the loop stage reads the dense maps

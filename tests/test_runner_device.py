@@ -44,7 +44,9 @@ def test_descriptors_on_the_device_equal_the_host_reduction(tiny):
     np.testing.assert_array_equal(reduced.depth, full.depth)
 
 
-@pytest.mark.parametrize(("limit", "frames", "expect"), [(7, 75, 7), (1, 30, 1), (0, 8, 0), (74, 75, 74), (33, 120, 33)])
+@pytest.mark.parametrize(
+    ("limit", "frames", "expect"), [(7, 75, 7), (1, 30, 1), (0, 8, 0), (74, 75, 74), (33, 120, 33)]
+)
 def test_largest_chunk_that_fits_is_found_by_trying(limit, frames, expect):
     from inference.device import largest_chunk_that_fits
 
@@ -73,7 +75,9 @@ def test_out_of_memory_names_the_largest_chunk_that_fits(tiny, monkeypatch):
         return real(x)
 
     monkeypatch.setattr(runner, "forward", forward)
-    with pytest.raises(GPUMemoryError, match=r"a chunk of 4 frames of 70x42 does not fit .* is 2 frames: --chunk-size 2"):
+    with pytest.raises(
+        GPUMemoryError, match=r"a chunk of 4 frames of 70x42 does not fit .* is 2 frames: --chunk-size 2"
+    ):
         runner.predict(np.concatenate([images, images])[:4])
 
 

@@ -350,7 +350,7 @@ def _jr_inv_mpmath(xi: np.ndarray, dps: int = 40) -> np.ndarray:
     with mp.workdps(dps):
         r = [mp.mpf(float(v)) for v in xi]
         rho, w, s = r[:3], r[3:6], r[6]
-        hat = lambda v: [[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]  # noqa: E731
+        hat = lambda v: [[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]
         ad = mp.zeros(7, 7)
         for i in range(3):
             for j in range(3):
@@ -396,7 +396,9 @@ def test_jlog_matches_40_digit_reference(x64, regime):
     rng = np.random.default_rng(7)
     axis = rng.normal(size=(4, 3))
     axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    xi = np.concatenate([rng.normal(size=(4, 3)) * 3, angle * axis, sigma * np.array([[1.0], [-1.0], [1.0], [-1.0]])], -1)
+    xi = np.concatenate(
+        [rng.normal(size=(4, 3)) * 3, angle * axis, sigma * np.array([[1.0], [-1.0], [1.0], [-1.0]])], -1
+    )
     ref = np.stack([_jr_inv_mpmath(x) for x in xi])
     scale = np.abs(ref).max()
     for dtype, tol in ((np.float64, tol64), (np.float32, tol32)):
@@ -404,7 +406,6 @@ def test_jlog_matches_40_digit_reference(x64, regime):
         for got in (sim3.jlog(x), sim3.jlog(x, sim3.exp(x))):  # jlog is jitted itself
             err = np.abs(np.asarray(got, np.float64) - ref).max() / scale
             assert err <= tol, f"{regime}, {np.dtype(dtype).name}: relative error {err:.2e} > {tol:.0e}"
-
 
 
 def test_jlog_closed_form_matches_forward_mode(x64):
@@ -418,11 +419,11 @@ def test_jlog_closed_form_matches_forward_mode(x64):
 def test_blocked_layout_of_large_batches_matches_small_batches():
     """From 2 * sim3._BLOCK elements on, exp runs on blocked components (padded to a multiple
     of the block): same formulas, so the same values as small batches to float32 rounding."""
-    n = 3 * sim3._BLOCK + 17  # noqa: SLF001 - not a multiple of the block: exercises the padding
+    n = 3 * sim3._BLOCK + 17
     xi = _tangents(9, 1.0, 0.3, n=n).astype(np.float32)
     xi[:, :3] /= 50.0
     big = np.asarray(jax.jit(sim3.exp)(xi.reshape(1, n, 7)))[0]
-    small = np.concatenate([np.asarray(sim3.exp(xi[k:k + 1000])) for k in range(0, n, 1000)])
+    small = np.concatenate([np.asarray(sim3.exp(xi[k : k + 1000])) for k in range(0, n, 1000)])
     assert big.shape == (n, 8)
     np.testing.assert_allclose(big, small, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(np.asarray(sim3.log(big)), xi, rtol=1e-4, atol=1e-4)
@@ -430,10 +431,10 @@ def test_blocked_layout_of_large_batches_matches_small_batches():
 
 def test_mapped_layout_of_large_batches_matches_small_batches():
     """From 2 * sim3._MAP_BLOCK elements on, log runs block by block (lax.map, padded)."""
-    n = 2 * sim3._MAP_BLOCK + 17  # noqa: SLF001
+    n = 2 * sim3._MAP_BLOCK + 17
     S = _random_elements(4, n=n).astype(np.float32)
     big = np.asarray(jax.jit(sim3.log)(S))
-    small = np.concatenate([np.asarray(sim3.log(S[k:k + 4000])) for k in range(0, n, 4000)])
+    small = np.concatenate([np.asarray(sim3.log(S[k : k + 4000])) for k in range(0, n, 4000)])
     with jax.enable_x64(True):
         ref = np.asarray(sim3.log(S.astype(np.float64)))
     # Same formulas, another fusion: rounding differs (amplified near pi with |t| ~ 100), so

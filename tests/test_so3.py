@@ -29,8 +29,16 @@ def _cases(rng: np.random.Generator) -> dict[str, np.ndarray]:
     near_rank2 = rot @ np.diag([1.0, 0.5, 1e-6]) @ Rotation.random(n, random_state=rng).as_matrix()
     scaled = 7.5 * rot
     gauss = rng.normal(size=(n, 3, 3))
-    return dict(rotation=rot, noisy=noisy, reflection=reflect, reflection_noisy=reflect_noisy,
-                rank2=rank2, near_rank2=near_rank2, scaled=scaled, gaussian=gauss)
+    return dict(
+        rotation=rot,
+        noisy=noisy,
+        reflection=reflect,
+        reflection_noisy=reflect_noisy,
+        rank2=rank2,
+        near_rank2=near_rank2,
+        scaled=scaled,
+        gaussian=gauss,
+    )
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

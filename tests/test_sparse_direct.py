@@ -16,14 +16,16 @@ def _system(rng, n, b, edges, fixed):
     off *= couple[:, None, None]
     dense = np.zeros((n * b, n * b))
     for k, (i, j) in enumerate(edges):
-        dense[i * b:(i + 1) * b, j * b:(j + 1) * b] += off[k]
-        dense[j * b:(j + 1) * b, i * b:(i + 1) * b] += off[k].T
+        dense[i * b : (i + 1) * b, j * b : (j + 1) * b] += off[k]
+        dense[j * b : (j + 1) * b, i * b : (i + 1) * b] += off[k].T
     # diagonal blocks: SPD and dominant enough to make the whole matrix SPD
     a = rng.normal(size=(n, b, b))
-    diag = a @ np.swapaxes(a, 1, 2) + (2.0 * b * (1 + np.bincount(edges.ravel(), minlength=n)))[:, None, None] * np.eye(b)
+    diag = a @ np.swapaxes(a, 1, 2) + (2.0 * b * (1 + np.bincount(edges.ravel(), minlength=n)))[:, None, None] * np.eye(
+        b
+    )
     diag[fixed] = np.eye(b)
     for i in range(n):
-        dense[i * b:(i + 1) * b, i * b:(i + 1) * b] += diag[i]
+        dense[i * b : (i + 1) * b, i * b : (i + 1) * b] += diag[i]
     return diag, off, dense
 
 
@@ -64,7 +66,7 @@ def _block_diag(diag):
     n, b, _ = diag.shape
     out = np.zeros((n * b, n * b))
     for i in range(n):
-        out[i * b:(i + 1) * b, i * b:(i + 1) * b] = diag[i]
+        out[i * b : (i + 1) * b, i * b : (i + 1) * b] = diag[i]
     return out
 
 
@@ -100,6 +102,8 @@ def test_indefinite_matrix_reports_failure(monkeypatch, backend):
     diag = np.broadcast_to(np.eye(b), (n, b, b)).copy()
     off = np.zeros((2, b, b))
     diag[1] = -np.eye(b) if backend == "cholmod" else np.zeros((b, b))  # indefinite / singular
-    x, ok = sparse_direct.solve(diag, off, np.zeros((n, b)), np.ones((n, b)), edges, np.ones(2, bool), np.zeros(n, bool))
+    x, ok = sparse_direct.solve(
+        diag, off, np.zeros((n, b)), np.ones((n, b)), edges, np.ones(2, bool), np.zeros(n, bool)
+    )
     assert not ok
     np.testing.assert_array_equal(x, 0.0)

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from swiftjax import camera, sim3
-from swiftjax.synthetic import places
-from swiftjax.synthetic import OracleNoise, VGGTOracle, kitti_intrinsics
+from swiftjax.synthetic import OracleNoise, VGGTOracle, kitti_intrinsics, places
 from swiftjax.synthetic.render import chunk_candidates, frame_planes, render_frames, render_numpy
 from swiftjax.synthetic.routes import loop_route
 from swiftjax.synthetic.world import BUILDING, GROUND, POLE, SKY, TREE, WorldConfig, build_world
@@ -113,10 +112,18 @@ def test_renderer_matches_float64_numpy_reference(world, route):
     cand = chunk_candidates(world, P[:, :3, 3], origin)
     planes = frame_planes(world, P[:, :3, 3], origin)
     out = render_frames(
-        K.astype(np.float32), P[:, :3, :3].astype(np.float32), (P[:, :3, 3] - origin).astype(np.float32),
-        planes.astype(np.float32), cand, np.int32(world.num_boxes), height=h, width=w,
-        k_box=40, k_cyl=40,  # budgets above every frame's visible set: no culling difference
-        k_box_tile=16, k_cyl_tile=15,
+        K.astype(np.float32),
+        P[:, :3, :3].astype(np.float32),
+        (P[:, :3, 3] - origin).astype(np.float32),
+        planes.astype(np.float32),
+        cand,
+        np.int32(world.num_boxes),
+        height=h,
+        width=w,
+        k_box=40,
+        k_cyl=40,  # budgets above every frame's visible set: no culling difference
+        k_box_tile=16,
+        k_cyl_tile=15,
     )
     assert np.all(np.asarray(out.tile_overflow) == 0)  # so every candidate was tested where visible
     depth = np.asarray(out.depth)
@@ -142,8 +149,15 @@ def _render(world, route, frames, h, w, **kw):
     cand = chunk_candidates(world, P[:, :3, 3], origin)
     planes = frame_planes(world, P[:, :3, 3], origin)
     out = render_frames(
-        K.astype(np.float32), P[:, :3, :3].astype(np.float32), (P[:, :3, 3] - origin).astype(np.float32),
-        planes.astype(np.float32), cand, np.int32(world.num_boxes), height=h, width=w, **kw,
+        K.astype(np.float32),
+        P[:, :3, :3].astype(np.float32),
+        (P[:, :3, 3] - origin).astype(np.float32),
+        planes.astype(np.float32),
+        cand,
+        np.int32(world.num_boxes),
+        height=h,
+        width=w,
+        **kw,
     )
     return [np.asarray(a) for a in out]
 
@@ -206,8 +220,9 @@ def test_noise_off_reproduces_true_world_points(exact, start):
 def test_noise_statistics_are_as_configured(world, route):
     # the default noise without the per-chunk depth bias, whose z-dependence would widen the
     # per-pixel spread measured below
-    noisy = VGGTOracle(world, route, image_hw=HW, seed=7, tokens=False,
-                       noise=dataclasses.replace(OracleNoise(), depth_bias=0.0))
+    noisy = VGGTOracle(
+        world, route, image_hw=HW, seed=7, tokens=False, noise=dataclasses.replace(OracleNoise(), depth_bias=0.0)
+    )
     frames = np.arange(300, 375)
     pred = noisy.predict_chunk(frames)
     nz = noisy.noise
@@ -273,8 +288,14 @@ def test_same_frame_in_two_chunks_agrees_up_to_gauge_and_noise(world, route, noi
     assert pa.patch_tokens.shape[:1] == (75,)
     # the TRUE gauges differ, the world points agree after each chunk's own gauge: without
     # drift, up to depth noise and the focal z-stretch (<= 2 % of z)
-    nodrift = VGGTOracle(world, route, image_hw=HW, seed=7, tokens=False,
-                         noise=dataclasses.replace(OracleNoise(), drift_rot=0.0, drift_scale=0.0))
+    nodrift = VGGTOracle(
+        world,
+        route,
+        image_hw=HW,
+        seed=7,
+        tokens=False,
+        noise=dataclasses.replace(OracleNoise(), drift_rot=0.0, drift_scale=0.0),
+    )
     qa, qb = nodrift.predict_chunk(a), nodrift.predict_chunk(b)
     wa = _world_points_from_prediction(qa, nodrift.true_chunk_gauge(a))[45:]
     wb = _world_points_from_prediction(qb, nodrift.true_chunk_gauge(b))[:30]
@@ -293,8 +314,10 @@ def test_predictions_are_deterministic_and_history_free(world, route, noisy):
     for name in ("depth", "conf", "extrinsic", "intrinsic", "patch_tokens", "images"):
         np.testing.assert_array_equal(getattr(first, name), getattr(again, name), err_msg=name)
     # the place tokens are per frame (cached per frame): a fresh computation agrees
-    np.testing.assert_array_equal(first.patch_tokens, np.asarray(places.place_tokens(
-        fresh.place_params, route[frames].astype(np.float32), frames.astype(np.int32))))
+    np.testing.assert_array_equal(
+        first.patch_tokens,
+        np.asarray(places.place_tokens(fresh.place_params, route[frames].astype(np.float32), frames.astype(np.int32))),
+    )
     other_seed = VGGTOracle(world, route, image_hw=HW, seed=8, tokens=False).predict_chunk(frames)
     assert not np.array_equal(other_seed.depth, first.depth)
 

@@ -78,7 +78,9 @@ def test_tum_round_trip(tmp_path, shared_dir):
 def test_quaternion_conversions_against_scipy():
     R = Rotation.random(500, random_state=3)
     # include the Shepperd branch boundaries: 180-degree turns about each axis
-    extra = Rotation.from_rotvec(np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]]) / np.array([[1], [1], [1], [np.sqrt(2)]]))
+    extra = Rotation.from_rotvec(
+        np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]]) / np.array([[1], [1], [1], [np.sqrt(2)]])
+    )
     mats = np.concatenate([R.as_matrix(), extra.as_matrix(), np.eye(3)[None]])
     q = matrix_to_quaternion(mats)
     q_ref = Rotation.from_matrix(mats).as_quat()

@@ -63,7 +63,9 @@ def test_loop_candidates_accepted_and_rejected():
     }
     assert reader.loop_candidates(manifest) == [(5, 300, True), (9, 400, False)]
     manifest["loops"] = [  # verified: the candidates' list has the verdicts
-        {"i": 5, "j": 300, "accepted": False}, {"i": 7, "j": 350}, {"i": 8, "j": 390, "accepted": True},
+        {"i": 5, "j": 300, "accepted": False},
+        {"i": 7, "j": 350},
+        {"i": 8, "j": 390, "accepted": True},
     ]
     assert reader.loop_candidates(manifest) == [(5, 300, False), (7, 350, False), (8, 390, True), (9, 400, False)]
     assert reader.loop_candidates({"loops": None, "loop_edges": {}}) == []
@@ -163,9 +165,19 @@ def _run_chromium(flags: list[str], url: str, timeout: float) -> tuple[int, byte
     stderr). The browser's whole process group is killed afterwards, and checked gone."""
     with tempfile.TemporaryDirectory() as profile:
         cmd = [
-            _chromium(), "--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader", "--disable-background-networking", "--disable-component-update",
-            "--disable-sync", "--no-first-run", f"--user-data-dir={profile}", *flags, url,
+            _chromium(),
+            "--headless=new",
+            "--no-sandbox",
+            "--use-gl=angle",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            f"--user-data-dir={profile}",
+            *flags,
+            url,
         ]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
         try:
@@ -187,8 +199,9 @@ def _screenshot(url: str, path: str) -> np.ndarray:
     """A 1200 x 800 screenshot of ``url``, as ``[H, W, 3]`` uint8."""
     from PIL import Image
 
-    rc, _, err = _run_chromium(["--window-size=1200,800", "--virtual-time-budget=15000", f"--screenshot={path}"],
-                               url, timeout=120)
+    rc, _, err = _run_chromium(
+        ["--window-size=1200,800", "--virtual-time-budget=15000", f"--screenshot={path}"], url, timeout=120
+    )
     assert rc == 0 and os.path.isfile(path), err.decode(errors="replace")[-2000:]
     return np.asarray(Image.open(path).convert("RGB"))
 
@@ -280,7 +293,7 @@ def test_live_viewer_and_host_warning(demo_run):
     live.refresh_now()
     assert any("127.0.0.1" in ln for ln in lines) and not any("warning" in ln for ln in lines)
     v = live.viewer
-    cloud = lambda: v.server.scene.get_handle_by_name("/cloud")  # noqa: E731
+    cloud = lambda: v.server.scene.get_handle_by_name("/cloud")
     with_loops = np.asarray(cloud().points, np.float64)
     v.loop_toggle.value = False  # the chained poses: the same points, placed without loop closure
     assert v.pose_set() == "no loop closure"
@@ -301,11 +314,15 @@ def test_live_viewer_and_host_warning(demo_run):
 def _raw_request(port: int, host: str, origin: str | None, websocket: bool) -> bytes:
     """One HTTP request over a plain socket (a browser's headers, set by hand: Python's
     clients will not send a foreign Host); everything the server sends within 3 s."""
-    lines = [f"GET / HTTP/1.1", f"Host: {host}"]
+    lines = ["GET / HTTP/1.1", f"Host: {host}"]
     if websocket:
-        lines += ["Upgrade: websocket", "Connection: Upgrade", "Sec-WebSocket-Version: 13",
-                  "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
-                  f"Sec-WebSocket-Protocol: viser-v{__import__('viser').__version__}"]
+        lines += [
+            "Upgrade: websocket",
+            "Connection: Upgrade",
+            "Sec-WebSocket-Version: 13",
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==",
+            f"Sec-WebSocket-Protocol: viser-v{__import__('viser').__version__}",
+        ]
     if origin is not None:
         lines.append(f"Origin: {origin}")
     received = b""
@@ -357,12 +374,21 @@ def test_foreign_origin_and_host_get_no_scene(demo_run):
 
 def test_request_refusal_rules():
     allowed = viewer.allowed_host_names("127.0.0.1")
-    ok = [{"Host": "127.0.0.1:8080"}, {"Host": "[::1]:8080", "Origin": "http://[::1]:8080"},
-          {"Host": "localhost:8080", "Origin": "http://localhost:8080"}, {"Host": "10.1.2.3:8080"}]
+    ok = [
+        {"Host": "127.0.0.1:8080"},
+        {"Host": "[::1]:8080", "Origin": "http://[::1]:8080"},
+        {"Host": "localhost:8080", "Origin": "http://localhost:8080"},
+        {"Host": "10.1.2.3:8080"},
+    ]
     for headers in ok:
         assert viewer.request_refusal(headers, allowed) is None, headers
-    bad = [{}, {"Host": "evil.example:8080"}, {"Host": "127.0.0.1:8080", "Origin": "http://127.0.0.1:9999"},
-           {"Host": "127.0.0.1:8080", "Origin": "file://"}, {"Host": "localhost.evil.example"}]
+    bad = [
+        {},
+        {"Host": "evil.example:8080"},
+        {"Host": "127.0.0.1:8080", "Origin": "http://127.0.0.1:9999"},
+        {"Host": "127.0.0.1:8080", "Origin": "file://"},
+        {"Host": "localhost.evil.example"},
+    ]
     for headers in bad:
         assert viewer.request_refusal(headers, allowed) is not None, headers
     assert viewer.request_refusal({"Host": "my-box:8080"}, viewer.allowed_host_names("my-box")) is None
@@ -411,8 +437,14 @@ def _docs_site(tmp_path_factory) -> "os.PathLike[str]":
     out = tmp_path_factory.mktemp("site")
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, SWIFTJAX_DOCS_EXECUTE="false", NO_MKDOCS_2_WARNING="1")
-    done = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-d", str(out)],
-                          cwd=repo, env=env, capture_output=True, text=True, timeout=900)
+    done = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-d", str(out)],
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return out
 
@@ -420,8 +452,11 @@ def _docs_site(tmp_path_factory) -> "os.PathLike[str]":
 def _dump_dom(url: str) -> str:
     """The page's DOM after its scripts ran, in headless Chromium that can resolve no host
     but 127.0.0.1 (a renderer fetched from a CDN cannot load)."""
-    _, out, err = _run_chromium(["--virtual-time-budget=20000", "--dump-dom",
-                                 "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"], url, timeout=180)
+    _, out, err = _run_chromium(
+        ["--virtual-time-budget=20000", "--dump-dom", "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"],
+        url,
+        timeout=180,
+    )
     assert out, err.decode(errors="replace")[-2000:]
     return out.decode()
 
@@ -440,8 +475,9 @@ def test_docs_maths_render_offline(tmp_path_factory):
     for page in ("method/index.html", "conventions/index.html"):
         html = open(os.path.join(site, page), encoding="utf-8").read()
         assert not re.search(r"<script[^>]+src=\"https?://", html), f"{page} loads a script from the network"
+
     class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args):  # noqa: D102
+        def log_message(self, *args):
             pass
 
     handler = functools.partial(Quiet, directory=str(site))

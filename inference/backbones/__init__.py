@@ -40,8 +40,7 @@ class Family(Protocol):
         """:class:`swiftjax.intrinsics.PreprocessGeometry` of one original image size; a
         ``ValueError`` naming the size if the family cannot take it."""
 
-    def build_runner(self, backbone: Backbone, weights: str, device: str, dtype: str,
-                     config: dict[str, Any]) -> Any:
+    def build_runner(self, backbone: Backbone, weights: str, device: str, dtype: str, config: dict[str, Any]) -> Any:
         """A runner (``predict([S,3,H,W] in [0,1]) -> ChunkPrediction``) with the weights loaded."""
 
 
@@ -70,18 +69,33 @@ class Backbone:
         return family(self.family)
 
 
-BACKBONES: dict[str, Backbone] = {b.name: b for b in (
-    Backbone("vggt-1b", "vggt", "vggt-1b", False, "non-commercial (VGGT licence; commercial variant gated)",
-             "facebook/VGGT-1B"),
-    Backbone("da3-small", "da3", "da3-small", False, "Apache-2.0", "depth-anything/DA3-SMALL"),
-    Backbone("da3-base", "da3", "da3-base", False, "Apache-2.0", "depth-anything/DA3-BASE"),
-    Backbone("da3-large", "da3", "da3-large", False, "CC BY-NC 4.0", "depth-anything/DA3-LARGE"),
-    Backbone("da3-giant", "da3", "da3-giant", False, "CC BY-NC 4.0", "depth-anything/DA3-GIANT"),
-    Backbone("da3-nested-giant-large", "da3", "da3nested-giant-large", True, "CC BY-NC 4.0",
-             "depth-anything/DA3NESTED-GIANT-LARGE"),
-    Backbone("pi3", "pi3", "pi3", False, "CC BY-NC 4.0", "yyfz233/Pi3"),
-    Backbone("pi3x", "pi3", "pi3x", True, "CC BY-NC 4.0", "yyfz233/Pi3X"),
-)}
+BACKBONES: dict[str, Backbone] = {
+    b.name: b
+    for b in (
+        Backbone(
+            "vggt-1b",
+            "vggt",
+            "vggt-1b",
+            False,
+            "non-commercial (VGGT licence; commercial variant gated)",
+            "facebook/VGGT-1B",
+        ),
+        Backbone("da3-small", "da3", "da3-small", False, "Apache-2.0", "depth-anything/DA3-SMALL"),
+        Backbone("da3-base", "da3", "da3-base", False, "Apache-2.0", "depth-anything/DA3-BASE"),
+        Backbone("da3-large", "da3", "da3-large", False, "CC BY-NC 4.0", "depth-anything/DA3-LARGE"),
+        Backbone("da3-giant", "da3", "da3-giant", False, "CC BY-NC 4.0", "depth-anything/DA3-GIANT"),
+        Backbone(
+            "da3-nested-giant-large",
+            "da3",
+            "da3nested-giant-large",
+            True,
+            "CC BY-NC 4.0",
+            "depth-anything/DA3NESTED-GIANT-LARGE",
+        ),
+        Backbone("pi3", "pi3", "pi3", False, "CC BY-NC 4.0", "yyfz233/Pi3"),
+        Backbone("pi3x", "pi3", "pi3x", True, "CC BY-NC 4.0", "yyfz233/Pi3X"),
+    )
+}
 
 
 def get(name: str) -> Backbone:

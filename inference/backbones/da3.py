@@ -93,11 +93,19 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any] | None) ->
     fam = describe_family(header)
     want = "da3-nested" if backbone.metric else "da3"
     if fam != want:
-        raise CheckpointError(f"--weights {p} is {FAMILY_TEXT[fam]}, not what --model {backbone.name} needs ({FAMILY_TEXT[want]})")
+        raise CheckpointError(
+            f"--weights {p} is {FAMILY_TEXT[fam]}, not what --model {backbone.name} needs ({FAMILY_TEXT[want]})"
+        )
     expected = _expected_shapes(backbone, config)
     got = {k: s for k, (_, s) in header.items()}
-    aliases = [k for k in expected if ".output_conv2_aux." in k and ".output_conv2_aux.0." not in k
-               and k.rsplit(".", 2)[-2] == "2" and k not in got]  # the DualDPT LayerNorm stored once
+    aliases = [
+        k
+        for k in expected
+        if ".output_conv2_aux." in k
+        and ".output_conv2_aux.0." not in k
+        and k.rsplit(".", 2)[-2] == "2"
+        and k not in got
+    ]  # the DualDPT LayerNorm stored once
     compare_shapes(p, got, {k: v for k, v in expected.items() if k not in aliases}, f"{backbone.name} model")
 
 
@@ -162,8 +170,9 @@ class DA3Runner:
     float32 inside the network).
     """
 
-    def __init__(self, model: Any, device: Any = "cpu", dtype: Any = None,
-                 ref_view_strategy: str = REF_VIEW_STRATEGY) -> None:
+    def __init__(
+        self, model: Any, device: Any = "cpu", dtype: Any = None, ref_view_strategy: str = REF_VIEW_STRATEGY
+    ) -> None:
         import torch
 
         self.device = torch.device(device)
@@ -194,7 +203,9 @@ class DA3Runner:
         arr = np.asarray(images, np.float32)
         raw = self.forward(arr)
         # prealt_patch_tokens come back in input order (inference.da3 undoes the reference reordering)
-        out = to_host({k: raw[k][0] for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")})
+        out = to_host(
+            {k: raw[k][0] for k in ("depth", "depth_conf", "extrinsics", "intrinsics", "prealt_patch_tokens")}
+        )
         check_outputs(out, self.name)
         return to_prediction(arr, out)
 

@@ -17,8 +17,23 @@ from swiftjax.errors import SwiftjaxError
 
 __all__ = ["read_header", "checkpoint_header", "compare_shapes", "describe_family", "HeaderError", "FAMILY_TEXT"]
 
-_ITEMSIZE = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1,
-             "BOOL": 1, "F8_E4M3": 1, "F8_E5M2": 1, "U16": 2, "U32": 4, "U64": 8}
+_ITEMSIZE = {
+    "F64": 8,
+    "F32": 4,
+    "F16": 2,
+    "BF16": 2,
+    "I64": 8,
+    "I32": 4,
+    "I16": 2,
+    "I8": 1,
+    "U8": 1,
+    "BOOL": 1,
+    "F8_E4M3": 1,
+    "F8_E5M2": 1,
+    "U16": 2,
+    "U32": 4,
+    "U64": 8,
+}
 _MAX_HEADER = 100 << 20
 
 
@@ -40,7 +55,9 @@ def read_header(path: str | os.PathLike[str]) -> dict[str, tuple[str, tuple[int,
             raise HeaderError(f"{p} is not a safetensors file ({size} bytes, no header)")
         (n,) = struct.unpack("<Q", head)
         if n > min(size - 8, _MAX_HEADER):
-            raise HeaderError(f"{p} is not a safetensors file or is truncated (header of {n} bytes in a {size}-byte file)")
+            raise HeaderError(
+                f"{p} is not a safetensors file or is truncated (header of {n} bytes in a {size}-byte file)"
+            )
         try:
             meta = json.loads(f.read(n))
         except (UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -58,7 +75,9 @@ def read_header(path: str | os.PathLike[str]) -> dict[str, tuple[str, tuple[int,
             raise HeaderError(f"{p}: malformed header entry for {name!r}") from None
         want = math.prod(shape) * _ITEMSIZE.get(dtype, 0)
         if _ITEMSIZE.get(dtype) is not None and stop - start != want:
-            raise HeaderError(f"{p}: tensor {name} claims {stop - start} bytes for {dtype} {list(shape)} ({want} needed)")
+            raise HeaderError(
+                f"{p}: tensor {name} claims {stop - start} bytes for {dtype} {list(shape)} ({want} needed)"
+            )
         if stop > body:
             raise HeaderError(f"{p} is truncated: tensor {name} ends at byte {stop} of a {body}-byte data section")
         out[str(name)] = (str(dtype), shape)
@@ -77,8 +96,12 @@ def describe_family(names: Any) -> str:
     return "unknown"
 
 
-FAMILY_TEXT = {"vggt": "a VGGT checkpoint", "da3": "a Depth Anything 3 (any-view) checkpoint",
-               "da3-nested": "a Depth Anything 3 nested (metric) checkpoint", "unknown": "not a checkpoint of a known network"}
+FAMILY_TEXT = {
+    "vggt": "a VGGT checkpoint",
+    "da3": "a Depth Anything 3 (any-view) checkpoint",
+    "da3-nested": "a Depth Anything 3 nested (metric) checkpoint",
+    "unknown": "not a checkpoint of a known network",
+}
 
 
 def checkpoint_header(path: str | os.PathLike[str]) -> dict[str, tuple[str, tuple[int, ...]]]:
@@ -91,8 +114,13 @@ def checkpoint_header(path: str | os.PathLike[str]) -> dict[str, tuple[str, tupl
         raise CheckpointError(str(err)) from None
 
 
-def compare_shapes(path: str | os.PathLike[str], got: dict[str, tuple[int, ...]], want: dict[str, tuple[int, ...]],
-                   what: str, optional: tuple[str, ...] = ()) -> None:
+def compare_shapes(
+    path: str | os.PathLike[str],
+    got: dict[str, tuple[int, ...]],
+    want: dict[str, tuple[int, ...]],
+    what: str,
+    optional: tuple[str, ...] = (),
+) -> None:
     """One-line ``CheckpointError`` naming the first differing keys (missing, unexpected, shape)
     between a file's tensor shapes ``got`` and the model's ``want``; ``optional`` keys may be absent."""
     from inference.checkpoint import CheckpointError
@@ -101,7 +129,12 @@ def compare_shapes(path: str | os.PathLike[str], got: dict[str, tuple[int, ...]]
     unexpected = [k for k in got if k not in want]
     shapes = [f"{k} {list(got[k])} vs {list(want[k])}" for k in want if k in got and tuple(got[k]) != tuple(want[k])]
     if missing or unexpected or shapes:
-        parts = [f"{title} {len(items)} ({', '.join(items[:3])}{', ...' if len(items) > 3 else ''})"
-                 for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes)) if items]
-        raise CheckpointError(f"checkpoint {os.fspath(path)} does not match the {what}: {'; '.join(parts)} "
-                              f"(is --model / --model-config the one it was trained with?)")
+        parts = [
+            f"{title} {len(items)} ({', '.join(items[:3])}{', ...' if len(items) > 3 else ''})"
+            for title, items in (("missing", missing), ("unexpected", unexpected), ("shape mismatch", shapes))
+            if items
+        ]
+        raise CheckpointError(
+            f"checkpoint {os.fspath(path)} does not match the {what}: {'; '.join(parts)} "
+            f"(is --model / --model-config the one it was trained with?)"
+        )

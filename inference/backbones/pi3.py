@@ -26,8 +26,11 @@ _MULTIMODAL = ("depth_encoder.", "depth_emb", "ray_embed.", "pose_inject_blk.")
 def variant_of(names: Iterable[str]) -> str | None:
     """``"pi3"`` / ``"pi3x"`` for a π³-layout checkpoint's key names, else ``None``."""
     keys = list(names)
-    if not ("register_token" in keys and any(k.startswith("encoder.patch_embed.") for k in keys)
-            and any(k.startswith("camera_head.fc_rot") for k in keys)):
+    if not (
+        "register_token" in keys
+        and any(k.startswith("encoder.patch_embed.") for k in keys)
+        and any(k.startswith("camera_head.fc_rot") for k in keys)
+    ):
         return None
     return "pi3x" if any(k.startswith(_PI3X_ONLY) for k in keys) else "pi3"
 
@@ -62,7 +65,9 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any]) -> None:
 
     p = os.fspath(path)
     if not p.lower().endswith(".safetensors"):
-        raise CheckpointError(f"--weights {p}: π³ checkpoints are read from .safetensors only (--model {backbone.name})")
+        raise CheckpointError(
+            f"--weights {p}: π³ checkpoints are read from .safetensors only (--model {backbone.name})"
+        )
     header = checkpoint_header(p)
     got = variant_of(header)
     want = config.get("variant", backbone.preset)
@@ -96,8 +101,9 @@ def _check_mode(mode: str) -> None:
         raise ValueError(f"π³ preprocesses with its own rule only (mode 'resize'), got mode {mode!r}")
 
 
-def build_runner(backbone: Any, weights: str, device: str, dtype: str, config: dict[str, Any],
-                 intrinsics: Any | None = None) -> Any:
+def build_runner(
+    backbone: Any, weights: str, device: str, dtype: str, config: dict[str, Any], intrinsics: Any | None = None
+) -> Any:
     """A :class:`~inference.pi3.runner.Pi3TorchRunner` with ``weights`` loaded strictly;
     ``intrinsics`` (π³X: ``[3, 3]`` at the model resolution) become the ray condition."""
     import torch

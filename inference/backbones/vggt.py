@@ -44,9 +44,15 @@ def check_checkpoint(backbone: Any, path: Any, config: dict[str, Any] | None) ->
     header = checkpoint_header(path)
     fam = describe_family(header)
     if fam != "vggt":
-        raise CheckpointError(f"--weights {os.fspath(path)} is {FAMILY_TEXT[fam]}, not a VGGT one (--model {backbone.name})")
-    compare_shapes(path, {k: s for k, (_, s) in header.items() if not k.startswith(_IGNORED)},
-             {k: tuple(v.shape) for k, v in _model(config).state_dict().items()}, "VGGT model")
+        raise CheckpointError(
+            f"--weights {os.fspath(path)} is {FAMILY_TEXT[fam]}, not a VGGT one (--model {backbone.name})"
+        )
+    compare_shapes(
+        path,
+        {k: s for k, (_, s) in header.items() if not k.startswith(_IGNORED)},
+        {k: tuple(v.shape) for k, v in _model(config).state_dict().items()},
+        "VGGT model",
+    )
 
 
 def preprocess(images: list[Any], mode: str) -> Any:

@@ -17,6 +17,13 @@ from .model import DA3Net, build_da3
 from .nested import NestedDA3Net
 
 __all__ = [
-    "CheckpointError", "DA3Config", "DA3Net", "NestedDA3Config", "NestedDA3Net", "PRESETS", "build_da3",
-    "load_da3_checkpoint", "preset_config",
+    "CheckpointError",
+    "DA3Config",
+    "DA3Net",
+    "NestedDA3Config",
+    "NestedDA3Net",
+    "PRESETS",
+    "build_da3",
+    "load_da3_checkpoint",
+    "preset_config",
 ]

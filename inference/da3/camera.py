@@ -16,7 +16,13 @@ from ..layers import Block, Mlp
 from ..pose_encoding import quat_to_mat
 
 __all__ = [
-    "CameraDec", "CameraEnc", "affine_inverse", "mat_to_quat_torch", "encode_pose", "decode_pose", "normalize_extrinsics",
+    "CameraDec",
+    "CameraEnc",
+    "affine_inverse",
+    "mat_to_quat_torch",
+    "encode_pose",
+    "decode_pose",
+    "normalize_extrinsics",
 ]
 
 POSE_DIM = 9
@@ -99,7 +105,9 @@ class CameraEnc(nn.Module):
 
     def __init__(self, dim_out: int, num_heads: int = 16, trunk_depth: int = 4, mlp_ratio: float = 4.0) -> None:
         super().__init__()
-        self.trunk = nn.Sequential(*(Block(dim_out, num_heads, mlp_ratio, init_values=0.01) for _ in range(trunk_depth)))
+        self.trunk = nn.Sequential(
+            *(Block(dim_out, num_heads, mlp_ratio, init_values=0.01) for _ in range(trunk_depth))
+        )
         self.token_norm = nn.LayerNorm(dim_out)
         self.trunk_norm = nn.LayerNorm(dim_out)
         self.pose_branch = Mlp(POSE_DIM, dim_out // 2, dim_out)

@@ -20,8 +20,14 @@ from torch import Tensor, nn
 
 from ..checkpoint import CheckpointError, LoadReport
 
-__all__ = ["CHECKPOINT_PREFIX", "CheckpointError", "alias_groups", "expected_checkpoint_keys", "load_da3_checkpoint",
-           "read_safetensors"]
+__all__ = [
+    "CHECKPOINT_PREFIX",
+    "CheckpointError",
+    "alias_groups",
+    "expected_checkpoint_keys",
+    "load_da3_checkpoint",
+    "read_safetensors",
+]
 
 CHECKPOINT_PREFIX = "model."
 _MAX_LISTED = 12
@@ -79,13 +85,16 @@ def load_da3_checkpoint(model: nn.Module, path: str | os.PathLike[str], strict: 
     state: dict[str, Tensor] = {}
     unexpected: list[str] = []
     for key, value in file.items():
-        name = key[len(CHECKPOINT_PREFIX):] if key.startswith(CHECKPOINT_PREFIX) else None
+        name = key[len(CHECKPOINT_PREFIX) :] if key.startswith(CHECKPOINT_PREFIX) else None
         if name is None or name not in expected:
             unexpected.append(key)
         else:
             state[name] = value
-    mismatched = [f"{CHECKPOINT_PREFIX}{k} {tuple(v.shape)} vs model {tuple(expected[k].shape)}"
-                  for k, v in state.items() if tuple(v.shape) != tuple(expected[k].shape)]
+    mismatched = [
+        f"{CHECKPOINT_PREFIX}{k} {tuple(v.shape)} vs model {tuple(expected[k].shape)}"
+        for k, v in state.items()
+        if tuple(v.shape) != tuple(expected[k].shape)
+    ]
     conflicting: list[str] = []
     for group in alias_groups(model):
         kept = group[0]
@@ -100,10 +109,16 @@ def load_da3_checkpoint(model: nn.Module, path: str | os.PathLike[str], strict: 
         name = type(model).__name__
         parts = [f"checkpoint {os.fspath(path)} does not match {name}"]
         if unexpected and not any(k.startswith(CHECKPOINT_PREFIX) for k in file):
-            parts.append(f"no key starts with {CHECKPOINT_PREFIX!r} (not an official Depth Anything 3 file; "
-                         f"first key {next(iter(file), '<none>')!r})")
-        for title, items in (("missing key(s)", missing), ("unexpected key(s)", unexpected),
-                             ("shape mismatch(es)", mismatched), ("shared-tensor alias(es) differing", conflicting)):
+            parts.append(
+                f"no key starts with {CHECKPOINT_PREFIX!r} (not an official Depth Anything 3 file; "
+                f"first key {next(iter(file), '<none>')!r})"
+            )
+        for title, items in (
+            ("missing key(s)", missing),
+            ("unexpected key(s)", unexpected),
+            ("shape mismatch(es)", mismatched),
+            ("shared-tensor alias(es) differing", conflicting),
+        ):
             if items:
                 parts.append(_listed(title, items))
         raise CheckpointError("; ".join(parts))
@@ -111,4 +126,3 @@ def load_da3_checkpoint(model: nn.Module, path: str | os.PathLike[str], strict: 
     # The shared LayerNorm is one module object under four names, so it stays shared either way.
     model.load_state_dict(state, strict=True, assign=on_meta)
     return LoadReport(path=os.fspath(path), loaded=len(file), ignored=())
-

@@ -184,18 +184,49 @@ def _read_json(path: str | os.PathLike[str]) -> dict[str, Any]:
     return d
 
 
-def _anyview(vit: str, out_layers: tuple[int, ...], alt: int, features: int, out_channels: tuple[int, int, int, int],
-             gs_output_dim: int = 0) -> DA3Config:
+def _anyview(
+    vit: str,
+    out_layers: tuple[int, ...],
+    alt: int,
+    features: int,
+    out_channels: tuple[int, int, int, int],
+    gs_output_dim: int = 0,
+) -> DA3Config:
     dim, depth, heads = VIT_SIZES[vit]
-    return DA3Config(vit=vit, embed_dim=dim, depth=depth, num_heads=heads, out_layers=out_layers, alt_start=alt,
-                     qknorm_start=alt, rope_start=alt, cat_token=True, head="dualdpt", head_dim_in=2 * dim,
-                     head_output_dim=2, head_features=features, head_out_channels=out_channels, camera=True,
-                     gs_output_dim=gs_output_dim)
+    return DA3Config(
+        vit=vit,
+        embed_dim=dim,
+        depth=depth,
+        num_heads=heads,
+        out_layers=out_layers,
+        alt_start=alt,
+        qknorm_start=alt,
+        rope_start=alt,
+        cat_token=True,
+        head="dualdpt",
+        head_dim_in=2 * dim,
+        head_output_dim=2,
+        head_features=features,
+        head_out_channels=out_channels,
+        camera=True,
+        gs_output_dim=gs_output_dim,
+    )
 
 
-_METRIC_LARGE = DA3Config(vit="vitl", out_layers=(4, 11, 17, 23), alt_start=-1, qknorm_start=-1, rope_start=-1,
-                          cat_token=False, head="dpt", head_dim_in=1024, head_output_dim=1, head_features=256,
-                          head_out_channels=(256, 512, 1024, 1024), camera=False)
+_METRIC_LARGE = DA3Config(
+    vit="vitl",
+    out_layers=(4, 11, 17, 23),
+    alt_start=-1,
+    qknorm_start=-1,
+    rope_start=-1,
+    cat_token=False,
+    head="dpt",
+    head_dim_in=1024,
+    head_output_dim=1,
+    head_features=256,
+    head_out_channels=(256, 512, 1024, 1024),
+    camera=False,
+)
 _GIANT = _anyview("vitg", (19, 27, 33, 39), 13, 256, (256, 512, 1024, 1024), gs_output_dim=38)
 
 # The official presets (configs/<name>.yaml at commit 2c21ea8; == the manifests' resolved_config).

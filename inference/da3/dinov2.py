@@ -121,8 +121,9 @@ class DA3ViT(nn.Module):
         rows = torch.arange(h, device=device).repeat_interleave(w)
         cols = torch.arange(w, device=device).repeat(h)
         local = torch.cat([torch.zeros(1, 2, dtype=torch.long, device=device), torch.stack([rows, cols], -1) + 1])
-        flat = torch.cat([torch.zeros(1, 2, dtype=torch.long, device=device),
-                          torch.ones(h * w, 2, dtype=torch.long, device=device)])
+        flat = torch.cat(
+            [torch.zeros(1, 2, dtype=torch.long, device=device), torch.ones(h * w, 2, dtype=torch.long, device=device)]
+        )
         head_dim = self.cfg.embed_dim // self.cfg.num_heads
         return (rope_tables_2d(local, head_dim, self.cfg.rope_freq), rope_tables_2d(flat, head_dim, self.cfg.rope_freq))
 
@@ -177,7 +178,9 @@ class DA3ViT(nn.Module):
                 x, local_x = gather_views(x, order), gather_views(local_x, order)
             if alt != -1 and i == alt:
                 if cam_tokens is None:
-                    tok = torch.cat([self.camera_token[:, :1].expand(b, 1, c), self.camera_token[:, 1:].expand(b, s - 1, c)], 1)
+                    tok = torch.cat(
+                        [self.camera_token[:, :1].expand(b, 1, c), self.camera_token[:, 1:].expand(b, s - 1, c)], 1
+                    )
                 else:
                     tok = cam_tokens.to(x.dtype)
                 # Block alt-1 is local, so the local stream is this same tensor (as in the

@@ -49,7 +49,9 @@ class DPTTrunk(nn.Module):
         self.resize_layers = resize_layers(oc)
         self.scratch = _Scratch(oc, features, output_dim, relu_skip=False)  # type: ignore[arg-type]
 
-    def forward(self, feats: Sequence[Tensor], image_hw: tuple[int, int], frames_chunk_size: int | None = 8) -> dict[str, Tensor]:
+    def forward(
+        self, feats: Sequence[Tensor], image_hw: tuple[int, int], frames_chunk_size: int | None = 8
+    ) -> dict[str, Tensor]:
         """``feats``: 4 × ``[B, S, P, C]`` patch tokens -> the head's outputs, each ``[B, S, ...]``.
 
         ``frames_chunk_size`` frames go through the head at a time (bounds memory; the result
@@ -113,8 +115,11 @@ class _Permute(nn.Module):
 def _aux_out1(ch: int) -> nn.Sequential:
     half = ch // 2
     return nn.Sequential(
-        nn.Conv2d(ch, half, 3, 1, 1), nn.Conv2d(half, ch, 3, 1, 1), nn.Conv2d(ch, half, 3, 1, 1),
-        nn.Conv2d(half, ch, 3, 1, 1), nn.Conv2d(ch, half, 3, 1, 1),
+        nn.Conv2d(ch, half, 3, 1, 1),
+        nn.Conv2d(half, ch, 3, 1, 1),
+        nn.Conv2d(ch, half, 3, 1, 1),
+        nn.Conv2d(half, ch, 3, 1, 1),
+        nn.Conv2d(ch, half, 3, 1, 1),
     )
 
 
@@ -123,7 +128,9 @@ class DualDPT(DPTTrunk):
 
     AUX_LEVELS = 4
 
-    def __init__(self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int = 2, patch_size: int = 14) -> None:
+    def __init__(
+        self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int = 2, patch_size: int = 14
+    ) -> None:
         super().__init__(dim_in, features, out_channels, output_dim, patch_size, token_norm=True, pos_embed=True)
         sc = self.scratch
         sc.refinenet1_aux = FeatureFusionBlock(features, relu_skip=False)
@@ -134,8 +141,12 @@ class DualDPT(DPTTrunk):
         shared_norm = nn.LayerNorm(32)  # one instance in all four entries, as officially
         sc.output_conv2_aux = nn.ModuleList(
             nn.Sequential(
-                nn.Conv2d(features // 2, 32, 3, 1, 1), _Permute((0, 2, 3, 1)), shared_norm, _Permute((0, 3, 1, 2)),
-                nn.ReLU(), nn.Conv2d(32, 7, 1, 1, 0),
+                nn.Conv2d(features // 2, 32, 3, 1, 1),
+                _Permute((0, 2, 3, 1)),
+                shared_norm,
+                _Permute((0, 3, 1, 2)),
+                nn.ReLU(),
+                nn.Conv2d(32, 7, 1, 1, 0),
             )
             for _ in range(self.AUX_LEVELS)
         )

@@ -46,9 +46,24 @@ REQUIRED_FILES = ("tiny_config.json", "tiny_weights.safetensors", "tiny_nested_w
 STRATEGY_RUNS = (("first_", "first"), ("saddle_", "saddle_balanced"), ("middle_", "middle"))
 RAYPOSE_RUNS = (("first_raypose_", "first"), ("saddle_raypose_", "saddle_balanced"))
 RUN_KEYS = (
-    "depth", "depth_conf", "extrinsics", "intrinsics", "head_depth", "ray", "ray_conf", "feats_tokens",
-    "feats_cam_tokens", "block_outputs", "prealt_patch_tokens", "pose_enc", "ref_view_idx", "ref_select_cls_tokens",
-    "ref_balance_scores", "view_order", "camenc_pose_encoding", "camenc_tokens",
+    "depth",
+    "depth_conf",
+    "extrinsics",
+    "intrinsics",
+    "head_depth",
+    "ray",
+    "ray_conf",
+    "feats_tokens",
+    "feats_cam_tokens",
+    "block_outputs",
+    "prealt_patch_tokens",
+    "pose_enc",
+    "ref_view_idx",
+    "ref_select_cls_tokens",
+    "ref_balance_scores",
+    "view_order",
+    "camenc_pose_encoding",
+    "camenc_tokens",
 )
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -67,8 +82,14 @@ def _np(t: object) -> np.ndarray:
     return t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t)
 
 
-def _torch_run(model: torch.nn.Module, images: torch.Tensor, strategy: str, ext: torch.Tensor | None = None,
-               intr: torch.Tensor | None = None, **kwargs: object) -> Outputs:
+def _torch_run(
+    model: torch.nn.Module,
+    images: torch.Tensor,
+    strategy: str,
+    ext: torch.Tensor | None = None,
+    intr: torch.Tensor | None = None,
+    **kwargs: object,
+) -> Outputs:
     torch.manual_seed(2024)
     with torch.no_grad():
         out = model(images, ext, intr, ref_view_strategy=strategy, intermediates=True, **kwargs)
@@ -94,7 +115,9 @@ class _Comparer:
         self.covered.add(key)
         got = np.asarray(got)
         if got.shape != ref.shape:
-            self.checks.append(Check(backend, f"{key} (shape {got.shape} != {ref.shape})", np.inf, np.inf, 0.0, 0.0, False))
+            self.checks.append(
+                Check(backend, f"{key} (shape {got.shape} != {ref.shape})", np.inf, np.inf, 0.0, 0.0, False)
+            )
             return
         if np.issubdtype(ref.dtype, np.integer):
             err = float(np.abs(got.astype(np.int64) - ref.astype(np.int64)).max(initial=0))
@@ -132,7 +155,9 @@ def _check_inputs(cmp: _Comparer) -> None:
     cmp.add("inputs", "imagenet_mean", mean)
     cmp.add("inputs", "imagenet_std", std)
     cmp.add("inputs", "images", (g["images_raw"] - mean[:, None, None]) / std[:, None, None])
-    cmp.add("inputs", "posecond_in_extrinsics", _np(normalize_extrinsics(torch.from_numpy(g["posecond_in_extrinsics_raw"]))))
+    cmp.add(
+        "inputs", "posecond_in_extrinsics", _np(normalize_extrinsics(torch.from_numpy(g["posecond_in_extrinsics_raw"])))
+    )
     cmp.covered.update({"images_raw", "posecond_in_extrinsics_raw", "posecond_in_intrinsics"})
 
 
@@ -150,12 +175,17 @@ def _check_backend(cmp: _Comparer, name: str, run: Backend, model: DA3Net, neste
         out = run(model, images, strategy, use_ray_pose=True)
         cmp.add(name, prefix + "ransac_sample_idx", out["ransac_sample_idx"])
         if not np.array_equal(out["ransac_sample_idx"], g[prefix + "ransac_sample_idx"]):
-            out = run(model, images, strategy, use_ray_pose=True,
-                      ransac_sample_idx=torch.from_numpy(g[prefix + "ransac_sample_idx"]))
+            out = run(
+                model,
+                images,
+                strategy,
+                use_ray_pose=True,
+                ransac_sample_idx=torch.from_numpy(g[prefix + "ransac_sample_idx"]),
+            )
         cmp.run(name, prefix, out, ("extrinsics", "intrinsics", "ransac_homography"))
     out = run(nested, images, "saddle_balanced")
     out.setdefault("metric_sky", out["sky"])
-    cmp.run(name, "nested_", out, tuple(k[len("nested_"):] for k in g.files if k.startswith("nested_")))
+    cmp.run(name, "nested_", out, tuple(k[len("nested_") :] for k in g.files if k.startswith("nested_")))
 
 
 def _check_raysynth(cmp: _Comparer) -> None:
@@ -163,10 +193,17 @@ def _check_raysynth(cmp: _Comparer) -> None:
     ray, conf = torch.from_numpy(g["raysynth_ray"]), torch.from_numpy(g["raysynth_ray_conf"])
     torch.manual_seed(2024)  # the golden run's RANSAC seed (tiny_config.json seeds.ransac)
     rp = cameras_from_rays(ray, conf, tuple(g["images"].shape[-2:]))  # type: ignore[arg-type]
-    out = {"camray_c2w": rp.c2w, "camray_focal": rp.focal, "camray_pp": rp.pp, "extrinsics": rp.extrinsics,
-           "intrinsics": rp.intrinsics}
+    out = {
+        "camray_c2w": rp.c2w,
+        "camray_focal": rp.focal,
+        "camray_pp": rp.pp,
+        "extrinsics": rp.extrinsics,
+        "intrinsics": rp.intrinsics,
+    }
     cmp.run("torch", "raysynth_", {k: _np(v) for k, v in out.items()}, tuple(out))
-    cmp.covered.update(k for k in g.files if k.startswith("raysynth_true_") or k in ("raysynth_ray", "raysynth_ray_conf"))
+    cmp.covered.update(
+        k for k in g.files if k.startswith("raysynth_true_") or k in ("raysynth_ray", "raysynth_ray_conf")
+    )
 
 
 def load_models(directory: str | Path) -> tuple[DA3Net, NestedDA3Net]:

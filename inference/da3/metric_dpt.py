@@ -21,7 +21,9 @@ __all__ = ["MetricDPT", "GaussianHeadWeights"]
 class MetricDPT(DPTTrunk):
     """Depth (``exp``) and sky (``relu``) of DA3Metric/DA3Mono."""
 
-    def __init__(self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int = 1, patch_size: int = 14) -> None:
+    def __init__(
+        self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int = 1, patch_size: int = 14
+    ) -> None:
         super().__init__(dim_in, features, out_channels, output_dim, patch_size, token_norm=False, pos_embed=False)
         self.scratch.sky_output_conv2 = nn.Sequential(
             nn.Conv2d(features // 2, 32, 3, 1, 1), nn.ReLU(), nn.Conv2d(32, 1, 1, 1, 0)
@@ -37,12 +39,18 @@ class GaussianHeadWeights(DPTTrunk):
     """Parameters of DA3-Giant's 3D-Gaussian head (``gs_head``), held so that the released
     checkpoint loads strictly; this package does not predict Gaussians and never runs it."""
 
-    def __init__(self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int, patch_size: int = 14) -> None:
+    def __init__(
+        self, dim_in: int, features: int, out_channels: Sequence[int], output_dim: int, patch_size: int = 14
+    ) -> None:
         super().__init__(dim_in, features, out_channels, output_dim, patch_size, token_norm=False, pos_embed=True)
         merger = features // 2
         self.images_merger = nn.Sequential(
-            nn.Conv2d(3, merger // 4, 3, 1, 1), nn.GELU(), nn.Conv2d(merger // 4, merger // 2, 3, 1, 1), nn.GELU(),
-            nn.Conv2d(merger // 2, merger, 3, 1, 1), nn.GELU(),
+            nn.Conv2d(3, merger // 4, 3, 1, 1),
+            nn.GELU(),
+            nn.Conv2d(merger // 4, merger // 2, 3, 1, 1),
+            nn.GELU(),
+            nn.Conv2d(merger // 2, merger, 3, 1, 1),
+            nn.GELU(),
         )
 
     def forward(self, *args: object, **kwargs: object) -> Tensor:

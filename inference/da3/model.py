@@ -38,14 +38,20 @@ class DA3Net(nn.Module):
         self.backbone = Backbone(config)
         oc = config.head_out_channels
         if config.head == "dualdpt":
-            self.head: nn.Module = DualDPT(config.head_dim_in, config.head_features, oc, config.head_output_dim, config.patch_size)
+            self.head: nn.Module = DualDPT(
+                config.head_dim_in, config.head_features, oc, config.head_output_dim, config.patch_size
+            )
         else:
-            self.head = MetricDPT(config.head_dim_in, config.head_features, oc, config.head_output_dim, config.patch_size)
+            self.head = MetricDPT(
+                config.head_dim_in, config.head_features, oc, config.head_output_dim, config.patch_size
+            )
         if config.camera:
             self.cam_dec = CameraDec(config.token_dim)
             self.cam_enc = CameraEnc(config.embed_dim, config.cam_enc_heads)
         if config.gs_output_dim:
-            self.gs_head = GaussianHeadWeights(config.head_dim_in, config.head_features, oc, config.gs_output_dim, config.patch_size)
+            self.gs_head = GaussianHeadWeights(
+                config.head_dim_in, config.head_features, oc, config.gs_output_dim, config.patch_size
+            )
 
     @property
     def export_layer(self) -> int:
@@ -109,16 +115,22 @@ class DA3Net(nn.Module):
             if intrinsics is None:
                 raise ValueError("extrinsics given without intrinsics: the camera encoder needs both")
             if tuple(extrinsics.shape) != (b, s, 4, 4) or tuple(intrinsics.shape) != (b, s, 3, 3):
-                raise ValueError(f"extrinsics/intrinsics: expected [{b},{s},4,4] and [{b},{s},3,3], got "
-                                 f"{tuple(extrinsics.shape)} and {tuple(intrinsics.shape)}")
+                raise ValueError(
+                    f"extrinsics/intrinsics: expected [{b},{s},4,4] and [{b},{s},3,3], got "
+                    f"{tuple(extrinsics.shape)} and {tuple(intrinsics.shape)}"
+                )
             cam_tokens = self.cam_enc(extrinsics.float(), intrinsics.float(), hw)
             if intermediates:
                 out["camenc_pose_encoding"] = self.cam_enc.pose_encoding(extrinsics.float(), intrinsics.float(), hw)
                 out["camenc_tokens"] = cam_tokens
         elif intrinsics is not None:
-            raise ValueError("intrinsics without extrinsics: DA3 conditions on full cameras only "
-                             "(the official network ignores intrinsics alone); pass both or neither")
-        bb = self.backbone(images, cam_tokens, ref_view_strategy, export_layer=self.export_layer, keep_blocks=intermediates)
+            raise ValueError(
+                "intrinsics without extrinsics: DA3 conditions on full cameras only "
+                "(the official network ignores intrinsics alone); pass both or neither"
+            )
+        bb = self.backbone(
+            images, cam_tokens, ref_view_strategy, export_layer=self.export_layer, keep_blocks=intermediates
+        )
         h, w = height // cfg.patch_size, width // cfg.patch_size
         assert bb.export is not None
         out["prealt_patch_tokens"] = bb.export.reshape(b, s, h, w, -1)

@@ -34,8 +34,18 @@ from .sky import fill_sky
 
 __all__ = ["ANYVIEW_OUTPUTS", "METRIC_OUTPUTS", "export_da3_onnx", "DA3OnnxRunner", "postprocess_nested", "OnnxBackend"]
 
-ANYVIEW_OUTPUTS = ("depth", "depth_conf", "ray", "ray_conf", "pose_enc", "extrinsics", "intrinsics",
-                   "prealt_patch_tokens", "ref_view_idx", "view_order")
+ANYVIEW_OUTPUTS = (
+    "depth",
+    "depth_conf",
+    "ray",
+    "ray_conf",
+    "pose_enc",
+    "extrinsics",
+    "intrinsics",
+    "prealt_patch_tokens",
+    "ref_view_idx",
+    "view_order",
+)
 METRIC_OUTPUTS = ("metric_head_depth", "sky")
 DEFAULT_OPSET = 17
 
@@ -52,7 +62,9 @@ class _Graph(nn.Module):
         self.model = model
         self.strategy = strategy
 
-    def forward(self, images: Tensor, extrinsics: Tensor | None = None, intrinsics: Tensor | None = None) -> tuple[Tensor, ...]:
+    def forward(
+        self, images: Tensor, extrinsics: Tensor | None = None, intrinsics: Tensor | None = None
+    ) -> tuple[Tensor, ...]:
         anyview = self.model.da3 if isinstance(self.model, NestedDA3Net) else self.model
         out = anyview(images, extrinsics, intrinsics, ref_view_strategy=self.strategy, frames_chunk_size=None)
         result = tuple(out[k] for k in ANYVIEW_OUTPUTS)
@@ -121,8 +133,15 @@ def export_da3_onnx(
     with _static_pos_embed(model, height, width), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(
-            _Graph(model, ref_view_strategy), example, os.fspath(path), input_names=inputs, output_names=list(outputs),
-            dynamic_axes=axes if dynamic_frames else None, opset_version=opset, do_constant_folding=True, dynamo=False,
+            _Graph(model, ref_view_strategy),
+            example,
+            os.fspath(path),
+            input_names=inputs,
+            output_names=list(outputs),
+            dynamic_axes=axes if dynamic_frames else None,
+            opset_version=opset,
+            do_constant_folding=True,
+            dynamo=False,
         )
     return path
 
@@ -151,7 +170,9 @@ class DA3OnnxRunner:
         self.inputs = [i.name for i in self.session.get_inputs()]
         self.outputs = [o.name for o in self.session.get_outputs()]
 
-    def run(self, images: np.ndarray, extrinsics: np.ndarray | None = None, intrinsics: np.ndarray | None = None) -> dict[str, Tensor]:
+    def run(
+        self, images: np.ndarray, extrinsics: np.ndarray | None = None, intrinsics: np.ndarray | None = None
+    ) -> dict[str, Tensor]:
         feeds = {"images": np.ascontiguousarray(images, dtype=np.float32)}
         if "in_extrinsics" in self.inputs:
             if extrinsics is None or intrinsics is None:
@@ -172,8 +193,16 @@ class OnnxBackend:
         self.folder.mkdir(parents=True, exist_ok=True)
         self._runners: dict[tuple[int, str, bool, int], DA3OnnxRunner] = {}
 
-    def run(self, model: DA3Net | NestedDA3Net, images: Tensor, strategy: str, ext: Tensor | None = None,
-            intr: Tensor | None = None, use_ray_pose: bool = False, ransac_sample_idx: Tensor | None = None) -> dict[str, np.ndarray]:
+    def run(
+        self,
+        model: DA3Net | NestedDA3Net,
+        images: Tensor,
+        strategy: str,
+        ext: Tensor | None = None,
+        intr: Tensor | None = None,
+        use_ray_pose: bool = False,
+        ransac_sample_idx: Tensor | None = None,
+    ) -> dict[str, np.ndarray]:
         b, s, _, h, w = images.shape
         key = (id(model), strategy, ext is not None, s)
         if key not in self._runners:
@@ -181,12 +210,18 @@ class OnnxBackend:
             name = f"{type(model).__name__}_{strategy}{'_posed' if ext is not None else ''}_{s}.onnx"
             path = export_da3_onnx(model, self.folder / name, trace_frames, h, w, strategy, ext is not None)
             self._runners[key] = DA3OnnxRunner(path)
-        out = self._runners[key].run(images.numpy(), None if ext is None else ext.numpy(), None if intr is None else intr.numpy())
+        out = self._runners[key].run(
+            images.numpy(), None if ext is None else ext.numpy(), None if intr is None else intr.numpy()
+        )
         if use_ray_pose:
             torch.manual_seed(2024)
             rp = cameras_from_rays(out["ray"], out["ray_conf"], (h, w), ransac_sample_idx)
-            out.update(extrinsics=rp.extrinsics, intrinsics=rp.intrinsics, ransac_sample_idx=rp.sample_idx,
-                       ransac_homography=rp.homography)
+            out.update(
+                extrinsics=rp.extrinsics,
+                intrinsics=rp.intrinsics,
+                ransac_sample_idx=rp.sample_idx,
+                ransac_homography=rp.homography,
+            )
         result = {k: v.numpy() for k, v in out.items()}
         result["metric_sky"] = result.get("sky", np.zeros(0))
         return result

@@ -120,7 +120,9 @@ def _canonical_points(ny: int, nx: int, device: torch.device) -> Tensor:
     return torch.stack([gx - 1.0, gy - 1.0], dim=-1).reshape(-1, 2)
 
 
-def cameras_from_rays(ray: Tensor, ray_conf: Tensor, image_hw: tuple[int, int], sample_idx: Tensor | None = None) -> RayPose:
+def cameras_from_rays(
+    ray: Tensor, ray_conf: Tensor, image_hw: tuple[int, int], sample_idx: Tensor | None = None
+) -> RayPose:
     """Decodes cameras from ``ray [B, S, ny, nx, 6]`` and ``ray_conf [B, S, ny, nx]`` (see module doc).
 
     ``sample_idx [100, 8]``: RANSAC candidate indices; drawn from the global RNG when None.
@@ -134,7 +136,9 @@ def cameras_from_rays(ray: Tensor, ray_conf: Tensor, image_hw: tuple[int, int], 
     src = _canonical_points(ny, nx, ray.device).expand(b * s, n, 2)
     d = rays[..., :3]
     valid = d[..., 2].abs() > Z_THRESHOLD
-    dst = torch.where(valid[..., None], d[..., :2] / torch.where(valid, d[..., 2], torch.ones_like(d[..., 2]))[..., None], d[..., :2])
+    dst = torch.where(
+        valid[..., None], d[..., :2] / torch.where(valid, d[..., 2], torch.ones_like(d[..., 2]))[..., None], d[..., :2]
+    )
     weight = torch.where(valid, weight, torch.zeros_like(weight))
     homography = _ransac(src, dst, weight, sample_idx.to(ray.device))
     a = torch.where((torch.linalg.det(homography) < 0)[:, None, None], -homography, homography)

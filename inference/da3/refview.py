@@ -18,8 +18,13 @@ import torch
 from torch import Tensor
 
 __all__ = [
-    "STRATEGIES", "MIN_VIEWS_FOR_SELECTION", "balance_scores", "select_reference_view", "reference_order",
-    "restore_order", "gather_views",
+    "STRATEGIES",
+    "MIN_VIEWS_FOR_SELECTION",
+    "balance_scores",
+    "select_reference_view",
+    "reference_order",
+    "restore_order",
+    "gather_views",
 ]
 
 STRATEGIES = ("first", "middle", "saddle_balanced", "saddle_sim_range")

@@ -50,8 +50,14 @@ def load_pi3_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadR
     state = {k: v for k, v in state.items() if k not in ignored}
     missing, unexpected, mismatched = key_differences(state, expected, OPTIONAL_KEYS)
     if missing or unexpected or mismatched:
-        raise mismatch_error(path, f"{type(model).__name__} model", missing, unexpected, mismatched,
-                             hint="the model config -- pi3 / pi3x, its sizes --")
+        raise mismatch_error(
+            path,
+            f"{type(model).__name__} model",
+            missing,
+            unexpected,
+            mismatched,
+            hint="the model config -- pi3 / pi3x, its sizes --",
+        )
     on_meta = any(t.is_meta for t in expected.values())
     absent = [k for k in OPTIONAL_KEYS if k in expected and k not in state]
     result = model.load_state_dict(state, strict=False, assign=on_meta)

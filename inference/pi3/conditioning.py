@@ -169,15 +169,17 @@ def _divide_translation(T: Tensor, divisor: Tensor) -> Tensor:
     return out
 
 
-def _default_mask(given: Tensor | None, present: bool, with_prior: bool, shape: tuple[int, int],
-                  device: torch.device) -> Tensor:
+def _default_mask(
+    given: Tensor | None, present: bool, with_prior: bool, shape: tuple[int, int], device: torch.device
+) -> Tensor:
     if given is not None:
         return given.to(device=device, dtype=torch.bool).clone()
     return torch.full(shape, present and with_prior, dtype=torch.bool, device=device)
 
 
-def prepare_conditions(cond: Conditions, batch: int, views: int, height: int, width: int,
-                       device: torch.device) -> PreparedConditions:
+def prepare_conditions(
+    cond: Conditions, batch: int, views: int, height: int, width: int, device: torch.device
+) -> PreparedConditions:
     """The official ``encode`` preamble (see the module docstring), in float32."""
     shape = (batch, views)
     depths = cond.depths.float() if cond.depths is not None else torch.zeros(batch, views, height, width, device=device)
@@ -189,8 +191,9 @@ def prepare_conditions(cond: Conditions, batch: int, views: int, height: int, wi
         rays = torch.zeros(batch, views, height, width, 2, device=device)
     poses = cond.poses.float() if cond.poses is not None else torch.eye(4, device=device).expand(batch, views, 4, 4)
     mask_depth = _default_mask(cond.mask_depth, cond.depths is not None, cond.with_prior, shape, device)
-    mask_ray = _default_mask(cond.mask_ray, cond.rays is not None or cond.intrinsics is not None,
-                             cond.with_prior, shape, device)
+    mask_ray = _default_mask(
+        cond.mask_ray, cond.rays is not None or cond.intrinsics is not None, cond.with_prior, shape, device
+    )
     mask_pose = _default_mask(cond.mask_pose, cond.poses is not None, cond.with_prior, shape, device)
     mask_pose[mask_pose.sum(dim=1) == 1] = False
 

@@ -37,7 +37,14 @@ from swiftjax.prediction import ChunkPrediction
 
 from ..preprocess import to_uint8_images
 
-__all__ = ["metric_scale", "intrinsics_from_local_points", "usable_intrinsics", "rebase_extrinsics", "confidence_from_logit", "to_chunk_prediction"]
+__all__ = [
+    "metric_scale",
+    "intrinsics_from_local_points",
+    "usable_intrinsics",
+    "rebase_extrinsics",
+    "confidence_from_logit",
+    "to_chunk_prediction",
+]
 
 
 def intrinsics_from_local_points(points: Any, center_principal_point: bool = False) -> np.ndarray:
@@ -92,7 +99,9 @@ def usable_intrinsics(K: np.ndarray, height: int, width: int) -> np.ndarray:
         warnings.warn(
             f"π³: the rays of view(s) {np.flatnonzero(bad).tolist()} describe no pinhole camera (fitted fx, fy "
             f"= {f[bad][0].round(3).tolist()}, ...); using a nominal {NOMINAL_HFOV_DEG:g}° field of view there",
-            RuntimeWarning, stacklevel=2)
+            RuntimeWarning,
+            stacklevel=2,
+        )
         K[bad] = [[nominal, 0.0, (width - 1) / 2.0], [0.0, nominal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
     return K
 
@@ -128,8 +137,9 @@ def confidence_from_logit(logit: Any) -> np.ndarray:
     return (0.5 * (1.0 + np.tanh(0.5 * x))).astype(np.float32)
 
 
-def to_chunk_prediction(outputs: dict[str, Any], images: Any | None = None,
-                        center_principal_point: bool = False) -> ChunkPrediction:
+def to_chunk_prediction(
+    outputs: dict[str, Any], images: Any | None = None, center_principal_point: bool = False
+) -> ChunkPrediction:
     """One scene's outputs (batch axis removed, NumPy or torch) -> :class:`ChunkPrediction`.
 
     Args:
@@ -146,7 +156,9 @@ def to_chunk_prediction(outputs: dict[str, Any], images: Any | None = None,
         depth=np.ascontiguousarray(local[..., 2]),
         conf=confidence_from_logit(arr["conf"].reshape(s, h, w)),
         extrinsic=rebase_extrinsics(arr["camera_poses"]).astype(np.float32),
-        intrinsic=usable_intrinsics(intrinsics_from_local_points(local, center_principal_point), h, w).astype(np.float32),
+        intrinsic=usable_intrinsics(intrinsics_from_local_points(local, center_principal_point), h, w).astype(
+            np.float32
+        ),
         patch_tokens=np.ascontiguousarray(arr["dino_patch_tokens"], dtype=np.float32),
         images=None if images is None else to_uint8_images(np.asarray(images)),
     )

@@ -209,4 +209,6 @@ class PoseInjectBlock(nn.Module):
     def forward(self, x: Tensor, cam_to_world: Tensor, patches_hw: tuple[int, int], attn_mask: Tensor | None) -> Tensor:
         """``x [B, V*P, C]``, ``cam_to_world [B, V, 4, 4]`` -> delta ``[B, V*P, C]``."""
         world_to_cam = se3_inverse(cam_to_world)
-        return self.ls1(self.attn(self.norm1(x), world_to_cam, patches_hw, attn_mask)) + self.ls2(self.mlp(self.norm2(x)))
+        return self.ls1(self.attn(self.norm1(x), world_to_cam, patches_hw, attn_mask)) + self.ls2(
+            self.mlp(self.norm2(x))
+        )

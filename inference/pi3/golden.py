@@ -30,16 +30,20 @@ import numpy as np
 
 from ..check_golden import Check
 
-__all__ = ["ATOL", "RTOL", "EXACT_KEYS", "PI3X_RUNS", "REQUIRED_FILES", "run_checks", "run_pi3_checks",
-           "torch_outputs"]
+__all__ = ["ATOL", "RTOL", "EXACT_KEYS", "PI3X_RUNS", "REQUIRED_FILES", "run_checks", "run_pi3_checks", "torch_outputs"]
 
 ATOL = 1e-4
 RTOL = 1e-4
 EXACT_KEYS = ("decode_pos",)
 PI3X_RUNS = ("uncond", "cond", "condpartial")
 _INPUT_KEYS = ("input_imgs", "forward_input_imgs")
-REQUIRED_FILES = ("tiny_config.json", "tiny_weights.safetensors", "tiny_golden.npz",
-                  "tiny_weights_pi3x.safetensors", "tiny_golden_pi3x.npz")
+REQUIRED_FILES = (
+    "tiny_config.json",
+    "tiny_weights.safetensors",
+    "tiny_golden.npz",
+    "tiny_weights_pi3x.safetensors",
+    "tiny_golden_pi3x.npz",
+)
 
 
 def compare(backend: str, name: str, got: np.ndarray, ref: np.ndarray) -> Check:
@@ -83,8 +87,12 @@ def golden_conditions(golden: Mapping[str, np.ndarray], run: str) -> Any:
         return torch.from_numpy(golden[key]) if key in golden else None
 
     return Conditions(
-        intrinsics=get("intrinsics"), depths=get("depths"), poses=get("poses"),
-        mask_depth=get("mask_add_depth"), mask_ray=get("mask_add_ray"), mask_pose=get("mask_add_pose"),
+        intrinsics=get("intrinsics"),
+        depths=get("depths"),
+        poses=get("poses"),
+        mask_depth=get("mask_add_depth"),
+        mask_ray=get("mask_add_ray"),
+        mask_pose=get("mask_add_pose"),
     )
 
 
@@ -104,12 +112,22 @@ def torch_outputs(model: Any, golden: Mapping[str, np.ndarray], run: str | None)
     return {prefix + k: v.detach().numpy() for k, v in merged.items()}
 
 
-def _compare_all(backend: str, outputs: Mapping[str, np.ndarray], golden: Mapping[str, np.ndarray],
-                 prefix: str = "", required: Sequence[str] | None = None) -> list[Check]:
-    keys = required if required is not None else [
-        k for k in golden
-        if k.startswith(prefix) and k.split(":")[-1] not in _INPUT_KEYS and ".cond_input." not in k
-    ]
+def _compare_all(
+    backend: str,
+    outputs: Mapping[str, np.ndarray],
+    golden: Mapping[str, np.ndarray],
+    prefix: str = "",
+    required: Sequence[str] | None = None,
+) -> list[Check]:
+    keys = (
+        required
+        if required is not None
+        else [
+            k
+            for k in golden
+            if k.startswith(prefix) and k.split(":")[-1] not in _INPUT_KEYS and ".cond_input." not in k
+        ]
+    )
     checks = []
     for k in keys:
         if k in outputs:
@@ -124,13 +142,20 @@ def run_checks(directory: str | Path, onnx: bool = True, onnx_dir: str | Path | 
     d = Path(directory)
     checks: list[Check] = []
     pi3, g3 = _load(d, "pi3")
-    checks += _compare_all("torch", {f"pi3:{k}": v for k, v in torch_outputs(pi3, g3, None).items()},
-                           {f"pi3:{k}": v for k, v in g3.items()})
+    checks += _compare_all(
+        "torch",
+        {f"pi3:{k}": v for k, v in torch_outputs(pi3, g3, None).items()},
+        {f"pi3:{k}": v for k, v in g3.items()},
+    )
     pi3x, gx = _load(d, "pi3x")
     for run in PI3X_RUNS:
         out = torch_outputs(pi3x, gx, run)
-        checks += _compare_all("torch", {f"pi3x:{k}": v for k, v in out.items()},
-                               {f"pi3x:{k}": v for k, v in gx.items()}, prefix=f"pi3x:{run}.")
+        checks += _compare_all(
+            "torch",
+            {f"pi3x:{k}": v for k, v in out.items()},
+            {f"pi3x:{k}": v for k, v in gx.items()},
+            prefix=f"pi3x:{run}.",
+        )
     if onnx:
         with tempfile.TemporaryDirectory() as tmp:
             where = Path(onnx_dir) if onnx_dir is not None else Path(tmp)
@@ -155,9 +180,14 @@ def _per_scene(runner: Any, images: np.ndarray, conditions: Any = None) -> dict[
     for b in range(images.shape[0]):
         cond = None
         if conditions is not None:
-            cond = dataclasses.replace(conditions, **{
-                f.name: getattr(conditions, f.name)[b : b + 1] for f in dataclasses.fields(conditions)
-                if isinstance(getattr(conditions, f.name), torch.Tensor)})
+            cond = dataclasses.replace(
+                conditions,
+                **{
+                    f.name: getattr(conditions, f.name)[b : b + 1]
+                    for f in dataclasses.fields(conditions)
+                    if isinstance(getattr(conditions, f.name), torch.Tensor)
+                },
+            )
         outs.append(runner.forward(images[b], cond))
     stacked = {k: np.stack([o[k] for o in outs]) for k in outs[0]}
     stacked["metric"] = stacked["metric"].reshape(-1) if "metric" in stacked else None
@@ -165,8 +195,9 @@ def _per_scene(runner: Any, images: np.ndarray, conditions: Any = None) -> dict[
     return {k: v for k, v in stacked.items() if v is not None}
 
 
-def _onnx_checks(pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[str, np.ndarray],
-                 where: Path) -> list[Check]:
+def _onnx_checks(
+    pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[str, np.ndarray], where: Path
+) -> list[Check]:
     from .onnx import Pi3OnnxRunner, export_pi3_onnx
 
     checks: list[Check] = []
@@ -175,8 +206,12 @@ def _onnx_checks(pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[
     export_pi3_onnx(pi3, where / "pi3.onnx", frames=max(2, s - 1), height=h, width=w)
     out = _per_scene(Pi3OnnxRunner(where / "pi3.onnx"), g3["input_imgs"])
     keys = [k for k in ("points", "local_points", "conf", "camera_poses", "dino_patch_tokens") if k in g3]
-    checks += _compare_all("onnxruntime", {f"pi3:{k}": v for k, v in out.items()},
-                           {f"pi3:{k}": v for k, v in g3.items()}, required=[f"pi3:{k}" for k in keys])
+    checks += _compare_all(
+        "onnxruntime",
+        {f"pi3:{k}": v for k, v in out.items()},
+        {f"pi3:{k}": v for k, v in g3.items()},
+        required=[f"pi3:{k}" for k in keys],
+    )
     s, h, w = gx["input_imgs"].shape[1], gx["input_imgs"].shape[3], gx["input_imgs"].shape[4]
     export_pi3_onnx(pi3x, where / "pi3x.onnx", frames=max(2, s - 1), height=h, width=w)
     runner = Pi3OnnxRunner(where / "pi3x.onnx")
@@ -184,6 +219,10 @@ def _onnx_checks(pi3: Any, g3: Mapping[str, np.ndarray], pi3x: Any, gx: Mapping[
         out = _per_scene(runner, gx["input_imgs"], golden_conditions(gx, run))
         names = ("points", "local_points", "conf", "camera_poses", "rays", "metric", "dino_patch_tokens")
         keys = [f"pi3x:{run}.{k}" for k in names if f"{run}.{k}" in gx]
-        checks += _compare_all("onnxruntime", {f"pi3x:{run}.{k}": v for k, v in out.items()},
-                               {f"pi3x:{k}": v for k, v in gx.items()}, required=keys)
+        checks += _compare_all(
+            "onnxruntime",
+            {f"pi3x:{run}.{k}": v for k, v in out.items()},
+            {f"pi3x:{k}": v for k, v in gx.items()},
+            required=keys,
+        )
     return checks

@@ -105,7 +105,9 @@ def view_plane_uv(height: int, width: int, aspect: float, dtype: torch.dtype, de
     span_x = aspect / (1 + aspect**2) ** 0.5
     span_y = 1 / (1 + aspect**2) ** 0.5
     u = torch.linspace(-span_x * (width - 1) / width, span_x * (width - 1) / width, width, dtype=dtype, device=device)
-    v = torch.linspace(-span_y * (height - 1) / height, span_y * (height - 1) / height, height, dtype=dtype, device=device)
+    v = torch.linspace(
+        -span_y * (height - 1) / height, span_y * (height - 1) / height, height, dtype=dtype, device=device
+    )
     return torch.stack([u[None, :].expand(height, width), v[:, None].expand(height, width)], dim=0)
 
 

@@ -112,8 +112,9 @@ class Pi3Base(nn.Module):
 
     def origin_rope(self, device: torch.device) -> RopeTables:
         """Tables for one token at position (0, 0) (the identity rotation)."""
-        return rope_tables_2d(torch.zeros(1, 2, dtype=torch.long, device=device), self.config.attn_head_dim,
-                              self.config.rope_freq)
+        return rope_tables_2d(
+            torch.zeros(1, 2, dtype=torch.long, device=device), self.config.attn_head_dim, self.config.rope_freq
+        )
 
     def encode_images(self, images: Tensor, trace: Trace | None) -> Tensor:
         """``[B,N,3,H,W]`` in [0,1] -> DINO ``x_norm_patchtokens [B*N, P, C]``."""
@@ -160,8 +161,9 @@ class Pi3Base(nn.Module):
             ph, pw = patches_hw
             rows = torch.arange(ph, device=out.device).repeat_interleave(pw)
             cols = torch.arange(pw, device=out.device).repeat(ph)
-            pos = torch.cat([torch.zeros(self.patch_start, 2, device=out.device),
-                             torch.stack([rows, cols], -1).float() + 1])
+            pos = torch.cat(
+                [torch.zeros(self.patch_start, 2, device=out.device), torch.stack([rows, cols], -1).float() + 1]
+            )
             trace["decode_pos"] = pos.expand(bn, -1, -1)
         return out
 

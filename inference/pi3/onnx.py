@@ -59,8 +59,9 @@ class _Wrapper(nn.Module):
     def forward(self, images: Tensor, *cond: Tensor) -> tuple[Tensor, ...]:
         if cond:
             depth_input, rays_xy, poses, m_depth, m_ray, m_pose = cond
-            prep = PreparedConditions(depth_input, rays_xy, poses, torch.ones_like(m_depth[:, 0]),
-                                      m_depth, m_ray, m_pose)
+            prep = PreparedConditions(
+                depth_input, rays_xy, poses, torch.ones_like(m_depth[:, 0]), m_depth, m_ray, m_pose
+            )
             raw = self.model.forward_prepared(images, prep)  # type: ignore[operator]
         elif self.model.config.variant == "pi3x":
             raw = self.model.forward_prepared(images, None)  # type: ignore[operator]
@@ -89,12 +90,25 @@ def _export_mode(model: Pi3Base, height: int, width: int) -> Iterator[None]:
 
 
 def _condition_arrays(prep: PreparedConditions) -> list[Tensor]:
-    return [prep.depth_input, prep.rays_xy, prep.poses,
-            prep.mask_depth.float(), prep.mask_ray.float(), prep.mask_pose.float()]
+    return [
+        prep.depth_input,
+        prep.rays_xy,
+        prep.poses,
+        prep.mask_depth.float(),
+        prep.mask_ray.float(),
+        prep.mask_pose.float(),
+    ]
 
 
-def export_pi3_onnx(model: Pi3Base, path: str | os.PathLike[str], frames: int, height: int, width: int,
-                    opset: int = DEFAULT_OPSET, seed: int = 0) -> str:
+def export_pi3_onnx(
+    model: Pi3Base,
+    path: str | os.PathLike[str],
+    frames: int,
+    height: int,
+    width: int,
+    opset: int = DEFAULT_OPSET,
+    seed: int = 0,
+) -> str:
     """Exports ``model`` (moved to CPU float32 eval) to ``path`` with a dynamic frame axis.
 
     Traced on seeded random images of ``frames`` frames (``>= 2``: π³X's pose condition needs
@@ -115,12 +129,23 @@ def export_pi3_onnx(model: Pi3Base, path: str | os.PathLike[str], frames: int, h
         K = torch.tensor([[float(width), 0, width / 2], [0, float(width), height / 2], [0, 0, 1]])
         poses = torch.eye(4).repeat(1, frames, 1, 1)
         poses[..., 2, 3] = torch.arange(frames, dtype=torch.float32)
-        cond = Conditions(intrinsics=K.expand(1, frames, 3, 3), depths=torch.rand(1, frames, height, width, generator=gen) + 1,
-                          poses=poses)
+        cond = Conditions(
+            intrinsics=K.expand(1, frames, 3, 3),
+            depths=torch.rand(1, frames, height, width, generator=gen) + 1,
+            poses=poses,
+        )
         args += _condition_arrays(prepare_conditions(cond, 1, frames, height, width, torch.device("cpu")))
         input_names += list(CONDITION_INPUTS)
-        dynamic.update({"depth_input": {0: "frames"}, "rays_xy": {0: "frames"}, "poses": {1: "frames"},
-                        "mask_depth": {1: "frames"}, "mask_ray": {1: "frames"}, "mask_pose": {1: "frames"}})
+        dynamic.update(
+            {
+                "depth_input": {0: "frames"},
+                "rays_xy": {0: "frames"},
+                "poses": {1: "frames"},
+                "mask_depth": {1: "frames"},
+                "mask_ray": {1: "frames"},
+                "mask_pose": {1: "frames"},
+            }
+        )
     names = _output_names(model)
     for name in names:
         if name != "metric":
@@ -128,8 +153,17 @@ def export_pi3_onnx(model: Pi3Base, path: str | os.PathLike[str], frames: int, h
     path = os.fspath(path)
     with _export_mode(model, height, width), torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tracer warnings about shape-derived Python ints
-        torch.onnx.export(_Wrapper(model), tuple(args), path, input_names=input_names, output_names=list(names),
-                          dynamic_axes=dynamic, opset_version=opset, do_constant_folding=True, dynamo=False)
+        torch.onnx.export(
+            _Wrapper(model),
+            tuple(args),
+            path,
+            input_names=input_names,
+            output_names=list(names),
+            dynamic_axes=dynamic,
+            opset_version=opset,
+            do_constant_folding=True,
+            dynamo=False,
+        )
     return path
 
 
@@ -142,8 +176,9 @@ class Pi3OnnxRunner:
         intra_op_threads: threads per operator (0 = onnxruntime's default).
     """
 
-    def __init__(self, path: str | os.PathLike[str], providers: Sequence[str] | None = None,
-                 intra_op_threads: int = 0) -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], providers: Sequence[str] | None = None, intra_op_threads: int = 0
+    ) -> None:
         self.session = ort_session(path, providers, intra_op_threads)
         self.inputs = [i.name for i in self.session.get_inputs()]
         self.outputs = [o.name for o in self.session.get_outputs()]
@@ -161,8 +196,10 @@ class Pi3OnnxRunner:
         if arr.ndim != 4 or arr.shape[1] != 3:
             raise ValueError(f"images must be [S, 3, H, W], got shape {arr.shape}")
         if tuple(arr.shape[2:]) != self.image_hw:
-            raise ValueError(f"the graph was exported for {self.image_hw[0]}x{self.image_hw[1]} images, got "
-                             f"{arr.shape[2]}x{arr.shape[3]}: export again for this size")
+            raise ValueError(
+                f"the graph was exported for {self.image_hw[0]}x{self.image_hw[1]} images, got "
+                f"{arr.shape[2]}x{arr.shape[3]}: export again for this size"
+            )
         feed: dict[str, np.ndarray] = {"images": arr[None]}
         if self.conditioned:
             s, _, h, w = arr.shape

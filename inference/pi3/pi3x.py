@@ -54,8 +54,9 @@ class Pi3X(Pi3Base):
         self.camera_decoder = TransformerDecoder(2 * cfg.dim, cfg.head_width, cfg.camera_out, cfg.head_depth, heads)
         self.camera_head = CameraHead(cfg.camera_out)
         self.metric_token = nn.Parameter(torch.zeros(1, 1, 2 * cfg.dim))
-        self.metric_decoder = ContextDecoder(2 * cfg.dim, cfg.metric_width, cfg.metric_width, cfg.head_depth,
-                                             cfg.heads(cfg.metric_width))
+        self.metric_decoder = ContextDecoder(
+            2 * cfg.dim, cfg.metric_width, cfg.metric_width, cfg.head_depth, cfg.heads(cfg.metric_width)
+        )
         self.metric_head = nn.Linear(cfg.metric_width, 1)
         self.conf_decoder = TransformerDecoder(2 * cfg.dim, cfg.head_width, cfg.point_out, cfg.head_depth, heads)
         self.conf_head = ConvHead(cfg.dim, (1,), cfg.conv_upsample, cfg.conv_last, patch_size=cfg.patch_size)
@@ -84,8 +85,9 @@ class Pi3X(Pi3Base):
             tokens = tokens + ray_tokens * prep.mask_ray.reshape(-1, 1, 1).to(tokens.dtype)
         return tokens
 
-    def _pose_injector(self, prep: PreparedConditions, views: int, patches_hw: tuple[int, int],
-                       trace: Trace | None):  # a closure for Pi3Base.decode
+    def _pose_injector(
+        self, prep: PreparedConditions, views: int, patches_hw: tuple[int, int], trace: Trace | None
+    ):  # a closure for Pi3Base.decode
         mask = prep.mask_pose  # [B, N]
         if not self.static_graph and not bool(mask.any()):
             return None
@@ -120,11 +122,14 @@ class Pi3X(Pi3Base):
     def _conv_head(self, head: ConvHead, tokens: Tensor, patches_hw: tuple[int, int]) -> list[Tensor]:
         if self.static_graph:  # exported graph: one pass (a traced chunk loop would be frozen)
             return head(tokens, patches_hw)
-        parts = [head(tokens[i : i + _CONV_HEAD_CHUNK], patches_hw) for i in range(0, tokens.shape[0], _CONV_HEAD_CHUNK)]
+        parts = [
+            head(tokens[i : i + _CONV_HEAD_CHUNK], patches_hw) for i in range(0, tokens.shape[0], _CONV_HEAD_CHUNK)
+        ]
         return [torch.cat([p[j] for p in parts], dim=0) for j in range(len(parts[0]))]
 
-    def forward_raw(self, images: Tensor, conditions: Conditions | None = None,
-                    trace: Trace | None = None) -> dict[str, Tensor]:
+    def forward_raw(
+        self, images: Tensor, conditions: Conditions | None = None, trace: Trace | None = None
+    ) -> dict[str, Tensor]:
         """Everything up to (not including) the SVD: see :func:`~inference.pi3.model.assemble`.
 
         ``conditions=None`` skips the conditioning preamble altogether; ``Conditions()`` (no
@@ -138,8 +143,9 @@ class Pi3X(Pi3Base):
             prep = prepare_conditions(conditions, b, n, h, w, images.device)
         return self.forward_prepared(images, prep, trace)
 
-    def forward_prepared(self, images: Tensor, prep: PreparedConditions | None,
-                         trace: Trace | None = None) -> dict[str, Tensor]:
+    def forward_prepared(
+        self, images: Tensor, prep: PreparedConditions | None, trace: Trace | None = None
+    ) -> dict[str, Tensor]:
         """:meth:`forward_raw` with the conditions already prepared (the ONNX graph's body)."""
         b, n, _, h, w = images.shape
         phw = self.patches_hw(images)
@@ -163,8 +169,12 @@ class Pi3X(Pi3Base):
         )
         conf_hidden = self.conf_decoder(hidden, rope)
         if trace is not None:
-            trace.update(point_decoder_out=point_hidden, camera_decoder_out=camera_hidden,
-                         metric_decoder_out=metric_hidden, conf_decoder_out=conf_hidden)
+            trace.update(
+                point_decoder_out=point_hidden,
+                camera_decoder_out=camera_hidden,
+                metric_decoder_out=metric_hidden,
+                conf_decoder_out=conf_hidden,
+            )
 
         xy, z = self._conv_head(self.point_head, point_hidden[:, s:].float(), phw)
         xy = xy.permute(0, 2, 3, 1).reshape(b, n, h, w, 2)
@@ -181,8 +191,9 @@ class Pi3X(Pi3Base):
             "dino_patch_tokens": dino_tokens.reshape(b, n, *dino_tokens.shape[1:]),
         }
 
-    def forward(self, images: Tensor, conditions: Conditions | None = None,
-                trace: Trace | None = None) -> dict[str, Tensor]:
+    def forward(
+        self, images: Tensor, conditions: Conditions | None = None, trace: Trace | None = None
+    ) -> dict[str, Tensor]:
         """``images [B,N,3,H,W]`` in [0, 1], optional :class:`Conditions` -> the π³ outputs
         (metric-scaled) plus ``rays [B,N,H,W,3]`` and ``metric [B]``."""
         return assemble(self.forward_raw(images, conditions, trace))

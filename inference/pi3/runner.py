@@ -30,8 +30,13 @@ class Pi3TorchRunner:
             to every chunk as the ray condition (``--intrinsics``).
     """
 
-    def __init__(self, model: Pi3Base, device: str | torch.device = "cpu", dtype: torch.dtype | None = None,
-                 intrinsics: Any | None = None) -> None:
+    def __init__(
+        self,
+        model: Pi3Base,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype | None = None,
+        intrinsics: Any | None = None,
+    ) -> None:
         self.device = torch.device(device)
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
@@ -65,8 +70,10 @@ class Pi3TorchRunner:
         """One chunk -> :class:`ChunkPrediction` (:mod:`inference.pi3.convert`)."""
         out = self.forward(images, conditions)
         scene = to_host({k: v[0] for k, v in out.items() if k != "metric"})  # one move to the host
-        check_outputs({k: v for k, v in scene.items()
-                       if k in ("local_points", "conf", "camera_poses", "dino_patch_tokens")}, self.name)
+        check_outputs(
+            {k: v for k, v in scene.items() if k in ("local_points", "conf", "camera_poses", "dino_patch_tokens")},
+            self.name,
+        )
         return to_chunk_prediction(scene, images=images)
 
 

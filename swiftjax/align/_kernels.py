@@ -83,9 +83,7 @@ def _register() -> None:
         _registered = True
 
 
-def fused(
-    target: str, out_shapes: Callable[..., Any], reference: Callable[..., Any], *args: Array
-) -> Any:
+def fused(target: str, out_shapes: Callable[..., Any], reference: Callable[..., Any], *args: Array) -> Any:
     """``reference(*args)``, computed by the FFI ``target`` on CPU when :func:`available`.
 
     ``out_shapes(*args)`` gives the outputs' ``jax.ShapeDtypeStruct``s (those of
@@ -108,8 +106,9 @@ def fused(
     return f(*args)
 
 
-def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array,
-                  reference: Callable[..., Any]) -> tuple[Array, Array]:
+def pixel_moments(
+    dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut: Array, vt: Array, reference: Callable[..., Any]
+) -> tuple[Array, Array]:
     """Per-frame pixel moments ``(S [F, 6, 3, 3], n [F])`` (``n`` int32 reliable-pixel counts).
 
     ``dp, dc, cp, cc [F, H, W]``, ``params [F, 6] = (r_p, r_c, e_p, e_c, gamma, lam)``,
@@ -120,7 +119,9 @@ def pixel_moments(dp: Array, dc: Array, cp: Array, cc: Array, params: Array, ut:
     f, h, w = dp.shape[-3:]
     lead = dp.shape[:-3]
     shapes = lambda *a: (
-        jax.ShapeDtypeStruct((*lead, f, 6, 3, 3), dp.dtype), jax.ShapeDtypeStruct((*lead, f), jnp.int32))
+        jax.ShapeDtypeStruct((*lead, f, 6, 3, 3), dp.dtype),
+        jax.ShapeDtypeStruct((*lead, f), jnp.int32),
+    )
     return fused("swiftjax_pixel_moments", shapes, reference, dp, dc, cp, cc, params, ut, vt)
 
 
@@ -134,6 +135,5 @@ def umeyama_moments(
     same arguments and returns the same.
     """
     lead = w.shape[:-1]
-    shapes = lambda *a: (
-        jax.ShapeDtypeStruct((*lead, 18), src.dtype), jax.ShapeDtypeStruct(lead, jnp.int32))
+    shapes = lambda *a: (jax.ShapeDtypeStruct((*lead, 18), src.dtype), jax.ShapeDtypeStruct(lead, jnp.int32))
     return fused("swiftjax_umeyama_moments", shapes, reference, src, dst, w, centres)

@@ -175,8 +175,11 @@ def _gram_index(which: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index tables ``(image, k, l)`` ``[6, 6]`` gathering ``G`` from ``S`` (``which`` in yx/xx/yy)."""
     a, b = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
     da, db = _PHI_D[a], _PHI_D[b]
-    pw = {"yx": zip(da.ravel(), db.ravel()), "xx": ((0, i + j) for i, j in zip(da.ravel(), db.ravel())),
-          "yy": ((i + j, 0) for i, j in zip(da.ravel(), db.ravel()))}[which]
+    pw = {
+        "yx": zip(da.ravel(), db.ravel()),
+        "xx": ((0, i + j) for i, j in zip(da.ravel(), db.ravel())),
+        "yy": ((i + j, 0) for i, j in zip(da.ravel(), db.ravel())),
+    }[which]
     img = np.array([_IMG[ij] for ij in pw]).reshape(6, 6)
     k, l = _PHI_U[a] + _PHI_U[b], _PHI_V[a] + _PHI_V[b]
     return img.astype(np.int32), k.astype(np.int32), l.astype(np.int32)
@@ -242,9 +245,7 @@ def _affine_maps(B: Array, c: Array, e: Array, centre: Array, T: Array) -> Array
     return jnp.concatenate([Bt, e[:, None, None] * Bt[:, :, :2], last[:, :, None]], -1)
 
 
-def _moments_from_pixels(
-    S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy: Array
-) -> tuple[_Moments, Array]:
+def _moments_from_pixels(S: Array, n: Array, My: Array, Mx: Array, cx: Array, cy: Array) -> tuple[_Moments, Array]:
     """Combine per-frame pixel moments with the per-frame affine maps into global moments, and the
     source scatter ``sum w (x - cx)(x - cx)^T`` ``[3, 3]`` (whose trace is ``sxx``)."""
     Gyx, Gxx, Gyy = (S[:, i, k, l] for i, k, l in (_G_YX, _G_XX, _G_YY))  # [O, 6, 6]
@@ -327,13 +328,24 @@ def _align_once(
     # depths in chunk t's units and the solve below returns S' = S diag(rho)^-1; S = S' diag(rho).
     # With rho = 1 every product below is exact: the authors' numbers bit for bit.
     rho, _ = overlap_scale_ratio(
-        r_p[fsub][e] * prev.depth[sub], r_c[fsub][e] * cur.depth[sub], prev.conf[sub], cur.conf[sub],
-        conf_ratio, None if user_keep is None else user_keep[sub])
+        r_p[fsub][e] * prev.depth[sub],
+        r_c[fsub][e] * cur.depth[sub],
+        prev.conf[sub],
+        cur.conf[sub],
+        conf_ratio,
+        None if user_keep is None else user_keep[sub],
+    )
     rho = jax.lax.stop_gradient(jnp.where(use_scale_ratio, rho, 1).astype(dtype))
     r_c, c_c = rho * r_c, rho * c_c
 
     def mask(
-        depth_p: Array, depth_c: Array, conf_p: Array, conf_c: Array, rp: Array, rc: Array, lam: Array,
+        depth_p: Array,
+        depth_c: Array,
+        conf_p: Array,
+        conf_c: Array,
+        rp: Array,
+        rc: Array,
+        lam: Array,
         user: Array | None,
     ) -> Array:
         m = reliability_mask(rp[e] * depth_p, rc[e] * depth_c, conf_p, conf_c, lam, conf_ratio)
@@ -344,8 +356,16 @@ def _align_once(
 
     # Rough centres from a strided subsample of pixels (about 8 x 8 x 16 of them), masked with
     # the subsample's own confidence means: any centre is exact, it only conditions the sums.
-    m_sub = mask(prev.depth[sub], cur.depth[sub], prev.conf[sub], cur.conf[sub],
-                 r_p[fsub], r_c[fsub], depth_threshold, None if user_keep is None else user_keep[sub])
+    m_sub = mask(
+        prev.depth[sub],
+        cur.depth[sub],
+        prev.conf[sub],
+        cur.conf[sub],
+        r_p[fsub],
+        r_c[fsub],
+        depth_threshold,
+        None if user_keep is None else user_keep[sub],
+    )
     zero = jnp.zeros(3, dtype)
     ps = _points_soa(prev.depth[sub], r_p[fsub], B_p[fsub], c_p[fsub], zero, u[sub], v[sub])
     cs = _points_soa(cur.depth[sub], r_c[fsub], B_c[fsub], c_c[fsub], zero, u[sub], v[sub])
@@ -362,9 +382,12 @@ def _align_once(
     # Frames whose camera parameters are not finite are dropped as a whole (zero weight);
     # their zeroed parameters keep every per-frame term finite.
     frame_ok = (
-        jnp.isfinite(r_p) & jnp.isfinite(r_c)
-        & jnp.all(jnp.isfinite(B_p), (-2, -1)) & jnp.all(jnp.isfinite(B_c), (-2, -1))
-        & jnp.all(jnp.isfinite(c_p), -1) & jnp.all(jnp.isfinite(c_c), -1)
+        jnp.isfinite(r_p)
+        & jnp.isfinite(r_c)
+        & jnp.all(jnp.isfinite(B_p), (-2, -1))
+        & jnp.all(jnp.isfinite(B_c), (-2, -1))
+        & jnp.all(jnp.isfinite(c_p), -1)
+        & jnp.all(jnp.isfinite(c_c), -1)
     )
     keep = lambda a: jnp.where(frame_ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0)
     ut, vt, T = _pixel_grid(h, w, dtype)
@@ -493,8 +516,13 @@ def align_chunk_pair(
         plus one plain sum over the confidences for their per-frame means; the fallback
         pass runs only when needed.
     """
-    opts = _resolve(options, depth_threshold=depth_threshold, conf_ratio=conf_ratio, min_points=min_points,
-                    fallback_depth_threshold=fallback_depth_threshold)
+    opts = _resolve(
+        options,
+        depth_threshold=depth_threshold,
+        conf_ratio=conf_ratio,
+        min_points=min_points,
+        fallback_depth_threshold=fallback_depth_threshold,
+    )
     args = _core_arguments(prev, cur, K_ref, opts)
     return _align_core_jit(*args, None if mask is None else jnp.asarray(mask, bool))
 

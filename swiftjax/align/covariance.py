@@ -173,8 +173,9 @@ def alignment_information(S: ArrayLike, info: AlignInfo, **options: ArrayLike) -
     Invalid (``valid`` False) also when the alignment fell back to the camera poses
     (``info.pose_fallback``): the point statistics then say nothing about ``S``.
     """
-    out = umeyama_information(jnp.asarray(S)[..., 7], info.num_points, info.rms, info.src_mean,
-                              info.src_covariance, **options)
+    out = umeyama_information(
+        jnp.asarray(S)[..., 7], info.num_points, info.rms, info.src_mean, info.src_covariance, **options
+    )
     valid = out.valid & ~jnp.asarray(info.pose_fallback)
     return EdgeInformation(jnp.where(valid[..., None, None], out.information, 0), valid)
 

@@ -95,8 +95,16 @@ def overlap_scale_ratio(
     ca, cb = jnp.asarray(conf_a), jnp.asarray(conf_b)
     e = (Ellipsis, None, None)
     lam_c = jnp.asarray(conf_ratio, ca.dtype)
-    ok = (jnp.isfinite(da) & jnp.isfinite(db) & jnp.isfinite(ca) & jnp.isfinite(cb) & (da > 0) & (db > 0)
-          & (ca > lam_c * frame_conf_mean(ca)[e]) & (cb > lam_c * frame_conf_mean(cb)[e]))
+    ok = (
+        jnp.isfinite(da)
+        & jnp.isfinite(db)
+        & jnp.isfinite(ca)
+        & jnp.isfinite(cb)
+        & (da > 0)
+        & (db > 0)
+        & (ca > lam_c * frame_conf_mean(ca)[e])
+        & (cb > lam_c * frame_conf_mean(cb)[e])
+    )
     if keep is not None:
         ok = ok & jnp.asarray(keep, bool)
     log_ratio = jnp.log(jnp.where(ok, da, 1)) - jnp.log(jnp.where(ok, db, 1))

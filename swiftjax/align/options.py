@@ -57,7 +57,9 @@ class AlignOptions:
 
     def __post_init__(self) -> None:
         if self.overlap_scale not in OVERLAP_SCALE_RULES:
-            raise ValueError(f"AlignOptions: overlap_scale must be one of {OVERLAP_SCALE_RULES}, got {self.overlap_scale!r}")
+            raise ValueError(
+                f"AlignOptions: overlap_scale must be one of {OVERLAP_SCALE_RULES}, got {self.overlap_scale!r}"
+            )
 
     def replace(self, **changes: Any) -> AlignOptions:
         """A copy with ``changes`` applied (``None`` values are ignored)."""

@@ -62,7 +62,8 @@ def _fsync_dir(directory: pathlib.Path) -> None:
 
 #: The open :func:`output_set`'s pending renames ``[(temp, target)]`` (None: rename at once).
 _PENDING: contextvars.ContextVar[list[tuple[pathlib.Path, pathlib.Path]] | None] = contextvars.ContextVar(
-    "swiftjax_output_set", default=None)
+    "swiftjax_output_set", default=None
+)
 
 
 def _replace(tmp: pathlib.Path, target: pathlib.Path) -> bool:

@@ -148,9 +148,7 @@ class ChunkStore:
         half: store depth and confidence as float16 (default); ``False`` keeps float32 exactly.
     """
 
-    def __init__(
-        self, run_dir: PathLike, subdir: str = "chunks", compress: bool = False, half: bool = True
-    ) -> None:
+    def __init__(self, run_dir: PathLike, subdir: str = "chunks", compress: bool = False, half: bool = True) -> None:
         self.root = pathlib.Path(run_dir) / subdir
         if self.root.exists() and not self.root.is_dir():
             raise ValueError(f"{self.root} is a file where the run keeps its chunk store (a folder): move it away")
@@ -167,7 +165,11 @@ class ChunkStore:
         return self.root / f"{kind}_{int(index):05d}.npz"
 
     def save(
-        self, kind: str, index: int, prediction: ChunkPrediction, extra: dict[str, Any] | None = None,
+        self,
+        kind: str,
+        index: int,
+        prediction: ChunkPrediction,
+        extra: dict[str, Any] | None = None,
         half: bool | None = None,
     ) -> pathlib.Path:
         """Write one chunk atomically (replacing any previous file); returns its path.
@@ -220,8 +222,11 @@ class ChunkStore:
         when it needs the maps)."""
         path, data = self._open(kind, index)
         with data:
-            arrays = {n: _read_member(path, data, n, None) for n in data.files
-                      if not n.startswith(_CRC) and n not in ("members", *_HALF_FIELDS)}
+            arrays = {
+                n: _read_member(path, data, n, None)
+                for n in data.files
+                if not n.startswith(_CRC) and n not in ("members", *_HALF_FIELDS)
+            }
         arrays["dropped"] = np.asarray(sorted(_HALF_FIELDS), dtype=np.str_)
         self._write(path, arrays, None)
 
@@ -265,9 +270,7 @@ class ChunkStore:
             )
         return path, data
 
-    def load(
-        self, kind: str, index: int, frames: Any = None, fields: tuple[str, ...] | None = None
-    ) -> ChunkPrediction:
+    def load(self, kind: str, index: int, frames: Any = None, fields: tuple[str, ...] | None = None) -> ChunkPrediction:
         """The saved prediction, every float field as float32 (images uint8).
 
         Args:
@@ -322,8 +325,9 @@ class ChunkStore:
         path, data = self._open(kind, index)
         with data:
             return {
-                k[len(_EXTRA):]: _read_member(path, data, k, None) for k in data.files
-                if k.startswith(_EXTRA) and (names is None or k[len(_EXTRA):] in names)
+                k[len(_EXTRA) :]: _read_member(path, data, k, None)
+                for k in data.files
+                if k.startswith(_EXTRA) and (names is None or k[len(_EXTRA) :] in names)
             }
 
     def verify(self, kind: str, index: int) -> None:
@@ -385,7 +389,9 @@ def _read_member(path: pathlib.Path, data: Any, name: str, frames: Any) -> np.nd
             try:
                 picked = np.arange(length)[frames]
             except IndexError as e:
-                raise IndexError(f"{path}: frames {frames!r} out of range for {name} of shape {whole.shape} ({e})") from None
+                raise IndexError(
+                    f"{path}: frames {frames!r} out of range for {name} of shape {whole.shape} ({e})"
+                ) from None
             rows = np.atleast_1d(picked)
             value = np.array(whole[rows])
             del view, whole

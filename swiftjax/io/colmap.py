@@ -106,9 +106,7 @@ def world_to_camera_qt(cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return q_xyzw[:, [3, 0, 1, 2]], t_cw
 
 
-def _validate(
-    cam_to_world: np.ndarray, intrinsics: np.ndarray, names: Sequence[str], sizes: np.ndarray
-) -> None:
+def _validate(cam_to_world: np.ndarray, intrinsics: np.ndarray, names: Sequence[str], sizes: np.ndarray) -> None:
     n = len(names)
     if cam_to_world.shape not in ((n, 4, 4), (n, 3, 4)):
         raise ValueError(f"COLMAP export: cam_to_world has shape {cam_to_world.shape}, expected [{n}, 4, 4]")
@@ -276,9 +274,10 @@ def _check_observations(
 
 
 def _write_binary(out: pathlib.Path, model: _Model) -> None:
-    cam = np.empty(len(model.cameras), np.dtype(
-        [("id", "<u4"), ("model", "<i4"), ("width", "<u8"), ("height", "<u8"), ("params", "<f8", (4,))]
-    ))
+    cam = np.empty(
+        len(model.cameras),
+        np.dtype([("id", "<u4"), ("model", "<i4"), ("width", "<u8"), ("height", "<u8"), ("params", "<f8", (4,))]),
+    )
     cam["id"] = np.arange(1, len(cam) + 1)
     cam["model"] = _PINHOLE
     cam["width"], cam["height"] = model.cameras[:, 4], model.cameras[:, 5]
@@ -358,8 +357,12 @@ def _write_text(out: pathlib.Path, model: _Model) -> None:
         f.write(f"# Number of points: {m}, mean track length: {0 if model.obs is None else 1}\n")
         for a in range(0, m, _BATCH):
             b = min(a + _BATCH, m)
-            cols = [np.arange(a + 1, b + 1, dtype=np.float64), model.xyz[a:b].astype(np.float64),
-                    model.rgb[a:b], model.err[a:b]]
+            cols = [
+                np.arange(a + 1, b + 1, dtype=np.float64),
+                model.xyz[a:b].astype(np.float64),
+                model.rgb[a:b],
+                model.err[a:b],
+            ]
             if model.obs is not None:
                 cols += [model.obs.image_index[a:b] + 1, model.point2d_idx[a:b]]
             table = np.column_stack(cols)  # ids < 2^53 and colours are exact in float64; %d prints them

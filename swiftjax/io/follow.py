@@ -117,8 +117,9 @@ class FollowSource:
         FollowError: ``folder`` is not a folder, ``timeout_s`` or ``poll_s`` not positive.
     """
 
-    def __init__(self, folder: PathLike, *, end_marker: str | None = "END", timeout_s: float | None = 60.0,
-                 poll_s: float = 0.05) -> None:
+    def __init__(
+        self, folder: PathLike, *, end_marker: str | None = "END", timeout_s: float | None = 60.0, poll_s: float = 0.05
+    ) -> None:
         self.folder = pathlib.Path(folder)
         if not self.folder.is_dir():
             raise FollowError(f"{self.folder}: no such folder to follow")
@@ -163,7 +164,9 @@ class FollowSource:
             # the marker first: every frame it follows is then in the listing below
             ended = self.end_marker is not None and (self.folder / self.end_marker).exists()
             try:
-                listing = [p for p in self.folder.iterdir() if p.name not in read and _is_image(p)]  # no stat of read files
+                listing = [
+                    p for p in self.folder.iterdir() if p.name not in read and _is_image(p)
+                ]  # no stat of read files
             except FileNotFoundError:
                 raise FollowError(f"{self.folder}: the followed folder was removed") from None
             listing.sort(key=lambda p: natural_key(p.name))
@@ -190,8 +193,10 @@ class FollowSource:
                 img = self._read(p) if before == now_stat and st.st_size > 0 else None
                 if img is None:
                     if ended and before == now_stat:
-                        raise FollowError(f"{p}: still not a complete image ({st.st_size} bytes) when the end marker "
-                                          f"{self.end_marker} appeared")
+                        raise FollowError(
+                            f"{p}: still not a complete image ({st.st_size} bytes) when the end marker "
+                            f"{self.end_marker} appeared"
+                        )
                     waiting = p
                     break  # in name order: later frames wait for this one
                 hw = img.shape[:2]
@@ -217,11 +222,14 @@ class FollowSource:
                 return
             if self.timeout_s is not None and time.monotonic() - progress > self.timeout_s:
                 if waiting is not None:
-                    raise FollowError(f"{waiting}: still not a complete image after the follow timeout of "
-                                      f"{self.timeout_s:g} s without a change in the folder")
+                    raise FollowError(
+                        f"{waiting}: still not a complete image after the follow timeout of "
+                        f"{self.timeout_s:g} s without a change in the folder"
+                    )
                 if self.count == 0:
-                    raise FollowTimeoutError(f"{self.folder}: no frame arrived within the follow timeout of "
-                                             f"{self.timeout_s:g} s")
+                    raise FollowTimeoutError(
+                        f"{self.folder}: no frame arrived within the follow timeout of {self.timeout_s:g} s"
+                    )
                 self.ended_by = "timeout"
                 return
             self._stop.wait(self.poll_s)
@@ -302,17 +310,31 @@ class Recorder:
     end, and re-raises the writer's error, if any.
     """
 
-    def __init__(self, folder: PathLike, frames: Sequence[np.ndarray | PathLike], fps: float, *,
-                 names: Sequence[str] | None = None, ext: str = ".png", split: Sequence[int] = (),
-                 split_pause_s: float = 0.3, end_marker: str | None = "END", start_delay_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        folder: PathLike,
+        frames: Sequence[np.ndarray | PathLike],
+        fps: float,
+        *,
+        names: Sequence[str] | None = None,
+        ext: str = ".png",
+        split: Sequence[int] = (),
+        split_pause_s: float = 0.3,
+        end_marker: str | None = "END",
+        start_delay_s: float = 0.0,
+    ) -> None:
         self.folder = pathlib.Path(folder)
         self.frames = list(frames)
         self.fps, self.ext, self.split, self.split_pause_s = float(fps), ext, set(split), float(split_pause_s)
         self.end_marker, self.start_delay_s = end_marker, float(start_delay_s)
-        self.names = list(names) if names is not None else [
-            f"{k:06d}{ext if not isinstance(f, (str, os.PathLike)) else pathlib.Path(f).suffix}"
-            for k, f in enumerate(self.frames)
-        ]
+        self.names = (
+            list(names)
+            if names is not None
+            else [
+                f"{k:06d}{ext if not isinstance(f, (str, os.PathLike)) else pathlib.Path(f).suffix}"
+                for k, f in enumerate(self.frames)
+            ]
+        )
         if len(self.names) != len(self.frames):
             raise ValueError("Recorder: names and frames differ in length")
         self.written: list[pathlib.Path] = []
@@ -345,12 +367,12 @@ class Recorder:
                         f.flush()
                         if self._stop.wait(self.split_pause_s):
                             return
-                    f.write(data[len(data) // 2:] if k in self.split else data)
+                    f.write(data[len(data) // 2 :] if k in self.split else data)
                 self.finished_at.append(time.monotonic())
                 self.written.append(path)
             if self.end_marker is not None and not self._stop.is_set():
                 (self.folder / self.end_marker).touch()
-        except BaseException as err:  # noqa: BLE001 - handed to the caller by wait()
+        except BaseException as err:
             self.error = err
 
     def start(self) -> Recorder:

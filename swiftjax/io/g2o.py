@@ -109,7 +109,9 @@ def read_g2o(path: str | os.PathLike, *, scale_information: float | None = None)
                 vertices[vid] = np.concatenate([v[:3], _unit_quaternion(v[3:7], where), [1.0]])
             elif tag == _EDGE:
                 if len(rest) != 2 + 7 + 21:
-                    raise G2oError(f"{where}: expected 2 ids + 7 numbers + 21 information entries, got {len(rest)} fields")
+                    raise G2oError(
+                        f"{where}: expected 2 ids + 7 numbers + 21 information entries, got {len(rest)} fields"
+                    )
                 try:
                     i, j = int(rest[0]), int(rest[1])
                 except ValueError:

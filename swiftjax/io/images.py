@@ -335,7 +335,9 @@ class ImageFiles(FrameSource):
             raise InputError(f"{path}: corrupt image data (the decoder reported: {_first_line(said[0])})")
         size = self._sizes[i] if self._sizes is not None else None
         if size is not None and tuple(img.shape[:2]) != tuple(size):
-            raise InputError(f"{path}: decodes to {img.shape[1]}x{img.shape[0]} but its header says {size[1]}x{size[0]}")
+            raise InputError(
+                f"{path}: decodes to {img.shape[1]}x{img.shape[0]} but its header says {size[1]}x{size[0]}"
+            )
 
     def append(self, path: PathLike, name: str | None = None) -> None:
         """Add one more file as the last frame (a folder that grows: ``--follow``)."""
@@ -466,8 +468,11 @@ def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.
     """
     path = pathlib.Path(path)
     try:
-        numbered = [(n, ln.split()) for n, ln in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1)
-                    if ln.strip() and not ln.lstrip().startswith("#")]
+        numbered = [
+            (n, ln.split())
+            for n, ln in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1)
+            if ln.strip() and not ln.lstrip().startswith("#")
+        ]
     except IsADirectoryError:
         raise InputError(f"timestamps file {path} is a directory") from None
     except (OSError, UnicodeDecodeError) as err:
@@ -487,9 +492,7 @@ def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.
         for n, w in numbered:
             name = pathlib.PurePath(w[1]).name
             if name in by_name:
-                raise InputError(
-                    f"timestamps file {path} names frame {name} twice (lines {first_line[name]} and {n})"
-                )
+                raise InputError(f"timestamps file {path} names frame {name} twice (lines {first_line[name]} and {n})")
             by_name[name], first_line[name] = number(w[0]), n
         missing = [name for name in source.names if pathlib.PurePath(name).name not in by_name]
         if missing:
@@ -510,7 +513,9 @@ def read_timestamps(path: PathLike, source: FrameSource, stride: int = 1) -> np.
         raise InputError(f"timestamps file {path} holds non-finite times")
     if np.any(np.diff(t) <= 0):
         k = int(np.flatnonzero(np.diff(t) <= 0)[0])
-        raise InputError(f"timestamps file {path}: times must increase, but frame {k + 1} ({t[k + 1]}) <= frame {k} ({t[k]})")
+        raise InputError(
+            f"timestamps file {path}: times must increase, but frame {k + 1} ({t[k + 1]}) <= frame {k} ({t[k]})"
+        )
     return t
 
 
@@ -598,16 +603,20 @@ def _check_same_size(source: FrameSource) -> None:
             hint = ""
             if rotated:
                 k, o = next(iter(rotated.items()))
-                hint = (f"; note: EXIF orientation is ignored (frames are used as stored, as VGGT's loader does) and "
-                        f"{len(rotated)} frames, e.g. {source.names[k]} (orientation {o}), are stored rotated by 90 "
-                        f"degrees: rotate those files themselves (e.g. exiftran -ai, or mogrify -auto-orient)")
+                hint = (
+                    f"; note: EXIF orientation is ignored (frames are used as stored, as VGGT's loader does) and "
+                    f"{len(rotated)} frames, e.g. {source.names[k]} (orientation {o}), are stored rotated by 90 "
+                    f"degrees: rotate those files themselves (e.g. exiftran -ai, or mogrify -auto-orient)"
+                )
             raise InputError(
                 f"{source.description}: images differ in size: {source.names[0]} is {sizes[0][1]}x{sizes[0][0]} "
                 f"but {source.names[i]} is {s[1]}x{s[0]} (width x height); all frames must have one size{hint}"
             )
 
 
-def validate(source: FrameSource, skip_bad: bool = False, decode: bool = True, workers: int | None = None) -> FrameSource:
+def validate(
+    source: FrameSource, skip_bad: bool = False, decode: bool = True, workers: int | None = None
+) -> FrameSource:
     """Check every frame before any work starts; returns the source to use.
 
     Image files: each header is read, with the end marker of PNG and JPEG files (a

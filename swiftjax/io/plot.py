@@ -113,19 +113,51 @@ def plot_trajectory(
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     if ref is not None:
-        ax.plot(ref[:, a], ref[:, b], "-", color=_REFERENCE, lw=5.0, alpha=0.45, solid_capstyle="round",
-                label="ground truth", zorder=1)
+        ax.plot(
+            ref[:, a],
+            ref[:, b],
+            "-",
+            color=_REFERENCE,
+            lw=5.0,
+            alpha=0.45,
+            solid_capstyle="round",
+            label="ground truth",
+            zorder=1,
+        )
     if free is not None:
         ax.plot(free[:, a], free[:, b], "--", color=_NO_LOOPS, lw=1.0, label="without loop closure", zorder=2)
-    ax.plot(est[:, a], est[:, b], "-", color=_ESTIMATE, lw=1.2,
-            label="estimate" if free is None else "with loop closure", zorder=3)
+    ax.plot(
+        est[:, a],
+        est[:, b],
+        "-",
+        color=_ESTIMATE,
+        lw=1.2,
+        label="estimate" if free is None else "with loop closure",
+        zorder=3,
+    )
     ax.plot(est[:1, a], est[:1, b], "o", color="tab:green", ms=6, label="start", zorder=5)
     for k, (i, j) in enumerate(rj):
-        ax.plot(est[[i, j], a], est[[i, j], b], ":", color=_REJECTED, lw=0.9,
-                label="rejected loop candidates" if k == 0 else None, zorder=4)
+        ax.plot(
+            est[[i, j], a],
+            est[[i, j], b],
+            ":",
+            color=_REJECTED,
+            lw=0.9,
+            label="rejected loop candidates" if k == 0 else None,
+            zorder=4,
+        )
     for k, (i, j) in enumerate(lp):
-        ax.plot(est[[i, j], a], est[[i, j], b], "-", color=_LOOP, lw=1.5, marker="o", ms=3.5,
-                label=f"loop closures ({len(lp)})" if k == 0 else None, zorder=4)
+        ax.plot(
+            est[[i, j], a],
+            est[[i, j], b],
+            "-",
+            color=_LOOP,
+            lw=1.5,
+            marker="o",
+            ms=3.5,
+            label=f"loop closures ({len(lp)})" if k == 0 else None,
+            zorder=4,
+        )
     ax.set_xlabel(axis_label(a, unit))
     ax.set_ylabel(axis_label(b, unit))
     ax.set_aspect("equal", adjustable="datalim")
@@ -200,13 +232,20 @@ def plot_points(
     fig = Figure(figsize=(8, float(np.clip(8 * aspect, 3, 12))))  # the figure takes the map's shape
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    ax.scatter(x(pts[order]), pts[order, b], c=rgb[order] / 255.0, s=0.6, marker="s", linewidths=0,
-               rasterized=True)
+    ax.scatter(x(pts[order]), pts[order, b], c=rgb[order] / 255.0, s=0.6, marker="s", linewidths=0, rasterized=True)
     ax.plot(x(est), est[:, b], "-", color=_ESTIMATE, lw=1.2, label="cameras")
     ax.plot(x(est[:1]), est[:1, b], "o", color="tab:green", ms=6, label="start")
     for k, (i, j) in enumerate(lp):
-        ax.plot(x(est[[i, j]]), est[[i, j], b], "-", color=_LOOP, lw=1.5, marker="o", ms=3.5,
-                label=f"loop closures ({len(lp)})" if k == 0 else None)
+        ax.plot(
+            x(est[[i, j]]),
+            est[[i, j], b],
+            "-",
+            color=_LOOP,
+            lw=1.5,
+            marker="o",
+            ms=3.5,
+            label=f"loop closures ({len(lp)})" if k == 0 else None,
+        )
     ax.set_xlabel(axis_label(a, unit))
     ax.set_ylabel(axis_label(b, unit))
     ax.set_aspect("equal", adjustable="box")

@@ -129,7 +129,10 @@ def _pack(points: np.ndarray, colors: np.ndarray | None, conf: np.ndarray | None
 
 
 def write_ply(
-    path: PathLike, points: np.ndarray, colors: np.ndarray | None = None, conf: np.ndarray | None = None,
+    path: PathLike,
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    conf: np.ndarray | None = None,
     comments: Sequence[str] = (),
 ) -> None:
     """Write a binary little-endian PLY atomically.
@@ -318,9 +321,7 @@ def read_ply(path: PathLike) -> PlyPoints:
     return PlyPoints(points, colors, conf)
 
 
-def voxel_downsample(
-    points: np.ndarray, colors: np.ndarray | None, conf: np.ndarray | None, voxel: float
-) -> PlyPoints:
+def voxel_downsample(points: np.ndarray, colors: np.ndarray | None, conf: np.ndarray | None, voxel: float) -> PlyPoints:
     """Keep one point per occupied voxel of edge ``voxel``: the one with the highest confidence.
 
     Keeping a real point (rather than the voxel centroid) keeps measured positions and
@@ -358,6 +359,4 @@ def voxel_downsample(
     else:
         _, first = np.unique(key, return_index=True)
         keep = idx[np.sort(first)]
-    return PlyPoints(
-        points[keep], None if colors is None else colors[keep], None if conf is None else conf[keep]
-    )
+    return PlyPoints(points[keep], None if colors is None else colors[keep], None if conf is None else conf[keep])

@@ -83,8 +83,7 @@ def _parse_rows(path: PathLike, width: int, fmt: str) -> np.ndarray:
         fields = text.replace(",", " ").split()
         if len(fields) != width:
             raise TrajectoryFormatError(
-                f"{path}:{lineno}: a {fmt} line must have {width} numbers, got "
-                f"{len(fields)}: {text[:80]!r}"
+                f"{path}:{lineno}: a {fmt} line must have {width} numbers, got {len(fields)}: {text[:80]!r}"
             )
         try:
             values = [float(v) for v in fields]
@@ -93,9 +92,7 @@ def _parse_rows(path: PathLike, width: int, fmt: str) -> np.ndarray:
                 f"{path}:{lineno}: a {fmt} line must hold numbers only: {text[:80]!r}"
             ) from None
         if not all(np.isfinite(values)):
-            raise TrajectoryFormatError(
-                f"{path}:{lineno}: non-finite value (nan/inf) in {fmt} line: {text[:80]!r}"
-            )
+            raise TrajectoryFormatError(f"{path}:{lineno}: non-finite value (nan/inf) in {fmt} line: {text[:80]!r}")
         rows.append(values)
     if not rows:
         raise TrajectoryFormatError(f"{path}: no {fmt} poses in file (empty or only comments)")
@@ -164,13 +161,39 @@ def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     cands = np.stack(
         [
             # qw largest
-            np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1),
+            np.stack(
+                [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1
+            ),
             # qx largest
-            np.stack([1.0 + m00 - m11 - m22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
+            np.stack(
+                [
+                    1.0 + m00 - m11 - m22,
+                    R[..., 0, 1] + R[..., 1, 0],
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 2, 1] - R[..., 1, 2],
+                ],
+                -1,
+            ),
             # qy largest
-            np.stack([R[..., 0, 1] + R[..., 1, 0], 1.0 - m00 + m11 - m22, R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
+            np.stack(
+                [
+                    R[..., 0, 1] + R[..., 1, 0],
+                    1.0 - m00 + m11 - m22,
+                    R[..., 1, 2] + R[..., 2, 1],
+                    R[..., 0, 2] - R[..., 2, 0],
+                ],
+                -1,
+            ),
             # qz largest
-            np.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1.0 - m00 - m11 + m22, R[..., 1, 0] - R[..., 0, 1]], -1),
+            np.stack(
+                [
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 1, 2] + R[..., 2, 1],
+                    1.0 - m00 - m11 + m22,
+                    R[..., 1, 0] - R[..., 0, 1],
+                ],
+                -1,
+            ),
         ],
         axis=-2,
     )  # [..., 4 candidates, 4]
@@ -271,7 +294,7 @@ def time_order(path: PathLike, stamps: np.ndarray) -> np.ndarray:
     order = np.argsort(t, kind="stable")
     same = np.flatnonzero(np.diff(t[order]) == 0)
     if same.size:
-        a, b = sorted(int(i) for i in order[same[0]:same[0] + 2])
+        a, b = sorted(int(i) for i in order[same[0] : same[0] + 2])
         raise TrajectoryFormatError(
             f"{path}: poses {a + 1} and {b + 1} (data rows) have the same timestamp {float(t[a])!r} "
             f"({same.size} repeated timestamps); each pose needs its own time"

@@ -15,6 +15,4 @@ def _check_finite(x, name: str) -> None:
     if not np.all(np.isfinite(a)):
         bad = np.argwhere(~np.isfinite(a.reshape(a.shape[0], -1) if a.ndim > 1 else a[:, None]))
         rows = np.unique(bad[:, 0])
-        raise ValueError(
-            f"{name} contains NaN or Inf in {len(rows)} row(s), first at row {int(rows[0])}"
-        )
+        raise ValueError(f"{name} contains NaN or Inf in {len(rows)} row(s), first at row {int(rows[0])}")

@@ -86,14 +86,13 @@ def _normalised(frames: align.ChunkFrames, K_ref: jax.Array, conf_ratio: jax.Arr
     """Normalised depth (eq. 1) with NaN where a pixel is not reliable: ``[F, H, W]``."""
     d = camera.normalize_depth(frames.depth, frames.intrinsic, K_ref)
     mean = align.frame_conf_mean(frames.conf)
-    ok = (
-        jnp.isfinite(d) & (d > 0) & jnp.isfinite(frames.conf)
-        & (frames.conf > conf_ratio * mean[:, None, None])
-    )
+    ok = jnp.isfinite(d) & (d > 0) & jnp.isfinite(frames.conf) & (frames.conf > conf_ratio * mean[:, None, None])
     return jnp.where(ok, d, jnp.nan)
 
 
-def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: int, neighbours: int) -> ConsistencyInfo:
+def _dense_consistency(
+    src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: int, neighbours: int
+) -> ConsistencyInfo:
     dtype = src.depth.dtype
     K_ref = K_ref.astype(dtype)
     F = src.depth.shape[0]
@@ -139,23 +138,26 @@ def _dense_consistency(src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: 
         good = view & (jnp.abs(z - D) <= tol * D)
         front = view & (z < (1 - tol) * D)
         count = lambda m: jnp.sum(m, dtype=jnp.int32)
-        return (seen | view, agree | good, n_seen + count(view), n_agree + count(good),
-                n_front + count(front)), None
+        return (seen | view, agree | good, n_seen + count(view), n_agree + count(good), n_front + count(front)), None
 
     P = y.shape[0]
     zero = jnp.zeros((), jnp.int32)
     init = (jnp.zeros(P, bool), jnp.zeros(P, bool), zero, zero, zero)
-    (seen, agree, n_seen, n_agree, n_front), _ = lax.scan(
-        step, init, (d_dst, dst.extrinsic.astype(dtype), pair.T)
-    )
+    (seen, agree, n_seen, n_agree, n_front), _ = lax.scan(step, init, (d_dst, dst.extrinsic.astype(dtype), pair.T))
     num = jnp.sum(ok).astype(jnp.int32)
     num_seen = jnp.sum(seen).astype(jnp.int32)
     num_agree = jnp.sum(agree).astype(jnp.int32)
     ratio = lambda a, b: jnp.where(b > 0, a.astype(dtype) / jnp.maximum(b, 1).astype(dtype), 0)
     return ConsistencyInfo(
-        num_points=num, num_seen=num_seen, num_agree=num_agree, pairs_seen=n_seen,
-        pairs_agree=n_agree, pairs_front=n_front, overlap=ratio(num_seen, num),
-        agreement=ratio(n_agree, n_seen), consistency=ratio(num_agree, num),
+        num_points=num,
+        num_seen=num_seen,
+        num_agree=num_agree,
+        pairs_seen=n_seen,
+        pairs_agree=n_agree,
+        pairs_front=n_front,
+        overlap=ratio(num_seen, num),
+        agreement=ratio(n_agree, n_seen),
+        consistency=ratio(num_agree, num),
     )
 
 
@@ -177,13 +179,26 @@ def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConf
     src = _frames(src)
     dt = src.depth.dtype
     dst = _frames(dst, dt)
-    return (src, dst, jnp.asarray(S, dt), jnp.asarray(K_ref, dt), jnp.asarray(conf_ratio, dt),
-            jnp.asarray(config.depth_tolerance, dt), config.stride, config.neighbours)
+    return (
+        src,
+        dst,
+        jnp.asarray(S, dt),
+        jnp.asarray(K_ref, dt),
+        jnp.asarray(conf_ratio, dt),
+        jnp.asarray(config.depth_tolerance, dt),
+        config.stride,
+        config.neighbours,
+    )
 
 
 def dense_consistency(
-    src: align.ChunkFrames, dst: align.ChunkFrames, S_dst_src: Float[ArrayLike, 8], K_ref: Float[ArrayLike, "3 3"],
-    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
+    src: align.ChunkFrames,
+    dst: align.ChunkFrames,
+    S_dst_src: Float[ArrayLike, 8],
+    K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None,
+    *,
+    conf_ratio: float = _ALIGN.conf_ratio,
 ) -> ConsistencyInfo:
     """How many reliable points of ``src`` land on agreeing depth in ``dst`` under ``S``.
 
@@ -244,8 +259,13 @@ def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, ne
 
 
 def cross_chunk_consistency(
-    side_i: align.ChunkFrames, side_j: align.ChunkFrames, Z: Float[ArrayLike, "M 8"], K_ref: Float[ArrayLike, "3 3"],
-    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
+    side_i: align.ChunkFrames,
+    side_j: align.ChunkFrames,
+    Z: Float[ArrayLike, "M 8"],
+    K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None,
+    *,
+    conf_ratio: float = _ALIGN.conf_ratio,
 ) -> CrossCheck:
     """Both directions of :func:`dense_consistency` for ``M`` loop candidates at once (vmap).
 

@@ -40,7 +40,6 @@ def _l2(x: jax.Array, axis: int = -1) -> jax.Array:
     return x / jnp.maximum(n, _NORM_EPS)
 
 
-
 @jax.jit
 def frame_descriptor(tokens: Float[ArrayLike, "*batch K d"]) -> Float[Array, "*batch d"]:
     """Place descriptor ``g⁰`` of each frame: ``[..., K, d]`` → ``[..., d]``.
@@ -185,7 +184,6 @@ def _fit_whitening(G, eps, remove: int, dim: int, max_samples: int) -> Whitening
 def whiten(w: Whitening, G: Float[ArrayLike, "*batch d"]) -> Float[Array, "*batch dk"]:
     """Whitened descriptors ``ẑ = ℓ2((G − μ) W)``: ``[..., d]`` → ``[..., d′]``."""
     return _l2((jnp.asarray(G) - w.mean) @ w.projection)
-
 
 
 def chunk_descriptors(pred: ChunkPrediction) -> ChunkPrediction:

@@ -224,8 +224,15 @@ def detect_loops(
     if _is_concrete(false_alarms) and not 0.0 < float(false_alarms) < 1.0:
         raise ValueError(f"detect_loops: false_alarms must be in (0, 1), got {false_alarms}")
     return _detect_loops(
-        jnp.asarray(Z), jnp.asarray(threshold, jnp.float32), jnp.asarray(false_alarms, jnp.float32),
-        min_separation, nms_radius, min(top_k, n), max_loops, min(max(1, block_rows), n), nms,
+        jnp.asarray(Z),
+        jnp.asarray(threshold, jnp.float32),
+        jnp.asarray(false_alarms, jnp.float32),
+        min_separation,
+        nms_radius,
+        min(top_k, n),
+        max_loops,
+        min(max(1, block_rows), n),
+        nms,
         bool(calibrate),
     )
 
@@ -254,8 +261,7 @@ def _row_topk(Z: jax.Array, min_separation: int, top_k: int, block_rows: int):
     jax.jit,
     static_argnames=("min_separation", "nms_radius", "top_k", "max_loops", "block_rows", "nms", "calibrate"),
 )
-def _detect_loops(Z, threshold, false_alarms, min_separation, nms_radius, top_k, max_loops, block_rows, nms,
-                  calibrate):
+def _detect_loops(Z, threshold, false_alarms, min_separation, nms_radius, top_k, max_loops, block_rows, nms, calibrate):
     n = Z.shape[0]
     Z = _l2(Z.astype(jnp.promote_types(Z.dtype, jnp.float32)))
     vals, idx = _row_topk(Z, min_separation, top_k, block_rows)
@@ -305,4 +311,3 @@ def _detect_loops(Z, threshold, false_alarms, min_separation, nms_radius, top_k,
     pos, count, _, out_p, out_s = lax.while_loop(cond, body, init)
     truncated = (count >= max_loops) & (pos < n_valid)
     return LoopCandidates(out_p, out_s, count, truncated, threshold)
-

@@ -57,8 +57,9 @@ def _warn_no_candidate(Z, o: LoopOptions, details: dict) -> None:
     verified geometrically as usual).  ``details["no_candidate_warning"]`` records it, with the
     fraction of frames whose best score passes the fixed threshold.
     """
-    best = np.asarray(detection._row_topk(jnp.asarray(Z), o.min_separation, 1,
-                                          detection._default_block_rows(Z.shape[0]))[0])[:, 0]
+    best = np.asarray(
+        detection._row_topk(jnp.asarray(Z), o.min_separation, 1, detection._default_block_rows(Z.shape[0]))[0]
+    )[:, 0]
     best = best[np.isfinite(best)]
     above = float(np.mean(best > o.threshold)) if best.size else 0.0
     details["no_candidate_warning"] = {"frames_above_fixed_threshold": above}
@@ -144,9 +145,7 @@ def find_loops(
         raise ValueError(f"find_loops: descriptors must be [N, d], got shape {G.shape}")
     n = G.shape[0]
     if schedule.n_frames != n:
-        raise ValueError(
-            f"find_loops: schedule is for {schedule.n_frames} frames but descriptors has {n} rows"
-        )
+        raise ValueError(f"find_loops: schedule is for {schedule.n_frames} frames but descriptors has {n} rows")
     finite = np.all(np.isfinite(G), axis=1)
     if throw:
         _check_finite(G, "find_loops: descriptors")
@@ -158,9 +157,21 @@ def find_loops(
             stacklevel=2,
         )
     given = dict(
-        rule=rule, threshold=threshold, false_alarms=false_alarms, beta=beta, remove=remove, dim=dim,
-        eps=eps, max_samples=max_samples, fit_on=fit_on, min_separation=min_separation,
-        nms_radius=nms_radius, top_k=top_k, max_loops=max_loops, nms=nms, half_window=half_window,
+        rule=rule,
+        threshold=threshold,
+        false_alarms=false_alarms,
+        beta=beta,
+        remove=remove,
+        dim=dim,
+        eps=eps,
+        max_samples=max_samples,
+        fit_on=fit_on,
+        min_separation=min_separation,
+        nms_radius=nms_radius,
+        top_k=top_k,
+        max_loops=max_loops,
+        nms=nms,
+        half_window=half_window,
         adapt_to_length=adapt_to_length,
     )
     given = {k: v for k, v in given.items() if v is not None}
@@ -170,7 +181,9 @@ def find_loops(
     threshold, fit_on, dim = effective_settings(o, n_fit)
     g1 = power_normalize(G, o.beta)
     details = {
-        "g1": g1, "rule": o.rule, "threshold": float("inf") if o.rule == "adaptive" else float(threshold),
+        "g1": g1,
+        "rule": o.rule,
+        "threshold": float("inf") if o.rule == "adaptive" else float(threshold),
         "nonfinite_rows": np.flatnonzero(~finite),
     }
     if n <= o.min_separation + 1 or n < 3:
@@ -180,8 +193,18 @@ def find_loops(
         fit = np.asarray(fit)[finite]
     w = fit_whitening(fit, o.remove, dim, o.eps, o.max_samples)
     Z = whiten(w, g1)
-    cand = detect_loops(Z, threshold, o.min_separation, o.nms_radius, o.top_k, o.max_loops, nms=o.nms,
-                        calibrate=o.rule == "adaptive", false_alarms=o.false_alarms, throw=n_fit == n)
+    cand = detect_loops(
+        Z,
+        threshold,
+        o.min_separation,
+        o.nms_radius,
+        o.top_k,
+        o.max_loops,
+        nms=o.nms,
+        calibrate=o.rule == "adaptive",
+        false_alarms=o.false_alarms,
+        throw=n_fit == n,
+    )
     details["threshold"] = float(cand.threshold)
     if o.rule == "adaptive" and int(cand.count) == 0 and details["threshold"] < 1.0:
         _warn_no_candidate(Z, o, details)
@@ -194,9 +217,7 @@ def find_loops(
             stacklevel=2,
         )
     if bool(cand.truncated):
-        warnings.warn(
-            f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist", stacklevel=2
-        )
+        warnings.warn(f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist", stacklevel=2)
     kept = filter_by_chunks(cand, schedule)
     loops = as_loops(kept, schedule, o.half_window)
     details.update(whitening=w, z=Z, candidates=cand, filtered=kept)
@@ -225,10 +246,15 @@ def as_loops(kept, schedule: ChunkSchedule, hw: int) -> list[Loop]:
     loops: list[Loop] = []
     if c:
         # all M buffer rows at once (one compile per buffer size, not per loop count)
-        lc = jax.tree.map(np.asarray, _loop_chunks(
-            jnp.maximum(kept.pairs, 0), jnp.asarray(schedule.starts, jnp.int32),
-            jnp.asarray(schedule.ends, jnp.int32), hw,
-        ))
+        lc = jax.tree.map(
+            np.asarray,
+            _loop_chunks(
+                jnp.maximum(kept.pairs, 0),
+                jnp.asarray(schedule.starts, jnp.int32),
+                jnp.asarray(schedule.ends, jnp.int32),
+                hw,
+            ),
+        )
         pairs = np.asarray(kept.pairs)
         scores = np.asarray(kept.scores)
         for k in range(c):
@@ -240,8 +266,15 @@ def as_loops(kept, schedule: ChunkSchedule, hw: int) -> list[Loop]:
                 )
                 continue
             loops.append(
-                Loop(int(pairs[k, 0]), int(pairs[k, 1]), float(scores[k]),
-                     lc.frames[k].astype(np.int64), int(lc.chunk_i[k]), int(lc.chunk_j[k]),
-                     int(lc.local_i[k]), int(lc.local_j[k]))
+                Loop(
+                    int(pairs[k, 0]),
+                    int(pairs[k, 1]),
+                    float(scores[k]),
+                    lc.frames[k].astype(np.int64),
+                    int(lc.chunk_i[k]),
+                    int(lc.chunk_j[k]),
+                    int(lc.local_i[k]),
+                    int(lc.local_j[k]),
+                )
             )
     return loops

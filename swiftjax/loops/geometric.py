@@ -239,8 +239,13 @@ def chunk_frame(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], optio
     pts = jnp.einsum("fij,fhwj->fhwi", R, cam_pts) + c[:, None, None, :]
     cf = conf[sub]
     mean = frame_conf_mean(conf)
-    ok = (jnp.isfinite(d) & (d > 0) & jnp.isfinite(cf) & (cf > options.conf_ratio * mean[:, None, None])
-          & jnp.all(jnp.isfinite(pts), -1))
+    ok = (
+        jnp.isfinite(d)
+        & (d > 0)
+        & jnp.isfinite(cf)
+        & (cf > options.conf_ratio * mean[:, None, None])
+        & jnp.all(jnp.isfinite(pts), -1)
+    )
     # gravity and heading from the camera path
     up = -jnp.sum(R[..., 1], 0)
     up = up / jnp.maximum(jnp.linalg.norm(up), 1e-12)
@@ -275,8 +280,14 @@ def _normalised(points: Array, anchor: Array, basis: Array, height: Array) -> Ar
     return q.at[:, 2].add(1.0)
 
 
-def polar_grid(q: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, "N"], rings: int, sectors: int,
-               max_radius: float, max_height: float) -> tuple[Array, Array]:
+def polar_grid(
+    q: Float[ArrayLike, "N 3"],
+    weights: Float[ArrayLike, " N"],
+    rings: int,
+    sectors: int,
+    max_radius: float,
+    max_height: float,
+) -> tuple[Array, Array]:
     """Scan Context grid of normalised points ``q`` (module docstring): ``([rings, sectors], count)``.
 
     Cell value ``max(0, min(z, max_height))`` over the points with ``weights > 0`` and ``ρ <
@@ -316,8 +327,9 @@ class ChunkDescriptors(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def chunk_descriptors(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"],
-                      options: GeometryOptions = GeometryOptions()) -> ChunkDescriptors:
+def chunk_descriptors(
+    frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], options: GeometryOptions = GeometryOptions()
+) -> ChunkDescriptors:
     """:class:`ChunkDescriptors` of ``T`` chunks' loaded frames (``ChunkFrames`` fields
     ``[T, F, H, W]`` / ``[T, F, 3, 3|4]``); vmapped over chunks and anchors.  Recompiles per
     ``(T, F, H, W)`` and ``options``."""
@@ -327,6 +339,7 @@ def chunk_descriptors(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"],
         def at(a):
             q = _normalised(g.points, a, g.basis, g.height)
             return polar_grid(q, g.weights, options.rings, options.sectors, options.max_radius, options.max_height)
+
         return jax.vmap(at)(g.anchors)
 
     grids, counts = jax.vmap(one)(geo)
@@ -351,7 +364,9 @@ def signature_distances(signatures: Float[ArrayLike, "T A D"], valid: ArrayLike)
 
 
 @jax.jit
-def scan_context_distance(grid_a: Float[ArrayLike, "*b R S"], grid_b: Float[ArrayLike, "*b R S"]) -> tuple[Array, Array]:
+def scan_context_distance(
+    grid_a: Float[ArrayLike, "*b R S"], grid_b: Float[ArrayLike, "*b R S"]
+) -> tuple[Array, Array]:
     """``(d_SC(m*), m*)`` (module docstring): the column-wise cosine distance at the best
     sector shift, with ``G_b[:, k + m*]`` matching ``G_a[:, k]``; columns empty in both grids do
     not count (1 when no column counts).  Batched over leading axes."""
@@ -379,8 +394,15 @@ def _rot_z(psi: Array) -> Array:
 
 
 @jax.jit
-def coarse_edge(anchor_a: ArrayLike, basis_a: ArrayLike, height_a: ArrayLike, anchor_b: ArrayLike,
-                basis_b: ArrayLike, height_b: ArrayLike, yaw: ArrayLike) -> Array:
+def coarse_edge(
+    anchor_a: ArrayLike,
+    basis_a: ArrayLike,
+    height_a: ArrayLike,
+    anchor_b: ArrayLike,
+    basis_b: ArrayLike,
+    height_b: ArrayLike,
+    yaw: ArrayLike,
+) -> Array:
     """The coarse Sim(3) ``[8]`` from chunk ``a`` into chunk ``b``: ``s₀ = h_b / h_a``,
     ``R₀ = B_b R_z(ψ) B_aᵀ``, ``t₀ = a_b − s₀ R₀ a_a`` (module docstring)."""
     R = jnp.asarray(basis_b) @ _rot_z(jnp.asarray(yaw, jnp.float32)) @ jnp.swapaxes(jnp.asarray(basis_a), -1, -2)
@@ -393,7 +415,9 @@ def coarse_edge(anchor_a: ArrayLike, basis_a: ArrayLike, height_a: ArrayLike, an
 # ----------------------------------------------------------------------- registration
 
 
-def subsample(points: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, "N"], n: int, key: ArrayLike) -> tuple[Array, Array]:
+def subsample(
+    points: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, " N"], n: int, key: ArrayLike
+) -> tuple[Array, Array]:
     """``n`` of the points with ``weights > 0``, drawn without replacement (all of them, padded
     with zero-weight rows, when fewer): ``(points [n, 3], weights [n])``.  Fixed shape: the
     ``n`` largest of ``1[w > 0] + U(0, 1)`` (``key``)."""
@@ -436,7 +460,7 @@ class Registration(NamedTuple):
 def _nearest(y: Array, dst: Array, w_dst: Array) -> tuple[Array, Array]:
     """Brute-force nearest neighbour of each ``y [P, 3]`` among the ``dst [Q, 3]`` with weight:
     ``(index [P], distance [P])``."""
-    d2 = (jnp.sum(y * y, -1)[:, None] - 2.0 * y @ dst.T + jnp.sum(dst * dst, -1)[None, :])
+    d2 = jnp.sum(y * y, -1)[:, None] - 2.0 * y @ dst.T + jnp.sum(dst * dst, -1)[None, :]
     d2 = jnp.where(w_dst[None, :] > 0, d2, jnp.inf)
     k = jnp.argmin(d2, -1)
     diff = y - dst[k]
@@ -461,10 +485,22 @@ def _yaw_step(y: Array, z: Array, w: Array, up: Array) -> tuple[Array, Array]:
 
 
 @functools.partial(jax.jit, static_argnames=("iterations", "four_dof"))
-def register(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Float[ArrayLike, "Q 3"],
-             w_dst: Float[ArrayLike, "Q"], S0: Float[ArrayLike, "8"], unit: ArrayLike, up: Float[ArrayLike, "3"],
-             ground: ArrayLike, tau_start: float | ArrayLike = 3.0, tau_end: float | ArrayLike = 0.25,
-             ground_band: float | ArrayLike = 0.35, *, iterations: int = 16, four_dof: bool = False) -> Registration:
+def register(
+    src: Float[ArrayLike, "P 3"],
+    w_src: Float[ArrayLike, " P"],
+    dst: Float[ArrayLike, "Q 3"],
+    w_dst: Float[ArrayLike, " Q"],
+    S0: Float[ArrayLike, "8"],
+    unit: ArrayLike,
+    up: Float[ArrayLike, "3"],
+    ground: ArrayLike,
+    tau_start: float | ArrayLike = 3.0,
+    tau_end: float | ArrayLike = 0.25,
+    ground_band: float | ArrayLike = 0.35,
+    *,
+    iterations: int = 16,
+    four_dof: bool = False,
+) -> Registration:
     """Robust Sim(3) ICP of ``src`` onto ``dst`` from ``S0`` (module docstring).
 
     Args:
@@ -533,10 +569,16 @@ def register(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Fl
     s0 = sim3.scale(S0)
     finite = jnp.all(jnp.isfinite(S)) & jnp.isfinite(rms)
     return Registration(
-        S=jnp.where(finite, S, S0), rms=jnp.where(finite, rms, jnp.inf),
+        S=jnp.where(finite, S, S0),
+        rms=jnp.where(finite, rms, jnp.inf),
         inlier_ratio=jnp.sum(inl_s) / jnp.maximum(jnp.sum(struct), 1),
-        num_inliers=n_inl.astype(jnp.int32), num_structure=ns.astype(jnp.int32), spread=spread,
-        scale_ratio=sim3.scale(S) / s0, valid=ok & finite, src_mean=mean, src_covariance=cov,
+        num_inliers=n_inl.astype(jnp.int32),
+        num_structure=ns.astype(jnp.int32),
+        spread=spread,
+        scale_ratio=sim3.scale(S) / s0,
+        valid=ok & finite,
+        src_mean=mean,
+        src_covariance=cov,
         num_points=jnp.sum(used).astype(jnp.int32),
     )
 
@@ -548,11 +590,12 @@ def registration_reason(reg: dict, options: GeometryOptions) -> str | None:
         return "registration failed (an Umeyama solve was degenerate or not finite)"
     r = options.max_scale_ratio
     if not (1.0 / r <= reg["scale_ratio"] <= r):
-        return (f"registration scale {reg['scale_ratio']:.2f} x the camera-height ratio, outside "
-                f"[{1 / r:.2f}, {r:.2f}]")
+        return f"registration scale {reg['scale_ratio']:.2f} x the camera-height ratio, outside [{1 / r:.2f}, {r:.2f}]"
     if reg["num_structure"] < options.min_structure or reg["spread"] < options.min_spread:
-        return (f"degenerate registration: {reg['num_structure']} structure inliers, spread "
-                f"{reg['spread']:.3f} (a featureless or straight road leaves the edge free)")
+        return (
+            f"degenerate registration: {reg['num_structure']} structure inliers, spread "
+            f"{reg['spread']:.3f} (a featureless or straight road leaves the edge free)"
+        )
     if not reg["inlier_ratio"] >= options.min_inlier_ratio:
         return f"registration inlier ratio {reg['inlier_ratio']:.2f} < {options.min_inlier_ratio}"
     if not reg["rms"] <= options.max_rms:
@@ -580,14 +623,21 @@ def path_weights(geometry: ChunkGeometry, max_radius: float) -> Array:
         return jnp.where(near & jnp.isfinite(g.height), g.weights, 0.0)
 
     lead = geometry.weights.shape[:-1]
-    flat = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[len(lead):]), geometry)
+    flat = jax.tree_util.tree_map(lambda a: a.reshape(-1, *a.shape[len(lead) :]), geometry)
     return jax.vmap(one)(flat).reshape(*lead, -1)
 
 
 @jax.jit
-def coarse_hypotheses(grids_a: Float[ArrayLike, "A R S"], grids_b: Float[ArrayLike, "A R S"], anchors_a: ArrayLike,
-                      basis_a: ArrayLike, height_a: ArrayLike, anchors_b: ArrayLike, basis_b: ArrayLike,
-                      height_b: ArrayLike) -> tuple[Array, Array, Array]:
+def coarse_hypotheses(
+    grids_a: Float[ArrayLike, "A R S"],
+    grids_b: Float[ArrayLike, "A R S"],
+    anchors_a: ArrayLike,
+    basis_a: ArrayLike,
+    height_a: ArrayLike,
+    anchors_b: ArrayLike,
+    basis_b: ArrayLike,
+    height_b: ArrayLike,
+) -> tuple[Array, Array, Array]:
     """Every start of the registration of chunk ``a`` onto ``b``: ``(S0 [2 A², 8], anchors
     [2 A², 2] int32, yaw [2 A²])``.
 
@@ -612,10 +662,17 @@ def coarse_hypotheses(grids_a: Float[ArrayLike, "A R S"], grids_b: Float[ArrayLi
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def register_hypotheses(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P"], dst: Float[ArrayLike, "Q 3"],
-                        w_dst: Float[ArrayLike, "Q"], S0: Float[ArrayLike, "H 8"], unit: ArrayLike,
-                        up: Float[ArrayLike, "3"], ground: ArrayLike,
-                        options: GeometryOptions = GeometryOptions()) -> tuple[Registration, Array, Array]:
+def register_hypotheses(
+    src: Float[ArrayLike, "P 3"],
+    w_src: Float[ArrayLike, " P"],
+    dst: Float[ArrayLike, "Q 3"],
+    w_dst: Float[ArrayLike, " Q"],
+    S0: Float[ArrayLike, "H 8"],
+    unit: ArrayLike,
+    up: Float[ArrayLike, "3"],
+    ground: ArrayLike,
+    options: GeometryOptions = GeometryOptions(),
+) -> tuple[Registration, Array, Array]:
     """The registration of ``src`` onto ``dst`` from the best of ``H`` starts: ``(Registration,
     chosen int32, scores [H])``.
 
@@ -636,15 +693,34 @@ def register_hypotheses(src: Float[ArrayLike, "P 3"], w_src: Float[ArrayLike, "P
     src, w_src, dst, w_dst = (jnp.asarray(x, jnp.float32) for x in (src, w_src, dst, w_dst))
 
     def coarse(s0):
-        return register(src[:pc], w_src[:pc], dst[:qc], w_dst[:qc], s0, unit, up, ground, o.coarse_tau_start,
-                        o.coarse_tau_end, o.ground_band, iterations=o.coarse_iterations, four_dof=True)
+        return register(
+            src[:pc],
+            w_src[:pc],
+            dst[:qc],
+            w_dst[:qc],
+            s0,
+            unit,
+            up,
+            ground,
+            o.coarse_tau_start,
+            o.coarse_tau_end,
+            o.ground_band,
+            iterations=o.coarse_iterations,
+            four_dof=True,
+        )
 
     rough = jax.vmap(coarse)(S0)
     scores = jnp.where(rough.valid & jnp.all(jnp.isfinite(S0), -1), rough.num_structure, -1)
     k = jnp.argmax(scores).astype(jnp.int32)
     start = jnp.where(scores[k] >= 0, rough.S[k], sim3.identity())
-    reg = register(src, w_src, dst, w_dst, start, unit, up, ground, o.tau_start, o.tau_end, o.ground_band,
-                   iterations=o.iterations)
+    reg = register(
+        src, w_src, dst, w_dst, start, unit, up, ground, o.tau_start, o.tau_end, o.ground_band, iterations=o.iterations
+    )
     ok = reg.valid & (scores[k] >= 0)
-    return reg._replace(S=jnp.where(ok, reg.S, sim3.identity()), scale_ratio=sim3.scale(reg.S) / sim3.scale(start),
-                        valid=ok), k, scores
+    return (
+        reg._replace(
+            S=jnp.where(ok, reg.S, sim3.identity()), scale_ratio=sim3.scale(reg.S) / sim3.scale(start), valid=ok
+        ),
+        k,
+        scores,
+    )

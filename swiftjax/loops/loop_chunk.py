@@ -146,7 +146,9 @@ def _loop_chunks(pairs, starts, ends, half_window):
 
 
 @jax.jit
-def loop_edge(S_i_loop: Float[ArrayLike, "*batch 8"], S_j_loop: Float[ArrayLike, "*batch 8"]) -> Float[Array, "*batch 8"]:
+def loop_edge(
+    S_i_loop: Float[ArrayLike, "*batch 8"], S_j_loop: Float[ArrayLike, "*batch 8"]
+) -> Float[Array, "*batch 8"]:
     """Loop edge ``S_{j,loop} · S_{i,loop}⁻¹``, Sim(3) ``[..., 8]``.
 
     ``S_{x,loop}`` maps loop-chunk coordinates into temporal chunk ``c_x``'s coordinates
@@ -156,4 +158,3 @@ def loop_edge(S_i_loop: Float[ArrayLike, "*batch 8"], S_j_loop: Float[ArrayLike,
     ``c_j → c_i``: ``≈ S_{c_j}⁻¹ S_{c_i}``.
     """
     return sim3.compose(S_j_loop, sim3.inverse(S_i_loop))
-

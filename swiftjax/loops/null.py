@@ -74,8 +74,15 @@ from swiftjax._compile import LIGHT_COMPILE, quick_jit
 from swiftjax.loops.cross_chunk import _ALIGN, _dense_consistency, _normalised, _traced_args
 from swiftjax.loops.options import VerificationConfig
 
-__all__ = ["null_offsets", "null_edges", "NullCheck", "null_consistency", "NullThreshold", "null_threshold",
-           "chance_corrected"]
+__all__ = [
+    "null_offsets",
+    "null_edges",
+    "NullCheck",
+    "null_consistency",
+    "NullThreshold",
+    "null_threshold",
+    "chance_corrected",
+]
 
 
 def null_offsets(samples: int, min_shift: float, max_shift: float) -> np.ndarray:
@@ -87,8 +94,10 @@ def null_offsets(samples: int, min_shift: float, max_shift: float) -> np.ndarray
 
 
 def null_edges(
-    Z: Float[ArrayLike, "8"], dst_extrinsic: Float[ArrayLike, "G 3 4"], depth: Float[ArrayLike, ""],
-    offsets: Float[ArrayLike, "K"],
+    Z: Float[ArrayLike, "8"],
+    dst_extrinsic: Float[ArrayLike, "G 3 4"],
+    depth: Float[ArrayLike, ""],
+    offsets: Float[ArrayLike, " K"],
 ) -> Float[jax.Array, "K 8"]:
     """The null edges ``Z_k = P_k Z`` (module docstring): ``Z [8]`` maps the source chunk into
     the target chunk, ``dst_extrinsic [G, 3, 4]`` the target frames (world-to-camera in the
@@ -96,7 +105,7 @@ def null_edges(
     ``δ_k``.  Returns ``[K, 8]``; jit-able, recompiles per ``G``, ``K`` and dtype."""
     Z = jnp.asarray(Z)
     E = jnp.asarray(dst_extrinsic, Z.dtype)
-    unit = lambda v: v / jnp.maximum(jnp.linalg.norm(v), jnp.finfo(Z.dtype).tiny)  # noqa: E731
+    unit = lambda v: v / jnp.maximum(jnp.linalg.norm(v), jnp.finfo(Z.dtype).tiny)
     up = unit(-jnp.sum(E[:, 1, :3], axis=0))  # world direction of camera g's y axis: R_g[1, :]
     ahead = jnp.sum(E[:, 2, :3], axis=0)
     side = unit(jnp.cross(up, unit(ahead - up * jnp.dot(up, ahead))))
@@ -124,8 +133,11 @@ def _null_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, offsets, st
     def edge(fi, fj, z):
         a = _dense_consistency(fi, fj, z, K_ref, conf_ratio, depth_tolerance, stride, neighbours)
         b = _dense_consistency(fj, fi, sim3.inverse(z), K_ref, conf_ratio, depth_tolerance, stride, neighbours)
-        return (jnp.minimum(a.agreement, b.agreement), jnp.minimum(a.overlap, b.overlap),
-                jnp.minimum(a.pairs_seen, b.pairs_seen))
+        return (
+            jnp.minimum(a.agreement, b.agreement),
+            jnp.minimum(a.overlap, b.overlap),
+            jnp.minimum(a.pairs_seen, b.pairs_seen),
+        )
 
     def candidate(fi, fj, z):
         d = _normalised(fj, K_ref, conf_ratio)[:, ::stride, ::stride]
@@ -136,8 +148,13 @@ def _null_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, offsets, st
 
 
 def null_consistency(
-    side_i: align.ChunkFrames, side_j: align.ChunkFrames, Z: Float[ArrayLike, "M 8"], K_ref: Float[ArrayLike, "3 3"],
-    config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio,
+    side_i: align.ChunkFrames,
+    side_j: align.ChunkFrames,
+    Z: Float[ArrayLike, "M 8"],
+    K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None,
+    *,
+    conf_ratio: float = _ALIGN.conf_ratio,
 ) -> NullCheck:
     """The dense test of :func:`~swiftjax.loops.cross_chunk.cross_chunk_consistency` under the
     ``K = config.null_samples`` null edges of each of ``M`` candidates (arguments as there).
@@ -147,8 +164,9 @@ def null_consistency(
     """
     config = VerificationConfig() if config is None else config
     args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
-    offsets = jnp.asarray(null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift),
-                          args[0].depth.dtype)
+    offsets = jnp.asarray(
+        null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift), args[0].depth.dtype
+    )
     return _null_jit(*args[:6], offsets, *args[6:])
 
 
@@ -163,8 +181,11 @@ class NullThreshold(NamedTuple):
 
 
 def null_threshold(
-    score: Float[ArrayLike, "K"], overlap: Float[ArrayLike, "K"], pairs_seen: Float[ArrayLike, "K"],
-    false_alarm: float, min_overlap: float,
+    score: Float[ArrayLike, " K"],
+    overlap: Float[ArrayLike, " K"],
+    pairs_seen: Float[ArrayLike, " K"],
+    false_alarm: float,
+    min_overlap: float,
 ) -> NullThreshold:
     """``τ = m + t_{K'−1}(1 − α) s sqrt(1 + 1/K')`` over the null samples in view (host level;
     module docstring).  ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the

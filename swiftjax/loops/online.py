@@ -191,8 +191,9 @@ def recorded_descriptors(run_dir: str | os.PathLike[str]) -> np.ndarray:
     n = max(rows) + 1
     if len(rows) != n or min(rows) != 0:
         missing = sorted(set(range(n)) - set(rows))
-        raise WhiteningSourceError(f"{root}: the chunk files miss the descriptors of {len(missing)} frame(s), "
-                                   f"first {missing[0]}")
+        raise WhiteningSourceError(
+            f"{root}: the chunk files miss the descriptors of {len(missing)} frame(s), first {missing[0]}"
+        )
     return np.stack([rows[f] for f in range(n)]).astype(np.float32)
 
 
@@ -217,7 +218,9 @@ def load_whitening(
     try:
         return fit_sequence_whitening(G, options)
     except ValueError as err:
-        raise WhiteningSourceError(f"{pathlib.Path(run_dir)}: cannot fit a whitening on its descriptors ({err})") from None
+        raise WhiteningSourceError(
+            f"{pathlib.Path(run_dir)}: cannot fit a whitening on its descriptors ({err})"
+        ) from None
 
 
 @jax.jit
@@ -236,8 +239,11 @@ def _later_end_from(cand: LoopCandidates, first: jax.Array) -> LoopCandidates:
     order = jnp.argsort(~keep, stable=True)
     count = jnp.sum(keep).astype(jnp.int32)
     row = jnp.arange(m) < count
-    return cand._replace(pairs=jnp.where(row[:, None], cand.pairs[order], -1),
-                         scores=jnp.where(row, cand.scores[order], -jnp.inf), count=count)
+    return cand._replace(
+        pairs=jnp.where(row[:, None], cand.pairs[order], -1),
+        scores=jnp.where(row, cand.scores[order], -jnp.inf),
+        count=count,
+    )
 
 
 def _bucket(n: int, base: int) -> int:
@@ -267,8 +273,13 @@ class OnlineLoopDetector:
     at or before ``n`` (an overlap) and ends after it.
     """
 
-    def __init__(self, options: LoopOptions | None = None, *, whitening: Whitening | None = None,
-                 whitening_source: str | None = None) -> None:
+    def __init__(
+        self,
+        options: LoopOptions | None = None,
+        *,
+        whitening: Whitening | None = None,
+        whitening_source: str | None = None,
+    ) -> None:
         self.options = LoopOptions() if options is None else options
         self.minimum = min_descriptors(self.options)
         self.given = whitening is not None
@@ -356,8 +367,18 @@ class OnlineLoopDetector:
                 dataclasses.replace(o, dim=self.whitening.dim_requested), self.whitening.dim_requested * 4
             )[0]
         Z = _whitened_prefix(self.whitening, jnp.asarray(self._G), jnp.int32(self.n), jnp.float32(o.beta))
-        cand = detect_loops(Z, self._fixed_threshold, o.min_separation, o.nms_radius, o.top_k, o.max_loops,
-                            nms=o.nms, calibrate=o.rule == "adaptive", false_alarms=o.false_alarms, throw=False)
+        cand = detect_loops(
+            Z,
+            self._fixed_threshold,
+            o.min_separation,
+            o.nms_radius,
+            o.top_k,
+            o.max_loops,
+            nms=o.nms,
+            calibrate=o.rule == "adaptive",
+            false_alarms=o.false_alarms,
+            throw=False,
+        )
         self.threshold = float(cand.threshold)
         cand = _later_end_from(cand, jnp.int32(min(first, self._tested)))
         self._tested = self.n
@@ -377,5 +398,6 @@ class OnlineLoopDetector:
         result is the offline one, bit for bit (same inputs, same call)."""
         if self.n == 0:
             raise ValueError("OnlineLoopDetector.finish: no frame was added")
-        return find_loops(self.descriptors, self._schedule(padded=False) if schedule is None else schedule,
-                          self.options, **kwargs)
+        return find_loops(
+            self.descriptors, self._schedule(padded=False) if schedule is None else schedule, self.options, **kwargs
+        )

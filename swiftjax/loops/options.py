@@ -128,8 +128,11 @@ class VerificationConfig:
 
     def __post_init__(self) -> None:
         if self.agreement_rule not in AGREEMENT_RULES:
-            raise ValueError("VerificationConfig: agreement_rule must be "
-                             + " or ".join(map(repr, AGREEMENT_RULES)) + f", got {self.agreement_rule!r}")
+            raise ValueError(
+                "VerificationConfig: agreement_rule must be "
+                + " or ".join(map(repr, AGREEMENT_RULES))
+                + f", got {self.agreement_rule!r}"
+            )
         if self.null_samples < 4 or self.null_samples % 2:
             raise ValueError(f"VerificationConfig: null_samples must be even and >= 4, got {self.null_samples}")
         if not 0.0 < self.null_false_alarm < 1.0:
@@ -137,8 +140,10 @@ class VerificationConfig:
         if not 0.0 <= self.null_min_kappa < 1.0:
             raise ValueError(f"VerificationConfig: null_min_kappa must be in [0, 1), got {self.null_min_kappa}")
         if not 0.0 < self.null_min_shift <= self.null_max_shift:
-            raise ValueError("VerificationConfig: need 0 < null_min_shift <= null_max_shift, got "
-                             f"{self.null_min_shift}, {self.null_max_shift}")
+            raise ValueError(
+                "VerificationConfig: need 0 < null_min_shift <= null_max_shift, got "
+                f"{self.null_min_shift}, {self.null_max_shift}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,8 +218,15 @@ def check_values(values: dict[str, Any], where: str) -> None:
             raise ValueError(f"{where}: {key} must be " + " or ".join(map(repr, allowed)) + f", got {values[key]!r}")
     if "false_alarms" in values and not 0.0 < float(values["false_alarms"]) < 1.0:
         raise ValueError(f"{where}: false_alarms must be in (0, 1), got {values['false_alarms']}")
-    for key, low in (("remove", 0), ("dim", 1), ("max_samples", 2), ("min_separation", 0), ("nms_radius", 0),
-                     ("top_k", 1), ("half_window", 1)):
+    for key, low in (
+        ("remove", 0),
+        ("dim", 1),
+        ("max_samples", 2),
+        ("min_separation", 0),
+        ("nms_radius", 0),
+        ("top_k", 1),
+        ("half_window", 1),
+    ):
         if key in values and values[key] < low:
             raise ValueError(f"{where}: {key} must be >= {low}, got {values[key]}")
     if values.get("max_loops") is not None and values["max_loops"] < 1:

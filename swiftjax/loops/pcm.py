@@ -64,15 +64,23 @@ from swiftjax import sim3
 from swiftjax._compile import quick_jit
 
 __all__ = [
-    "odometry_covariance", "loop_covariance", "pairwise_consistency", "max_consistent_set",
-    "consistency_threshold", "GraphConsistency", "graph_consistency", "consistent_solve",
+    "odometry_covariance",
+    "loop_covariance",
+    "pairwise_consistency",
+    "max_consistent_set",
+    "consistency_threshold",
+    "GraphConsistency",
+    "graph_consistency",
+    "consistent_solve",
 ]
 
 
 @jax.jit
 def odometry_covariance(
-    relative: Float[ArrayLike, "*batch 8"], sigma_rot: float | Float[ArrayLike, ""],
-    sigma_trans: float | Float[ArrayLike, ""], sigma_scale: float | Float[ArrayLike, ""],
+    relative: Float[ArrayLike, "*batch 8"],
+    sigma_rot: float | Float[ArrayLike, ""],
+    sigma_trans: float | Float[ArrayLike, ""],
+    sigma_scale: float | Float[ArrayLike, ""],
 ) -> Float[Array, "*batch 7 7"]:
     """Drift model of the temporal edges: diagonal covariances ``[E, 7, 7]`` in ``(ρ, ω, σ)``.
 
@@ -90,8 +98,10 @@ def odometry_covariance(
 
 @jax.jit
 def loop_covariance(
-    Z: Float[ArrayLike, "*batch 8"], sigma_rot: float | Float[ArrayLike, ""],
-    sigma_trans: float | Float[ArrayLike, ""], sigma_scale: float | Float[ArrayLike, ""],
+    Z: Float[ArrayLike, "*batch 8"],
+    sigma_rot: float | Float[ArrayLike, ""],
+    sigma_trans: float | Float[ArrayLike, ""],
+    sigma_scale: float | Float[ArrayLike, ""],
 ) -> Float[Array, "*batch 7 7"]:
     """Covariance ``[M, 7, 7]`` of loop edges ``Z [M, 8]``: ``std(ρ) = sigma_trans`` in the
     source chunk's units (VGGT normalises each chunk's scene scale), ``sigma_rot``, ``sigma_scale``."""
@@ -229,8 +239,10 @@ def _chain_edges(edges: np.ndarray, plain: np.ndarray, num: int) -> np.ndarray:
     index = {(int(a), int(b)): k for k, (a, b) in enumerate(edges) if plain[k]}
     missing = [t for t in range(num - 1) if (t, t + 1) not in index]
     if missing:
-        raise ValueError(f"graph_consistency: no odometry edge ({missing[0]}, {missing[0] + 1}) among the "
-                         "non-robust edges (the test needs the chain t -> t + 1)")
+        raise ValueError(
+            f"graph_consistency: no odometry edge ({missing[0]}, {missing[0] + 1}) among the "
+            "non-robust edges (the test needs the chain t -> t + 1)"
+        )
     return np.array([index[(t, t + 1)] for t in range(num - 1)], np.int64)
 
 
@@ -300,8 +312,12 @@ def graph_consistency(
         nodes = np.concatenate([nodes, [[0, 0]]])
         Z = np.concatenate([Z, np.asarray(sim3.identity((1,), jnp.float64))])
         L = np.concatenate([L, np.zeros((1, 7, 7))])
-        m = np.asarray(pairwise_consistency(jnp.asarray(X), jnp.asarray(cov[chain]), jnp.asarray(nodes),
-                                            jnp.asarray(Z), jnp.asarray(L)), np.float64)
+        m = np.asarray(
+            pairwise_consistency(
+                jnp.asarray(X), jnp.asarray(cov[chain]), jnp.asarray(nodes), jnp.asarray(Z), jnp.asarray(L)
+            ),
+            np.float64,
+        )
     m, m_odo = m[:M, :M], m[:M, M]
     threshold = consistency_threshold(M, probability, extra_tests=M if odometry_check else 0)
     ok = m <= threshold
@@ -342,8 +358,9 @@ def consistent_solve(
     """
     from swiftjax import posegraph
 
-    check = graph_consistency(problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability,
-                              odometry_check=odometry_check)
+    check = graph_consistency(
+        problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability, odometry_check=odometry_check
+    )
     options = {**options, "kernel": "gnc"}
     c = posegraph.GraphOptions(kernel="gnc", kernel_scale=options.get("kernel_scale")).scale
     decide = check.problem
@@ -366,6 +383,7 @@ def consistent_solve(
     if covariance is None:
         return res, check
     inliers = np.asarray(decide.edge_mask) & (res.inlier_weights >= 0.5)
-    final = posegraph.optimize(dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)),
-                               **{**options, "kernel": None})
+    final = posegraph.optimize(
+        dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)), **{**options, "kernel": None}
+    )
     return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check

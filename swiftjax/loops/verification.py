@@ -85,13 +85,14 @@ def loop_chunk_quality(info_i: Any, info_j: Any) -> LoopQuality:
     ``num_points``, ``fraction_used``, ``rms``, ``valid``, ``pose_fallback`` (e.g. the
     pipeline's per-half record dicts, whose keys are those names).
     """
-    get = lambda x, k: jnp.asarray(x[k] if isinstance(x, dict) else getattr(x, k))  # noqa: E731
+    get = lambda x, k: jnp.asarray(x[k] if isinstance(x, dict) else getattr(x, k))
     return LoopQuality(
         min_points=jnp.minimum(get(info_i, "num_points"), get(info_j, "num_points")),
         min_fraction=jnp.minimum(get(info_i, "fraction_used"), get(info_j, "fraction_used")),
         max_rms=jnp.maximum(get(info_i, "rms"), get(info_j, "rms")),
-        valid=(get(info_i, "valid") & get(info_j, "valid")
-               & ~get(info_i, "pose_fallback") & ~get(info_j, "pose_fallback")),
+        valid=(
+            get(info_i, "valid") & get(info_j, "valid") & ~get(info_i, "pose_fallback") & ~get(info_j, "pose_fallback")
+        ),
     )
 
 
@@ -117,19 +118,26 @@ def candidate_numbers(
     (``K'``) and ``null_kappa`` (the chance-corrected agreement; :mod:`swiftjax.loops.null`).
     """
     config = config or VerificationConfig()
-    one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))  # noqa: E731
+    one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))
     Z = np.asarray(Z, np.float32)[None]
     cc = cross_chunk_consistency(one(side_i), one(side_j), Z, K_ref, config)
-    plain = lambda info: {k: float(np.asarray(v)[0]) if np.asarray(v).dtype.kind == "f" else int(np.asarray(v)[0])  # noqa: E731
-                          for k, v in info._asdict().items()}
+    plain = lambda info: {
+        k: float(np.asarray(v)[0]) if np.asarray(v).dtype.kind == "f" else int(np.asarray(v)[0])
+        for k, v in info._asdict().items()
+    }
     q = loop_chunk_quality(info_i, info_j)
     null = {}
     if config.agreement_rule == "null":
         nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
         score, overlap, seen = (np.asarray(a)[0] for a in nc)
         th = null_threshold(score, overlap, seen, config.null_false_alarm, config.min_overlap)
-        null = {"null_threshold": th.threshold, "null_mean": th.mean, "null_std": th.std, "null_samples": th.samples,
-                "null_kappa": chance_corrected(float(np.asarray(cc.score)[0]), th.mean)}
+        null = {
+            "null_threshold": th.threshold,
+            "null_mean": th.mean,
+            "null_std": th.std,
+            "null_samples": th.samples,
+            "null_kappa": chance_corrected(float(np.asarray(cc.score)[0]), th.mean),
+        }
     return {
         "dense_agreement": float(np.asarray(cc.score)[0]),
         "dense_overlap": float(min(np.asarray(cc.i_to_j.overlap)[0], np.asarray(cc.j_to_i.overlap)[0])),
@@ -168,23 +176,28 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
     if not (math.isfinite(agreement) and math.isfinite(overlap)):
         return "dense consistency not computable"
     if overlap < config.min_overlap:
-        return (f"the temporal chunks do not see each other under the edge: overlap {overlap:.3f} "
-                f"< {config.min_overlap}")
+        return f"the temporal chunks do not see each other under the edge: overlap {overlap:.3f} < {config.min_overlap}"
     if config.agreement_rule == "null":
         tau = float(r.get("null_threshold", math.nan))
         if math.isfinite(tau):
             null = f"null {float(r['null_mean']):.3f} +- {float(r['null_std']):.3f}"
             if agreement <= tau:
-                return (f"depths agree no better than under wrong edges: agreement {agreement:.3f} <= "
-                        f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g})")
+                return (
+                    f"depths agree no better than under wrong edges: agreement {agreement:.3f} <= "
+                    f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g})"
+                )
             kappa = chance_corrected(agreement, float(r["null_mean"]))
             if kappa < config.null_min_kappa:
-                return (f"depths agree little more than under wrong edges: chance-corrected agreement "
-                        f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null})")
+                return (
+                    f"depths agree little more than under wrong edges: chance-corrected agreement "
+                    f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null})"
+                )
             return None
         if agreement < config.min_agreement:  # the null is not computable: the fixed bound
-            return (f"depths disagree across the loop: agreement {agreement:.3f} < {config.min_agreement} "
-                    "(no null: fewer than three wrong edges see the other chunk)")
+            return (
+                f"depths disagree across the loop: agreement {agreement:.3f} < {config.min_agreement} "
+                "(no null: fewer than three wrong edges see the other chunk)"
+            )
         return None
     if agreement < config.min_agreement:
         return f"depths disagree across the loop: agreement {agreement:.3f} < {config.min_agreement}"
@@ -259,16 +272,16 @@ def verify_candidates(
     with jax.enable_x64(True):
         Zj = jnp.asarray(np.stack(Zs))
         odo = odometry_covariance(
-            jnp.asarray(relative, jnp.float64), config.odo_sigma_rot, config.odo_sigma_trans,
+            jnp.asarray(relative, jnp.float64),
+            config.odo_sigma_rot,
+            config.odo_sigma_trans,
             config.odo_sigma_scale,
         )
         lc = loop_covariance(Zj, config.loop_sigma_rot, config.loop_sigma_trans, config.loop_sigma_scale)
-        m = np.asarray(pairwise_consistency(
-            jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc
-        ))[:n, :n]
-    clique = set(max_consistent_set(
-        m <= config.pcm_threshold, [float(records[k]["dense_agreement"]) for k in alive]
-    ))
+        m = np.asarray(
+            pairwise_consistency(jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc)
+        )[:n, :n]
+    clique = set(max_consistent_set(m <= config.pcm_threshold, [float(records[k]["dense_agreement"]) for k in alive]))
     for a, k in enumerate(alive):
         worst = float(np.max(m[a])) if len(alive) > 1 else 0.0
         if a in clique:
@@ -276,7 +289,9 @@ def verify_candidates(
         else:
             bad = max(float(m[a, b]) for b in clique) if clique else math.inf
             out[k] = Decision(
-                False, f"pairwise inconsistent with the {len(clique)} accepted loop(s): whitened cycle "
-                f"residual {bad:.1f} > {config.pcm_threshold}", worst,
+                False,
+                f"pairwise inconsistent with the {len(clique)} accepted loop(s): whitened cycle "
+                f"residual {bad:.1f} > {config.pcm_threshold}",
+                worst,
             )
     return out

@@ -25,8 +25,13 @@ def both(a: jax.Array | None, b: jax.Array | None) -> jax.Array | None:
 
 
 def align_pair(
-    prev: align.ChunkFrames, cur: align.ChunkFrames, K_ref: np.ndarray, config: PipelineConfig,
-    loop: bool, name: str, mask: jax.Array | None = None,
+    prev: align.ChunkFrames,
+    cur: align.ChunkFrames,
+    K_ref: np.ndarray,
+    config: PipelineConfig,
+    loop: bool,
+    name: str,
+    mask: jax.Array | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """``S`` mapping ``cur``'s chunk into ``prev``'s, with the configured method, and diagnostics.
 
@@ -34,18 +39,29 @@ def align_pair(
     options = _align_options(config, loop)
     if config.alignment == "irls":
         if mask is not None:  # a masked pixel is a non-finite one (never reliable)
-            prev, cur = (f._replace(depth=jnp.where(mask, jnp.asarray(f.depth, jnp.float32), jnp.nan)) for f in (prev, cur))
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+            prev, cur = (
+                f._replace(depth=jnp.where(mask, jnp.asarray(f.depth, jnp.float32), jnp.nan)) for f in (prev, cur)
+            )
+        f32 = lambda x: jnp.asarray(x, jnp.float32)
         S, info, count = align.irls_chunk_pair(
-            align.ChunkFrames(*map(f32, prev)), align.ChunkFrames(*map(f32, cur)), f32(K_ref),
-            f32(options.depth_threshold), f32(options.conf_ratio),
+            align.ChunkFrames(*map(f32, prev)),
+            align.ChunkFrames(*map(f32, cur)),
+            f32(K_ref),
+            f32(options.depth_threshold),
+            f32(options.conf_ratio),
         )
         ok = bool(np.all(np.isfinite(np.asarray(S)))) and int(count) >= 3
         if not ok:
             S = sim3.identity((), jnp.float32)
-        diag = {"num_points": int(count), "fraction_used": float(count) / np.size(prev.depth),
-                "rms": float("nan"), "valid": ok, "used_fallback_threshold": False, "pose_fallback": not ok,
-                "scale_ratio": 1.0}
+        diag = {
+            "num_points": int(count),
+            "fraction_used": float(count) / np.size(prev.depth),
+            "rms": float("nan"),
+            "valid": ok,
+            "used_fallback_threshold": False,
+            "pose_fallback": not ok,
+            "scale_ratio": 1.0,
+        }
         return np.asarray(S, np.float64), diag
     S, info = align.align_chunk_pair_checked(prev, cur, K_ref, name=name, mask=mask, options=options)
     S = np.asarray(S, np.float64)

@@ -20,7 +20,8 @@ import os
 import pathlib
 import shlex
 import time
-from collections.abc import Callable, Sequence as Seq
+from collections.abc import Callable
+from collections.abc import Sequence as Seq
 from typing import Any
 
 import numpy as np
@@ -82,7 +83,7 @@ def read_list(path: str | os.PathLike[str]) -> list[tuple[str, str | None]]:
             )
         if any(not f.strip() for f in fields):
             raise BatchError(f"{path}:{number}: an empty path")
-        resolve = lambda p: p if os.path.isabs(p) else str(base / p)  # noqa: E731
+        resolve = lambda p: p if os.path.isabs(p) else str(base / p)
         out.append((resolve(fields[0]), resolve(fields[1]) if len(fields) == 2 else None))
     if not out:
         raise BatchError(f"the batch list {path} names no sequence")
@@ -159,14 +160,17 @@ def sequence_timestamps(inputs: Seq[str], name: str) -> list[str]:
         places = [p / name, p.parent / name] if p.is_dir() else [p.parent / name]
         found = next((q for q in places if q.is_file()), None)
         if found is None:
-            raise BatchError(f"--timestamps {name}: sequence {item} has no {name} (looked in "
-                             f"{', '.join(str(q.parent) for q in places)})")
+            raise BatchError(
+                f"--timestamps {name}: sequence {item} has no {name} (looked in "
+                f"{', '.join(str(q.parent) for q in places)})"
+            )
         out.append(str(found))
     return out
 
 
-def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: bool,
-                 jax_cache_dir: str | None = None) -> dict[str, Any]:
+def run_sequence(
+    job: Sequence, out: str, config: PipelineConfig, overwrite: bool, jax_cache_dir: str | None = None
+) -> dict[str, Any]:
     """One sequence, in this process (or a worker's): its row of the batch table.  Every
     error is the row's ``error`` (first line), never raised; KeyboardInterrupt is."""
     from swiftjax.pipeline.executors import LocalExecutor
@@ -189,9 +193,19 @@ def run_sequence(job: Sequence, out: str, config: PipelineConfig, overwrite: boo
         if gt is not None and len(gt) != predictor.num_frames:
             raise ValueError(f"ground truth has {len(gt)} poses for {predictor.num_frames} frames")
         times, note = _times(job, predictor)
-        result = reconstruct(predictor, run_dir, config, ground_truth=gt, overwrite=overwrite, progress=False,
-                             log=lambda line: None, executor=LocalExecutor(), timestamps=times, timestamps_note=note)
-    except Exception as err:  # noqa: BLE001 -- a failing sequence is reported, the others go on
+        result = reconstruct(
+            predictor,
+            run_dir,
+            config,
+            ground_truth=gt,
+            overwrite=overwrite,
+            progress=False,
+            log=lambda line: None,
+            executor=LocalExecutor(),
+            timestamps=times,
+            timestamps_note=note,
+        )
+    except Exception as err:
         row["error"] = f"{type(err).__name__}: {' '.join(str(err).split()) or type(err).__name__}"
     else:
         m = result.metrics
@@ -218,8 +232,9 @@ def _times(job: Sequence, predictor: Any) -> tuple[Any, str | None]:
 class _SequenceActor:
     """A Ray actor running whole sequences, one at a time (its models stay loaded)."""
 
-    def run(self, job: Sequence, out: str, config: PipelineConfig, overwrite: bool,
-            jax_cache_dir: str | None) -> dict[str, Any]:
+    def run(
+        self, job: Sequence, out: str, config: PipelineConfig, overwrite: bool, jax_cache_dir: str | None
+    ) -> dict[str, Any]:
         return run_sequence(job, out, config, overwrite, jax_cache_dir)
 
 
@@ -271,16 +286,26 @@ def run_batch(
         for k, job in enumerate(jobs):
             done(k, run_sequence(job, str(out), config, overwrite, cache))
     elif executor == "ray":
-        _run_on_ray(jobs, str(out), config, overwrite, cache, done, workers, gpus_per_worker, cpus_per_worker,
-                    ray_address)
+        _run_on_ray(
+            jobs, str(out), config, overwrite, cache, done, workers, gpus_per_worker, cpus_per_worker, ray_address
+        )
     else:
         raise BatchError(f"executor must be 'local' or 'ray', got {executor!r}")
     final = [r for r in rows if r is not None]
     with atomic_write(out / "batch.json") as f:
-        json.dump({
-            "executor": executor, "workers": workers, "gpus_per_worker": gpus_per_worker,
-            "seconds": time.perf_counter() - t0, "config": config.to_dict(), "sequences": final,
-        }, f, indent=1, default=_json_default)
+        json.dump(
+            {
+                "executor": executor,
+                "workers": workers,
+                "gpus_per_worker": gpus_per_worker,
+                "seconds": time.perf_counter() - t0,
+                "config": config.to_dict(),
+                "sequences": final,
+            },
+            f,
+            indent=1,
+            default=_json_default,
+        )
     return final
 
 
@@ -291,7 +316,10 @@ def _run_on_ray(jobs, out, config, overwrite, cache, done, workers, gpus, cpus, 
     ray = pool.ray
     try:
         actor_cls = ray.remote(_SequenceActor).options(
-            num_cpus=cpus, num_gpus=gpus, max_restarts=pool.max_restarts, max_task_retries=pool.max_task_retries,
+            num_cpus=cpus,
+            num_gpus=gpus,
+            max_restarts=pool.max_restarts,
+            max_task_retries=pool.max_task_retries,
         )
         actors = [actor_cls.remote() for _ in range(workers)]
         pool.actors = actors  # closed (killed) with the pool
@@ -309,8 +337,13 @@ def _run_on_ray(jobs, out, config, overwrite, cache, done, workers, gpus, cpus, 
             try:
                 row = ray.get(ready[0])
             except Exception as err:  # the worker itself failed (died past its restarts, ...)
-                row = {"sequence": jobs[k].name, "run_dir": str(pathlib.Path(out) / jobs[k].name), "status": "failed",
-                       "error": f"worker failed: {str(err).strip().splitlines()[0]}", "seconds": float("nan")}
+                row = {
+                    "sequence": jobs[k].name,
+                    "run_dir": str(pathlib.Path(out) / jobs[k].name),
+                    "status": "failed",
+                    "error": f"worker failed: {str(err).strip().splitlines()[0]}",
+                    "seconds": float("nan"),
+                }
             done(k, row)
     finally:
         pool.close()
@@ -328,8 +361,15 @@ def batch_table(rows: Seq[dict[str, Any]]) -> str:
     from swiftjax.io.tables import markdown_table
 
     body = [
-        [r["sequence"], r["status"], r.get("frames", ""), r.get("loops", ""),
-         f"{r['ate_rmse']:.4g}" if "ate_rmse" in r else "", f"{r['seconds']:.1f}", r.get("error", "")]
+        [
+            r["sequence"],
+            r["status"],
+            r.get("frames", ""),
+            r.get("loops", ""),
+            f"{r['ate_rmse']:.4g}" if "ate_rmse" in r else "",
+            f"{r['seconds']:.1f}",
+            r.get("error", ""),
+        ]
         for r in rows
     ]
     return markdown_table(["sequence", "status", "frames", "loops", "ATE rmse (m)", "time (s)", "error"], body)

@@ -25,8 +25,7 @@ __all__ = ["PipelineConfig", "BACKBONE_NAMES", "METRIC_BACKBONES"]
 
 #: The networks ``--model`` offers (``inference.backbones.BACKBONES`` implements them; a test
 #: keeps the two lists equal, so that ``swiftjax`` can validate the option without importing it).
-BACKBONE_NAMES = ("vggt-1b", "da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large", "pi3",
-                  "pi3x")
+BACKBONE_NAMES = ("vggt-1b", "da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large", "pi3", "pi3x")
 #: Those whose depth is in metres (``--metric model``).
 METRIC_BACKBONES = ("da3-nested-giant-large", "pi3x")
 
@@ -77,154 +76,280 @@ class PipelineConfig:
     """
 
     model: str = option(
-        "vggt-1b", "the network that predicts each chunk (reconstruct, batch; --model-config picks a custom size of "
-        "its family; the demo's synthetic oracle ignores it)", choices=BACKBONE_NAMES, stage="temporal",
+        "vggt-1b",
+        "the network that predicts each chunk (reconstruct, batch; --model-config picks a custom size of "
+        "its family; the demo's synthetic oracle ignores it)",
+        choices=BACKBONE_NAMES,
+        stage="temporal",
     )
     chunk_size: int = option(75, "frames per chunk (B)", low=2, high=10_000, stage="temporal")
-    overlap: int = option(30, "frames shared by neighbouring chunks (O), 1 <= O < chunk_size; default 30, or the "
-                         "paper's 30/75 of a chunk of 30 frames or fewer", low=1, high=9_999,
-                         stage="temporal")
+    overlap: int = option(
+        30,
+        "frames shared by neighbouring chunks (O), 1 <= O < chunk_size; default 30, or the "
+        "paper's 30/75 of a chunk of 30 frames or fewer",
+        low=1,
+        high=9_999,
+        stage="temporal",
+    )
     alignment: str = option(
-        "umeyama", "chunk alignment: the method's single weighted Umeyama solve, or VGGT-Long's IRLS baseline",
-        choices=("umeyama", "irls"), stage="temporal",
+        "umeyama",
+        "chunk alignment: the method's single weighted Umeyama solve, or VGGT-Long's IRLS baseline",
+        choices=("umeyama", "irls"),
+        stage="temporal",
     )
     depth_threshold: float = option(
-        _ALIGN.depth_threshold, "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
-        low=0.0, low_open=True, stage="temporal",
+        _ALIGN.depth_threshold,
+        "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
+        low=0.0,
+        low_open=True,
+        stage="temporal",
     )
     conf_ratio: float = option(
-        _ALIGN.conf_ratio, "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
-        low=0.0, high=10.0, stage="temporal",
+        _ALIGN.conf_ratio,
+        "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
+        low=0.0,
+        high=10.0,
+        stage="temporal",
     )
     min_points: int = option(
-        _ALIGN.min_points, "fewest reliable points before the one-time retry with fallback_depth_threshold",
-        low=3, high=10**8, stage="temporal",
+        _ALIGN.min_points,
+        "fewest reliable points before the one-time retry with fallback_depth_threshold",
+        low=3,
+        high=10**8,
+        stage="temporal",
     )
     fallback_depth_threshold: float = option(
-        _ALIGN.fallback_depth_threshold, "depth threshold of the retry when fewer than min_points are reliable",
-        low=0.0, low_open=True, stage="temporal",
+        _ALIGN.fallback_depth_threshold,
+        "depth threshold of the retry when fewer than min_points are reliable",
+        low=0.0,
+        low_open=True,
+        stage="temporal",
     )
     overlap_scale: str = option(
-        _ALIGN.overlap_scale, "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the "
-        "reliability mask: median (always), auto (only when the authors' mask keeps fewer than min_points) or none (the authors' eq. 2)", choices=OVERLAP_SCALE_RULES, stage="temporal",
+        _ALIGN.overlap_scale,
+        "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the "
+        "reliability mask: median (always), auto (only when the authors' mask keeps fewer than min_points) or none (the authors' eq. 2)",
+        choices=OVERLAP_SCALE_RULES,
+        stage="temporal",
     )
     loop_depth_threshold: float = option(
-        _ALIGN.loop_depth_threshold, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True,
+        _ALIGN.loop_depth_threshold,
+        "depth threshold when aligning a loop chunk to its temporal chunks",
+        low=0.0,
+        low_open=True,
         stage="loops",
     )
     loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")
     loop_threshold_rule: str = option(
-        _LOOPS.rule, "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
-        "own similarity distribution), fixed (loop_threshold) or authors", choices=tuple(loops.THRESHOLD_RULES), stage="loops",
+        _LOOPS.rule,
+        "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
+        "own similarity distribution), fixed (loop_threshold) or authors",
+        choices=tuple(loops.THRESHOLD_RULES),
+        stage="loops",
     )
     loop_threshold: float = option(
-        _LOOPS.threshold, "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
-        low=-1.0, high=1.0, stage="loops",
+        _LOOPS.threshold,
+        "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
+        low=-1.0,
+        high=1.0,
+        stage="loops",
     )
     loop_false_alarms: float = option(
-        _LOOPS.false_alarms, "adaptive threshold: accepted rate of false loop candidates",
-        low=0.0, high=1.0, low_open=True, high_open=True, stage="loops",
+        _LOOPS.false_alarms,
+        "adaptive threshold: accepted rate of false loop candidates",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+        high_open=True,
+        stage="loops",
     )
-    loop_min_separation: int = option(_LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, high=10**7, stage="loops")
-    loop_nms_radius: int = option(_LOOPS.nms_radius, "non-maximum suppression radius of loop candidates (frames)", low=0, high=10**7, stage="loops")
-    loop_top_k: int = option(_LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, high=1000, stage="loops")
-    whitening_dim: int = option(_LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, high=65_536, stage="loops")
-    whitening_remove: int = option(_LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, high=65_536, stage="loops")
+    loop_min_separation: int = option(
+        _LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, high=10**7, stage="loops"
+    )
+    loop_nms_radius: int = option(
+        _LOOPS.nms_radius,
+        "non-maximum suppression radius of loop candidates (frames)",
+        low=0,
+        high=10**7,
+        stage="loops",
+    )
+    loop_top_k: int = option(
+        _LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, high=1000, stage="loops"
+    )
+    whitening_dim: int = option(
+        _LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, high=65_536, stage="loops"
+    )
+    whitening_remove: int = option(
+        _LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, high=65_536, stage="loops"
+    )
     power_beta: float = option(
-        _LOOPS.beta, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True, stage="loops",
+        _LOOPS.beta,
+        "signed power applied to the descriptors (beta)",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+        stage="loops",
     )
     loop_half_window: int = option(
-        _LOOPS.half_window, "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2; "
+        _LOOPS.half_window,
+        "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2; "
         "default 10, or chunk_size / 2 when that is smaller)",
-        low=1, high=5_000, stage="loops",
+        low=1,
+        high=5_000,
+        stage="loops",
     )
     loop_verification: str = option(
-        _LOOPS.verification, "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
+        _LOOPS.verification,
+        "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
         "and pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
-        choices=loops.VERIFICATION_RULES, stage="loops",
+        choices=loops.VERIFICATION_RULES,
+        stage="loops",
     )
     loop_min_agreement: float = option(
-        _LOOPS.verification_config.min_agreement, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0,
+        _LOOPS.verification_config.min_agreement,
+        "loop verification: the dense test's bound (fraction of agreeing pixels)",
+        low=0.0,
+        high=1.0,
         stage="loops",
     )
     loop_agreement: str = option(
-        _LOOPS.verification_config.agreement_rule, "loop verification: null (the dense agreement must beat what the same "
+        _LOOPS.verification_config.agreement_rule,
+        "loop verification: null (the dense agreement must beat what the same "
         "two chunks give under clearly wrong edges, per candidate) or fixed (must reach loop_min_agreement)",
-        choices=loops.AGREEMENT_RULES, stage="loops",
+        choices=loops.AGREEMENT_RULES,
+        stage="loops",
     )
-    loop_pcm: bool = option(_LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops")
+    loop_pcm: bool = option(
+        _LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops"
+    )
     loop_geometry: bool = option(
-        False, "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "
-        "edges by point-cloud registration (swiftjax.loops.geometric)", stage="loops",
+        False,
+        "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "
+        "edges by point-cloud registration (swiftjax.loops.geometric)",
+        stage="loops",
     )
     robust_loops: str | None = option(
-        _GRAPH.kernel, "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
-        "or none (the authors' plain least squares)", kind=str, choices=_ROBUST_CHOICES,
-        optional=True, stage="graph",
+        _GRAPH.kernel,
+        "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
+        "or none (the authors' plain least squares)",
+        kind=str,
+        choices=_ROBUST_CHOICES,
+        optional=True,
+        stage="graph",
     )
     robust_scale: float = option(
-        _GRAPH.scale, "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
-        low=0.0, low_open=True, stage="graph",
+        _GRAPH.scale,
+        "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
+        low=0.0,
+        low_open=True,
+        stage="graph",
     )
     graph_pcm: bool = option(
-        True, "pose graph: pairwise consistency of every loop edge against the odometry before GNC, which starts "
-        "from the maximum consistent set (Kimera-RPGO); false: GNC alone", stage="graph",
+        True,
+        "pose graph: pairwise consistency of every loop edge against the odometry before GNC, which starts "
+        "from the maximum consistent set (Kimera-RPGO); false: GNC alone",
+        stage="graph",
     )
     edge_information: str = option(
-        "data", "edge information: data (drift model + each alignment's own statistics) or equal "
-        "(identity, the authors')", choices=("data", "equal"), stage="graph",
+        "data",
+        "edge information: data (drift model + each alignment's own statistics) or equal (identity, the authors')",
+        choices=("data", "equal"),
+        stage="graph",
     )
     edge_pixels_per_sample: float = option(
-        196.0, "pixels per independent residual in an alignment's information (one 14x14 ViT patch)",
-        low=1.0, stage="graph",
+        196.0,
+        "pixels per independent residual in an alignment's information (one 14x14 ViT patch)",
+        low=1.0,
+        stage="graph",
     )
-    max_lm_steps: int = option(_GRAPH.max_steps, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, high=100_000, stage="graph")
+    max_lm_steps: int = option(
+        _GRAPH.max_steps,
+        "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)",
+        low=0,
+        high=100_000,
+        stage="graph",
+    )
     point_conf_ratio: float = option(
-        0.75, "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
-        low=0.0, high=10.0, stage="temporal",
+        0.75,
+        "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
+        low=0.0,
+        high=10.0,
+        stage="temporal",
     )
-    point_stride: int = option(4, "point cloud: keep every k-th pixel in each direction (stored with the chunks)", low=1, high=1024,
-                              stage="temporal")
+    point_stride: int = option(
+        4,
+        "point cloud: keep every k-th pixel in each direction (stored with the chunks)",
+        low=1,
+        high=1024,
+        stage="temporal",
+    )
     voxel_size: float | None = option(
-        None, "point cloud: voxel edge for per-chunk downsampling (none: no downsampling)",
-        kind=float, low=0.0, low_open=True, optional=True, stage="export",
+        None,
+        "point cloud: voxel edge for per-chunk downsampling (none: no downsampling)",
+        kind=float,
+        low=0.0,
+        low_open=True,
+        optional=True,
+        stage="export",
     )
     colmap: bool = option(
-        True, "write the COLMAP model and its frames (colmap/; the frames are written while each chunk is "
+        True,
+        "write the COLMAP model and its frames (colmap/; the frames are written while each chunk is "
         "predicted; turned on for a finished run, the export draws them from the input, predicting nothing)",
         stage="export",
     )
     colmap_text: bool = option(False, "also write the COLMAP model's .txt files beside the .bin", stage="export")
     colmap_original_resolution: bool = option(
-        False, "the COLMAP model at the original image size, with the original files, as VGGT's own export "
+        False,
+        "the COLMAP model at the original image size, with the original files, as VGGT's own export "
         "(the temporal stage then writes no model-resolution frames; turned off again, the export draws "
-        "them from the input)", stage="export",
+        "them from the input)",
+        stage="export",
     )
-    colmap_max_points: int = option(200_000, "most points written to the COLMAP model", low=0, high=10**9, stage="export")
+    colmap_max_points: int = option(
+        200_000, "most points written to the COLMAP model", low=0, high=10**9, stage="export"
+    )
     intrinsics: str | None = option(
-        None, "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
+        None,
+        "known intrinsics at the original image size: 'fx fy cx cy', a KITTI calib.txt (P0) "
         "or a COLMAP cameras.txt (PINHOLE / SIMPLE_PINHOLE / undistorted OPENCV)",
-        kind=str, optional=True, stage="temporal",
+        kind=str,
+        optional=True,
+        stage="temporal",
     )
     metric: str | None = option(
-        None, "metric scale: 'camera-height=H' (metres above the road), 'gt' (from --gt) or 'model' (the metric "
+        None,
+        "metric scale: 'camera-height=H' (metres above the road), 'gt' (from --gt) or 'model' (the metric "
         "network's own metres: --model da3-nested-giant-large)",
-        kind=str, optional=True, stage="temporal",
+        kind=str,
+        optional=True,
+        stage="temporal",
     )
     metric_combine: str = option(
-        "median", "--metric camera-height: combine the chunks' scale factors by their median (one factor for "
-        "the world) or as a prior on each chunk's scale in the pose graph", choices=METRIC_COMBINE, stage="graph",
+        "median",
+        "--metric camera-height: combine the chunks' scale factors by their median (one factor for "
+        "the world) or as a prior on each chunk's scale in the pose graph",
+        choices=METRIC_COMBINE,
+        stage="graph",
     )
     metric_prior_sigma: float = option(
-        0.02, "metric_combine = prior: standard deviation of one chunk's log-scale factor from its road plane",
-        low=0.0, high=1.0, low_open=True, stage="graph",
+        0.02,
+        "metric_combine = prior: standard deviation of one chunk's log-scale factor from its road plane",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+        stage="graph",
     )
     mask_dir: str | None = option(
-        None, "one PNG per frame, named like the frame, at the image size; white = keep",
-        kind=str, optional=True, stage="temporal",
+        None,
+        "one PNG per frame, named like the frame, at the image size; white = keep",
+        kind=str,
+        optional=True,
+        stage="temporal",
     )
     drop_sky: bool = option(
-        False, "leave out sky pixels (far and unsure: depth > 5x the frame median, confidence < 0.3x)",
+        False,
+        "leave out sky pixels (far and unsure: depth > 5x the frame median, confidence < 0.3x)",
         stage="temporal",
     )
 

@@ -82,9 +82,16 @@ class Reconstruction:
     """
 
     def __init__(
-        self, run_dir: str | pathlib.Path, predictor: Any, config: PipelineConfig = PipelineConfig(), *,
-        ground_truth: np.ndarray | None = None, executor: Any = None, overwrite: bool = False,
-        log: Callable[[str], None] = print, timestamps_note: str | None = None,
+        self,
+        run_dir: str | pathlib.Path,
+        predictor: Any,
+        config: PipelineConfig = PipelineConfig(),
+        *,
+        ground_truth: np.ndarray | None = None,
+        executor: Any = None,
+        overwrite: bool = False,
+        log: Callable[[str], None] = print,
+        timestamps_note: str | None = None,
     ) -> None:
         self.run_dir, self.predictor, self.config = pathlib.Path(run_dir), predictor, config
         self.ground_truth, self.executor, self.overwrite, self.log = ground_truth, executor, overwrite, log
@@ -140,9 +147,16 @@ class Reconstruction:
         n = self.num_frames
         gt = None if self.ground_truth is None else np.asarray(self.ground_truth)[:n]
         result = reconstruct(
-            Prefix(self.predictor, n), self.run_dir, self.config, ground_truth=gt, overwrite=self.overwrite,
-            progress=False, timestamps=self.times if self._timed else None, timestamps_note=self.timestamps_note,
-            log=self.log, executor=self.executor,
+            Prefix(self.predictor, n),
+            self.run_dir,
+            self.config,
+            ground_truth=gt,
+            overwrite=self.overwrite,
+            progress=False,
+            timestamps=self.times if self._timed else None,
+            timestamps_note=self.timestamps_note,
+            log=self.log,
+            executor=self.executor,
         )
         self.overwrite = False  # the first step replaced what was there
         if self._live is None:

@@ -93,8 +93,12 @@ class Executor(Protocol):
 
     stats: ExecutorStats
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
-            ) -> Iterator[ChunkPrediction]:
+    def map(
+        self,
+        predictor: Any,
+        requests: Sequence[np.ndarray],
+        prepare: Prepare | None = None,
+    ) -> Iterator[ChunkPrediction]:
         """``prepare(predictor.predict(frames))`` for each ``frames`` of ``requests``, in order.
         Close the iterator (or exhaust it) to release what is in flight."""
         ...
@@ -109,8 +113,11 @@ def prediction_nbytes(pred: ChunkPrediction) -> int:
     return int(sum(v.nbytes for v in vars(pred).values() if isinstance(v, np.ndarray)))
 
 
-def _timed_predict(predictor: Any, frames: np.ndarray, prepare: Prepare | None = None,
-                   ) -> tuple[ChunkPrediction, float]:
+def _timed_predict(
+    predictor: Any,
+    frames: np.ndarray,
+    prepare: Prepare | None = None,
+) -> tuple[ChunkPrediction, float]:
     t0 = time.perf_counter()
     pred = predictor.predict(frames)
     if prepare is not None:
@@ -140,8 +147,12 @@ class LocalExecutor:
         self.prefetch = int(prefetch)
         self.stats = ExecutorStats()
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
-            ) -> Iterator[ChunkPrediction]:
+    def map(
+        self,
+        predictor: Any,
+        requests: Sequence[np.ndarray],
+        prepare: Prepare | None = None,
+    ) -> Iterator[ChunkPrediction]:
         if self.prefetch == 0:
             for frames in requests:
                 t0 = time.perf_counter()
@@ -189,8 +200,7 @@ class LocalExecutor:
 class PredictorSpec(Protocol):
     """A picklable recipe for a predictor, built once per worker (e.g. loads the weights)."""
 
-    def build(self) -> Any:
-        ...
+    def build(self) -> Any: ...
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,9 +228,7 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError as err:
-        raise ExecutorError(
-            "the Ray executor needs the 'ray' extra: pip install 'swiftjax[ray]'"
-        ) from err
+        raise ExecutorError("the Ray executor needs the 'ray' extra: pip install 'swiftjax[ray]'") from err
     return ray
 
 
@@ -259,7 +267,7 @@ def check_ray_address(address: str, timeout: float = 3.0) -> None:
         quiet.setLevel(level)
     try:
         with _native_stderr_silenced():  # Ray's C++ client logs each failed attempt
-            GcsClient(address=hostport).cluster_id
+            _ = GcsClient(address=hostport).cluster_id
     except Exception as err:
         raise ExecutorError(f"no Ray cluster answers at {address}: {_first_line(err)}") from err
 
@@ -320,8 +328,12 @@ def start_local_ray(num_cpus: int | None = None, num_gpus: int | None = None) ->
         # RAY_AUTH_MODE unset: Ray (>= 2.59) turns token authentication on for a new local
         # cluster (and generates ~/.ray/auth_token once); both are checked below.
         ray.init(
-            num_cpus=num_cpus, num_gpus=num_gpus, include_dashboard=False, logging_level="ERROR",
-            log_to_driver=True, configure_logging=True,
+            num_cpus=num_cpus,
+            num_gpus=num_gpus,
+            include_dashboard=False,
+            logging_level="ERROR",
+            log_to_driver=True,
+            configure_logging=True,
         )
     ip = ray.util.get_node_ip_address()
     problem = None
@@ -435,8 +447,10 @@ class RayExecutor:
         self._kill_actors()
         spec = predictor_spec(predictor)
         actor_cls = self.ray.remote(_PredictorActor).options(
-            num_cpus=self.cpus_per_worker, num_gpus=self.gpus_per_worker,
-            max_restarts=self.max_restarts, max_task_retries=self.max_task_retries,
+            num_cpus=self.cpus_per_worker,
+            num_gpus=self.gpus_per_worker,
+            max_restarts=self.max_restarts,
+            max_task_retries=self.max_task_retries,
         )
         cache = _jax_cache_dir()
         try:
@@ -449,8 +463,12 @@ class RayExecutor:
         self._spec_key = predictor
         return self.actors
 
-    def map(self, predictor: Any, requests: Sequence[np.ndarray], prepare: Prepare | None = None,
-            ) -> Iterator[ChunkPrediction]:
+    def map(
+        self,
+        predictor: Any,
+        requests: Sequence[np.ndarray],
+        prepare: Prepare | None = None,
+    ) -> Iterator[ChunkPrediction]:
         requests = list(requests)
         if not requests:
             return

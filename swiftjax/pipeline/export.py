@@ -52,7 +52,14 @@ from swiftjax.prediction import ChunkPrediction
 from swiftjax.sampling import Reservoir
 
 __all__ = [
-    "clean", "check", "run", "ChunkExport", "chunk_points", "chunk_points_jit", "export_points", "output_files",
+    "clean",
+    "check",
+    "run",
+    "ChunkExport",
+    "chunk_points",
+    "chunk_points_jit",
+    "export_points",
+    "output_files",
 ]
 
 _CAMERA_AXES = "OpenCV camera axes (x right, y down, z forward)"
@@ -83,8 +90,13 @@ def check(ctx: RunContext) -> None:
 
 
 def run(
-    ctx: RunContext, temporal: TemporalResult, scaled: ScaleResult, loops: LoopResult, chunks: ChunkExport,
-    timestamps: Sequence[float] | None = None, timestamps_note: str | None = None,
+    ctx: RunContext,
+    temporal: TemporalResult,
+    scaled: ScaleResult,
+    loops: LoopResult,
+    chunks: ChunkExport,
+    timestamps: Sequence[float] | None = None,
+    timestamps_note: str | None = None,
 ) -> dict[str, Any]:
     """Write every output of the run but the report's; returns ``cam_to_world``,
     ``cam_to_world_no_loops`` ``[N, 4, 4]``, ``intrinsics [N, 3, 3]``, ``num_points``, a
@@ -96,15 +108,31 @@ def run(
     come from (said in the file's header)."""
     graph = scaled.graph
     with ctx.timer("export"):
-        exported = _export(ctx, temporal.K_ref, graph.chunk_poses, graph.chunk_poses_no_loops, scaled.unit, chunks,
-                           timestamps, timestamps_note)
+        exported = _export(
+            ctx,
+            temporal.K_ref,
+            graph.chunk_poses,
+            graph.chunk_poses_no_loops,
+            scaled.unit,
+            chunks,
+            timestamps,
+            timestamps_note,
+        )
         write_loops(ctx.run_dir / "loops.txt", loops.records)
     return exported
 
 
 def chunk_points(
-    depth: jax.Array, conf: jax.Array, K: jax.Array, K_ref: jax.Array, extrinsic: jax.Array,
-    conf_ratio: jax.Array, mask: jax.Array | None = None, *, count: int, stride: int,
+    depth: jax.Array,
+    conf: jax.Array,
+    K: jax.Array,
+    K_ref: jax.Array,
+    extrinsic: jax.Array,
+    conf_ratio: jax.Array,
+    mask: jax.Array | None = None,
+    *,
+    count: int,
+    stride: int,
 ) -> tuple[jax.Array, jax.Array]:
     """Chunk-frame points ``[count, h, w, 3]`` and keep-mask ``[count, h, w]`` of the first
     ``count`` frames of a chunk, pixel grid subsampled by ``stride`` (``h = ceil(H / stride)``).
@@ -137,9 +165,7 @@ def chunk_points(
 chunk_points_jit = quick_jit(chunk_points, options=LOOP_EMITTER, static_argnames=("count", "stride"))
 
 
-def export_points(
-    pred: ChunkPrediction, points: jax.Array, keep: jax.Array, stride: int
-) -> dict[str, np.ndarray]:
+def export_points(pred: ChunkPrediction, points: jax.Array, keep: jax.Array, stride: int) -> dict[str, np.ndarray]:
     """Chunk ``t``'s share of ``points.ply``, in the chunk's own frame, as chunk-store extras.
 
     The frames a chunk owns are ``[start_t, start_{t+1})`` (the later chunk wins overlaps;
@@ -183,8 +209,11 @@ def colmap_frame_paths(ctx: RunContext) -> list[str]:
     return [f"colmap/images/{name}" for name in frame_image_names(ctx)] if ctx.config.colmap else []
 
 
-def output_files(ctx: RunContext, targets: Sequence[pathlib.Path], frame_crcs: dict[str, str] | None,
-                 ) -> dict[str, str | None]:
+def output_files(
+    ctx: RunContext,
+    targets: Sequence[pathlib.Path],
+    frame_crcs: dict[str, str] | None,
+) -> dict[str, str | None]:
     """The outputs record of an export (:func:`swiftjax.pipeline.rundir.record_outputs`): every
     file of ``targets`` and every COLMAP frame on disk, relative to the run directory, mapped to
     None, or, with ``frame_crcs`` (after the renames), the COLMAP frames at the model's
@@ -255,9 +284,11 @@ def _check_frames(ctx: RunContext, names: list[str], frames_written: set[str]) -
         by_chunk.setdefault(int(ctx.schedule.chunk_of(k)), []).append(k)
     if not can_draw:
         t = min(by_chunk)
-        raise ChunkMismatchError(ctx.store.path("chunk", t),
-                                 f"its COLMAP frame(s) {shown}{more} must be written again and the predictor cannot "
-                                 "give the frames without predicting")
+        raise ChunkMismatchError(
+            ctx.store.path("chunk", t),
+            f"its COLMAP frame(s) {shown}{more} must be written again and the predictor cannot "
+            "give the frames without predicting",
+        )
     folder.mkdir(parents=True, exist_ok=True)
     for t, ks in by_chunk.items():  # the images of the chunk that wrote them (the oracle's depend on it)
         frames = ctx.schedule.frames(t)
@@ -280,7 +311,10 @@ def original_source(ctx: RunContext) -> Any:
 
 
 def _to_original_resolution(
-    ctx: RunContext, K_ref: np.ndarray, model_hw: tuple[int, int], uv: np.ndarray,
+    ctx: RunContext,
+    K_ref: np.ndarray,
+    model_hw: tuple[int, int],
+    uv: np.ndarray,
 ) -> tuple[np.ndarray, tuple[int, int], np.ndarray, np.ndarray]:
     """``K_ref`` and the observations ``uv [M, 2]`` (model pixels) at the original image size,
     undoing VGGT's preprocessing (:func:`swiftjax.intrinsics.preprocess_geometry`: resize, then
@@ -332,17 +366,29 @@ class ChunkExport:
         self._writer: _FrameWriter | None = None
 
     def __call__(
-        self, frames: np.ndarray, pred: ChunkPrediction, depth: jax.Array, conf: jax.Array, mask: jax.Array | None,
+        self,
+        frames: np.ndarray,
+        pred: ChunkPrediction,
+        depth: jax.Array,
+        conf: jax.Array,
+        mask: jax.Array | None,
         K_ref: np.ndarray,
     ) -> tuple[dict[str, np.ndarray], Any]:
         """Points (chunk-store extras) and the frame write's future (or None) of the chunk
         ``pred``, whose first ``len(frames)`` frames (global indices ``frames``) it owns;
         ``depth, conf [S, H, W]`` float32 and ``mask`` on the device."""
         config = self.ctx.config
-        f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+        f32 = lambda x: jnp.asarray(x, jnp.float32)
         pts, keep = chunk_points_jit(
-            depth, conf, f32(pred.intrinsic), f32(K_ref), f32(pred.extrinsic), jnp.float32(config.point_conf_ratio),
-            mask, count=len(frames), stride=config.point_stride,
+            depth,
+            conf,
+            f32(pred.intrinsic),
+            f32(K_ref),
+            f32(pred.extrinsic),
+            jnp.float32(config.point_conf_ratio),
+            mask,
+            count=len(frames),
+            stride=config.point_stride,
         )
         return export_points(pred, pts, keep, config.point_stride), self.write_frames(frames, pred)
 
@@ -431,8 +477,14 @@ def _per_frame_sample(frame: np.ndarray, per_frame: int, rng: np.random.Generato
 
 
 def _export(
-    ctx: RunContext, K_ref: np.ndarray, chunk_poses: np.ndarray, chunk_poses_no_loops: np.ndarray, unit: str,
-    chunks: ChunkExport, timestamps: Sequence[float] | None, timestamps_note: str | None,
+    ctx: RunContext,
+    K_ref: np.ndarray,
+    chunk_poses: np.ndarray,
+    chunk_poses_no_loops: np.ndarray,
+    unit: str,
+    chunks: ChunkExport,
+    timestamps: Sequence[float] | None,
+    timestamps_note: str | None,
 ) -> dict[str, Any]:
     """The final pass over the chunk store: world poses, points, COLMAP model.
 
@@ -461,8 +513,7 @@ def _export(
     picture = Reservoir(100_000, seed=1)  # points.png's uniform sample of the cloud
     image_hw: tuple[int, int] | None = None
     total_points = 0
-    ply_comments = [f"unit: {unit}",
-                    f"frame: the run's world = the first camera's frame, {_CAMERA_AXES}"]
+    ply_comments = [f"unit: {unit}", f"frame: the run's world = the first camera's frame, {_CAMERA_AXES}"]
     with ply.PlyStreamWriter(run_dir / "points.ply", comments=ply_comments) as cloud:
         for t in ctx.bar(range(T), desc="export", unit="chunk"):
             frames = schedule.frames(t)
@@ -514,7 +565,7 @@ def _export(
         f.write("# frame name (colmap/images/<name> when the COLMAP export wrote the frames)\n")
         f.writelines(f"{k} {name}\n" for k, name in enumerate(names))
 
-    cat = lambda key, shape, dt: np.concatenate(sample[key]) if sample[key] else np.zeros(shape, dt)  # noqa: E731
+    cat = lambda key, shape, dt: np.concatenate(sample[key]) if sample[key] else np.zeros(shape, dt)
     pts, rgb = cat("xyz", (0, 3), np.float32), cat("rgb", (0, 3), np.uint8)
     frame, uv = cat("frame", (0,), np.int64), cat("uv", (0, 2), np.int64).astype(np.float64)
     K, size = K_ref, (w, h)  # the COLMAP model's camera
@@ -522,27 +573,51 @@ def _export(
         K, size, uv, keep = _to_original_resolution(ctx, K_ref, (h, w), uv)
         pts, rgb, frame, uv = pts[keep], rgb[keep], frame[keep], uv[keep]
     cam = ctx.camera
-    ref = "frame 0's K" if cam is None or cam.intrinsics is None else (
-        f"the given intrinsics ({cam.intrinsics.kind} file {cam.intrinsics.source}) mapped to the model's resolution")
-    write_intrinsics(run_dir / "intrinsics.txt", intrinsics, K_ref, (w, h), getattr(ctx.predictor, "mode", None),
-                     colmap_camera=(K, size) if config.colmap else None, ref=ref)
+    ref = (
+        "frame 0's K"
+        if cam is None or cam.intrinsics is None
+        else (
+            f"the given intrinsics ({cam.intrinsics.kind} file {cam.intrinsics.source}) mapped to the model's resolution"
+        )
+    )
+    write_intrinsics(
+        run_dir / "intrinsics.txt",
+        intrinsics,
+        K_ref,
+        (w, h),
+        getattr(ctx.predictor, "mode", None),
+        colmap_camera=(K, size) if config.colmap else None,
+        ref=ref,
+    )
     if config.colmap:
         if config.colmap_original_resolution:
             _copy_originals(ctx, names)  # every frame (renamed into place with the output set)
             redrawn = set(names)
-        missing = [names[k] for k in range(n)
-                   if names[k] not in redrawn and not (run_dir / "colmap" / "images" / names[k]).is_file()]
+        missing = [
+            names[k]
+            for k in range(n)
+            if names[k] not in redrawn and not (run_dir / "colmap" / "images" / names[k]).is_file()
+        ]
         if missing:
             warnings.warn(
                 f"colmap/images/ lacks {len(missing)} of {n} frames (e.g. {missing[0]}): the predictor gave no "
                 "images, or the chunks were predicted before the COLMAP export was on",
-                RuntimeWarning, stacklevel=2,
+                RuntimeWarning,
+                stacklevel=2,
             )
         err = _reprojection_error(pts, frame, uv, c2w, K)
         colmap.write_colmap(
-            run_dir / "colmap" / "sparse" / "0", c2w, np.broadcast_to(K, (n, 3, 3)), names,
-            image_size=size, points=pts, colors=rgb, errors=err, observations=(frame, uv),
-            binary=True, text=config.colmap_text,
+            run_dir / "colmap" / "sparse" / "0",
+            c2w,
+            np.broadcast_to(K, (n, 3, 3)),
+            names,
+            image_size=size,
+            points=pts,
+            colors=rgb,
+            errors=err,
+            observations=(frame, uv),
+            binary=True,
+            text=config.colmap_text,
         )
     return {
         "cam_to_world": c2w,
@@ -573,26 +648,37 @@ def _write_trajectories(run_dir: pathlib.Path, c2w: np.ndarray, ts: np.ndarray, 
         f"swiftjax camera-to-world poses of {len(c2w)} frames, {_CAMERA_AXES}",
         f"unit: {unit}",
     ]
-    trajectory.write_kitti(run_dir / "poses_kitti.txt", c2w, header=[
-        *common, "each line: the top 3x4 of the 4x4 matrix, row-major (frame order)"])
-    trajectory.write_tum(run_dir / "poses_tum.txt", ts, c2w, header=[
-        *common, f"timestamps (s): {note}", "timestamp tx ty tz qx qy qz qw"])
+    trajectory.write_kitti(
+        run_dir / "poses_kitti.txt",
+        c2w,
+        header=[*common, "each line: the top 3x4 of the 4x4 matrix, row-major (frame order)"],
+    )
+    trajectory.write_tum(
+        run_dir / "poses_tum.txt",
+        ts,
+        c2w,
+        header=[*common, f"timestamps (s): {note}", "timestamp tx ty tz qx qy qz qw"],
+    )
 
 
 def _write_chunk_poses(path: pathlib.Path, poses: np.ndarray, poses_no_loops: np.ndarray, unit: str) -> None:
     head = {
         "description": "chunk-to-world Sim(3) S_t of every temporal chunk as (tx, ty, tz, qx, qy, qz, qw, s): "
-                       "x_world = s R x_chunk + t",
+        "x_world = s R x_chunk + t",
         "unit": unit,
     }
-    rows = lambda p: ",\n".join("  " + json.dumps(r) for r in np.asarray(p, np.float64).tolist())  # noqa: E731
+    rows = lambda p: ",\n".join("  " + json.dumps(r) for r in np.asarray(p, np.float64).tolist())
     with atomic_write(path) as f:  # one pose a line
         f.write(json.dumps(head, indent=1)[:-2] + ",\n")
         f.write(f' "loop closure": [\n{rows(poses)}\n ],\n "no loop closure": [\n{rows(poses_no_loops)}\n ]\n}}\n')
 
 
 def write_intrinsics(
-    path: pathlib.Path, intrinsics: np.ndarray, K_ref: np.ndarray, size_wh: tuple[int, int], mode: str | None = None,
+    path: pathlib.Path,
+    intrinsics: np.ndarray,
+    K_ref: np.ndarray,
+    size_wh: tuple[int, int],
+    mode: str | None = None,
     colmap_camera: tuple[np.ndarray, tuple[int, int]] | None = None,
     ref: str = "frame 0's K",
 ) -> None:
@@ -608,9 +694,13 @@ def write_intrinsics(
         Kc, (wc, hc) = colmap_camera
         same = (wc, hc) == (w, h) and np.array_equal(Kc, K_ref)
         colmap_line = (
-            f"colmap/sparse/0: one shared PINHOLE camera = "
-            + ("K_ref" if same else f"K_ref at the original {wc} x {hc} images (fx {Kc[0, 0]:.6f} fy {Kc[1, 1]:.6f} "
-               f"cx {Kc[0, 2]:.6f} cy {Kc[1, 2]:.6f}, preprocessing undone)")
+            "colmap/sparse/0: one shared PINHOLE camera = "
+            + (
+                "K_ref"
+                if same
+                else f"K_ref at the original {wc} x {hc} images (fx {Kc[0, 0]:.6f} fy {Kc[1, 1]:.6f} "
+                f"cx {Kc[0, 2]:.6f} cy {Kc[1, 2]:.6f}, preprocessing undone)"
+            )
             + f" with cx + 0.5, cy + 0.5 ({Kc[0, 2] + 0.5:.6f}, {Kc[1, 2] + 0.5:.6f}: COLMAP puts the image corner "
             f"at (0, 0)), size {wc} x {hc}"
         )
@@ -678,8 +768,9 @@ def write_loops(path: pathlib.Path, records: list[dict[str, Any]]) -> None:
     if not rows:
         count = "0 candidates: loop detection found no pair of frames that look at the same place"
     else:
-        count = (f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), "
-                 f"{len(rows) - accepted} rejected")
+        count = (
+            f"{len(rows)} candidates, {accepted} accepted (edges of the pose graph), {len(rows) - accepted} rejected"
+        )
     lines = [
         "swiftjax loop candidates: frames i and j (0-based) look at the same place; score = cosine of "
         "their whitened descriptors",

@@ -66,12 +66,16 @@ def edge_information(records: list[dict[str, Any]], pixels_per_sample: float) ->
     ok = np.array([all(key in r for key in _STATS) and not r.get("pose_fallback", False) for r in records], bool)
     if not ok.any():
         return np.zeros((k, 7, 7)), ok
-    get = lambda key, shape: np.array([r[key] if o else np.zeros(shape) for r, o in zip(records, ok)], np.float64)  # noqa: E731
+    get = lambda key, shape: np.array([r[key] if o else np.zeros(shape) for r, o in zip(records, ok)], np.float64)
     S = get("S", (8,))
     S[~ok, 6:8] = 1.0
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
-            S[:, 7], get("num_points", ()), get("rms", ()), get("src_mean", (3,)), get("src_covariance", (3, 3)),
+            S[:, 7],
+            get("num_points", ()),
+            get("rms", ()),
+            get("src_mean", (3,)),
+            get("src_covariance", (3, 3)),
             pixels_per_sample=pixels_per_sample,
         )
         info, valid = np.asarray(out.information, np.float64), np.asarray(out.valid) & ok
@@ -88,7 +92,10 @@ def loop_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
     with jax.enable_x64(True):
         E = covariance.EdgeInformation
         out = covariance.loop_edge_information(
-            np.asarray(halves[0]["S"]), E(info[0], np.bool_(True)), np.asarray(halves[1]["S"]), E(info[1], np.bool_(True))
+            np.asarray(halves[0]["S"]),
+            E(info[0], np.bool_(True)),
+            np.asarray(halves[1]["S"]),
+            E(info[1], np.bool_(True)),
         )
         return np.asarray(out.information, np.float64) if bool(out.valid) else None
 
@@ -102,13 +109,25 @@ def _drift_covariance(temporal: TemporalResult, loops: LoopResult) -> tuple[np.n
     """The drift model's covariances ``([T-1, 7, 7], [L, 7, 7])`` of the temporal and loop edges."""
     drift = lv.VerificationConfig()
     with jax.enable_x64(True):
-        odo = np.asarray(lv.odometry_covariance(
-            jnp.asarray(temporal.relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
-        ), np.float64)
-        lc = np.asarray(lv.loop_covariance(
-            jnp.asarray(np.stack([e.Z for e in loops.edges])), drift.loop_sigma_rot, drift.loop_sigma_trans,
-            drift.loop_sigma_scale,
-        ), np.float64) if loops.edges else np.zeros((0, 7, 7))
+        odo = np.asarray(
+            lv.odometry_covariance(
+                jnp.asarray(temporal.relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
+            ),
+            np.float64,
+        )
+        lc = (
+            np.asarray(
+                lv.loop_covariance(
+                    jnp.asarray(np.stack([e.Z for e in loops.edges])),
+                    drift.loop_sigma_rot,
+                    drift.loop_sigma_trans,
+                    drift.loop_sigma_scale,
+                ),
+                np.float64,
+            )
+            if loops.edges
+            else np.zeros((0, 7, 7))
+        )
     return odo, lc
 
 
@@ -131,8 +150,9 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
         (r["chunk_j"], r["chunk_i"]) != (e.chunk_a, e.chunk_b) for r, e in zip(accepted, loops.edges)
     ):
         raise RuntimeError("pose graph: the loop edges do not match the accepted loop records")
-    loop_info = [e.information if e.information is not None else loop_information(r, pps)
-                 for r, e in zip(accepted, loops.edges)]
+    loop_info = [
+        e.information if e.information is not None else loop_information(r, pps) for r, e in zip(accepted, loops.edges)
+    ]
     odo, lc = _drift_covariance(temporal, loops)
     safe = np.where(valid[:, None, None], info, np.eye(7))
     odo = odo + np.where(valid[:, None, None], _inverse(safe), 0.0)
@@ -148,8 +168,15 @@ PIN_SIGMA = 1e-3  # the anchor edge's standard deviation on chunk 0's rotation a
 
 
 def scale_prior_problem(
-    start: np.ndarray, edges: np.ndarray, measurements: np.ndarray, information: np.ndarray | None,
-    robust: np.ndarray, priors: metric_scale.ScalePriors, *, pin_sigma: float = PIN_SIGMA, eps: float = PRIOR_EPS,
+    start: np.ndarray,
+    edges: np.ndarray,
+    measurements: np.ndarray,
+    information: np.ndarray | None,
+    robust: np.ndarray,
+    priors: metric_scale.ScalePriors,
+    *,
+    pin_sigma: float = PIN_SIGMA,
+    eps: float = PRIOR_EPS,
 ) -> posegraph.Problem:
     """The pose graph with per-chunk scale priors (module docstring): nodes ``0 .. T-1`` the
     chunks (none fixed), node ``T`` the fixed identity anchor; edges: the given ones, then
@@ -198,15 +225,22 @@ def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) 
 
 def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
     posegraph.validate(problem)
-    res = posegraph.optimize(problem, max_steps=config.max_lm_steps, kernel=kernel, kernel_scale=config.robust_scale,
-                             throw=False)  # not converged: the caller warns
+    res = posegraph.optimize(
+        problem, max_steps=config.max_lm_steps, kernel=kernel, kernel_scale=config.robust_scale, throw=False
+    )  # not converged: the caller warns
     return res, np.asarray(sim3.normalize(res.poses), np.float64)
 
 
 def _solve_metrics(res: Any) -> dict[str, Any]:
-    return {"cost_initial": res.cost_initial, "cost_final": res.cost_final, "iterations": res.num_steps,
-            "converged": res.converged, "status": res.status, "compile_seconds": res.compile_seconds,
-            "solve_seconds": res.solve_seconds}
+    return {
+        "cost_initial": res.cost_initial,
+        "cost_final": res.cost_final,
+        "iterations": res.num_steps,
+        "converged": res.converged,
+        "status": res.status,
+        "compile_seconds": res.compile_seconds,
+        "solve_seconds": res.solve_seconds,
+    }
 
 
 def warm_start(previous: np.ndarray, relative: np.ndarray) -> np.ndarray:
@@ -217,7 +251,7 @@ def warm_start(previous: np.ndarray, relative: np.ndarray) -> np.ndarray:
     if not 1 <= T0 <= T:
         raise ValueError(f"a warm start of {T0} chunk poses for a graph of {T} chunks")
     previous = np.asarray(previous, np.float64)
-    tail = chain_poses(relative[T0 - 1:])[1:]  # chunks T0..T-1 in chunk T0-1's frame
+    tail = chain_poses(relative[T0 - 1 :])[1:]  # chunks T0..T-1 in chunk T0-1's frame
     with jax.enable_x64(True):
         grown = np.asarray(sim3.normalize(sim3.compose(jnp.asarray(previous[-1]), jnp.asarray(tail))), np.float64)
     return np.concatenate([previous, grown.reshape(-1, 8)])
@@ -243,16 +277,29 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
             start = metric_scale.apply_scale(chunk_poses_no_loops, priors.start_factor)
             tedges = np.array([(t, t + 1) for t in range(T - 1)], np.int32).reshape(-1, 2)
             with jax.enable_x64(True):
-                res0, poses0 = _solve(scale_prior_problem(
-                    start, tedges, relative, None if information is None else information[:T - 1],
-                    np.zeros(T - 1, bool), priors), config, None)
+                res0, poses0 = _solve(
+                    scale_prior_problem(
+                        start,
+                        tedges,
+                        relative,
+                        None if information is None else information[: T - 1],
+                        np.zeros(T - 1, bool),
+                        priors,
+                    ),
+                    config,
+                    None,
+                )
             chunk_poses_no_loops = poses0[:T]
-            graph_metrics["metric_prior"] = {**priors.stats, "start_factor": priors.start_factor,
-                                             "chunks_with_prior": int(priors.used.sum()),
-                                             "no_loops_solve": _solve_metrics(res0)}
+            graph_metrics["metric_prior"] = {
+                **priors.stats,
+                "start_factor": priors.start_factor,
+                "chunks_with_prior": int(priors.used.sum()),
+                "no_loops_solve": _solve_metrics(res0),
+            }
             if not res0.converged:
-                warnings.warn(f"pose graph (chain + scale priors) did not converge ({res0.status})", RuntimeWarning,
-                              stacklevel=2)
+                warnings.warn(
+                    f"pose graph (chain + scale priors) did not converge ({res0.status})", RuntimeWarning, stacklevel=2
+                )
         if loops.edges:
             L = len(loops.edges)
             edges = [(t, t + 1) for t in range(T - 1)] + [(e.chunk_a, e.chunk_b) for e in loops.edges]
@@ -262,8 +309,11 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                 if priors is None:
                     initial = chunk_poses_no_loops if warm is None else warm_start(warm.chunk_poses, relative)
                     problem = posegraph.Problem(
-                        jnp.asarray(initial), np.asarray(edges, np.int32), jnp.asarray(meas),
-                        information=information, robust=robust,
+                        jnp.asarray(initial),
+                        np.asarray(edges, np.int32),
+                        jnp.asarray(meas),
+                        information=information,
+                        robust=robust,
                     )
                 else:
                     problem = scale_prior_problem(start, np.asarray(edges, np.int32), meas, information, robust, priors)
@@ -272,36 +322,49 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                     cov = None
                     if information is None:  # equal weights: the drift model is the noise model
                         cov = np.linalg.inv(np.asarray(problem.information, np.float64))
-                        cov[:T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops))
+                        cov[: T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops))
                     posegraph.validate(problem)
-                    res, check = pcm.consistent_solve(problem, cov, num_chain_nodes=T, max_steps=config.max_lm_steps,
-                                                      kernel_scale=config.robust_scale, throw=False)
+                    res, check = pcm.consistent_solve(
+                        problem,
+                        cov,
+                        num_chain_nodes=T,
+                        max_steps=config.max_lm_steps,
+                        kernel_scale=config.robust_scale,
+                        throw=False,
+                    )
                     chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
                 else:
                     res, chunk_poses = _solve(problem, config, config.robust_loops)
                 chunk_poses = chunk_poses[:T]
-                r = np.asarray(res.residuals, np.float64)[T - 1:T - 1 + L]
-            om = np.asarray(problem.information, np.float64)[T - 1:T - 1 + L]
-            inlier_weights = res.inlier_weights[T - 1:T - 1 + L]
-            graph_metrics.update({
-                **_solve_metrics(res),
-                "robust_loops": config.robust_loops, "robust_scale": config.robust_scale,
-                "edge_information": "equal" if information is None else "data",
-                "gnc_iterations": res.gnc_iterations,
-                "loop_inlier_weights": inlier_weights.tolist(),
-                "loop_whitened_residuals": np.sqrt(np.einsum("ei,eij,ej->e", r, om, r)).tolist(),
-                "loops_rejected": int(np.sum(inlier_weights < 0.5)),
-                "graph_pcm": check is not None,
-            })
+                r = np.asarray(res.residuals, np.float64)[T - 1 : T - 1 + L]
+            om = np.asarray(problem.information, np.float64)[T - 1 : T - 1 + L]
+            inlier_weights = res.inlier_weights[T - 1 : T - 1 + L]
+            graph_metrics.update(
+                {
+                    **_solve_metrics(res),
+                    "robust_loops": config.robust_loops,
+                    "robust_scale": config.robust_scale,
+                    "edge_information": "equal" if information is None else "data",
+                    "gnc_iterations": res.gnc_iterations,
+                    "loop_inlier_weights": inlier_weights.tolist(),
+                    "loop_whitened_residuals": np.sqrt(np.einsum("ei,eij,ej->e", r, om, r)).tolist(),
+                    "loops_rejected": int(np.sum(inlier_weights < 0.5)),
+                    "graph_pcm": check is not None,
+                }
+            )
             if check is not None:
-                kept = check.kept[T - 1:T - 1 + L]
+                kept = check.kept[T - 1 : T - 1 + L]
                 graph_metrics.update({"loop_pcm_kept": kept.tolist(), "pcm_threshold": check.threshold})
                 if not kept.all():
-                    ctx.log(f"pose graph: {int((~kept).sum())} of {L} loop edge(s) inconsistent with the others "
-                            "and the odometry (pairwise consistency): out before GNC")
+                    ctx.log(
+                        f"pose graph: {int((~kept).sum())} of {L} loop edge(s) inconsistent with the others "
+                        "and the odometry (pairwise consistency): out before GNC"
+                    )
             if config.robust_loops is not None and np.any(inlier_weights < 0.5):
-                ctx.log(f"pose graph: {int(np.sum(inlier_weights < 0.5))} of {len(inlier_weights)} loop edge(s) "
-                        f"down-weighted as outliers ({config.robust_loops})")
+                ctx.log(
+                    f"pose graph: {int(np.sum(inlier_weights < 0.5))} of {len(inlier_weights)} loop edge(s) "
+                    f"down-weighted as outliers ({config.robust_loops})"
+                )
             if not res.converged:
                 warnings.warn(f"pose graph did not converge ({res.status})", RuntimeWarning, stacklevel=2)
         else:

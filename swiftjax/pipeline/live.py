@@ -32,15 +32,23 @@ class LiveLog:
         self.path = pathlib.Path(run_dir) / LIVE_NAME
         self.path.parent.mkdir(parents=True, exist_ok=True)
         _drop_partial_line(self.path)  # a crash's half-written last record
-        self._file = open(self.path, "ab")  # noqa: SIM115 - kept open for the run
+        self._file = open(self.path, "ab")
 
-    def append(self, frames: Sequence[int], times: Sequence[float], cam_to_world: np.ndarray, revision: int,
-               reason: str) -> None:
+    def append(
+        self, frames: Sequence[int], times: Sequence[float], cam_to_world: np.ndarray, revision: int, reason: str
+    ) -> None:
         """One line per frame (``cam_to_world [F, 4, 4]``), then flush and fsync: one chunk's
         poses reach the disk together."""
         lines = [
-            json.dumps({"frame": int(k), "time": float(t), "pose": np.asarray(P[:3], np.float64).tolist(),
-                        "revision": int(revision), "reason": reason})
+            json.dumps(
+                {
+                    "frame": int(k),
+                    "time": float(t),
+                    "pose": np.asarray(P[:3], np.float64).tolist(),
+                    "revision": int(revision),
+                    "reason": reason,
+                }
+            )
             for k, t, P in zip(frames, times, cam_to_world)
         ]
         if not lines:

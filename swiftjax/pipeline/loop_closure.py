@@ -87,24 +87,39 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
                         local = lp.frames[half] - schedule.starts[c]
                         chunk_frames = store.load("chunk", c, frames=local, fields=())
                         # keep-masks (user / sky) of those frames, as each chunk saw them
-                        mask = both(cam.keep(lp.frames[half], chunk_frames.depth, chunk_frames.conf),
-                                    cam.keep(lp.frames[half], pred.depth[half], pred.conf[half]))
-                        halves.append(align_pair(
-                            align.ChunkFrames.from_prediction(chunk_frames), align.ChunkFrames.from_prediction(pred, half),
-                            K_ref, config, True, f"loop ({lp.i}, {lp.j}) to chunk {c}", mask=mask,
-                        ))
+                        mask = both(
+                            cam.keep(lp.frames[half], chunk_frames.depth, chunk_frames.conf),
+                            cam.keep(lp.frames[half], pred.depth[half], pred.conf[half]),
+                        )
+                        halves.append(
+                            align_pair(
+                                align.ChunkFrames.from_prediction(chunk_frames),
+                                align.ChunkFrames.from_prediction(pred, half),
+                                K_ref,
+                                config,
+                                True,
+                                f"loop ({lp.i}, {lp.j}) to chunk {c}",
+                                mask=mask,
+                            )
+                        )
                     with jax.enable_x64(True):
                         Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
                     record = {
-                        "i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i,
-                        "chunk_j": lp.chunk_j, "Z": Z.tolist(),
-                        "align_i": halves[0][1], "align_j": halves[1][1],
+                        "i": lp.i,
+                        "j": lp.j,
+                        "score": lp.score,
+                        "chunk_i": lp.chunk_i,
+                        "chunk_j": lp.chunk_j,
+                        "Z": Z.tolist(),
+                        "align_i": halves[0][1],
+                        "align_j": halves[1][1],
                     }
                     manifest.data["loop_edges"][key] = record
                     manifest.save()  # recorded (fsync'd) before the next loop chunk
                     _faults.point("loop-recorded", len(loop_records))
                 if config.loop_verification == "geometric" and not (
-                        "dense_agreement" in record and (config.loop_agreement == "fixed" or "null_threshold" in record)):
+                    "dense_agreement" in record and (config.loop_agreement == "fixed" or "null_threshold" in record)
+                ):
                     record.update(_verification_numbers(ctx, lp, record, K_ref))
                     manifest.save()
                 loop_records.append(record)
@@ -117,22 +132,32 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     if config.loop_geometry:  # the second candidate source (swiftjax.pipeline.loop_geometry)
         with timer("loop geometry"):
             taken = {(max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"])) for r in loop_records}
-            geometric = loop_geometry.candidates(ctx, K_ref, taken, _verification_config(config),
-                                                 chain=chain_poses(temporal.relative))
+            geometric = loop_geometry.candidates(
+                ctx, K_ref, taken, _verification_config(config), chain=chain_poses(temporal.relative)
+            )
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     _decide(ctx, temporal, loop_records + [r for r in geometric if "accepted" not in r])
     loop_records += geometric
     for r in loop_records:
         if r["accepted"]:
             # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
-            info = loop_geometry.edge_information(r, config.edge_pixels_per_sample) if r["source"] == "geometry" else None
+            info = (
+                loop_geometry.edge_information(r, config.edge_pixels_per_sample) if r["source"] == "geometry" else None
+            )
             loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"]), info))
     for r in geometric:
         r.pop("_stats", None)
     loop_records += [
-        {"i": lp.i, "j": lp.j, "score": lp.score, "chunk_i": lp.chunk_i, "chunk_j": lp.chunk_j,
-         "accepted": False, "reason": f"chunks {lp.chunk_j} and {lp.chunk_i} are neighbours (their temporal edge)",
-         "source": "tokens"}
+        {
+            "i": lp.i,
+            "j": lp.j,
+            "score": lp.score,
+            "chunk_i": lp.chunk_i,
+            "chunk_j": lp.chunk_j,
+            "accepted": False,
+            "reason": f"chunks {lp.chunk_j} and {lp.chunk_i} are neighbours (their temporal edge)",
+            "source": "tokens",
+        }
         for lp in neighbours
     ]
     # Every candidate's verdict, also those without a loop chunk (the viewer reads this list).
@@ -161,7 +186,12 @@ def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any
         sides.append(side)
     with ctx.timer("loop verification"):
         return lv.candidate_numbers(
-            sides[0], sides[1], np.asarray(record["Z"]), K_ref, record["align_i"], record["align_j"],
+            sides[0],
+            sides[1],
+            np.asarray(record["Z"]),
+            K_ref,
+            record["align_i"],
+            record["align_j"],
             _verification_config(ctx.config),
         )
 
@@ -176,13 +206,20 @@ def loop_options(config: PipelineConfig) -> loops.LoopOptions:
     """The run's :class:`~swiftjax.loops.LoopOptions`: ``config``'s loop fields, the rest at
     their defaults."""
     return loops.LoopOptions(
-        rule=config.loop_threshold_rule, threshold=config.loop_threshold, false_alarms=config.loop_false_alarms,
-        beta=config.power_beta, remove=config.whitening_remove, dim=config.whitening_dim,
-        min_separation=config.loop_min_separation, nms_radius=config.loop_nms_radius, top_k=config.loop_top_k,
+        rule=config.loop_threshold_rule,
+        threshold=config.loop_threshold,
+        false_alarms=config.loop_false_alarms,
+        beta=config.power_beta,
+        remove=config.whitening_remove,
+        dim=config.whitening_dim,
+        min_separation=config.loop_min_separation,
+        nms_radius=config.loop_nms_radius,
+        top_k=config.loop_top_k,
         half_window=config.loop_half_window,
         verification=config.loop_verification,
-        verification_config=lv.VerificationConfig(min_agreement=config.loop_min_agreement, pcm=config.loop_pcm,
-                                                  agreement_rule=config.loop_agreement),
+        verification_config=lv.VerificationConfig(
+            min_agreement=config.loop_min_agreement, pcm=config.loop_pcm, agreement_rule=config.loop_agreement
+        ),
     )
 
 

@@ -57,7 +57,9 @@ def _frames(ctx: RunContext, c: int, options: geo.GeometryOptions) -> tuple[alig
         keep = ctx.camera.keep(frames[local], side.depth, side.conf)
         if keep is not None:
             side = side._replace(depth=np.where(np.asarray(keep), np.asarray(side.depth, np.float32), np.nan))
-    return side._replace(depth=np.asarray(side.depth, np.float32), conf=np.asarray(side.conf, np.float32)), frames[local]
+    return side._replace(depth=np.asarray(side.depth, np.float32), conf=np.asarray(side.conf, np.float32)), frames[
+        local
+    ]
 
 
 def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
@@ -93,9 +95,14 @@ def _gate(chain: np.ndarray, g: Any, best: np.ndarray, options: geo.GeometryOpti
     return d <= np.maximum(options.gate_min * h_world, options.gate_drift * np.abs(path[a] - path[b]))
 
 
-def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
-               verification: lv.VerificationConfig, options: geo.GeometryOptions = geo.GeometryOptions(),
-               chain: np.ndarray | None = None) -> list[dict[str, Any]]:
+def candidates(
+    ctx: RunContext,
+    K_ref: np.ndarray,
+    taken: set[tuple[int, int]],
+    verification: lv.VerificationConfig,
+    options: geo.GeometryOptions = geo.GeometryOptions(),
+    chain: np.ndarray | None = None,
+) -> list[dict[str, Any]]:
     """The geometric candidates' records (module docstring), chunk pairs in ``taken`` (the
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
     set when its registration rejects it, else ready for :func:`verify_candidates`.
@@ -110,10 +117,15 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
     sep = ctx.config.loop_min_separation
     pairs: dict[tuple[int, int], float] = {}
     for a in range(T):
-        order = [b for b in np.argsort(dist[a]) if abs(int(b) - a) >= 2 and np.isfinite(dist[a, b])
-                 and dist[a, b] <= options.max_distance
-                 and abs(int(ids[a, best[a, b, 0]]) - int(ids[b, best[a, b, 1]])) > sep]
-        for b in order[:options.top_k]:
+        order = [
+            b
+            for b in np.argsort(dist[a])
+            if abs(int(b) - a) >= 2
+            and np.isfinite(dist[a, b])
+            and dist[a, b] <= options.max_distance
+            and abs(int(ids[a, best[a, b, 0]]) - int(ids[b, best[a, b, 1]])) > sep
+        ]
+        for b in order[: options.top_k]:
             key = (max(a, int(b)), min(a, int(b)))
             if key not in taken:
                 pairs[key] = float(dist[a, b])
@@ -122,8 +134,14 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
         ai, aj = best[ci, cj]
         sc, shift = (np.asarray(x) for x in geo.scan_context_distance(desc.grids[ci, ai], desc.grids[cj, aj]))
         record: dict[str, Any] = {
-            "source": "geometry", "i": int(ids[ci, ai]), "j": int(ids[cj, aj]), "score": float(1.0 - sc),
-            "chunk_i": int(ci), "chunk_j": int(cj), "signature_distance": dsig, "scan_context_distance": float(sc),
+            "source": "geometry",
+            "i": int(ids[ci, ai]),
+            "j": int(ids[cj, aj]),
+            "score": float(1.0 - sc),
+            "chunk_i": int(ci),
+            "chunk_j": int(cj),
+            "signature_distance": dsig,
+            "scan_context_distance": float(sc),
         }
         if not sc <= options.max_sc_distance:
             record.update(accepted=False, reason=f"Scan Context distance {float(sc):.3f} > {options.max_sc_distance}")
@@ -132,8 +150,19 @@ def candidates(ctx: RunContext, K_ref: np.ndarray, taken: set[tuple[int, int]],
         with ctx.timer("loop geometry: registration"):
             reg, unit = _register(g, ci, ai, cj, aj, int(shift), options)
         record["Z"] = np.asarray(reg.S, np.float64).tolist()
-        record["registration"] = {k: _plain(getattr(reg, k)) for k in (
-            "inlier_ratio", "rms", "scale_ratio", "spread", "num_inliers", "num_structure", "num_points", "valid")}
+        record["registration"] = {
+            k: _plain(getattr(reg, k))
+            for k in (
+                "inlier_ratio",
+                "rms",
+                "scale_ratio",
+                "spread",
+                "num_inliers",
+                "num_structure",
+                "num_points",
+                "valid",
+            )
+        }
         record["registration"]["yaw_deg"] = float(np.degrees(geo.sector_yaw(int(shift), options.sectors)))
         record["_stats"] = (reg, unit)
         why = geo.registration_reason(record["registration"], options)
@@ -167,24 +196,51 @@ def _register(g: geo.ChunkGeometry, ci: int, ai: int, cj: int, aj: int, shift: i
     ground = up @ jnp.asarray(g.anchors[cj, aj]) - g.height[cj]
     best = None
     for m in (shift, shift + options.sectors // 2):
-        S0 = geo.coarse_edge(g.anchors[ci, ai], g.basis[ci], g.height[ci], g.anchors[cj, aj], g.basis[cj],
-                             g.height[cj], geo.sector_yaw(m % options.sectors, options.sectors))
-        reg = geo.register(src, ws, dst, wd, S0, g.height[cj], up, ground, options.tau_start, options.tau_end,
-                           options.ground_band, iterations=options.iterations)
+        S0 = geo.coarse_edge(
+            g.anchors[ci, ai],
+            g.basis[ci],
+            g.height[ci],
+            g.anchors[cj, aj],
+            g.basis[cj],
+            g.height[cj],
+            geo.sector_yaw(m % options.sectors, options.sectors),
+        )
+        reg = geo.register(
+            src,
+            ws,
+            dst,
+            wd,
+            S0,
+            g.height[cj],
+            up,
+            ground,
+            options.tau_start,
+            options.tau_end,
+            options.ground_band,
+            iterations=options.iterations,
+        )
         if best is None or float(reg.num_structure) > float(best.num_structure):
             best = reg
     return best, float(g.height[cj])
 
 
-def _dense(ctx: RunContext, ci: int, cj: int, Z: list[float], K_ref: np.ndarray, options: geo.GeometryOptions,
-           verification: lv.VerificationConfig) -> dict[str, Any]:
+def _dense(
+    ctx: RunContext,
+    ci: int,
+    cj: int,
+    Z: list[float],
+    K_ref: np.ndarray,
+    options: geo.GeometryOptions,
+    verification: lv.VerificationConfig,
+) -> dict[str, Any]:
     """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared."""
     import dataclasses
 
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
-    return lv.candidate_numbers(side_i, side_j, np.asarray(Z), K_ref, info, info,
-                                dataclasses.replace(verification, neighbours=0))
+    return lv.candidate_numbers(
+        side_i, side_j, np.asarray(Z), K_ref, info, info, dataclasses.replace(verification, neighbours=0)
+    )
 
 
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
@@ -195,8 +251,11 @@ def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
     reg, unit = stats
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
-            np.float64(np.asarray(reg.S)[7]), np.float64(reg.num_inliers), np.float64(reg.rms) * unit,
-            np.asarray(reg.src_mean, np.float64), np.asarray(reg.src_covariance, np.float64),
+            np.float64(np.asarray(reg.S)[7]),
+            np.float64(reg.num_inliers),
+            np.float64(reg.rms) * unit,
+            np.asarray(reg.src_mean, np.float64),
+            np.asarray(reg.src_covariance, np.float64),
             pixels_per_sample=pixels_per_sample,
         )
         info = np.asarray(out.information, np.float64)

@@ -19,8 +19,15 @@ import numpy as np
 from swiftjax.errors import SwiftjaxError
 
 __all__ = [
-    "POSE_SETS", "RunReadError", "read_json", "read_manifest", "read_chunk_poses", "chained_prefix",
-    "loop_candidates", "frame_names", "read_live_poses",
+    "POSE_SETS",
+    "RunReadError",
+    "read_json",
+    "read_manifest",
+    "read_chunk_poses",
+    "chained_prefix",
+    "loop_candidates",
+    "frame_names",
+    "read_live_poses",
 ]
 
 #: The pose sets of ``chunk_poses.json``: chunk-to-world ``S_t`` with and without loop closure.

@@ -35,22 +35,35 @@ def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth"
     try:
         evaluation.umeyama_alignment(pos, pos)
     except ValueError:
-        raise ValueError(f"{name}: its positions are coincident or collinear, so the Sim(3) alignment of the "
-                         "ATE is undefined (leave out --gt)") from None
+        raise ValueError(
+            f"{name}: its positions are coincident or collinear, so the Sim(3) alignment of the "
+            "ATE is undefined (leave out --gt)"
+        ) from None
     return gt
 
 
 def write(
-    ctx: RunContext, temporal: TemporalResult, loops: LoopResult, scaled: ScaleResult,
-    exported: dict[str, Any], ground_truth: np.ndarray | None,
+    ctx: RunContext,
+    temporal: TemporalResult,
+    loops: LoopResult,
+    scaled: ScaleResult,
+    exported: dict[str, Any],
+    ground_truth: np.ndarray | None,
 ) -> dict[str, Any]:
     """Write ``metrics.json``, ``trajectory.png``, ``points.png`` and, with a ground truth,
     ``ground_truth_kitti.txt`` (for the viewer); returns the metrics."""
     graph = scaled.graph
     try:
         metrics = _metrics(
-            ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-            ctx.timer.seconds, exported, ground_truth, scaled.record,
+            ctx.num_frames,
+            ctx.schedule.num_chunks,
+            loops.records,
+            temporal.edges,
+            graph.metrics,
+            ctx.timer.seconds,
+            exported,
+            ground_truth,
+            scaled.record,
         )
     except ValueError as err:  # the evaluation failed: the run's outputs are kept, without ATE
         if ground_truth is None:
@@ -58,8 +71,15 @@ def write(
         ctx.log(f"swiftjax: warning: ATE/RPE not computed ({err}); the outputs are written without them")
         ground_truth = None
         metrics = _metrics(
-            ctx.num_frames, ctx.schedule.num_chunks, loops.records, temporal.edges, graph.metrics,
-            ctx.timer.seconds, exported, None, scaled.record,
+            ctx.num_frames,
+            ctx.schedule.num_chunks,
+            loops.records,
+            temporal.edges,
+            graph.metrics,
+            ctx.timer.seconds,
+            exported,
+            None,
+            scaled.record,
         )
     with atomic_write(ctx.run_dir / "metrics.json") as f:
         json.dump(metrics, f, indent=1)
@@ -69,9 +89,13 @@ def write(
     if ground_truth is not None:
         from swiftjax.io import trajectory
 
-        trajectory.write_kitti(ctx.run_dir / "ground_truth_kitti.txt", ground_truth, header=[
-            "the ground truth given to this run: camera-to-world poses as given (metres, its own frame)",
-        ])
+        trajectory.write_kitti(
+            ctx.run_dir / "ground_truth_kitti.txt",
+            ground_truth,
+            header=[
+                "the ground truth given to this run: camera-to-world poses as given (metres, its own frame)",
+            ],
+        )
     return metrics
 
 
@@ -120,22 +144,44 @@ def _metrics(
             out["scale_error"] = 1.0 / a.scale - 1.0
             out["ate_rmse_se3"] = evaluation.ate(exported["cam_to_world"][:, :3, 3], gt, align="se3").rmse
             out["ate_rmse_se3_no_loops"] = evaluation.ate(
-                exported["cam_to_world_no_loops"][:, :3, 3], gt, align="se3").rmse
+                exported["cam_to_world_no_loops"][:, :3, 3], gt, align="se3"
+            ).rmse
     return out
 
 
 def _candidate(r: dict[str, Any]) -> dict[str, Any]:
     """A loop candidate's numbers for ``metrics.json`` (NaN as null)."""
-    keys = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason", "source", "dense_agreement",
-            "dense_overlap", "null_threshold", "null_mean", "null_std", "null_samples", "null_kappa", "quality_min_fraction",
-            "quality_max_rms", "pcm_residual", "registration")
-    finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v  # noqa: E731
+    keys = (
+        "i",
+        "j",
+        "score",
+        "chunk_i",
+        "chunk_j",
+        "accepted",
+        "reason",
+        "source",
+        "dense_agreement",
+        "dense_overlap",
+        "null_threshold",
+        "null_mean",
+        "null_std",
+        "null_samples",
+        "null_kappa",
+        "quality_min_fraction",
+        "quality_max_rms",
+        "pcm_residual",
+        "registration",
+    )
+    finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v
     return {k: finite(r[k]) for k in keys if k in r}
 
 
 def _plot(
-    path: pathlib.Path, exported: dict[str, Any], ground_truth: np.ndarray | None,
-    loop_records: list[dict[str, Any]], unit: str | None = None,
+    path: pathlib.Path,
+    exported: dict[str, Any],
+    ground_truth: np.ndarray | None,
+    loop_records: list[dict[str, Any]],
+    unit: str | None = None,
 ) -> Any:
     """Top view of the trajectory with and without loop closure, in the run's own frame and
     unit (as ``points.png``); the ground truth Sim(3)-aligned onto it; loops drawn."""
@@ -151,23 +197,40 @@ def _plot(
         R, t, s = evaluation.umeyama_alignment(gt, estimate, "sim3")  # ground truth onto the estimate
         reference = s * gt @ R.T + t
     pairs = {
-        ok: np.array([(r["i"], r["j"]) for r in loop_records if bool(r.get("accepted", True)) == ok],
-                     dtype=np.int64).reshape(-1, 2)
+        ok: np.array(
+            [(r["i"], r["j"]) for r in loop_records if bool(r.get("accepted", True)) == ok], dtype=np.int64
+        ).reshape(-1, 2)
         for ok in (True, False)
     }
-    return plot.plot_trajectory(path, estimate, reference=reference, loops=pairs[True], rejected=pairs[False],
-                         no_loops=exported["cam_to_world_no_loops"][:, :3, 3], title=title, unit=unit)
+    return plot.plot_trajectory(
+        path,
+        estimate,
+        reference=reference,
+        loops=pairs[True],
+        rejected=pairs[False],
+        no_loops=exported["cam_to_world_no_loops"][:, :3, 3],
+        title=title,
+        unit=unit,
+    )
 
 
-def _plot_points(path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]],
-                 unit: str | None = None) -> Any:
+def _plot_points(
+    path: pathlib.Path, exported: dict[str, Any], loop_records: list[dict[str, Any]], unit: str | None = None
+) -> Any:
     """Bird's-eye view of a uniform sample of the cloud with the cameras."""
     from swiftjax.io import plot
 
     pairs = np.array([(r["i"], r["j"]) for r in loop_records if r.get("accepted", True)], np.int64).reshape(-1, 2)
-    return plot.plot_points(path, exported["sample_points"], exported["sample_colors"], exported["cam_to_world"],
-                     loops=pairs, unit=unit, title=f"swiftjax: {len(exported['sample_points']):,} of "
-                     f"{exported['num_points']:,} points, {len(exported['cam_to_world'])} cameras")
+    return plot.plot_points(
+        path,
+        exported["sample_points"],
+        exported["sample_colors"],
+        exported["cam_to_world"],
+        loops=pairs,
+        unit=unit,
+        title=f"swiftjax: {len(exported['sample_points']):,} of "
+        f"{exported['num_points']:,} points, {len(exported['cam_to_world'])} cameras",
+    )
 
 
 def summary_table(result: RunResult) -> str:
@@ -197,8 +260,10 @@ def summary_table(result: RunResult) -> str:
     rows += [[k, f"{v:,.2f}"] for k, v in timings.items()]
     rows.append(["total", f"{sum(timings.values()):,.2f}"])
     table = text_table(rows)
-    return (f"{table}\noutputs: {result.run_dir}  (points.ply, poses_kitti.txt, poses_tum.txt, colmap/, "
-            f"trajectory.png, points.png, metrics.json)\nnext:    swiftjax view {_shell_quote(result.run_dir)}")
+    return (
+        f"{table}\noutputs: {result.run_dir}  (points.ply, poses_kitti.txt, poses_tum.txt, colmap/, "
+        f"trajectory.png, points.png, metrics.json)\nnext:    swiftjax view {_shell_quote(result.run_dir)}"
+    )
 
 
 def _shell_quote(path: pathlib.Path) -> str:

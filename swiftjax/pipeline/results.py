@@ -14,8 +14,15 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = [
-    "UP_TO_SCALE", "UNIT_METRE", "ChunkEdge", "TemporalResult", "LoopEdge", "LoopResult", "GraphResult",
-    "ScaleResult", "RunResult",
+    "UP_TO_SCALE",
+    "UNIT_METRE",
+    "ChunkEdge",
+    "TemporalResult",
+    "LoopEdge",
+    "LoopResult",
+    "GraphResult",
+    "ScaleResult",
+    "RunResult",
 ]
 
 #: The unit of a run's poses and points unless a metric scale is known.

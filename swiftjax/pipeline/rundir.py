@@ -133,15 +133,19 @@ class RunLock:
             os.close(fd)
             who = (
                 f"pid {holder.get('pid')} on {holder.get('host')}, since {holder.get('since')}"
-                if holder else "another process"
+                if holder
+                else "another process"
             )
             raise RunDirError(
                 f"{self.path.parent} is in use by another swiftjax run ({who}; lock file {self.path}): "
                 "wait for it to finish or choose another output directory"
             ) from None
         self.previous = _read_holder(fd) or None
-        me = {"pid": os.getpid(), "host": socket.gethostname(),
-              "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+        me = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        }
         os.ftruncate(fd, 0)
         os.pwrite(fd, (json.dumps(me) + "\n").encode(), 0)
         os.fsync(fd)
@@ -185,8 +189,10 @@ def fingerprints(predictor: Predictor, config: PipelineConfig, camera: Any = Non
     """
     fp = predictor.fingerprint()
     if not isinstance(fp, dict):
-        raise TypeError(f"{type(predictor).__name__}.fingerprint() must return a dict "
-                        f"{{'frames': [...] or None, **identity}}, got {type(fp).__name__}")
+        raise TypeError(
+            f"{type(predictor).__name__}.fingerprint() must return a dict "
+            f"{{'frames': [...] or None, **identity}}, got {type(fp).__name__}"
+        )
     frames = fp.get("frames")
     identity = {k: v for k, v in fp.items() if k != "frames"}
     if camera:
@@ -282,7 +288,8 @@ class Manifest:
             data.setdefault("outputs", {})
             old = data["fingerprint"]
             count_only = (  # frames added or removed (e.g. a repaired image skipped before): reconciled below
-                old.get("frames") is not None and fingerprint.get("frames") is not None
+                old.get("frames") is not None
+                and fingerprint.get("frames") is not None
                 and _without_count(old["temporal"]) == _without_count(fingerprint["temporal"])
             )
             if old["temporal"] != fingerprint["temporal"] and not count_only:
@@ -331,7 +338,10 @@ class Manifest:
         return data
 
     def _reconcile_frames(
-        self, old: list[Any] | None, new: list[Any] | None, schedule: chunks.ChunkSchedule,
+        self,
+        old: list[Any] | None,
+        new: list[Any] | None,
+        schedule: chunks.ChunkSchedule,
         log: Callable[[str], None],
     ) -> None:
         """Forget the chunks (and edges) that hold input frames whose files changed."""
@@ -343,8 +353,7 @@ class Manifest:
             self._reconcile_count(old, new, schedule, log)
             return
         changed = [k for k, (a, b) in enumerate(zip(old, new)) if a != b]
-        hit = sorted({int(c) for k in changed for c in np.flatnonzero(
-            (schedule.starts <= k) & (k < schedule.ends))})
+        hit = sorted({int(c) for k in changed for c in np.flatnonzero((schedule.starts <= k) & (k < schedule.ends))})
         # A re-predicted chunk's edges need its neighbours' float32 overlaps: predict them too.
         redo = sorted({c + d for c in hit for d in (-1, 0, 1) if 0 <= c + d < schedule.num_chunks})
         for c in redo:
@@ -362,7 +371,11 @@ class Manifest:
         )
 
     def _reconcile_count(
-        self, old: list[Any], new: list[Any], schedule: chunks.ChunkSchedule, log: Callable[[str], None],
+        self,
+        old: list[Any],
+        new: list[Any],
+        schedule: chunks.ChunkSchedule,
+        log: Callable[[str], None],
     ) -> None:
         """Frames inserted or removed (``len(old) != len(new)``): the chunks before the first
         differing frame hold the same frames in both schedules (chunk starts do not depend on
@@ -371,8 +384,12 @@ class Manifest:
         p = next((k for k, (a, b) in enumerate(zip(old, new)) if a != b), min(len(old), len(new)))
         prev = chunks.chunk_schedule(len(old), schedule.chunk_size, schedule.overlap)
         keep = 0  # chunks 0 .. keep-1 hold the same frames as before
-        while (keep < min(prev.num_chunks, schedule.num_chunks) and schedule.ends[keep] <= p
-               and prev.starts[keep] == schedule.starts[keep] and prev.ends[keep] == schedule.ends[keep]):
+        while (
+            keep < min(prev.num_chunks, schedule.num_chunks)
+            and schedule.ends[keep] <= p
+            and prev.starts[keep] == schedule.starts[keep]
+            and prev.ends[keep] == schedule.ends[keep]
+        ):
             keep += 1
         reuse = keep - 1 if 0 < keep < schedule.num_chunks else keep
         data = self.data
@@ -386,8 +403,8 @@ class Manifest:
         log(
             f"swiftjax: the input has {len(new)} frames instead of {len(old)} (first difference at {where}): "
             f"keeping chunk(s) 0-{reuse - 1}, predicting chunk(s) {redo.start}-{redo.stop - 1} again"
-            if reuse else
-            f"swiftjax: the input has {len(new)} frames instead of {len(old)} (first difference at {where}): "
+            if reuse
+            else f"swiftjax: the input has {len(new)} frames instead of {len(old)} (first difference at {where}): "
             f"predicting every chunk again"
         )
 
@@ -402,13 +419,17 @@ class Manifest:
                 data["edges"].pop(key)
                 for c in (t - 1, t):
                     data["chunks"].pop(str(c), None)
-                log(f"swiftjax: {self.path}: the record of edge (chunks {t - 1}/{t}) fails its checksum (edited or "
-                    f"damaged): predicting chunks {t - 1} and {t} again to compute it")
+                log(
+                    f"swiftjax: {self.path}: the record of edge (chunks {t - 1}/{t}) fails its checksum (edited or "
+                    f"damaged): predicting chunks {t - 1} and {t} again to compute it"
+                )
         for key, record in list(data["loop_edges"].items()):
             if not _record_ok(record):
                 data["loop_edges"].pop(key)
-                log(f"swiftjax: {self.path}: the record of loop edge {key} fails its checksum (edited or damaged): "
-                    "predicting its loop chunk again")
+                log(
+                    f"swiftjax: {self.path}: the record of loop edge {key} fails its checksum (edited or damaged): "
+                    "predicting its loop chunk again"
+                )
 
     #: :meth:`save_soon` writes at most this often (seconds).  Each write is a JSON dump and
     #: two fsyncs; an interrupted run redoes at most this much finished work.
@@ -479,21 +500,27 @@ def check_binding(store: ChunkStore, kind: str, t: int, want: dict[str, np.ndarr
     path = store.path(kind, t)
     got = store.load_extra(kind, t, names=tuple(want))
     if set(got) != set(want):
-        raise _chunk_store.ChunkMismatchError(path, "it records no chunk index, frames or fingerprint "
-                                              "(not written by this run)")
+        raise _chunk_store.ChunkMismatchError(
+            path, "it records no chunk index, frames or fingerprint (not written by this run)"
+        )
     if int(got["chunk_index"]) != t:
         raise _chunk_store.ChunkMismatchError(path, f"it holds chunk {int(got['chunk_index'])}, not chunk {t}")
     if not np.array_equal(got["frames"], want["frames"]):
         f = got["frames"]
         span = f"frames {int(f[0])}-{int(f[-1])} ({len(f)})" if len(f) else "no frames"
         raise _chunk_store.ChunkMismatchError(
-            path, f"it holds {span}, chunk {t} is frames {int(want['frames'][0])}-{int(want['frames'][-1])} "
-                  f"({len(want['frames'])})")
+            path,
+            f"it holds {span}, chunk {t} is frames {int(want['frames'][0])}-{int(want['frames'][-1])} "
+            f"({len(want['frames'])})",
+        )
     if str(got["fingerprint"]) != str(want["fingerprint"]):
         raise _chunk_store.ChunkMismatchError(
-            path, "it was predicted from another input, model or configuration (fingerprint differs)")
+            path, "it was predicted from another input, model or configuration (fingerprint differs)"
+        )
     if rows is not None and rows != len(want["frames"]):
-        raise _chunk_store.ChunkMismatchError(path, f"its arrays hold {rows} frames, chunk {t} has {len(want['frames'])}")
+        raise _chunk_store.ChunkMismatchError(
+            path, f"its arrays hold {rows} frames, chunk {t} has {len(want['frames'])}"
+        )
 
 
 class ChunkRecords:
@@ -544,7 +571,9 @@ class ChunkRecords:
         self._space_checked = True
         import shutil
 
-        per_chunk = sum(p.stat().st_size for p in (self.store.path("chunk", c), self.store.path("tail", c)) if p.exists())
+        per_chunk = sum(
+            p.stat().st_size for p in (self.store.path("chunk", c), self.store.path("tail", c)) if p.exists()
+        )
         remaining = sum(1 for t in range(self.num_chunks) if not self.manifest.data["chunks"].get(str(t)))
         need = per_chunk * remaining + self.SPACE_MARGIN
         free = shutil.disk_usage(self.store.root).free
@@ -591,8 +620,16 @@ class StageTimer:
     """
 
     ORDER = (  # the pipeline's order: temporal chunks, loop closure, pose graph, scale, export
-        "predict", "align", "chunk store", "loop detection", "predict (loop chunks)", "loop chunks",
-        "loop verification", "pose graph", "metric scale", "export",
+        "predict",
+        "align",
+        "chunk store",
+        "loop detection",
+        "predict (loop chunks)",
+        "loop chunks",
+        "loop verification",
+        "pose graph",
+        "metric scale",
+        "export",
     )
 
     def __init__(self) -> None:
@@ -669,21 +706,36 @@ def _writable(path: pathlib.Path) -> bool:
 
 #: The files a run writes at the top of its directory (the outputs record lists what one run wrote).
 TOP_FILES = (
-    "manifest.json", "poses_kitti.txt", "poses_tum.txt", "intrinsics.txt", "points.ply", "loops.txt",
-    "trajectory.png", "points.png", "metrics.json", "chunk_poses.json", "frames.txt", "ground_truth_kitti.txt",
+    "manifest.json",
+    "poses_kitti.txt",
+    "poses_tum.txt",
+    "intrinsics.txt",
+    "points.ply",
+    "loops.txt",
+    "trajectory.png",
+    "points.png",
+    "metrics.json",
+    "chunk_poses.json",
+    "frames.txt",
+    "ground_truth_kitti.txt",
 )
 _MODEL_FILES = tuple(f"{n}.{e}" for n in ("cameras", "images", "points3D") for e in ("bin", "txt"))
 _TEMP = re.compile(r"^\.(.+)\.[A-Za-z0-9_]{8}\.tmp(\.[^.]*)?$")
 
 
-def _own_names(run_dir: pathlib.Path, frame_names: Iterable[str], recorded: Iterable[str]) -> dict[pathlib.Path, Callable[[str], bool]]:
+def _own_names(
+    run_dir: pathlib.Path, frame_names: Iterable[str], recorded: Iterable[str]
+) -> dict[pathlib.Path, Callable[[str], bool]]:
     """The folders a run writes in and, for each, which file names are its own."""
     from swiftjax.io.colmap import image_names
 
     names = list(frame_names)
     recorded = list(recorded)
-    frames = set(names) | set(image_names(names)) | {pathlib.PurePath(r).name for r in recorded
-                                                      if r.startswith("colmap/images/")}
+    frames = (
+        set(names)
+        | set(image_names(names))
+        | {pathlib.PurePath(r).name for r in recorded if r.startswith("colmap/images/")}
+    )
     top = set(TOP_FILES) | {r for r in recorded if "/" not in r}
     return {
         run_dir: top.__contains__,
@@ -693,8 +745,9 @@ def _own_names(run_dir: pathlib.Path, frame_names: Iterable[str], recorded: Iter
     }
 
 
-def _clean_temp_files(run_dir: pathlib.Path, own: dict[pathlib.Path, Callable[[str], bool]],
-                      log: Callable[[str], None]) -> None:
+def _clean_temp_files(
+    run_dir: pathlib.Path, own: dict[pathlib.Path, Callable[[str], bool]], log: Callable[[str], None]
+) -> None:
     """Remove the temp files a killed run left: only temp names of this run's own files, in its
     own folders (:func:`_own_names`; called under the lock, after the run is validated)."""
     left = []
@@ -716,8 +769,11 @@ def _refuse_foreign(run_dir: pathlib.Path) -> None:
     if (run_dir / "manifest.json").is_file():
         return
     allowed = {LOCK_NAME, ".swiftjax-write-test"}
-    found = sorted(p.name for p in run_dir.iterdir()
-                   if p.name not in allowed and not (p.name == "chunks" and p.is_dir() and not any(p.iterdir())))
+    found = sorted(
+        p.name
+        for p in run_dir.iterdir()
+        if p.name not in allowed and not (p.name == "chunks" and p.is_dir() and not any(p.iterdir()))
+    )
     if found:
         shown = ", ".join(found[:3]) + (f" and {len(found) - 3} more" if len(found) > 3 else "")
         raise RunDirError(
@@ -752,7 +808,7 @@ def _remove_files(run_dir: pathlib.Path, relpaths: Iterable[str]) -> int:
     count = 0
     parents: set[pathlib.Path] = set()
     for rel in relpaths:
-        path = (run_dir / rel)
+        path = run_dir / rel
         if ".." in pathlib.PurePosixPath(rel).parts or not path.resolve().is_relative_to(root):
             continue
         if path.is_file() or path.is_symlink():
@@ -787,8 +843,10 @@ def record_outputs(ctx: RunContext, files: dict[str, str | None], final: bool) -
     stale = sorted(set(old) - set(new) - {"manifest.json"})
     if stale:
         _remove_files(run_dir, stale)
-        ctx.log(f"swiftjax: removed {len(stale)} output file(s) of the previous run that this run does not write "
-                f"({', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''})")
+        ctx.log(
+            f"swiftjax: removed {len(stale)} output file(s) of the previous run that this run does not write "
+            f"({', '.join(stale[:3])}{' ...' if len(stale) > 3 else ''})"
+        )
     ctx.manifest.data["outputs"] = new
     ctx.manifest.save()
 
@@ -807,10 +865,12 @@ def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[in
     try:
         data = Manifest._read(run_dir / "manifest.json")
         if not data.get("outputs"):
-            raise RunDirError(f"{run_dir} holds an unfinished run (no outputs recorded): finish it first "
-                              "(re-run the same command), then prune it")
+            raise RunDirError(
+                f"{run_dir} holds an unfinished run (no outputs recorded): finish it first "
+                "(re-run the same command), then prune it"
+            )
         store = ChunkStore(run_dir)
-        size = lambda: sum(p.stat().st_size for p in store.root.iterdir() if p.is_file())  # noqa: E731
+        size = lambda: sum(p.stat().st_size for p in store.root.iterdir() if p.is_file())
         before = size()
         for kind in ("tail", "loop"):
             for t in store.indices(kind):
@@ -821,10 +881,12 @@ def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[in
         after = size()
     finally:
         lock.release()
-    log(f"swiftjax: {store.root}: {before / 1e6:.1f} MB -> {after / 1e6:.1f} MB (the depth and confidence maps of "
+    log(
+        f"swiftjax: {store.root}: {before / 1e6:.1f} MB -> {after / 1e6:.1f} MB (the depth and confidence maps of "
         f"{len(chunk_files)} chunk files dropped); every output is kept, and so is what 'swiftjax view' and a re-run "
         "with other export or pose-graph options read (they predict nothing); a re-run that needs the dense maps "
-        "(other loop options, changed frames) predicts those chunks again, at the cost of their first prediction")
+        "(other loop options, changed frames) predicts those chunks again, at the cost of their first prediction"
+    )
     return before, after
 
 
@@ -854,8 +916,10 @@ def open_run(
     lock = RunLock(run_dir).acquire()
     try:
         if lock.previous and lock.previous.get("pid"):
-            log(f"swiftjax: taking over the lock of an interrupted run (pid {lock.previous.get('pid')} on "
-                f"{lock.previous.get('host')}, no longer running)")
+            log(
+                f"swiftjax: taking over the lock of an interrupted run (pid {lock.previous.get('pid')} on "
+                f"{lock.previous.get('host')}, no longer running)"
+            )
         schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
         camera = UserCamera.from_config(config, predictor)  # validated before any work
         fp = fingerprints(predictor, config, camera.fingerprint())
@@ -874,6 +938,16 @@ def open_run(
         lock.release()
         raise
     return RunContext(
-        run_dir=run_dir, config=config, predictor=predictor, schedule=schedule, manifest=manifest,
-        store=store, timer=StageTimer(), executor=executor, progress=progress, log=log, camera=camera, lock=lock,
+        run_dir=run_dir,
+        config=config,
+        predictor=predictor,
+        schedule=schedule,
+        manifest=manifest,
+        store=store,
+        timer=StageTimer(),
+        executor=executor,
+        progress=progress,
+        log=log,
+        camera=camera,
+        lock=lock,
     )

@@ -41,12 +41,19 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
     with ctx.timer("metric scale"):
         prior = graph.metrics.get("metric_prior")
         if kind == "camera-height" and prior is not None:  # the pose graph solved in metres
-            record = {"unit": UNIT_METRE, "combine": "prior", "metres_per_unit": float(graph.chunk_poses[0, 7]),
-                         "metres_per_unit_no_loops": float(graph.chunk_poses_no_loops[0, 7]),
-                         "method": f"camera-height={height:g}", **prior,
-                         "chunk_heights": [None if not np.isfinite(h) else float(h) for h in temporal.ground_heights]}
-            ctx.log(f"metric scale (camera-height={height:g}, scale priors in the pose graph): "
-                    f"{record['metres_per_unit']:.6g} m per unit of chunk 0")
+            record = {
+                "unit": UNIT_METRE,
+                "combine": "prior",
+                "metres_per_unit": float(graph.chunk_poses[0, 7]),
+                "metres_per_unit_no_loops": float(graph.chunk_poses_no_loops[0, 7]),
+                "method": f"camera-height={height:g}",
+                **prior,
+                "chunk_heights": [None if not np.isfinite(h) else float(h) for h in temporal.ground_heights],
+            }
+            ctx.log(
+                f"metric scale (camera-height={height:g}, scale priors in the pose graph): "
+                f"{record['metres_per_unit']:.6g} m per unit of chunk 0"
+            )
             return ScaleResult(graph, record, UNIT_METRE)
         if kind == "model":  # the network predicts metres: the world is chunk 0's, in its metres
             m, m0 = 1.0 / float(graph.chunk_poses[0, 7]), 1.0 / float(graph.chunk_poses_no_loops[0, 7])
@@ -55,9 +62,12 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
             assert temporal.ground_heights is not None
             m, stats = metric_scale.combine_scales(temporal.ground_heights, graph.chunk_poses[:, 7], height)
             m0, _ = metric_scale.combine_scales(temporal.ground_heights, graph.chunk_poses_no_loops[:, 7], height)
-            info: dict[str, Any] = {"method": f"camera-height={height:g}", "combine": "median", **stats,
-                                    "chunk_heights": [None if not np.isfinite(h) else float(h)
-                                                      for h in temporal.ground_heights]}
+            info: dict[str, Any] = {
+                "method": f"camera-height={height:g}",
+                "combine": "median",
+                **stats,
+                "chunk_heights": [None if not np.isfinite(h) else float(h) for h in temporal.ground_heights],
+            }
         else:
             if ground_truth is None:
                 raise ValueError("--metric gt needs the ground-truth poses (--gt)")

@@ -80,10 +80,13 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
             if r is not None:
                 resumed[t] = r
     if resumed:
-        ctx.log(f"swiftjax: resumed {len(resumed)}/{T} chunks from {store.root}"
-                + (f"; predicting {T - len(resumed)}" if len(resumed) < T else ""))
-    predictions = ctx.executor.map(ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed],
-                                   chunk_descriptors)
+        ctx.log(
+            f"swiftjax: resumed {len(resumed)}/{T} chunks from {store.root}"
+            + (f"; predicting {T - len(resumed)}" if len(resumed) < T else "")
+        )
+    predictions = ctx.executor.map(
+        ctx.predictor, [schedule.frames(t) for t in range(T) if t not in resumed], chunk_descriptors
+    )
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
@@ -97,8 +100,12 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                 if K_ref is None:
                     K_ref = np.asarray(intrinsic0, np.float64)
                 # masks from the stored (float16) maps, as the uninterrupted run computed them
-                tail_mask = None if tail is None else cam.keep(
-                    frames[S - O:], jnp.asarray(tail.depth, jnp.float16), jnp.asarray(tail.conf, jnp.float16)
+                tail_mask = (
+                    None
+                    if tail is None
+                    else cam.keep(
+                        frames[S - O :], jnp.asarray(tail.depth, jnp.float16), jnp.asarray(tail.conf, jnp.float16)
+                    )
                 )
                 if heights is not None:
                     with timer("chunk store"):
@@ -109,9 +116,7 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                     pred = next(predictions)
                 _faults.point("chunk-predicted", t)
                 if pred.num_frames != len(frames):
-                    raise ValueError(
-                        f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}"
-                    )
+                    raise ValueError(f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}")
                 desc = pred.descriptors
                 if K_ref is None:
                     K_ref = np.asarray(pred.intrinsic[0], np.float64)
@@ -119,7 +124,7 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                 # One host->device copy of the dense maps, shared by the float16 store copies,
                 # the export points and the alignment's overlap slices (async dispatches).
                 with timer("export"):
-                    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+                    f32 = lambda x: jnp.asarray(x, jnp.float32)
                     depth_d, conf_d = f32(pred.depth), f32(pred.conf)
                     halves = _to_half(depth_d), _to_half(conf_d)
                     head_d, head_c, tail_d, tail_c = _overlap_slices(depth_d, conf_d, overlap=O)
@@ -129,8 +134,9 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                     points, frames_written = chunk_export(frames[:count], pred, depth_d, conf_d, mask_d, K_ref)
                 if heights is not None:
                     with timer("metric scale"):
-                        gh = metric_scale.chunk_ground_height(depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d,
-                                                        conf_ratio=config.conf_ratio)
+                        gh = metric_scale.chunk_ground_height(
+                            depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d, conf_ratio=config.conf_ratio
+                        )
                         heights[t] = float(gh.height)
                         points["ground_height"] = np.asarray(heights[t])
 
@@ -142,20 +148,33 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                     # Images feed the export points' colours and colmap/images/ (above): not stored.
                     stored = dataclasses.replace(pred, depth=depth, conf=conf, images=None)
                     # The float32 overlap for edge (t, t+1), should it be computed after a resume.
-                    exact_tail = None if t + 1 == T else ChunkPrediction(
-                        np.asarray(pred.depth[S - O:], np.float32), np.asarray(pred.conf[S - O:], np.float32),
-                        np.asarray(pred.extrinsic[S - O:]), np.asarray(pred.intrinsic[S - O:]),
+                    exact_tail = (
+                        None
+                        if t + 1 == T
+                        else ChunkPrediction(
+                            np.asarray(pred.depth[S - O :], np.float32),
+                            np.asarray(pred.conf[S - O :], np.float32),
+                            np.asarray(pred.extrinsic[S - O :]),
+                            np.asarray(pred.intrinsic[S - O :]),
+                        )
                     )
                     dirty = records.commit(
                         writer.submit(
-                            t, _save_chunk, store, t, stored, chunk_binding(manifest, schedule, t), points,
-                            exact_tail, frames_written,
+                            t,
+                            _save_chunk,
+                            store,
+                            t,
+                            stored,
+                            chunk_binding(manifest, schedule, t),
+                            points,
+                            exact_tail,
+                            frames_written,
                         )
                     )
                 head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
-                tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O:], pred.extrinsic[S - O:])
+                tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O :], pred.extrinsic[S - O :])
                 head_mask = None if mask_d is None else mask_d[:O]
-                tail_mask = None if mask_d is None else mask_d[S - O:]
+                tail_mask = None if mask_d is None else mask_d[S - O :]
                 del pred, stored, depth, conf, depth_d, conf_d, halves, mask_d
 
             if descriptors is None:
@@ -166,8 +185,15 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
                 if t > 0:
                     if edge is None:
                         assert head is not None and prev_tail is not None
-                        S_rel, diag = align_pair(prev_tail, head, K_ref, config, False, f"chunks {t - 1}/{t}",
-                                                 mask=both(prev_tail_mask, head_mask))
+                        S_rel, diag = align_pair(
+                            prev_tail,
+                            head,
+                            K_ref,
+                            config,
+                            False,
+                            f"chunks {t - 1}/{t}",
+                            mask=both(prev_tail_mask, head_mask),
+                        )
                         edge = {"S": S_rel.tolist(), **diag}
                         dirty = records.add_edge(t, edge) or dirty
                     relative[t - 1] = edge["S"]
@@ -195,8 +221,13 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
 
 
 def _save_chunk(
-    store: ChunkStore, t: int, stored: ChunkPrediction, binding: dict[str, np.ndarray], extra: dict[str, Any],
-    tail: ChunkPrediction | None, frames_written: Any = None,
+    store: ChunkStore,
+    t: int,
+    stored: ChunkPrediction,
+    binding: dict[str, np.ndarray],
+    extra: dict[str, Any],
+    tail: ChunkPrediction | None,
+    frames_written: Any = None,
 ) -> None:
     """Chunk ``t``'s files, each bound to the chunk (``binding``:
     :func:`~swiftjax.pipeline.rundir.chunk_binding`): its frame PNGs (``frames_written``, the
@@ -268,7 +299,7 @@ def _overlap_slices(depth: jax.Array, conf: jax.Array, *, overlap: int) -> tuple
     """``(depth[:O], conf[:O], depth[-O:], conf[-O:])``: a chunk's head (aligned with the
     previous chunk) and tail (with the next), in one dispatch."""
     S = depth.shape[0]
-    return depth[:overlap], conf[:overlap], depth[S - overlap:], conf[S - overlap:]
+    return depth[:overlap], conf[:overlap], depth[S - overlap :], conf[S - overlap :]
 
 
 class _BackgroundWriter:

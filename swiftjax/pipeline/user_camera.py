@@ -107,5 +107,10 @@ class UserCamera:
         if not self.masked:
             return None
         user = None if self.masks is None else jnp.asarray(self.masks.read(frames))
-        return _masks.keep_mask(jnp.asarray(depth, jnp.float32), jnp.asarray(conf, jnp.float32), user,
-                                drop_sky=self.drop_sky, sky_rule=self.sky_rule)
+        return _masks.keep_mask(
+            jnp.asarray(depth, jnp.float32),
+            jnp.asarray(conf, jnp.float32),
+            user,
+            drop_sky=self.drop_sky,
+            sky_rule=self.sky_rule,
+        )

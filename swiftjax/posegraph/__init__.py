@@ -24,11 +24,8 @@ Modules: :mod:`~swiftjax.posegraph.problem` (data, validation, size buckets),
 Synthetic graphs with known truth: :mod:`swiftjax.synthetic.pose_graphs`.
 """
 
+from swiftjax.posegraph import gnc
 from swiftjax.posegraph.driver import Result, SolveError, optimize
-from swiftjax.posegraph.solver_choice import DENSE_MAX_NODES, choose_linear_solver
-from swiftjax.posegraph.options import GraphOptions
-from swiftjax.posegraph.problem import Problem, ProblemError, bucket_size, pad_problem, validate
-from swiftjax.posegraph.kernels import KERNELS, ROBUST_CHOICES, check_kernel, kernel_code, robust_rho, robust_weight
 from swiftjax.posegraph.factors import (
     cost,
     edge_costs,
@@ -37,9 +34,12 @@ from swiftjax.posegraph.factors import (
     right_jacobian_inverse_at,
 )
 from swiftjax.posegraph.initialization import chain_poses, chordal_initialization
+from swiftjax.posegraph.kernels import KERNELS, ROBUST_CHOICES, check_kernel, kernel_code, robust_rho, robust_weight
 from swiftjax.posegraph.linear_solvers import BlockJacobiPCG, DenseCholesky, HostSparse
-from swiftjax.posegraph import gnc
+from swiftjax.posegraph.options import GraphOptions
+from swiftjax.posegraph.problem import Problem, ProblemError, bucket_size, pad_problem, validate
 from swiftjax.posegraph.solver import LMResult, SparseSim3LM, linearize, retract
+from swiftjax.posegraph.solver_choice import DENSE_MAX_NODES, choose_linear_solver
 
 __all__ = [
     "BlockJacobiPCG",
@@ -75,4 +75,3 @@ __all__ = [
     "robust_weight",
     "validate",
 ]
-

@@ -226,13 +226,19 @@ class _Bucket:
             dtype = np.dtype(y.dtype)
             delta = np.zeros(y.shape[:1] + (7,), dtype)
             ok = np.asarray(True)
+            damping = None  # the first step (it only linearises) returns it before a solve reads it
         while executed <= max_steps and (executed == 0 or result_index(state.result) == _RUNNING):
             if self.sparse:
                 if executed:
                     ne = state.lin.ne
                     delta, ok = sparse_direct.solve(
-                        np.asarray(ne.diag), np.asarray(ne.off), np.asarray(damping), -np.asarray(ne.grad),
-                        edges, mask, fixed,
+                        np.asarray(ne.diag),
+                        np.asarray(ne.off),
+                        np.asarray(damping),
+                        -np.asarray(ne.grad),
+                        edges,
+                        mask,
+                        fixed,
                     )
                     delta, ok = delta.astype(dtype), np.asarray(ok)
                 y, state, damping = self.step(problem, params, solver, y, state, delta, ok)
@@ -299,7 +305,7 @@ def _gnc_continuation(lm, problem: Problem, start: Array, params, options: Graph
         converged = False
         mu = mu0
         prev_cost = float(out["cost_final"])
-        for it in range(1, options.gnc_max_iterations + 1):
+        for _ in range(1, options.gnc_max_iterations + 1):
             sq = squared(out)
             w = np.where(robust, gnc.tls_weights(sq, np.asarray(mu, dtype), c2), 1.0)
             w = np.where(mask, w, 0.0).astype(dtype)
@@ -388,7 +394,10 @@ def optimize(
     params = {
         k: jnp.asarray(v, dtype)
         for k, v in dict(
-            rtol=options.rtol, atol=options.atol, gtol=options.gtol, lambda0=options.lambda0,
+            rtol=options.rtol,
+            atol=options.atol,
+            gtol=options.gtol,
+            lambda0=options.lambda0,
             kernel_scale=options.scale,
         ).items()
     }

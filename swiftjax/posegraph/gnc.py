@@ -73,7 +73,9 @@ def _xp(*arrays):
     return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
 
 
-def tls_weights(sq: Float[ArrayLike, "*e"], mu: Float[ArrayLike, ""], c2: Float[ArrayLike, ""]) -> Float[ArrayLike, "*e"]:
+def tls_weights(
+    sq: Float[ArrayLike, "*e"], mu: Float[ArrayLike, ""], c2: Float[ArrayLike, ""]
+) -> Float[ArrayLike, "*e"]:
     """GNC-TLS weights (module docstring, eq. 14): ``sq [...], mu, c2 -> w [...]`` in ``[0, 1]``.
 
     ``sq`` the squared whitened residuals ``r^T Omega r``, ``c2`` the squared inlier threshold.
@@ -87,7 +89,9 @@ def tls_weights(sq: Float[ArrayLike, "*e"], mu: Float[ArrayLike, ""], c2: Float[
     return xp.where(sq >= upper, 0.0, xp.where(sq <= lower, 1.0, w))
 
 
-def initial_mu(sq: Float[ArrayLike, " e"], robust: Bool[ArrayLike, " e"], c2: Float[ArrayLike, ""]) -> Float[ArrayLike, ""]:
+def initial_mu(
+    sq: Float[ArrayLike, " e"], robust: Bool[ArrayLike, " e"], c2: Float[ArrayLike, ""]
+) -> Float[ArrayLike, ""]:
     """``mu_0 = c^2 / (2 s_max - c^2)`` over the ``robust`` edges (floored at :data:`MU_MIN`);
     ``-1`` when ``2 s_max <= c^2`` (every robust edge an inlier: no continuation needed)."""
     xp = _xp(sq, robust, c2)

@@ -137,9 +137,7 @@ def chordal_initialization(
     # 3. translations: t_j - t_i = s_i R_i t_z, weighted by 1 / s_i^2 (residual in node i's units).
     i = problem.edges[:, 0]
     c_t = scale[i, None] * bmv(rot[i], t_z)
-    trans, ok_t = solve_difference_system(
-        t0, None, c_t, w_t / scale[i] ** 2, problem, linear_solver
-    )
+    trans, ok_t = solve_difference_system(t0, None, c_t, w_t / scale[i] ** 2, problem, linear_solver)
     ok = ok_r & ok_s & ok_t
     out = sim3.normalize(sim3.from_rst(rot, trans, scale))
     out = jnp.where(problem.fixed[:, None], poses, out)

@@ -90,9 +90,7 @@ def robust_rho_weight(
 ) -> tuple[Float[Array, "*e"], Float[Array, "*e"]]:
     """``(rho(s), rho'(s))`` with the kernel chosen by a *traced* integer ``code`` (no recompile)."""
     code = jnp.asarray(code)
-    rho = jnp.select(
-        [code == 1, code == 2], [robust_rho(s, "huber", k), robust_rho(s, "cauchy", k)], s
-    )
+    rho = jnp.select([code == 1, code == 2], [robust_rho(s, "huber", k), robust_rho(s, "cauchy", k)], s)
     w = jnp.select(
         [code == 1, code == 2],
         [robust_weight(s, "huber", k), robust_weight(s, "cauchy", k)],

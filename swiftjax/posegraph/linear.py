@@ -33,9 +33,9 @@ from __future__ import annotations
 import functools
 
 import equinox as eqx
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Bool, Float, Int
 
@@ -71,8 +71,13 @@ class NormalEquations(eqx.Module):
 
 
 def assemble(
-    r: Float[Array, "e 7"], jr_inv: Float[Array, "e 7 7"], adj: Float[Array, "e 7 7"], weight: Float[Array, " e"],
-    information: Float[Array, "e 7 7"], edges: Int[Array, "e 2"], fixed: Bool[Array, " n"],
+    r: Float[Array, "e 7"],
+    jr_inv: Float[Array, "e 7 7"],
+    adj: Float[Array, "e 7 7"],
+    weight: Float[Array, " e"],
+    information: Float[Array, "e 7 7"],
+    edges: Int[Array, "e 2"],
+    fixed: Bool[Array, " n"],
 ) -> NormalEquations:
     """Normal equations from residuals ``[E, 7]`` and Jacobian factors ``[E, 7, 7]``.
 
@@ -90,8 +95,13 @@ def assemble(
 
 
 def from_edge_blocks(
-    h_ii: Float[Array, "e b b"], h_jj: Float[Array, "e b b"], h_ij: Float[Array, "e b b"], g_i: Float[Array, "e b"],
-    g_j: Float[Array, "e b"], edges: Int[Array, "e 2"], fixed: Bool[Array, " n"],
+    h_ii: Float[Array, "e b b"],
+    h_jj: Float[Array, "e b b"],
+    h_ij: Float[Array, "e b b"],
+    g_i: Float[Array, "e b"],
+    g_j: Float[Array, "e b"],
+    edges: Int[Array, "e 2"],
+    fixed: Bool[Array, " n"],
 ) -> NormalEquations:
     """Sum per-edge blocks into the normal equations (segment sums over the edge ends).
 
@@ -108,7 +118,7 @@ def from_edge_blocks(
     g_i = g_i * free_i[:, None]
     g_j = g_j * free_j[:, None]
     ends = jnp.concatenate([edges[:, 0], edges[:, 1]])
-    seg = lambda a, b: jax.ops.segment_sum(jnp.concatenate([a, b]), ends, num_segments=n)  # noqa: E731
+    seg = lambda a, b: jax.ops.segment_sum(jnp.concatenate([a, b]), ends, num_segments=n)
     diag = jnp.where(fixed[:, None, None], jnp.eye(g_i.shape[-1], dtype=dtype), seg(h_ii, h_jj))
     return NormalEquations(diag=diag, off=h_ij, grad=seg(g_i, g_j), edges=edges)
 
@@ -170,9 +180,9 @@ def solve_pcg(
     blocks = ne.diag + jax.vmap(jnp.diag)(damping)
     precond = jnp.linalg.inv(blocks)
     b = -ne.grad
-    apply_m = lambda v: bmv(precond, v)  # noqa: E731
-    apply_a = lambda v: matvec(ne, v, damping)  # noqa: E731
-    vdot = lambda a, c: jnp.sum(a * c)  # noqa: E731
+    apply_m = lambda v: bmv(precond, v)
+    apply_a = lambda v: matvec(ne, v, damping)
+    vdot = lambda a, c: jnp.sum(a * c)
     target = (tol * jnp.sqrt(vdot(b, b))) ** 2
 
     x0 = jnp.zeros_like(b)
@@ -209,6 +219,7 @@ def _host_sparse_solve(dtype, diag, off, damping, grad, edges, active, fixed):
     operands and results with the *callback thread's* x64 flag, which differs from the caller's
     under a ``jax.enable_x64(True)`` context, and would silently round float64 to float32.
     """
+
     def unwords(a):
         a = np.ascontiguousarray(np.asarray(a, np.uint32))
         return a.view(dtype).reshape(a.shape[:-1])
@@ -254,7 +265,13 @@ def solve_sparse(
     raw, ok = jax.pure_callback(
         functools.partial(_host_sparse_solve, np.dtype(dtype.name)),
         out_shapes,
-        words_of(ne.diag), words_of(ne.off), words_of(damping), words_of(ne.grad), ne.edges, active, fixed,
+        words_of(ne.diag),
+        words_of(ne.off),
+        words_of(damping),
+        words_of(ne.grad),
+        ne.edges,
+        active,
+        fixed,
         vmap_method="sequential",
     )
     raw = raw if words > 1 else raw[..., 0]

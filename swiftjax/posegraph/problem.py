@@ -149,9 +149,7 @@ class Problem(eqx.Module):
             raise ProblemError(f"robust has shape {tuple(robust.shape)}; expected [E] = [{num_edges}]")
         edge_mask = xp.ones((num_edges,), bool) if edge_mask is None else xp.asarray(edge_mask, bool)
         if edge_mask.shape != (num_edges,):
-            raise ProblemError(
-                f"edge_mask has shape {tuple(edge_mask.shape)}; expected [E] = [{num_edges}]"
-            )
+            raise ProblemError(f"edge_mask has shape {tuple(edge_mask.shape)}; expected [E] = [{num_edges}]")
         self.poses = jnp.asarray(poses)
         self.edges = jnp.asarray(edges.astype(np.int32))
         self.measurements = jnp.asarray(measurements)
@@ -244,9 +242,7 @@ def validate(problem: Problem, *, quaternion_tol: float = 1e-3) -> None:
     bad = ids[~np.all(np.isfinite(om), axis=(1, 2))]
     if bad.size:
         raise ProblemError(f"information: non-finite values at edges {_first(bad)}")
-    asym = np.abs(om - np.swapaxes(om, 1, 2)).max(axis=(1, 2)) > 1e-8 * np.maximum(
-        np.abs(om).max(axis=(1, 2)), 1e-300
-    )
+    asym = np.abs(om - np.swapaxes(om, 1, 2)).max(axis=(1, 2)) > 1e-8 * np.maximum(np.abs(om).max(axis=(1, 2)), 1e-300)
     bad = ids[asym]
     if bad.size:
         raise ProblemError(f"information: not symmetric at edges {_first(bad)}")
@@ -302,7 +298,7 @@ def pad_problem(problem: Problem, num_nodes: int, num_edges: int) -> Problem:
     pn, pe = num_nodes - n, num_edges - e
     if pn == 0 and pe == 0:
         return problem
-    cat = lambda a, pad: np.concatenate([np.asarray(a), pad])  # noqa: E731 - host-side, no XLA kernels
+    cat = lambda a, pad: np.concatenate([np.asarray(a), pad])
     return Problem(
         poses=cat(problem.poses, np.broadcast_to(ident, (pn, 8))),
         edges=cat(problem.edges, np.zeros((pe, 2), np.int32)),

@@ -51,7 +51,8 @@ from jaxtyping import ArrayLike, Bool, Float, Int, Real
 from swiftjax import sim3
 from swiftjax.posegraph import linear
 from swiftjax.posegraph.factors import edge_costs, residual_jacobian_factors, residuals
-from swiftjax.posegraph.linear_solvers import AbstractLinearSolver, DenseCholesky, linear_solver as _linear_solver
+from swiftjax.posegraph.linear_solvers import AbstractLinearSolver, DenseCholesky
+from swiftjax.posegraph.linear_solvers import linear_solver as _linear_solver
 from swiftjax.posegraph.problem import Problem
 
 __all__ = ["SparseSim3LM", "LMState", "LMResult", "CONVERGED", "is_converged", "result_index", "linearize", "retract"]
@@ -83,7 +84,7 @@ _RUNNING = LMResult.nonlinear_max_steps_reached
 
 def result_index(result: LMResult) -> int:
     """The host integer of a concrete result (no device op)."""
-    return int(np.asarray(result._value))  # noqa: SLF001 - equinox keeps the index there
+    return int(np.asarray(result._value))
 
 
 def is_converged(result: LMResult) -> Bool[Array, ""]:

@@ -176,8 +176,12 @@ def pattern(num_nodes: int, block: int, edges, active, fixed) -> SparsePattern:
 
 
 def solve(
-    diag: Float[np.ndarray, "n b b"], off: Float[np.ndarray, "e b b"], damping: Float[np.ndarray, "n b"],
-    rhs: Float[np.ndarray, "n b"], edges: Int[np.ndarray, "e 2"], active: Bool[np.ndarray, " e"],
+    diag: Float[np.ndarray, "n b b"],
+    off: Float[np.ndarray, "e b b"],
+    damping: Float[np.ndarray, "n b"],
+    rhs: Float[np.ndarray, "n b"],
+    edges: Int[np.ndarray, "e 2"],
+    active: Bool[np.ndarray, " e"],
     fixed: Bool[np.ndarray, " n"],
 ) -> tuple[Float[np.ndarray, "n b"], bool]:
     """Solve ``(H + diag(damping)) x = rhs`` (host NumPy, float64 internally).

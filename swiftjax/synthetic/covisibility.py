@@ -37,9 +37,7 @@ import jax.numpy as jnp
 __all__ = ["surface_points", "covisibility", "covisibility_mutual"]
 
 
-def surface_points(
-    depth: jax.Array, cam_to_world: jax.Array, K: jax.Array, stride: int
-) -> tuple[jax.Array, jax.Array]:
+def surface_points(depth: jax.Array, cam_to_world: jax.Array, K: jax.Array, stride: int) -> tuple[jax.Array, jax.Array]:
     """World points of the pixel grid ``u = (stride k, stride l)`` of every frame.
 
     Args:
@@ -53,8 +51,7 @@ def surface_points(
     """
     d = depth[:, ::stride, ::stride]
     S, h, w = d.shape
-    v, u = jnp.meshgrid(jnp.arange(h, dtype=d.dtype) * stride, jnp.arange(w, dtype=d.dtype) * stride,
-                        indexing="ij")
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=d.dtype) * stride, jnp.arange(w, dtype=d.dtype) * stride, indexing="ij")
     y = (v - K[1, 2]) / K[1, 1]
     x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
     valid = jnp.isfinite(d)
@@ -65,8 +62,9 @@ def surface_points(
     return pts.reshape(-1, 3), valid.reshape(-1)
 
 
-def _seen(points: jax.Array, depth_b: jax.Array, cam_to_world_b: jax.Array, K: jax.Array,
-          rel_tol: jax.Array) -> jax.Array:
+def _seen(
+    points: jax.Array, depth_b: jax.Array, cam_to_world_b: jax.Array, K: jax.Array, rel_tol: jax.Array
+) -> jax.Array:
     """``seen_B(x)`` of the module docstring for ``points [P, 3]``: ``[P]`` bool."""
     H, W = depth_b.shape[1:]
 
@@ -116,14 +114,17 @@ def covisibility(
     """
     f = jnp.float32
     pts, valid = surface_points(jnp.asarray(depth_a, f), jnp.asarray(cam_to_world_a, f), jnp.asarray(K, f), stride)
-    seen = _seen(pts, jnp.asarray(depth_b, f), jnp.asarray(cam_to_world_b, f), jnp.asarray(K, f), jnp.asarray(rel_tol, f))
+    seen = _seen(
+        pts, jnp.asarray(depth_b, f), jnp.asarray(cam_to_world_b, f), jnp.asarray(K, f), jnp.asarray(rel_tol, f)
+    )
     n = jnp.sum(valid)
     return jnp.sum(seen & valid) / jnp.maximum(n, 1).astype(f)
 
 
 @functools.partial(jax.jit, static_argnames=("stride",))
-def covisibility_mutual(depth_a, cam_to_world_a, depth_b, cam_to_world_b, K, stride: int = 8,
-                        rel_tol: float | jax.Array = 0.1) -> jax.Array:
+def covisibility_mutual(
+    depth_a, cam_to_world_a, depth_b, cam_to_world_b, K, stride: int = 8, rel_tol: float | jax.Array = 0.1
+) -> jax.Array:
     """``min(covis(A -> B), covis(B -> A))`` (arguments as :func:`covisibility`)."""
     ab = covisibility(depth_a, cam_to_world_a, depth_b, cam_to_world_b, K, stride, rel_tol)
     ba = covisibility(depth_b, cam_to_world_b, depth_a, cam_to_world_a, K, stride, rel_tol)

@@ -23,7 +23,12 @@ import numpy as np
 from swiftjax.pipeline import OraclePredictor
 
 __all__ = [
-    "DEMO_ALIASING", "KITTI00_ALIASING", "OracleSpec", "SyntheticRun", "kitti00_run", "loop_route_run",
+    "DEMO_ALIASING",
+    "KITTI00_ALIASING",
+    "OracleSpec",
+    "SyntheticRun",
+    "kitti00_run",
+    "loop_route_run",
     "trajectory_run",
 ]
 
@@ -92,7 +97,11 @@ def trajectory_run(
     strength = places.DEFAULT_ALIAS_STRENGTH if alias_strength is None else float(alias_strength)
     world = build_world(poses, WorldConfig(seed=seed, num_movers=moving_cars))
     oracle = VGGTOracle(
-        world, poses, image_hw=image_hw, seed=seed, noise=noise if noise is not None else OracleNoise(),
+        world,
+        poses,
+        image_hw=image_hw,
+        seed=seed,
+        noise=noise if noise is not None else OracleNoise(),
         place_config=places.PlaceTokenConfig(seed=seed, aliasing=segs, alias_strength=strength),
         hallucination=Hallucination() if hallucination == "default" else hallucination,
     )
@@ -107,8 +116,13 @@ def trajectory_run(
 
 
 def loop_route_run(
-    frames: int | None = None, *, seed: int = 0, image_hw: tuple[int, int] = (154, 518),
-    aliasing: float | tuple[tuple[int, int, int], ...] = DEMO_ALIASING, spacing_m: float = 1.0, **options,
+    frames: int | None = None,
+    *,
+    seed: int = 0,
+    image_hw: tuple[int, int] = (154, 518),
+    aliasing: float | tuple[tuple[int, int, int], ...] = DEMO_ALIASING,
+    spacing_m: float = 1.0,
+    **options,
 ) -> SyntheticRun:
     """The demo: a generated rounded-rectangle route driven ~1.25 times (a revisit to close).
 
@@ -130,8 +144,12 @@ def loop_route_run(
 
 
 def kitti00_run(
-    shared: pathlib.Path, *, seed: int = 0, frames: int | None = None,
-    aliasing: float | tuple[tuple[int, int, int], ...] = KITTI00_ALIASING, **options,
+    shared: pathlib.Path,
+    *,
+    seed: int = 0,
+    frames: int | None = None,
+    aliasing: float | tuple[tuple[int, int, int], ...] = KITTI00_ALIASING,
+    **options,
 ) -> SyntheticRun:
     """The oracle along the real KITTI 00 ground truth (``shared/data/trajectories``);
     ``aliasing`` and ``options`` as :func:`trajectory_run`."""

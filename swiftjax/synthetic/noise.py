@@ -45,9 +45,17 @@ class OracleNoise:
     def off(cls, depth_units: float = 2.0, scale_jitter: float = 0.0) -> OracleNoise:
         """No error at all: depths, poses and intrinsics are the truth in the chunk gauge."""
         return cls(
-            depth_units=depth_units, scale_jitter=scale_jitter, drift_rot=0.0, drift_scale=0.0,
-            pose_rot=0.0, pose_trans=0.0, focal=0.0, depth_rel=0.0, depth_bias=0.0,
-            edge_log_ratio=np.inf, gross_fraction=0.0,
+            depth_units=depth_units,
+            scale_jitter=scale_jitter,
+            drift_rot=0.0,
+            drift_scale=0.0,
+            pose_rot=0.0,
+            pose_trans=0.0,
+            focal=0.0,
+            depth_rel=0.0,
+            depth_bias=0.0,
+            edge_log_ratio=np.inf,
+            gross_fraction=0.0,
         )
 
 

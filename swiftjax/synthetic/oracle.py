@@ -155,8 +155,11 @@ def _block_stats(depth: jax.Array, semantic: jax.Array):
     """int8 semantics and per-row sums / counts of the finite depths ``[F, H]`` (float32 rows
     of ``W`` values; the host adds the rows in float64)."""
     fin = jnp.isfinite(depth)
-    return (semantic.astype(jnp.int8), jnp.sum(jnp.where(fin, depth, 0.0), axis=2),
-            jnp.sum(fin, axis=2, dtype=jnp.int32))
+    return (
+        semantic.astype(jnp.int8),
+        jnp.sum(jnp.where(fin, depth, 0.0), axis=2),
+        jnp.sum(fin, axis=2, dtype=jnp.int32),
+    )
 
 
 class VGGTOracle:
@@ -239,9 +242,7 @@ class VGGTOracle:
         if f.ndim != 1 or f.size == 0 or not np.issubdtype(f.dtype, np.integer):
             raise ValueError(f"frame_indices must be a non-empty 1-D integer array, got {f!r:.80}")
         if f.min() < 0 or f.max() >= self.num_frames:
-            raise ValueError(
-                f"frame_indices must lie in [0, {self.num_frames}), got range [{f.min()}, {f.max()}]"
-            )
+            raise ValueError(f"frame_indices must lie in [0, {self.num_frames}), got range [{f.min()}, {f.max()}]")
         return f.astype(np.int64)
 
     def _render_block(self, b: int) -> _Block:
@@ -255,23 +256,39 @@ class VGGTOracle:
         cand = chunk_candidates(self.world, P[:, :3, 3], origin, far=self.far)
         planes = frame_planes(self.world, P[:, :3, 3], origin)
         out = render_frames(
-            self.K.astype(np.float32), P[:, :3, :3].astype(np.float32),
-            (P[:, :3, 3] - origin).astype(np.float32), planes.astype(np.float32), cand,
-            np.int32(self.world.num_boxes), height=self.image_hw[0], width=self.image_hw[1],
-            k_box=self.k_box, k_cyl=self.k_cyl, far=self.far,
+            self.K.astype(np.float32),
+            P[:, :3, :3].astype(np.float32),
+            (P[:, :3, 3] - origin).astype(np.float32),
+            planes.astype(np.float32),
+            cand,
+            np.int32(self.world.num_boxes),
+            height=self.image_hw[0],
+            width=self.image_hw[1],
+            k_box=self.k_box,
+            k_cyl=self.k_cyl,
+            far=self.far,
         )
         if self.world.movers is not None and self.world.movers.num:
             cars = frame_movers(self.world, idx, origin, far=self.far)
             car_depth, car_id = render_movers(
-                self.K.astype(np.float32), P[:, :3, :3].astype(np.float32),
-                (P[:, :3, 3] - origin).astype(np.float32), *cars,
-                height=self.image_hw[0], width=self.image_hw[1],
+                self.K.astype(np.float32),
+                P[:, :3, :3].astype(np.float32),
+                (P[:, :3, 3] - origin).astype(np.float32),
+                *cars,
+                height=self.image_hw[0],
+                width=self.image_hw[1],
             )
             offset = np.int32(self.world.num_boxes + self.world.num_cylinders)
             out = composite_movers(out, car_depth, car_id, offset, far=self.far)
         sem, row_sum, row_count = _block_stats(out.depth, out.semantic)
-        blk = _Block(out.depth, sem, out.instance, idx,
-                     np.asarray(row_sum).sum(axis=1, dtype=np.float64), np.asarray(row_count).sum(axis=1, dtype=np.int64))
+        blk = _Block(
+            out.depth,
+            sem,
+            out.instance,
+            idx,
+            np.asarray(row_sum).sum(axis=1, dtype=np.float64),
+            np.asarray(row_count).sum(axis=1, dtype=np.int64),
+        )
         self._cache[b] = blk
         while len(self._cache) > self._cache_blocks:
             self._cache.popitem(last=False)
@@ -337,8 +354,7 @@ class VGGTOracle:
         with jax.enable_x64(True):
             return np.asarray(sim3.from_rst(T0[:3, :3], T0[:3, 3], 1.0 / sigma), np.float64)
 
-    def covisibility(self, frames_a, frames_b, *, mutual: bool = False, stride: int = 8,
-                     rel_tol: float = 0.1) -> float:
+    def covisibility(self, frames_a, frames_b, *, mutual: bool = False, stride: int = 8, rel_tol: float = 0.1) -> float:
         """``covis(A -> B)`` (or ``min`` of both directions when ``mutual``) of two frame lists,
         from the true depth and poses (:mod:`swiftjax.synthetic.covisibility`).
 
@@ -395,9 +411,7 @@ class VGGTOracle:
         nz = self.noise
         a, b = np.sqrt(1 - nz.chunk_share), np.sqrt(nz.chunk_share)
         crng = self._chunk_rng(f, 3)
-        eps = np.array([
-            a * self._frame_rng(i, 3).uniform(-1, 1) + b * crng.uniform(-1, 1) for i in f
-        ])
+        eps = np.array([a * self._frame_rng(i, 3).uniform(-1, 1) + b * crng.uniform(-1, 1) for i in f])
         return nz.focal * np.clip(eps, -1.0, 1.0)
 
     def _place_tokens(self, f: np.ndarray) -> np.ndarray:
@@ -409,10 +423,11 @@ class VGGTOracle:
         cache = self._token_cache
         missing = [i for i in dict.fromkeys(f.tolist()) if i not in cache]
         for j in range(0, len(missing), F):
-            m = missing[j:j + F]
+            m = missing[j : j + F]
             mp = np.asarray(m + [m[-1]] * (F - len(m)))  # fixed block size: one compile
-            out = np.asarray(places.place_tokens(self.place_params, self.poses[mp].astype(np.float32),
-                                                 mp.astype(np.int32)))
+            out = np.asarray(
+                places.place_tokens(self.place_params, self.poses[mp].astype(np.float32), mp.astype(np.int32))
+            )
             for k, i in enumerate(m):
                 cache[i] = out[k]
         tokens = np.stack([cache[i] for i in f.tolist()])
@@ -444,7 +459,7 @@ class VGGTOracle:
         truth = self.loop_chunk_truth(f)
         if truth.weight > 0.0:
             T = T.copy()
-            T[truth.split:] = truth.rebase @ T[truth.split:]
+            T[truth.split :] = truth.rebase @ T[truth.split :]
         R0, c0 = T[0, :3, :3], T[0, :3, 3]
         R_ck = R0.T @ T[:, :3, :3]
         t_ck = sigma * (T[:, :3, 3] - c0) @ R0
@@ -474,28 +489,44 @@ class VGGTOracle:
         padi = lambda a: np.concatenate([a, np.repeat(a[-1:], pad, axis=0)]) if pad else a
         ft, dft = padi(f), padi(depth_factor)
         scalars = np.asarray(
-            [nz.depth_rel, nz.depth_rel_ref_m, nz.edge_log_ratio, nz.edge_conf, nz.gross_fraction,
-             nz.gross_log, nz.sky_depth_m, nz.conf_max, nz.conf_falloff_m, nz.chunk_share, nz.mover_depth],
+            [
+                nz.depth_rel,
+                nz.depth_rel_ref_m,
+                nz.edge_log_ratio,
+                nz.edge_conf,
+                nz.gross_fraction,
+                nz.gross_log,
+                nz.sky_depth_m,
+                nz.conf_max,
+                nz.conf_falloff_m,
+                nz.chunk_share,
+                nz.mover_depth,
+            ],
             np.float32,
         )
         ckey = np.uint32(self._chunk_key(f))
         outs = []
         for j in range(n_blk):
-            fj = ft[j * F:(j + 1) * F]
+            fj = ft[j * F : (j + 1) * F]
             blk = blocks[int(fj[0]) // F]
             if np.array_equal(fj, blk.frames):
                 z, sem, inst = blk.depth, blk.semantic, blk.instance
             else:
                 z, sem, inst = (np.stack([np.asarray(blocks[i // F][k])[i % F] for i in fj]) for k in range(3))
             p = PixelParams(
-                np.uint32(self._frame_key), ckey, fj.astype(np.int32),
-                dft[j * F:(j + 1) * F].astype(np.float32), np.float32(sigma), np.float32(bias_c), scalars,
+                np.uint32(self._frame_key),
+                ckey,
+                fj.astype(np.int32),
+                dft[j * F : (j + 1) * F].astype(np.float32),
+                np.float32(sigma),
+                np.float32(bias_c),
+                scalars,
             )
             outs.append(pixel_block(z, sem, inst, p))
         depth = np.concatenate([np.asarray(o[0]) for o in outs])[:S]
         conf = np.concatenate([np.asarray(o[1]) for o in outs])[:S]
         if truth.weight > 0.0:
-            conf = (1.0 + (conf - 1.0) * np.float32(1.0 - truth.weight * (1.0 - self.hallucination.conf_factor)))
+            conf = 1.0 + (conf - 1.0) * np.float32(1.0 - truth.weight * (1.0 - self.hallucination.conf_factor))
         images = np.concatenate([np.asarray(o[2]) for o in outs])[:S]
         tokens = self._place_tokens(f) if self._tokens else None
         return ChunkPrediction(

@@ -33,13 +33,17 @@ def _upsample_patches(x: jax.Array, H: int, W: int, p: int = 14) -> jax.Array:
 
 
 _PALETTE = np.array(  # per semantic id: sky (unused), ground, building, pole, tree, car
-    [[0.0, 0.0, 0.0], [0.42, 0.42, 0.44], [0.72, 0.62, 0.52], [0.35, 0.35, 0.38], [0.20, 0.45, 0.18],
-     [0.70, 0.12, 0.10]],
+    [
+        [0.0, 0.0, 0.0],
+        [0.42, 0.42, 0.44],
+        [0.72, 0.62, 0.52],
+        [0.35, 0.35, 0.38],
+        [0.20, 0.45, 0.18],
+        [0.70, 0.12, 0.10],
+    ],
     np.float32,
 )
-_FACADES = np.array(
-    [[0.72, 0.62, 0.52], [0.80, 0.78, 0.70], [0.60, 0.45, 0.38], [0.55, 0.58, 0.62]], np.float32
-)
+_FACADES = np.array([[0.72, 0.62, 0.52], [0.80, 0.78, 0.70], [0.60, 0.45, 0.38], [0.55, 0.58, 0.62]], np.float32)
 
 
 def _albedo(sem: jax.Array, inst: jax.Array) -> jax.Array:
@@ -69,8 +73,9 @@ def pixel_block(z: jax.Array, sem: jax.Array, inst: jax.Array, p: PixelParams):
     purely elementwise kernel.  Fused together, XLA treated every pixel value as re-used
     and materialised the expensive intermediates (``exp``, ``log``): 1.5-2x slower.
     """
-    (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff,
-     share, mover_depth) = (p.scalars[i] for i in range(11))
+    (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff, share, mover_depth) = (
+        p.scalars[i] for i in range(11)
+    )
     F, H, W = z.shape
     fr = hash32(p.frames.astype(jnp.uint32) * jnp.uint32(0x9E3779B9))[:, None, None]
     kf = hash32(p.frame_key ^ fr)  # [F, 1, 1] per-frame bases
@@ -87,8 +92,9 @@ def pixel_block(z: jax.Array, sem: jax.Array, inst: jax.Array, p: PixelParams):
         lmin = jnp.minimum(jnp.minimum(nbs[0], nbs[1]), jnp.minimum(nbs[2], nbs[3]))
         edge = jnp.maximum(lmax - lz, lz - lmin) > edge_lr
         hp, wp = -(-H // 14), -(-W // 14)
-        pidx = (jnp.arange(hp, dtype=jnp.uint32)[:, None] * jnp.uint32(wp)
-                + jnp.arange(wp, dtype=jnp.uint32)[None, :])[None]
+        pidx = (jnp.arange(hp, dtype=jnp.uint32)[:, None] * jnp.uint32(wp) + jnp.arange(wp, dtype=jnp.uint32)[None, :])[
+            None
+        ]
         pf = hash32(kf ^ (pidx + jnp.uint32(0x1B873593)))
         pc = hash32(kc ^ (pidx + jnp.uint32(0x1B873593)))
         n_pat = _upsample_patches(a * approx_normal(pf) + b * approx_normal(pc), H, W)
@@ -116,7 +122,9 @@ def pixel_block(z: jax.Array, sem: jax.Array, inst: jax.Array, p: PixelParams):
     gross = uniform16(hg, False) < gross_frac
     d = jnp.where(gross, d * jnp.exp(gross_log * (2.0 * uniform16(hg, True) - 1.0)), d)
     # moving cars: one depth factor per (chunk, car), so two chunks disagree on them
-    n_car = approx_normal(hash32(p.chunk_key ^ (inst.astype(jnp.uint32) * jnp.uint32(0x9E3779B9) + jnp.uint32(0x3C6EF372))))
+    n_car = approx_normal(
+        hash32(p.chunk_key ^ (inst.astype(jnp.uint32) * jnp.uint32(0x9E3779B9) + jnp.uint32(0x3C6EF372)))
+    )
     d = jnp.where(sem == CAR, d * jnp.exp(mover_depth * n_car), d)
     # ---- confidence
     conf = 1.0 + conf_max * jnp.exp(-zf / falloff) * jnp.exp(0.25 * n_conf)

@@ -181,8 +181,7 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
         raise ValueError(f"dim and tokens_per_frame must be >= 1, got {c.dim}, {c.tokens_per_frame}")
     if not (c.length_scale_m > 0 and c.length_scale_rad > 0):
         raise ValueError(
-            f"length scales must be > 0, got length_scale_m={c.length_scale_m}, "
-            f"length_scale_rad={c.length_scale_rad}"
+            f"length scales must be > 0, got length_scale_m={c.length_scale_m}, length_scale_rad={c.length_scale_rad}"
         )
     for name in ("place_strength", "bias_strength", "bias_jitter", "burst_strength", "noise"):
         if getattr(c, name) < 0:
@@ -202,8 +201,16 @@ def make_place_params(config: PlaceTokenConfig = PlaceTokenConfig()) -> PlaceTok
         bias_direction=bias / jnp.linalg.norm(bias),
         noise_key=jnp.asarray(jax.random.key_data(k_noise), jnp.uint32),
         scalars=jnp.asarray(
-            [c.place_strength, c.bias_strength, c.bias_jitter, c.burst_strength,
-             c.burst_fraction, c.noise, c.token_diversity, c.alias_strength],
+            [
+                c.place_strength,
+                c.bias_strength,
+                c.bias_jitter,
+                c.burst_strength,
+                c.burst_fraction,
+                c.noise,
+                c.token_diversity,
+                c.alias_strength,
+            ],
             jnp.float32,
         ),
         alias_segments=jnp.asarray(segs, jnp.int32).reshape(-1, 3),
@@ -263,8 +270,11 @@ def _alias_share(params: PlaceTokenParams, frame_ids: jax.Array) -> tuple[jax.Ar
     in_b = (tb >= 0) & (tb < seg[None, :, 2])
     hit = in_a | in_b  # [S, P]; at most one True per row (segments are disjoint)
     m = jnp.argmax(hit, axis=1)
-    t = jnp.where(jnp.take_along_axis(in_a, m[:, None], 1)[:, 0],
-                  jnp.take_along_axis(ta, m[:, None], 1)[:, 0], jnp.take_along_axis(tb, m[:, None], 1)[:, 0])
+    t = jnp.where(
+        jnp.take_along_axis(in_a, m[:, None], 1)[:, 0],
+        jnp.take_along_axis(ta, m[:, None], 1)[:, 0],
+        jnp.take_along_axis(tb, m[:, None], 1)[:, 0],
+    )
     lam = jnp.where(jnp.any(hit, axis=1), params.scalars[7], 0.0)
     S = frame_ids.shape[0]
     virtual = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (S, 4, 4))
@@ -294,8 +304,9 @@ def place_tokens(params: PlaceTokenParams, cam_to_world: jax.Array, frame_ids: j
         # a second field evaluation only for a batch that holds a look-alike frame
         signal = jax.lax.cond(
             jnp.any(lam > 0.0),
-            lambda sig: (jnp.sqrt(1.0 - lam)[:, None, None] * sig
-                         + jnp.sqrt(lam)[:, None, None] * place_signal(params, virtual)),
+            lambda sig: (
+                jnp.sqrt(1.0 - lam)[:, None, None] * sig + jnp.sqrt(lam)[:, None, None] * place_signal(params, virtual)
+            ),
             lambda sig: sig,
             signal,
         )
@@ -351,8 +362,11 @@ def ground_truth_loops(
 
 
 def revisit_regions(
-    cam_to_world: np.ndarray, max_distance: float = 5.0, max_angle_deg: float = 30.0,
-    min_separation: int = 100, radius: int = 25,
+    cam_to_world: np.ndarray,
+    max_distance: float = 5.0,
+    max_angle_deg: float = 30.0,
+    min_separation: int = 100,
+    radius: int = 25,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Same-direction and reverse revisits counted separately: ``{"same": (pairs, regions),
     "reverse": (pairs, regions)}``, each :func:`ground_truth_loops` with that ``direction``
@@ -379,9 +393,11 @@ def loop_regions(pairs: np.ndarray, radius: int = 25) -> np.ndarray:
     if m == 0:
         return np.zeros((0,), np.int64)
     edges = cKDTree(pairs.astype(np.float64)).query_pairs(radius, p=np.inf, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(m, m)) if len(
-        edges
-    ) else coo_matrix((m, m))
+    graph = (
+        coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(m, m))
+        if len(edges)
+        else coo_matrix((m, m))
+    )
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
@@ -424,7 +440,12 @@ def evaluate_loops(
     n_regions = int(regions.max()) + 1 if len(regions) else 0
     if len(det) == 0 or len(gt) == 0:
         return LoopEvaluation(
-            1.0 if len(det) == 0 else 0.0, 0.0 if n_regions else 1.0, len(det), 0, n_regions, 0,
+            1.0 if len(det) == 0 else 0.0,
+            0.0 if n_regions else 1.0,
+            len(det),
+            0,
+            n_regions,
+            0,
             np.zeros(len(det), bool),
         )
     tree = cKDTree(gt.astype(np.float64))
@@ -507,7 +528,7 @@ def plant_aliasing(
     busy = np.zeros(n + 2 * gap, bool)  # frames near planted segments (padded by gap)
 
     def free(s: int) -> bool:
-        return not busy[s: s + length + 2 * gap].any()
+        return not busy[s : s + length + 2 * gap].any()
 
     rng = np.random.default_rng(seed)
     out: list[tuple[int, int, int]] = []
@@ -517,7 +538,7 @@ def plant_aliasing(
         a, b = sorted(rng.integers(0, n - length + 1, 2).tolist(), reverse=True)
         if a - b <= min_separation + length or not (free(a) and free(b)):
             continue
-        d = np.linalg.norm(p[a: a + length, None] - p[None, b: b + length], axis=-1)
+        d = np.linalg.norm(p[a : a + length, None] - p[None, b : b + length], axis=-1)
         if d.min() <= min_distance_m:
             continue
         t = np.arange(length)
@@ -526,7 +547,7 @@ def plant_aliasing(
             continue
         out.append((int(a), int(b), int(length)))
         for s in (a, b):
-            busy[s: s + length + 2 * gap] = True
+            busy[s : s + length + 2 * gap] = True
     if len(out) < count:
         if not strict:
             return tuple(sorted(out))

@@ -48,8 +48,16 @@ from scipy.spatial import cKDTree
 from swiftjax.camera import pixel_rays
 from swiftjax.synthetic.world import BUILDING, CAR, GROUND, SKY, World, ground_planes, mover_boxes
 
-__all__ = ["Candidates", "Render", "chunk_candidates", "render_frames", "render_numpy", "frame_movers", "render_movers",
-           "composite_movers"]
+__all__ = [
+    "Candidates",
+    "Render",
+    "chunk_candidates",
+    "render_frames",
+    "render_numpy",
+    "frame_movers",
+    "render_movers",
+    "composite_movers",
+]
 
 
 class Candidates(NamedTuple):
@@ -107,7 +115,11 @@ def _basis(up: np.ndarray) -> np.ndarray:
 
 
 def chunk_candidates(
-    world: World, positions: np.ndarray, origin: np.ndarray, n_box: int = 192, n_cyl: int = 192,
+    world: World,
+    positions: np.ndarray,
+    origin: np.ndarray,
+    n_box: int = 192,
+    n_cyl: int = 192,
     far: float = 80.0,
 ) -> Candidates:
     """The ``n_box`` boxes and ``n_cyl`` cylinders nearest to any of ``positions`` ``[S, 3]``.
@@ -166,8 +178,16 @@ def frame_planes(world: World, positions: np.ndarray, origin: np.ndarray) -> np.
     return pl
 
 
-def _select(centre: jax.Array, radius: jax.Array, valid: jax.Array, cam_c: jax.Array,
-            cam_fwd: jax.Array, cos_cone: jax.Array, far: float, k: int) -> jax.Array:
+def _select(
+    centre: jax.Array,
+    radius: jax.Array,
+    valid: jax.Array,
+    cam_c: jax.Array,
+    cam_fwd: jax.Array,
+    cos_cone: jax.Array,
+    far: float,
+    k: int,
+) -> jax.Array:
     """Indices ``[F, k]`` of the ``k`` nearest candidates touching each frame's view cone."""
     v = centre[None, :, :] - cam_c[:, None, :]  # [F, N, 3]
     dist = jnp.linalg.norm(v, axis=-1)
@@ -200,8 +220,9 @@ def _support(n: jax.Array, axes: jax.Array, half: jax.Array) -> jax.Array:
     return jnp.einsum("fuki,fki->fuk", jnp.abs(jnp.einsum("fuc,fkic->fuki", n, axes)), half)
 
 
-@functools.partial(jax.jit, static_argnames=(
-    "height", "width", "k_box", "k_cyl", "far", "tile_width", "k_box_tile", "k_cyl_tile"))
+@functools.partial(
+    jax.jit, static_argnames=("height", "width", "k_box", "k_cyl", "far", "tile_width", "k_box_tile", "k_cyl_tile")
+)
 def render_frames(
     K: jax.Array,
     cam_R: jax.Array,
@@ -280,17 +301,20 @@ def render_frames(
     cos_cone = jnp.min(1.0 / jnp.linalg.norm(corner, axis=-1))
     fwd = cam_R[:, :, 2]
     box_valid = cand.box_id >= 0
-    bidx = _select(cand.box_center, jnp.linalg.norm(cand.box_half, axis=-1), box_valid, cam_c, fwd,
-                   cos_cone, far, k_box)
+    bidx = _select(
+        cand.box_center, jnp.linalg.norm(cand.box_half, axis=-1), box_valid, cam_c, fwd, cos_cone, far, k_box
+    )
     cyl_mid = cand.cyl_base + 0.5 * cand.cyl_height[:, None] * up
     cyl_valid = cand.cyl_id >= 0
-    cidx = _select(cyl_mid, jnp.hypot(cand.cyl_radius, 0.5 * cand.cyl_height), cyl_valid, cam_c, fwd,
-                   cos_cone, far, k_cyl)
+    cidx = _select(
+        cyl_mid, jnp.hypot(cand.cyl_radius, 0.5 * cand.cyl_height), cyl_valid, cam_c, fwd, cos_cone, far, k_cyl
+    )
 
     # ---- per-tile culling: separating planes of each tile's column wedge
     u_edges = jnp.stack([jnp.arange(T, dtype=f32) * tw - 0.5, jnp.arange(T, dtype=f32) * tw + tw - 0.5], 1)
-    n_cam = jnp.stack([jnp.broadcast_to(K[0, 0], u_edges.shape), jnp.broadcast_to(K[0, 1], u_edges.shape),
-                       K[0, 2] - u_edges], -1)  # [T, 2, 3]: u_x >= u  <=>  n(u) . x_cam >= 0
+    n_cam = jnp.stack(
+        [jnp.broadcast_to(K[0, 0], u_edges.shape), jnp.broadcast_to(K[0, 1], u_edges.shape), K[0, 2] - u_edges], -1
+    )  # [T, 2, 3]: u_x >= u  <=>  n(u) . x_cam >= 0
     n_w = jnp.einsum("fij,tej->ftei", cam_R, n_cam).reshape(nF, 2 * T, 3)  # world (local) frame
     ax2 = cand.box_axis_x[bidx]  # [F, kb, 2]
     e1, e2 = G[0], G[1]
@@ -301,8 +325,10 @@ def render_frames(
     r_box = _support(n_w, box_axes, cand.box_half[bidx])
     cyl_c = cyl_mid[cidx]
     s_cyl = jnp.einsum("fuc,fkc->fuk", n_w, cyl_c - cam_c[:, None, :])
-    r_cyl = (jnp.hypot(n_w @ e1, n_w @ e2)[..., None] * cand.cyl_radius[cidx][:, None, :]
-             + jnp.abs(n_w @ up)[..., None] * (0.5 * cand.cyl_height[cidx])[:, None, :])
+    r_cyl = (
+        jnp.hypot(n_w @ e1, n_w @ e2)[..., None] * cand.cyl_radius[cidx][:, None, :]
+        + jnp.abs(n_w @ up)[..., None] * (0.5 * cand.cyl_height[cidx])[:, None, :]
+    )
 
     def in_tile(s, r, valid):  # [F, 2T, k] -> [F, T, k]
         s, r = s.reshape(nF, T, 2, -1), r.reshape(nF, T, 2, -1)
@@ -312,15 +338,16 @@ def render_frames(
     vis_c = in_tile(s_cyl, r_cyl, cyl_valid[cidx])
     tb, okb = _tile_select(vis_b, k_bt)  # [F, T, k_bt]
     tc, okc = _tile_select(vis_c, k_ct)
-    overflow = (jnp.sum(vis_b, (1, 2)) - jnp.sum(okb, (1, 2)) + jnp.sum(vis_c, (1, 2))
-                - jnp.sum(okc, (1, 2))).astype(jnp.int32)
+    overflow = (jnp.sum(vis_b, (1, 2)) - jnp.sum(okb, (1, 2)) + jnp.sum(vis_c, (1, 2)) - jnp.sum(okc, (1, 2))).astype(
+        jnp.int32
+    )
     bsel = jnp.take_along_axis(bidx[:, None, :], tb, axis=-1)  # [F, T, k_bt] candidate index
     csel = jnp.take_along_axis(cidx[:, None, :], tc, axis=-1)
 
     # ---- per-pixel ray directions in the (e1, e2, up) basis, tile layout [F, T, H * tw]
     # (built in tile order from pixel indices with pixel_rays' arithmetic: no transposes,
     # which would make XLA treat every pixel value as re-used and stop fusing)
-    u = (jnp.arange(T, dtype=f32)[:, None, None] * tw + jnp.arange(tw, dtype=f32)[None, None, :])  # [T, 1, tw]
+    u = jnp.arange(T, dtype=f32)[:, None, None] * tw + jnp.arange(tw, dtype=f32)[None, None, :]  # [T, 1, tw]
     v = jnp.arange(H, dtype=f32)[None, :, None]  # [1, H, 1]
     ry = (v - K[1, 2]) / K[1, 1]
     rx = (u - K[0, 2] - K[0, 1] * ry) / K[0, 0]
@@ -338,8 +365,14 @@ def render_frames(
     ax = cand.box_axis_x[bsel]  # [F, T, k_bt, 2]
     hb = cand.box_half[bsel]
     rel = jnp.einsum("ftkc,ic->ftki", cam_c[:, None, None, :] - cand.box_center[bsel], G)
-    ob = jnp.stack([rel[..., 0] * ax[..., 0] + rel[..., 1] * ax[..., 1],
-                    -rel[..., 0] * ax[..., 1] + rel[..., 1] * ax[..., 0], rel[..., 2]], -1)
+    ob = jnp.stack(
+        [
+            rel[..., 0] * ax[..., 0] + rel[..., 1] * ax[..., 1],
+            -rel[..., 0] * ax[..., 1] + rel[..., 1] * ax[..., 0],
+            rel[..., 2],
+        ],
+        -1,
+    )
     box_code = BUILDING | ((cand.box_id[bsel] + 1) << 3)  # [F, T, k_bt]
     mc = jnp.einsum("ftkc,ic->ftki", cam_c[:, None, None, :] - cand.cyl_base[csel], G)
     rc, hc = cand.cyl_radius[csel], cand.cyl_height[csel]
@@ -373,8 +406,16 @@ def render_frames(
         return t, (disc >= 0) & (t > 0) & (zc >= 0) & (zc <= h)
 
     # per-slot parameters, each [F, T, k]: box (a0, a1, lo xyz, hi xyz); cylinder (m xyz, C, h)
-    box_par = [ax[..., 0], ax[..., 1], -hb[..., 0] - ob[..., 0], -hb[..., 1] - ob[..., 1],
-               -hb[..., 2] - ob[..., 2], hb[..., 0] - ob[..., 0], hb[..., 1] - ob[..., 1], hb[..., 2] - ob[..., 2]]
+    box_par = [
+        ax[..., 0],
+        ax[..., 1],
+        -hb[..., 0] - ob[..., 0],
+        -hb[..., 1] - ob[..., 1],
+        -hb[..., 2] - ob[..., 2],
+        hb[..., 0] - ob[..., 0],
+        hb[..., 1] - ob[..., 1],
+        hb[..., 2] - ob[..., 2],
+    ]
     cyl_par = [mc[..., 0], mc[..., 1], mc[..., 2], Cc, hc]
 
     # ---- pass 1: min over packed (distance, slot) keys.  Slot 0: ground, 1..k_bt: boxes,
@@ -461,8 +502,16 @@ def frame_movers(world: World, frames: np.ndarray, origin: np.ndarray, k: int = 
 
 @functools.partial(jax.jit, static_argnames=("height", "width"))
 def render_movers(
-    K: jax.Array, cam_R: jax.Array, cam_c: jax.Array, centre: jax.Array, axes: jax.Array,
-    half: jax.Array, car_id: jax.Array, *, height: int, width: int,
+    K: jax.Array,
+    cam_R: jax.Array,
+    cam_c: jax.Array,
+    centre: jax.Array,
+    axes: jax.Array,
+    half: jax.Array,
+    car_id: jax.Array,
+    *,
+    height: int,
+    width: int,
 ) -> tuple[jax.Array, jax.Array]:
     """Ray-cast ``k`` oriented boxes per frame (the cars of :func:`frame_movers`).
 
@@ -490,8 +539,9 @@ def render_movers(
 
 
 @functools.partial(jax.jit, static_argnames=("far",))
-def composite_movers(render: Render, car_depth: jax.Array, car_id: jax.Array, id_offset: jax.Array,
-                     *, far: float = 80.0) -> Render:
+def composite_movers(
+    render: Render, car_depth: jax.Array, car_id: jax.Array, id_offset: jax.Array, *, far: float = 80.0
+) -> Render:
     """The static :class:`Render` with the cars in front: where a car is nearer (and within
     ``far``), depth = the car's, semantic = :data:`~swiftjax.synthetic.world.CAR`, instance =
     ``id_offset + car id`` (``id_offset`` = boxes + cylinders of the world)."""
@@ -504,8 +554,9 @@ def composite_movers(render: Render, car_depth: jax.Array, car_id: jax.Array, id
     )
 
 
-def render_numpy(world: World, K: np.ndarray, cam_to_world: np.ndarray, height: int, width: int,
-                 far: float = 80.0) -> np.ndarray:
+def render_numpy(
+    world: World, K: np.ndarray, cam_to_world: np.ndarray, height: int, width: int, far: float = 80.0
+) -> np.ndarray:
     """Brute-force float64 NumPy reference: depth ``[H, W]`` of ONE camera against EVERY object.
 
     Independent of the JAX path (no culling, world-frame arithmetic); used by the tests and

@@ -313,7 +313,10 @@ def build_world(cam_to_world: np.ndarray, config: WorldConfig = WorldConfig()) -
             speed=speed,
             lane=mrng.uniform(*cfg.car_lane, size=C) * np.where(mrng.random(C) < 0.5, -1.0, 1.0),
             half=np.tile(0.5 * np.asarray(cfg.car_size, np.float64), (C, 1)),
-            route_s=route.s, route_ground=route.ground, route_fwd=route.fwd, camera=positions.copy(),
+            route_s=route.s,
+            route_ground=route.ground,
+            route_fwd=route.fwd,
+            camera=positions.copy(),
             clearance=float(cfg.car_clearance_m),
         )
     return World(
