@@ -305,7 +305,8 @@ def _gnc_continuation(lm, problem: Problem, start: Array, params, options: Graph
         converged = False
         mu = mu0
         prev_cost = float(out["cost_final"])
-        for _ in range(1, options.gnc_max_iterations + 1):
+        for _ in range(options.gnc_max_iterations):
+            it += 1
             sq = squared(out)
             w = np.where(robust, gnc.tls_weights(sq, np.asarray(mu, dtype), c2), 1.0)
             w = np.where(mask, w, 0.0).astype(dtype)
