@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from swiftjax.io.atomic import atomic_write
+from swiftjax.io.images import InputError
 from swiftjax.pipeline.results import LoopResult, RunResult, ScaleResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 
@@ -17,7 +18,7 @@ __all__ = ["write", "summary_table", "check_ground_truth"]
 
 
 def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth") -> np.ndarray:
-    """``ground_truth`` as float64 ``[n, 4|3, 4]``, or one line naming ``name`` (``ValueError``)
+    """``ground_truth`` as float64 ``[n, 4|3, 4]``, or one line naming ``name`` (:class:`~swiftjax.io.images.InputError`, a ``ValueError``)
     when the report's ATE (a Sim(3) alignment) could not use it: another frame count, fewer
     than 3 poses, non-finite values, positions coincident or collinear (the rotation about
     the line is undetermined; the same test as :func:`swiftjax.evaluation.umeyama_alignment`).
@@ -26,16 +27,16 @@ def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth"
 
     gt = np.asarray(ground_truth, np.float64)
     if gt.ndim != 3 or gt.shape[0] != n or gt.shape[1:] not in ((4, 4), (3, 4)):
-        raise ValueError(f"{name} has shape {gt.shape}, expected [{n}, 4, 4] (one pose per frame)")
+        raise InputError(f"{name} has shape {gt.shape}, expected [{n}, 4, 4] (one pose per frame)")
     if not np.all(np.isfinite(gt)):
-        raise ValueError(f"{name} holds non-finite values (nan/inf)")
+        raise InputError(f"{name} holds non-finite values (nan/inf)")
     if n < 3:
-        raise ValueError(f"{name} has {n} pose(s): the ATE's Sim(3) alignment needs at least 3 (leave out --gt)")
+        raise InputError(f"{name} has {n} pose(s): the ATE's Sim(3) alignment needs at least 3 (leave out --gt)")
     pos = gt[:, :3, 3]
     try:
         evaluation.umeyama_alignment(pos, pos)
     except ValueError:
-        raise ValueError(
+        raise InputError(
             f"{name}: its positions are coincident or collinear, so the Sim(3) alignment of the "
             "ATE is undefined (leave out --gt)"
         ) from None
