@@ -23,36 +23,12 @@ import zipfile
 
 import numpy as np
 import pytest
+from test_faults import DEMO  # the demo run the recording was made of (155 frames, 8 chunks, one loop)
 
 pytestmark = pytest.mark.slow
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 RECORDING = REPO / "tests" / "data" / "demo_outputs.json"
-#: The demo run of tests/test_faults.py (155 frames, 8 chunks, one verified loop).
-DEMO = [
-    "demo",
-    "--image-size",
-    "28x98",
-    "--frame-spacing",
-    "4",
-    "--chunk-size",
-    "30",
-    "--overlap",
-    "10",
-    "--loop-min-separation",
-    "50",
-    "--loop-nms-radius",
-    "10",
-    "--loop-half-window",
-    "8",
-    "--point-stride",
-    "3",
-    "--colmap-max-points",
-    "2000",
-    "--loop-threshold-rule",
-    "fixed",
-    "--no-progress",
-]
 _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf)\b")
 #: Left out: timings, and the CRC32s of records (they follow the exact bits of the floats beside them).
 _SKIPPED_KEYS = {"timings_seconds", "compile_seconds", "solve_seconds", "crc32"}
