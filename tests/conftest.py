@@ -10,6 +10,12 @@
   match the annotations (``Float[Array, "*batch 8"]`` ...) raises.
 * ``small_loop_run``: one finished small run with loop closure and ground truth (the shapes
   of ``test_pipeline.py``'s, so the compile cache serves both), shared by the output tests.
+* Compiled executables are dropped between test modules once the process holds many memory
+  mappings (``_release_compiled_code``): XLA's CPU backend maps about three regions per compiled
+  executable and keeps every executable alive in JAX's caches, so one process that compiles
+  the whole suite's ~20,000 programs crosses Linux's ``vm.max_map_count`` (65,530 by default);
+  the next ``mmap`` fails inside the JIT and the process dies with a segmentation fault (CI exit
+  139, at whichever test happened to be compiling then).
 """
 
 from __future__ import annotations
@@ -70,6 +76,30 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR", str(pathlib.Path.home() / ".cache" / "swiftjax" / "jax-tests"))
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+#: Drop JAX's compiled executables after a test module once the process holds this many memory
+#: mappings (half of Linux's default ``vm.max_map_count``).  Measured: ~3.2 mappings per compiled
+#: executable, all returned by ``jax.clear_caches()``; the persistent cache serves the recompiles.
+MAX_MAPPINGS = 32_000
+
+
+def _mapping_count() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux: no such limit to stay under
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    yield
+    if _mapping_count() > MAX_MAPPINGS:
+        import gc
+
+        jax.clear_caches()
+        gc.collect()
 
 
 def find_shared() -> pathlib.Path | None:

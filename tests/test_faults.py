@@ -82,6 +82,14 @@ def _env(fault: str | None = None) -> dict[str, str]:
     return env
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT back to its default action.  A test session started in
+    the background by a non-interactive shell (``pytest &``) inherits SIGINT ignored, and
+    Python installs its Ctrl-C handler only where SIGINT is not ignored: the injected SIGINT
+    would then be dropped and the run would finish (exit 0) instead of stopping (exit 130)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def swiftjax(
     out: pathlib.Path, *extra: str, fault: str | None = None, timeout: float = 600
 ) -> subprocess.CompletedProcess:
@@ -91,6 +99,7 @@ def swiftjax(
         capture_output=True,
         text=True,
         timeout=timeout,
+        preexec_fn=_default_sigint,
     )
 
 

@@ -1,41 +1,266 @@
-"""The pose-graph PCM tests (``tests/posegraph_pcm_cases.py``), run in a fresh interpreter.
+"""Pairwise consistency over every loop edge of a pose graph before GNC (swiftjax.loops.pcm).
 
-Run inside the whole suite's process, the first PCM + GNC solve of those cases ended the
-process with a segmentation fault in CI (twice, at the same test), while the same cases pass in
-a process of their own and after the posegraph, GTSAM, pycolmap and π³ test files; the cause is
-not found yet.  Until it is, they run here in a child interpreter, so that a crash is reported as
-this test's failure with the child's output instead of ending the suite.
+References: the cycle residuals against a float64 NumPy composition of 4 x 4 Sim(3) matrices
+(matrix logarithm, adjoints by conjugation), the maximum clique against enumeration of every
+subset, the threshold against the regularised incomplete gamma function.
 """
 
 from __future__ import annotations
 
-import os
-import pathlib
-import subprocess
+import itertools
 import sys
 
+import jax
+import numpy as np
 import pytest
+import scipy.linalg
+import scipy.special
 
-pytestmark = pytest.mark.slow
+from swiftjax import posegraph, sim3
+from swiftjax.loops import pcm
 
-HERE = pathlib.Path(__file__).resolve().parent
+SIGMA = np.array([0.05] * 3 + [0.005] * 3 + [0.005])
 
 
-def test_pcm_cases_pass_in_a_fresh_interpreter(shared_dir):
-    env = {**os.environ, "SWIFTJAX_SHARED": str(shared_dir)}
-    cmd = [
-        sys.executable,
-        "-X",
-        "faulthandler",
-        "-m",
-        "pytest",
-        str(HERE / "posegraph_pcm_cases.py"),
-        "-q",
-        "-p",
-        "no:cacheprovider",
-        "-o",
-        "python_files=posegraph_pcm_cases.py",
-    ]
-    proc = subprocess.run(cmd, cwd=HERE.parent, env=env, capture_output=True, text=True, timeout=1200)
-    assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-6000:]}\n{proc.stderr[-4000:]}"
-    assert " passed" in proc.stdout and "failed" not in proc.stdout, proc.stdout[-2000:]
+def two_laps(*, seed=0, false="none", num_false=4, n_lap=24, radius=60.0, true_every=4):
+    """Two laps of a circle (``2 n_lap`` nodes), odometry ``(t, t+1)``, true loops ``(i, i + n_lap)``
+    for every ``true_every``-th ``i`` (6), loop noise twice the odometry's, and ``num_false``
+    false loops of one kind: ``"clustered"`` (``(a + k, b + k)`` between two places far apart,
+    mutually consistent through one wrong world motion), ``"random"`` (random pairs > 80 m apart
+    saying "same place") or ``"slight"`` (revisit pairs off by 2 m and 2 degrees).  Information matches the
+    noise."""
+    rng = np.random.default_rng(seed)
+    with jax.enable_x64(True):
+        n = 2 * n_lap
+        ang = 2 * np.pi * np.arange(n) / n_lap
+        om = np.stack([0.01 * rng.normal(size=n), 0.01 * rng.normal(size=n), ang + np.pi / 2], 1)
+        truth = np.array(sim3.exp(np.concatenate([np.zeros((n, 3)), om, 0.02 * rng.normal(size=(n, 1))], 1)))
+        truth[:, :3] = np.stack([radius * np.cos(ang), radius * np.sin(ang), 0.5 * rng.normal(size=n)], 1)
+        odo = [(i, i + 1) for i in range(n - 1)]
+        loops = [(i, i + n_lap) for i in range(0, n_lap, true_every)]
+        rel_of = lambda p, q: np.asarray(sim3.between(truth[p], truth[q]))
+        if false == "clustered":
+            a, b = 2, 38  # 30 and 180 degrees round the circle: ~100 m apart
+            z0 = np.array([*rng.normal(size=3), 0, 0, 0, 1, 1.0])
+            W = sim3.compose(sim3.compose(truth[a], z0), sim3.inverse(truth[b]))
+            bad = [(a + k, b + k) for k in range(num_false)]
+            fz = [np.asarray(sim3.compose(sim3.inverse(truth[p]), sim3.compose(W, truth[q]))) for p, q in bad]
+        elif false == "random":
+            d = np.linalg.norm(truth[:, None, :3] - truth[None, :, :3], axis=-1)
+            far = np.argwhere(np.triu(d > 80.0))
+            bad = [tuple(far[k]) for k in rng.choice(len(far), num_false, replace=False)]
+            fz = [np.array([*rng.normal(size=3), 0, 0, 0, 1, 1.0]) for _ in bad]
+        elif false == "slight":
+            bad = [(2 + 4 * k, 2 + 4 * k + n_lap) for k in range(num_false)]  # between the true ones
+            err = np.array([2.0, 0, 0, 0, 0, np.deg2rad(2.0), 0])
+            fz = [np.asarray(sim3.compose(rel_of(p, q), sim3.exp(err))) for p, q in bad]
+        else:
+            bad, fz = [], []
+        edges = np.array(odo + loops + bad)
+        kind = np.array(["odometry"] * len(odo) + ["loop"] * len(loops) + ["false"] * len(bad))
+        sigma = np.where((kind == "odometry")[:, None], SIGMA, 2 * SIGMA)
+        rel = rel_of(edges[:, 0], edges[:, 1]).copy()
+        if bad:
+            rel[kind == "false"] = np.stack(fz)
+        meas = np.array(sim3.compose(rel, sim3.exp(rng.normal(size=(len(edges), 7)) * sigma)))
+        init = np.asarray(sim3.compose(truth[:1], posegraph.chain_poses(meas[: n - 1])))
+    return dict(truth=truth, initial=init, edges=edges, measurements=meas, information=sigma**-2.0, kind=kind)
+
+
+def _problem(g, information=None, keep=None):
+    keep = np.ones(len(g["edges"]), bool) if keep is None else keep
+    info = g["information"] if information is None else information
+    return posegraph.Problem(
+        g["initial"],
+        g["edges"][keep],
+        g["measurements"][keep],
+        information=info[keep],
+        robust=g["kind"][keep] != "odometry",
+    )
+
+
+def _extent(g):
+    t = g["truth"][:, :3]
+    return float(np.linalg.norm(t.max(0) - t.min(0)))
+
+
+def _distance_pct(poses, clean, g):
+    return 100 * np.linalg.norm(np.asarray(poses)[:, :3] - np.asarray(clean)[:, :3], axis=1).max() / _extent(g)
+
+
+# ----------------------------------------------------------------- NumPy references
+
+
+def _mat(S):
+    return np.asarray(sim3.as_matrix(np.asarray(S, np.float64)), np.float64)
+
+
+def _hat(xi):
+    rho, w, s = xi[:3], xi[3:6], xi[6]
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    out = np.zeros((4, 4))
+    out[:3, :3] = W + s * np.eye(3)
+    out[:3, 3] = rho
+    return out
+
+
+def _vee(A):
+    return np.array([A[0, 3], A[1, 3], A[2, 3], A[2, 1], A[0, 2], A[1, 0], np.trace(A[:3, :3]) / 3])
+
+
+def _adjoint(M):
+    """``Ad(M) xi = vee(M hat(xi) M^-1)``, column by column."""
+    Mi = np.linalg.inv(M)
+    return np.stack([_vee(M @ _hat(e) @ Mi) for e in np.eye(7)], 1)
+
+
+def _pairwise_numpy(g, keep_loops, cov):
+    """m_ab of the module docstring, in float64 NumPy on 4 x 4 matrices (loops a > b flipped)."""
+    edges, meas = g["edges"], g["measurements"]
+    n = len(g["truth"])
+    X = [np.eye(4)]
+    for t in range(n - 1):
+        X.append(X[-1] @ _mat(meas[t]))
+    C = [_adjoint(X[e + 1]) @ cov[e] @ _adjoint(X[e + 1]).T for e in range(n - 1)]
+    loops = []
+    for k in keep_loops:
+        (p, q), Z, S = edges[k], _mat(meas[k]), cov[k]
+        if p > q:
+            p, q, S, Z = q, p, _adjoint(Z) @ S @ _adjoint(Z).T, np.linalg.inv(Z)
+        D = X[p] @ Z @ np.linalg.inv(X[q])
+        loops.append((p, q, D, _adjoint(X[q]) @ S @ _adjoint(X[q]).T))
+    M = len(loops)
+    m = np.zeros((M, M))
+    for a, b in itertools.combinations(range(M), 2):
+        pa, qa, Da, La = loops[a]
+        pb, qb, Db, Lb = loops[b]
+        span = set(range(pa, qa)) ^ set(range(pb, qb))
+        cov_ab = sum((C[e] for e in span), np.zeros((7, 7))) + La + Lb
+        r = _vee(np.real(scipy.linalg.logm(np.linalg.inv(Da) @ Db)))
+        m[a, b] = m[b, a] = np.sqrt(r @ np.linalg.solve(cov_ab, r))
+    return m
+
+
+def _max_clique_size(A):
+    M = len(A)
+    for size in range(M, 0, -1):
+        for sub in itertools.combinations(range(M), size):
+            if all(A[i, j] for i, j in itertools.combinations(sub, 2)):
+                return size
+    return 0
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_cycle_residuals_match_a_numpy_composition_of_sim3_matrices(x64):
+    g = two_laps(false="clustered", num_false=3, seed=3)
+    # two loop edges given the other way round (a > b) with Z^-1: the test flips them back
+    with jax.enable_x64(True):
+        for k in np.flatnonzero(g["kind"] != "odometry")[[1, 7]]:
+            g["edges"][k] = g["edges"][k][::-1]
+            g["measurements"][k] = np.asarray(sim3.inverse(g["measurements"][k]))
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(len(g["edges"]), 7, 7)) * 0.3 + np.eye(7)
+    cov = (A @ np.swapaxes(A, 1, 2)) * (SIGMA[:, None] * SIGMA[None, :])  # full, correlated covariances
+    check = pcm.graph_consistency(_problem(g), cov)
+    want = _pairwise_numpy(g, check.loop_edges, cov)
+    assert len(check.loop_edges) == 9
+    np.testing.assert_allclose(check.residuals, want, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_kept_set_is_a_maximum_clique_by_enumeration(x64, seed):
+    g = two_laps(false="clustered", num_false=4, seed=seed)
+    g2 = two_laps(false="random", num_false=2, seed=seed)  # 6 true + 4 clustered + 2 random = 12 loops
+    g = {
+        **g,
+        "edges": np.concatenate([g["edges"], g2["edges"][g2["kind"] == "false"]]),
+        "measurements": np.concatenate([g["measurements"], g2["measurements"][g2["kind"] == "false"]]),
+        "information": np.concatenate([g["information"], g2["information"][g2["kind"] == "false"]]),
+        "kind": np.concatenate([g["kind"], g2["kind"][g2["kind"] == "false"]]),
+    }
+    check = pcm.graph_consistency(_problem(g))
+    M = len(check.loop_edges)
+    assert M == 12
+    A = check.residuals <= check.threshold
+    kept = np.flatnonzero(check.kept[check.loop_edges])
+    assert all(A[i, j] for i, j in itertools.combinations(kept, 2))
+    assert len(kept) == _max_clique_size(A)
+    # the threshold: P(chi2_7 > t^2) = (1 - p) / N, N = M (M - 1) / 2
+    assert scipy.special.gammaincc(3.5, check.threshold**2 / 2) == pytest.approx(0.01 / 66, rel=1e-9)
+    # only loop edges are ever removed; the problem GNC gets has exactly them masked out
+    assert check.kept[g["kind"] == "odometry"].all()
+    np.testing.assert_array_equal(np.asarray(check.problem.edge_mask), check.kept)
+
+
+def test_pcm_rejects_a_consistent_cluster_that_plain_gnc_keeps(x64):
+    """Equal weights (the authors' graph): GNC alone keeps all four look-alike loops and lands
+    far from the outlier-free answer; PCM first (noise model = the generator's) keeps exactly
+    the true loops."""
+    g = two_laps(false="clustered", num_false=4, seed=1)
+    equal = np.ones_like(g["information"])
+    truth_only = g["kind"] != "false"
+    with jax.enable_x64(True):
+        clean = posegraph.optimize(_problem(g, equal, truth_only)).poses
+        plain = posegraph.optimize(_problem(g, equal), kernel="gnc", throw=False)
+        cov = np.einsum("ei,ij->eij", 1.0 / g["information"], np.eye(7))
+        res, check = pcm.consistent_solve(_problem(g, equal), cov, throw=False)
+    false, true = g["kind"] == "false", g["kind"] == "loop"
+    assert (plain.inlier_weights[false] >= 0.5).all() and _distance_pct(plain.poses, clean, g) > 10
+    np.testing.assert_array_equal(check.kept[false | true], true[false | true])
+    np.testing.assert_array_equal(res.inlier_weights[false | true] >= 0.5, true[false | true])
+    assert _distance_pct(res.poses, clean, g) < 1e-3  # the outlier-free solve itself
+
+
+def test_a_cluster_larger_than_the_true_set_wins_the_clique_and_the_odometry_check_removes_it(x64):
+    """What PCM cannot do: 8 mutually consistent false loops against 6 true ones are the maximum
+    clique.  Kimera's per-edge odometry test (each loop against the chain alone) rejects them."""
+    g = two_laps(false="clustered", num_false=8, seed=1)
+    false, true = g["kind"] == "false", g["kind"] == "loop"
+    check = pcm.graph_consistency(_problem(g))
+    np.testing.assert_array_equal(check.kept[false | true], false[false | true])
+    guarded = pcm.graph_consistency(_problem(g), odometry_check=True)
+    np.testing.assert_array_equal(guarded.kept[false | true], true[false | true])
+    assert guarded.threshold > check.threshold  # M more tests share the same budget
+
+
+@pytest.mark.parametrize("false", ["random", "clustered", "slight"])
+@pytest.mark.parametrize("information", ["matched", "equal"])
+def test_the_defence_stays_within_one_percent_of_the_extent(x64, false, information):
+    """PCM + GNC on a small seeded graph with 8 false loops (133 % of the true count), each
+    generator: <= 1 % of the extent from the outlier-free answer, every true loop kept."""
+    g = two_laps(false=false, num_false=8 if false != "slight" else 4, seed=2)
+    info = g["information"] if information == "matched" else np.ones_like(g["information"])
+    cov = None if information == "matched" else np.einsum("ei,ij->eij", 1.0 / g["information"], np.eye(7))
+    with jax.enable_x64(True):
+        clean = posegraph.optimize(_problem(g, info, g["kind"] != "false")).poses
+        res, _ = pcm.consistent_solve(_problem(g, info), cov, odometry_check=false == "clustered", throw=False)
+    assert (res.inlier_weights[g["kind"] == "loop"] >= 0.5).all()
+    assert _distance_pct(res.poses, clean, g) <= 1.0
+
+
+def test_bad_input_names_the_problem(x64):
+    g = two_laps()
+    keep = np.ones(len(g["edges"]), bool)
+    keep[5] = False  # odometry edge (5, 6) missing
+    with pytest.raises(ValueError, match=r"no odometry edge \(5, 6\)"):
+        pcm.graph_consistency(_problem(g, keep=keep))
+    with pytest.raises(ValueError, match="covariance has shape"):
+        pcm.graph_consistency(_problem(g), np.zeros((3, 7, 7)))
+    with pytest.raises(ValueError, match="probability"):
+        pcm.consistency_threshold(5, 1.0)
+
+
+def test_bench_quick_run_meets_the_targets(shared_dir, monkeypatch):
+    """``bench/bench_robust_backend.py --quick`` (KITTI 00, seed 0, 200 % of every generator,
+    matched and equal information, no GTSAM): PCM + GNC within 1 % of the extent; at 200 % a
+    true loop may go (the target keeps them all below 100 %)."""
+    monkeypatch.setenv("SWIFTJAX_SHARED", str(shared_dir))
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "bench"))
+    import bench_robust_backend
+
+    result = bench_robust_backend.main(["--quick", "--no-gtsam", "--no-write"])
+    ours = [r for r in result["rows"] if r["solver"] == "PCM+GNC"]
+    assert len(ours) == 6
+    assert max(r["dist_max_pct"] for r in ours) <= 1.0
