@@ -1,7 +1,7 @@
 """Frames decoded and preprocessed ahead of their chunk, on a thread pool.
 
-A GPU predicts a 75-frame chunk in well under a second; decoding and resizing 75 KITTI PNGs on
-one core takes several (``bench/bench_io.py``).  :class:`FrameLoader` keeps the model fed:
+Decoding and resizing a chunk's frames on one core can take longer than a GPU needs to predict
+the chunk (decode times: docs/performance/io.md).  :class:`FrameLoader` keeps the model fed:
 
 * each frame is decoded and preprocessed on its own pool task (OpenCV releases the GIL, so
   the work spreads over the cores); a video, whose reader seeks, is read under a lock and only

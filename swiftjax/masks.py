@@ -13,7 +13,8 @@ untouched (the DINO tokens stay whole-image).
 * :func:`sky_mask` (``--drop-sky``): VGGT has no sky class, but it predicts sky as very far
   and unsure.  A pixel is sky when its depth exceeds ``depth_ratio`` times the frame's
   median depth AND its confidence is below ``conf_ratio`` times the frame's median
-  confidence.  Measured against the synthetic world's sky label in the README.
+  confidence.  Measured against the synthetic world's sky label: docs/performance/index.md,
+  "The user's camera".
   :func:`network_sky_mask` (``--drop-sky`` with the nested DA3 model): that network has a sky
   head and marks its sky pixels itself, with confidence exactly 1 (the floor of ``1 + exp``).
 """

@@ -33,7 +33,7 @@ only if tilted less than ``max_tilt_deg`` from ``up`` and below the camera; scor
 inlier count; the best is refined by ``iterations`` IRLS steps (Tukey biweight with scale
 ``c = 4.685 x 1.4826 MAD`` of the residuals within ``2 tau |d|``, clipped to ``[1e-3 |d|,
 2 tau |d|]``, so the band adapts to the depth noise and the feet of walls and poles drop
-out -- a mean-absolute scale instead measured up to 0.2 % height bias from them; weighted PCA: normal = eigenvector of the smallest eigenvalue of the weighted
+out (docs/cli.md, "How the road plane is fitted"); weighted PCA: normal = eigenvector of the smallest eigenvalue of the weighted
 covariance, ``d = n . mu``).  No boolean indexing: points that must not count have weight 0.
 """
 

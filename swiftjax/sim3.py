@@ -311,7 +311,7 @@ def _map_components(
 
     With ``valid`` (component tuple -> bool), elements where it is false come out all-NaN; the
     test runs on the same components as ``fn``, inside the same loop (a separate pass over the
-    interleaved ``[..., k]`` input cost a third of :func:`log`'s time).
+    interleaved ``[..., k]`` input was slower: docs/performance/sim3.md).
 
     Only the arrangement of the work differs between layouts, never the formulas:
 

@@ -38,9 +38,8 @@ class AlignOptions:
             depths by the robust ratio ``rho`` (:func:`~swiftjax.align.overlap_scale_ratio`)
             before eq. 2, so ``lambda_D`` is in chunk t's units whatever the two chunks' gauges;
             ``"none"`` is the authors' eq. 2; ``"auto"`` (default) is the authors' unless their
-            mask and retry keep fewer than ``min_points``, then ``"median"`` (measured: on the
-            demo and synthetic KITTI 00/05/06 the ratio ranges 0.87-1.10 and always rescaling
-            moves the demo's ATE 0.393 -> 0.405 m; ``"auto"`` leaves those runs unchanged).
+            mask and retry keep fewer than ``min_points``, then ``"median"`` (why ``"auto"``:
+            docs/performance/align.md, "The overlap scale").
 
     Every field is a traced argument of the jitted alignment: changing one never recompiles.
 

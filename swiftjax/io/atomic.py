@@ -152,7 +152,7 @@ def atomic_paths(paths: Sequence[str | os.PathLike[str]]) -> Iterator[list[pathl
     """:func:`atomic_path` for many files at once: yields one temp path per target; on success
     every temp file is fsynced, then all are renamed, then each directory is fsynced once.
 
-    Batching the syncs costs about half as much per file as one :func:`atomic_path` each
+    Batching the syncs is cheaper per file than one :func:`atomic_path` each
     (docs/performance/io.md).  Each file is still replaced atomically; on an exception every
     temp file is deleted and no target is touched.
     """

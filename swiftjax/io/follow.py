@@ -11,36 +11,14 @@
     with Recorder("rec/", frames, fps=10.0, split=(3,)):     # tests, demos, the bench
         ...                                                   # frame 3 is written in two parts
 
-**Which files, in which order**: those :func:`~swiftjax.io.images.list_frames` takes from a
-folder (image extensions in any case, hidden files skipped, not recursive), in the same natural
-name order.  A recorder must name its frames so that they sort in recording order; a file that
-arrives after a later-sorting one was read is an error (it cannot be placed in the sequence).
-
-**When a file is complete**: its size and modification time are the same at two consecutive
-polls (``poll_s`` apart) and non-zero, and it reads as an image: the header parses, PNG and JPEG
-files end with their format's end marker (``IEND`` / ``FF D9``:
-:meth:`~swiftjax.io.images.ImageFiles.probe`), and OpenCV decodes it to the header's size.  A
-file written slowly (two writes with a pause between) is therefore never read half-written:
-either its size changes between polls, or its end marker is missing, or it does not decode.
-Files are yielded strictly in name order: a complete frame waits for an incomplete earlier one.
-The decoder's warnings (libjpeg's "Corrupt JPEG data" for damage inside a JPEG) are not
-captured here, unlike :func:`~swiftjax.io.images.validate` (that capture redirects the
-process's stderr, where a running pipeline's progress bar writes).
-
-**Arrival time**: ``time.monotonic()`` when the frame was found complete and decoded (so a
-frame deleted after it was yielded is harmless: its pixels are in ``Frame.image``).
-
-**End**: the end-marker file (``end_marker``, a name in the folder; ``None``: none) appears and
-every frame listed before it is complete (it must be written after the last frame); or
-``timeout_s`` seconds (``None``: wait for ever) in which the folder did not change (no new
-frame, no file growing; the consumer's time between two frames does not count); or :meth:`FollowSource.stop`
-(thread-safe: the CLI calls it from SIGINT, and the run finishes as a complete run with the
-frames yielded so far).  Errors, each a one-line :class:`FollowError` (an
-:class:`~swiftjax.io.images.InputError`: the CLI prints it and exits 2), raised when they
-happen, after every earlier frame was yielded: no frame at all before the timeout
-(:class:`FollowTimeoutError`), the end marker before any frame, a frame of another size
-(:class:`FrameSizeError`), a file still incomplete at the end marker or at the timeout, a late
-file that sorts before one already read.
+A frame is yielded once its file is complete: same non-zero size and modification time at two
+polls ``poll_s`` apart, the format's end marker present (PNG ``IEND``, JPEG ``FF D9``) and a
+decode to the header's size; frames come in :func:`~swiftjax.io.images.list_frames`' natural
+name order (a complete frame waits for an incomplete earlier one), each with its arrival time
+(``time.monotonic()``).  The stream ends at the ``end_marker`` file, after ``timeout_s`` without
+a change in the folder, or at :meth:`FollowSource.stop` (thread-safe).  Errors are one-line
+:class:`FollowError` exceptions (an :class:`~swiftjax.io.images.InputError`), raised after every earlier
+frame was yielded.  The rules in full, and why: docs/cli.md, "How a growing folder is read".
 """
 
 from __future__ import annotations

@@ -1,96 +1,51 @@
 """Place recognition and loop edges from the dense geometry, whichever way the revisit is driven.
 
-A forward camera's image descriptor (the DINO tokens of :mod:`swiftjax.loops.descriptors`)
-cannot match a street seen from its other end.  The temporal chunks' own reliable points can:
-both passes rebuild the same facades, kerbs and trees.  This module summarises each chunk's
-points in a bird's-eye polar grid that does not depend on the direction of travel (Scan
-Context, Kim & Kim 2018, on a VGGT chunk instead of a lidar sweep), proposes chunk pairs far
-apart in time whose grids match, and estimates the loop edge by registering the two chunks'
-point clouds (Sim(3), scale included: every chunk has its own units).
+A forward camera's DINO descriptor (:mod:`swiftjax.loops.descriptors`) cannot match a street
+seen from its other end; the chunks' own reliable points can.  Each chunk's points are
+summarised in a bird's-eye polar grid that does not depend on the direction of travel (Scan
+Context, Kim & Kim 2018, on a VGGT chunk instead of a lidar sweep); chunk pairs far apart in
+time whose grids match are registered (Sim(3) ICP, scale included).  Why several starts, the
+measured limits and the failure modes: docs/design.md, "Geometric loop candidates".
 
-**The gravity frame of a chunk** (:func:`chunk_frame`).  Chunk ``c``'s loaded frames ``f``
-have camera-to-chunk rotations ``R_f`` and centres ``c_f`` (``[R_f | c_f] = E_f⁻¹``, VGGT's
-world-to-camera ``E_f``).  A driving camera is level up to a few degrees, so gravity is::
+**Gravity frame** (:func:`chunk_frame`).  With camera-to-chunk rotations ``R_f`` and centres
+``c_f`` of the chunk's frames (OpenCV: the camera's y axis points down)::
 
-    u = −normalize(Σ_f R_f e_y)        (OpenCV: the camera's y axis points down)
-    e1 = normalize((I − u uᵀ) Σ_f R_f e_z),  e2 = u × e1,  B = [e1 e2 u]
+    u = −normalize(Σ_f R_f e_y),   e1 = normalize((I − u uᵀ) Σ_f R_f e_z),   e2 = u × e1,   B = [e1 e2 u]
 
-and the unit of length is the camera's height above the road, ``h = median_f,p (y of the
-camera-frame points p below the horizon in the image's lower central band)`` (a road point
-straight ahead lies ``h`` below the camera: ``p_y = h``).  Dividing by ``h`` removes the
-chunk's arbitrary scale (VGGT normalises every chunk to its own mean depth).  Around each of
-``A`` anchors ``a`` (camera centres spread over the chunk) a point ``x`` becomes::
+``h`` = median ``y`` of the camera-frame road points (below the horizon, lower central band):
+the unit of length, which removes the chunk's arbitrary scale.  Around each of ``A`` anchors
+``a`` (camera centres spread over the chunk) a point ``x`` becomes::
 
     q = Bᵀ (x − a) / h,   ρ = |q_xy|,   θ = atan2(q_y, q_x) mod 2π,   z = q_z + 1
 
-(``z``: the height above the road, in camera heights).
+**Polar grid** (:func:`polar_grid`): ``N_r`` rings of width ``ρ_max / N_r`` times ``N_s``
+sectors of ``2π / N_s``; cell ``(r, k)`` holds ``max(0, min(z, z_max))`` over its reliable
+points (0 when empty, like the road).  A rotation about ``u`` by ``m`` sectors rolls the grid,
+``G'[:, k] = G[:, k − m]``, so the signature ``σ = vec|F| / ‖vec|F|‖`` with
+``F_r(ω) = Σ_k G[r, k] e^{−2πiωk/N_s}`` is heading-free (shift theorem), scale-free (units of
+``h``) and translation-free (around the anchor).
 
-**The polar grid** (:func:`polar_grid`, Scan Context): ``N_r`` rings of width ``ρ_max / N_r``
-times ``N_s`` sectors of ``2π / N_s``; cell ``(r, k)`` holds ``max(0, min(z, z_max))`` over its
-reliable points (0 when empty: the road itself is 0 as well, so the grid records the
-structure standing on it).
+**Matching** (:func:`signature_distances`, :func:`scan_context_distance`)::
 
-**Invariances.**  A rotation of the cloud about ``u`` by ``φ = m 2π / N_s`` rolls the grid by
-``m`` sectors, ``G'[:, k] = G[:, k − m]``; the magnitude of its discrete Fourier transform over
-the angle, ``|F_r(ω)| = |Σ_k G[r, k] e^{−2πiωk/N_s}|``, is unchanged (the shift theorem), so
-the signature ``σ = vec|F| / ‖vec|F|‖`` does not depend on the heading of either pass (exactly
-for multiples of a sector, up to the sector quantisation otherwise).  It is scale-free (units
-of ``h``) and translation-free (around the anchor).  The ring sums (``ω = 0``) are Scan
-Context's ring key.
-
-**Matching** (:func:`signature_distances`, :func:`scan_context_distance`).  Chunk pairs are
-ranked by ``d_σ(a, b) = min over anchor pairs (1 − σ_a · σ_b)``; the best anchor pair's grids
-are then compared column by column at every shift ``m``::
-
+    d_σ(a, b) = min over anchor pairs (1 − σ_a · σ_b)
     d_SC(m) = mean over non-empty columns k of (1 − cos(G_a[:, k], G_b[:, k + m])),
-    m* = argmin d_SC(m),     yaw ψ = m* 2π / N_s   (b's angle = a's + ψ)
+    m* = argmin d_SC(m),   ψ = m* 2π / N_s
+    s₀ = h_b / h_a,   R₀ = B_b R_z(ψ) B_aᵀ,   t₀ = a_b − s₀ R₀ a_a          (the coarse edge)
 
-which gives the coarse edge of the registration: ``x_b = a_b + h_b B_b R_z(ψ) B_aᵀ (x_a −
-a_a) / h_a``, i.e. the Sim(3) ``s₀ = h_b / h_a``, ``R₀ = B_b R_z(ψ) B_aᵀ``, ``t₀ = a_b − s₀ R₀ a_a``.
-
-**Registration** (:func:`register`): ``P`` reliable points of chunk ``a`` near its anchor,
-``Q`` of chunk ``b`` (fixed-size subsamples), ``n`` iterations of robust ICP: brute-force
-nearest neighbours of ``S x_p`` among the ``y_q``, Tukey weights ``w_p = (1 − (r_p/τ_k)²)²``
-for ``r_p < τ_k`` (0 beyond), ``τ_k`` shrinking geometrically from ``τ_0`` to ``τ_n`` (in
-camera heights of ``b``), and one weighted Umeyama solve
-(:func:`swiftjax.align.umeyama`) per iteration.  The verdict's numbers, on the last
-iteration: ``inlier_ratio`` = inliers among the points that stand above the road (``z >
-z_ground``: every road matches every road, so road points prove nothing),
-``rms`` of the inliers (camera heights), the scale against the coarse one
-(``s / s₀``, should be ≈ 1: both come from independent measurements), and the structure's
-spread (``λ₂ / λ₁`` of the horizontal covariance of the inlying structure: a straight wall on
-each side of a featureless road leaves the translation along the road free).
-
-**Several starts** (:func:`coarse_hypotheses`, :func:`register_hypotheses`).  The
-signature's best anchor pair may lie far from the true correspondence (the grid is only weakly
-sensitive to where along a street it is taken: on synthetic KITTI 08, 2-103 camera heights,
-while some anchor pair lies within 1-6), so every anchor pair ``(α, β)`` at its own Scan
-Context yaw and at yaw + π is a start (``2 A²``).  From each, a gravity-aligned ICP solves only
-yaw about ``u`` and translation (scale held at ``s₀``; a full Sim(3) step from a far start
-can shrink the cloud, ``s → 0``)::
+**Registration** (:func:`register`): ``n`` iterations of robust ICP on fixed-size subsamples
+(brute-force nearest neighbours, Tukey weights ``w_p = (1 − (r_p/τ_k)²)²`` for ``r_p < τ_k``,
+``τ_k`` shrinking geometrically from ``τ_0`` to ``τ_n`` in camera heights, one weighted
+:func:`swiftjax.align.umeyama` per iteration).  Verdict on the last iteration: the inlier
+ratio among points above the road (``z > z_ground``), the inliers' ``rms``, ``s / s₀`` (≈ 1)
+and the structure's spread ``λ₂ / λ₁`` (horizontal covariance of the inlying structure).
+:func:`coarse_hypotheses` / :func:`register_hypotheses` start from every anchor pair at its
+yaw and yaw + π (``2 A²`` starts, ``vmap``) with a gravity-aligned ICP that solves only yaw and
+translation::
 
     θ = atan2(Σ w u·(a × b), Σ w a·b),   a, b: horizontal parts of the centred pairs
 
-all starts at once (``vmap``); the start with the most structure inliers is refined by the
-Sim(3) ICP.  Measured limit: on streets whose facades look alike along the street and across
-a half turn the structure-inlier count barely peaks at the truth (KITTI 08: 2 of 14 true
-reverse pairs registered to 1.5°/3.3 m); the pipeline keeps the two-start registration.
-
-**Failure modes.**  (1) Too few reliable points (night, blur, a chunk of sky): no signature,
-recorded, the chunk proposes nothing.  (2) A camera that is not level (steep ramps, a
-handheld camera): ``u`` is wrong by the tilt, the grid smears; the road-plane fit of
-:mod:`swiftjax.metric_scale` would be the better gravity there.  (3) Anchors far apart (revisit
-offset by more than a few anchor spacings sideways, e.g. the other side of a dual carriageway):
-the grids differ by more than a rotation.  (4) Self-similar streets (identical blocks, long
-straight roads with uniform facades): signatures alias; the registration's structure test,
-the dense cross-chunk test and pairwise consistency must reject those.  (5) Moving objects
-(parked cars gone on the revisit) lower the inlier ratio.  (6) The polar grid sees only what
-the chunk's camera saw: a pass seeing only one side of a square matches the other pass
-only on that side.
-
-Every array function is pure, jit-compiled, with static shapes (masks, never boolean
-indexing); per-chunk work is ``vmap``-ed over chunks.  Shapes are fixed by the options
-(:class:`GeometryOptions`): one compile per (frames per chunk, image size, options).
+Pure, jit-compiled, static shapes, ``vmap`` over chunks; one compile per (frames per chunk,
+image size, :class:`GeometryOptions`).
 """
 
 from __future__ import annotations

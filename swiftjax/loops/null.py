@@ -1,59 +1,33 @@
 """The dense test's null distribution: how well do THESE two chunks agree under a wrong edge?
 
 The cross-chunk dense test (:mod:`swiftjax.loops.cross_chunk`) scores a candidate edge ``Z``
-(c_i coordinates into c_j's) by ``a(Z) = min(agreement_{i→j}, agreement_{j→i})``.  What a
-false edge scores depends on the scene: two different streets superimposed at camera height
-agree wherever both have road (and on straight facades), a dense alley agrees less, a wide
-square with few points in view more.  A constant bound on ``a`` (``min_agreement = 0.55``, read
-off one route) therefore sits in the wrong place on another route.  Instead each candidate is
-compared with the agreement the SAME two clouds give under ``K`` edges that are clearly wrong
-but keep what every street shares:
+(c_i coordinates into c_j's) by ``a(Z) = min(agreement_{i→j}, agreement_{j→i})``.  What a false
+edge scores depends on the scene, so a constant bound on ``a`` read off one route sits in the
+wrong place on another.  Each candidate is compared instead with the agreement the SAME two
+clouds give under ``K`` edges that are clearly wrong but keep what every street shares (road
+plane and direction): a sideways shift.  Why this perturbation, why ``κ`` and the measured
+distributions: docs/design.md, "The per-candidate null"; docs/performance/loops.md.
 
-**Null edges.**  ``Z_k = P_k Z`` with ``P_k`` a sideways translation in c_j coordinates,
-across the target frames' direction of travel, by a fraction of the scene's depth::
+**Null edges.**  ``Z_k = P_k Z`` with ``P_k`` a sideways translation in c_j coordinates::
 
     u   = −normalize(Σ_g R_g[1, :])               up: minus the cameras' mean y axis (OpenCV, y down)
     f   = normalize((I − u uᵀ) Σ_g R_g[2, :])     the cameras' mean viewing direction, horizontal
     P_k = translation by δ_k d̃ (u × f)           d̃: median normalised depth of the target's reliable pixels
     δ_k = ±(δ_min + (δ_max − δ_min) · l / (K/2 − 1)),  l = 0 … K/2 − 1
 
-A street superimposed on itself shifted sideways keeps its road plane (at camera height) and
-its direction, and the cameras still look at the other chunk's surfaces (the overlap stays
-high, so ``agreement`` is measured on pairs in view), but every façade, pole and tree moves
-off its counterpart by ``δ d̃``, several times the depth tolerance ``τ d̃``: ``a(Z_k)`` is the
-agreement of these two clouds superimposed as two DIFFERENT streets are, which is what a
-hallucinated loop edge does (VGGT puts both halves' cameras on one road, heading the same
-way).  The other perturbations are worse models of that: along the road a straight street
-is self-similar (its façades keep agreeing), and rotations about the vertical either still
-agree near the axis (small angles) or turn the cloud out of view (large ones: on the demo's
-candidates 30–90° leave 4–7 % overlap).  ``δ_min = 0.15`` is three depth tolerances (a
-façade at depth ``d̃`` moved by ``0.15 d̃`` disagrees), ``δ_max = 0.4`` keeps most of the
-cloud in view.  The offsets are fixed, not random: the test is deterministic and one
-compile serves every candidate.
+(``δ_min = 0.15``, ``δ_max = 0.4``; fixed offsets: deterministic, one compile for every candidate).
 
 **Decision** (host level, :func:`null_threshold`, :func:`chance_corrected`).  With the ``K'``
-null samples whose ``overlap`` reaches ``min_overlap`` (the others mapped the cloud out of view
-and say nothing about chance agreement), mean ``m`` and sample deviation ``s``, the candidate
-is accepted when both hold::
+null samples whose ``overlap`` reaches ``min_overlap``, mean ``m`` and sample deviation ``s``
+(floored at the standard error of a proportion ``m`` on the fewest pairs in view of one null
+sample), the candidate is accepted when both hold::
 
     a(Z) > τ = m + t_{K'−1}(1 − α) · s · sqrt(1 + 1/K')          not chance
     κ = (a(Z) − m) / (1 − m) >= κ_min                            more than chance, by enough
 
-``τ`` is the one-sided upper prediction bound of one more draw from the null (Student's ``t``
-with ``K' − 1`` degrees of freedom: ``m`` and ``s`` are estimated from ``K'`` draws): an
-agreement that is one more chance draw passes with probability ``α = 0.01``; with ``K = 16``,
-``τ = m + 2.68 s``.  ``s`` has a floor, the standard error of a proportion ``m`` on the fewest
-pairs in view of one null sample.  The significance test alone is not enough: a hallucinated
-edge is not a random wrong edge but an alignment that superimposes two look-alike streets as
-well as the loop chunk could (kerb-line poles and trees at the same offsets, the road), so
-it beats the null by many ``s`` while still agreeing little (synthetic KITTI 00, 50 %
-aliasing: a false candidate at ``a = 0.17`` over a null of ``0.037 ± 0.014``).  ``κ`` is
-Cohen's chance-corrected agreement, the fraction of the pairs that do not agree by chance
-that agree under ``Z``; ``κ_min = 0.2`` is the lower end of Landis and Koch's "fair"
-agreement (below it: "slight").  Measured (``bench/bench_loop_robustness.py``): false
-candidates ``κ <= 0.15``, true ones ``κ >= 0.4``; the held-out real route's true candidates
-at ``a = 0.34–0.44`` over false ones at 0.04–0.05 have ``κ ≈ 0.3–0.4``, where the constant
-0.55 rejected them.
+``τ`` is the one-sided upper prediction bound of one more null draw (``α = 0.01``; with
+``K = 16``, ``τ = m + 2.68 s``); ``κ`` is Cohen's chance-corrected agreement
+(``κ_min = 0.2``).
 
 Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batched with
 ``vmap`` over the ``K`` null edges and the ``M`` candidates; fixed shapes.

@@ -1,14 +1,11 @@
 """Loop detection without the future: proposals as chunks arrive, the offline pass at the end.
 
-Offline, :func:`~swiftjax.loops.find_loops` whitens with a PCA fitted on *every* frame's
-descriptor and calibrates its threshold on *every* frame's best score, so it cannot start
-before the end.  :class:`OnlineLoopDetector` is fed each chunk's per-frame descriptors ``g⁰``
-(``add(frames, descriptors)``, the rows the temporal stage writes: a later chunk's copy of an
-overlap frame replaces the earlier one, as offline) and proposes loop candidates of the prefix
-seen so far; :meth:`OnlineLoopDetector.finish` is ``find_loops`` on the whole sequence, so the
-final loop list is the offline one, bit for bit.
-
-The prefix detector, after each chunk (``n`` frames seen)::
+Offline, :func:`~swiftjax.loops.find_loops` whitens and calibrates on *every* frame, so it
+cannot start before the end.  :class:`OnlineLoopDetector` is fed each chunk's per-frame
+descriptors ``g⁰`` (``add(frames, descriptors)``; a later chunk's copy of an overlap frame
+replaces the earlier one, as offline) and proposes loop candidates of the prefix seen so far;
+:meth:`OnlineLoopDetector.finish` is ``find_loops`` on the whole sequence, so the final loop
+list is the offline one, bit for bit.  After each chunk (``n`` frames seen)::
 
     whitening W_k fitted on the first n_k frames   (refit schedule below, or given)
     Z = ℓ2((g¹_{0..n-1} − μ_k) W_k), padded with NaN rows to a bucket
@@ -16,70 +13,22 @@ The prefix detector, after each chunk (``n`` frames seen)::
       ──keep pairs whose later frame i is new──► filter_by_chunks (chunks seen so far)
       ──Loop list──not within ±nms_radius (both ends) of an earlier proposal──► proposals
 
-"New" later frames: this chunk's frames, and at the first detection every frame (none was
-tested before).  A pair with both ends old was tested when its later end arrived; a refit
-that now lifts it above the threshold is left to the final pass (re-testing every old pair
-after each refit proposed false loops on the demo route: the prefix right after a fit is
-whitened on itself and its calibrated threshold drops, 0.61 → 0.32 at 435 frames).
+"New" later frames: this chunk's, and at the first detection every frame.  Refits
+(:func:`refit_due`) happen when ``n`` first reaches ``m``, ``2m``, ``4m``, ... with
+``m`` = :func:`min_descriptors` ``= 2 (min_separation + 1)`` (202 at the defaults); each is
+:func:`fit_sequence_whitening`, the fit ``find_loops`` makes for ``n`` frames.  Below ``m``
+nothing is proposed.  Why ``m``, what is lost early in a sequence and the false-alarm count per
+drive: docs/design.md, "Online loop detection"; cost per chunk: docs/performance/loops.md.
 
-Refit schedule (doubling).  With ``m`` = :func:`min_descriptors` ``= 2 (min_separation + 1)``
-(202 at the defaults) the whitening is fitted on all ``n`` descriptors seen when ``n`` first
-reaches ``m``, ``2m``, ``4m``, ...: :func:`refit_due`.  Each fit uses
-:func:`fit_sequence_whitening`, exactly the fit ``find_loops`` makes for ``n`` frames
-(``d′ = min(dim, max(8, n // 4))`` with ``adapt_to_length``): a fit on ``n`` frames is the
-whitening an offline run of those ``n`` frames uses, bit for bit.  A whitening is always fitted on at least
-half of the prefix it is applied to; there are ``⌊log₂(N/m)⌋ + 1`` fits, each
-``O(n d² + d³)``, ``O(N d² + d³ log N)`` in all.
+Shapes and compiles: descriptors live in a host buffer of ``cap = m 2^k ≥ n`` rows (doubling
+buckets), the whitened prefix is NaN-padded to it (a NaN row never matches and is ignored by
+the calibration), so :func:`~swiftjax.loops.detect_loops` compiles once per bucket and
+whitening dimension: ``O(log n)`` compiles in a drive, as are the fits and the chunk filter
+(chunk starts padded to a power-of-two count).
 
-Why ``m = 2 (s + 1)`` (``s = min_separation``).  A frame ``i`` of ``n`` has a temporally
-separated partner (``|i − j| > s``) iff ``i > s`` or ``i < n − 1 − s``; every frame has one iff
-``n ≥ 2 (s + 1)``.  Below that the calibration's null sample (each frame's best separated
-score) is a biased part of the prefix (only its two ends, whose partners are each other) and
-the whitening has ``d′ ≤ n/4 ≈ 50`` dimensions.  From ``m`` on, the prefix is a sequence like
-any other and the offline derivation of :func:`~swiftjax.loops.calibrate_threshold` holds for
-it.
-
-What is lost early in the sequence.
-
-* ``n ≤ s + 1``: no pair is separated at all; nothing can be proposed (offline neither).
-* ``s + 1 < n < m``: too few descriptors to whiten (and to calibrate); the fallback is *no
-  proposal*, with the prefix whitening and with one given by ``--whitening-from`` alike (a
-  given whitening removes the fit's noise, not the calibration's need for a null sample).
-  Unwhitened cosines are not an option: they are dominated by the shared "dataset bias"
-  direction (hubness) that the whitening removes, and no threshold on them transfers.  A
-  loop with both ends in the first ``m`` frames is proposed at the first chunk that brings
-  ``n ≥ m``: late by at most ``m − s − 2`` frames (100 at the defaults, ~2 chunks).
-* ``n ≥ m``: frames that arrived after the last fit are whitened with statistics that did not
-  see them (their components outside the fitted subspace are projected out); the
-  calibration measures the spread of the actual prefix scores, so the threshold follows.
-  False alarms: the calibration of a prefix of ``n`` frames expects ``α`` null frames above
-  ``τ``; only the chunk's ``B`` frames are tested as later ends (its overlap frames again:
-  their descriptors are the new chunk's), so ``≈ α B / n`` per chunk; the first detection
-  tests all ``m`` frames (``α``); over a drive of ``N`` frames, chunks ``B − O`` frames apart,
-  ``α (1 + B/(B − O) · ln(N / m))``: 0.006 for KITTI 00 (4,541 frames, ``B = 75``,
-  ``O = 30``) at ``α = 10⁻³``, before geometric verification.
-* Threshold: ``τ = μ + Φ̄⁻¹(α/n) σ`` uses the prefix's ``n``, slightly lower than the final
-  one (``k`` grows as ``sqrt(2 ln n)``), and the prefix whitening differs from the final one:
-  a proposal can be absent from the final pass, and a final loop can have had no proposal
-  (one whose later end arrived before ``m``, or that only the whole sequence's whitening
-  lifts above the threshold).  The final pass decides; proposals are hypotheses for
-  verification.
-
-Shapes and compiles.  Descriptors live in a host buffer of ``cap = m 2^k ≥ n`` rows (doubling
-buckets); the whitened prefix is computed at that size and NaN-padded (a NaN row never
-matches and is ignored by the calibration, so the candidates are those of the ``n``-row
-prefix), so :func:`~swiftjax.loops.detect_loops` compiles once per bucket and whitening
-dimension: ``O(log n)`` compiles in a drive, as are the fits (one per refit, per ``n``) and
-the chunk filter (chunk starts padded to a power-of-two count).  Cost per chunk: one
-``O(n² d′)`` similarity pass over the prefix (the offline pass on ``n`` rows): 2.5-4 s at
-``n = 4,475``, ``d = 1,024``, ``d′ = 512`` on 2 loaded CPU cores (a refit with its compile:
-20 s); an incremental cache of each frame's best score would make it ``O(n S d′)``.
-
-``--whitening-from RUN_DIR``: :func:`load_whitening` reads the descriptors an offline run
-recorded (every chunk file ``RUN_DIR/chunks/chunk_*.npz`` holds its frames' ``descriptors`` and
-``frames``; :func:`~swiftjax.pipeline.rundir.prune` keeps both) and fits on them as
-``find_loops`` did for that run (:func:`fit_sequence_whitening`): the pipeline writes nothing
-new for it.
+``--whitening-from RUN_DIR``: :func:`load_whitening` fits on the descriptors an offline run
+recorded in its chunk files (which :func:`~swiftjax.pipeline.rundir.prune` keeps), as
+``find_loops`` did for that run.
 """
 
 from __future__ import annotations

@@ -1,52 +1,31 @@
 """Pairwise consistency of loop edges (PCM): which loops agree with each other and the odometry.
 
-**Pairwise consistency** (PCM, Mangelson et al. ICRA 2018, as Kimera-RPGO;
-:func:`pairwise_consistency`, :func:`max_consistent_set`).  Two loop edges ``a``, ``b``
-and the odometry chain between their ends form a cycle that must be the identity up to
-the odometry's accumulated uncertainty.  With dead-reckoning chunk poses ``X_t``
-(chained temporal edges) every loop ``k = (p_k → q_k)``, ``p_k < q_k``, implies the drift
-``D_k = X_{p_k} Z_k X_{q_k}⁻¹`` (identity for perfect odometry); the cycle is
-``E_ab = D_a⁻¹ D_b`` (``= X_{q_a} (Z_a⁻¹ X_{p_a}⁻¹ X_{p_b} Z_b X_{q_b}⁻¹ X_{q_a}) X_{q_a}⁻¹``,
-the loop through both edges conjugated into the world frame).  To first order a right
-perturbation ``δ_e`` of temporal edge ``e`` moves every ``X_t``, ``t > e``, by the left
-world perturbation ``w_e = Ad(X_{e+1}) δ_e``, and ``D_k`` by ``-Σ_{e ∈ [p_k, q_k)} w_e``
-on the right, so with world covariances ``C_e = Ad(X_{e+1}) Σ_e Ad(X_{e+1})ᵀ`` and their
-prefix sums ``P_t = Σ_{e < t} C_e``::
+PCM (Mangelson et al. ICRA 2018, as Kimera-RPGO; :func:`pairwise_consistency`,
+:func:`max_consistent_set`): two loop edges ``a``, ``b`` and the odometry chain between their
+ends form a cycle that must be the identity up to the odometry's accumulated uncertainty.  With
+dead-reckoning chunk poses ``X_t`` every loop ``k = (p_k → q_k)``, ``p_k < q_k``, implies the
+drift ``D_k = X_{p_k} Z_k X_{q_k}⁻¹``; the cycle is ``E_ab = D_a⁻¹ D_b``.  A right perturbation
+``δ_e`` of temporal edge ``e`` moves ``D_k`` by ``−Σ_{e ∈ [p_k, q_k)} Ad(X_{e+1}) δ_e``, so with
+world covariances ``C_e = Ad(X_{e+1}) Σ_e Ad(X_{e+1})ᵀ`` and prefix sums ``P_t = Σ_{e < t} C_e``
+(``P[[p, q)] = P_q − P_p``; linearised at ``E_ab = I``, the hypothesis tested)::
 
     Σ_ab = P[a] + P[b] − 2 P[a ∩ b] + Ad(X_{q_a}) Σ_{Z_a} Ad(X_{q_a})ᵀ + (same for b)
     m_ab = sqrt(rᵀ Σ_ab⁻¹ r),   r = log(E_ab)                      (whitened residual)
 
-(``P[[p, q)] = P_q − P_p``; the linearisation is at ``E_ab = I``, the hypothesis being
-tested).  ``m_ab <= threshold`` makes ``a`` and ``b`` consistent; the accepted loops are
-a maximum clique of the consistency graph (exact Bron–Kerbosch with pivoting on the host,
-fine for the tens of candidates a sequence has; ties broken by the larger sum of dense
-consistency scores).  The per-edge covariances ``Σ_e`` come from a drift model
-(:func:`odometry_covariance`): VGGT's chunk-to-chunk error is model error (drift), which
-the alignment's own statistics do not see.
-
-**Before the robust solve** (:func:`graph_consistency`, Kimera-RPGO's recipe): the same test
-over *every* loop edge of a pose graph, against its odometry chain, so that GNC starts from the
-maximum consistent set and the rejected edges are out of the graph (``edge_mask`` False,
-weight 0).  The threshold is derived, not tuned (:func:`consistency_threshold`): under the
-hypothesis that ``a`` and ``b`` are both inliers and the covariances are right, ``m_ab²`` is
-chi-squared with 7 degrees of freedom; one falsely failed pair can drop a true loop from the
-clique, so the ``N = M (M − 1) / 2`` pair tests share the error budget ``1 − p`` (Bonferroni)::
+``m_ab <= threshold`` makes ``a`` and ``b`` consistent; the accepted loops are a maximum clique
+of the consistency graph (exact Bron–Kerbosch with pivoting on the host; ties broken by the
+larger sum of dense consistency scores).  ``Σ_e`` comes from a drift model
+(:func:`odometry_covariance`).  :func:`graph_consistency` runs the same test over every loop
+edge of a pose graph (Kimera-RPGO's recipe, before GNC) with the derived threshold
+(:func:`consistency_threshold`; ``m_ab²`` is chi-squared with 7 degrees of freedom for two
+inliers, and the ``N = M (M − 1) / 2`` pair tests share the error budget, Bonferroni)::
 
     threshold = sqrt(chi2_7⁻¹(1 − (1 − p) / N))          (p = 0.99: 5.36 for M = 10, 6.23 for M = 30)
 
-so that with probability ``>= p`` no pair of true loops is declared inconsistent.  What it
-cannot do: a group of false loops that agree with each other (look-alike streets matched
-chunk after chunk) and outnumber the true loops wins the clique; ``odometry_check=True`` adds
-Kimera's per-edge test (each loop against the odometry alone, ``m_k`` with ``Σ = P[[p, q)] +
-Ad Σ_Z Adᵀ``, the same threshold over ``N + M`` tests), which rejects such a group when the
-drift it implies is outside the odometry's covariance — and a true loop after more drift than
-the model allows, so it is off by default.
-
-:func:`consistent_solve` is the whole back end: PCM, then GNC-TLS on the consistent set.  When
-the solve's weights are not the noise model (equal weights, the authors' choice) GNC decides
-the inliers on the graph whitened by the noise model (where its chi-squared threshold means
-what it says) and a last plain solve with the caller's weights runs on those inliers.  A loop
-PCM left out that fits the solved map within GNC's bound gets a second look (it goes back in).
+``odometry_check=True`` adds Kimera's per-edge test (``m_k`` with ``Σ = P[[p, q)] + Ad Σ_Z Adᵀ``,
+the same threshold over ``N + M`` tests).  :func:`consistent_solve` is the whole back end: PCM,
+then GNC-TLS on the consistent set.  What PCM cannot reject, why ``odometry_check`` is off and
+how the back end treats equal weights: docs/design.md, "Pairwise consistency".
 """
 
 from __future__ import annotations

@@ -32,47 +32,14 @@ METRIC_BACKBONES = ("da3-nested-giant-large", "pi3x")
 
 @dataclasses.dataclass(frozen=True)
 class PipelineConfig:
-    """Every method parameter, with the paper's / authors' defaults (explained in docs/method.md).
+    """Every method parameter of a run, with the paper's / the authors' defaults.
 
-    The network: ``model`` (:data:`BACKBONE_NAMES`).  Chunking: ``chunk_size`` (B), ``overlap`` (O).  Alignment (eq. 1-2): ``alignment``
-    (``"umeyama"``, the method's single weighted solve, or ``"irls"``, VGGT-Long's
-    iterative baseline on the same reliable points, for comparison), ``depth_threshold``
-    (lambda_D), ``conf_ratio`` (lambda_gamma), ``min_points`` and
-    ``fallback_depth_threshold`` (the authors' one-time retry), ``overlap_scale`` (``"auto"``:
-    the overlap depths put on one scale before the mask when the authors' keeps too few points; ``"median"``: always; ``"none"``: the authors'), ``loop_depth_threshold``
-    (loop-chunk alignment).  Loops: ``loop_closure``, ``loop_threshold_rule``
-    (``"adaptive"``: calibrated per sequence, :func:`swiftjax.loops.calibrate_threshold`, with
-    ``loop_false_alarms``; ``"fixed"``: ``loop_threshold``, the cosine of the whitened
-    descriptors; ``"authors"``: 0.98 with the whitening fitted on g0), ``loop_min_separation``, ``loop_nms_radius``, ``loop_top_k``,
-    ``whitening_dim``, ``whitening_remove``, ``power_beta``, ``loop_half_window``.  Loop
-    verification (:mod:`swiftjax.loops.verification`): ``loop_verification`` (``"geometric"``:
-    every candidate must pass the cross-chunk dense test, the loop-chunk quality test and
-    pairwise consistency before it becomes an edge; ``"none"``: the authors' rule, every
-    candidate above the threshold is an edge), ``loop_agreement`` (``"null"``: the dense
-    agreement judged against the candidate's own null distribution, :mod:`swiftjax.loops.null`;
-    ``"fixed"``: ``loop_min_agreement``, the dense test's fixed bound), ``loop_pcm`` (the pairwise test), ``loop_geometry`` (geometric candidates beside the
-    tokens', :mod:`swiftjax.loops.geometric`).  Pose
-    graph: ``robust_loops`` (``"gnc"``: graduated non-convexity with truncated least squares on
-    the loop edges, :mod:`swiftjax.posegraph.gnc`; ``"huber"``, ``"cauchy"``, or ``None``, the
-    authors' plain least squares), ``robust_scale`` (the kernel's scale / GNC's inlier threshold
-    in whitened units; default ``sqrt(chi2_7^-1(0.99))``), ``graph_pcm`` (with GNC: pairwise
-    consistency of every loop edge against the odometry first, GNC on the maximum consistent
-    set, :func:`swiftjax.loops.pcm.consistent_solve`; False: GNC alone), ``edge_information`` (``"data"``: every
-    edge's information from its own alignment, :func:`swiftjax.pipeline.graph.edge_information`;
-    ``"equal"``: identity for every edge, the authors' choice), ``edge_pixels_per_sample`` (the
-    pixels per independent residual in that information: one 14 x 14 ViT patch), ``max_lm_steps``.  Output: ``point_conf_ratio``
-    (keep pixels with confidence >= ratio x frame mean), ``point_stride`` (pixel
-    subsampling of the cloud), ``voxel_size`` (optional voxel downsampling per chunk),
-    ``colmap`` (write the COLMAP model and its frames, ``colmap/``), ``colmap_text`` (its
-    ``.txt`` files beside the ``.bin``), ``colmap_original_resolution`` (the model at the
-    original image size, with the original files, as VGGT's own COLMAP export),
-    ``colmap_max_points``.  The user's camera (:mod:`swiftjax.pipeline.user_camera`):
-    ``intrinsics`` (a file: ``fx fy cx cy``, KITTI ``calib.txt`` or COLMAP ``cameras.txt``, at
-    the original image size), ``metric`` (``"camera-height=H"`` in metres, ``"gt"``, or ``"model"``: the metric network's
-    own metres; every output in metres), ``metric_combine`` (how ``camera-height`` combines the chunks' factors:
-    ``"median"`` of their votes, one factor for the world, or ``"prior"``: a prior on each
-    chunk's scale in the pose graph, :mod:`swiftjax.metric_scale`), ``metric_prior_sigma`` (that
-    prior's standard deviation on one chunk's log-scale), ``mask_dir`` (one PNG per frame, white = keep), ``drop_sky``.
+    Frozen; one field per option, declared with :func:`swiftjax.options.option` (type, range or
+    choices, help text, stage), which is where each option is documented: ``swiftjax
+    reconstruct --help``, the Options page of the documentation (docs/options.md, generated
+    from these declarations) and docs/method.md for the equations.  The TOML keys are the field
+    names, the CLI flags the same with dashes (``--chunk-size``, ``--[no-]loop-closure``).  An
+    instance is valid: the schema and the cross-option rules are checked when it is built.
     """
 
     model: str = option(

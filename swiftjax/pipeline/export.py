@@ -525,8 +525,8 @@ def _export(
             gh, gw = (int(v) for v in extra["points_grid"])
             M = world[t]
             # s R x + t in float32 (the precision the points are written in).  einsum, not a
-            # BLAS matmul: multi-threaded OpenBLAS is an order of magnitude slower on this small
-            # product on a busy machine (docs/performance/pipeline.md).
+            # BLAS matmul: multi-threaded OpenBLAS on this small product is what
+            # docs/performance/pipeline.md measured against it.
             xyz = np.einsum("nj,ij->ni", extra["points_xyz"], M[:3, :3].astype(np.float32))
             xyz += M[:3, 3].astype(np.float32)
             cf = extra["points_conf"]

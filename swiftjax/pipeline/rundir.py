@@ -2,48 +2,17 @@
 
 A run directory is a promise: what it holds came from this input, this model and this
 configuration, and re-running finishes the job without redoing or corrupting finished work.
-
-* **Lock.** ``run_dir/.swiftjax.lock`` is held with an advisory ``fcntl.flock`` for the
-  whole run and names its holder (pid, host, start time); a second writer is refused in one
-  line naming the holder.  The kernel drops the lock of a dead process, so a stale lock
-  (a killed run) is simply taken over, and said so.
-* **Fingerprints, per stage** (:func:`fingerprints`).  The temporal stage's -- every input
-  frame by content (name, size, SHA-256 of the whole file), the predictor's model identity
-  (SHA-256 of the whole weights file -- both cached by file identity,
-  :mod:`swiftjax.io.file_hash` -- the model configuration, backend, dtype, device class) and preprocessing, the temporal options (:mod:`swiftjax.options` stages) and
-  the chunk file format -- decides whether the stored chunks can be used: a change is refused
-  with the overwrite message, except a change of some frames' files (same count), which
-  re-predicts only the chunks that hold them (and their neighbours, whose edges need the
-  float32 overlap), and frames added or removed (e.g. an image skipped as bad, then
-  repaired), which keeps the chunks before the first differing frame and predicts the rest.  The loop stage's options decide whether the recorded loop edges are kept
-  (else the loop stage alone re-runs); the pose graph and the export always run, so a changed
-  export-only option re-runs only the export.
-* **Records.** Every finished chunk is recorded together with its edge ``(t-1, t)`` once its
-  file is complete, and the manifest is written (temp file, fsync, rename) at once, before the
-  next chunk is recorded or the next stage starts.  An edge is always computed from float32
-  data: a chunk's last ``overlap`` frames are kept in float32 (``tail_<t>`` in the chunk store)
-  until edge ``(t, t+1)`` is recorded, so a resumed run aligns exactly as an uninterrupted one
-  (bit for bit), never from the float16 copies.
-* **Checked storage.** Every chunk file carries CRC32s verified on every read
-  (:class:`~swiftjax.io.chunk_store.ChunkCorruptError`); a corrupt chunk is reported by name
-  and predicted again (:func:`forget_chunk`; :func:`swiftjax.pipeline.run.reconstruct`
-  restarts the stages after it).
-* **Bindings.** Each chunk file stores its chunk index, frames and a digest of what
-  determines it (:func:`chunk_binding`), checked on resume; each edge record a CRC32
-  (checked when the manifest is opened): a chunk that is not this run's, or an edited
-  record, is reported and computed again.
-* **Outputs record.** ``manifest["outputs"]`` lists every file the last export wrote (the
-  COLMAP frames with their CRC32s, checked and redrawn by the next export): a re-run removes
-  what the previous run wrote and it did not (:func:`record_outputs`).
-* **Hygiene.** A non-empty directory without a manifest is refused (even with
-  ``--overwrite``, which deletes only recorded files and the chunk store).  Temp files left
-  by a killed run are removed after the run is validated, under the lock: only temp names
-  of this run's own files in its own folders; the output directory may not be empty text; a
-  manifest that is not a swiftjax manifest (``[]``, ``null``, another version) is refused
-  with ``--overwrite`` suggested.
-
-:class:`RunContext` is what every stage receives: the records above, the chunk store, the
-schedule, the configuration, the stage clock and the log.
+:class:`RunLock` keeps one writer (``run_dir/.swiftjax.lock``, ``fcntl.flock``, naming its
+holder); :func:`fingerprints` gives each stage's fingerprint (frames and weights by content,
+the model, the preprocessing, the stage's options), which decides what a re-run keeps;
+:class:`Manifest` and :class:`ChunkRecords` record every finished chunk with its edge (an edge
+always from float32 data: a chunk's last ``overlap`` frames stay float32 as ``tail_<t>`` until
+the next edge is recorded), :func:`chunk_binding` / :func:`check_binding` bind each chunk file
+to its index, frames and fingerprint, :func:`record_outputs` lists what the last export
+wrote, :func:`open_run` refuses a foreign directory and removes a killed run's temp files.
+:class:`RunContext` is what every stage receives: the records, the chunk store, the schedule,
+the configuration, the stage clock and the log.  Every rule, from the user's side: docs/cli.md,
+"The run directory" and "How the run directory keeps its promise".
 """
 
 from __future__ import annotations

@@ -277,8 +277,8 @@ def _resume_chunk(
 
 @jax.jit
 def _to_half(x: jax.Array) -> jax.Array:
-    """``x`` as float16 on the device (vectorised; NumPy's float16 cast is a scalar loop and
-    several times slower, docs/performance/pipeline.md).  Recompiles per shape."""
+    """``x`` as float16 on the device (vectorised; NumPy's float16 cast is a scalar loop:
+    docs/performance/pipeline.md).  Recompiles per shape."""
     return x.astype(jnp.float16)
 
 

@@ -66,7 +66,7 @@ def unfused(fn: Callable[..., T], *args: ArrayLike) -> T:
     The body of a ``lax.while_loop`` whose trip count XLA cannot know at compile time is never
     fused with the code around it.  The count is ``1 + (x != x)`` for ``x = args[0].flat[0]``:
     it is 1, and were it 2 the (pure) body would only recompute the same value.  Overhead: one loop
-    iteration (~10 us); on chained products it halves an assembly (``docs/performance/posegraph.md``).
+    iteration; what it saves on chained products: ``docs/performance/posegraph.md``.
     Forward-mode differentiable and vmappable; not reverse-mode (a ``while_loop``).
     """
     first = jnp.ravel(args[0])[0]

@@ -187,8 +187,8 @@ def _advance(problem: Problem, params, solver, y, state: LMState, delta, ok, *, 
 
 
 #: XLA options of the dense path's programs: :data:`swiftjax._compile.QUICK_COMPILE`.  Its
-#: buckets are small (``N_bucket <= DENSE_MAX_NODES``): a step runs in about a millisecond and
-#: the first call is all compile time (docs/performance/posegraph.md).
+#: buckets are small (``N_bucket <= DENSE_MAX_NODES``), so a first call's time is mostly compile
+#: time (docs/performance/posegraph.md).
 DENSE_COMPILER_OPTIONS = QUICK_COMPILE
 
 

@@ -1,8 +1,9 @@
 """Counter-based random numbers for the synthetic oracle: an integer hash per (key, frame, pixel).
 
-``jax.random``'s threefry costs ~10-20 ns per number on CPU and a chunk needs ~30 M of them; the
-lowbias32 integer hash gives them for a few integer ops each, and the same counter always gives
-the same number (bit-identical results whatever was computed before).
+A chunk needs ~30 M random numbers, too many for ``jax.random``'s threefry on a CPU
+(docs/performance/synthetic.md); the lowbias32 integer hash gives them for a few integer ops
+each, and the same counter always gives the same number (bit-identical results whatever was
+computed before).
 """
 
 from __future__ import annotations

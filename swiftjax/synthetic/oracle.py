@@ -34,12 +34,9 @@ factor ``exp(U(-gross_log, gross_log))``; sky gets ``sky_depth_m`` (finite, as V
 **Confidence** (``>= 1``, like VGGT's ``1 + exp(.)``): ``1 + conf_max exp(-z / conf_falloff_m)
 exp(0.25 n')``, times ``edge_conf`` at discontinuities, and ``1 + 0.05 u`` on sky.
 
-**Moving cars** (a world built with ``num_movers > 0``): rendered per frame at their pose
-at that frame (:func:`swiftjax.synthetic.world.mover_boxes`), so a frame's depth on a car is
-consistent within the frame; on top of the usual noise, each car's depth in a chunk is
-multiplied by ``exp(mover_depth n)`` with ``n`` drawn per (chunk, car): like VGGT, which
-fits a moving object into a static multi-view reconstruction differently in each chunk, two
-chunks disagree on the car while agreeing on the static scene.
+**Moving cars** (``num_movers > 0``): rendered per frame at their pose at that frame
+(:func:`swiftjax.synthetic.world.mover_boxes`); each car's depth in a chunk is multiplied by
+``exp(mover_depth n)``, ``n`` drawn per (chunk, car).
 
 **Loop-centric chunks: VGGT's failure on unrelated frames.**  A frame list with a break
 (``f_{k+1} != f_k + 1``; the pipeline's loop chunks: 20 frames around ``i``, then 20 around
@@ -63,27 +60,14 @@ shared view) gives ``H_1``: ``B``'s points in the chunk frame are the chunk gaug
 ``H_1 x_world`` -- the loop edge derived from this chunk is off by ``H_1`` (superimposed at
 ``a``), not by VGGT's usual noise.  :meth:`VGGTOracle.loop_chunk_truth` returns ``(c, w, H(w))``
 for any frame list; :class:`Hallucination` holds the constants (``hallucination=None``: honest
-for every chunk).  The co-visibility of true revisits and of false candidates on the demo
-route is on docs/performance/synthetic.md.
+for every chunk).
 
-**Determinism.**  Every random quantity of a FRAME (its focal error, its share of the pixel
-noise, its gross-error pixels) is keyed by ``(seed, frame)``; every quantity of a CHUNK
-(gauge jitter, drift, bias, the other share of the noise) by ``(seed, frames)``.  A fraction
-``chunk_share`` of each frame-level noise is re-drawn per chunk, so the same frame in two
-chunks agrees up to the chunk gauge and that share.  Results are bit-identical for the same
-``(seed, frames)`` whatever was computed before.
-
-**Cost.**  Frames are rendered in fixed blocks of ``block`` consecutive frames (a frame grid,
-so a block's render does not depend on which chunk asked for it), kept on the device in a
-small LRU cache with each frame's sum and count of finite depths (the chunk's mean depth
-needs no pass over its pixels): the 30 overlap frames of consecutive chunks are rendered
-once.  Two jitted functions run per block (render, then noise/confidence/colour), each
-compiled once per image size; a chunk block that IS a cached render block (the default
-schedule, B = 75, O = 30: chunk starts are multiples of 45 = 3 blocks) goes to the second without a host
-copy, other frame lists are gathered on the host.  Place tokens come from
-:func:`swiftjax.synthetic.places.place_tokens` (a function of the frame alone), computed
-once per frame while it stays in a per-frame cache.  The cost of a whole KITTI 00 pass is
-measured by ``bench/bench_oracle.py`` (docs/performance/synthetic.md).
+**Determinism.**  Every random quantity of a FRAME is keyed by ``(seed, frame)``, every
+quantity of a CHUNK by ``(seed, frames)``; a fraction ``chunk_share`` of each frame-level noise
+is re-drawn per chunk.  Results are bit-identical for the same ``(seed, frames)`` whatever was
+computed before.  Why the model looks like this, and how frames are rendered in cached blocks
+(one compile per image size): docs/design.md, "The synthetic VGGT oracle"; its cost:
+docs/performance/synthetic.md.
 """
 
 from __future__ import annotations

@@ -71,7 +71,7 @@ def pixel_block(z: jax.Array, sem: jax.Array, inst: jax.Array, p: PixelParams):
     patch noise repeated over 14x14 pixels) are computed first, inside a ``lax.cond`` branch
     (always taken, but XLA neither fuses nor CSEs across it), and everything else is one
     purely elementwise kernel.  Fused together, XLA treated every pixel value as re-used
-    and materialised the expensive intermediates (``exp``, ``log``): 1.5-2x slower.
+    and materialised the expensive intermediates (``exp``, ``log``; docs/performance/synthetic.md).
     """
     (depth_rel, rel_ref, edge_lr, edge_conf, gross_frac, gross_log, sky_m, conf_max, falloff, share, mover_depth) = (
         p.scalars[i] for i in range(11)

@@ -1,18 +1,9 @@
 """Synthetic DINO-like patch tokens that carry a place signal, for loop-detection benchmarks.
 
-Tokens that let the loop detector (``swiftjax.loops``) be measured without VGGT weights:
-they have the properties the SwiftVGGT paper relies on and fights against:
-
-* a **place signal** that depends smoothly on the camera's position *and* heading, so a
-  revisit in the same direction matches and distant places (or the same street driven the
-  opposite way) do not;
-* a strong **shared direction** (the "dataset bias": sky, road, the car's bonnet) present
-  in every frame with a per-frame varying strength -- it makes every raw cosine similarity
-  high (hubness) and is the dominant principal component the whitening drops;
-* **bursts**: a few coordinates per frame with large values, repeated in all of that frame's
-  tokens (repeated structures such as fences or windows) -- heavy-tailed, which is what the
-  signed power normalisation compresses;
-* i.i.d. **per-token noise**.
+Tokens with what the SwiftVGGT paper relies on and fights against: a place signal that
+depends smoothly on position *and* heading, a strong shared direction ("dataset bias", the
+hubness the whitening drops), bursts (what the power normalisation compresses) and per-token
+noise (why each: docs/design.md, "Synthetic place tokens").
 
 Token ``k`` of a frame with camera centre ``p`` (metres) and optical axis ``v`` (unit vector,
 world frame), global frame id ``f``::
@@ -39,27 +30,19 @@ replace their place component ``phi(p, v)`` by::
     sqrt(1 - lambda) · phi(p_f, v_f)  +  sqrt(lambda) · phi(q_m(t), e_z)
     q_m(t) = (t, 5000 + 100 m, 0) metres       (segment pair m: a virtual street, 1 m per frame)
 
-so the noise-free place components of the two corresponding frames have expected cosine
-``lambda`` (the two real places are uncorrelated, the virtual one is shared), neighbouring
-offsets correlate as along a real street, and the virtual streets of different pairs (100 m
-apart, 5 km from any route) match nothing else.  ``lambda = 1`` is a full copy: segment ``b``
-looks exactly like segment ``a`` (up to the per-frame noise).  :func:`plant_aliasing` chooses the
-segments deterministically for a trajectory at a rate relative to its true loop regions; the
-planted pairs are false loops by construction (their cameras are ``min_distance_m`` apart).
-To turn it on::
+so the noise-free place components of two corresponding frames have expected cosine
+``lambda`` (``lambda = 1``: a full copy).  :func:`plant_aliasing` chooses the segments
+deterministically for a trajectory at a rate relative to its true loop regions; the planted
+pairs are false loops by construction.  To turn it on::
 
     segs = plant_aliasing(cam_to_world, rate=0.3)              # ~30 % extra false candidates
     cfg = PlaceTokenConfig(aliasing=segs)                      # alias_strength 0.9
     # or: swiftjax.synthetic.demo.loop_route_run(aliasing=0.3) / trajectory_run(..., aliasing=0.3)
 
-Everything random about a frame is keyed by its **global frame id** (``jax.random.fold_in``),
-so the same frame seen in a temporal chunk and in a loop-centric chunk gets bit-identical
-tokens: :func:`place_tokens` is stateless and deterministic per frame.
-
-The module also holds the host-level ground truth for the synthetic place-recognition
-benchmark: :func:`ground_truth_loops` (frame pairs close in position and heading, far apart
-in time), :func:`loop_regions` (distinct revisited stretches) and :func:`evaluate_loops`
-(precision and region recall of detected pairs).
+Everything random about a frame is keyed by its **global frame id** (``jax.random.fold_in``):
+:func:`place_tokens` is stateless, so a frame in a temporal and in a loop-centric chunk gets
+bit-identical tokens.  Host-level ground truth for the benchmark: :func:`ground_truth_loops`,
+:func:`loop_regions`, :func:`evaluate_loops` (precision and region recall).
 """
 
 from __future__ import annotations

@@ -440,7 +440,7 @@ def render_frames(
     # exact distance.  Run as a `lax.cond` branch (the predicate is always true but not a
     # compile-time constant): XLA neither CSEs nor fuses across a conditional, so pass 1's
     # intermediates are never shared with pass 2 (a shared divide or sqrt would be
-    # materialised as a full [F, T, P] array per slot, which made the kernel 10x slower).
+    # materialised as a full [F, T, P] array per slot; docs/performance/synthetic.md).
     def pass2(key):
         slot = key & low
 
