@@ -4,7 +4,7 @@ A backbone is an architecture + its configuration + checkpoint loading + preproc
 conversion of its outputs to :class:`swiftjax.prediction.ChunkPrediction` (depth, confidence,
 world-to-camera extrinsics and intrinsics in the chunk's FIRST camera's frame, loop tokens).
 Each family lives in one module of this package (:mod:`.vggt`, :mod:`.da3`, :mod:`.pi3`) exposing a
-:class:`Family`; :data:`BACKBONES` names the presets the CLI's ``--model`` offers.  Another
+``Family`` (a protocol); :data:`BACKBONES` names the presets the CLI's ``--model`` offers.  Another
 family is one more module and its rows in :data:`BACKBONES`.
 
 Importing this package does not import torch (the CLI resolves names and checks headers
