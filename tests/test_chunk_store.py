@@ -331,7 +331,7 @@ def test_disk_full_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     """Defect 9: a disk-full error was '[Errno 28]' with no file name."""
     import errno
 
-    from swiftjax.cli.common import one_line
+    from swiftjax.cli.arguments import one_line
 
     store = ChunkStore(tmp_path)
 

@@ -33,8 +33,7 @@ from swiftjax.cli import (
     main_reconstruct,
     main_view,
 )
-from swiftjax.cli.arguments import HelpFormatter, check_int_flags
-from swiftjax.cli.common import CliError, one_line
+from swiftjax.cli.arguments import CliError, HelpFormatter, check_int_flags, one_line
 from swiftjax.errors import SwiftjaxError
 
 __all__ = ["CliError", "build_parser", "main"]

@@ -1,8 +1,9 @@
-"""The option groups shared by the commands, and their reading and checks before any work.
+"""The option groups shared by the commands, their reading and checks before any work, and
+:class:`CliError`.
 
 Method options (:class:`~swiftjax.pipeline.PipelineConfig`, from their schema), ``--config``
 files, run and execution options, the live viewer, the model and its frames; the plain integer
-flags' ranges.  Every check raises :class:`~swiftjax.cli.common.CliError` before work starts.
+flags' ranges.  Every check raises :class:`CliError` before work starts.
 """
 
 from __future__ import annotations
@@ -11,13 +12,15 @@ import argparse
 import dataclasses
 import logging
 import pathlib
+import sys
 from typing import Any
 
 import tomllib
 
-from swiftjax.cli.common import CliError
+from swiftjax.errors import SwiftjaxError
 
 __all__ = [
+    "CliError",
     "INT_FLAGS",
     "HelpFormatter",
     "add_image_options",
@@ -26,13 +29,35 @@ __all__ = [
     "add_view_options",
     "check_executor_args",
     "check_int_flags",
+    "is_user_error",
     "make_executor",
+    "one_line",
     "out_dir",
     "pipeline_config",
     "read_config_table",
 ]
 
 logger = logging.getLogger(__name__)
+
+
+class CliError(SwiftjaxError):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def one_line(err: BaseException) -> str:
+    """The error's message on one line (an ``OSError``: its reason and its file name)."""
+    text = str(err) or type(err).__name__
+    if isinstance(err, OSError) and err.filename:
+        text = f"{err.strerror or text}: {err.filename}"
+    return " ".join(text.split())
+
+
+def is_user_error(err: BaseException) -> bool:
+    """A checkpoint error (without importing torch to name its class) or a value error."""
+    checkpoint = sys.modules.get("inference.checkpoint")
+    return isinstance(err, ValueError) or (
+        checkpoint is not None and isinstance(err, getattr(checkpoint, "CheckpointError", ()))
+    )
 
 
 class HelpFormatter(argparse.HelpFormatter):

@@ -9,7 +9,7 @@ import pathlib
 from typing import Any
 
 from swiftjax.cli import arguments, model, runs
-from swiftjax.cli.common import CliError
+from swiftjax.cli.arguments import CliError
 
 __all__ = ["add_parser", "run"]
 

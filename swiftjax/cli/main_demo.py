@@ -7,7 +7,7 @@ import contextlib
 from typing import Any
 
 from swiftjax.cli import arguments, runs
-from swiftjax.cli.common import CliError
+from swiftjax.cli.arguments import CliError
 
 __all__ = ["add_parser", "run"]
 

@@ -8,7 +8,7 @@ import logging
 import pathlib
 from typing import Any
 
-from swiftjax.cli.common import CliError, one_line
+from swiftjax.cli.arguments import CliError, one_line
 
 __all__ = ["add_parser", "run"]
 

@@ -7,7 +7,7 @@ import pathlib
 from typing import Any
 
 from swiftjax.cli import model
-from swiftjax.cli.common import CliError, one_line
+from swiftjax.cli.arguments import CliError, one_line
 
 __all__ = ["add_parser", "run"]
 

@@ -12,7 +12,7 @@ import sys
 from typing import Any
 
 from swiftjax.cli import arguments, model, runs
-from swiftjax.cli.common import CliError, one_line
+from swiftjax.cli.arguments import CliError, one_line
 
 __all__ = ["add_parser", "run"]
 

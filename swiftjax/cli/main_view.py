@@ -7,7 +7,7 @@ import pathlib
 from typing import Any
 
 from swiftjax.cli import runs
-from swiftjax.cli.common import CliError
+from swiftjax.cli.arguments import CliError
 
 __all__ = ["add_parser", "run"]
 

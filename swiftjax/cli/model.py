@@ -12,8 +12,7 @@ import os
 import pathlib
 from typing import Any
 
-from swiftjax.cli.arguments import pipeline_config
-from swiftjax.cli.common import CliError, is_user_error, one_line
+from swiftjax.cli.arguments import CliError, is_user_error, one_line, pipeline_config
 
 __all__ = [
     "backbone",

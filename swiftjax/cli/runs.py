@@ -11,8 +11,7 @@ import sys
 import time
 from typing import Any
 
-from swiftjax.cli.arguments import check_executor_args, pipeline_config
-from swiftjax.cli.common import CliError
+from swiftjax.cli.arguments import CliError, check_executor_args, pipeline_config
 
 __all__ = [
     "LiveView",
