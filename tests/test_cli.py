@@ -349,3 +349,23 @@ def test_import_cli_and_build_its_parser_does_not_import_torch():
         "assert 'inference.device' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("flags", [[], ["--quiet"]])
+def test_a_library_warning_is_one_prefixed_line_on_stderr(monkeypatch, capsys, flags):
+    """A warning of a swiftjax module's logger during a command: ``swiftjax: warning: ...`` on
+    stderr (also under --quiet); an information line: on stdout as written (not under --quiet).
+    The command's handler is removed when it returns."""
+    import logging
+
+    def command(args):
+        logging.getLogger("swiftjax.pipeline.graph").warning("pose graph did not converge (max_steps)")
+        logging.getLogger("swiftjax.inference.preprocess").info("swiftjax: an information line")
+        return 0
+
+    monkeypatch.setattr(cli.main_evaluate, "run", command)
+    assert cli.main([*flags, "evaluate", "ref.txt", "est.txt"]) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == ["swiftjax: warning: pose graph did not converge (max_steps)"]
+    assert out.splitlines() == ([] if flags else ["swiftjax: an information line"])
+    assert not logging.getLogger("swiftjax").handlers and logging.getLogger("swiftjax").level == logging.NOTSET
