@@ -11,9 +11,9 @@ with ``torch.load(weights_only=True)``, which refuses pickles that would run cod
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import pickle
-import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -31,6 +31,8 @@ __all__ = [
     "load_checkpoint",
     "read_state_dict",
 ]
+
+logger = logging.getLogger("swiftjax." + __name__)
 
 IGNORED_PREFIXES: tuple[str, ...] = ("point_head.", "track_head.")
 _PICKLE_SUFFIXES = (".pt", ".pth", ".bin", ".ckpt")
@@ -193,7 +195,7 @@ def load_checkpoint(model: nn.Module, path: str | os.PathLike[str]) -> LoadRepor
         raise mismatch_error(path, "VGGT model", missing, unexpected, mismatched)
     state, cast = _check_values(state, expected, os.fspath(path))
     if cast:
-        warnings.warn(f"checkpoint {os.fspath(path)}: {cast}", stacklevel=2)
+        logger.warning(f"checkpoint {os.fspath(path)}: {cast}")
     on_meta = any(t.is_meta for t in expected.values())
     model.load_state_dict(state, strict=True, assign=on_meta)
     return LoadReport(path=os.fspath(path), loaded=len(state), ignored=ignored, cast=cast)

@@ -21,11 +21,64 @@ from swiftjax.errors import SwiftjaxError
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["GPUMemoryError", "fused_attention", "largest_chunk_that_fits", "to_device", "to_host"]
+__all__ = [
+    "DeviceError",
+    "GPUMemoryError",
+    "check_device",
+    "fused_attention",
+    "largest_chunk_that_fits",
+    "to_device",
+    "to_host",
+]
 
 
 class GPUMemoryError(SwiftjaxError, ValueError):
     """A chunk does not fit in the device's memory (the message gives the largest that does)."""
+
+
+class DeviceError(SwiftjaxError, ValueError):
+    """A device that is not one, or that this machine or build does not have."""
+
+
+def check_device(text: str, backend: str = "torch", *, name: str = "device") -> Any:
+    """The device ``text`` of ``backend`` if this machine can run it; :class:`DeviceError`
+    otherwise, its message naming the input as ``name`` (the CLI: ``--device``).
+
+    ``backend="torch"``: a ``torch.device`` of type cpu, cuda (``cuda:N`` with ``N`` below the
+    visible count) or mps, the build's support and the hardware probed.  ``backend="onnx"``:
+    ``text`` itself, cpu, or cuda with onnxruntime's CUDA provider installed.
+    """
+    if backend == "onnx":
+        if text == "cpu":
+            return text
+        import onnxruntime as ort
+
+        if not text.startswith("cuda"):
+            raise DeviceError(f"{name} {text}: the ONNX backend runs on cpu or cuda")
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise DeviceError(
+                f"{name} {text}: onnxruntime has no CUDA provider here "
+                f"(has {', '.join(ort.get_available_providers())}; install onnxruntime-gpu)"
+            )
+        return text
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError, TypeError):
+        raise DeviceError(f"{name} {text!r} is not a torch device (cpu, cuda, cuda:N, mps)") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise DeviceError(f"{name} {text}: {why} (torch {torch.__version__}); use {name} cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise DeviceError(f"{name} {text}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise DeviceError(f"{name} {text}: this torch build or machine has no MPS support; use {name} cpu")
+    elif device.type != "cpu":
+        raise DeviceError(f"{name} {text}: device type {device.type!r} is not supported (cpu, cuda, mps)")
+    return device
 
 
 def to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:

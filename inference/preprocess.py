@@ -27,8 +27,8 @@ Other deliberate differences from upstream (documented, tested):
 from __future__ import annotations
 
 import functools
+import logging
 import os
-import warnings
 from collections.abc import Sequence
 from typing import Literal, Union
 
@@ -44,6 +44,8 @@ __all__ = [
     "IMAGENET_MEAN",
     "IMAGENET_STD",
 ]
+
+logger = logging.getLogger("swiftjax." + __name__)
 
 #: What Depth Anything 3's official API normalises with (outside the network).
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -291,9 +293,7 @@ def preprocess(
     if len(shapes) > 1:
         max_h = max(a.shape[1] for a in out)
         max_w = max(a.shape[2] for a in out)
-        warnings.warn(
-            f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}", stacklevel=2
-        )
+        logger.warning(f"images have different shapes {sorted(shapes)}; padding them with white to {max_h}x{max_w}")
         out = [_pad_white(a, max_h, max_w) for a in out]
     return np.stack(out)
 
@@ -342,7 +342,7 @@ def preprocess_da3(
     if len(shapes) > 1:
         h = min(a.shape[1] for a in out)
         w = min(a.shape[2] for a in out)
-        warnings.warn(f"images have different shapes {sorted(shapes)}; centre-cropping them to {h}x{w}", stacklevel=2)
+        logger.warning(f"images have different shapes {sorted(shapes)}; centre-cropping them to {h}x{w}")
         out = [
             a[:, (a.shape[1] - h) // 2 : (a.shape[1] - h) // 2 + h, (a.shape[2] - w) // 2 : (a.shape[2] - w) // 2 + w]
             for a in out

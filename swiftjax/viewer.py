@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import ipaddress
+import logging
 import pathlib
 import socket
 import threading
@@ -50,6 +51,8 @@ from swiftjax.errors import SwiftjaxError
 from swiftjax.sampling import Reservoir
 
 __all__ = ["ViewerError", "RunView", "Reservoir", "Viewer", "serve", "read_run", "check_port", "request_refusal"]
+
+logger = logging.getLogger(__name__)
 
 
 #: Distinct colours for per-chunk colouring (matplotlib's tab10, as uint8).
@@ -355,7 +358,7 @@ class Viewer:
         max_points: int = 1_000_000,
         max_frustums: int = 200,
         point_size: float | None = None,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = logger.info,
     ) -> None:
         self.run_dir = pathlib.Path(run_dir)
         open_manifest(self.run_dir)  # a clear error before the server starts
@@ -594,12 +597,16 @@ def serve(
     host: str = "127.0.0.1",
     port: int = 8080,
     max_points: int = 1_000_000,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = logger.info,
 ) -> Viewer:
     """Start a :class:`Viewer` on ``run_dir`` (returns at once; the server runs in threads)."""
     viewer = Viewer(run_dir, host=host, port=port, max_points=max_points, log=log)
     if host not in ("127.0.0.1", "localhost", "::1"):
-        log(f"swiftjax view: warning: serving on {host}: anyone who can reach this machine can see the map")
+        warning = f"serving on {host}: anyone who can reach this machine can see the map"
+        if log == logger.info:  # the default: a warning of the swiftjax logger
+            logger.warning(warning)
+        else:
+            log(f"swiftjax view: warning: {warning}")
     log(f"swiftjax view: {viewer.url} ({run_dir}; Ctrl-C to stop)")
     return viewer
 
@@ -615,7 +622,7 @@ class LiveViewer:
         host: str,
         port: int,
         max_points: int,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = logger.info,
         interval: float = 1.0,
     ) -> None:
         self.run_dir = pathlib.Path(run_dir)

@@ -127,6 +127,33 @@ def shared_dir() -> pathlib.Path:
 
 
 @pytest.fixture
+def logged_warning(caplog):
+    """``with logged_warning(r"pattern"):`` the block logs a warning of the ``swiftjax`` logger
+    whose message matches ``pattern`` (``re.search``); ``logged_warning(None)``: it logs none.
+    ``as found``: the block's warning messages.
+    swiftjax's run messages go through :mod:`logging`, not :mod:`warnings`."""
+    import contextlib
+    import logging
+    import re
+
+    @contextlib.contextmanager
+    def expect(pattern):
+        caplog.clear()
+        messages: list[str] = []  # the block's warnings, filled when it ends
+        with caplog.at_level(logging.WARNING, logger="swiftjax"):
+            yield messages
+        messages += [
+            r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name.startswith("swiftjax")
+        ]
+        if pattern is None:
+            assert not messages, messages
+        else:
+            assert any(re.search(pattern, m) for m in messages), f"no warning matching {pattern!r}: {messages}"
+
+    return expect
+
+
+@pytest.fixture
 def x64():
     """Enable float64 in JAX for the duration of one test."""
     with jax.enable_x64(True):

@@ -331,7 +331,7 @@ def test_disk_full_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     """Defect 9: a disk-full error was '[Errno 28]' with no file name."""
     import errno
 
-    from swiftjax.cli import _one_line
+    from swiftjax.cli.arguments import one_line
 
     store = ChunkStore(tmp_path)
 
@@ -343,7 +343,7 @@ def test_disk_full_names_the_file_and_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(OSError) as err:
         store.save("chunk", 4, _pred())
     assert err.value.errno == errno.ENOSPC and err.value.filename == str(store.path("chunk", 4))
-    assert "chunk_00004.npz" in _one_line(err.value) and "No space left" in _one_line(err.value)
+    assert "chunk_00004.npz" in one_line(err.value) and "No space left" in one_line(err.value)
     assert list(store.root.iterdir()) == []
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
+import os
+import pathlib
 import subprocess
 import sys
 
@@ -9,6 +12,7 @@ import numpy as np
 import pytest
 
 from swiftjax import cli, evaluation
+from swiftjax.cli import arguments
 from swiftjax.io import trajectory
 
 
@@ -91,7 +95,7 @@ def test_config_file_values_are_overridden_by_options(tmp_path):
     cfg = tmp_path / "c.toml"
     cfg.write_text("[swiftjax]\nchunk_size = 60\noverlap = 20\n")
     args = cli.build_parser().parse_args(["demo", "--config", str(cfg), "--overlap", "25"])
-    conf = cli._pipeline_config(args)
+    conf = arguments.pipeline_config(args)
     assert (conf.chunk_size, conf.overlap) == (60, 25)
 
 
@@ -121,6 +125,37 @@ def test_entry_point_help_runs():
     out = subprocess.run([sys.executable, "-m", "swiftjax.cli", "--help"], capture_output=True, text=True, check=True)
     for command in ("demo", "reconstruct", "evaluate", "export-onnx"):
         assert command in out.stdout
+
+
+HELP = pathlib.Path(__file__).parent / "data" / "cli_help"
+
+
+@pytest.mark.parametrize(
+    "command", ["swiftjax", "demo", "batch", "reconstruct", "view", "prune", "evaluate", "export-onnx"]
+)
+def test_help_is_the_recorded_text(command, monkeypatch):
+    """Each command's --help, byte for byte, as recorded at 80 columns from the single-module
+    cli.py (before it became a package; swiftjax.txt: the top level, with --quiet/--verbose
+    added since).  argparse's layout changes between Python versions: recorded on 3.11."""
+    if sys.version_info[:2] != (3, 11):
+        pytest.skip(f"the help was recorded with Python 3.11's argparse; this is {sys.version.split()[0]}")
+    monkeypatch.setenv("COLUMNS", "80")
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    text = parser.format_help() if command == "swiftjax" else sub.choices[command].format_help()
+    assert text == (HELP / f"{command}.txt").read_text()
+    assert list(sub.choices) == ["demo", "batch", "reconstruct", "view", "prune", "evaluate", "export-onnx"]
+
+
+def test_help_through_the_module_entry_point_is_the_recorded_text():
+    """``python -m swiftjax.cli demo --help`` (the package's __main__) prints the same text."""
+    if sys.version_info[:2] != (3, 11):
+        pytest.skip(f"the help was recorded with Python 3.11's argparse; this is {sys.version.split()[0]}")
+    env = {**os.environ, "COLUMNS": "80"}
+    out = subprocess.run(
+        [sys.executable, "-m", "swiftjax.cli", "demo", "--help"], capture_output=True, text=True, check=True, env=env
+    )
+    assert out.stdout == (HELP / "demo.txt").read_text()
 
 
 # ------------------------------------------------- bad input: one line, exit 2, before work
@@ -301,3 +336,36 @@ def test_help_shows_defaults_choices_and_descriptions():
             action = next(a for a in sub[command]._actions if flag in a.option_strings)
             assert "default" in sub[command]._get_formatter()._expand_help(action), (command, flag)
     assert "{umeyama,irls}" in texts["demo"] and "{gnc,cauchy,huber,none}" in texts["reconstruct"]
+
+
+def test_import_cli_and_build_its_parser_does_not_import_torch():
+    """``import swiftjax.cli`` (every command module) and its parser: no torch; the device is
+    probed in inference.device, imported only when a command checks --device."""
+    code = (
+        "import sys, pkgutil, importlib, swiftjax.cli\n"
+        "for m in pkgutil.iter_modules(swiftjax.cli.__path__, 'swiftjax.cli.'): importlib.import_module(m.name)\n"
+        "swiftjax.cli.build_parser().parse_args(['demo'])\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+        "assert 'inference.device' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("flags", [[], ["--quiet"]])
+def test_a_library_warning_is_one_prefixed_line_on_stderr(monkeypatch, capsys, flags):
+    """A warning of a swiftjax module's logger during a command: ``swiftjax: warning: ...`` on
+    stderr (also under --quiet); an information line: on stdout as written (not under --quiet).
+    The command's handler is removed when it returns."""
+    import logging
+
+    def command(args):
+        logging.getLogger("swiftjax.pipeline.graph").warning("pose graph did not converge (max_steps)")
+        logging.getLogger("swiftjax.inference.preprocess").info("swiftjax: an information line")
+        return 0
+
+    monkeypatch.setattr(cli.main_evaluate, "run", command)
+    assert cli.main([*flags, "evaluate", "ref.txt", "est.txt"]) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == ["swiftjax: warning: pose graph did not converge (max_steps)"]
+    assert out.splitlines() == ([] if flags else ["swiftjax: an information line"])
+    assert not logging.getLogger("swiftjax").handlers and logging.getLogger("swiftjax").level == logging.NOTSET

@@ -43,7 +43,7 @@ def _main_with(monkeypatch, capsys, err: BaseException):
     def command(args):
         raise err
 
-    monkeypatch.setattr(cli, "_cmd_evaluate", command)
+    monkeypatch.setattr(cli.main_evaluate, "run", command)
     code = cli.main(["evaluate", "ref.txt", "est.txt"])
     return code, capsys.readouterr().err
 
@@ -85,7 +85,7 @@ def test_a_bug_in_a_command_gets_a_traceback_and_exit_1():
     code = (
         "import sys; from swiftjax import cli\n"
         "def bug(args): raise ValueError('a programming bug')\n"
-        "cli._cmd_evaluate = bug\n"
+        "cli.main_evaluate.run = bug\n"
         "sys.exit(cli.main(['evaluate', 'ref.txt', 'est.txt']))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -139,3 +139,21 @@ def test_messages_show_plain_numbers_not_numpy_reprs(capsys, tmp_path):
     with pytest.raises(options.OptionError) as e:
         PipelineConfig(depth_threshold=np.float64(-1000.0))
     assert "-1000.0 is out of range" in str(e.value) and "np.float64" not in str(e.value)
+
+
+def test_quiet_keeps_the_table_and_drops_the_messages(capsys, tmp_path):
+    """``swiftjax --quiet``: the result (the table) is printed, the information line is not;
+    without it the same table and the line, on stdout as before the logger."""
+    t, gt, est = _tum_pair(tmp_path)
+    perm = np.random.default_rng(4).permutation(len(t))
+    trajectory.write_tum(tmp_path / "shuffled.txt", t[perm], est[perm])
+    argv = ["evaluate", str(tmp_path / "ref.txt"), str(tmp_path / "shuffled.txt"), "--format", "tum"]
+    assert cli.main(argv) == 0
+    loud = capsys.readouterr()
+    assert cli.main(["--quiet", *argv]) == 0
+    quiet = capsys.readouterr()
+    line = f"swiftjax: {tmp_path / 'shuffled.txt'}: rows are not in time order; taken in time order"
+    assert line in loud.out.splitlines() and "not in time order" not in quiet.out + quiet.err
+    assert quiet.out.splitlines() == [ln for ln in loud.out.splitlines() if ln != line and "associated" not in ln]
+    assert cli.main(["--verbose", *argv]) == 0
+    assert "swiftjax: compilation cache" in capsys.readouterr().out  # a debug message

@@ -141,14 +141,14 @@ def test_to_rgb8_float_and_unsupported():
         to_rgb8(np.zeros((2, 2, 5), np.uint8))
 
 
-def test_validate_corrupt_skip_and_mixed_sizes(tmp_path):
+def test_validate_corrupt_skip_and_mixed_sizes(tmp_path, logged_warning):
     for k in range(4):
         _save(tmp_path / f"{k}.png", _rgb(seed=k))
     (tmp_path / "2.png").write_bytes(b"\x89PNG garbage")
     (tmp_path / "3.png").write_bytes(b"")
     with pytest.raises(InputError, match=r"2\.png: cannot read image"):
         validate(list_frames(tmp_path))
-    with pytest.warns(UserWarning, match="skipping unreadable frame") as rec:
+    with logged_warning("skipping unreadable frame") as rec:
         src = validate(list_frames(tmp_path), skip_bad=True)
     assert len(rec) == 2
     assert src.names == ["0.png", "1.png"] and src.sizes == [(6, 8), (6, 8)]
@@ -164,7 +164,7 @@ def test_validate_corrupt_skip_and_mixed_sizes(tmp_path):
     assert len(validate(list_frames(tmp_path))) == 2
     (tmp_path / "1.png").write_bytes(b"junk")
     (tmp_path / "0.png").unlink()
-    with pytest.raises(InputError, match="none of the 1 images"), pytest.warns(UserWarning):
+    with pytest.raises(InputError, match="none of the 1 images"), logged_warning(""):
         validate(list_frames(tmp_path), skip_bad=True)
 
 
@@ -217,10 +217,10 @@ def test_video_stride_random_access(tmp_path):
     src.close()
 
 
-def test_video_short_count_is_truncated(tmp_path, monkeypatch):
+def test_video_short_count_is_truncated(tmp_path, monkeypatch, logged_warning):
     _write_video(tmp_path / "v.avi", n=5)
     src = VideoFrames(tmp_path / "v.avi", frame_indices=[0, 2, 4, 6, 8])  # container "lies"
-    with pytest.warns(UserWarning, match="only 5 frames decode"):
+    with logged_warning("only 5 frames decode"):
         out = validate(src)
     assert out.names == ["v_000000.png", "v_000002.png", "v_000004.png"]
 
@@ -234,7 +234,7 @@ def test_missing_opencv_is_a_clear_error(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
-def test_truncated_image_is_refused_before_the_run(tmp_path, ext):
+def test_truncated_image_is_refused_before_the_run(tmp_path, ext, logged_warning):
     """A truncated image passes a header check alone and would abort the run mid-way, past
     --skip-bad: the end marker is checked up front."""
     img = (np.random.default_rng(0).random((40, 60, 3)) * 255).astype(np.uint8)
@@ -244,7 +244,7 @@ def test_truncated_image_is_refused_before_the_run(tmp_path, ext):
     (tmp_path / f"1{ext}").write_bytes(raw[: len(raw) * 3 // 4])
     with pytest.raises(InputError, match=rf"1\{ext}: image file is truncated"):
         validate(list_frames(tmp_path))
-    with pytest.warns(UserWarning, match="truncated"):
+    with logged_warning("truncated"):
         src = validate(list_frames(tmp_path), skip_bad=True)
     assert src.names == [f"0{ext}", f"2{ext}"]
 
@@ -258,7 +258,7 @@ def _smooth_jpeg(path, seed=0):
     return img
 
 
-def test_jpeg_damaged_mid_file_is_refused_or_skipped(tmp_path):
+def test_jpeg_damaged_mid_file_is_refused_or_skipped(tmp_path, logged_warning):
     """Damaged mid-file but ending in FF D9: libjpeg decodes it with grey rows and only a
     warning, which swiftjax ignored; the decoder's warning is now a corrupt frame."""
     for k in range(3):
@@ -271,13 +271,13 @@ def test_jpeg_damaged_mid_file_is_refused_or_skipped(tmp_path):
     assert cv2.imread(str(tmp_path / "1.jpg")) is not None  # OpenCV returns pixels all the same
     with pytest.raises(InputError, match=r"1\.jpg: corrupt image data \(the decoder reported: Corrupt JPEG data"):
         validate(list_frames(tmp_path))
-    with pytest.warns(UserWarning, match=r"skipping unreadable frame: .*1\.jpg: corrupt image data"):
+    with logged_warning(r"skipping unreadable frame: .*1\.jpg: corrupt image data"):
         src = validate(list_frames(tmp_path), skip_bad=True)
     assert src.names == ["0.jpg", "2.jpg"]
     assert len(validate(list_frames(tmp_path), decode=False)) == 3  # the header check alone misses it
 
 
-def test_png_cut_inside_with_its_end_reappended_is_found_before_the_run(tmp_path):
+def test_png_cut_inside_with_its_end_reappended_is_found_before_the_run(tmp_path, logged_warning):
     """A PNG cut in the middle with IEND re-appended passed the header and end-marker checks
     and failed only when its chunk was predicted, past --skip-bad."""
     for k in range(3):
@@ -286,19 +286,19 @@ def test_png_cut_inside_with_its_end_reappended_is_found_before_the_run(tmp_path
     (tmp_path / "2.png").write_bytes(raw[: len(raw) // 2] + raw[-12:])  # ... + the IEND chunk
     with pytest.raises(InputError, match=r"2\.png: cannot decode image"):
         validate(list_frames(tmp_path))
-    with pytest.warns(UserWarning, match=r"2\.png"):
+    with logged_warning(r"2\.png"):
         src = validate(list_frames(tmp_path), skip_bad=True)
     assert src.names == ["0.png", "1.png"]
     np.testing.assert_array_equal(src.read(1)[..., ::-1], cv2.imread(str(tmp_path / "1.png")))
 
 
-def test_glob_does_not_count_files_twice_through_a_link_loop(tmp_path):
+def test_glob_does_not_count_files_twice_through_a_link_loop(tmp_path, logged_warning):
     """`**` followed a directory link loop: 12 frames became 492."""
     (tmp_path / "seq" / "a").mkdir(parents=True)
     for k in range(4):
         _save(tmp_path / "seq" / "a" / f"{k}.png", _rgb(seed=k))
     os.symlink("..", tmp_path / "seq" / "a" / "loop")
-    with pytest.warns(UserWarning, match=r"matches are 4 files"):
+    with logged_warning(r"matches are 4 files"):
         src = list_frames(str(tmp_path / "seq" / "**" / "*.png"))
     assert src.names == ["a/0.png", "a/1.png", "a/2.png", "a/3.png"]
     assert sorted(os.path.realpath(p) for p in src.paths) == sorted(
@@ -306,7 +306,7 @@ def test_glob_does_not_count_files_twice_through_a_link_loop(tmp_path):
     )
 
 
-def test_exif_rotated_frames_are_named_in_the_size_error(tmp_path):
+def test_exif_rotated_frames_are_named_in_the_size_error(tmp_path, logged_warning):
     """Phone frames rotated by EXIF were refused by raw size with no hint."""
     _save(tmp_path / "0.jpg", _rgb(20, 30))
     exif = Image.Exif()
@@ -316,7 +316,7 @@ def test_exif_rotated_frames_are_named_in_the_size_error(tmp_path):
         validate(list_frames(tmp_path))
     (tmp_path / "1.jpg").unlink()
     Image.fromarray(_rgb(20, 30)).save(tmp_path / "1.jpg", exif=exif)
-    with pytest.warns(UserWarning, match=r"EXIF orientation .*1\.jpg: 6.*ignored"):
+    with logged_warning(r"EXIF orientation .*1\.jpg: 6.*ignored"):
         validate(list_frames(tmp_path))
 
 

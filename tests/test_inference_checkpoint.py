@@ -168,12 +168,12 @@ def test_random_bytes_are_corrupt_not_unsafe(tmp_path: pathlib.Path, head: bytes
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float64])
-def test_floating_weights_of_another_precision_are_cast_and_said(tmp_path: pathlib.Path, dtype) -> None:
+def test_floating_weights_of_another_precision_are_cast_and_said(tmp_path: pathlib.Path, dtype, logged_warning) -> None:
     """float16 / float64 weights passed the checks and failed at the first prediction."""
     state = {k: v.to(dtype) for k, v in _state(1).items()}
     save_file(state, str(tmp_path / "w.safetensors"))
     model = _model(2)
-    with pytest.warns(UserWarning, match=rf"{len(state)} {str(dtype)[6:]} tensor\(s\) cast to float32"):
+    with logged_warning(rf"{len(state)} {str(dtype)[6:]} tensor\(s\) cast to float32"):
         report = load_checkpoint(model, tmp_path / "w.safetensors")
     assert "cast to float32" in report.cast
     _assert_same_weights(model, {k: v.to(torch.float32) for k, v in state.items()})

@@ -212,10 +212,10 @@ def test_pad_mode_pads_white_centred() -> None:
     assert (out[:, :, left : left + 392] == 0.0).all()
 
 
-def test_mixed_sizes_padded_with_warning() -> None:
+def test_mixed_sizes_padded_with_warning(logged_warning) -> None:
     a = np.zeros((480, 640, 3), np.uint8)  # -> 392 x 518
     b = np.zeros((376, 1241, 3), np.uint8)  # -> 154 x 518
-    with pytest.warns(UserWarning, match="different shapes"):
+    with logged_warning("different shapes"):
         out = preprocess([a, b])
     assert out.shape == (2, 3, 392, 518)
     top = (392 - 154) // 2

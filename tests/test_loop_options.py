@@ -76,7 +76,7 @@ def test_find_loops_options_and_overrides_agree():
     assert key(a) == key(b) == key(c) and len(a) == 2
 
 
-def test_find_loops_throw_false_leaves_nonfinite_rows_out():
+def test_find_loops_throw_false_leaves_nonfinite_rows_out(logged_warning):
     G = planted(n=600, d=256, seed=19, loops=((400, 50, 30), (560, 300, 20)), noise=0.05)
     sched = chunk_schedule(600)
     bad = G.copy()
@@ -84,7 +84,7 @@ def test_find_loops_throw_false_leaves_nonfinite_rows_out():
     bad[410] = np.inf  # inside the first planted loop region
     with pytest.raises(ValueError, match="NaN or Inf"):
         L.find_loops(bad, sched, dim=128)
-    with pytest.warns(UserWarning, match="2 descriptor row"):
+    with logged_warning("2 descriptor row"):
         loops, details = L.find_loops(
             bad, sched, dim=128, rule="fixed", threshold=0.7, throw=False, return_details=True
         )
@@ -92,7 +92,7 @@ def test_find_loops_throw_false_leaves_nonfinite_rows_out():
     assert {(lp.i - lp.j) for lp in loops} == {350, 260}
     assert all(410 != lp.i and 3 != lp.j for lp in loops)
     # the adaptive rule too: the non-finite rows never become candidates
-    with pytest.warns(UserWarning, match="2 descriptor row"):
+    with logged_warning("2 descriptor row"):
         _, details = L.find_loops(bad, sched, dim=128, throw=False, return_details=True)
     c = details["candidates"]
     assert not np.isin(np.asarray(c.pairs)[: int(c.count)], [3, 410]).any()

@@ -157,17 +157,17 @@ def test_bad_input_is_named(demo_descriptors):
         PipelineConfig(loop_false_alarms=2.0)
 
 
-def test_a_calibrated_threshold_above_one_says_so():
+def test_a_calibrated_threshold_above_one_says_so(logged_warning):
     """d = 512, K = 8 tokens with the whitening fitted on g0 (the authors' quirk): no revisit
     stands out of the frames' own null (bench: tau = 1.16), so no candidate, loudly."""
     poses = loop_route()
     G = _route_descriptors(poses, places.PlaceTokenConfig(dim=512, tokens_per_frame=8))
-    with pytest.warns(UserWarning, match="calibrated loop threshold is 1.1"):
+    with logged_warning("calibrated loop threshold is 1.1"):
         found, det = L.find_loops(G, chunk_schedule(len(G)), fit_on="raw", return_details=True)
     assert found == [] and det["threshold"] > 1.0
 
 
-def test_a_route_of_laps_without_candidate_says_so_and_fixed_finds_the_loops():
+def test_a_route_of_laps_without_candidate_says_so_and_fixed_finds_the_loops(logged_warning):
     """Issue 25 item 32: a route that revisits every frame (the demo route driven 2.4 times,
     1200 frames; ``swiftjax demo --frames 3000`` is the six-lap case) breaks the calibration's
     assumption (< 60 % of frames revisit): the adaptive threshold lands above every revisit.
@@ -176,7 +176,7 @@ def test_a_route_of_laps_without_candidate_says_so_and_fixed_finds_the_loops():
     poses = loop_route(laps=1.25 * 1200 / loop_route().shape[0] + 0.01)[:1200]
     G = _route_descriptors(poses, places.PlaceTokenConfig())
     sched = chunk_schedule(len(G))
-    with pytest.warns(UserWarning, match="revisits most of its frames"):
+    with logged_warning("revisits most of its frames"):
         found, det = L.find_loops(G, sched, return_details=True)
     assert found == [] and det["threshold"] < 1.0 and "no_candidate_warning" in det
     fixed = L.find_loops(G, sched, rule="fixed")

@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swiftjax import cli, options
+from swiftjax.cli import arguments
 from swiftjax.options import OptionError
 from swiftjax.pipeline import PipelineConfig
 
@@ -142,7 +143,7 @@ def test_random_command_line_values_are_validated_like_toml(flags):
     except SystemExit:  # argparse refused the token itself (e.g. a value starting with '-')
         return
     try:
-        cfg = cli._pipeline_config(args)
+        cfg = arguments.pipeline_config(args)
     except cli.CliError as err:
         assert "\n" not in str(err) and "invalid" in str(err)
         return

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from swiftjax import cli
+from swiftjax.cli import arguments
 
 
 def _main(capsys, *argv):
@@ -25,7 +26,7 @@ def _one_line_error(code, err, *fragments, absent=()):
 
 
 def _config(*argv):
-    return cli._pipeline_config(cli.build_parser().parse_args(["demo", *argv]))
+    return arguments.pipeline_config(cli.build_parser().parse_args(["demo", *argv]))
 
 
 def test_a_small_chunk_size_scales_the_loop_window_default():

@@ -181,7 +181,7 @@ def test_reconstruct_cli_passes_the_sources_times(tmp_path, monkeypatch):
         seen.update(kwargs)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_make_runner", lambda *args: None)
+    monkeypatch.setattr(cli.model, "make_runner", lambda *args: None)
     monkeypatch.setattr(pipeline, "reconstruct", fake_reconstruct)
     assert (
         cli.main(
@@ -271,7 +271,6 @@ def test_original_resolution_needs_input_images(tmp_path):
     assert not (tmp_path / "chunks").exists() or not any((tmp_path / "chunks").iterdir())  # no work done
 
 
-@pytest.mark.filterwarnings("ignore:.*ill-posed:RuntimeWarning")  # random weights: expected fallback
 def test_original_resolution_end_to_end_with_tiny_vggt(tmp_path, golden_dir):
     """Image files -> tiny VGGT (pad mode: portrait frames padded to 518 x 518) ->
     ``colmap_original_resolution``: the original files under their names, a camera of the

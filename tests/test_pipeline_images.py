@@ -18,7 +18,6 @@ torch = pytest.importorskip("torch")
 cv2 = pytest.importorskip("cv2")
 
 
-@pytest.mark.filterwarnings("ignore:.*ill-posed:RuntimeWarning")  # random weights: expected fallback
 def test_reconstruct_from_image_files_with_tiny_vggt(tmp_path, golden_dir):
     from inference import VGGT, VGGTConfig, load_checkpoint
     from inference.predictor import ImagePredictor

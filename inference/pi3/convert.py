@@ -29,6 +29,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,8 @@ __all__ = [
     "confidence_from_logit",
     "to_chunk_prediction",
 ]
+
+logger = logging.getLogger("swiftjax." + __name__)
 
 
 def intrinsics_from_local_points(points: Any, center_principal_point: bool = False) -> np.ndarray:
@@ -93,14 +96,10 @@ def usable_intrinsics(K: np.ndarray, height: int, width: int) -> np.ndarray:
     f = np.stack([K[:, 0, 0], K[:, 1, 1]], -1)
     bad = ~np.all(np.isfinite(K.reshape(len(K), -1)), axis=-1) | np.any(~(f > 0), axis=-1)
     if np.any(bad):
-        import warnings
-
         nominal = (width / 2.0) / np.tan(np.deg2rad(NOMINAL_HFOV_DEG) / 2.0)
-        warnings.warn(
+        logger.warning(
             f"π³: the rays of view(s) {np.flatnonzero(bad).tolist()} describe no pinhole camera (fitted fx, fy "
-            f"= {f[bad][0].round(3).tolist()}, ...); using a nominal {NOMINAL_HFOV_DEG:g}° field of view there",
-            RuntimeWarning,
-            stacklevel=2,
+            f"= {f[bad][0].round(3).tolist()}, ...); using a nominal {NOMINAL_HFOV_DEG:g}° field of view there"
         )
         K[bad] = [[nominal, 0.0, (width - 1) / 2.0], [0.0, nominal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
     return K

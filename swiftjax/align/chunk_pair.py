@@ -18,7 +18,7 @@ world centres) keeps float32 accurate (tested far from the origin).  Speed on XL
 
 from __future__ import annotations
 
-import warnings
+import logging
 from typing import Any, NamedTuple
 
 import jax
@@ -43,6 +43,8 @@ __all__ = [
     "align_chunk_pair_checked",
     "pose_based_estimate",
 ]
+
+logger = logging.getLogger(__name__)
 
 
 class ChunkFrames(NamedTuple):
@@ -586,11 +588,9 @@ def align_chunk_pair_checked(
     S, info = align_chunk_pair(prev, cur, K_ref, options=options, mask=mask, **overrides)
     if throw and bool(info.pose_fallback):
         masked = "" if mask is None else f"; the mask keeps {100 * float(np.mean(mask)):.2f}% of its pixels"
-        warnings.warn(
+        logger.warning(
             f"{name}: Umeyama alignment is ill-posed ({int(info.num_points)} reliable points, "
             f"{100 * float(info.fraction_used):.2f}% of the overlap{masked}); using the estimate "
-            "from the overlap camera poses instead",
-            RuntimeWarning,
-            stacklevel=2,
+            "from the overlap camera poses instead"
         )
     return S, info

@@ -25,10 +25,10 @@ poses or measurements with a scale other than 1 (g2o's SE(3) records cannot hold
 
 from __future__ import annotations
 
+import logging
 import os
 import pathlib
 import tempfile
-import warnings
 from typing import NamedTuple
 
 import numpy as np
@@ -36,6 +36,8 @@ import numpy as np
 from swiftjax.errors import SwiftjaxError
 
 __all__ = ["G2oGraph", "G2oError", "read_g2o", "write_g2o"]
+
+logger = logging.getLogger(__name__)
 
 _VERTEX = "VERTEX_SE3:QUAT"
 _EDGE = "EDGE_SE3:QUAT"
@@ -131,7 +133,7 @@ def read_g2o(path: str | os.PathLike, *, scale_information: float | None = None)
             else:
                 unknown[tag] = unknown.get(tag, 0) + 1
     for tag, count in unknown.items():
-        warnings.warn(f"{path}: skipped {count} record(s) of unknown type {tag!r}", stacklevel=2)
+        logger.warning(f"{path}: skipped {count} record(s) of unknown type {tag!r}")
     if not vertices:
         raise G2oError(f"{path}: no {_VERTEX} records")
     node_ids = np.array(sorted(vertices), np.int64)

@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import contextlib
 import glob as globlib
+import logging
 import os
 import pathlib
 import re
 import sys
 import tempfile
 import threading
-import warnings
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -54,6 +54,8 @@ __all__ = [
     "to_rgb8",
     "validate",
 ]
+
+logger = logging.getLogger(__name__)
 
 PathLike = str | os.PathLike[str]
 
@@ -587,10 +589,9 @@ def _once_per_file(files: list[pathlib.Path], names: list[str], pattern: str) ->
     if len(best) == len(files):
         return files, names
     keep = sorted(best.values())
-    warnings.warn(
+    logger.warning(
         f"{pattern}: {len(files)} matches are {len(keep)} files (directory links, e.g. a link loop, reach the same "
-        f"files again); each file is used once",
-        stacklevel=3,
+        f"files again); each file is used once"
     )
     return [files[k] for k in keep], [names[k] for k in keep]
 
@@ -653,7 +654,7 @@ def validate(
         for i in sorted(failed):
             if not skip_bad:
                 raise failed[i]
-            warnings.warn(f"skipping unreadable frame: {failed[i]}", stacklevel=2)
+            logger.warning(f"skipping unreadable frame: {failed[i]}")
         keep = [i for i in range(len(source)) if i not in failed]
         if not keep:
             raise InputError(f"{source.description}: none of the {len(source)} images can be read")
@@ -664,10 +665,9 @@ def validate(
         if source._read_video_frame(source.frame_indices[last]) is None:
             count = source._count_by_decoding()
             kept = [k for k in source.frame_indices if k < count]
-            warnings.warn(
+            logger.warning(
                 f"{source.path}: container says frame {source.frame_indices[last]} exists but only "
-                f"{count} frames decode; using {len(kept)} frames",
-                stacklevel=2,
+                f"{count} frames decode; using {len(kept)} frames"
             )
             source.close()
             source = source.subset(range(len(kept)))
@@ -676,10 +676,9 @@ def validate(
     _check_same_size(source)
     if getattr(source, "orientation", None):
         k, o = next(iter(source.orientation.items()))
-        warnings.warn(
+        logger.warning(
             f"{source.description}: {len(source.orientation)} frames carry an EXIF orientation (e.g. "
-            f"{source.names[k]}: {o}); it is ignored, the frames are used as stored (as VGGT's loader does)",
-            stacklevel=2,
+            f"{source.names[k]}: {o}); it is ignored, the frames are used as stored (as VGGT's loader does)"
         )
     return source
 

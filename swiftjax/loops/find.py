@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import warnings
+import logging
 from typing import NamedTuple
 
 import jax
@@ -20,6 +20,8 @@ from swiftjax.loops.loop_chunk import _loop_chunks, filter_by_chunks
 from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions, check_values
 
 __all__ = ["Loop", "find_loops"]
+
+logger = logging.getLogger(__name__)
 
 
 class Loop(NamedTuple):
@@ -63,14 +65,13 @@ def _warn_no_candidate(Z, o: LoopOptions, details: dict) -> None:
     best = best[np.isfinite(best)]
     above = float(np.mean(best > o.threshold)) if best.size else 0.0
     details["no_candidate_warning"] = {"frames_above_fixed_threshold": above}
-    warnings.warn(
+    logger.warning(
         f"find_loops: the adaptive loop threshold ({details['threshold']:.3f}, false_alarms={o.false_alarms:g}) "
         f"leaves no loop candidate among {best.size} frames. Either the route never revisits a place, or it "
         "revisits most of its frames (several laps): the calibration fits its null on the lower 40% of the "
         "frames' best scores and assumes fewer than 60% of the frames revisit. "
         f"{100 * above:.0f}% of the frames have a match above the fixed threshold {o.threshold:g}; if the route "
-        "has laps, set loop_threshold_rule='fixed' (its candidates are verified as usual)",
-        stacklevel=3,
+        "has laps, set loop_threshold_rule='fixed' (its candidates are verified as usual)"
     )
 
 
@@ -151,10 +152,9 @@ def find_loops(
         _check_finite(G, "find_loops: descriptors")
     elif not finite.all():
         bad = np.flatnonzero(~finite)
-        warnings.warn(
+        logger.warning(
             f"find_loops: {len(bad)} descriptor row(s) contain NaN or Inf (first at row {int(bad[0])}); "
-            "those frames are left out of the whitening and never match",
-            stacklevel=2,
+            "those frames are left out of the whitening and never match"
         )
     given = dict(
         rule=rule,
@@ -209,15 +209,14 @@ def find_loops(
     if o.rule == "adaptive" and int(cand.count) == 0 and details["threshold"] < 1.0:
         _warn_no_candidate(Z, o, details)
     if o.rule == "adaptive" and n > o.min_separation + 1 and details["threshold"] >= 1.0:
-        warnings.warn(
+        logger.warning(
             f"find_loops: the calibrated loop threshold is {details['threshold']:.3f} >= 1 (false_alarms="
             f"{o.false_alarms:g}): the frames' best scores show no revisit standing out of their own null, so "
             "there is no loop candidate; rule='fixed' with a chosen threshold (and loop verification) "
-            "forces candidates",
-            stacklevel=2,
+            "forces candidates"
         )
     if bool(cand.truncated):
-        warnings.warn(f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist", stacklevel=2)
+        logger.warning(f"find_loops: NMS stopped at max_loops={o.max_loops}; more loops may exist")
     kept = filter_by_chunks(cand, schedule)
     loops = as_loops(kept, schedule, o.half_window)
     details.update(whitening=w, z=Z, candidates=cand, filtered=kept)
@@ -259,10 +258,9 @@ def as_loops(kept, schedule: ChunkSchedule, hw: int) -> list[Loop]:
         scores = np.asarray(kept.scores)
         for k in range(c):
             if not lc.valid[k]:
-                warnings.warn(
+                logger.warning(
                     f"find_loops: loop ({pairs[k, 0]}, {pairs[k, 1]}) has no well-formed "
-                    f"{4 * hw}-frame loop chunk (a chunk is shorter than {2 * hw} frames); dropped",
-                    stacklevel=3,
+                    f"{4 * hw}-frame loop chunk (a chunk is shorter than {2 * hw} frames); dropped"
                 )
                 continue
             loops.append(

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import pathlib
 import shlex
@@ -31,6 +32,8 @@ from swiftjax.io.atomic import atomic_write
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["Sequence", "BatchError", "read_list", "sequence_folders", "run_batch", "batch_table"]
+
+logger = logging.getLogger(__name__)
 
 
 class BatchError(SwiftjaxError, ValueError):
@@ -249,7 +252,7 @@ def run_batch(
     cpus_per_worker: float = 1.0,
     ray_address: str | None = None,
     overwrite: bool = False,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = logger.info,
 ) -> list[dict[str, Any]]:
     """Run every sequence (see the module docstring); one row per sequence, in ``jobs``'
     order, also written to ``out/batch.json``.  ``log`` gets a line per finished sequence."""

@@ -25,6 +25,7 @@ their state between steps are issue 30's next step.
 
 from __future__ import annotations
 
+import logging
 import pathlib
 from collections.abc import Callable
 from typing import Any
@@ -90,7 +91,7 @@ class Reconstruction:
         ground_truth: np.ndarray | None = None,
         executor: Any = None,
         overwrite: bool = False,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = logging.getLogger(__name__).info,
         timestamps_note: str | None = None,
     ) -> None:
         self.run_dir, self.predictor, self.config = pathlib.Path(run_dir), predictor, config

@@ -32,8 +32,8 @@ Under the per-frame ``K`` the same observations are off by ``|K_f K_ref^-1 p - p
 from __future__ import annotations
 
 import json
+import logging
 import pathlib
-import warnings
 import zlib
 from collections.abc import Sequence
 from typing import Any
@@ -61,6 +61,8 @@ __all__ = [
     "export_points",
     "output_files",
 ]
+
+logger = logging.getLogger(__name__)
 
 _CAMERA_AXES = "OpenCV camera axes (x right, y down, z forward)"
 
@@ -599,11 +601,9 @@ def _export(
             if names[k] not in redrawn and not (run_dir / "colmap" / "images" / names[k]).is_file()
         ]
         if missing:
-            warnings.warn(
+            logger.warning(
                 f"colmap/images/ lacks {len(missing)} of {n} frames (e.g. {missing[0]}): the predictor gave no "
-                "images, or the chunks were predicted before the COLMAP export was on",
-                RuntimeWarning,
-                stacklevel=2,
+                "images, or the chunks were predicted before the COLMAP export was on"
             )
         err = _reprojection_error(pts, frame, uv, c2w, K)
         colmap.write_colmap(

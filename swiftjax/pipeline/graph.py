@@ -38,7 +38,7 @@ same way on the temporal edges and the priors (so both outputs are metric).
 
 from __future__ import annotations
 
-import warnings
+import logging
 from typing import Any
 
 import jax
@@ -54,6 +54,8 @@ from swiftjax.pipeline.rundir import RunContext
 from swiftjax.posegraph import chain_poses
 
 __all__ = ["run", "warm_start", "chain_poses", "edge_information", "loop_information", "scale_prior_problem"]
+
+logger = logging.getLogger(__name__)
 
 
 _STATS = ("S", "num_points", "rms", "src_mean", "src_covariance")
@@ -297,9 +299,7 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                 "no_loops_solve": _solve_metrics(res0),
             }
             if not res0.converged:
-                warnings.warn(
-                    f"pose graph (chain + scale priors) did not converge ({res0.status})", RuntimeWarning, stacklevel=2
-                )
+                logger.warning(f"pose graph (chain + scale priors) did not converge ({res0.status})")
         if loops.edges:
             L = len(loops.edges)
             edges = [(t, t + 1) for t in range(T - 1)] + [(e.chunk_a, e.chunk_b) for e in loops.edges]
@@ -366,7 +366,7 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
                     f"down-weighted as outliers ({config.robust_loops})"
                 )
             if not res.converged:
-                warnings.warn(f"pose graph did not converge ({res.status})", RuntimeWarning, stacklevel=2)
+                logger.warning(f"pose graph did not converge ({res.status})")
         else:
             chunk_poses = chunk_poses_no_loops
     return GraphResult(chunk_poses, chunk_poses_no_loops, graph_metrics, inlier_weights)

@@ -4,6 +4,7 @@ run was given (``ground_truth_kitti.txt``) and the end-of-run summary table."""
 from __future__ import annotations
 
 import json
+import logging
 import pathlib
 from typing import Any
 
@@ -15,6 +16,8 @@ from swiftjax.pipeline.results import LoopResult, RunResult, ScaleResult, Tempor
 from swiftjax.pipeline.rundir import RunContext
 
 __all__ = ["write", "summary_table", "check_ground_truth"]
+
+logger = logging.getLogger(__name__)
 
 
 def check_ground_truth(ground_truth: Any, n: int, name: str = "the ground truth") -> np.ndarray:
@@ -69,7 +72,7 @@ def write(
     except ValueError as err:  # the evaluation failed: the run's outputs are kept, without ATE
         if ground_truth is None:
             raise
-        ctx.log(f"swiftjax: warning: ATE/RPE not computed ({err}); the outputs are written without them")
+        logger.warning(f"ATE/RPE not computed ({err}); the outputs are written without them")
         ground_truth = None
         metrics = _metrics(
             ctx.num_frames,

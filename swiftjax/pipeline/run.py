@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import pathlib
 from collections.abc import Callable, Sequence
 
@@ -18,6 +19,8 @@ from swiftjax.pipeline.results import RunResult
 
 __all__ = ["RunResult", "reconstruct"]
 
+logger = logging.getLogger(__name__)
+
 
 def reconstruct(
     predictor: Predictor,
@@ -29,7 +32,7 @@ def reconstruct(
     progress: bool = True,
     timestamps: Sequence[float] | None = None,
     timestamps_note: str | None = None,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = logger.info,
     executor: Executor | None = None,
     loop_candidates: loop_closure.CandidateSource | None = None,
 ) -> RunResult:
@@ -46,7 +49,8 @@ def reconstruct(
         progress: show tqdm progress bars.
         timestamps: ``[N]`` times for ``poses_tum.txt`` (default: the frame index).
         timestamps_note: where the times come from (``poses_tum.txt``'s header says it).
-        log: where one-line messages go.
+        log: where one-line progress messages go (default: the ``swiftjax.pipeline.run``
+            logger at INFO; warnings go to the stages' loggers).
         executor: where the predictions are computed (default: a
             :class:`~swiftjax.pipeline.executors.LocalExecutor` with prefetch); the caller
             closes an executor it passes.

@@ -21,6 +21,7 @@ import contextlib
 import dataclasses
 import datetime
 import json
+import logging
 import os
 import pathlib
 import re
@@ -63,6 +64,8 @@ __all__ = [
     "TOP_FILES",
     "progress_bar",
 ]
+
+logger = logging.getLogger(__name__)
 
 MANIFEST_VERSION = 3  # 3: per-stage fingerprints, checksummed chunk files, exact-resume records
 LOCK_NAME = ".swiftjax.lock"
@@ -239,7 +242,7 @@ class Manifest:
         fingerprint: dict[str, Any],
         schedule: chunks.ChunkSchedule,
         overwrite: bool,
-        log: Callable[[str], None] = print,
+        log: Callable[[str], None] = logger.info,
     ) -> Manifest:
         path = run_dir / "manifest.json"
         fresh = {
@@ -645,7 +648,7 @@ class RunContext:
     timer: StageTimer
     executor: Executor
     progress: bool = True
-    log: Callable[[str], None] = print
+    log: Callable[[str], None] = logger.info
     camera: UserCamera | None = None
     lock: RunLock | None = None
 
@@ -820,7 +823,7 @@ def record_outputs(ctx: RunContext, files: dict[str, str | None], final: bool) -
     ctx.manifest.save()
 
 
-def prune(run_dir: pathlib.Path, log: Callable[[str], None] = print) -> tuple[int, int]:
+def prune(run_dir: pathlib.Path, log: Callable[[str], None] = logger.info) -> tuple[int, int]:
     """Shrink the chunk store of a finished run: drop every chunk file's depth and confidence
     maps (:meth:`~swiftjax.io.chunk_store.ChunkStore.drop_dense`; most of ``chunks/``) and the
     tail/loop files.  Every output stays; so do what a resume reads of a finished run
