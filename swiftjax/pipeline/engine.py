@@ -355,12 +355,20 @@ class Reconstruction:
     def _work(self) -> None:
         """The loop worker: each chunk's loop job (:meth:`_loops`) in order, until ``None``."""
         while (job := self._jobs.get()) is not None:
-            if self._worker_error is not None:
-                continue  # failed: drain without work
             try:
-                self._loops(*job)
+                if self._worker_error is None:  # (failed: drain without work)
+                    self._loops(*job)
             except BaseException as err:  # re-raised in the caller's thread
                 self._worker_error = err
+            finally:
+                self._jobs.task_done()
+        self._jobs.task_done()
+
+    def wait_for_loops(self) -> None:
+        """Wait until the loop worker has done every chunk added so far (its revision, if any,
+        published); re-raises its error."""
+        self._jobs.join()
+        self._raise_worker_error()
 
     def _stop_worker(self) -> None:
         worker, self._worker = self._worker, None
