@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_pipeline_stages import assert_same_outputs
 
-from swiftjax import pipeline
+from swiftjax import chunks, pipeline
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.engine import Prefix, Reconstruction
 from swiftjax.pipeline.live import LIVE_NAME, LiveLog
@@ -62,53 +62,109 @@ def test_prefix_fingerprint_lists_the_frames():
         Prefix(run.predictor, 25).predict(np.arange(20, 30))
 
 
+def test_prefix_grows_but_never_past_its_predictor():
+    run = demo.loop_route_run(40, image_hw=(28, 98))
+    view = Prefix(run.predictor, 25)
+    view.grow(30)
+    assert view.num_frames == 30 and len(view.frame_names()) == 30
+    with pytest.raises(ValueError, match="grown to 20"):
+        view.grow(20)
+    with pytest.raises(ValueError, match="grown to 41"):
+        view.grow(41)
+
+
+def _matrix(S: np.ndarray) -> np.ndarray:
+    """``[8] (t, q xyzw, s)`` -> ``[4, 4] [[s R, t], [0, 1]]`` in float64 (NumPy, independent of swiftjax.sim3)."""
+    x, y, z, w = np.asarray(S[3:7], np.float64) / np.linalg.norm(S[3:7])
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = S[7] * R, S[:3]
+    return M
+
+
+def _camera_to_world(chunk: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """Camera-to-world ``[4, 4]`` (orthonormal rotation) of a camera ``extrinsic [3, 4]``
+    (world-to-camera in its chunk) in a chunk whose chunk-to-world matrix is ``chunk [4, 4]``."""
+    E = np.eye(4)
+    E[:3] = extrinsic
+    P = chunk @ np.linalg.inv(E)
+    P[:3, :3] /= np.cbrt(np.linalg.det(P[:3, :3]))
+    return P
+
+
 @pytest.mark.slow
 def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
+    from swiftjax import evaluation
+    from swiftjax.io.chunk_store import ChunkStore
+
     run = demo.loop_route_run(None, image_hw=(28, 98), spacing_m=4.0)
     n = run.predictor.num_frames
     live_dir, offline_dir = tmp_path / "live", tmp_path / "offline"
     rec = Reconstruction(live_dir, run.predictor, CONFIG, ground_truth=run.ground_truth, log=lambda s: None)
-    steps = []  # (frames posed, revision, poses, the step's run)
+    steps = []  # frames posed after each live step
     for _ in range(n):
         if rec.add_frame():
-            frames, c2w = rec.poses()
-            steps.append((len(frames), rec.revision, c2w, rec.result))
+            steps.append(len(rec.poses()[0]))
     final = rec.finish()
     B, O = CONFIG.chunk_size, CONFIG.overlap
-    assert [s[0] for s in steps] == list(range(B, n + 1, B - O))
-
-    records = reader.read_live_poses(live_dir)
-    revisions = [r["revision"] for r in records]
-    assert revisions == sorted(revisions)
-    # The loop closes on the way (the demo route's revisit), then the final pass: two revisions.
-    assert rec.revision == 2 and sorted({r["reason"] for r in records}) == ["final", "loop closure", "new"]
-    closing = next(k for k, s in enumerate(steps) if s[1] == 1)
-    assert len(steps[closing][3].loops) >= 1 and all(len(s[3].loops) == 0 for s in steps[:closing])
-    # Every frame's first pose is the step's that posed it; a revision republishes every frame with
-    # that step's poses (the graph's at that revision).
-    first = {}
-    for r in records:
-        first.setdefault(r["frame"], r)
-    last_step = steps[-1][0]  # the frames after the last complete chunk are posed by the final pass
-    assert sorted(first) == list(range(n))
-    before, at = steps[closing - 1][0], steps[closing][0]  # the closing step publishes its new frames too
-    assert [first[k]["reason"] for k in range(n)] == (
-        ["new"] * before + ["loop closure"] * (at - before) + ["new"] * (last_step - at) + ["final"] * (n - last_step)
-    )
-    for count, revision, c2w, _result in steps:
-        for k in range(count):
-            latest = [r for r in records if r["frame"] == k and r["revision"] <= revision][-1]
-            np.testing.assert_array_equal(latest["pose"], c2w[k, :3])
-    loop_lines = [r for r in records if r["reason"] == "loop closure"]
-    assert [r["frame"] for r in loop_lines] == list(range(steps[closing][0]))
-    np.testing.assert_array_equal(np.stack([r["pose"] for r in loop_lines]), steps[closing][3].cam_to_world[:, :3])
-    final_lines = [r for r in records if r["reason"] == "final"]
-    np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])
+    assert steps == list(range(B, n + 1, B - O))
+    assert [s["chunk"] for s in rec.steps] == list(range(len(steps)))
 
     # The finished run directory is the offline run of the same frames, file by file.
     offline = pipeline.reconstruct(
         Prefix(run.predictor, n), offline_dir, CONFIG, ground_truth=run.ground_truth, progress=False, log=lambda s: None
     )
     np.testing.assert_array_equal(offline.cam_to_world, final.cam_to_world)
+    records = reader.read_live_poses(live_dir)
     shutil.move(live_dir / LIVE_NAME, tmp_path / LIVE_NAME)
     assert_same_outputs(offline_dir, live_dir)
+
+    # First poses: every frame once, in order, from the step that completed its chunk; before
+    # the loop closes they are the offline chain's (the same temporal edges, chained in float64
+    # here) with the frame's camera in the first chunk that held it.
+    first = {}
+    for r in records:
+        first.setdefault(r["frame"], r)
+    assert sorted(first) == list(range(n))
+    assert [r["frame"] for r in records if r["reason"] == "new"] == list(range(steps[-1]))
+    manifest = json.loads((offline_dir / "manifest.json").read_text())
+    chain = [np.eye(4)]
+    for t in range(1, len(steps)):
+        chain.append(chain[-1] @ _matrix(np.asarray(manifest["edges"][str(t - 1)]["S"])))
+    store = ChunkStore(offline_dir)
+    schedule = chunks.chunk_schedule(n, B, O)
+    unrevised = [r for r in records if r["reason"] == "new" and r["revision"] == 0]
+    assert len(unrevised) >= 100  # the loop closes late in the drive
+    owned_offline = 0
+    for r in unrevised:
+        k = r["frame"]
+        t = 0 if k < B else (k - B) // (B - O) + 1  # the step that first posed k
+        ext = store.load_array("chunk", t, "extrinsic")[k - int(schedule.starts[t])]
+        np.testing.assert_allclose(r["pose"], _camera_to_world(chain[t], ext)[:3], atol=1e-5)
+        if schedule.chunk_of(k) == t:  # the offline export poses k in the same chunk
+            np.testing.assert_allclose(r["pose"], offline.cam_to_world_no_loops[k, :3], atol=1e-6)
+            owned_offline += 1
+    assert owned_offline > len(unrevised) // 2
+
+    # The loop the offline run accepts is accepted live: a revision republishes every frame
+    # posed then with the loop-closed graph, which pulls the trajectory towards the truth.
+    assert [(r["i"], r["j"]) for r in rec.loops] == [(lp["i"], lp["j"]) for lp in offline.loops]
+    closing = [r for r in records if r["reason"] == "loop closure"]
+    assert {r["revision"] for r in closing} == {1}
+    m = len(closing)
+    assert [r["frame"] for r in closing] == list(range(m)) and m >= rec.loops[0]["i"]
+    revised = np.stack([np.vstack([r["pose"], [0, 0, 0, 1]]) for r in closing])
+    chained = np.stack([np.vstack([first[k]["pose"], [0, 0, 0, 1]]) for k in range(m)])
+    gt = np.asarray(run.ground_truth)[:m]
+    ate_revised, ate_chained = (float(evaluation.ate(P, gt).rmse) for P in (revised, chained))
+    assert ate_revised < 0.8 * ate_chained, (ate_revised, ate_chained)
+    # ... and the final pass: revision 2, every frame, the offline poses.
+    final_lines = [r for r in records if r["reason"] == "final"]
+    assert {r["revision"] for r in final_lines} == {2} and rec.revision == 2
+    np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])

@@ -174,8 +174,12 @@ def test_follow_flag_errors_are_one_line(tmp_path, golden_dir, capsys):
     folder.mkdir()
     image = tmp_path / "one.png"
     cv2.imwrite(str(image), _frames(1)[0])
+    ended = tmp_path / "ended"  # the recorder stopped before its first frame
+    ended.mkdir()
+    (ended / "END").touch()
     base = _argv(folder, tmp_path / "out", golden_dir)[3:]
     cases = [
+        ([base[0], str(ended), *base[2:], "--follow"], f"{ended}: the end marker END appeared before any frame"),
         ([*base, "--follow", "--follow-timeout", "0.3"], "no frame arrived within the follow timeout of 0.3 s"),
         ([*base, "--follow", "--follow-timeout", "-1"], "--follow-timeout must be a positive number of seconds"),
         ([*base, "--replay-fps", "0"], "--replay-fps must be a positive number"),

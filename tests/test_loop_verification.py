@@ -431,12 +431,12 @@ def test_pipeline_decisions_all_rejected_none_option_and_empty(x64):
     temporal = TemporalResult(np.zeros((12, 4)), rel, [], K)
     bad = [record(int(q), int(p), z, agreement=0.1) for (p, q), z in zip(nodes, Z)]
     ctx = _Ctx()
-    loop_closure._decide(ctx, temporal, bad)
+    loop_closure.decide(ctx, temporal.relative, bad)
     loop_closure._log_decisions(ctx, bad)
     assert not any(r["accepted"] for r in bad)
     assert "every candidate was rejected" in ctx.lines[-1] and "without loop closure" in ctx.lines[-1]
     ctx = _Ctx(loop_verification="none")
-    loop_closure._decide(ctx, temporal, bad)
+    loop_closure.decide(ctx, temporal.relative, bad)
     assert all(r["accepted"] and "without verification" in r["reason"] for r in bad)
     loop_closure._log_decisions(ctx, [])
     assert "no loop candidates" in ctx.lines[-1]

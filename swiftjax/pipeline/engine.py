@@ -8,34 +8,73 @@
         frames, cam_to_world = rec.poses()    # [F], [F, 4, 4]: every frame posed so far
     result = rec.finish()                     # the offline run of the same frames
 
-Each time the frames complete a chunk of the offline schedule (``n = B + k (B - O)``), the
-stages of :func:`~swiftjax.pipeline.run.reconstruct` run over the frames seen so far, in the
-run directory (:class:`Prefix`: the run directory's "frames added" resume keeps every chunk
-already predicted, predicting the new chunk and re-predicting the one before it, whose float32
-overlap the new edge needs).  The new frames' poses are appended to ``poses_live.jsonl``
-(:mod:`~swiftjax.pipeline.live`); when a newly accepted loop closes, the trajectory's revision
-increases and every frame is published again.  :meth:`Reconstruction.finish` is the same
-``reconstruct`` over every frame: the finished run directory is the offline run's (plus
-``poses_live.jsonl``), and its poses are published once more as the ``"final"`` revision.
+The stages keep their state between chunks.  Each time the frames complete a chunk of the
+offline schedule (``n = B + k (B - O)``, chunk ``k``), in the run directory:
 
-Cost: every live step re-runs loop detection, the loop chunks, the pose graph and the export over
-the prefix (the loop chunks and the export's files grow with the prefix); the stages that keep
-their state between steps are issue 30's next step.
+1. **Temporal** (:class:`~swiftjax.pipeline.temporal.TemporalStage`): chunk ``k`` alone is
+   predicted, stored (chunk file, manifest record: :func:`~swiftjax.pipeline.rundir.grow_run`
+   extends the run's fingerprint and schedule to the ``n`` frames first) and aligned with chunk
+   ``k - 1`` (the float32 overlap kept in memory since the last step): one edge ``R_{k-1}``.
+2. **First poses**: ``S_k = S_{k-1} R_{k-1}`` on the current chunk poses
+   (:func:`~swiftjax.pipeline.graph.warm_start`), and the ``B - O`` new frames' camera-to-world
+   ``S_k`` composed with their cameras in chunk ``k`` are appended to ``poses_live.jsonl`` at
+   once (:mod:`~swiftjax.pipeline.live`, reason ``"new"``).  Before any loop closes these are
+   the offline chain's poses (``chunk_poses_no_loops``), frame ``f`` in the chunk that first
+   held it; the offline export poses the last ``O`` frames of each chunk in the next one.
+3. **Loops**, on one background thread (the loop worker, chunk by chunk in order, so that
+   the next chunk's first poses never wait for them; the predictions of both threads take
+   turns on the one predictor): the chunk's descriptors go to an
+   :class:`~swiftjax.loops.online.OnlineLoopDetector` (whitening refitted on the prefix at a
+   doubling schedule, or given; threshold calibrated on the prefix); each new proposal between
+   non-neighbouring chunks gets its loop-centric chunk predicted and aligned and its
+   verification numbers (:func:`~swiftjax.pipeline.loop_closure.loop_record`), then every live
+   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all).
+4. **Pose graph**: only when the set of accepted loops changed, the graph over the ``k + 1``
+   chunks is solved, warm-started from the last solution
+   (:func:`~swiftjax.pipeline.graph.run` with ``warm``), and every frame is published again
+   with the next revision (reason ``"loop closure"``), each in its offline owner chunk.
+
+Per step: one chunk prediction and one alignment before the first poses; then, on the loop
+worker, the loop detector's pass over the prefix (:mod:`swiftjax.loops.online`), one
+prediction per new loop proposal, and a pose-graph solve only when the accepted loops change.  The live loop records are hypotheses of the
+prefix and are not recorded in the manifest (the final pass decides); the live poses are in
+the first chunk's units (``--metric`` applies at the final pass); ``loop_geometry`` candidates
+come at the final pass only.
+
+:meth:`Reconstruction.finish` keeps the offline guarantee: the last live chunk (stored as a
+chunk with a successor) is forgotten and :func:`~swiftjax.pipeline.run.reconstruct` runs over
+every frame in the same run directory, resuming every other chunk the live steps stored
+("frames added", :mod:`~swiftjax.pipeline.rundir`).  The finished run directory is the offline
+run's (plus ``poses_live.jsonl``), and its poses are published once more as the ``"final"``
+revision.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import pathlib
+import queue
+import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from swiftjax.camera import world_cameras
+from swiftjax.loops.descriptors import chunk_descriptors
+from swiftjax.loops.online import OnlineLoopDetector
+from swiftjax.pipeline import export, graph, loop_closure, rundir
 from swiftjax.pipeline.config import PipelineConfig
+from swiftjax.pipeline.executors import LocalExecutor
 from swiftjax.pipeline.live import LiveLog
-from swiftjax.pipeline.results import RunResult
+from swiftjax.pipeline.results import GraphResult, LoopEdge, LoopResult, RunResult, TemporalResult
 from swiftjax.pipeline.run import reconstruct
+from swiftjax.pipeline.temporal import TemporalStage
+from swiftjax.posegraph import chain_poses
 
 __all__ = ["Prefix", "Reconstruction"]
 
@@ -50,11 +89,19 @@ class Prefix:
         if not 1 <= n <= int(predictor.num_frames):
             raise ValueError(f"a prefix of {n} frames of a predictor with {predictor.num_frames}")
         self.inner, self.num_frames = predictor, int(n)
+        self._predicting = threading.Lock()  # one model: the live steps and the loop worker take turns
+
+    def grow(self, n: int) -> None:
+        """Take the first ``n`` frames now (``n`` at least the current count)."""
+        if not self.num_frames <= n <= int(self.inner.num_frames):
+            raise ValueError(f"a prefix of {self.num_frames} frames grown to {n} of {self.inner.num_frames}")
+        self.num_frames = int(n)
 
     def predict(self, frames: np.ndarray) -> Any:
         if len(frames) and int(np.max(frames)) >= self.num_frames:
             raise ValueError(f"frame {int(np.max(frames))} is not among the first {self.num_frames}")
-        return self.inner.predict(frames)
+        with self._predicting:
+            return self.inner.predict(frames)
 
     def fingerprint(self) -> dict[str, Any]:
         fp = dict(self.inner.fingerprint())
@@ -66,7 +113,7 @@ class Prefix:
         return list(self.inner.frame_names())[: self.num_frames]
 
     def __getattr__(self, name: str) -> Any:  # images, source, mode, prefetch ...: the inner predictor's
-        if name == "inner":
+        if name in ("inner", "_predicting"):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
@@ -77,9 +124,18 @@ class Reconstruction:
     ``predictor``: the whole input's predictor; its frames become usable as they are added
     (``add_frame(image)`` hands the image to ``predictor.append`` for a predictor on a growing
     frame source; a predictor that knows its frames, e.g. the synthetic oracle, takes
-    ``add_frame()``).  ``ground_truth [N, 4, 4]``: optional, for the runs' metrics.
+    ``add_frame()``).  ``ground_truth [N, 4, 4]``: optional, for the final run's metrics.
     ``timestamps_note``: where the ``time`` given to :meth:`add_frame` comes from
-    (``poses_tum.txt``'s header, as ``reconstruct``'s).
+    (``poses_tum.txt``'s header, as ``reconstruct``'s).  ``whitening``: the loop detector's
+    whitening instead of the prefix's (:func:`swiftjax.loops.online.load_whitening`).
+
+    Attributes:
+        revision: the trajectory's revision (``poses_live.jsonl``).
+        candidates: every live loop candidate's record, with its current verdict.
+        steps: per live step, ``{"chunk", "frames", "pose_s"}`` (seconds from the chunk's
+            completion to its new frames' publication), and once the loop worker is done with
+            the chunk ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``.
+        result: the final run (:meth:`finish`), else None.
     """
 
     def __init__(
@@ -93,6 +149,8 @@ class Reconstruction:
         overwrite: bool = False,
         log: Callable[[str], None] = logging.getLogger(__name__).info,
         timestamps_note: str | None = None,
+        whitening: Any = None,
+        whitening_source: str | None = None,
     ) -> None:
         self.run_dir, self.predictor, self.config = pathlib.Path(run_dir), predictor, config
         self.ground_truth, self.executor, self.overwrite, self.log = ground_truth, executor, overwrite, log
@@ -101,10 +159,34 @@ class Reconstruction:
         self.times: list[float] = []
         self._timed = False  # a time was given (else poses_tum.txt says: the frame index)
         self.revision = 0
-        self.result: RunResult | None = None  # the last step's run
-        self._cam_to_world = np.zeros((0, 4, 4))
-        self._accepted = 0
+        self.result: RunResult | None = None
+        self.candidates: list[dict[str, Any]] = []
+        self.steps: list[dict[str, Any]] = []
+        self._whitening, self._whitening_source = whitening, whitening_source
+        self._ctx: rundir.RunContext | None = None
+        self._view: Prefix | None = None
+        self._export: export.ChunkExport | None = None
+        self._temporal: TemporalStage | None = None
+        self._detector: OnlineLoopDetector | None = None
+        self._relative = np.zeros((0, 8))  # [k, 8] the temporal edges so far
+        self._edges: list[dict[str, Any]] = []  # their alignment records
+        self._chunk_poses = np.zeros((0, 8))  # [k+1, 8] the live chunk-to-world poses
+        self._extrinsic = np.zeros((0, 3, 4))  # [n, 3, 4] each frame's camera in its latest chunk
+        self._cam_to_world = np.zeros((0, 4, 4))  # [n, 4, 4] as published
+        self._graph: GraphResult | None = None  # the last pose-graph solution
+        self._accepted: tuple[tuple[int, int], ...] = ()
         self._live: LiveLog | None = None
+        self._starts: list[int] = []  # the live chunks' first frames
+        self._lock = threading.Lock()  # the poses and poses_live.jsonl: the step and the loop worker
+        self._jobs: queue.Queue[Any] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._worker_error: BaseException | None = None
+        self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
+
+    @property
+    def loops(self) -> list[dict[str, Any]]:
+        """The live loop candidates accepted now (their records)."""
+        return [r for r in self.candidates if r.get("accepted")]
 
     def add_frame(self, frame: Any = None, time: float | None = None) -> bool:
         """Add the next frame (``time``: seconds; default its index); True when it completed a
@@ -114,6 +196,7 @@ class Reconstruction:
             if append is None:
                 raise TypeError(f"{type(self.predictor).__name__} takes no frames (no append()); call add_frame()")
             append(frame)
+        self._raise_worker_error()
         if self.num_frames >= int(self.predictor.num_frames):
             raise ValueError(f"frame {self.num_frames} added, but the predictor has {self.predictor.num_frames} frames")
         self.num_frames += 1
@@ -123,51 +206,268 @@ class Reconstruction:
         n = self.num_frames
         if n < B or (n - B) % (B - O):
             return False
-        self._step("loop closure")
+        self._step((n - B) // (B - O))
         return True
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
         """``(frames [F], cam_to_world [F, 4, 4])`` of every frame posed so far (latest revision)."""
-        return np.arange(len(self._cam_to_world)), self._cam_to_world.copy()
+        with self._lock:
+            return np.arange(len(self._cam_to_world)), self._cam_to_world.copy()
 
     def finish(self) -> RunResult:
         """The final pass: the offline run of every frame added; its poses published as the
         ``"final"`` revision."""
         if self.num_frames == 0:
             raise ValueError("no frame was added: nothing to reconstruct")
-        try:
-            self._step("final")
-        finally:
-            if self._live is not None:
-                self._live.close()
-                self._live = None
-        assert self.result is not None
-        return self.result
-
-    def _step(self, revise: str) -> None:
         n = self.num_frames
-        gt = None if self.ground_truth is None else np.asarray(self.ground_truth)[:n]
-        result = reconstruct(
-            Prefix(self.predictor, n),
-            self.run_dir,
-            self.config,
-            ground_truth=gt,
-            overwrite=self.overwrite,
-            progress=False,
-            timestamps=self.times if self._timed else None,
-            timestamps_note=self.timestamps_note,
-            log=self.log,
-            executor=self.executor,
+        try:
+            self._stop_worker()  # the loop work of every live chunk, then the final pass
+            self._raise_worker_error()
+            live = self._ctx is not None
+            if self._ctx is not None and self._temporal is not None:
+                self._temporal.finish(drop_tails=False)
+                # The last live chunk was stored as one with a successor (its frames up to the
+                # next start, a float32 tail): the final pass predicts it as its schedule says.
+                rundir.forget_chunk(self._ctx.manifest, self._ctx.store, len(self._chunk_poses) - 1)
+            self._close_stages()
+            gt = None if self.ground_truth is None else np.asarray(self.ground_truth)[:n]
+            result = reconstruct(
+                Prefix(self.predictor, n),
+                self.run_dir,
+                self.config,
+                ground_truth=gt,
+                overwrite=self.overwrite and not live,
+                progress=False,
+                timestamps=self.times if self._timed else None,
+                timestamps_note=self.timestamps_note,
+                log=self.log,
+                executor=self.executor,
+            )
+            self.result = result
+            self.revision += 1
+            self._publish(range(n), result.cam_to_world, "final")
+            self._cam_to_world = result.cam_to_world
+        finally:
+            self.close()
+        return result
+
+    def close(self) -> None:
+        """Stop the live stages and release the run directory (what is recorded stays: the same
+        command resumes it); :meth:`finish` calls it."""
+        self._stop_worker()
+        self._close_stages()
+        if self._live is not None:
+            self._live.close()
+            self._live = None
+
+    def _close_stages(self) -> None:
+        temporal, chunk_export, ctx = self._temporal, self._export, self._ctx
+        self._temporal = self._export = self._ctx = None
+        try:
+            if temporal is not None:
+                temporal.close()
+        finally:
+            try:
+                if chunk_export is not None:
+                    chunk_export.close()
+            finally:
+                if ctx is not None:
+                    ctx.close()
+
+    def _open(self, n: int) -> rundir.RunContext:
+        """The run directory for the first ``n`` frames (created, or resumed as "frames added")."""
+        self._view = Prefix(self.predictor, n)
+        executor = self.executor if self.executor is not None else LocalExecutor()
+        ctx = rundir.open_run(
+            self._view, self.run_dir, self.config, executor, overwrite=self.overwrite, progress=False, log=self.log
         )
-        self.overwrite = False  # the first step replaced what was there
+        try:
+            export.clean(ctx)
+            export.check(ctx)
+            self._export = export.ChunkExport(ctx)
+            self._temporal = TemporalStage(ctx, self._export)
+        except BaseException:
+            ctx.close()
+            raise
+        self._ctx = ctx
+        if self.config.loop_closure:
+            self._detector = OnlineLoopDetector(
+                loop_closure.loop_options(self.config),
+                whitening=self._whitening,
+                whitening_source=self._whitening_source,
+            )
         if self._live is None:
             self._live = LiveLog(self.run_dir)
-        c2w, old = result.cam_to_world, len(self._cam_to_world)
-        accepted = len(result.loops)
-        if revise == "final" or (accepted > self._accepted and old):
-            self.revision += 1
-            self._live.append(range(n), self.times, c2w, self.revision, revise)
+        return ctx
+
+    def _step(self, t: int) -> None:
+        """Chunk ``t`` completed: the stages of the module docstring."""
+        started = time.perf_counter()
+        n = self.num_frames
+        if self._ctx is None:
+            ctx = self._open(n)
         else:
-            self._live.append(range(old, n), self.times[old:], c2w[old:], self.revision, "new")
-            c2w = np.concatenate([self._cam_to_world, c2w[old:]])  # the published poses stand until a revision
-        self._cam_to_world, self._accepted, self.result = c2w, accepted, result
+            ctx = self._ctx
+            assert self._view is not None
+            self._view.grow(n)
+            rundir.grow_run(ctx)
+        assert self._temporal is not None
+        frames = ctx.schedule.frames(t)
+        if ctx.manifest.data["chunks"].get(str(t)):  # a resumed run's: stored as that run's schedule said
+            rundir.forget_chunk(ctx.manifest, ctx.store, t)
+        stream = ctx.executor.map(ctx.predictor, [frames], chunk_descriptors)
+        try:
+            with ctx.timer("predict"):
+                pred = next(stream)
+        finally:
+            stream.close()
+        extrinsic = np.asarray(pred.extrinsic, np.float64)
+        chunk = self._temporal.add(t, pred, last=False)
+        del pred
+
+        # First poses: the chunk's pose chained on the current ones, its new frames published.
+        with self._lock:
+            if chunk.edge is None:
+                self._chunk_poses = chain_poses(np.zeros((0, 8)))
+            else:
+                self._relative = np.concatenate([self._relative, chunk.edge.S[None]])
+                self._edges.append(chunk.edge.record)
+                self._chunk_poses = graph.warm_start(self._chunk_poses, self._relative)
+            self._starts.append(int(frames[0]))
+            old = len(self._cam_to_world)
+            grown = np.zeros((n, 3, 4))
+            grown[:old] = self._extrinsic
+            grown[frames] = extrinsic  # the later chunk's camera (the offline owner)
+            self._extrinsic = grown
+            new = _world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :])
+            self._publish(range(old, n), new, "new")
+            self._cam_to_world = np.concatenate([self._cam_to_world, new])
+        posed = time.perf_counter()
+        self.steps.append({"chunk": t, "frames": n, "pose_s": posed - started})
+
+        if self._detector is not None:  # the loop work of this chunk, on the loop worker
+            self._temporal.flush()  # the loop chunks read the chunk files
+            snapshot = dataclasses.replace(ctx, timer=self._loop_timer)  # this step's schedule and camera
+            if self._worker is None:
+                self._worker = threading.Thread(target=self._work, name="swiftjax-live-loops", daemon=True)
+                self._worker.start()
+            self._jobs.put((snapshot, t, frames, chunk.descriptors, self._relative.copy(), list(self._edges)))
+
+    def _work(self) -> None:
+        """The loop worker: each chunk's loop job (:meth:`_loops`) in order, until ``None``."""
+        while (job := self._jobs.get()) is not None:
+            try:
+                if self._worker_error is None:  # (failed: drain without work)
+                    self._loops(*job)
+            except BaseException as err:  # re-raised in the caller's thread
+                self._worker_error = err
+            finally:
+                self._jobs.task_done()
+        self._jobs.task_done()
+
+    def wait_for_loops(self) -> None:
+        """Wait until the loop worker has done every chunk added so far (its revision, if any,
+        published); re-raises its error."""
+        self._jobs.join()
+        self._raise_worker_error()
+
+    def _stop_worker(self) -> None:
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            self._jobs.put(None)
+            worker.join()
+
+    def _raise_worker_error(self) -> None:
+        if self._worker_error is not None:
+            err, self._worker_error = self._worker_error, None
+            raise err
+
+    def _loops(
+        self,
+        ctx: rundir.RunContext,
+        t: int,
+        frames: np.ndarray,
+        descriptors: np.ndarray,
+        relative: np.ndarray,
+        edges: list[dict[str, Any]],
+    ) -> None:
+        """Chunk ``t``'s loop work (``ctx``, ``relative [t, 8]``, ``edges``: the run as of chunk
+        ``t``): loop detection, the new candidates' loop chunks and verdicts, and, when the
+        accepted set changed, the pose graph over chunks ``0..t`` and a revision."""
+        started = time.perf_counter()
+        assert self._detector is not None
+        with ctx.timer("loop detection"):
+            found = self._detector.add(frames, descriptors)
+            found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
+        solved = False
+        if found:
+            assert self._temporal is not None and self._temporal.K_ref is not None
+            K_ref = self._temporal.K_ref
+            stream = ctx.executor.map(ctx.predictor, [lp.frames for lp in found], loop_closure.without_tokens)
+            try:
+                with ctx.timer("loop chunks"):
+                    for lp in found:
+                        with ctx.timer("predict (loop chunks)"):
+                            pred = next(stream)
+                        record = loop_closure.loop_record(ctx, lp, pred, K_ref)
+                        del pred
+                        if loop_closure.needs_numbers(self.config, record):
+                            record.update(loop_closure.verification_numbers(ctx, lp, record, K_ref))
+                        record["source"] = "tokens"
+                        record["live_chunk"] = t
+                        self.candidates.append(record)
+            finally:
+                stream.close()
+            loop_closure.decide(ctx, relative, self.candidates)
+            accepted = [r for r in self.candidates if r["accepted"]]
+            key = tuple((int(r["i"]), int(r["j"])) for r in accepted)
+            if key != self._accepted:
+                self._accepted, solved = key, True
+                self._solve(ctx, accepted, relative, edges, K_ref)
+        self.steps[t].update(loop_s=time.perf_counter() - started, proposals=len(found), solved=solved)
+
+    def _solve(
+        self,
+        ctx: rundir.RunContext,
+        accepted: list[dict[str, Any]],
+        relative: np.ndarray,
+        edges: list[dict[str, Any]],
+        K_ref: np.ndarray,
+    ) -> None:
+        """The pose graph over the chunks of ``relative`` with the ``accepted`` loops, warm-started
+        from the last solution; every frame posed so far published as the next revision (the
+        chunks added meanwhile chained on)."""
+        if accepted:
+            loop_edges = [LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in accepted]
+            temporal = TemporalResult(np.zeros((0, 0), np.float32), relative, edges, K_ref)
+            self._graph = graph.run(
+                ctx, temporal, LoopResult(accepted, loop_edges), warm=self._graph, scale_priors=False
+            )
+            solution = self._graph.chunk_poses
+        else:  # every accepted loop withdrawn: the chain
+            self._graph, solution = None, chain_poses(relative)
+        with self._lock:
+            self._chunk_poses = graph.warm_start(solution, self._relative)
+            n = len(self._cam_to_world)
+            owner = np.searchsorted(np.asarray(self._starts), np.arange(n), side="right") - 1  # the export's
+            self.revision += 1
+            self._cam_to_world = _world(self._chunk_poses[owner], self._extrinsic[:n])
+            self._publish(range(n), self._cam_to_world, "loop closure")
+
+    def _publish(self, frames: range, cam_to_world: np.ndarray, reason: str) -> None:
+        if self._live is None:
+            self._live = LiveLog(self.run_dir)
+        self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
+
+
+def _world(chunk_poses: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """Camera-to-world ``[F, 4, 4]`` float64 of cameras ``extrinsic [F, 3, 4]`` in chunks posed
+    ``chunk_poses [F or 1, 8]`` (:func:`swiftjax.camera.world_cameras`, as the export)."""
+    with jax.enable_x64(True):
+        return np.asarray(
+            world_cameras(
+                jnp.broadcast_to(jnp.asarray(chunk_poses, jnp.float64), (len(extrinsic), 8)),
+                jnp.asarray(extrinsic, jnp.float64),
+            ),
+            np.float64,
+        )

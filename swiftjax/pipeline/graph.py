@@ -259,11 +259,20 @@ def warm_start(previous: np.ndarray, relative: np.ndarray) -> np.ndarray:
     return np.concatenate([previous, grown.reshape(-1, 8)])
 
 
-def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: GraphResult | None = None) -> GraphResult:
+def run(
+    ctx: RunContext,
+    temporal: TemporalResult,
+    loops: LoopResult,
+    warm: GraphResult | None = None,
+    *,
+    scale_priors: bool = True,
+) -> GraphResult:
     """Chain the temporal edges; optimise the pose graph when there are loop edges (or scale priors).
 
     ``warm``: the last solution of a graph with fewer edges (a live run): the loop solve starts
-    from it (:func:`warm_start`) instead of the chain; offline runs start from the chain."""
+    from it (:func:`warm_start`) instead of the chain; offline runs start from the chain.
+    ``scale_priors``: False leaves out ``--metric camera-height``'s priors (the live engine's
+    poses stay in the first chunk's units until the final pass)."""
     config = ctx.config
     relative = temporal.relative
     T = ctx.schedule.num_chunks
@@ -271,7 +280,7 @@ def run(ctx: RunContext, temporal: TemporalResult, loops: LoopResult, warm: Grap
     graph_metrics: dict[str, Any] = {}
     inlier_weights = None
     with ctx.timer("pose graph"):
-        priors = _scale_priors(ctx, temporal, chunk_poses_no_loops)
+        priors = _scale_priors(ctx, temporal, chunk_poses_no_loops) if scale_priors else None
         information = None
         if loops.edges or priors is not None:
             information = _graph_information(ctx, temporal, loops)

@@ -41,7 +41,16 @@ from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.posegraph import chain_poses
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["CandidateSource", "loop_options", "run"]
+__all__ = [
+    "CandidateSource",
+    "decide",
+    "loop_options",
+    "loop_record",
+    "needs_numbers",
+    "run",
+    "verification_numbers",
+    "without_tokens",
+]
 
 
 #: A loop candidate source: ``(descriptors [N, d], schedule, options) -> [Loop]`` over the frames
@@ -53,9 +62,8 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     """Loop edges from ``temporal``'s descriptors and the chunk store (none when loop closure
     is off or there are fewer than three chunks); ``candidates``: where the loop candidates
     come from (default: every frame's descriptor, :func:`swiftjax.loops.find_loops`)."""
-    config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
+    config, schedule, manifest, timer = ctx.config, ctx.schedule, ctx.manifest, ctx.timer
     K_ref = temporal.K_ref
-    cam = ctx.camera if ctx.camera is not None else UserCamera()
     loop_records: list[dict[str, Any]] = []
     loop_edges: list[LoopEdge] = []
     if not (config.loop_closure and schedule.num_chunks > 2):
@@ -66,13 +74,12 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
         neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
 
-    hw2 = 2 * config.loop_half_window
     # The loop chunks not recorded yet, predicted in order by the executor (fanned out on a pool).
     todo: dict[str, np.ndarray] = {}  # insertion-ordered: the first occurrence of each loop
     for lp in found:
         if f"{lp.i}-{lp.j}" not in manifest.data["loop_edges"]:
             todo.setdefault(f"{lp.i}-{lp.j}", lp.frames)
-    predictions = ctx.executor.map(ctx.predictor, list(todo.values()), _without_tokens)
+    predictions = ctx.executor.map(ctx.predictor, list(todo.values()), without_tokens)
     with timer("loop chunks"):
         try:
             for lp in ctx.bar(found, desc="loop chunks", unit="loop"):
@@ -81,46 +88,12 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
                 if record is None:
                     with timer("predict (loop chunks)"):
                         pred = next(predictions)
-                    halves = []
-                    for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
-                        # Only the 2 x half_window frames of chunk c that the loop chunk overlaps.
-                        local = lp.frames[half] - schedule.starts[c]
-                        chunk_frames = store.load("chunk", c, frames=local, fields=())
-                        # keep-masks (user / sky) of those frames, as each chunk saw them
-                        mask = both(
-                            cam.keep(lp.frames[half], chunk_frames.depth, chunk_frames.conf),
-                            cam.keep(lp.frames[half], pred.depth[half], pred.conf[half]),
-                        )
-                        halves.append(
-                            align_pair(
-                                align.ChunkFrames.from_prediction(chunk_frames),
-                                align.ChunkFrames.from_prediction(pred, half),
-                                K_ref,
-                                config,
-                                True,
-                                f"loop ({lp.i}, {lp.j}) to chunk {c}",
-                                mask=mask,
-                            )
-                        )
-                    with jax.enable_x64(True):
-                        Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
-                    record = {
-                        "i": lp.i,
-                        "j": lp.j,
-                        "score": lp.score,
-                        "chunk_i": lp.chunk_i,
-                        "chunk_j": lp.chunk_j,
-                        "Z": Z.tolist(),
-                        "align_i": halves[0][1],
-                        "align_j": halves[1][1],
-                    }
+                    record = loop_record(ctx, lp, pred, K_ref)
                     manifest.data["loop_edges"][key] = record
                     manifest.save()  # recorded (fsync'd) before the next loop chunk
                     _faults.point("loop-recorded", len(loop_records))
-                if config.loop_verification == "geometric" and not (
-                    "dense_agreement" in record and (config.loop_agreement == "fixed" or "null_threshold" in record)
-                ):
-                    record.update(_verification_numbers(ctx, lp, record, K_ref))
+                if needs_numbers(config, record):
+                    record.update(verification_numbers(ctx, lp, record, K_ref))
                     manifest.save()
                 loop_records.append(record)
         finally:
@@ -136,7 +109,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
                 ctx, K_ref, taken, _verification_config(config), chain=chain_poses(temporal.relative)
             )
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
-    _decide(ctx, temporal, loop_records + [r for r in geometric if "accepted" not in r])
+    decide(ctx, temporal.relative, loop_records + [r for r in geometric if "accepted" not in r])
     loop_records += geometric
     for r in loop_records:
         if r["accepted"]:
@@ -171,7 +144,56 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     return LoopResult(loop_records, loop_edges)
 
 
-def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any], K_ref: np.ndarray) -> dict[str, Any]:
+def loop_record(ctx: RunContext, lp: loops.Loop, pred: ChunkPrediction, K_ref: np.ndarray) -> dict[str, Any]:
+    """The record of loop ``lp`` from its loop-centric chunk's prediction ``pred``: each half
+    aligned with the temporal chunk it overlaps (only those frames read from the chunk's file),
+    the loop edge ``Z`` (:func:`swiftjax.loops.loop_edge`) and the halves' diagnostics."""
+    config, schedule, store = ctx.config, ctx.schedule, ctx.store
+    cam = ctx.camera if ctx.camera is not None else UserCamera()
+    hw2 = 2 * config.loop_half_window
+    halves = []
+    for half, c in ((slice(0, hw2), lp.chunk_i), (slice(hw2, 2 * hw2), lp.chunk_j)):
+        # Only the 2 x half_window frames of chunk c that the loop chunk overlaps.
+        local = lp.frames[half] - schedule.starts[c]
+        chunk_frames = store.load("chunk", c, frames=local, fields=())
+        # keep-masks (user / sky) of those frames, as each chunk saw them
+        mask = both(
+            cam.keep(lp.frames[half], chunk_frames.depth, chunk_frames.conf),
+            cam.keep(lp.frames[half], pred.depth[half], pred.conf[half]),
+        )
+        halves.append(
+            align_pair(
+                align.ChunkFrames.from_prediction(chunk_frames),
+                align.ChunkFrames.from_prediction(pred, half),
+                K_ref,
+                config,
+                True,
+                f"loop ({lp.i}, {lp.j}) to chunk {c}",
+                mask=mask,
+            )
+        )
+    with jax.enable_x64(True):
+        Z = np.asarray(loops.loop_edge(jnp.asarray(halves[0][0]), jnp.asarray(halves[1][0])))
+    return {
+        "i": lp.i,
+        "j": lp.j,
+        "score": lp.score,
+        "chunk_i": lp.chunk_i,
+        "chunk_j": lp.chunk_j,
+        "Z": Z.tolist(),
+        "align_i": halves[0][1],
+        "align_j": halves[1][1],
+    }
+
+
+def needs_numbers(config: PipelineConfig, record: dict[str, Any]) -> bool:
+    """Whether ``record`` still lacks the numbers geometric verification decides on."""
+    return config.loop_verification == "geometric" and not (
+        "dense_agreement" in record and (config.loop_agreement == "fixed" or "null_threshold" in record)
+    )
+
+
+def verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any], K_ref: np.ndarray) -> dict[str, Any]:
     """:func:`swiftjax.loops.verification.candidate_numbers` of one candidate: the temporal
     chunks' own frames around ``i`` (chunk ``c_i``) and ``j`` (chunk ``c_j``), read from the
     store (the frames the loop chunk's halves overlap)."""
@@ -196,7 +218,7 @@ def _verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any
         )
 
 
-def _without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
+def without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
     """A loop chunk's prediction without its patch tokens (its alignment needs none; on a Ray
     worker they never cross the network)."""
     return dataclasses.replace(pred, patch_tokens=None)
@@ -227,16 +249,15 @@ def _verification_config(config: PipelineConfig) -> lv.VerificationConfig:
     return loop_options(config).verification_config
 
 
-def _decide(ctx: RunContext, temporal: TemporalResult, records: list[dict[str, Any]]) -> None:
-    """Set ``accepted``, ``reason`` (and ``pcm_residual``) on every record, in place."""
+def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]]) -> None:
+    """Set ``accepted``, ``reason`` (and ``pcm_residual``) on every record, in place, given the
+    temporal edges ``relative [T-1, 8]`` (the chain the candidates are checked against)."""
     if ctx.config.loop_verification == "none":
         for r in records:
             r.update(accepted=True, reason="accepted without verification (loop_verification = none)")
         return
     with ctx.timer("loop verification"):
-        decisions = lv.verify_candidates(
-            records, chain_poses(temporal.relative), temporal.relative, _verification_config(ctx.config)
-        )
+        decisions = lv.verify_candidates(records, chain_poses(relative), relative, _verification_config(ctx.config))
     for r, d in zip(records, decisions):
         r.update(accepted=d.accepted, reason=d.reason, pcm_residual=d.pcm_residual)
 

@@ -17,6 +17,7 @@ __all__ = [
     "UP_TO_SCALE",
     "UNIT_METRE",
     "ChunkEdge",
+    "TemporalChunk",
     "TemporalResult",
     "LoopEdge",
     "LoopResult",
@@ -38,6 +39,20 @@ class ChunkEdge(NamedTuple):
     chunk: int
     S: np.ndarray
     record: dict[str, Any]
+
+
+class TemporalChunk(NamedTuple):
+    """One chunk through the temporal stage (:class:`~swiftjax.pipeline.temporal.TemporalStage`):
+    ``frames [S]`` its global frame indices, ``descriptors [S, d]`` float32 (per frame),
+    ``edge`` the edge ``(chunk - 1, chunk)`` (None for chunk 0), ``ground_height`` the camera's
+    height above the road in the chunk's units (``--metric camera-height``; NaN: no road;
+    None: not measured)."""
+
+    chunk: int
+    frames: np.ndarray
+    descriptors: np.ndarray
+    edge: ChunkEdge | None
+    ground_height: float | None = None
 
 
 class TemporalResult(NamedTuple):

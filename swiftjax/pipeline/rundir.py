@@ -57,6 +57,7 @@ __all__ = [
     "fingerprints",
     "forget_chunk",
     "open_run",
+    "grow_run",
     "chunk_binding",
     "check_binding",
     "record_outputs",
@@ -923,3 +924,32 @@ def open_run(
         camera=camera,
         lock=lock,
     )
+
+
+def grow_run(ctx: RunContext) -> None:
+    """A live run's input grew: ``ctx.predictor`` (a prefix of the input) now has more frames.
+
+    The manifest's fingerprint is replaced by the grown input's and saved (the bindings of the
+    new chunks name their frames: :func:`chunk_binding`), and ``ctx.schedule`` and
+    ``ctx.camera`` (its mask files) cover the new frames; what is recorded stays recorded (the
+    chunks of the shorter input are chunks of the longer one).  The run directory owns its
+    schedule: this is the one place that changes a context's.
+
+    Raises:
+        RunDirError: the grown input is not the old one followed by new frames (same model,
+            options and first frames).
+    """
+    predictor, config = ctx.predictor, ctx.config
+    camera = UserCamera.from_config(config, predictor)
+    fp = fingerprints(predictor, config, camera.fingerprint())
+    old = ctx.manifest.data["fingerprint"]
+    before, after = old.get("frames"), fp.get("frames")
+    prefix = (before is None and after is None) or (
+        before is not None and after is not None and after[: len(before)] == before
+    )
+    if _without_count(old["temporal"]) != _without_count(fp["temporal"]) or not prefix:
+        raise RunDirError(f"{ctx.run_dir}: the live run's input changed while it grew (not only frames added)")
+    ctx.manifest.data["fingerprint"] = fp
+    ctx.manifest.save()
+    ctx.schedule = chunks.chunk_schedule(int(predictor.num_frames), config.chunk_size, config.overlap)
+    ctx.camera = camera

@@ -42,12 +42,12 @@ from swiftjax import _faults, align, metric_scale
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.pipeline.alignment import align_pair, both
-from swiftjax.pipeline.results import TemporalResult
+from swiftjax.pipeline.results import ChunkEdge, TemporalChunk, TemporalResult
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext, check_binding, chunk_binding, forget_chunk
 from swiftjax.pipeline.user_camera import UserCamera
 from swiftjax.prediction import ChunkPrediction
 
-__all__ = ["ChunkSink", "run"]
+__all__ = ["ChunkSink", "TemporalStage", "run"]
 
 #: The export's share of a chunk (:class:`swiftjax.pipeline.export.ChunkExport`): ``(owned
 #: frames, prediction, depth, conf, keep-mask, K_ref) -> (chunk-store extras, write future)``.
@@ -56,32 +56,27 @@ ChunkSink = Callable[..., tuple[dict[str, np.ndarray], Any]]
 
 def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
     """Every temporal chunk predicted (or read back), stored and aligned with its predecessor;
-    ``chunk_export`` takes each predicted chunk's share of the outputs."""
-    config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
+    ``chunk_export`` takes each predicted chunk's share of the outputs.  The schedule's chunks
+    fed in order to a :class:`TemporalStage`."""
+    schedule, timer = ctx.schedule, ctx.timer
     n = schedule.n_frames
     T = schedule.num_chunks
+    stage = TemporalStage(ctx, chunk_export, num_chunks=T)
     descriptors: np.ndarray | None = None
     relative = np.zeros((max(T - 1, 0), 8))
     align_infos: list[dict[str, Any]] = []
-    prev_tail: align.ChunkFrames | None = None
-    O = config.overlap
-    writer = _BackgroundWriter(store)
-    records = ChunkRecords(manifest, store, T)
-    cam = ctx.camera if ctx.camera is not None else UserCamera()
-    K_ref = cam.K_ref  # known intrinsics; else the first prediction's (below)
-    heights = np.full(T, np.nan) if cam.metric is not None and cam.metric[0] == "camera-height" else None
-    prev_tail_mask = None
+    heights = np.full(T, np.nan) if stage.measures_heights else None
     # Recorded chunks are read back (checked; a corrupt one is forgotten), the others predicted
     # (in schedule order, by the executor).
     resumed = {}
     for t in range(T):
-        if records.chunk_done(t):
-            r = _resume_chunk(ctx, records, t)
+        if stage.records.chunk_done(t):
+            r = _resume_chunk(ctx, stage.records, t)
             if r is not None:
                 resumed[t] = r
     if resumed:
         ctx.log(
-            f"swiftjax: resumed {len(resumed)}/{T} chunks from {store.root}"
+            f"swiftjax: resumed {len(resumed)}/{T} chunks from {ctx.store.root}"
             + (f"; predicting {T - len(resumed)}" if len(resumed) < T else "")
         )
     predictions = ctx.executor.map(
@@ -90,134 +85,210 @@ def run(ctx: RunContext, chunk_export: ChunkSink) -> TemporalResult:
 
     try:
         for t in ctx.bar(range(T), desc="chunks", unit="chunk"):
-            frames = schedule.frames(t)
-            S = len(frames)
-            edge = records.edge(t)
-            head: align.ChunkFrames | None = None
-            head_mask = None
             if t in resumed:
-                desc, intrinsic0, tail = resumed.pop(t)
-                if K_ref is None:
-                    K_ref = np.asarray(intrinsic0, np.float64)
-                # masks from the stored (float16) maps, as the uninterrupted run computed them
-                tail_mask = (
-                    None
-                    if tail is None
-                    else cam.keep(
-                        frames[S - O :], jnp.asarray(tail.depth, jnp.float16), jnp.asarray(tail.conf, jnp.float16)
-                    )
-                )
-                if heights is not None:
-                    with timer("chunk store"):
-                        heights[t] = float(store.load_extra("chunk", t)["ground_height"])
-                dirty = records.commit(writer.finished())
+                step = stage.add(t, resumed=resumed.pop(t), last=t + 1 == T)
             else:
                 with timer("predict"):
                     pred = next(predictions)
                 _faults.point("chunk-predicted", t)
-                if pred.num_frames != len(frames):
-                    raise ValueError(f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}")
-                desc = pred.descriptors
-                if K_ref is None:
-                    K_ref = np.asarray(pred.intrinsic[0], np.float64)
-
-                # One host->device copy of the dense maps, shared by the float16 store copies,
-                # the export points and the alignment's overlap slices (async dispatches).
-                with timer("export"):
-                    f32 = lambda x: jnp.asarray(x, jnp.float32)
-                    depth_d, conf_d = f32(pred.depth), f32(pred.conf)
-                    halves = _to_half(depth_d), _to_half(conf_d)
-                    head_d, head_c, tail_d, tail_c = _overlap_slices(depth_d, conf_d, overlap=O)
-                    # masks from the stored (float16) maps, as a resumed run recomputes them
-                    mask_d = cam.keep(frames, *halves)
-                    count = int(schedule.starts[t + 1] - schedule.starts[t]) if t + 1 < T else S
-                    points, frames_written = chunk_export(frames[:count], pred, depth_d, conf_d, mask_d, K_ref)
-                if heights is not None:
-                    with timer("metric scale"):
-                        gh = metric_scale.chunk_ground_height(
-                            depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d, conf_ratio=config.conf_ratio
-                        )
-                        heights[t] = float(gh.height)
-                        points["ground_height"] = np.asarray(heights[t])
-
-                with timer("chunk store"):
-                    depth, conf = (
-                        np.asarray(half) if _fits_half(x) else half_if_fits(x)
-                        for half, x in zip(halves, (pred.depth, pred.conf))
-                    )
-                    # Images feed the export points' colours and colmap/images/ (above): not stored.
-                    stored = dataclasses.replace(pred, depth=depth, conf=conf, images=None)
-                    # The float32 overlap for edge (t, t+1), should it be computed after a resume.
-                    exact_tail = (
-                        None
-                        if t + 1 == T
-                        else ChunkPrediction(
-                            np.asarray(pred.depth[S - O :], np.float32),
-                            np.asarray(pred.conf[S - O :], np.float32),
-                            np.asarray(pred.extrinsic[S - O :]),
-                            np.asarray(pred.intrinsic[S - O :]),
-                        )
-                    )
-                    dirty = records.commit(
-                        writer.submit(
-                            t,
-                            _save_chunk,
-                            store,
-                            t,
-                            stored,
-                            chunk_binding(manifest, schedule, t),
-                            points,
-                            exact_tail,
-                            frames_written,
-                        )
-                    )
-                head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
-                tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O :], pred.extrinsic[S - O :])
-                head_mask = None if mask_d is None else mask_d[:O]
-                tail_mask = None if mask_d is None else mask_d[S - O :]
-                del pred, stored, depth, conf, depth_d, conf_d, halves, mask_d
-
+                step = stage.add(t, pred, last=t + 1 == T)
+                del pred
             if descriptors is None:
-                descriptors = np.zeros((n, desc.shape[1]), np.float32)
-            descriptors[frames] = desc
-
-            with timer("align"):
-                if t > 0:
-                    if edge is None:
-                        assert head is not None and prev_tail is not None
-                        S_rel, diag = align_pair(
-                            prev_tail,
-                            head,
-                            K_ref,
-                            config,
-                            False,
-                            f"chunks {t - 1}/{t}",
-                            mask=both(prev_tail_mask, head_mask),
-                        )
-                        edge = {"S": S_rel.tolist(), **diag}
-                        dirty = records.add_edge(t, edge) or dirty
-                    relative[t - 1] = edge["S"]
-                    align_infos.append(edge)
-                prev_tail, prev_tail_mask = tail, tail_mask
-                del head, head_mask
-
-            if dirty:
-                with timer("chunk store"):
-                    manifest.save_soon()
-        with timer("chunk store"):
-            if records.commit(writer.finished(wait=True)):
-                manifest.save_soon()  # marks the change for flush() (an earlier save may be recent)
-            manifest.flush()
-            for c in store.indices("tail"):  # every edge is recorded
-                store.remove("tail", c)
+                descriptors = np.zeros((n, step.descriptors.shape[1]), np.float32)
+            descriptors[step.frames] = step.descriptors
+            if step.edge is not None:
+                relative[t - 1] = step.edge.S
+                align_infos.append(step.edge.record)
+            if heights is not None:
+                heights[t] = step.ground_height
+        stage.finish(drop_tails=True)
     finally:
         predictions.close()  # interrupted: release the chunks in flight
-        writer.close()
-        with contextlib.suppress(Exception):  # interrupted: record every complete chunk file
-            records.commit(writer.finished(wait=True))
-        manifest.flush()
-    assert descriptors is not None and K_ref is not None
-    return TemporalResult(descriptors, relative, align_infos, K_ref, heights)
+        stage.close()
+    assert descriptors is not None and stage.K_ref is not None
+    return TemporalResult(descriptors, relative, align_infos, stage.K_ref, heights)
+
+
+class TemporalStage:
+    """The temporal stage as a consumer of one chunk at a time: :meth:`add` stores chunk ``t``
+    (predicted, or read back by :func:`_resume_chunk`), aligns it with chunk ``t - 1`` (the
+    float32 overlap kept from the previous :meth:`add`) and returns its
+    :class:`~swiftjax.pipeline.results.TemporalChunk` (descriptors, edge ``(t-1, t)``).
+
+    Driven over a whole schedule by :func:`run`, and chunk by chunk, as the frames arrive, by
+    the live engine (:mod:`swiftjax.pipeline.engine`).  State between chunks: the previous
+    chunk's overlap frames (float32, on the device) and keep-mask, the reference intrinsics,
+    and at most one chunk file waiting for the background writer; memory is flat in the
+    sequence length.  ``num_chunks``: the schedule's length when known (the free-space check
+    after the first chunk file), else None.
+    """
+
+    def __init__(self, ctx: RunContext, chunk_export: ChunkSink, num_chunks: int | None = None) -> None:
+        self.ctx, self.chunk_export = ctx, chunk_export
+        self.writer = _BackgroundWriter(ctx.store)
+        self.records = ChunkRecords(ctx.manifest, ctx.store, num_chunks)
+        cam = self.cam
+        self.K_ref: np.ndarray | None = cam.K_ref  # known intrinsics; else the first prediction's
+        self.measures_heights = cam.metric is not None and cam.metric[0] == "camera-height"
+        self._prev_tail: align.ChunkFrames | None = None
+        self._prev_tail_mask: jax.Array | None = None
+
+    @property
+    def cam(self) -> UserCamera:
+        """The run's user camera (a growing live run's is renewed with its frames)."""
+        return self.ctx.camera if self.ctx.camera is not None else UserCamera()
+
+    def add(
+        self,
+        t: int,
+        pred: ChunkPrediction | None = None,
+        *,
+        resumed: tuple[np.ndarray, np.ndarray, align.ChunkFrames | None] | None = None,
+        last: bool = False,
+    ) -> TemporalChunk:
+        """Chunk ``t`` (``ctx.schedule.frames(t)``), from its prediction ``pred`` (with
+        descriptors: :func:`swiftjax.loops.descriptors.chunk_descriptors`) or ``resumed``; the
+        chunks must come in order.  ``last``: the input ends with it (it owns all its frames
+        and keeps no float32 tail; else it owns the frames up to the next chunk's start)."""
+        ctx = self.ctx
+        config, schedule, store, manifest, timer = ctx.config, ctx.schedule, ctx.store, ctx.manifest, ctx.timer
+        cam, records, O = self.cam, self.records, config.overlap
+        frames = schedule.frames(t)
+        S = len(frames)
+        edge = records.edge(t)
+        head: align.ChunkFrames | None = None
+        head_mask = None
+        height = None
+        if resumed is not None:
+            desc, intrinsic0, tail = resumed
+            if self.K_ref is None:
+                self.K_ref = np.asarray(intrinsic0, np.float64)
+            # masks from the stored (float16) maps, as the uninterrupted run computed them
+            tail_mask = (
+                None
+                if tail is None
+                else cam.keep(
+                    frames[S - O :], jnp.asarray(tail.depth, jnp.float16), jnp.asarray(tail.conf, jnp.float16)
+                )
+            )
+            if self.measures_heights:
+                with timer("chunk store"):
+                    height = float(store.load_extra("chunk", t)["ground_height"])
+            dirty = records.commit(self.writer.finished())
+        else:
+            assert pred is not None
+            if pred.num_frames != len(frames):
+                raise ValueError(f"the predictor returned {pred.num_frames} frames for chunk {t} of {len(frames)}")
+            desc = pred.descriptors
+            if self.K_ref is None:
+                self.K_ref = np.asarray(pred.intrinsic[0], np.float64)
+            K_ref = self.K_ref
+
+            # One host->device copy of the dense maps, shared by the float16 store copies,
+            # the export points and the alignment's overlap slices (async dispatches).
+            with timer("export"):
+                f32 = lambda x: jnp.asarray(x, jnp.float32)
+                depth_d, conf_d = f32(pred.depth), f32(pred.conf)
+                halves = _to_half(depth_d), _to_half(conf_d)
+                head_d, head_c, tail_d, tail_c = _overlap_slices(depth_d, conf_d, overlap=O)
+                # masks from the stored (float16) maps, as a resumed run recomputes them
+                mask_d = cam.keep(frames, *halves)
+                count = S if last else config.chunk_size - O  # owned: up to the next chunk's start
+                points, frames_written = self.chunk_export(frames[:count], pred, depth_d, conf_d, mask_d, K_ref)
+            if self.measures_heights:
+                with timer("metric scale"):
+                    gh = metric_scale.chunk_ground_height(
+                        depth_d, conf_d, f32(pred.intrinsic), f32(K_ref), mask_d, conf_ratio=config.conf_ratio
+                    )
+                    height = float(gh.height)
+                    points["ground_height"] = np.asarray(height)
+
+            with timer("chunk store"):
+                depth, conf = (
+                    np.asarray(half) if _fits_half(x) else half_if_fits(x)
+                    for half, x in zip(halves, (pred.depth, pred.conf))
+                )
+                # Images feed the export points' colours and colmap/images/ (above): not stored.
+                stored = dataclasses.replace(pred, depth=depth, conf=conf, images=None)
+                # The float32 overlap for edge (t, t+1), should it be computed after a resume.
+                exact_tail = (
+                    None
+                    if last
+                    else ChunkPrediction(
+                        np.asarray(pred.depth[S - O :], np.float32),
+                        np.asarray(pred.conf[S - O :], np.float32),
+                        np.asarray(pred.extrinsic[S - O :]),
+                        np.asarray(pred.intrinsic[S - O :]),
+                    )
+                )
+                dirty = records.commit(
+                    self.writer.submit(
+                        t,
+                        _save_chunk,
+                        store,
+                        t,
+                        stored,
+                        chunk_binding(manifest, schedule, t),
+                        points,
+                        exact_tail,
+                        frames_written,
+                    )
+                )
+            head = align.ChunkFrames(head_d, head_c, pred.intrinsic[:O], pred.extrinsic[:O])
+            tail = align.ChunkFrames(tail_d, tail_c, pred.intrinsic[S - O :], pred.extrinsic[S - O :])
+            head_mask = None if mask_d is None else mask_d[:O]
+            tail_mask = None if mask_d is None else mask_d[S - O :]
+            del stored, depth, conf, depth_d, conf_d, halves, mask_d
+
+        chunk_edge = None
+        with timer("align"):
+            if t > 0:
+                if edge is None:
+                    prev_tail = self._prev_tail
+                    assert head is not None and prev_tail is not None and self.K_ref is not None
+                    S_rel, diag = align_pair(
+                        prev_tail,
+                        head,
+                        self.K_ref,
+                        config,
+                        False,
+                        f"chunks {t - 1}/{t}",
+                        mask=both(self._prev_tail_mask, head_mask),
+                    )
+                    edge = {"S": S_rel.tolist(), **diag}
+                    dirty = records.add_edge(t, edge) or dirty
+                chunk_edge = ChunkEdge(t, np.asarray(edge["S"], np.float64), edge)
+            self._prev_tail, self._prev_tail_mask = tail, tail_mask
+            del head, head_mask
+
+        if dirty:
+            with timer("chunk store"):
+                manifest.save_soon()
+        return TemporalChunk(t, frames, desc, chunk_edge, height)
+
+    def flush(self) -> None:
+        """Wait for the chunk files being written and record them (the chunk store then holds
+        every chunk added, e.g. for a loop chunk's alignment)."""
+        with self.ctx.timer("chunk store"):
+            if self.records.commit(self.writer.finished(wait=True)):
+                self.ctx.manifest.save_soon()  # marks the change for flush() (an earlier save may be recent)
+            self.ctx.manifest.flush()
+
+    def finish(self, drop_tails: bool) -> None:
+        """Every chunk file written and recorded; ``drop_tails``: every edge is recorded, so the
+        float32 tails go."""
+        self.flush()
+        if drop_tails:
+            with self.ctx.timer("chunk store"):
+                for c in self.ctx.store.indices("tail"):
+                    self.ctx.store.remove("tail", c)
+
+    def close(self) -> None:
+        """Stop the writer (also when interrupted: every complete chunk file is recorded)."""
+        self.writer.close()
+        with contextlib.suppress(Exception):
+            self.records.commit(self.writer.finished(wait=True))
+        self.ctx.manifest.flush()
 
 
 def _save_chunk(
