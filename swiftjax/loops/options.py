@@ -120,7 +120,7 @@ class VerificationConfig:
     min_overlap: float = option(0.2, "least fraction of reliable points seen", low=0.0, high=1.0)
     depth_tolerance: float = option(0.05, "relative depth agreement", low=0.0, low_open=True)
     stride: int = option(4, "source pixel subsampling of the dense test", low=1)
-    neighbours: int = option(3, "nearest target frames per source frame", low=1)
+    neighbours: int = option(3, "nearest target frames per source frame (0: every frame)", low=0)
     min_fraction: float = option(0.05, "least fraction_used of each half alignment", low=0.0, high=1.0)
     pcm: bool = option(True, "run the pairwise consistency test")
     pcm_threshold: float = option(4.93, "whitened cycle residual bound", low=0.0, low_open=True)
