@@ -392,7 +392,7 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     K_ref = K_ref.copy()
     K_ref[0, 1], K_ref[0, 2], K_ref[1, 2] = 0.7, 9.0, 13.0
     S, info = align.align_chunk_pair(
-        prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median")
+        prev, cur, K_ref, options=align.AlignOptions(min_points=100, overlap_scale="median")
     )
     (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref, scale=True)
     Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
