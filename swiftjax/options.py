@@ -184,7 +184,7 @@ def option(
     return dataclasses.field(default=default, metadata={_KEY: s})
 
 
-def spec(field: dataclasses.Field) -> Spec:
+def spec(field: dataclasses.Field[Any]) -> Spec:
     """The :class:`Spec` of a dataclass field declared with :func:`option`."""
     try:
         return field.metadata[_KEY]
