@@ -20,7 +20,7 @@ residuals.  Two information settings on the same measurements:
 * ``equal`` — ``Omega_e = I`` (the authors' pose graph).
 
 Solvers, each compared with the *same* setting's outlier-free solve (plain LM without the false
-edges): our LM (no kernel), Cauchy and GNC-TLS on the loop edges (``posegraph.optimize(kernel=...)``),
+edges): our LM (no kernel), Cauchy and GNC-TLS on the loop edges (``posegraph.optimize(problem, GraphOptions(kernel=...))``),
 GTSAM 4.3's ``LevenbergMarquardtOptimizer`` and ``GncLMOptimizer`` (TLS, odometry as known inliers)
 on the same graphs.  Thresholds: ``matched`` — ``c = sqrt(chi2_7^-1(0.99)) = 4.30`` (GTSAM's default
 inlier probability 0.99); ``equal`` — the inlier level, ``c = 3 x`` the largest true-loop residual norm
@@ -220,7 +220,7 @@ def clean_solve(g: dict, information: str):
     call under ``jax.enable_x64(True)``."""
     edges, meas, info, kind = _subgraph(g, 0, information)
     clean_prob = posegraph.Problem(g["initial"], edges, meas, information=info)
-    clean = posegraph.optimize(clean_prob, rtol=1e-12)
+    clean = posegraph.optimize(clean_prob, posegraph.GraphOptions(rtol=1e-12))
     if information == "matched":
         return clean, gnc.DEFAULT_SCALE
     r = np.asarray(posegraph.residuals(clean.poses, clean_prob))
@@ -234,10 +234,12 @@ def _distances(poses, clean, extent):
 
 def _alternating(prob, options: list[dict], repeat: int):
     """Best-of-``repeat`` result per option set, the solvers alternating (compiled once first)."""
-    best = [posegraph.optimize(prob, throw=False, **kw) for kw in options]  # LM on false loops may not converge
+    best = [
+        posegraph.optimize(prob, posegraph.GraphOptions(**kw), throw=False) for kw in options
+    ]  # LM on false loops may not converge
     for _ in range(repeat):
         for k, kw in enumerate(options):
-            r = posegraph.optimize(prob, throw=False, **kw)
+            r = posegraph.optimize(prob, posegraph.GraphOptions(**kw), throw=False)
             best[k] = r if r.solve_seconds < best[k].solve_seconds else best[k]
     return best
 

@@ -106,7 +106,7 @@ def graph_poses(
     meas = np.concatenate([relative, np.stack([z for _, _, z in loop_edges])])
     with jax.enable_x64(True):
         problem = posegraph.Problem(jnp.asarray(chain), np.asarray(edges, np.int32), jnp.asarray(meas))
-        res = posegraph.optimize(problem, max_steps=max_steps, throw=throw)
+        res = posegraph.optimize(problem, posegraph.GraphOptions(max_steps=max_steps), throw=throw)
         return np.asarray(sim3.normalize(res.poses), np.float64), bool(res.converged)
 
 

@@ -97,7 +97,7 @@ def run(name, poses, config, fit_on, sched, gt, regions):
     out = {}
 
     def detect(**kw):
-        found = L.find_loops(G, sched, fit_on=fit_on, return_details=True, **kw)
+        found = L.find_loops(G, sched, L.LoopOptions(fit_on=fit_on, **kw), return_details=True)
         loops = [lp for lp in found[0] if abs(lp.chunk_i - lp.chunk_j) >= 2]
         return loops, found[1]
 

@@ -130,7 +130,7 @@ def _bench_graph(args, name, prob, init):
         linear_solver=args.linear_solver,
         initialization=init,
     )
-    first = posegraph.optimize(prob, **opts)
+    first = posegraph.optimize(prob, posegraph.GraphOptions(**opts))
     n = prob.num_nodes
     row = dict(
         graph=name,
@@ -162,7 +162,7 @@ def _bench_graph(args, name, prob, init):
     runs, g_runs, init_runs = [first.solve_seconds], [], []
     for k in range(args.repeat):
         if k > 0:
-            runs.append(posegraph.optimize(prob, **opts).solve_seconds)
+            runs.append(posegraph.optimize(prob, posegraph.GraphOptions(**opts)).solve_seconds)
         if not with_gtsam or (g_runs and min(g_runs) > 5.0):  # slow runs: once is enough for a ratio
             continue
         if init_fn is not None:

@@ -55,10 +55,10 @@ with jax.enable_x64(True):
     prob = posegraph.Problem(g.initial, g.edges, g.measurements, information=info, robust=g.is_loop)
     records.clear()  # the graph's generation ran eager sim3 ops
     t0 = time.perf_counter()
-    first = posegraph.optimize(prob, kernel=kernel)
+    first = posegraph.optimize(prob, posegraph.GraphOptions(kernel=kernel))
     t1 = time.perf_counter()
     n_first = len(records)
-    second = posegraph.optimize(prob, kernel=kernel)
+    second = posegraph.optimize(prob, posegraph.GraphOptions(kernel=kernel))
 print(json.dumps(dict(
     import_seconds=t_ready - t_import, compile_seconds=first.compile_seconds, first_call_seconds=t1 - t0,
     solve_seconds_warm=second.solve_seconds, bucket=first.bucket, linear_solver=first.linear_solver,

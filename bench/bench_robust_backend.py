@@ -86,10 +86,12 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
                     threshold=c,
                 )
                 t0 = time.perf_counter()
-                res, check = pcm.consistent_solve(prob, cov, kernel_scale=gnc.DEFAULT_SCALE, throw=False)
+                res, check = pcm.consistent_solve(
+                    prob, cov, options=posegraph.GraphOptions(kernel_scale=gnc.DEFAULT_SCALE), throw=False
+                )
                 out = {"PCM+GNC": (res.poses, res.inlier_weights, time.perf_counter() - t0)}
                 t0 = time.perf_counter()
-                res = posegraph.optimize(prob, kernel="gnc", kernel_scale=c, throw=False)
+                res = posegraph.optimize(prob, posegraph.GraphOptions(kernel="gnc", kernel_scale=c), throw=False)
                 out["GNC"] = (res.poses, res.inlier_weights, time.perf_counter() - t0)
                 if with_gtsam:
                     poses, secs, w = rg._gtsam(g, edges, meas, info, kind, 1, c)

@@ -11,6 +11,15 @@ The pipeline's :class:`~swiftjax.pipeline.PipelineConfig` declares each field wi
 * the stage each option belongs to (``metadata["stage"]``), from which the run directory
   derives per-stage fingerprints (an export-only option never invalidates predictions).
 
+The stage option classes (``AlignOptions``, ``GraphOptions``, ``LoopOptions``,
+``VerificationConfig``) declare their fields with :func:`option` too, without ``stage`` (a
+stage class belongs to one stage as a whole; ``stage`` is the pipeline's fingerprint key and
+only :class:`~swiftjax.pipeline.PipelineConfig` gives it).  A ``PipelineConfig`` field that
+feeds a stage option names it with ``target=(StageClass, "field")``; :func:`build` makes any
+stage options object from a config through those targets (nested stage objects, such as
+``LoopOptions.verification_config``, declared with :func:`nested`, are built the same way).
+:func:`replace` is the one ``replace``: a validated copy, ``None`` a value like any other.
+
 Adding an option is one line in the dataclass::
 
     voxel_size: float | None = option(None, "voxel edge for per-chunk downsampling of the cloud",
@@ -57,6 +66,10 @@ __all__ = [
     "add_arguments",
     "flag",
     "stage_options",
+    "nested",
+    "replace",
+    "build",
+    "targets",
     "INT_LIMIT",
 ]
 
@@ -83,7 +96,7 @@ class Spec:
 
     kind: type
     help: str
-    stage: str
+    stage: str | None = None
     low: float | None = None
     high: float | None = None
     low_open: bool = False
@@ -91,6 +104,7 @@ class Spec:
     choices: tuple[str, ...] | None = None
     optional: bool = False
     finite: bool = True
+    target: tuple[type, str] | None = None
 
     def allowed(self, name: str) -> str:
         """What the option accepts, in words: ``"an integer >= 2"``, ``"one of umeyama, irls"``."""
@@ -123,7 +137,8 @@ def option(
     default: Any,
     help: str,
     *,
-    stage: str,
+    stage: str | None = None,
+    target: tuple[type, str] | None = None,
     kind: type | None = None,
     low: float | None = None,
     high: float | None = None,
@@ -136,7 +151,10 @@ def option(
     """A dataclass field with its schema: ``chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")``.
 
     ``kind`` defaults to the type of ``default`` (give it when the default is ``None``).
-    ``stage`` is one of :data:`STAGES`: the first stage whose stored result the option changes.
+    ``stage`` is one of :data:`STAGES`: the first stage whose stored result the option changes
+    (given by :class:`~swiftjax.pipeline.PipelineConfig`'s fields; ``None`` for the fields of a
+    stage option class).  ``target=(StageClass, "field")``: the stage option this config field
+    feeds (:func:`build`).
     """
     if kind is None:
         if default is None:
@@ -144,8 +162,10 @@ def option(
         kind = type(default)
     if kind not in (bool, int, float, str):
         raise TypeError(f"option kind must be bool, int, float or str, got {kind}")
-    if stage not in STAGES:
+    if stage is not None and stage not in STAGES:
         raise ValueError(f"option stage must be one of {STAGES}, got {stage!r}")
+    if target is not None and target[1] not in {f.name for f in dataclasses.fields(target[0])}:
+        raise TypeError(f"option target {target[0].__name__}.{target[1]} is not a field")
     s = Spec(
         kind=kind,
         help=help,
@@ -157,13 +177,14 @@ def option(
         choices=tuple(choices) if choices is not None else None,
         optional=optional,
         finite=finite,
+        target=target,
     )
     if default is not None or not optional:
         coerce(s, "default", default)  # a default outside its own schema is a programming error
     return dataclasses.field(default=default, metadata={_KEY: s})
 
 
-def spec(field: dataclasses.Field) -> Spec:
+def spec(field: dataclasses.Field[Any]) -> Spec:
     """The :class:`Spec` of a dataclass field declared with :func:`option`."""
     try:
         return field.metadata[_KEY]
@@ -174,8 +195,57 @@ def spec(field: dataclasses.Field) -> Spec:
 
 
 def specs(cls: Any) -> dict[str, Spec]:
-    """``{field name: Spec}`` of every field of the dataclass ``cls`` (all must use :func:`option`)."""
-    return {f.name: spec(f) for f in dataclasses.fields(cls)}
+    """``{field name: Spec}`` of every field of the dataclass ``cls`` declared with
+    :func:`option` (every other field must be a :func:`nested` one)."""
+    return {f.name: spec(f) for f in dataclasses.fields(cls) if _NESTED not in f.metadata}
+
+
+_NESTED = "swiftjax.option.nested"
+
+
+def nested(cls: Any) -> Any:
+    """A dataclass field holding a stage options object of class ``cls`` (default ``cls()``):
+    ``verification_config: VerificationConfig = nested(VerificationConfig)``.  :func:`validate`
+    checks its type; :func:`build` builds it from a config like a top-level one."""
+    return dataclasses.field(default=cls(), metadata={_NESTED: cls})
+
+
+def replace(instance: Any, **changes: Any) -> Any:
+    """A validated copy of the options object ``instance`` with ``changes`` (every value,
+    ``None`` included, is a value: ``None`` is only accepted by an optional field).
+
+    Raises:
+        OptionError: an unknown field (with the closest known one) or a refused value.
+    """
+    names = [f.name for f in dataclasses.fields(instance)]
+    for key in changes:
+        if key not in names:
+            close = difflib.get_close_matches(key, names, n=1)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise OptionError(f"unknown option {key!r} of {type(instance).__name__}{hint}")
+    return dataclasses.replace(instance, **changes)
+
+
+def targets(config_cls: Any, cls: Any) -> dict[str, str]:
+    """``{config field: stage field}`` of the fields of ``config_cls`` whose ``target`` is in ``cls``."""
+    out = {}
+    for f in dataclasses.fields(config_cls):
+        s = f.metadata.get(_KEY)
+        if s is not None and s.target is not None and s.target[0] is cls:
+            out[f.name] = s.target[1]
+    return out
+
+
+def build(cls: Any, config: Any) -> Any:
+    """The stage options ``cls`` of ``config`` (e.g. ``build(LoopOptions, pipeline_config)``):
+    every field of ``config`` whose ``target`` is a field of ``cls`` gives that field its value,
+    the :func:`nested` fields are built the same way, the rest keep ``cls``'s defaults."""
+    values: dict[str, Any] = {stage: getattr(config, name) for name, stage in targets(type(config), cls).items()}
+    for f in dataclasses.fields(cls):
+        inner = f.metadata.get(_NESTED)
+        if inner is not None and f.name not in values and targets(type(config), inner):
+            values[f.name] = build(inner, config)
+    return cls(**values)
 
 
 def stage_options(cls: Any, values: Mapping[str, Any], stage: str) -> dict[str, Any]:
@@ -252,6 +322,13 @@ def validate(instance: Any) -> None:
     """Check and normalise every field of a (frozen) dataclass instance in place (its
     ``__post_init__`` calls this)."""
     for f in dataclasses.fields(instance):
+        inner = f.metadata.get(_NESTED)
+        if inner is not None:
+            if not isinstance(getattr(instance, f.name), inner):
+                raise OptionError(
+                    f"invalid option {f.name}: {getattr(instance, f.name)!r}; allowed: a {inner.__name__}"
+                )
+            continue
         value = coerce(spec(f), f.name, getattr(instance, f.name))
         object.__setattr__(instance, f.name, value)
 

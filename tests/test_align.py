@@ -367,7 +367,7 @@ def test_reliability_mask_scale_ratio_matches_numpy(x64):
 
 def test_align_chunk_pair_recovers_sim3_float64(x64):
     prev, cur, K_ref, (R, t, s) = make_pair(seed=1)
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=100))
     assert S.dtype == jnp.float64
     rot, se, te = _errors(S, R, t, s)
     assert rot < 1e-9 and se < 1e-9 and te < 1e-9
@@ -392,7 +392,7 @@ def test_pixel_moment_path_equals_point_path_float64(x64):
     K_ref = K_ref.copy()
     K_ref[0, 1], K_ref[0, 2], K_ref[1, 2] = 0.7, 9.0, 13.0
     S, info = align.align_chunk_pair(
-        prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median")
+        prev, cur, K_ref, options=align.AlignOptions(min_points=100, overlap_scale="median")
     )
     (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref, scale=True)
     Rg, tg, sg = (np.asarray(a) for a in sim3.to_rst(S))
@@ -426,7 +426,9 @@ def test_align_chunk_pair_float32_far_from_origin_large_overlap():
     prev = prev._replace(depth=prev.depth * (1 + 0.003 * rng.normal(size=prev.depth.shape)))
     (R_r, t_r, s_r), n_ref = _reference_pair(prev, cur, K_ref)  # float64
     f32 = lambda fr: align.ChunkFrames(*(np.asarray(a, np.float32) for a in fr))
-    S, info = align.align_chunk_pair(f32(prev), f32(cur), K_ref.astype(np.float32), min_points=100)
+    S, info = align.align_chunk_pair(
+        f32(prev), f32(cur), K_ref.astype(np.float32), options=align.AlignOptions(min_points=100)
+    )
     assert S.dtype == jnp.float32 and bool(info.valid)
     assert abs(int(info.num_points) - n_ref) <= 1e-4 * n_ref  # float32 vs float64 mask ties
     rot, se, te = _errors(S, R_r, t_r, s_r)
@@ -435,7 +437,7 @@ def test_align_chunk_pair_float32_far_from_origin_large_overlap():
 
 def test_align_chunk_pair_float32_close_to_float64():
     prev, cur, K_ref, (R, t, s) = make_pair(seed=2, dtype=np.float32)
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=100))
     assert S.dtype == jnp.float32 and bool(info.valid)
     rot, se, te = _errors(S, R, t, s)
     assert rot < 1e-5 and se < 1e-4 and te < 1e-4
@@ -450,24 +452,24 @@ def test_align_chunk_pair_fallback_threshold_and_batch():
         depth=cur.depth
         + 0.22 / (0.5 * (K_ref[0, 0] / cur.intrinsic[:, 0, 0] + K_ref[1, 1] / cur.intrinsic[:, 1, 1]))[:, None, None]
     )
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=100, options=authors)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, options=authors.replace(min_points=100))
     assert bool(info.used_fallback_threshold) and float(info.depth_threshold) == pytest.approx(0.25)
     assert bool(info.valid) and int(info.num_points) > 100 and float(info.scale_ratio) == 1.0
-    S2, info2 = align.align_chunk_pair(prev, cur, K_ref, min_points=0, options=authors)
+    S2, info2 = align.align_chunk_pair(prev, cur, K_ref, options=authors.replace(min_points=0))
     assert not bool(info2.used_fallback_threshold) and not bool(info2.valid)  # 0 points at 0.2
     # Batched form = individual calls (the default options: rho per pair).
     p2, c2, _, _ = make_pair(seed=4, dtype=np.float32)
     pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
     cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
-    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100, options=authors)
-    S1, _ = align.align_chunk_pair(p2, c2, K_ref, min_points=100, options=authors)
-    Sd, idf = align.align_chunk_pairs(pb, cb, K_ref, min_points=100)
+    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, options=authors.replace(min_points=100))
+    S1, _ = align.align_chunk_pair(p2, c2, K_ref, options=authors.replace(min_points=100))
+    Sd, idf = align.align_chunk_pairs(pb, cb, K_ref, options=align.AlignOptions(min_points=100))
     for k, (p, c) in enumerate(((prev, cur), (p2, c2))):
-        Sk, ik = align.align_chunk_pair(p, c, K_ref, min_points=100)
+        Sk, ik = align.align_chunk_pair(p, c, K_ref, options=align.AlignOptions(min_points=100))
         np.testing.assert_allclose(np.asarray(Sd[k]), np.asarray(Sk), atol=1e-5)
         assert float(idf.scale_ratio[k]) == pytest.approx(float(ik.scale_ratio), rel=1e-6)
     # "auto" with enough points at lambda_D: the authors' numbers bit for bit, rho = 1
-    Sa, ia = align.align_chunk_pair(p2, c2, K_ref, min_points=100)
+    Sa, ia = align.align_chunk_pair(p2, c2, K_ref, options=align.AlignOptions(min_points=100))
     np.testing.assert_array_equal(np.asarray(Sa), np.asarray(S1))
     assert float(ia.scale_ratio) == 1.0 and int(ia.num_points) > 100
     # float32: the batched reductions round differently (~eps x |t| ~ 1e-6 here).
@@ -483,14 +485,18 @@ def test_align_chunk_pair_nan_pixels_never_reach_S(x64):
     dp[rng.random(dp.shape) < 0.05] = np.nan
     dp[rng.random(dp.shape) < 0.05] = np.inf
     cc[rng.random(cc.shape) < 0.05] = np.nan
-    S, info = align.align_chunk_pair(prev._replace(depth=dp), cur._replace(conf=cc), K_ref, min_points=100)
+    S, info = align.align_chunk_pair(
+        prev._replace(depth=dp), cur._replace(conf=cc), K_ref, options=align.AlignOptions(min_points=100)
+    )
     assert np.all(np.isfinite(np.asarray(S))) and bool(info.valid)
     rot, se, te = _errors(S, R, t, s)
     assert rot < 1e-9 and se < 1e-9 and te < 1e-9
     # A frame with a non-finite camera is dropped as a whole (its pixels are not counted).
     ep = prev.extrinsic.copy()
     ep[1, 0, 3] = np.nan
-    S2, info2 = align.align_chunk_pair(prev._replace(extrinsic=ep), cur, K_ref, min_points=100)
+    S2, info2 = align.align_chunk_pair(
+        prev._replace(extrinsic=ep), cur, K_ref, options=align.AlignOptions(min_points=100)
+    )
     _, n_ref = _reference_pair(prev, cur, K_ref)
     n_frame1 = _reference_pair(*(f._replace(**{k: getattr(f, k)[1:2] for k in f._fields}) for f in (prev, cur)), K_ref)[
         1
@@ -535,13 +541,14 @@ def test_align_options_written_once_and_taken_everywhere():
     import dataclasses
     import inspect
 
+    from swiftjax import options
     from swiftjax.pipeline import PipelineConfig
 
     opts = align.AlignOptions()
     cfg = PipelineConfig()
     for f in dataclasses.fields(align.AlignOptions):  # the pipeline's defaults are AlignOptions'
         assert getattr(cfg, f.name) == getattr(opts, f.name), f.name
-    assert align.AlignOptions.from_config(cfg) == opts
+    assert options.build(align.AlignOptions, cfg) == opts
     sig = inspect.signature(align.reliability_mask)
     assert sig.parameters["depth_threshold"].default == opts.depth_threshold
     assert sig.parameters["conf_ratio"].default == opts.conf_ratio
@@ -550,14 +557,16 @@ def test_align_options_written_once_and_taken_everywhere():
     assert loop.fallback_depth_threshold == max(opts.fallback_depth_threshold, opts.loop_depth_threshold)
     with pytest.raises(dataclasses.FrozenInstanceError):
         opts.min_points = 3  # type: ignore[misc]
-    # An options object and the same keywords give the same alignment.
+    # An options object built either way gives the same alignment.
     prev, cur, K_ref, _ = make_pair(seed=8, o=2, h=16, w=24, dtype=np.float32)
-    S_kw, i_kw = align.align_chunk_pair(prev, cur, K_ref, min_points=100, depth_threshold=0.3)
+    S_kw, i_kw = align.align_chunk_pair(
+        prev, cur, K_ref, options=align.AlignOptions(min_points=100, depth_threshold=0.3)
+    )
     S_op, i_op = align.align_chunk_pair(prev, cur, K_ref, options=opts.replace(min_points=100, depth_threshold=0.3))
     np.testing.assert_array_equal(np.asarray(S_kw), np.asarray(S_op))
     assert float(i_op.depth_threshold) == pytest.approx(0.3)
     with pytest.raises(TypeError):
-        align.align_chunk_pairs(prev, cur, K_ref, no_such_option=1)
+        align.align_chunk_pairs(prev, cur, K_ref, min_points=100)  # options only: no override keywords
 
 
 def test_align_chunk_pair_checked_throw_false_reports_flags_only(logged_warning):

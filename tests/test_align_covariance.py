@@ -156,7 +156,7 @@ def test_align_info_moments_equal_explicit_points(x64):
     rng = np.random.default_rng(1)
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
     S, info = align.align_chunk_pair(
-        prev, cur, K_ref, min_points=100, options=align.AlignOptions(overlap_scale="median")
+        prev, cur, K_ref, options=align.AlignOptions(min_points=100, overlap_scale="median")
     )
     assert float(info.scale_ratio) != 1.0  # the moments are mapped back to chunk t+1's units
     dp = camera.normalize_depth(prev.depth, prev.intrinsic, K_ref)
@@ -186,7 +186,7 @@ def test_degenerate_inputs_are_invalid(x64):
     # An alignment that fell back to the camera poses has no point statistics to speak of.
     prev, cur, K_ref, _ = make_pair(seed=3, o=2, h=8, w=8)
     cur = cur._replace(depth=np.full_like(cur.depth, np.nan))
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=10)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=10))
     assert bool(info.pose_fallback)
     assert not bool(ac.alignment_information(S, info).valid)
     del nan

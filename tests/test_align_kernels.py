@@ -126,7 +126,9 @@ def test_chunk_pair_kernel_fallback_threshold_and_batch(monkeypatch):
     pb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(prev, p2)))
     cb = align.ChunkFrames(*(np.stack([a, b]) for a, b in zip(cur, c2)))
     monkeypatch.delenv("SWIFTJAX_ALIGN_KERNEL", raising=False)
-    Sb, ib = align.align_chunk_pairs(pb, cb, K_ref, min_points=100, overlap_scale="none")  # vmap over the FFI call
+    Sb, ib = align.align_chunk_pairs(
+        pb, cb, K_ref, options=align.AlignOptions(min_points=100, overlap_scale="none")
+    )  # vmap over the FFI call
     _close(Sb[0], S_j)
     assert int(ib.num_points[0]) == int(i_j.num_points)
 
@@ -166,7 +168,10 @@ def test_kernels_are_deterministic_and_isas_agree():
         for name in ISAS:
             kernels.set_isa(name)
             runs = [
-                (align.align_chunk_pair(prev, cur, K_ref, min_points=100)[0], align.umeyama(x, y, w)[0])
+                (
+                    align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=100))[0],
+                    align.umeyama(x, y, w)[0],
+                )
                 for _ in range(3)
             ]
             for S_pair, S_um in runs[1:]:
@@ -221,6 +226,8 @@ def test_quick_compiled_entry_points_nest_inside_a_users_jit():
     np.testing.assert_allclose(np.asarray(S_const), np.asarray(S_top), atol=1e-6)
     assert abs(float(S_top[7]) - 1.5) < 1e-5
     prev, cur, K_ref, _ = make_pair(seed=8, dtype=np.float32)
-    S_pair, _ = align.align_chunk_pair(prev, cur, K_ref, min_points=100)
-    S_in, _ = jax.jit(lambda p, c: align.align_chunk_pair(p, c, K_ref, min_points=100))(prev, cur)
+    S_pair, _ = align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=100))
+    S_in, _ = jax.jit(lambda p, c: align.align_chunk_pair(p, c, K_ref, options=align.AlignOptions(min_points=100)))(
+        prev, cur
+    )
     np.testing.assert_allclose(np.asarray(S_in), np.asarray(S_pair), atol=1e-5)

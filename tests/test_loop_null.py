@@ -188,10 +188,10 @@ def test_candidate_numbers_carry_the_null():
 @pytest.mark.parametrize(
     "kw,match",
     [
-        ({"agreement_rule": "tuned"}, "agreement_rule must be 'null' or 'fixed'"),
-        ({"null_samples": 5}, "null_samples must be even"),
-        ({"null_false_alarm": 0.0}, "null_false_alarm must be in"),
-        ({"null_min_kappa": 1.0}, "null_min_kappa must be in"),
+        ({"agreement_rule": "tuned"}, "invalid option agreement_rule: 'tuned'; allowed: one of null, fixed"),
+        ({"null_samples": 5}, "invalid option null_samples: 5; allowed: an even integer >= 4"),
+        ({"null_false_alarm": 0.0}, "invalid option null_false_alarm: 0.0 is out of range"),
+        ({"null_min_kappa": 1.0}, "invalid option null_min_kappa: 1.0 is out of range"),
         ({"null_min_shift": 0.5, "null_max_shift": 0.2}, "null_min_shift <= null_max_shift"),
     ],
 )
@@ -201,10 +201,10 @@ def test_verification_config_rejects_bad_null_options(kw, match):
 
 
 def test_pipeline_option_reaches_the_verification_config():
+    from swiftjax.options import build
     from swiftjax.pipeline import PipelineConfig
-    from swiftjax.pipeline.loop_closure import loop_options
 
-    assert loop_options(PipelineConfig()).verification_config.agreement_rule == "null"
-    assert loop_options(PipelineConfig(loop_agreement="fixed")).verification_config.agreement_rule == "fixed"
+    assert build(V.VerificationConfig, PipelineConfig()).agreement_rule == "null"
+    assert build(V.VerificationConfig, PipelineConfig(loop_agreement="fixed")).agreement_rule == "fixed"
     with pytest.raises(ValueError, match="loop_agreement"):
         PipelineConfig(loop_agreement="tuned")

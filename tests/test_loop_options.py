@@ -15,15 +15,15 @@ from swiftjax import loops as L
 from swiftjax.chunks import chunk_schedule
 from swiftjax.loops import verification as V
 from swiftjax.loops.options import LoopOptions
+from swiftjax.options import OptionError, build
 from swiftjax.pipeline.config import PipelineConfig
-from swiftjax.pipeline.loop_closure import loop_options
 
 
 def test_pipeline_config_takes_the_loop_defaults():
-    o = loop_options(PipelineConfig())
+    o = build(LoopOptions, PipelineConfig())
     assert o == LoopOptions()  # every PipelineConfig loop default is LoopOptions's
     cfg = PipelineConfig(loop_top_k=3, loop_min_agreement=0.6, loop_pcm=False, whitening_dim=64)
-    o = loop_options(cfg)
+    o = build(LoopOptions, cfg)
     assert (o.top_k, o.dim, o.verification_config.min_agreement, o.verification_config.pcm) == (3, 64, 0.6, False)
 
 
@@ -53,27 +53,28 @@ def test_function_defaults_come_from_loop_options():
 @pytest.mark.parametrize(
     "bad, match",
     [
-        ({"rule": "auto"}, "rule must be one of"),
-        ({"fit_on": "g0"}, "fit_on must be"),
-        ({"nms": "box"}, "nms must be"),
-        ({"false_alarms": 1.0}, "false_alarms must be in"),
-        ({"top_k": 0}, "top_k must be >= 1"),
-        ({"verification": "maybe"}, "verification must be"),
+        ({"rule": "auto"}, "invalid option rule: 'auto'; allowed: one of adaptive"),
+        ({"fit_on": "g0"}, "invalid option fit_on: 'g0'"),
+        ({"nms": "box"}, "invalid option nms: 'box'"),
+        ({"false_alarms": 1.0}, "invalid option false_alarms: 1.0 is out of range"),
+        ({"top_k": 0}, "invalid option top_k: 0 is out of range; allowed: an integer >= 1"),
+        ({"verification": "maybe"}, "invalid option verification: 'maybe'"),
     ],
 )
 def test_loop_options_reject_bad_values(bad, match):
-    with pytest.raises(ValueError, match="LoopOptions: " + match):
+    with pytest.raises(OptionError, match=match):
         LoopOptions(**bad)
 
 
-def test_find_loops_options_and_overrides_agree():
+def test_find_loops_takes_an_options_object_only():
     G = planted(n=600, d=256, seed=19, loops=((400, 50, 30), (560, 300, 20)), noise=0.05)
     sched = chunk_schedule(600)
-    a = L.find_loops(G, sched, dim=128, rule="fixed", threshold=0.7)
     b = L.find_loops(G, sched, LoopOptions(dim=128, rule="fixed", threshold=0.7))
-    c = L.find_loops(G, sched, LoopOptions(dim=128), rule="fixed", threshold=0.7)  # keyword wins
+    c = L.find_loops(G, sched, LoopOptions(dim=128).replace(rule="fixed", threshold=0.7))
     key = lambda loops: [(lp.i, lp.j, lp.score, lp.frames.tolist()) for lp in loops]
-    assert key(a) == key(b) == key(c) and len(a) == 2
+    assert key(b) == key(c) and len(b) == 2
+    with pytest.raises(TypeError):
+        L.find_loops(G, sched, dim=128)  # no override keywords
 
 
 def test_find_loops_throw_false_leaves_nonfinite_rows_out(logged_warning):
@@ -83,17 +84,17 @@ def test_find_loops_throw_false_leaves_nonfinite_rows_out(logged_warning):
     bad[3, 0] = np.nan
     bad[410] = np.inf  # inside the first planted loop region
     with pytest.raises(ValueError, match="NaN or Inf"):
-        L.find_loops(bad, sched, dim=128)
+        L.find_loops(bad, sched, LoopOptions(dim=128))
     with logged_warning("2 descriptor row"):
         loops, details = L.find_loops(
-            bad, sched, dim=128, rule="fixed", threshold=0.7, throw=False, return_details=True
+            bad, sched, LoopOptions(dim=128, rule="fixed", threshold=0.7), throw=False, return_details=True
         )
     np.testing.assert_array_equal(details["nonfinite_rows"], [3, 410])
     assert {(lp.i - lp.j) for lp in loops} == {350, 260}
     assert all(410 != lp.i and 3 != lp.j for lp in loops)
     # the adaptive rule too: the non-finite rows never become candidates
     with logged_warning("2 descriptor row"):
-        _, details = L.find_loops(bad, sched, dim=128, throw=False, return_details=True)
+        _, details = L.find_loops(bad, sched, LoopOptions(dim=128), throw=False, return_details=True)
     c = details["candidates"]
     assert not np.isin(np.asarray(c.pairs)[: int(c.count)], [3, 410]).any()
 

@@ -114,7 +114,7 @@ def test_demo_route_false_loop_fixed_vs_adaptive(demo_descriptors):
     reg = places.loop_regions(gt)
 
     def run(**kw):
-        found, det = L.find_loops(G, sched, return_details=True, **kw)
+        found, det = L.find_loops(G, sched, L.LoopOptions(**kw), return_details=True)
         ev = places.evaluate_loops(np.array([(lp.i, lp.j) for lp in found]).reshape(-1, 2), gt, regions=reg)
         return found, det, ev
 
@@ -132,10 +132,13 @@ def test_demo_route_false_loop_fixed_vs_adaptive(demo_descriptors):
 def test_bad_input_is_named(demo_descriptors):
     _, G = demo_descriptors
     sched = chunk_schedule(len(G))
-    with pytest.raises(ValueError, match="rule must be one of"):
-        L.find_loops(G, sched, rule="median")
-    with pytest.raises(ValueError, match="false_alarms must be in"):
-        L.find_loops(G, sched, false_alarms=0.0)
+    with pytest.raises(ValueError, match="invalid option rule: 'median'; allowed: one of adaptive"):
+        L.LoopOptions(rule="median")
+    with pytest.raises(
+        ValueError,
+        match=r"invalid option false_alarms: 0.0 is out of range; allowed: a finite number with 0 < value < 1",
+    ):
+        L.LoopOptions(false_alarms=0.0)
     with pytest.raises(ValueError, match="false_alarms must be in"):
         L.detect_loops(G[:200], calibrate=True, false_alarms=1.5)
     bad = G.copy()
@@ -163,7 +166,7 @@ def test_a_calibrated_threshold_above_one_says_so(logged_warning):
     poses = loop_route()
     G = _route_descriptors(poses, places.PlaceTokenConfig(dim=512, tokens_per_frame=8))
     with logged_warning("calibrated loop threshold is 1.1"):
-        found, det = L.find_loops(G, chunk_schedule(len(G)), fit_on="raw", return_details=True)
+        found, det = L.find_loops(G, chunk_schedule(len(G)), L.LoopOptions(fit_on="raw"), return_details=True)
     assert found == [] and det["threshold"] > 1.0
 
 
@@ -179,7 +182,7 @@ def test_a_route_of_laps_without_candidate_says_so_and_fixed_finds_the_loops(log
     with logged_warning("revisits most of its frames"):
         found, det = L.find_loops(G, sched, return_details=True)
     assert found == [] and det["threshold"] < 1.0 and "no_candidate_warning" in det
-    fixed = L.find_loops(G, sched, rule="fixed")
+    fixed = L.find_loops(G, sched, L.LoopOptions(rule="fixed"))
     gt = places.ground_truth_loops(poses)
     ev = places.evaluate_loops(np.array([(lp.i, lp.j) for lp in fixed]).reshape(-1, 2), gt, tolerance=25)
     assert ev.n_correct >= 5 and ev.region_recall == 1.0

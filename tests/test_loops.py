@@ -285,7 +285,7 @@ def test_detect_loops_rejects_nan_at_host_boundary():
     Z[17] = np.nan
     with pytest.raises(ValueError, match="detect_loops: descriptors Z contains NaN or Inf.*row 17"):
         L.detect_loops(Z, 0.5)
-    with pytest.raises(ValueError, match="nms must be"):
+    with pytest.raises(ValueError, match=r"invalid option nms \(detect_loops\): 'box'"):
         L.detect_loops(planted(seed=15), 0.5, nms="box")
 
 
@@ -399,7 +399,7 @@ def test_loop_edge_maps_chunk_i_into_chunk_j(x64):
 def test_find_loops_planted_and_errors():
     G = planted(n=600, d=256, seed=19, loops=((400, 50, 30), (560, 300, 20)), noise=0.05)
     sched = chunk_schedule(600)
-    loops = L.find_loops(G, sched, dim=128, threshold=0.7)
+    loops = L.find_loops(G, sched, L.LoopOptions(dim=128, threshold=0.7))
     assert {(lp.i - lp.j) for lp in loops} == {350, 260}
     for lp in loops:
         assert lp.frames.shape == (40,) and lp.frames[lp.local_i] == lp.i and lp.frames[lp.local_j] == lp.j
@@ -409,8 +409,8 @@ def test_find_loops_planted_and_errors():
         L.find_loops(bad, sched)
     with pytest.raises(ValueError, match="schedule is for 500 frames"):
         L.find_loops(G, chunk_schedule(500))
-    with pytest.raises(ValueError, match="fit_on"):
-        L.find_loops(G, sched, fit_on="g0")
+    with pytest.raises(ValueError, match="invalid option fit_on: 'g0'; allowed: one of power, raw"):
+        L.LoopOptions(fit_on="g0")
     assert L.find_loops(G[:50], chunk_schedule(50)) == []
 
 

@@ -90,9 +90,9 @@ def test_mask_equals_removing_the_pixels():
     prev, cur, K, s = _pair()
     rng = np.random.default_rng(1)
     keep = rng.random(prev.depth.shape) < 0.6
-    S_m, info_m = align.align_chunk_pair(prev, cur, K, min_points=10, mask=keep)
+    S_m, info_m = align.align_chunk_pair(prev, cur, K, options=align.AlignOptions(min_points=10), mask=keep)
     nan = lambda fr: fr._replace(depth=np.where(keep, fr.depth, np.nan).astype(np.float32))
-    S_n, info_n = align.align_chunk_pair(nan(prev), nan(cur), K, min_points=10)
+    S_n, info_n = align.align_chunk_pair(nan(prev), nan(cur), K, options=align.AlignOptions(min_points=10))
     assert int(info_m.num_points) == int(info_n.num_points) == int(keep.sum())
     np.testing.assert_allclose(np.asarray(S_m), np.asarray(S_n), atol=2e-5)
     assert float(S_m[7]) == pytest.approx(1 / s, rel=1e-4)  # maps cur (scaled by s) into prev
@@ -102,7 +102,7 @@ def test_a_mask_removing_the_whole_overlap_falls_back_to_the_poses_with_a_warnin
     prev, cur, K, _ = _pair()
     keep = np.zeros(prev.depth.shape, bool)
     with logged_warning(r"0 reliable points.*the mask keeps 0\.00% of its pixels.*overlap camera poses"):
-        S, info = align.align_chunk_pair_checked(prev, cur, K, min_points=10, mask=keep)
+        S, info = align.align_chunk_pair_checked(prev, cur, K, options=align.AlignOptions(min_points=10), mask=keep)
     assert bool(info.pose_fallback) and int(info.num_points) == 0
     S_pose, ok = align.pose_based_estimate(prev.extrinsic, cur.extrinsic)
     assert bool(ok)
@@ -110,7 +110,7 @@ def test_a_mask_removing_the_whole_overlap_falls_back_to_the_poses_with_a_warnin
     with pytest.raises(ValueError, match="mask has shape"):
         align.align_chunk_pair_checked(prev, cur, K, mask=keep[:, :5])
     with logged_warning(None):  # an unmasked pair does not warn
-        align.align_chunk_pair_checked(prev, cur, K, min_points=10)
+        align.align_chunk_pair_checked(prev, cur, K, options=align.AlignOptions(min_points=10))
 
 
 # ------------------------------------------------------------------- synthetic world

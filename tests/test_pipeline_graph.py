@@ -26,7 +26,7 @@ def test_edge_information_of_a_record_equals_the_core_function(x64):
     prev, cur, K_ref, _ = make_pair(seed=4, o=3, h=16, w=20)
     rng = np.random.default_rng(0)
     cur = cur._replace(depth=cur.depth * (1 + 0.01 * rng.normal(size=cur.depth.shape)))
-    S, info = align.align_chunk_pair(prev, cur, K_ref, min_points=50)
+    S, info = align.align_chunk_pair(prev, cur, K_ref, options=align.AlignOptions(min_points=50))
     rec = _record(S, info)
     om, valid = graph.edge_information(
         [rec, {k: v for k, v in rec.items() if k != "src_covariance"}, {**rec, "pose_fallback": True}], 196.0

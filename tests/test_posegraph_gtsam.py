@@ -50,7 +50,7 @@ def test_conventions_match_gtsam(x64):
 
 def _compare(poses, edges, meas, info, fixed, *, pose_atol):
     prob = posegraph.Problem(poses, edges, meas, information=info, fixed=fixed)
-    ours = posegraph.optimize(prob, **TOL)
+    ours = posegraph.optimize(prob, posegraph.GraphOptions(**TOL))
     ref = solve_gtsam(poses, edges, meas, info, fixed, **TOL)
     cost_at_gtsam = float(jax.jit(posegraph.cost)(jnp.asarray(ref.poses), prob))
     # GTSAM's own error is the same function: equal to ours at its optimum and at its start.

@@ -96,9 +96,9 @@ def test_chordal_start_reaches_the_global_minimum(x64):
     """Circle with random loops from dead reckoning: LM alone ends in a worse local minimum;
     with the chordal start it reaches the minimum found from the truth."""
     g = circle_graph(400, seed=0, noise=(0.05, 0.08, 0.01))
-    plain = posegraph.optimize(_problem(g), rtol=1e-12)
-    chordal = posegraph.optimize(_problem(g), rtol=1e-12, initialization="chordal")
-    from_truth = posegraph.optimize(_problem(g, poses=g.truth), rtol=1e-12)
+    plain = posegraph.optimize(_problem(g), posegraph.GraphOptions(rtol=1e-12))
+    chordal = posegraph.optimize(_problem(g), posegraph.GraphOptions(rtol=1e-12, initialization="chordal"))
+    from_truth = posegraph.optimize(_problem(g, poses=g.truth), posegraph.GraphOptions(rtol=1e-12))
     assert chordal.converged and from_truth.converged
     assert chordal.cost_final == pytest.approx(from_truth.cost_final, rel=1e-9)
     assert chordal.cost_start < 1e-2 * chordal.cost_initial
@@ -108,7 +108,7 @@ def test_chordal_start_reaches_the_global_minimum(x64):
 def test_invalid_initialization_name():
     g = circle_graph(8, num_loops=2)
     with pytest.raises(ValueError, match="initialization"):
-        posegraph.optimize(_problem(g), initialization="spanning-tree")
+        posegraph.optimize(_problem(g), posegraph.GraphOptions(initialization="spanning-tree"))
 
 
 @pytest.mark.parametrize("linear_solver", ["sparse", "pcg"])
@@ -117,8 +117,10 @@ def test_chordal_start_reports_the_given_cost(x64, linear_solver):
     given poses, ``cost_start`` that of the chordal start, and the optimum is the same."""
     g = circle_graph(60, num_loops=20, seed=4)
     given = float(posegraph.cost(jax.numpy.asarray(g.initial), _problem(g)))
-    plain = posegraph.optimize(_problem(g), rtol=1e-12, linear_solver=linear_solver)
-    chordal = posegraph.optimize(_problem(g), rtol=1e-12, linear_solver=linear_solver, initialization="chordal")
+    plain = posegraph.optimize(_problem(g), posegraph.GraphOptions(rtol=1e-12, linear_solver=linear_solver))
+    chordal = posegraph.optimize(
+        _problem(g), posegraph.GraphOptions(rtol=1e-12, linear_solver=linear_solver, initialization="chordal")
+    )
     assert plain.cost_initial == pytest.approx(given, rel=1e-12)
     assert plain.cost_start == plain.cost_initial
     assert chordal.cost_initial == pytest.approx(given, rel=1e-12)

@@ -203,7 +203,7 @@ def test_pcm_rejects_a_consistent_cluster_that_plain_gnc_keeps(x64):
     truth_only = g["kind"] != "false"
     with jax.enable_x64(True):
         clean = posegraph.optimize(_problem(g, equal, truth_only)).poses
-        plain = posegraph.optimize(_problem(g, equal), kernel="gnc", throw=False)
+        plain = posegraph.optimize(_problem(g, equal), posegraph.GraphOptions(kernel="gnc"), throw=False)
         cov = np.einsum("ei,ij->eij", 1.0 / g["information"], np.eye(7))
         res, check = pcm.consistent_solve(_problem(g, equal), cov, throw=False)
     false, true = g["kind"] == "false", g["kind"] == "loop"

@@ -461,21 +461,12 @@ def _core_arguments(prev: Any, cur: Any, K_ref: Any, options: AlignOptions) -> t
     )
 
 
-def _resolve(options: AlignOptions | None, **overrides: Any) -> AlignOptions:
-    """``options`` (default :class:`AlignOptions`) with the keywords given (not ``None``) applied."""
-    return (AlignOptions() if options is None else options).replace(**overrides)
-
-
 def align_chunk_pair(
     prev: ChunkFrames,
     cur: ChunkFrames,
     K_ref: Real[ArrayLike, "3 3"],
     *,
     options: AlignOptions | None = None,
-    depth_threshold: float | None = None,
-    conf_ratio: float | None = None,
-    min_points: int | None = None,
-    fallback_depth_threshold: float | None = None,
     mask: Bool[ArrayLike, "O H W"] | None = None,
 ) -> tuple[Float[Array, 8], AlignInfo]:
     """``S_{t->t+1}`` (maps chunk t+1 coordinates into chunk t) from the overlap frames.
@@ -502,11 +493,9 @@ def align_chunk_pair(
             ``extrinsic [O, 3, 4]``), or any object with those attributes
             (e.g. a :class:`swiftjax.prediction.ChunkPrediction` sliced to the overlap).
         K_ref: ``[3, 3]`` reference intrinsics.
-        options: :class:`AlignOptions` (default ``AlignOptions()``); loop chunks use
-            ``options.for_loop()``.
-        depth_threshold, conf_ratio, min_points, fallback_depth_threshold: override the
-            field of ``options`` of the same name when given.  Every option is traced:
-            changing one never recompiles.
+        options: :class:`AlignOptions` (default ``AlignOptions()``; vary it with
+            ``options.replace(depth_threshold=...)``); loop chunks use ``options.for_loop()``.
+            Every option is traced: changing one never recompiles.
         mask: optional bool ``[O, H, W]`` keep-mask of the overlap frames (user masks, sky;
             :mod:`swiftjax.masks`; both chunks see the same frames, so one mask): pixels where
             it is False are never reliable.  ``None`` keeps every pixel (a masked pair
@@ -518,14 +507,7 @@ def align_chunk_pair(
         plus one plain sum over the confidences for their per-frame means; the fallback
         pass runs only when needed.
     """
-    opts = _resolve(
-        options,
-        depth_threshold=depth_threshold,
-        conf_ratio=conf_ratio,
-        min_points=min_points,
-        fallback_depth_threshold=fallback_depth_threshold,
-    )
-    args = _core_arguments(prev, cur, K_ref, opts)
+    args = _core_arguments(prev, cur, K_ref, AlignOptions() if options is None else options)
     return _align_core_jit(*args, None if mask is None else jnp.asarray(mask, bool))
 
 
@@ -536,16 +518,14 @@ def align_chunk_pairs(
     *,
     options: AlignOptions | None = None,
     mask: Bool[ArrayLike, "P O H W"] | None = None,
-    **overrides: float | int | str | bool | None,
 ) -> tuple[Float[Array, "P 8"], AlignInfo]:
     """:func:`align_chunk_pair` for ``P`` pairs at once (``jax.vmap``, one jitted call).
 
     ``prev``/``cur`` fields carry a leading ``[P]`` axis; ``K_ref`` is ``[3, 3]`` (shared)
-    or ``[P, 3, 3]``; ``mask`` is ``None`` or bool ``[P, O, H, W]``; ``options`` and the
-    ``overrides`` (:func:`align_chunk_pair`'s option keywords) are shared by every pair.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap`` the
+    or ``[P, 3, 3]``; ``mask`` is ``None`` or bool ``[P, O, H, W]``; ``options`` is shared by every pair.  Returns ``(S [P, 8], AlignInfo with [P] fields)``.  Under ``vmap`` the
     fallback-threshold pass becomes a select, so it is computed for every pair.
     """
-    prev, cur, K, *option_args = _core_arguments(prev, cur, K_ref, _resolve(options, **overrides))
+    prev, cur, K, *option_args = _core_arguments(prev, cur, K_ref, AlignOptions() if options is None else options)
     keep = None if mask is None else jnp.asarray(mask, bool)
     return _align_core_batched(prev, cur, jnp.broadcast_to(K, (prev.depth.shape[0], 3, 3)), *option_args, keep)
 
@@ -559,13 +539,11 @@ def align_chunk_pair_checked(
     throw: bool = True,
     options: AlignOptions | None = None,
     mask: Bool[ArrayLike, "O H W"] | None = None,
-    **overrides: Any,
 ) -> tuple[Float[Array, 8], AlignInfo]:
     """Host-level :func:`align_chunk_pair`: validates inputs first, warns on a fallback.
 
     Args:
-        prev, cur, K_ref, options, mask: as :func:`align_chunk_pair`; ``overrides`` are its
-            option keywords (``depth_threshold=...``).
+        prev, cur, K_ref, options, mask: as :func:`align_chunk_pair`.
         name: names the pair in errors and warnings.
         throw: True: check the inputs on the host (:func:`swiftjax.align.checks.check_chunk_pair`)
             and warn when the solve fell back to the poses.  False: no host check, no warning
@@ -585,7 +563,7 @@ def align_chunk_pair_checked(
     """
     if throw:
         checks.check_chunk_pair(prev, cur, K_ref, mask)
-    S, info = align_chunk_pair(prev, cur, K_ref, options=options, mask=mask, **overrides)
+    S, info = align_chunk_pair(prev, cur, K_ref, options=options, mask=mask)
     if throw and bool(info.pose_fallback):
         masked = "" if mask is None else f"; the mask keeps {100 * float(np.mean(mask)):.2f}% of its pixels"
         logger.warning(

@@ -11,6 +11,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from swiftjax import options
+from swiftjax.options import option
+
 __all__ = ["AlignOptions", "OVERLAP_SCALE_RULES"]
 
 #: How chunk t+1's overlap depths are put on chunk t's scale before eq. 2: ``"none"`` (the
@@ -44,25 +47,26 @@ class AlignOptions:
     Every field is a traced argument of the jitted alignment: changing one never recompiles.
 
     Raises:
-        ValueError: ``overlap_scale`` not in :data:`OVERLAP_SCALE_RULES`.
+        swiftjax.options.OptionError: a value outside its field's schema.
     """
 
-    depth_threshold: float = 0.2
-    conf_ratio: float = 0.5
-    min_points: int = 20_000
-    fallback_depth_threshold: float = 0.25
-    loop_depth_threshold: float = 0.4
-    overlap_scale: str = "auto"
+    depth_threshold: float = option(
+        0.2, "max |D_t - D_t+1| of normalised overlap depths (lambda_D)", low=0.0, low_open=True
+    )
+    conf_ratio: float = option(
+        0.5, "keep pixels with confidence > ratio x frame mean (lambda_gamma)", low=0.0, high=10.0
+    )
+    min_points: int = option(20_000, "fewest reliable points before the one-time retry", low=0, high=10**8)
+    fallback_depth_threshold: float = option(0.25, "depth threshold of the retry", low=0.0, low_open=True)
+    loop_depth_threshold: float = option(0.4, "depth threshold of a loop-chunk alignment", low=0.0, low_open=True)
+    overlap_scale: str = option("auto", "overlap depths put on one scale before eq. 2", choices=OVERLAP_SCALE_RULES)
 
     def __post_init__(self) -> None:
-        if self.overlap_scale not in OVERLAP_SCALE_RULES:
-            raise ValueError(
-                f"AlignOptions: overlap_scale must be one of {OVERLAP_SCALE_RULES}, got {self.overlap_scale!r}"
-            )
+        options.validate(self)
 
     def replace(self, **changes: Any) -> AlignOptions:
-        """A copy with ``changes`` applied (``None`` values are ignored)."""
-        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
 
     def for_loop(self) -> AlignOptions:
         """The options of a loop-chunk alignment: ``depth_threshold = loop_depth_threshold``,
@@ -72,9 +76,3 @@ class AlignOptions:
             depth_threshold=self.loop_depth_threshold,
             fallback_depth_threshold=max(self.fallback_depth_threshold, self.loop_depth_threshold),
         )
-
-    @classmethod
-    def from_config(cls, config: Any) -> AlignOptions:
-        """The fields of ``config`` (e.g. a :class:`~swiftjax.pipeline.PipelineConfig`) that
-        share their names with this class's."""
-        return cls(**{f.name: getattr(config, f.name) for f in dataclasses.fields(cls)})

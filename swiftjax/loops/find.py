@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from typing import NamedTuple
 
@@ -17,7 +16,7 @@ from swiftjax.loops._checks import _check_finite
 from swiftjax.loops.descriptors import fit_whitening, power_normalize, whiten
 from swiftjax.loops.detection import detect_loops
 from swiftjax.loops.loop_chunk import _loop_chunks, filter_by_chunks
-from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions, check_values
+from swiftjax.loops.options import AUTHORS_THRESHOLD, LoopOptions
 
 __all__ = ["Loop", "find_loops"]
 
@@ -82,22 +81,6 @@ def find_loops(
     *,
     throw: bool = True,
     return_details: bool = False,
-    rule: str | None = None,
-    threshold: float | None = None,
-    false_alarms: float | None = None,
-    beta: float | None = None,
-    remove: int | None = None,
-    dim: int | None = None,
-    eps: float | None = None,
-    max_samples: int | None = None,
-    fit_on: str | None = None,
-    min_separation: int | None = None,
-    nms_radius: int | None = None,
-    top_k: int | None = None,
-    max_loops: int | None = None,
-    nms: str | None = None,
-    half_window: int | None = None,
-    adapt_to_length: bool | None = None,
 ):
     """All loops of a sequence from its per-frame descriptors ``g⁰ [N, d]``, in one call.
 
@@ -124,13 +107,12 @@ def find_loops(
         descriptors: ``[N, d]`` per-frame ``g⁰`` (:func:`frame_descriptor` of each chunk's
             tokens, rows of the frames in order; in overlaps any copy, they are per-frame).
         schedule: :class:`swiftjax.chunks.ChunkSchedule` of the sequence (``n_frames == N``).
-        options: :class:`~swiftjax.loops.options.LoopOptions` (default ``LoopOptions()``).
+        options: :class:`~swiftjax.loops.options.LoopOptions` (default ``LoopOptions()``; vary
+            it with ``LoopOptions(rule="fixed", threshold=0.7)`` or ``options.replace(...)``).
         throw: ``True``: non-finite descriptors are a ``ValueError``.  ``False``: their rows
             are left out of the whitening fit and never match (a warning names them;
             ``details["nonfinite_rows"]`` lists them).
         return_details: also return a dict with the intermediate arrays.
-        rule, threshold, ..., adapt_to_length: override the field of the same name of
-            ``options`` (``None``: the options' value).
 
     Returns:
         ``list[Loop]`` sorted by score (and the details dict if asked).  Loops whose
@@ -139,7 +121,7 @@ def find_loops(
 
     Raises:
         ValueError: non-finite descriptors (``throw=True``), wrong shapes, mismatched
-            schedule, unknown ``fit_on`` or ``rule``, ``false_alarms`` outside ``(0, 1)``.
+            schedule.
     """
     G = np.asarray(descriptors)
     if G.ndim != 2:
@@ -156,27 +138,7 @@ def find_loops(
             f"find_loops: {len(bad)} descriptor row(s) contain NaN or Inf (first at row {int(bad[0])}); "
             "those frames are left out of the whitening and never match"
         )
-    given = dict(
-        rule=rule,
-        threshold=threshold,
-        false_alarms=false_alarms,
-        beta=beta,
-        remove=remove,
-        dim=dim,
-        eps=eps,
-        max_samples=max_samples,
-        fit_on=fit_on,
-        min_separation=min_separation,
-        nms_radius=nms_radius,
-        top_k=top_k,
-        max_loops=max_loops,
-        nms=nms,
-        half_window=half_window,
-        adapt_to_length=adapt_to_length,
-    )
-    given = {k: v for k, v in given.items() if v is not None}
-    check_values(given, "find_loops")
-    o = dataclasses.replace(LoopOptions() if options is None else options, **given)
+    o = LoopOptions() if options is None else options
     n_fit = int(finite.sum())
     threshold, fit_on, dim = effective_settings(o, n_fit)
     g1 = power_normalize(G, o.beta)

@@ -16,6 +16,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from swiftjax import options
+from swiftjax.options import nested, option
+
 __all__ = [
     "LoopOptions",
     "VerificationConfig",
@@ -36,14 +39,14 @@ __all__ = [
 DEFAULT_THRESHOLD = 0.43
 
 #: The authors' cosine threshold, on descriptors whitened by a PCA fitted on g⁰ and applied to
-#: g¹ (their code's quirk); ``find_loops(rule="authors")``.
+#: g¹ (their code's quirk); ``LoopOptions(rule="authors")``.
 AUTHORS_THRESHOLD = 0.98
 
 #: ``α`` of :func:`~swiftjax.loops.calibrate_threshold`: the expected number of frames
 #: WITHOUT a revisit whose best match still passes the threshold, per sequence.
 DEFAULT_FALSE_ALARMS = 1e-3
 
-#: ``find_loops(rule=...)``: ``"adaptive"`` (default, :func:`~swiftjax.loops.calibrate_threshold`),
+#: ``LoopOptions(rule=...)``: ``"adaptive"`` (default, :func:`~swiftjax.loops.calibrate_threshold`),
 #: ``"fixed"`` (``threshold``), ``"authors"`` (0.98, whitening fitted on g⁰).
 THRESHOLD_RULES = ("adaptive", "fixed", "authors")
 
@@ -105,50 +108,49 @@ class VerificationConfig:
             (:func:`~swiftjax.loops.verification.loop_covariance`).
     """
 
-    agreement_rule: str = "null"
-    min_agreement: float = 0.55
-    null_samples: int = 16
-    null_false_alarm: float = 0.01
-    null_min_kappa: float = 0.2
-    null_min_shift: float = 0.15
-    null_max_shift: float = 0.4
-    min_overlap: float = 0.2
-    depth_tolerance: float = 0.05
-    stride: int = 4
-    neighbours: int = 3
-    min_fraction: float = 0.05
-    pcm: bool = True
-    pcm_threshold: float = 4.93
-    odo_sigma_rot: float = 0.01
-    odo_sigma_trans: float = 0.05
-    odo_sigma_scale: float = 0.04
-    loop_sigma_rot: float = 0.015
-    loop_sigma_trans: float = 0.05
-    loop_sigma_scale: float = 0.03
+    agreement_rule: str = option("null", "how the dense agreement is judged", choices=AGREEMENT_RULES)
+    min_agreement: float = option(0.55, "the dense test's fixed bound", low=0.0, high=1.0)
+    null_samples: int = option(16, "null edges per candidate (even)", low=4)
+    null_false_alarm: float = option(
+        0.01, "false-alarm rate of the null test", low=0.0, high=1.0, low_open=True, high_open=True
+    )
+    null_min_kappa: float = option(0.2, "least chance-corrected agreement", low=0.0, high=1.0, high_open=True)
+    null_min_shift: float = option(0.15, "smallest null offset (of the median depth)", low=0.0, low_open=True)
+    null_max_shift: float = option(0.4, "largest null offset (of the median depth)", low=0.0, low_open=True)
+    min_overlap: float = option(0.2, "least fraction of reliable points seen", low=0.0, high=1.0)
+    depth_tolerance: float = option(0.05, "relative depth agreement", low=0.0, low_open=True)
+    stride: int = option(4, "source pixel subsampling of the dense test", low=1)
+    neighbours: int = option(3, "nearest target frames per source frame (0: every frame)", low=0)
+    min_fraction: float = option(0.05, "least fraction_used of each half alignment", low=0.0, high=1.0)
+    pcm: bool = option(True, "run the pairwise consistency test")
+    pcm_threshold: float = option(4.93, "whitened cycle residual bound", low=0.0, low_open=True)
+    odo_sigma_rot: float = option(0.01, "temporal-edge drift: rotation sigma", low=0.0, low_open=True)
+    odo_sigma_trans: float = option(0.05, "temporal-edge drift: translation sigma", low=0.0, low_open=True)
+    odo_sigma_scale: float = option(0.04, "temporal-edge drift: log-scale sigma", low=0.0, low_open=True)
+    loop_sigma_rot: float = option(0.015, "loop-edge drift: rotation sigma", low=0.0, low_open=True)
+    loop_sigma_trans: float = option(0.05, "loop-edge drift: translation sigma", low=0.0, low_open=True)
+    loop_sigma_scale: float = option(0.03, "loop-edge drift: log-scale sigma", low=0.0, low_open=True)
 
     def __post_init__(self) -> None:
-        if self.agreement_rule not in AGREEMENT_RULES:
-            raise ValueError(
-                "VerificationConfig: agreement_rule must be "
-                + " or ".join(map(repr, AGREEMENT_RULES))
-                + f", got {self.agreement_rule!r}"
+        options.validate(self)
+        if self.null_samples % 2:
+            raise options.OptionError(
+                f"invalid option null_samples: {self.null_samples}; allowed: an even integer >= 4"
             )
-        if self.null_samples < 4 or self.null_samples % 2:
-            raise ValueError(f"VerificationConfig: null_samples must be even and >= 4, got {self.null_samples}")
-        if not 0.0 < self.null_false_alarm < 1.0:
-            raise ValueError(f"VerificationConfig: null_false_alarm must be in (0, 1), got {self.null_false_alarm}")
-        if not 0.0 <= self.null_min_kappa < 1.0:
-            raise ValueError(f"VerificationConfig: null_min_kappa must be in [0, 1), got {self.null_min_kappa}")
-        if not 0.0 < self.null_min_shift <= self.null_max_shift:
-            raise ValueError(
-                "VerificationConfig: need 0 < null_min_shift <= null_max_shift, got "
-                f"{self.null_min_shift}, {self.null_max_shift}"
+        if not self.null_min_shift <= self.null_max_shift:
+            raise options.OptionError(
+                f"invalid option null_min_shift: {self.null_min_shift}; allowed: 0 < null_min_shift <= "
+                f"null_max_shift ({self.null_max_shift})"
             )
+
+    def replace(self, **changes: Any) -> VerificationConfig:
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
 
 
 @dataclasses.dataclass(frozen=True)
 class LoopOptions:
-    """Every option of the loop stage, with its default (frozen; ``dataclasses.replace`` to vary).
+    """Every option of the loop stage, with its default (frozen; ``replace`` to vary).
 
     Descriptors (:mod:`swiftjax.loops.descriptors`):
         beta: signed power ``β`` of :func:`~swiftjax.loops.power_normalize`.
@@ -181,53 +183,44 @@ class LoopOptions:
         verification_config: the thresholds of the geometric tests.
 
     Raises:
-        ValueError: an unknown rule / ``fit_on`` / ``nms`` or a value out of range.
+        swiftjax.options.OptionError: an unknown rule / ``fit_on`` / ``nms`` or a value out of range.
     """
 
-    beta: float = 0.5
-    remove: int = 1
-    dim: int = 512
-    eps: float = 1e-6
-    max_samples: int = 50_000
-    fit_on: str = "power"
-    adapt_to_length: bool = True
-    rule: str = "adaptive"
-    threshold: float = DEFAULT_THRESHOLD
-    false_alarms: float = DEFAULT_FALSE_ALARMS
-    min_separation: int = 100
-    nms_radius: int = 25
-    top_k: int = 8
-    max_loops: int | None = None
-    nms: str = "pair"
-    half_window: int = 10
-    verification: str = "geometric"
-    verification_config: VerificationConfig = VerificationConfig()
+    beta: float = option(0.5, "signed power applied to the descriptors (beta)", low=0.0, low_open=True)
+    remove: int = option(1, "leading PCA components dropped by the whitening (r)", low=0)
+    dim: int = option(512, "descriptor dimension kept by the PCA whitening (d')", low=1)
+    eps: float = option(1e-6, "whitening regulariser", low=0.0)
+    max_samples: int = option(50_000, "most descriptors the whitening is fitted on", low=2)
+    fit_on: str = option("power", "what the whitening is fitted on", choices=FIT_ON)
+    adapt_to_length: bool = option(True, "adapt d' and the fixed threshold to short sequences")
+    rule: str = option("adaptive", "how the loop threshold is set", choices=THRESHOLD_RULES)
+    threshold: float = option(DEFAULT_THRESHOLD, "cosine threshold of rule=fixed")
+    false_alarms: float = option(
+        DEFAULT_FALSE_ALARMS, "adaptive threshold: false alarms", low=0.0, high=1.0, low_open=True, high_open=True
+    )
+    min_separation: int = option(100, "fewest frames between the two frames of a loop", low=0)
+    nms_radius: int = option(25, "non-maximum suppression radius (frames)", low=0)
+    top_k: int = option(8, "most candidates per frame before suppression", low=1)
+    max_loops: int | None = option(None, "NMS buffer size (none: the bound)", kind=int, low=1, optional=True)
+    nms: str = option("pair", "non-maximum suppression rule", choices=NMS_RULES)
+    half_window: int = option(10, "frames around each end of a loop in the loop chunk", low=1)
+    verification: str = option("geometric", "loop verification", choices=VERIFICATION_RULES)
+    verification_config: VerificationConfig = nested(VerificationConfig)
 
     def __post_init__(self) -> None:
-        check_values(dataclasses.asdict(self), "LoopOptions")
+        options.validate(self)
+
+    def replace(self, **changes: Any) -> LoopOptions:
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
 
 
 def check_values(values: dict[str, Any], where: str) -> None:
-    """Reject the entries of ``values`` (``LoopOptions`` field names; others are ignored)
-    that no ``LoopOptions`` accepts, naming ``where`` in the error."""
-    choices = {"rule": THRESHOLD_RULES, "fit_on": FIT_ON, "nms": NMS_RULES, "verification": VERIFICATION_RULES}
-    for key, allowed in choices.items():
-        if key in values and values[key] not in allowed:
-            if key == "rule":
-                raise ValueError(f"{where}: rule must be one of {allowed}, got {values[key]!r}")
-            raise ValueError(f"{where}: {key} must be " + " or ".join(map(repr, allowed)) + f", got {values[key]!r}")
-    if "false_alarms" in values and not 0.0 < float(values["false_alarms"]) < 1.0:
-        raise ValueError(f"{where}: false_alarms must be in (0, 1), got {values['false_alarms']}")
-    for key, low in (
-        ("remove", 0),
-        ("dim", 1),
-        ("max_samples", 2),
-        ("min_separation", 0),
-        ("nms_radius", 0),
-        ("top_k", 1),
-        ("half_window", 1),
-    ):
-        if key in values and values[key] < low:
-            raise ValueError(f"{where}: {key} must be >= {low}, got {values[key]}")
-    if values.get("max_loops") is not None and values["max_loops"] < 1:
-        raise ValueError(f"{where}: max_loops must be >= 1, got {values['max_loops']}")
+    """Reject the entries of ``values`` (``LoopOptions`` field names; others are ignored) that
+    no ``LoopOptions`` accepts: an :class:`~swiftjax.options.OptionError` naming ``where`` and
+    the field (the schema of :class:`LoopOptions`; for array functions that take single
+    options as arguments)."""
+    table = options.specs(LoopOptions)
+    for key, value in values.items():
+        if key in table:
+            options.coerce(table[key], f"{key} ({where})", value)

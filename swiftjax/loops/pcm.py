@@ -315,13 +315,16 @@ def consistent_solve(
     num_chain_nodes: int | None = None,
     probability: float = 0.99,
     odometry_check: bool = False,
-    **options: Any,
+    options: Any = None,
+    throw: bool = True,
 ) -> tuple[Any, GraphConsistency]:
     """PCM over every loop edge (:func:`graph_consistency`), then GNC-TLS on the consistent set:
     ``(Result, GraphConsistency)`` (host; Kimera-RPGO's recipe).
 
-    ``options`` go to :func:`swiftjax.posegraph.optimize` (``kernel`` is ``"gnc"``; its
-    ``kernel_scale`` is the inlier threshold in the noise model's whitened units).  With
+    ``options``: the :class:`~swiftjax.posegraph.GraphOptions` of every
+    :func:`swiftjax.posegraph.optimize` call (default ``GraphOptions()``; ``kernel`` is set to
+    ``"gnc"``; its ``kernel_scale`` is the inlier threshold in the noise model's whitened
+    units); ``throw`` is :func:`~swiftjax.posegraph.optimize`'s.  With
     ``covariance`` None the noise model is ``problem.information`` and this is one GNC solve on
     ``problem`` with the PCM-rejected edges out.  With a ``covariance`` (the noise model when the
     solve's information is something else, e.g. equal weights): GNC runs on the problem with
@@ -340,15 +343,15 @@ def consistent_solve(
     check = graph_consistency(
         problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability, odometry_check=odometry_check
     )
-    options = {**options, "kernel": "gnc"}
-    c = posegraph.GraphOptions(kernel="gnc", kernel_scale=options.get("kernel_scale")).scale
+    options = (posegraph.GraphOptions() if options is None else options).replace(kernel="gnc")
+    c = options.scale
     decide = check.problem
     if covariance is not None:  # GNC decides on the graph whitened by the noise model
         cov = np.asarray(covariance, np.float64)
         info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
         info = jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), np.asarray(problem.poses).dtype)
         decide = dataclasses.replace(decide, information=info)
-    res = posegraph.optimize(decide, **options)
+    res = posegraph.optimize(decide, options, throw=throw)
     # second look: a loop PCM left out that fits the solved map (s <= c^2) comes back, and GNC reruns
     out = np.zeros(problem.num_edges, bool)
     out[check.loop_edges] = ~check.kept[check.loop_edges]
@@ -357,12 +360,12 @@ def consistent_solve(
     readmitted = out & (s <= c * c)
     if readmitted.any():
         decide = dataclasses.replace(decide, edge_mask=jnp.asarray(np.asarray(decide.edge_mask) | readmitted))
-        res = posegraph.optimize(decide, **options)
+        res = posegraph.optimize(decide, options, throw=throw)
     check = check._replace(readmitted=readmitted)
     if covariance is None:
         return res, check
     inliers = np.asarray(decide.edge_mask) & (res.inlier_weights >= 0.5)
     final = posegraph.optimize(
-        dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)), **{**options, "kernel": None}
+        dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)), options.replace(kernel=None), throw=throw
     )
     return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check

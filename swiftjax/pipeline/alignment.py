@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align, sim3
+from swiftjax.options import build
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["align_pair", "both", "info_dict"]
@@ -71,7 +72,7 @@ def align_pair(
 
 
 def _align_options(config: PipelineConfig, loop: bool) -> align.AlignOptions:
-    options = align.AlignOptions.from_config(config)
+    options = build(align.AlignOptions, config)
     return options.for_loop() if loop else options
 
 

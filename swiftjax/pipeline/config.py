@@ -1,7 +1,9 @@
 """Method parameters of a run: :class:`PipelineConfig`, one typed schema (:mod:`swiftjax.options`).
 
 Every field is declared with :func:`swiftjax.options.option`: type, range, choices, help and
-the stage it belongs to.  The CLI flags, the TOML keys, validation and the run directory's
+the stage it belongs to; a field that feeds a stage's options names it (``target=``), and
+:func:`swiftjax.options.build` makes the stage's options object from a config
+(``build(LoopOptions, config)``).  The CLI flags, the TOML keys, validation and the run directory's
 per-stage fingerprints all derive from these declarations.  To add an option, add one field
 in the same style (its flag ``--name-with-dashes`` appears by itself).
 """
@@ -12,13 +14,16 @@ import dataclasses
 from typing import Any
 
 from swiftjax import loops, options
-from swiftjax.align import AlignOptions as _ALIGN
+from swiftjax.align import AlignOptions as _AlignOptions
 from swiftjax.align.options import OVERLAP_SCALE_RULES
+from swiftjax.loops.options import VerificationConfig as _VerificationConfig
 from swiftjax.metric_scale import METRIC_COMBINE
 from swiftjax.options import option
 from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
 from swiftjax.posegraph.options import PIPELINE as _GRAPH
+from swiftjax.posegraph.options import GraphOptions as _GraphOptions
 
+_ALIGN = _AlignOptions()  # the alignment fields' defaults
 _LOOPS = loops.LoopOptions()  # the loop fields' defaults
 
 __all__ = ["PipelineConfig", "BACKBONE_NAMES", "METRIC_BACKBONES"]
@@ -69,6 +74,7 @@ class PipelineConfig:
         "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
         low=0.0,
         low_open=True,
+        target=(_AlignOptions, "depth_threshold"),
         stage="temporal",
     )
     conf_ratio: float = option(
@@ -76,6 +82,7 @@ class PipelineConfig:
         "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
         low=0.0,
         high=10.0,
+        target=(_AlignOptions, "conf_ratio"),
         stage="temporal",
     )
     min_points: int = option(
@@ -83,6 +90,7 @@ class PipelineConfig:
         "fewest reliable points before the one-time retry with fallback_depth_threshold",
         low=3,
         high=10**8,
+        target=(_AlignOptions, "min_points"),
         stage="temporal",
     )
     fallback_depth_threshold: float = option(
@@ -90,6 +98,7 @@ class PipelineConfig:
         "depth threshold of the retry when fewer than min_points are reliable",
         low=0.0,
         low_open=True,
+        target=(_AlignOptions, "fallback_depth_threshold"),
         stage="temporal",
     )
     overlap_scale: str = option(
@@ -97,6 +106,7 @@ class PipelineConfig:
         "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the "
         "reliability mask: median (always), auto (only when the authors' mask keeps fewer than min_points) or none (the authors' eq. 2)",
         choices=OVERLAP_SCALE_RULES,
+        target=(_AlignOptions, "overlap_scale"),
         stage="temporal",
     )
     loop_depth_threshold: float = option(
@@ -104,6 +114,7 @@ class PipelineConfig:
         "depth threshold when aligning a loop chunk to its temporal chunks",
         low=0.0,
         low_open=True,
+        target=(_AlignOptions, "loop_depth_threshold"),
         stage="loops",
     )
     loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")
@@ -112,6 +123,7 @@ class PipelineConfig:
         "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
         "own similarity distribution), fixed (loop_threshold) or authors",
         choices=tuple(loops.THRESHOLD_RULES),
+        target=(loops.LoopOptions, "rule"),
         stage="loops",
     )
     loop_threshold: float = option(
@@ -119,6 +131,7 @@ class PipelineConfig:
         "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
         low=-1.0,
         high=1.0,
+        target=(loops.LoopOptions, "threshold"),
         stage="loops",
     )
     loop_false_alarms: float = option(
@@ -128,26 +141,48 @@ class PipelineConfig:
         high=1.0,
         low_open=True,
         high_open=True,
+        target=(loops.LoopOptions, "false_alarms"),
         stage="loops",
     )
     loop_min_separation: int = option(
-        _LOOPS.min_separation, "fewest frames between the two frames of a loop", low=1, high=10**7, stage="loops"
+        _LOOPS.min_separation,
+        "fewest frames between the two frames of a loop",
+        low=1,
+        high=10**7,
+        target=(loops.LoopOptions, "min_separation"),
+        stage="loops",
     )
     loop_nms_radius: int = option(
         _LOOPS.nms_radius,
         "non-maximum suppression radius of loop candidates (frames)",
         low=0,
         high=10**7,
+        target=(loops.LoopOptions, "nms_radius"),
         stage="loops",
     )
     loop_top_k: int = option(
-        _LOOPS.top_k, "most loop candidates kept per frame before suppression", low=1, high=1000, stage="loops"
+        _LOOPS.top_k,
+        "most loop candidates kept per frame before suppression",
+        low=1,
+        high=1000,
+        target=(loops.LoopOptions, "top_k"),
+        stage="loops",
     )
     whitening_dim: int = option(
-        _LOOPS.dim, "descriptor dimension kept by the PCA whitening (d')", low=1, high=65_536, stage="loops"
+        _LOOPS.dim,
+        "descriptor dimension kept by the PCA whitening (d')",
+        low=1,
+        high=65_536,
+        target=(loops.LoopOptions, "dim"),
+        stage="loops",
     )
     whitening_remove: int = option(
-        _LOOPS.remove, "leading PCA components dropped by the whitening (r)", low=0, high=65_536, stage="loops"
+        _LOOPS.remove,
+        "leading PCA components dropped by the whitening (r)",
+        low=0,
+        high=65_536,
+        target=(loops.LoopOptions, "remove"),
+        stage="loops",
     )
     power_beta: float = option(
         _LOOPS.beta,
@@ -155,6 +190,7 @@ class PipelineConfig:
         low=0.0,
         high=1.0,
         low_open=True,
+        target=(loops.LoopOptions, "beta"),
         stage="loops",
     )
     loop_half_window: int = option(
@@ -163,6 +199,7 @@ class PipelineConfig:
         "default 10, or chunk_size / 2 when that is smaller)",
         low=1,
         high=5_000,
+        target=(loops.LoopOptions, "half_window"),
         stage="loops",
     )
     loop_verification: str = option(
@@ -170,6 +207,7 @@ class PipelineConfig:
         "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
         "and pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
         choices=loops.VERIFICATION_RULES,
+        target=(loops.LoopOptions, "verification"),
         stage="loops",
     )
     loop_min_agreement: float = option(
@@ -177,6 +215,7 @@ class PipelineConfig:
         "loop verification: the dense test's bound (fraction of agreeing pixels)",
         low=0.0,
         high=1.0,
+        target=(_VerificationConfig, "min_agreement"),
         stage="loops",
     )
     loop_agreement: str = option(
@@ -184,10 +223,14 @@ class PipelineConfig:
         "loop verification: null (the dense agreement must beat what the same "
         "two chunks give under clearly wrong edges, per candidate) or fixed (must reach loop_min_agreement)",
         choices=loops.AGREEMENT_RULES,
+        target=(_VerificationConfig, "agreement_rule"),
         stage="loops",
     )
     loop_pcm: bool = option(
-        _LOOPS.verification_config.pcm, "loop verification: the pairwise consistency test", stage="loops"
+        _LOOPS.verification_config.pcm,
+        "loop verification: the pairwise consistency test",
+        target=(_VerificationConfig, "pcm"),
+        stage="loops",
     )
     loop_geometry: bool = option(
         False,
@@ -202,6 +245,7 @@ class PipelineConfig:
         kind=str,
         choices=_ROBUST_CHOICES,
         optional=True,
+        target=(_GraphOptions, "kernel"),
         stage="graph",
     )
     robust_scale: float = option(
@@ -209,6 +253,7 @@ class PipelineConfig:
         "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
         low=0.0,
         low_open=True,
+        target=(_GraphOptions, "kernel_scale"),
         stage="graph",
     )
     graph_pcm: bool = option(
@@ -234,6 +279,7 @@ class PipelineConfig:
         "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)",
         low=0,
         high=100_000,
+        target=(_GraphOptions, "max_steps"),
         stage="graph",
     )
     point_conf_ratio: float = option(

@@ -67,6 +67,8 @@ import numpy as np
 from swiftjax.camera import world_cameras
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.loops.online import OnlineLoopDetector
+from swiftjax.loops.options import LoopOptions
+from swiftjax.options import build
 from swiftjax.pipeline import export, graph, loop_closure, rundir
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import LocalExecutor
@@ -292,7 +294,7 @@ class Reconstruction:
         self._ctx = ctx
         if self.config.loop_closure:
             self._detector = OnlineLoopDetector(
-                loop_closure.loop_options(self.config),
+                build(LoopOptions, self.config),
                 whitening=self._whitening,
                 whitening_source=self._whitening_source,
             )

@@ -49,6 +49,7 @@ from swiftjax import metric_scale, posegraph, sim3
 from swiftjax.align import covariance
 from swiftjax.loops import pcm
 from swiftjax.loops import verification as lv
+from swiftjax.options import build
 from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.posegraph import chain_poses
@@ -227,9 +228,8 @@ def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) 
 
 def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
     posegraph.validate(problem)
-    res = posegraph.optimize(
-        problem, max_steps=config.max_lm_steps, kernel=kernel, kernel_scale=config.robust_scale, throw=False
-    )  # not converged: the caller warns
+    options = build(posegraph.GraphOptions, config).replace(kernel=kernel)
+    res = posegraph.optimize(problem, options, throw=False)  # not converged: the caller warns
     return res, np.asarray(sim3.normalize(res.poses), np.float64)
 
 
@@ -337,8 +337,7 @@ def run(
                         problem,
                         cov,
                         num_chain_nodes=T,
-                        max_steps=config.max_lm_steps,
-                        kernel_scale=config.robust_scale,
+                        options=build(posegraph.GraphOptions, config),
                         throw=False,
                     )
                     chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)

@@ -32,6 +32,7 @@ import numpy as np
 
 from swiftjax import _faults, align, loops
 from swiftjax.loops import verification as lv
+from swiftjax.options import build
 from swiftjax.pipeline import loop_geometry
 from swiftjax.pipeline.alignment import align_pair, both
 from swiftjax.pipeline.config import PipelineConfig
@@ -44,7 +45,6 @@ from swiftjax.prediction import ChunkPrediction
 __all__ = [
     "CandidateSource",
     "decide",
-    "loop_options",
     "loop_record",
     "needs_numbers",
     "run",
@@ -69,7 +69,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     if not (config.loop_closure and schedule.num_chunks > 2):
         return LoopResult(loop_records, loop_edges)
     with timer("loop detection"):
-        found = (candidates or loops.find_loops)(temporal.descriptors, schedule, loop_options(config))
+        found = (candidates or loops.find_loops)(temporal.descriptors, schedule, build(loops.LoopOptions, config))
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
         neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
@@ -224,29 +224,8 @@ def without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
     return dataclasses.replace(pred, patch_tokens=None)
 
 
-def loop_options(config: PipelineConfig) -> loops.LoopOptions:
-    """The run's :class:`~swiftjax.loops.LoopOptions`: ``config``'s loop fields, the rest at
-    their defaults."""
-    return loops.LoopOptions(
-        rule=config.loop_threshold_rule,
-        threshold=config.loop_threshold,
-        false_alarms=config.loop_false_alarms,
-        beta=config.power_beta,
-        remove=config.whitening_remove,
-        dim=config.whitening_dim,
-        min_separation=config.loop_min_separation,
-        nms_radius=config.loop_nms_radius,
-        top_k=config.loop_top_k,
-        half_window=config.loop_half_window,
-        verification=config.loop_verification,
-        verification_config=lv.VerificationConfig(
-            min_agreement=config.loop_min_agreement, pcm=config.loop_pcm, agreement_rule=config.loop_agreement
-        ),
-    )
-
-
 def _verification_config(config: PipelineConfig) -> lv.VerificationConfig:
-    return loop_options(config).verification_config
+    return build(lv.VerificationConfig, config)
 
 
 def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]]) -> None:

@@ -3,7 +3,7 @@
     from swiftjax import posegraph
     problem = posegraph.Problem(poses0, edges, measurements, information=w, fixed=None)
     result = posegraph.optimize(problem)          # -> Result(poses, cost_initial, cost_final, ...)
-    result = posegraph.optimize(problem, kernel="gnc")   # GNC-TLS on the robust edges
+    result = posegraph.optimize(problem, posegraph.GraphOptions(kernel="gnc"))   # GNC-TLS on the robust edges
     result = posegraph.optimize(problem, posegraph.GraphOptions(max_steps=20), throw=False)
     result.inlier_weights                         # [E]: 0 for rejected edges
     result.result                                 # LMResult: why LM stopped

@@ -334,14 +334,11 @@ def _gnc_continuation(lm, problem: Problem, start: Array, params, options: Graph
 _COMPILED: dict[tuple, _Bucket] = {}
 
 
-def _resolve_options(options: GraphOptions | None, overrides: dict) -> GraphOptions:
+def _resolve_options(options: GraphOptions | None) -> GraphOptions:
     options = GraphOptions() if options is None else options
     if not isinstance(options, GraphOptions):
         raise TypeError(f"options must be a GraphOptions, not {type(options).__name__}")
-    unknown = set(overrides) - {f.name for f in dataclasses.fields(GraphOptions)}
-    if unknown:
-        raise TypeError(f"optimize() got unexpected keyword argument(s) {', '.join(sorted(unknown))}")
-    return options.replace(**overrides) if overrides else options
+    return options
 
 
 def optimize(
@@ -350,7 +347,6 @@ def optimize(
     *,
     throw: bool = True,
     pad: bool = True,
-    **overrides,
 ) -> Result:
     """Solve the Sim(3) pose graph by Levenberg–Marquardt (see :mod:`swiftjax.posegraph.solver`).
 
@@ -358,9 +354,8 @@ def optimize(
         problem: the graph; its ``poses`` are the initial guess and set the dtype (use
             float64 arrays under ``jax.enable_x64(True)`` for kilometre-scale maps; float32
             works and stops at rounding level).
-        options: :class:`~swiftjax.posegraph.GraphOptions` (default ``GraphOptions()``); its
-            fields may also be given as keywords (``max_steps=20, kernel="gnc"``), which
-            override ``options``.
+        options: :class:`~swiftjax.posegraph.GraphOptions` (default ``GraphOptions()``; vary
+            it with ``GraphOptions(max_steps=20, kernel="gnc")`` or ``options.replace(...)``).
         throw: True: validate the problem on the host first
             (:func:`~swiftjax.posegraph.validate`, a :class:`~swiftjax.posegraph.ProblemError`
             before any work) and raise :class:`SolveError` if the solve does not converge;
@@ -375,7 +370,7 @@ def optimize(
         SolveError: the solve did not converge (``throw=True``).
         ValueError: invalid options.
     """
-    options = _resolve_options(options, overrides)
+    options = _resolve_options(options)
     raise_on_failure = bool(throw)
     if raise_on_failure:
         validate(problem)

@@ -1,6 +1,6 @@
 """The pose graph's options: :class:`GraphOptions`, every default written once.
 
-:func:`swiftjax.posegraph.optimize` takes a ``GraphOptions`` (or its fields as keywords), the
+:func:`swiftjax.posegraph.optimize` takes a ``GraphOptions``, the
 pipeline's :class:`~swiftjax.pipeline.PipelineConfig` and the CLI take their pose-graph
 defaults from :data:`PIPELINE` (the pipeline's choice: GNC on the loop edges).  Validation
 happens at construction: a ``GraphOptions`` that exists is valid.
@@ -14,12 +14,13 @@ traced or host values and never recompile.
 from __future__ import annotations
 
 import dataclasses
-import math
-from typing import Literal
+from typing import Any, Literal
 
+from swiftjax import options
+from swiftjax.options import option
 from swiftjax.posegraph.gnc import DEFAULT_SCALE
-from swiftjax.posegraph.kernels import check_kernel
-from swiftjax.posegraph.solver_choice import check_linear_solver
+from swiftjax.posegraph.kernels import ROBUST_CHOICES
+from swiftjax.posegraph.solver_choice import LINEAR_SOLVER_CHOICES
 
 __all__ = ["GraphOptions", "PIPELINE", "DAMPINGS", "INITIALIZATIONS"]
 
@@ -64,42 +65,37 @@ class GraphOptions:
             at the previous solve's result.
     """
 
-    max_steps: int = 100
-    rtol: float = 1e-10
-    atol: float = 0.0
-    gtol: float = 1e-10
-    lambda0: float = 1e-5
-    damping: Literal["identity", "marquardt"] = "identity"
-    initialization: Literal["none", "chordal"] = "none"
-    linear_solver: Literal["auto", "dense", "pcg", "sparse"] = "auto"
-    max_linear_iterations: int = 1000
-    eta_max: float = 1e-4
-    kernel: Literal["huber", "cauchy", "gnc"] | None = None
-    kernel_scale: float | None = None
-    gnc_max_iterations: int = 100
-    gnc_mu_step: float = 1.4
-    gnc_weights_tol: float = 1e-4
-    gnc_cost_tol: float = 1e-5
-    gnc_inner_rtol: float = 1e-5
-    gnc_restart: bool = True
+    max_steps: int = option(100, "LM iterations (accepted + rejected)", low=0)
+    rtol: float = option(1e-10, "relative cost-decrease tolerance", low=0.0)
+    atol: float = option(0.0, "absolute cost-decrease tolerance", low=0.0)
+    gtol: float = option(1e-10, "gradient tolerance relative to the first", low=0.0)
+    lambda0: float = option(1e-5, "initial damping", low=0.0, low_open=True)
+    damping: Literal["identity", "marquardt"] = option("identity", "damping matrix", choices=DAMPINGS)
+    initialization: Literal["none", "chordal"] = option("none", "initial poses", choices=INITIALIZATIONS)
+    linear_solver: Literal["auto", "dense", "pcg", "sparse"] = option(
+        "auto", "linear solver of each LM step", choices=LINEAR_SOLVER_CHOICES
+    )
+    max_linear_iterations: int = option(1000, "PCG cap per LM step", low=1)
+    eta_max: float = option(1e-4, "loosest PCG relative tolerance", low=0.0, low_open=True)
+    kernel: Literal["huber", "cauchy", "gnc"] | None = option(
+        None, "robust kernel of the robust edges", kind=str, choices=ROBUST_CHOICES, optional=True
+    )
+    kernel_scale: float | None = option(
+        None, "kernel scale in whitened units", kind=float, low=0.0, low_open=True, optional=True
+    )
+    gnc_max_iterations: int = option(100, "GNC outer iterations", low=0)
+    gnc_mu_step: float = option(1.4, "GNC mu step", low=0.0, low_open=True)
+    gnc_weights_tol: float = option(1e-4, "GNC weights tolerance", low=0.0)
+    gnc_cost_tol: float = option(1e-5, "GNC relative cost tolerance", low=0.0)
+    gnc_inner_rtol: float = option(1e-5, "rtol of every GNC solve but the last", low=0.0)
+    gnc_restart: bool = option(True, "start every weighted GNC solve at the start poses")
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_steps, bool) or int(self.max_steps) != self.max_steps or self.max_steps < 0:
-            raise ValueError(f"max_steps must be an integer >= 0, not {self.max_steps!r}")
-        if self.initialization not in INITIALIZATIONS:
-            raise ValueError(f"initialization must be 'none' or 'chordal', not {self.initialization!r}")
-        if self.damping not in DAMPINGS:
-            raise ValueError(f"damping must be 'identity' or 'marquardt', not {self.damping!r}")
-        check_kernel(self.kernel)
-        check_linear_solver(self.linear_solver)
-        if self.kernel_scale is not None:
-            scale = float(self.kernel_scale)
-            if not (math.isfinite(scale) and scale > 0):
-                raise ValueError(f"kernel_scale must be a positive finite number, not {self.kernel_scale!r}")
+        options.validate(self)
         if self.kernel == "gnc" and not (self.gnc_mu_step > 1 and self.gnc_max_iterations >= 1):
-            raise ValueError(
-                f"GNC needs gnc_mu_step > 1 and gnc_max_iterations >= 1, got {self.gnc_mu_step!r}, "
-                f"{self.gnc_max_iterations!r}"
+            raise options.OptionError(
+                f"invalid option gnc_mu_step: GNC needs gnc_mu_step > 1 and gnc_max_iterations >= 1, got "
+                f"{self.gnc_mu_step!r}, {self.gnc_max_iterations!r}"
             )
 
     @property
@@ -109,9 +105,9 @@ class GraphOptions:
             return DEFAULT_SCALE if self.kernel == "gnc" else 1.0
         return float(self.kernel_scale)
 
-    def replace(self, **changes) -> GraphOptions:
-        """A copy with ``changes`` (validated)."""
-        return dataclasses.replace(self, **changes)
+    def replace(self, **changes: Any) -> GraphOptions:
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
 
 
 #: The pipeline's pose-graph defaults (``PipelineConfig.robust_loops``, ``robust_scale``,

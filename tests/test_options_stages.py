@@ -1,0 +1,193 @@
+"""The stage option classes on the one schema (swiftjax.options): every field validated with a
+one-line OptionError naming it, ``replace`` with one meaning, and every PipelineConfig field
+that feeds a stage option reaching it through ``options.build``."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+
+import pytest
+
+from swiftjax import align, loops, options, posegraph
+from swiftjax.loops.options import VerificationConfig
+from swiftjax.options import OptionError
+from swiftjax.pipeline import PipelineConfig
+
+STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig)
+
+
+def _bad_values(s: options.Spec) -> list[object]:
+    """Values the schema ``s`` must refuse (one per rule it states)."""
+    bad: list[object] = []
+    if not s.optional:
+        bad.append(None)
+    if s.kind is bool:
+        return bad + ["no", 1]
+    if s.kind is str:
+        return bad + [3] + (["not-a-choice"] if s.choices is not None else [])
+    bad += ["1", True]
+    if s.kind is int:
+        bad += [1.5, options.INT_LIMIT + 1]
+    if s.kind is float and s.finite:
+        bad += [math.nan, math.inf]
+    if s.low is not None:
+        bad.append(s.low if s.low_open else (s.low - 1 if s.kind is int else s.low - 1e-3))
+    if s.high is not None:
+        bad.append(s.high if s.high_open else (s.high + 1 if s.kind is int else s.high + 1e-3))
+    return bad
+
+
+CASES = [
+    pytest.param(cls, name, value, id=f"{cls.__name__}.{name}={value!r}")
+    for cls in STAGE_CLASSES
+    for name, s in options.specs(cls).items()
+    for value in _bad_values(s)
+]
+
+
+def test_every_stage_field_is_declared_with_the_schema():
+    for cls in STAGE_CLASSES:
+        declared = set(options.specs(cls))  # a field without option() (or nested()) is a TypeError here
+        nested = {f.name for f in dataclasses.fields(cls)} - declared
+        assert nested == ({"verification_config"} if cls is loops.LoopOptions else set()), cls
+        for name, s in options.specs(cls).items():
+            assert s.help and s.stage is None, (cls, name)  # stage: the pipeline config's fields only
+
+
+@pytest.mark.parametrize("cls, name, value", CASES)
+def test_the_schema_refuses_a_bad_value_naming_the_field(cls, name, value):
+    with pytest.raises(OptionError) as err:
+        cls(**{name: value})
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"invalid option {name}: "), message
+    assert isinstance(err.value, ValueError)  # callers catching ValueError keep working
+    with pytest.raises(OptionError, match=f"invalid option {name}: "):
+        cls().replace(**{name: value})  # replace validates the same way
+
+
+def test_cross_field_rules_stay_in_post_init():
+    with pytest.raises(OptionError, match="invalid option null_samples: 5; allowed: an even integer >= 4"):
+        VerificationConfig(null_samples=5)
+    with pytest.raises(OptionError, match="invalid option null_min_shift: 0.5; allowed: 0 < null_min_shift <= "):
+        VerificationConfig(null_min_shift=0.5, null_max_shift=0.2)
+    with pytest.raises(OptionError, match="invalid option gnc_mu_step: GNC needs gnc_mu_step > 1"):
+        posegraph.GraphOptions(kernel="gnc", gnc_mu_step=1.0)
+    assert posegraph.GraphOptions(gnc_mu_step=1.0).gnc_mu_step == 1.0  # only GNC needs it
+    with pytest.raises(OptionError, match="invalid option verification_config: 3; allowed: a VerificationConfig"):
+        loops.LoopOptions(verification_config=3)
+
+
+def test_values_are_normalised_like_the_pipeline_config():
+    import numpy as np
+
+    o = loops.LoopOptions(beta=1, dim=np.int64(64), adapt_to_length=np.bool_(False))
+    assert (type(o.beta), type(o.dim), type(o.adapt_to_length)) == (float, int, bool)
+    assert o == loops.LoopOptions(beta=1.0, dim=64, adapt_to_length=False)
+
+
+# ----------------------------------------------------------------------------- replace
+
+
+def test_replace_is_a_validated_copy_and_none_is_a_value():
+    a = align.AlignOptions()
+    b = a.replace(depth_threshold=0.3)
+    assert (a.depth_threshold, b.depth_threshold) == (0.2, 0.3) and b.min_points == a.min_points
+    # None is a value: refused by a field that is not optional (AlignOptions used to drop it) ...
+    with pytest.raises(OptionError, match="invalid option depth_threshold: None"):
+        a.replace(depth_threshold=None)
+    # ... and kept by one that is
+    g = posegraph.GraphOptions(kernel="gnc", kernel_scale=3.0)
+    assert g.replace(kernel=None, kernel_scale=None) == posegraph.GraphOptions()
+    assert loops.LoopOptions(max_loops=5).replace(max_loops=None).max_loops is None
+    for cls in STAGE_CLASSES:
+        o = cls()
+        assert o.replace() == o and options.replace(o) == o
+        with pytest.raises(OptionError, match=f"unknown option 'no_such' of {cls.__name__}"):
+            o.replace(no_such=1)
+    with pytest.raises(OptionError, match=r"unknown option 'top_kk' of LoopOptions \(did you mean top_k\?\)"):
+        loops.LoopOptions().replace(top_kk=3)
+
+
+# ----------------------------------------------------------------------------- config -> stages
+
+
+def _another(s: options.Spec, value: object, stage_spec: options.Spec) -> object:
+    """A value of both schemas different from ``value``."""
+    if s.kind is bool:
+        return not value
+    if s.choices is not None:
+        return next(c for c in s.choices if c != value)
+    assert isinstance(value, (int, float))
+    steps = (1, -1, 2) if s.kind is int else (0.01, -0.01, 0.1 * abs(value) + 0.05)
+    for step in steps:
+        try:
+            new = options.coerce(stage_spec, "x", options.coerce(s, "x", value + step))
+        except OptionError:
+            continue
+        return new
+    raise AssertionError(f"no other value for {s}")
+
+
+def _mapped() -> dict[str, tuple[type, str]]:
+    out = {}
+    for name, s in options.specs(PipelineConfig).items():
+        if s.target is not None:
+            out[name] = s.target
+    return out
+
+
+def test_every_mapped_config_field_arrives_in_its_stage_options():
+    mapped = _mapped()
+    # every stage class is fed, and the mapping is the one the pipeline used to write by hand
+    assert {cls for cls, _ in mapped.values()} == set(STAGE_CLASSES)
+    assert mapped["loop_min_separation"] == (loops.LoopOptions, "min_separation")
+    assert mapped["whitening_dim"] == (loops.LoopOptions, "dim")
+    assert mapped["loop_pcm"] == (VerificationConfig, "pcm")
+    assert mapped["robust_loops"] == (posegraph.GraphOptions, "kernel")
+    assert mapped["max_lm_steps"] == (posegraph.GraphOptions, "max_steps")
+    assert len(mapped) == 23
+    default = PipelineConfig()
+    changes = {}
+    for name, (cls, field) in mapped.items():
+        changes[name] = _another(options.specs(PipelineConfig)[name], getattr(default, name), options.specs(cls)[field])
+    config = dataclasses.replace(default, **changes)
+    built = {cls: options.build(cls, config) for cls in STAGE_CLASSES}
+    for name, (cls, field) in mapped.items():
+        assert getattr(built[cls], field) == changes[name] != getattr(cls(), field), name
+    # the nested verification thresholds arrive through LoopOptions too
+    assert built[loops.LoopOptions].verification_config == built[VerificationConfig]
+    # the fields no config field feeds keep the stage class's defaults
+    for cls in STAGE_CLASSES:
+        targeted = {field for c, field in mapped.values() if c is cls}
+        for f in dataclasses.fields(cls):
+            if f.name not in targeted and f.name != "verification_config":
+                assert getattr(built[cls], f.name) == getattr(cls(), f.name), (cls, f.name)
+
+
+def test_default_config_builds_the_stage_defaults():
+    config = PipelineConfig()
+    assert options.build(align.AlignOptions, config) == align.AlignOptions()
+    assert options.build(loops.LoopOptions, config) == loops.LoopOptions()
+    assert options.build(posegraph.GraphOptions, config) == posegraph.GraphOptions(
+        kernel=config.robust_loops, kernel_scale=config.robust_scale
+    )
+
+
+def test_a_target_must_name_a_stage_field():
+    with pytest.raises(TypeError, match="option target LoopOptions.no_such is not a field"):
+        options.option(1, "x", stage="loops", target=(loops.LoopOptions, "no_such"))
+
+
+def test_no_override_keywords_on_the_stage_entry_points():
+    for fn, allowed in (
+        (loops.find_loops, {"descriptors", "schedule", "options", "throw", "return_details"}),
+        (posegraph.optimize, {"problem", "options", "throw", "pad"}),
+        (align.align_chunk_pair, {"prev", "cur", "K_ref", "options", "mask"}),
+        (align.align_chunk_pairs, {"prev", "cur", "K_ref", "options", "mask"}),
+        (align.align_chunk_pair_checked, {"prev", "cur", "K_ref", "name", "throw", "options", "mask"}),
+    ):
+        params = inspect.signature(fn).parameters
+        assert set(params) == allowed, fn.__name__
+        assert not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()), fn.__name__
