@@ -11,11 +11,14 @@ import math
 import pytest
 
 from swiftjax import align, loops, options, posegraph
+from swiftjax.loops.geometric import GeometryOptions
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.options import OptionError
 from swiftjax.pipeline import PipelineConfig
 
 STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig)
+#: Every option class on the schema: the stage classes and those no PipelineConfig field feeds.
+SCHEMA_CLASSES = (*STAGE_CLASSES, GeometryOptions)
 
 
 def _bad_values(s: options.Spec) -> list[object]:
@@ -41,14 +44,14 @@ def _bad_values(s: options.Spec) -> list[object]:
 
 CASES = [
     pytest.param(cls, name, value, id=f"{cls.__name__}.{name}={value!r}")
-    for cls in STAGE_CLASSES
+    for cls in SCHEMA_CLASSES
     for name, s in options.specs(cls).items()
     for value in _bad_values(s)
 ]
 
 
 def test_every_stage_field_is_declared_with_the_schema():
-    for cls in STAGE_CLASSES:
+    for cls in SCHEMA_CLASSES:
         declared = set(options.specs(cls))  # a field without option() (or nested()) is a TypeError here
         nested = {f.name for f in dataclasses.fields(cls)} - declared
         assert nested == ({"verification_config"} if cls is loops.LoopOptions else set()), cls
@@ -101,7 +104,7 @@ def test_replace_is_a_validated_copy_and_none_is_a_value():
     g = posegraph.GraphOptions(kernel="gnc", kernel_scale=3.0)
     assert g.replace(kernel=None, kernel_scale=None) == posegraph.GraphOptions()
     assert loops.LoopOptions(max_loops=5).replace(max_loops=None).max_loops is None
-    for cls in STAGE_CLASSES:
+    for cls in SCHEMA_CLASSES:
         o = cls()
         assert o.replace() == o and options.replace(o) == o
         with pytest.raises(OptionError, match=f"unknown option 'no_such' of {cls.__name__}"):
@@ -191,3 +194,18 @@ def test_no_override_keywords_on_the_stage_entry_points():
         params = inspect.signature(fn).parameters
         assert set(params) == allowed, fn.__name__
         assert not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()), fn.__name__
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        (dict(tau_end=4.0), "tau_end 4.0 > tau_start 3.0"),
+        (dict(coarse_tau_start=0.4), "coarse_tau_end 0.5 > coarse_tau_start 0.4"),
+        (dict(coarse_src_points=2048), "coarse_src_points 2048 > src_points 1024"),
+        (dict(dst_points=1024), "coarse_dst_points 4096 > dst_points 1024"),
+    ],
+)
+def test_geometry_options_cross_field_rules(changes, match):
+    with pytest.raises(OptionError, match=match):
+        GeometryOptions(**changes)
+    assert GeometryOptions(row_stride=3, column_stride=4).pixel_stride == (3, 4)

@@ -53,7 +53,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -61,8 +61,9 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from swiftjax import align, camera, sim3, so3
+from swiftjax import align, camera, options, sim3, so3
 from swiftjax.align.mask import frame_conf_mean
+from swiftjax.options import option
 
 __all__ = [
     "GeometryOptions",
@@ -88,9 +89,13 @@ __all__ = [
 class GeometryOptions:
     """Options of the geometric loop source (every field is static: a change recompiles).
 
+    Declared with :func:`swiftjax.options.option` (ranges checked at construction, an
+    :class:`~swiftjax.options.OptionError` naming the field); the Tukey schedules must not grow
+    (``tau_end <= tau_start``) and the coarse subsamples are the first points of the fine ones.
+
     Attributes:
         frame_stride: every ``frame_stride``-th frame of a chunk is read (host level).
-        pixel_stride: rows, columns of the pixel grid sampled in those frames.
+        row_stride, column_stride: the pixel grid sampled in those frames.
         anchors: anchors per chunk (camera centres spread evenly over the loaded frames).
         rings, sectors: the polar grid ``N_r x N_s``.
         max_radius: ``ρ_max`` in camera heights (24 h ≈ 40 m at KITTI's 1.65 m).
@@ -119,36 +124,57 @@ class GeometryOptions:
             cannot tell a street's half turn from the truth (tests: the corner scene).
     """
 
-    frame_stride: int = 5
-    pixel_stride: tuple[int, int] = (6, 8)
-    anchors: int = 5
-    rings: int = 20
-    sectors: int = 60
-    max_radius: float = 24.0
-    max_height: float = 8.0
-    conf_ratio: float = 0.5
-    min_points: int = 200
-    ground_band: float = 0.35
-    max_distance: float = 0.25
-    max_sc_distance: float = 0.45
-    top_k: int = 2
-    gate_min: float = 15.0
-    gate_drift: float = 0.1
-    src_points: int = 1024
-    dst_points: int = 4096
-    iterations: int = 16
-    tau_start: float = 3.0
-    tau_end: float = 0.25
-    min_inlier_ratio: float = 0.5
-    max_rms: float = 0.2
-    max_scale_ratio: float = 1.3
-    min_spread: float = 0.02
-    min_structure: int = 60
-    coarse_src_points: int = 256
-    coarse_dst_points: int = 4096
-    coarse_iterations: int = 8
-    coarse_tau_start: float = 3.0
-    coarse_tau_end: float = 0.5
+    frame_stride: int = option(5, "every k-th frame of a chunk is read", low=1)
+    row_stride: int = option(6, "rows between sampled pixels", low=1)
+    column_stride: int = option(8, "columns between sampled pixels", low=1)
+    anchors: int = option(5, "anchors (camera centres) per chunk", low=1)
+    rings: int = option(20, "rings N_r of the polar grid", low=1)
+    sectors: int = option(60, "sectors N_s of the polar grid", low=1)
+    max_radius: float = option(24.0, "grid radius rho_max (camera heights)", low=0.0, low_open=True)
+    max_height: float = option(8.0, "heights clipped at z_max (camera heights)", low=0.0, low_open=True)
+    conf_ratio: float = option(0.5, "reliable: confidence > ratio x frame mean", low=0.0, high=10.0)
+    min_points: int = option(200, "fewest reliable points near an anchor", low=1)
+    ground_band: float = option(0.35, "points below this height are road (camera heights)", low=0.0)
+    max_distance: float = option(0.25, "largest signature distance of a candidate", low=0.0, low_open=True)
+    max_sc_distance: float = option(0.45, "largest Scan Context distance of a candidate", low=0.0, low_open=True)
+    top_k: int = option(2, "best matches kept per chunk", low=1)
+    gate_min: float = option(15.0, "odometry gate floor (camera heights)", low=0.0)
+    gate_drift: float = option(0.1, "odometry gate per path length driven", low=0.0)
+    src_points: int = option(1024, "registration source subsample P", low=1)
+    dst_points: int = option(4096, "registration target subsample Q", low=1)
+    iterations: int = option(16, "ICP iterations", low=1)
+    tau_start: float = option(3.0, "first Tukey radius (camera heights)", low=0.0, low_open=True)
+    tau_end: float = option(0.25, "last Tukey radius (camera heights)", low=0.0, low_open=True)
+    min_inlier_ratio: float = option(0.5, "verdict: least structure inlier ratio", low=0.0, high=1.0)
+    max_rms: float = option(0.2, "verdict: largest inlier RMS (camera heights)", low=0.0, low_open=True)
+    max_scale_ratio: float = option(1.3, "verdict: s / s0 within [1/r, r]", low=1.0)
+    min_spread: float = option(0.02, "verdict: least horizontal spread lambda_2 / lambda_1", low=0.0, high=1.0)
+    min_structure: int = option(60, "verdict: fewest inlying structure points", low=0)
+    coarse_src_points: int = option(256, "coarse ICP: source points (first of the subsample)", low=1)
+    coarse_dst_points: int = option(4096, "coarse ICP: target points (first of the subsample)", low=1)
+    coarse_iterations: int = option(8, "coarse ICP iterations", low=1)
+    coarse_tau_start: float = option(3.0, "coarse ICP: first Tukey radius", low=0.0, low_open=True)
+    coarse_tau_end: float = option(0.5, "coarse ICP: last Tukey radius", low=0.0, low_open=True)
+
+    def __post_init__(self) -> None:
+        options.validate(self)
+        for a, b in (("tau_end", "tau_start"), ("coarse_tau_end", "coarse_tau_start")):
+            if getattr(self, a) > getattr(self, b):
+                raise options.OptionError(f"GeometryOptions: {a} {getattr(self, a)!r} > {b} {getattr(self, b)!r}")
+        for a, b in (("coarse_src_points", "src_points"), ("coarse_dst_points", "dst_points")):
+            if getattr(self, a) > getattr(self, b):
+                raise options.OptionError(
+                    f"GeometryOptions: {a} {getattr(self, a)!r} > {b} {getattr(self, b)!r} (its first points)"
+                )
+
+    @property
+    def pixel_stride(self) -> tuple[int, int]:
+        """``(row_stride, column_stride)``."""
+        return self.row_stride, self.column_stride
+
+    def replace(self, **changes: Any) -> GeometryOptions:
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
 
 
 # ----------------------------------------------------------------------- per chunk
