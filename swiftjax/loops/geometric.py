@@ -158,14 +158,15 @@ class GeometryOptions:
 
     def __post_init__(self) -> None:
         options.validate(self)
-        for a, b in (("tau_end", "tau_start"), ("coarse_tau_end", "coarse_tau_start")):
+        # (a, b, why): a must not exceed b.
+        for a, b, why in (
+            ("tau_end", "tau_start", ""),
+            ("coarse_tau_end", "coarse_tau_start", ""),
+            ("coarse_src_points", "src_points", " (its first points)"),
+            ("coarse_dst_points", "dst_points", " (its first points)"),
+        ):
             if getattr(self, a) > getattr(self, b):
-                raise options.OptionError(f"GeometryOptions: {a} {getattr(self, a)!r} > {b} {getattr(self, b)!r}")
-        for a, b in (("coarse_src_points", "src_points"), ("coarse_dst_points", "dst_points")):
-            if getattr(self, a) > getattr(self, b):
-                raise options.OptionError(
-                    f"GeometryOptions: {a} {getattr(self, a)!r} > {b} {getattr(self, b)!r} (its first points)"
-                )
+                raise options.OptionError(f"GeometryOptions: {a} {getattr(self, a)!r} > {b} {getattr(self, b)!r}{why}")
 
     @property
     def pixel_stride(self) -> tuple[int, int]:
