@@ -48,6 +48,7 @@ import dataclasses
 import difflib
 import math
 import numbers
+import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -133,53 +134,84 @@ def _num(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else repr(float(x))
 
 
+#: ``option()``'s "not given" (a keyword left out keeps the target's schema, see :func:`option`).
+_INHERIT: Any = type("_Inherit", (), {"__repr__": lambda self: "<inherited>"})()
+
+#: The schema attributes of :class:`Spec` a field declaration gives (``stage`` and ``target`` aside).
+_SCHEMA = ("kind", "help", "low", "high", "low_open", "high_open", "choices", "optional", "finite")
+
+
 def option(
-    default: Any,
-    help: str,
+    default: Any = _INHERIT,
+    help: Any = _INHERIT,
     *,
     stage: str | None = None,
     target: tuple[type, str] | None = None,
-    kind: type | None = None,
-    low: float | None = None,
-    high: float | None = None,
-    low_open: bool = False,
-    high_open: bool = False,
-    choices: Iterable[str] | None = None,
-    optional: bool = False,
-    finite: bool = True,
+    kind: Any = _INHERIT,
+    low: Any = _INHERIT,
+    high: Any = _INHERIT,
+    low_open: Any = _INHERIT,
+    high_open: Any = _INHERIT,
+    choices: Any = _INHERIT,
+    optional: Any = _INHERIT,
+    finite: Any = _INHERIT,
 ) -> Any:
     """A dataclass field with its schema: ``chunk_size: int = option(75, "frames per chunk (B)", low=2, stage="temporal")``.
 
     ``kind`` defaults to the type of ``default`` (give it when the default is ``None``).
     ``stage`` is one of :data:`STAGES`: the first stage whose stored result the option changes
     (given by :class:`~swiftjax.pipeline.PipelineConfig`'s fields; ``None`` for the fields of a
-    stage option class).  ``target=(StageClass, "field")``: the stage option this config field
-    feeds (:func:`build`).
+    stage option class).
+
+    ``target=(StageClass, "field")``: the stage option this config field feeds (:func:`build`).
+    The stage field is then the one declaration: its default, help, kind, range and choices
+    are this field's too, and a keyword given here overrides one of them (a narrower range for
+    the command line, the pipeline's own default):
+    ``min_points: int = option(target=(AlignOptions, "min_points"), low=3, stage="temporal")``.
+    A help text may name another field of its class as ``{name}``: :func:`specs` writes it as
+    that field's name, or, for a config field, as the config field that feeds it.
     """
-    if kind is None:
+    given = {
+        k: v
+        for k, v in dict(
+            help=help,
+            kind=kind,
+            low=low,
+            high=high,
+            low_open=low_open,
+            high_open=high_open,
+            choices=choices,
+            optional=optional,
+            finite=finite,
+        ).items()
+        if v is not _INHERIT
+    }
+    if target is not None:
+        fields = {f.name: f for f in dataclasses.fields(target[0])}
+        if target[1] not in fields or _NESTED in fields[target[1]].metadata:
+            raise TypeError(f"option target {target[0].__name__}.{target[1]} is not a field")
+        base = spec(fields[target[1]])
+        values = {k: getattr(base, k) for k in _SCHEMA}
+        if default is _INHERIT:
+            default = fields[target[1]].default
+    else:
+        if default is _INHERIT or help is _INHERIT:
+            raise TypeError("option() needs a default and a help text (or a target= to take them from)")
+        values = {"kind": None, "low": None, "high": None, "low_open": False, "high_open": False}
+        values.update(choices=None, optional=False, finite=True)
+    values.update(given)
+    if values["kind"] is None:
         if default is None:
             raise TypeError("option(None, ...) needs kind=")
-        kind = type(default)
-    if kind not in (bool, int, float, str):
-        raise TypeError(f"option kind must be bool, int, float or str, got {kind}")
+        values["kind"] = type(default)
+    if values["kind"] not in (bool, int, float, str):
+        raise TypeError(f"option kind must be bool, int, float or str, got {values['kind']}")
     if stage is not None and stage not in STAGES:
         raise ValueError(f"option stage must be one of {STAGES}, got {stage!r}")
-    if target is not None and target[1] not in {f.name for f in dataclasses.fields(target[0])}:
-        raise TypeError(f"option target {target[0].__name__}.{target[1]} is not a field")
-    s = Spec(
-        kind=kind,
-        help=help,
-        stage=stage,
-        low=low,
-        high=high,
-        low_open=low_open,
-        high_open=high_open,
-        choices=tuple(choices) if choices is not None else None,
-        optional=optional,
-        finite=finite,
-        target=target,
-    )
-    if default is not None or not optional:
+    if values["choices"] is not None:
+        values["choices"] = tuple(values["choices"])
+    s = Spec(stage=stage, target=target, **values)
+    if default is not None or not s.optional:
         coerce(s, "default", default)  # a default outside its own schema is a programming error
     return dataclasses.field(default=default, metadata={_KEY: s})
 
@@ -196,8 +228,24 @@ def spec(field: dataclasses.Field[Any]) -> Spec:
 
 def specs(cls: Any) -> dict[str, Spec]:
     """``{field name: Spec}`` of every field of the dataclass ``cls`` declared with
-    :func:`option` (every other field must be a :func:`nested` one)."""
-    return {f.name: spec(f) for f in dataclasses.fields(cls) if _NESTED not in f.metadata}
+    :func:`option` (every other field must be a :func:`nested` one), each help text's
+    ``{name}`` references written out (:func:`option`)."""
+    declared = {f.name: spec(f) for f in dataclasses.fields(cls) if _NESTED not in f.metadata}
+    fed = {(s.target[0], s.target[1]): name for name, s in declared.items() if s.target is not None}
+
+    def render(s: Spec) -> Spec:
+        owner = s.target[0] if s.target is not None else None
+
+        def name(m: re.Match[str]) -> str:
+            return fed.get((owner, m.group(1)), m.group(1)) if owner is not None else m.group(1)
+
+        return dataclasses.replace(s, help=_REFERENCE.sub(name, s.help)) if "{" in s.help else s
+
+    return {name: render(s) for name, s in declared.items()}
+
+
+#: A help text's reference to another field of its class: ``"fixed ({threshold})"``.
+_REFERENCE = re.compile(r"\{(\w+)\}")
 
 
 _NESTED = "swiftjax.option.nested"
@@ -429,8 +477,9 @@ def add_arguments(parser: argparse.ArgumentParser | Any, cls: Any) -> None:
     the help shows the description, what is allowed and the default.  Values are checked by
     :func:`from_sources`, so a bad one is the same one-line error as in a config file.
     """
+    table = specs(cls)
     for f in dataclasses.fields(cls):
-        s = spec(f)
+        s = table[f.name]
         default = "none" if f.default is None else (str(f.default).lower() if s.kind is bool else f.default)
         if s.kind is bool:
             parser.add_argument(

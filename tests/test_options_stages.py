@@ -14,6 +14,7 @@ from swiftjax import align, loops, options, posegraph
 from swiftjax.loops.geometric import GeometryOptions
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.options import OptionError
+from swiftjax.posegraph.options import PIPELINE
 from swiftjax.pipeline import PipelineConfig
 
 STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig)
@@ -181,6 +182,68 @@ def test_default_config_builds_the_stage_defaults():
 def test_a_target_must_name_a_stage_field():
     with pytest.raises(TypeError, match="option target LoopOptions.no_such is not a field"):
         options.option(1, "x", stage="loops", target=(loops.LoopOptions, "no_such"))
+    with pytest.raises(TypeError, match="option target LoopOptions.verification_config is not a field"):
+        options.option(stage="loops", target=(loops.LoopOptions, "verification_config"))
+    with pytest.raises(TypeError, match="needs a default and a help text"):
+        options.option(1, stage="loops")
+
+
+#: The config fields whose schema narrows the stage field's (the command line's own bounds) or
+#: whose default is the pipeline's own choice (PIPELINE): every other mapped field
+#: takes the whole schema of its stage field.
+NARROWED = {
+    "min_points": {"low": (3, 0)},
+    "loop_min_separation": {"low": (1, 0)},
+    "robust_scale": {"optional": (False, True)},
+}
+PIPELINE_DEFAULTS = {"robust_loops", "robust_scale"}
+
+
+def test_a_mapped_config_field_is_declared_once_in_its_stage_class():
+    config_fields = {f.name: f for f in dataclasses.fields(PipelineConfig)}
+    config_specs = options.specs(PipelineConfig)
+    for name, (cls, field) in _mapped().items():
+        stage_field = next(f for f in dataclasses.fields(cls) if f.name == field)
+        mine, theirs = config_specs[name], options.spec(stage_field)
+        differ = {
+            k: (getattr(mine, k), getattr(theirs, k))
+            for k in ("kind", "low", "high", "low_open", "high_open", "choices", "optional", "finite")
+            if getattr(mine, k) != getattr(theirs, k)
+        }
+        assert differ == NARROWED.get(name, {}), name
+        # the help is the stage field's, its {references} in the config's names
+        assert options.spec(config_fields[name]).help == theirs.help, name
+        if name in PIPELINE_DEFAULTS:
+            assert config_fields[name].default == getattr(PIPELINE, field if field != "kernel_scale" else "scale")
+        else:
+            assert config_fields[name].default == stage_field.default, name
+    # a reference to another field is written in the words of the class shown
+    assert "fixed (loop_threshold)" in config_specs["loop_threshold_rule"].help
+    assert "fixed (threshold)" in options.specs(loops.LoopOptions)["rule"].help
+    assert "must reach loop_min_agreement" in config_specs["loop_agreement"].help
+    assert "must reach min_agreement" in options.specs(VerificationConfig)["agreement_rule"].help
+    assert "{" not in "".join(s.help for s in config_specs.values())
+
+
+def test_config_accessors_are_the_built_stage_objects():
+    config = PipelineConfig(loop_top_k=3, depth_threshold=0.3, loop_pcm=False, max_lm_steps=7, robust_loops="huber")
+    assert config.align == align.AlignOptions(depth_threshold=0.3)
+    assert config.loops == loops.LoopOptions(top_k=3, verification_config=VerificationConfig(pcm=False))
+    assert config.verification == config.loops.verification_config == VerificationConfig(pcm=False)
+    assert config.graph == posegraph.GraphOptions(max_steps=7, kernel="huber", kernel_scale=PIPELINE.scale)
+    assert PipelineConfig().graph == PIPELINE
+
+
+def test_default_stage_options_are_the_recorded_ones():
+    """The run directory fingerprints each stage by these values: a changed default would make
+    every existing run redo its stages (hash of the default config of 151f7dd)."""
+    import hashlib
+    import json
+
+    config = PipelineConfig()
+    stages = {s: config.stage_options(s) for s in options.STAGES}
+    digest = hashlib.sha256(json.dumps(stages, sort_keys=True).encode()).hexdigest()
+    assert digest == "0cf20edff6ff63d54fef47822c624b86130ff1bb02d6bb710b51cefb97b1d3f2", stages
 
 
 def test_no_override_keywords_on_the_stage_entry_points():

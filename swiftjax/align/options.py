@@ -51,15 +51,36 @@ class AlignOptions:
     """
 
     depth_threshold: float = option(
-        0.2, "max |D_t - D_t+1| of normalised overlap depths (lambda_D)", low=0.0, low_open=True
+        0.2,
+        "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
+        low=0.0,
+        low_open=True,
     )
     conf_ratio: float = option(
-        0.5, "keep pixels with confidence > ratio x frame mean (lambda_gamma)", low=0.0, high=10.0
+        0.5,
+        "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
+        low=0.0,
+        high=10.0,
     )
-    min_points: int = option(20_000, "fewest reliable points before the one-time retry", low=0, high=10**8)
-    fallback_depth_threshold: float = option(0.25, "depth threshold of the retry", low=0.0, low_open=True)
-    loop_depth_threshold: float = option(0.4, "depth threshold of a loop-chunk alignment", low=0.0, low_open=True)
-    overlap_scale: str = option("auto", "overlap depths put on one scale before eq. 2", choices=OVERLAP_SCALE_RULES)
+    min_points: int = option(
+        20_000,
+        "fewest reliable points before the one-time retry with {fallback_depth_threshold}",
+        low=0,
+        high=10**8,
+    )
+    fallback_depth_threshold: float = option(
+        0.25, "depth threshold of the retry when fewer than {min_points} are reliable", low=0.0, low_open=True
+    )
+    loop_depth_threshold: float = option(
+        0.4, "depth threshold when aligning a loop chunk to its temporal chunks", low=0.0, low_open=True
+    )
+    overlap_scale: str = option(
+        "auto",
+        "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the reliability "
+        "mask: median (always), auto (only when the authors' mask keeps fewer than {min_points}) or none "
+        "(the authors' eq. 2)",
+        choices=OVERLAP_SCALE_RULES,
+    )
 
     def __post_init__(self) -> None:
         options.validate(self)

@@ -108,8 +108,15 @@ class VerificationConfig:
             (:func:`~swiftjax.loops.verification.loop_covariance`).
     """
 
-    agreement_rule: str = option("null", "how the dense agreement is judged", choices=AGREEMENT_RULES)
-    min_agreement: float = option(0.55, "the dense test's fixed bound", low=0.0, high=1.0)
+    agreement_rule: str = option(
+        "null",
+        "loop verification: null (the dense agreement must beat what the same two chunks give under "
+        "clearly wrong edges, per candidate) or fixed (must reach {min_agreement})",
+        choices=AGREEMENT_RULES,
+    )
+    min_agreement: float = option(
+        0.55, "loop verification: the dense test's bound (fraction of agreeing pixels)", low=0.0, high=1.0
+    )
     null_samples: int = option(16, "null edges per candidate (even)", low=4)
     null_false_alarm: float = option(
         0.01, "false-alarm rate of the null test", low=0.0, high=1.0, low_open=True, high_open=True
@@ -122,7 +129,7 @@ class VerificationConfig:
     stride: int = option(4, "source pixel subsampling of the dense test", low=1)
     neighbours: int = option(3, "nearest target frames per source frame (0: every frame)", low=0)
     min_fraction: float = option(0.05, "least fraction_used of each half alignment", low=0.0, high=1.0)
-    pcm: bool = option(True, "run the pairwise consistency test")
+    pcm: bool = option(True, "loop verification: the pairwise consistency test")
     pcm_threshold: float = option(4.93, "whitened cycle residual bound", low=0.0, low_open=True)
     odo_sigma_rot: float = option(0.01, "temporal-edge drift: rotation sigma", low=0.0, low_open=True)
     odo_sigma_trans: float = option(0.05, "temporal-edge drift: translation sigma", low=0.0, low_open=True)
@@ -186,25 +193,51 @@ class LoopOptions:
         swiftjax.options.OptionError: an unknown rule / ``fit_on`` / ``nms`` or a value out of range.
     """
 
-    beta: float = option(0.5, "signed power applied to the descriptors (beta)", low=0.0, low_open=True)
-    remove: int = option(1, "leading PCA components dropped by the whitening (r)", low=0)
-    dim: int = option(512, "descriptor dimension kept by the PCA whitening (d')", low=1)
+    beta: float = option(0.5, "signed power applied to the descriptors (beta)", low=0.0, high=1.0, low_open=True)
+    remove: int = option(1, "leading PCA components dropped by the whitening (r)", low=0, high=65_536)
+    dim: int = option(512, "descriptor dimension kept by the PCA whitening (d')", low=1, high=65_536)
     eps: float = option(1e-6, "whitening regulariser", low=0.0)
     max_samples: int = option(50_000, "most descriptors the whitening is fitted on", low=2)
     fit_on: str = option("power", "what the whitening is fitted on", choices=FIT_ON)
     adapt_to_length: bool = option(True, "adapt d' and the fixed threshold to short sequences")
-    rule: str = option("adaptive", "how the loop threshold is set", choices=THRESHOLD_RULES)
-    threshold: float = option(DEFAULT_THRESHOLD, "cosine threshold of rule=fixed")
-    false_alarms: float = option(
-        DEFAULT_FALSE_ALARMS, "adaptive threshold: false alarms", low=0.0, high=1.0, low_open=True, high_open=True
+    rule: str = option(
+        "adaptive",
+        "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's own "
+        "similarity distribution), fixed ({threshold}) or authors",
+        choices=THRESHOLD_RULES,
     )
-    min_separation: int = option(100, "fewest frames between the two frames of a loop", low=0)
-    nms_radius: int = option(25, "non-maximum suppression radius (frames)", low=0)
-    top_k: int = option(8, "most candidates per frame before suppression", low=1)
+    threshold: float = option(
+        DEFAULT_THRESHOLD,
+        "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
+        low=-1.0,
+        high=1.0,
+    )
+    false_alarms: float = option(
+        DEFAULT_FALSE_ALARMS,
+        "adaptive threshold: accepted rate of false loop candidates",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+        high_open=True,
+    )
+    min_separation: int = option(100, "fewest frames between the two frames of a loop", low=0, high=10**7)
+    nms_radius: int = option(25, "non-maximum suppression radius of loop candidates (frames)", low=0, high=10**7)
+    top_k: int = option(8, "most loop candidates kept per frame before suppression", low=1, high=1000)
     max_loops: int | None = option(None, "NMS buffer size (none: the bound)", kind=int, low=1, optional=True)
     nms: str = option("pair", "non-maximum suppression rule", choices=NMS_RULES)
-    half_window: int = option(10, "frames around each end of a loop in the loop chunk", low=1)
-    verification: str = option("geometric", "loop verification", choices=VERIFICATION_RULES)
+    half_window: int = option(
+        10,
+        "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2; "
+        "default 10, or chunk_size / 2 when that is smaller)",
+        low=1,
+        high=5_000,
+    )
+    verification: str = option(
+        "geometric",
+        "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test and "
+        "pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
+        choices=VERIFICATION_RULES,
+    )
     verification_config: VerificationConfig = nested(VerificationConfig)
 
     def __post_init__(self) -> None:

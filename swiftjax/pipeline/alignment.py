@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align, sim3
-from swiftjax.options import build
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["align_pair", "both", "info_dict"]
@@ -72,7 +71,7 @@ def align_pair(
 
 
 def _align_options(config: PipelineConfig, loop: bool) -> align.AlignOptions:
-    options = build(align.AlignOptions, config)
+    options = config.align
     return options.for_loop() if loop else options
 
 

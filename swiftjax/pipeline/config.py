@@ -1,9 +1,9 @@
 """Method parameters of a run: :class:`PipelineConfig`, one typed schema (:mod:`swiftjax.options`).
 
 Every field is declared with :func:`swiftjax.options.option`: type, range, choices, help and
-the stage it belongs to; a field that feeds a stage's options names it (``target=``), and
-:func:`swiftjax.options.build` makes the stage's options object from a config
-(``build(LoopOptions, config)``).  The CLI flags, the TOML keys, validation and the run directory's
+the stage it belongs to; a field that feeds a stage's options names it (``target=``) and takes
+its schema from it, and ``config.align`` / ``config.loops`` / ``config.verification`` /
+``config.graph`` are the stage options objects (:func:`swiftjax.options.build`).  The CLI flags, the TOML keys, validation and the run directory's
 per-stage fingerprints all derive from these declarations.  To add an option, add one field
 in the same style (its flag ``--name-with-dashes`` appears by itself).
 """
@@ -13,18 +13,13 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from swiftjax import loops, options
-from swiftjax.align import AlignOptions as _AlignOptions
-from swiftjax.align.options import OVERLAP_SCALE_RULES
-from swiftjax.loops.options import VerificationConfig as _VerificationConfig
+from swiftjax import options
+from swiftjax.align import AlignOptions
+from swiftjax.loops.options import LoopOptions, VerificationConfig
 from swiftjax.metric_scale import METRIC_COMBINE
 from swiftjax.options import option
-from swiftjax.posegraph.kernels import ROBUST_CHOICES as _ROBUST_CHOICES
 from swiftjax.posegraph.options import PIPELINE as _GRAPH
-from swiftjax.posegraph.options import GraphOptions as _GraphOptions
-
-_ALIGN = _AlignOptions()  # the alignment fields' defaults
-_LOOPS = loops.LoopOptions()  # the loop fields' defaults
+from swiftjax.posegraph.options import GraphOptions
 
 __all__ = ["PipelineConfig", "BACKBONE_NAMES", "METRIC_BACKBONES"]
 
@@ -45,6 +40,11 @@ class PipelineConfig:
     from these declarations) and docs/method.md for the equations.  The TOML keys are the field
     names, the CLI flags the same with dashes (``--chunk-size``, ``--[no-]loop-closure``).  An
     instance is valid: the schema and the cross-option rules are checked when it is built.
+
+    A field that feeds a stage option (``target=(StageClass, "field")``) is declared by that
+    stage field: its default, help, range and choices are written once, in the stage class.
+    The stage objects of a config: :attr:`align`, :attr:`loops`, :attr:`verification`,
+    :attr:`graph` (:func:`swiftjax.options.build`).
     """
 
     model: str = option(
@@ -69,193 +69,36 @@ class PipelineConfig:
         choices=("umeyama", "irls"),
         stage="temporal",
     )
-    depth_threshold: float = option(
-        _ALIGN.depth_threshold,
-        "reliability mask: max |D_t - D_t+1| of normalised overlap depths (lambda_D)",
-        low=0.0,
-        low_open=True,
-        target=(_AlignOptions, "depth_threshold"),
-        stage="temporal",
-    )
-    conf_ratio: float = option(
-        _ALIGN.conf_ratio,
-        "reliability mask: keep pixels with confidence > ratio x frame mean (lambda_gamma)",
-        low=0.0,
-        high=10.0,
-        target=(_AlignOptions, "conf_ratio"),
-        stage="temporal",
-    )
-    min_points: int = option(
-        _ALIGN.min_points,
-        "fewest reliable points before the one-time retry with fallback_depth_threshold",
-        low=3,
-        high=10**8,
-        target=(_AlignOptions, "min_points"),
-        stage="temporal",
-    )
-    fallback_depth_threshold: float = option(
-        _ALIGN.fallback_depth_threshold,
-        "depth threshold of the retry when fewer than min_points are reliable",
-        low=0.0,
-        low_open=True,
-        target=(_AlignOptions, "fallback_depth_threshold"),
-        stage="temporal",
-    )
-    overlap_scale: str = option(
-        _ALIGN.overlap_scale,
-        "put chunk t+1's overlap depths on chunk t's scale (robust median ratio) before the "
-        "reliability mask: median (always), auto (only when the authors' mask keeps fewer than min_points) or none (the authors' eq. 2)",
-        choices=OVERLAP_SCALE_RULES,
-        target=(_AlignOptions, "overlap_scale"),
-        stage="temporal",
-    )
-    loop_depth_threshold: float = option(
-        _ALIGN.loop_depth_threshold,
-        "depth threshold when aligning a loop chunk to its temporal chunks",
-        low=0.0,
-        low_open=True,
-        target=(_AlignOptions, "loop_depth_threshold"),
-        stage="loops",
-    )
+    depth_threshold: float = option(target=(AlignOptions, "depth_threshold"), stage="temporal")
+    conf_ratio: float = option(target=(AlignOptions, "conf_ratio"), stage="temporal")
+    min_points: int = option(target=(AlignOptions, "min_points"), low=3, stage="temporal")
+    fallback_depth_threshold: float = option(target=(AlignOptions, "fallback_depth_threshold"), stage="temporal")
+    overlap_scale: str = option(target=(AlignOptions, "overlap_scale"), stage="temporal")
+    loop_depth_threshold: float = option(target=(AlignOptions, "loop_depth_threshold"), stage="loops")
     loop_closure: bool = option(True, "detect loops and add loop edges to the pose graph", stage="loops")
-    loop_threshold_rule: str = option(
-        _LOOPS.rule,
-        "how the loop threshold is set (see swiftjax.loops): adaptive (calibrated on the scene's "
-        "own similarity distribution), fixed (loop_threshold) or authors",
-        choices=tuple(loops.THRESHOLD_RULES),
-        target=(loops.LoopOptions, "rule"),
-        stage="loops",
-    )
-    loop_threshold: float = option(
-        _LOOPS.threshold,
-        "cosine similarity of whitened descriptors above which a frame pair is a loop candidate",
-        low=-1.0,
-        high=1.0,
-        target=(loops.LoopOptions, "threshold"),
-        stage="loops",
-    )
-    loop_false_alarms: float = option(
-        _LOOPS.false_alarms,
-        "adaptive threshold: accepted rate of false loop candidates",
-        low=0.0,
-        high=1.0,
-        low_open=True,
-        high_open=True,
-        target=(loops.LoopOptions, "false_alarms"),
-        stage="loops",
-    )
-    loop_min_separation: int = option(
-        _LOOPS.min_separation,
-        "fewest frames between the two frames of a loop",
-        low=1,
-        high=10**7,
-        target=(loops.LoopOptions, "min_separation"),
-        stage="loops",
-    )
-    loop_nms_radius: int = option(
-        _LOOPS.nms_radius,
-        "non-maximum suppression radius of loop candidates (frames)",
-        low=0,
-        high=10**7,
-        target=(loops.LoopOptions, "nms_radius"),
-        stage="loops",
-    )
-    loop_top_k: int = option(
-        _LOOPS.top_k,
-        "most loop candidates kept per frame before suppression",
-        low=1,
-        high=1000,
-        target=(loops.LoopOptions, "top_k"),
-        stage="loops",
-    )
-    whitening_dim: int = option(
-        _LOOPS.dim,
-        "descriptor dimension kept by the PCA whitening (d')",
-        low=1,
-        high=65_536,
-        target=(loops.LoopOptions, "dim"),
-        stage="loops",
-    )
-    whitening_remove: int = option(
-        _LOOPS.remove,
-        "leading PCA components dropped by the whitening (r)",
-        low=0,
-        high=65_536,
-        target=(loops.LoopOptions, "remove"),
-        stage="loops",
-    )
-    power_beta: float = option(
-        _LOOPS.beta,
-        "signed power applied to the descriptors (beta)",
-        low=0.0,
-        high=1.0,
-        low_open=True,
-        target=(loops.LoopOptions, "beta"),
-        stage="loops",
-    )
-    loop_half_window: int = option(
-        _LOOPS.half_window,
-        "frames taken around each end of a loop for the loop-centric chunk (1 <= w <= chunk_size / 2; "
-        "default 10, or chunk_size / 2 when that is smaller)",
-        low=1,
-        high=5_000,
-        target=(loops.LoopOptions, "half_window"),
-        stage="loops",
-    )
-    loop_verification: str = option(
-        _LOOPS.verification,
-        "geometric: a candidate must pass the cross-chunk dense test, the loop-chunk quality test "
-        "and pairwise consistency to become an edge; none: every candidate above the threshold is one (the authors)",
-        choices=loops.VERIFICATION_RULES,
-        target=(loops.LoopOptions, "verification"),
-        stage="loops",
-    )
-    loop_min_agreement: float = option(
-        _LOOPS.verification_config.min_agreement,
-        "loop verification: the dense test's bound (fraction of agreeing pixels)",
-        low=0.0,
-        high=1.0,
-        target=(_VerificationConfig, "min_agreement"),
-        stage="loops",
-    )
-    loop_agreement: str = option(
-        _LOOPS.verification_config.agreement_rule,
-        "loop verification: null (the dense agreement must beat what the same "
-        "two chunks give under clearly wrong edges, per candidate) or fixed (must reach loop_min_agreement)",
-        choices=loops.AGREEMENT_RULES,
-        target=(_VerificationConfig, "agreement_rule"),
-        stage="loops",
-    )
-    loop_pcm: bool = option(
-        _LOOPS.verification_config.pcm,
-        "loop verification: the pairwise consistency test",
-        target=(_VerificationConfig, "pcm"),
-        stage="loops",
-    )
+    loop_threshold_rule: str = option(target=(LoopOptions, "rule"), stage="loops")
+    loop_threshold: float = option(target=(LoopOptions, "threshold"), stage="loops")
+    loop_false_alarms: float = option(target=(LoopOptions, "false_alarms"), stage="loops")
+    loop_min_separation: int = option(target=(LoopOptions, "min_separation"), low=1, stage="loops")
+    loop_nms_radius: int = option(target=(LoopOptions, "nms_radius"), stage="loops")
+    loop_top_k: int = option(target=(LoopOptions, "top_k"), stage="loops")
+    whitening_dim: int = option(target=(LoopOptions, "dim"), stage="loops")
+    whitening_remove: int = option(target=(LoopOptions, "remove"), stage="loops")
+    power_beta: float = option(target=(LoopOptions, "beta"), stage="loops")
+    loop_half_window: int = option(target=(LoopOptions, "half_window"), stage="loops")
+    loop_verification: str = option(target=(LoopOptions, "verification"), stage="loops")
+    loop_min_agreement: float = option(target=(VerificationConfig, "min_agreement"), stage="loops")
+    loop_agreement: str = option(target=(VerificationConfig, "agreement_rule"), stage="loops")
+    loop_pcm: bool = option(target=(VerificationConfig, "pcm"), stage="loops")
     loop_geometry: bool = option(
         False,
         "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "
         "edges by point-cloud registration (swiftjax.loops.geometric)",
         stage="loops",
     )
-    robust_loops: str | None = option(
-        _GRAPH.kernel,
-        "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
-        "or none (the authors' plain least squares)",
-        kind=str,
-        choices=_ROBUST_CHOICES,
-        optional=True,
-        target=(_GraphOptions, "kernel"),
-        stage="graph",
-    )
-    robust_scale: float = option(
-        _GRAPH.scale,
-        "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
-        low=0.0,
-        low_open=True,
-        target=(_GraphOptions, "kernel_scale"),
-        stage="graph",
-    )
+    # The pipeline's own pose-graph defaults (GNC at the chi-squared 0.99 threshold, posegraph.PIPELINE).
+    robust_loops: str | None = option(_GRAPH.kernel, target=(GraphOptions, "kernel"), stage="graph")
+    robust_scale: float = option(_GRAPH.scale, target=(GraphOptions, "kernel_scale"), optional=False, stage="graph")
     graph_pcm: bool = option(
         True,
         "pose graph: pairwise consistency of every loop edge against the odometry before GNC, which starts "
@@ -274,14 +117,7 @@ class PipelineConfig:
         low=1.0,
         stage="graph",
     )
-    max_lm_steps: int = option(
-        _GRAPH.max_steps,
-        "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)",
-        low=0,
-        high=100_000,
-        target=(_GraphOptions, "max_steps"),
-        stage="graph",
-    )
+    max_lm_steps: int = option(target=(GraphOptions, "max_steps"), stage="graph")
     point_conf_ratio: float = option(
         0.75,
         "point cloud: keep pixels with confidence >= ratio x frame mean (stored with the chunks)",
@@ -404,6 +240,26 @@ class PipelineConfig:
         if overlap >= chunk:  # the paper's ratio, O / B = 30 / 75
             overlap = max(1, round(chunk * _FIELD_DEFAULTS["overlap"] / _FIELD_DEFAULTS["chunk_size"]))
         return {"loop_half_window": max(1, min(_FIELD_DEFAULTS["loop_half_window"], chunk // 2)), "overlap": overlap}
+
+    @property
+    def align(self) -> AlignOptions:
+        """The alignment options of this config (``options.build(AlignOptions, self)``)."""
+        return options.build(AlignOptions, self)
+
+    @property
+    def loops(self) -> LoopOptions:
+        """The loop options of this config, its :attr:`verification` included."""
+        return options.build(LoopOptions, self)
+
+    @property
+    def verification(self) -> VerificationConfig:
+        """The loop verification thresholds of this config (``self.loops.verification_config``)."""
+        return options.build(VerificationConfig, self)
+
+    @property
+    def graph(self) -> GraphOptions:
+        """The pose-graph options of this config (the pipeline's GNC defaults, posegraph.PIPELINE)."""
+        return options.build(GraphOptions, self)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

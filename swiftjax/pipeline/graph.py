@@ -49,7 +49,6 @@ from swiftjax import metric_scale, posegraph, sim3
 from swiftjax.align import covariance
 from swiftjax.loops import pcm
 from swiftjax.loops import verification as lv
-from swiftjax.options import build
 from swiftjax.pipeline.results import GraphResult, LoopResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.posegraph import chain_poses
@@ -228,7 +227,7 @@ def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) 
 
 def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
     posegraph.validate(problem)
-    options = build(posegraph.GraphOptions, config).replace(kernel=kernel)
+    options = config.graph.replace(kernel=kernel)
     res = posegraph.optimize(problem, options, throw=False)  # not converged: the caller warns
     return res, np.asarray(sim3.normalize(res.poses), np.float64)
 
@@ -337,7 +336,7 @@ def run(
                         problem,
                         cov,
                         num_chain_nodes=T,
-                        options=build(posegraph.GraphOptions, config),
+                        options=config.graph,
                         throw=False,
                     )
                     chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)

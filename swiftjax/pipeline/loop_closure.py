@@ -32,7 +32,6 @@ import numpy as np
 
 from swiftjax import _faults, align, loops
 from swiftjax.loops import verification as lv
-from swiftjax.options import build
 from swiftjax.pipeline import loop_geometry
 from swiftjax.pipeline.alignment import align_pair, both
 from swiftjax.pipeline.config import PipelineConfig
@@ -69,7 +68,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     if not (config.loop_closure and schedule.num_chunks > 2):
         return LoopResult(loop_records, loop_edges)
     with timer("loop detection"):
-        found = (candidates or loops.find_loops)(temporal.descriptors, schedule, build(loops.LoopOptions, config))
+        found = (candidates or loops.find_loops)(temporal.descriptors, schedule, config.loops)
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
         neighbours = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) < 2]
         found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]
@@ -106,7 +105,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
         with timer("loop geometry"):
             taken = {(max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"])) for r in loop_records}
             geometric = loop_geometry.candidates(
-                ctx, K_ref, taken, _verification_config(config), chain=chain_poses(temporal.relative)
+                ctx, K_ref, taken, config.verification, chain=chain_poses(temporal.relative)
             )
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     decide(ctx, temporal.relative, loop_records + [r for r in geometric if "accepted" not in r])
@@ -214,7 +213,7 @@ def verification_numbers(ctx: RunContext, lp: loops.Loop, record: dict[str, Any]
             K_ref,
             record["align_i"],
             record["align_j"],
-            _verification_config(ctx.config),
+            ctx.config.verification,
         )
 
 
@@ -222,10 +221,6 @@ def without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
     """A loop chunk's prediction without its patch tokens (its alignment needs none; on a Ray
     worker they never cross the network)."""
     return dataclasses.replace(pred, patch_tokens=None)
-
-
-def _verification_config(config: PipelineConfig) -> lv.VerificationConfig:
-    return build(lv.VerificationConfig, config)
 
 
 def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]]) -> None:
@@ -236,7 +231,7 @@ def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]])
             r.update(accepted=True, reason="accepted without verification (loop_verification = none)")
         return
     with ctx.timer("loop verification"):
-        decisions = lv.verify_candidates(records, chain_poses(relative), relative, _verification_config(ctx.config))
+        decisions = lv.verify_candidates(records, chain_poses(relative), relative, ctx.config.verification)
     for r, d in zip(records, decisions):
         r.update(accepted=d.accepted, reason=d.reason, pcm_residual=d.pcm_residual)
 

@@ -65,7 +65,9 @@ class GraphOptions:
             at the previous solve's result.
     """
 
-    max_steps: int = option(100, "LM iterations (accepted + rejected)", low=0)
+    max_steps: int = option(
+        100, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, high=100_000
+    )
     rtol: float = option(1e-10, "relative cost-decrease tolerance", low=0.0)
     atol: float = option(0.0, "absolute cost-decrease tolerance", low=0.0)
     gtol: float = option(1e-10, "gradient tolerance relative to the first", low=0.0)
@@ -78,10 +80,20 @@ class GraphOptions:
     max_linear_iterations: int = option(1000, "PCG cap per LM step", low=1)
     eta_max: float = option(1e-4, "loosest PCG relative tolerance", low=0.0, low_open=True)
     kernel: Literal["huber", "cauchy", "gnc"] | None = option(
-        None, "robust kernel of the robust edges", kind=str, choices=ROBUST_CHOICES, optional=True
+        None,
+        "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "
+        "or none (the authors' plain least squares)",
+        kind=str,
+        choices=ROBUST_CHOICES,
+        optional=True,
     )
     kernel_scale: float | None = option(
-        None, "kernel scale in whitened units", kind=float, low=0.0, low_open=True, optional=True
+        None,
+        "kernel scale / GNC inlier threshold on sqrt(r^T Omega r); sqrt(chi2_7(0.99)) by default",
+        kind=float,
+        low=0.0,
+        low_open=True,
+        optional=True,
     )
     gnc_max_iterations: int = option(100, "GNC outer iterations", low=0)
     gnc_mu_step: float = option(1.4, "GNC mu step", low=0.0, low_open=True)
