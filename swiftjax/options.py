@@ -69,6 +69,7 @@ __all__ = [
     "stage_options",
     "nested",
     "replace",
+    "invalid",
     "build",
     "targets",
     "INT_LIMIT",
@@ -308,15 +309,25 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def invalid(where: str, value: Any, allowed: str, why: str = "") -> OptionError:
+    """The one shape of an option error, naming the option first (``where``: ``Class.field``,
+    a flag, or a key and its file): ``"AlignOptions.overlap_scale: invalid value 'x'; allowed:
+    one of none, median, auto"``, or with ``why``: ``"LoopOptions.top_k: 0 is out of range;
+    allowed: an integer >= 1"``."""
+    shown = repr(value) if isinstance(value, str) else _show(value)
+    said = f"{shown}{why}" if why else f"invalid value {shown}"
+    return OptionError(f"{where}: {said}; allowed: {allowed}")
+
+
 def coerce(s: Spec, name: str, value: Any, source: str | None = None) -> Any:
     """``value`` checked against ``s`` and normalised (ints to float for float options);
-    :class:`OptionError` naming ``name`` (and ``source``, e.g. the TOML file) otherwise."""
+    :class:`OptionError` naming ``name`` (``Class.field``, a flag or a key; and ``source``, e.g.
+    the TOML file) otherwise."""
     where = f"{name}" if source is None else f"{name} ({source})"
     given = value
 
     def fail(why: str = "") -> OptionError:
-        shown = repr(given) if isinstance(given, str) else _show(given)
-        return OptionError(f"invalid option {where}: {shown}{why}; allowed: {s.allowed(name)}")
+        return invalid(where, given, s.allowed(name), why)
 
     if value is None or (s.optional and isinstance(value, str) and value == "none"):
         if s.optional:
@@ -368,16 +379,15 @@ def _show(value: Any) -> str:
 
 def validate(instance: Any) -> None:
     """Check and normalise every field of a (frozen) dataclass instance in place (its
-    ``__post_init__`` calls this)."""
+    ``__post_init__`` calls this); an error names ``Class.field``."""
+    owner = type(instance).__name__
     for f in dataclasses.fields(instance):
         inner = f.metadata.get(_NESTED)
         if inner is not None:
             if not isinstance(getattr(instance, f.name), inner):
-                raise OptionError(
-                    f"invalid option {f.name}: {getattr(instance, f.name)!r}; allowed: a {inner.__name__}"
-                )
+                raise invalid(f"{owner}.{f.name}", getattr(instance, f.name), f"a {inner.__name__}")
             continue
-        value = coerce(spec(f), f.name, getattr(instance, f.name))
+        value = coerce(spec(f), f"{owner}.{f.name}", getattr(instance, f.name))
         object.__setattr__(instance, f.name, value)
 
 
@@ -447,14 +457,14 @@ def speak(message: str, names: Iterable[str], given: Mapping[str, str], file_nam
     flag (``loop_half_window -> --loop-half-window``; ``NAME=false`` as ``--no-NAME``), except
     the keys the config file gave, and the subject's value marked as the default when the user
     never set it."""
-    import re
 
     def subject(m: re.Match[str]) -> str:
         name, value = m.group(1), m.group(2)
         note = "" if name in given else " (the default: you did not set it)"
-        return f"invalid option {name}: {value}{note};"
+        return f"{name}: {value}{note};"
 
-    message = re.sub(r"invalid option (\w+): ([^;]*);", subject, message, count=1)
+    message = re.sub(r"^\w+\.(?=\w+: )", "", message)  # "PipelineConfig.overlap: ..." -> "overlap: ..."
+    message = re.sub(r"^(\w+): ([^;]*);", subject, message, count=1)
     for name in sorted(names, key=len, reverse=True):
         if given.get(name) == "file":
             continue

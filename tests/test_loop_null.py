@@ -188,10 +188,13 @@ def test_candidate_numbers_carry_the_null():
 @pytest.mark.parametrize(
     "kw,match",
     [
-        ({"agreement_rule": "tuned"}, "invalid option agreement_rule: 'tuned'; allowed: one of null, fixed"),
-        ({"null_samples": 5}, "invalid option null_samples: 5; allowed: an even integer >= 4"),
-        ({"null_false_alarm": 0.0}, "invalid option null_false_alarm: 0.0 is out of range"),
-        ({"null_min_kappa": 1.0}, "invalid option null_min_kappa: 1.0 is out of range"),
+        (
+            {"agreement_rule": "tuned"},
+            "VerificationConfig.agreement_rule: invalid value 'tuned'; allowed: one of null, fixed",
+        ),
+        ({"null_samples": 5}, "VerificationConfig.null_samples: invalid value 5; allowed: an even integer >= 4"),
+        ({"null_false_alarm": 0.0}, "VerificationConfig.null_false_alarm: 0.0 is out of range"),
+        ({"null_min_kappa": 1.0}, "VerificationConfig.null_min_kappa: 1.0 is out of range"),
         ({"null_min_shift": 0.5, "null_max_shift": 0.2}, "null_min_shift <= null_max_shift"),
     ],
 )

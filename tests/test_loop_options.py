@@ -53,12 +53,12 @@ def test_function_defaults_come_from_loop_options():
 @pytest.mark.parametrize(
     "bad, match",
     [
-        ({"rule": "auto"}, "invalid option rule: 'auto'; allowed: one of adaptive"),
-        ({"fit_on": "g0"}, "invalid option fit_on: 'g0'"),
-        ({"nms": "box"}, "invalid option nms: 'box'"),
-        ({"false_alarms": 1.0}, "invalid option false_alarms: 1.0 is out of range"),
-        ({"top_k": 0}, "invalid option top_k: 0 is out of range; allowed: an integer >= 1"),
-        ({"verification": "maybe"}, "invalid option verification: 'maybe'"),
+        ({"rule": "auto"}, "LoopOptions.rule: invalid value 'auto'; allowed: one of adaptive"),
+        ({"fit_on": "g0"}, "LoopOptions.fit_on: invalid value 'g0'"),
+        ({"nms": "box"}, "LoopOptions.nms: invalid value 'box'"),
+        ({"false_alarms": 1.0}, "LoopOptions.false_alarms: 1.0 is out of range"),
+        ({"top_k": 0}, "LoopOptions.top_k: 0 is out of range; allowed: an integer with 1 <= value <= 1000"),
+        ({"verification": "maybe"}, "LoopOptions.verification: invalid value 'maybe'"),
     ],
 )
 def test_loop_options_reject_bad_values(bad, match):

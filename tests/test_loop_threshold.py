@@ -132,11 +132,11 @@ def test_demo_route_false_loop_fixed_vs_adaptive(demo_descriptors):
 def test_bad_input_is_named(demo_descriptors):
     _, G = demo_descriptors
     sched = chunk_schedule(len(G))
-    with pytest.raises(ValueError, match="invalid option rule: 'median'; allowed: one of adaptive"):
+    with pytest.raises(ValueError, match="LoopOptions.rule: invalid value 'median'; allowed: one of adaptive"):
         L.LoopOptions(rule="median")
     with pytest.raises(
         ValueError,
-        match=r"invalid option false_alarms: 0.0 is out of range; allowed: a finite number with 0 < value < 1",
+        match=r"LoopOptions.false_alarms: 0.0 is out of range; allowed: a finite number with 0 < value < 1",
     ):
         L.LoopOptions(false_alarms=0.0)
     with pytest.raises(ValueError, match="false_alarms must be in"):
@@ -154,7 +154,10 @@ def test_bad_input_is_named(demo_descriptors):
     assert int(cand.count) == 0 and np.isinf(float(cand.threshold))
     from swiftjax.pipeline import PipelineConfig
 
-    with pytest.raises(ValueError, match=r"loop_threshold_rule: 'auto'; allowed: one of adaptive, fixed, authors"):
+    with pytest.raises(
+        ValueError,
+        match=r"^PipelineConfig.loop_threshold_rule: invalid value 'auto'; allowed: one of adaptive, fixed, authors",
+    ):
         PipelineConfig(loop_threshold_rule="auto")
     with pytest.raises(ValueError, match="loop_false_alarms"):
         PipelineConfig(loop_false_alarms=2.0)

@@ -285,7 +285,7 @@ def test_detect_loops_rejects_nan_at_host_boundary():
     Z[17] = np.nan
     with pytest.raises(ValueError, match="detect_loops: descriptors Z contains NaN or Inf.*row 17"):
         L.detect_loops(Z, 0.5)
-    with pytest.raises(ValueError, match=r"invalid option nms \(detect_loops\): 'box'"):
+    with pytest.raises(ValueError, match=r"LoopOptions.nms \(detect_loops\): invalid value 'box'"):
         L.detect_loops(planted(seed=15), 0.5, nms="box")
 
 
@@ -409,7 +409,7 @@ def test_find_loops_planted_and_errors():
         L.find_loops(bad, sched)
     with pytest.raises(ValueError, match="schedule is for 500 frames"):
         L.find_loops(G, chunk_schedule(500))
-    with pytest.raises(ValueError, match="invalid option fit_on: 'g0'; allowed: one of power, raw"):
+    with pytest.raises(ValueError, match="LoopOptions.fit_on: invalid value 'g0'; allowed: one of power, raw"):
         L.LoopOptions(fit_on="g0")
     assert L.find_loops(G[:50], chunk_schedule(50)) == []
 

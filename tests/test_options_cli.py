@@ -47,13 +47,13 @@ def test_cross_option_errors_name_the_flags_and_the_way_out(capsys, tmp_path):
     _one_line_error(
         code,
         err,
-        "--loop-half-window: 6;",
+        "--loop-half-window: invalid value 6;",
         "--chunk-size / 2 (4)",
         "--no-loop-closure",
         absent=("loop_half_window", "chunk_size", "(the default"),
     )
     code, _, err = _main(capsys, "demo", "--out", tmp_path / "o", "--chunk-size", "20", "--overlap", "25")
-    _one_line_error(code, err, "--overlap: 25;", "< --chunk-size (20)", absent=("(the default",))
+    _one_line_error(code, err, "--overlap: invalid value 25;", "< --chunk-size (20)", absent=("(the default",))
     assert not (tmp_path / "o").exists()
 
 
@@ -61,15 +61,15 @@ def test_speak_marks_a_default_the_user_never_set():
     from swiftjax import options
 
     line = options.speak(
-        "invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+        "PipelineConfig.overlap: invalid value 30; allowed: 1 <= overlap < chunk_size (20)",
         ["overlap", "chunk_size"],
         {"chunk_size": "cli"},
     )
     assert line == (
-        "invalid option --overlap: 30 (the default: you did not set it); allowed: 1 <= --overlap < --chunk-size (20)"
+        "--overlap: invalid value 30 (the default: you did not set it); allowed: 1 <= --overlap < --chunk-size (20)"
     )
     line = options.speak(
-        "invalid option overlap: 30; allowed: 1 <= overlap < chunk_size (20)",
+        "PipelineConfig.overlap: invalid value 30; allowed: 1 <= overlap < chunk_size (20)",
         ["overlap", "chunk_size"],
         {"chunk_size": "file"},
         "c.toml",

@@ -14,8 +14,8 @@ from swiftjax import align, loops, options, posegraph
 from swiftjax.loops.geometric import GeometryOptions
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.options import OptionError
-from swiftjax.posegraph.options import PIPELINE
 from swiftjax.pipeline import PipelineConfig
+from swiftjax.posegraph.options import PIPELINE
 
 STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig)
 #: Every option class on the schema: the stage classes and those no PipelineConfig field feeds.
@@ -65,21 +65,29 @@ def test_the_schema_refuses_a_bad_value_naming_the_field(cls, name, value):
     with pytest.raises(OptionError) as err:
         cls(**{name: value})
     message = str(err.value)
-    assert "\n" not in message and message.startswith(f"invalid option {name}: "), message
+    assert "\n" not in message and message.startswith(f"{cls.__name__}.{name}: "), message
     assert isinstance(err.value, ValueError)  # callers catching ValueError keep working
-    with pytest.raises(OptionError, match=f"invalid option {name}: "):
+    with pytest.raises(OptionError, match=f"{cls.__name__}.{name}: "):
         cls().replace(**{name: value})  # replace validates the same way
 
 
 def test_cross_field_rules_stay_in_post_init():
-    with pytest.raises(OptionError, match="invalid option null_samples: 5; allowed: an even integer >= 4"):
+    with pytest.raises(
+        OptionError, match="VerificationConfig.null_samples: invalid value 5; allowed: an even integer >= 4"
+    ):
         VerificationConfig(null_samples=5)
-    with pytest.raises(OptionError, match="invalid option null_min_shift: 0.5; allowed: 0 < null_min_shift <= "):
+    with pytest.raises(
+        OptionError, match="VerificationConfig.null_min_shift: invalid value 0.5; allowed: 0 < null_min_shift <= "
+    ):
         VerificationConfig(null_min_shift=0.5, null_max_shift=0.2)
-    with pytest.raises(OptionError, match="invalid option gnc_mu_step: GNC needs gnc_mu_step > 1"):
+    with pytest.raises(
+        OptionError, match="GraphOptions.gnc_mu_step: invalid value 1.0; allowed: GNC needs gnc_mu_step > 1"
+    ):
         posegraph.GraphOptions(kernel="gnc", gnc_mu_step=1.0)
     assert posegraph.GraphOptions(gnc_mu_step=1.0).gnc_mu_step == 1.0  # only GNC needs it
-    with pytest.raises(OptionError, match="invalid option verification_config: 3; allowed: a VerificationConfig"):
+    with pytest.raises(
+        OptionError, match="LoopOptions.verification_config: invalid value 3; allowed: a VerificationConfig"
+    ):
         loops.LoopOptions(verification_config=3)
 
 
@@ -99,7 +107,7 @@ def test_replace_is_a_validated_copy_and_none_is_a_value():
     b = a.replace(depth_threshold=0.3)
     assert (a.depth_threshold, b.depth_threshold) == (0.2, 0.3) and b.min_points == a.min_points
     # None is a value: refused by a field that is not optional (AlignOptions used to drop it) ...
-    with pytest.raises(OptionError, match="invalid option depth_threshold: None"):
+    with pytest.raises(OptionError, match="AlignOptions.depth_threshold: invalid value None"):
         a.replace(depth_threshold=None)
     # ... and kept by one that is
     g = posegraph.GraphOptions(kernel="gnc", kernel_scale=3.0)

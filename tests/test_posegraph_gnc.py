@@ -266,7 +266,7 @@ def test_max_iterations_is_reported_not_raised(x64, gnc_case):
 @pytest.mark.parametrize(
     "kw, match",
     [
-        (dict(kernel="tls"), "invalid option kernel: 'tls'"),
+        (dict(kernel="tls"), "GraphOptions.kernel: invalid value 'tls'"),
         (dict(kernel="gnc", kernel_scale=-1.0), "kernel_scale"),
         (dict(kernel="gnc", kernel_scale=float("nan")), "kernel_scale"),
         (dict(kernel="gnc", gnc_mu_step=1.0), "gnc_mu_step"),

@@ -141,13 +141,12 @@ class VerificationConfig:
     def __post_init__(self) -> None:
         options.validate(self)
         if self.null_samples % 2:
-            raise options.OptionError(
-                f"invalid option null_samples: {self.null_samples}; allowed: an even integer >= 4"
-            )
+            raise options.invalid("VerificationConfig.null_samples", self.null_samples, "an even integer >= 4")
         if not self.null_min_shift <= self.null_max_shift:
-            raise options.OptionError(
-                f"invalid option null_min_shift: {self.null_min_shift}; allowed: 0 < null_min_shift <= "
-                f"null_max_shift ({self.null_max_shift})"
+            raise options.invalid(
+                "VerificationConfig.null_min_shift",
+                self.null_min_shift,
+                f"0 < null_min_shift <= null_max_shift ({self.null_max_shift})",
             )
 
     def replace(self, **changes: Any) -> VerificationConfig:
@@ -256,4 +255,4 @@ def check_values(values: dict[str, Any], where: str) -> None:
     table = options.specs(LoopOptions)
     for key, value in values.items():
         if key in table:
-            options.coerce(table[key], f"{key} ({where})", value)
+            options.coerce(table[key], f"LoopOptions.{key} ({where})", value)

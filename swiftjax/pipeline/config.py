@@ -207,25 +207,27 @@ class PipelineConfig:
         # that involve two fields.  A PipelineConfig that exists is valid.
         options.validate(self)
         if not self.overlap < self.chunk_size:
-            raise options.OptionError(
-                f"invalid option overlap: {self.overlap}; allowed: 1 <= overlap < chunk_size ({self.chunk_size})"
+            raise options.invalid(
+                "PipelineConfig.overlap", self.overlap, f"1 <= overlap < chunk_size ({self.chunk_size})"
             )
         from swiftjax.metric_scale import parse_metric
 
         try:
             parse_metric(self.metric)
         except ValueError as err:
-            raise options.OptionError(f"invalid option metric: {err}") from None
+            raise options.OptionError(f"PipelineConfig.metric: {err}") from None
         if self.metric == "model" and self.model not in METRIC_BACKBONES:
             raise options.OptionError(
-                f"invalid option metric: the network's own scale needs a network that predicts metres "
+                f"PipelineConfig.metric: the network's own scale needs a network that predicts metres "
                 f"({' or '.join(METRIC_BACKBONES)}), not {self.model}"
             )
         if self.loop_closure and 2 * self.loop_half_window > self.chunk_size:
-            raise options.OptionError(
-                f"invalid option loop_half_window: {self.loop_half_window}; allowed: "
-                f"1 <= loop_half_window <= chunk_size / 2 ({self.chunk_size // 2}) with loop closure on: "
-                f"give loop_half_window <= {self.chunk_size // 2}, a larger chunk_size, or loop_closure=false"
+            half = self.chunk_size // 2
+            raise options.invalid(
+                "PipelineConfig.loop_half_window",
+                self.loop_half_window,
+                f"1 <= loop_half_window <= chunk_size / 2 ({half}) with loop closure on: give loop_half_window "
+                f"<= {half}, a larger chunk_size, or loop_closure=false",
             )
 
     @classmethod

@@ -105,9 +105,10 @@ class GraphOptions:
     def __post_init__(self) -> None:
         options.validate(self)
         if self.kernel == "gnc" and not (self.gnc_mu_step > 1 and self.gnc_max_iterations >= 1):
-            raise options.OptionError(
-                f"invalid option gnc_mu_step: GNC needs gnc_mu_step > 1 and gnc_max_iterations >= 1, got "
-                f"{self.gnc_mu_step!r}, {self.gnc_max_iterations!r}"
+            raise options.invalid(
+                "GraphOptions.gnc_mu_step",
+                self.gnc_mu_step,
+                f"GNC needs gnc_mu_step > 1 and gnc_max_iterations >= 1 (given {self.gnc_max_iterations})",
             )
 
     @property
