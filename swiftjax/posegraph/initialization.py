@@ -46,7 +46,7 @@ def solve_difference_system(
     weight: Float[Array, " e"],
     problem: Problem,
     linear_solver: AbstractLinearSolver | str,
-    max_linear_iterations: int = 1000,
+    max_linear_iterations: int | None = None,
 ) -> tuple[Float[Array, "n b"], Bool[Array, ""]]:
     """Minimise ``sum_e w_e |x_j - A_e x_i - c_e|^2`` over the free nodes, fixed nodes at ``x0``.
 
@@ -87,7 +87,7 @@ def solve_difference_system(
     return x0 + delta, ok
 
 
-def _as_solver(linear_solver, max_linear_iterations: int) -> AbstractLinearSolver:
+def _as_solver(linear_solver, max_linear_iterations: int | None) -> AbstractLinearSolver:
     if isinstance(linear_solver, AbstractLinearSolver):
         return linear_solver
     return make_linear_solver(linear_solver, max_iterations=max_linear_iterations)
@@ -100,7 +100,7 @@ def _project_to_so3(m: Float[Array, "*n 3 3"]) -> Float[Array, "*n 3 3"]:
 
 
 def chordal_initialization(
-    problem: Problem, linear_solver: AbstractLinearSolver | str = "sparse", max_linear_iterations: int = 1000
+    problem: Problem, linear_solver: AbstractLinearSolver | str = "sparse", max_linear_iterations: int | None = None
 ) -> tuple[Float[Array, "n 8"], Bool[Array, ""]]:
     """Initial poses ``[N, 8]`` from the three linear problems of the module docstring.
 

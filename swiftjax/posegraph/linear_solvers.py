@@ -23,7 +23,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Bool, Float, Int
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from swiftjax.posegraph import linear
 
@@ -110,10 +110,14 @@ LINEAR_SOLVERS: dict[str, type[AbstractLinearSolver]] = {
 }
 
 
-def linear_solver(name: str, *, max_iterations: int = 1000, eta_max: Array | float = 1e-4) -> AbstractLinearSolver:
-    """The solver object of a resolved name (``"dense"``, ``"pcg"`` or ``"sparse"``)."""
+def linear_solver(
+    name: str, *, max_iterations: int | None = None, eta_max: Float[ArrayLike, ""] | float | None = None
+) -> AbstractLinearSolver:
+    """The solver object of a resolved name (``"dense"``, ``"pcg"`` or ``"sparse"``); PCG's
+    settings left at ``None`` keep :class:`BlockJacobiPCG`'s defaults."""
     if name not in LINEAR_SOLVERS:
         raise ValueError(f"linear_solver must be 'auto', 'dense', 'pcg' or 'sparse', not {name!r}")
     if name == "pcg":
-        return BlockJacobiPCG(max_iterations=int(max_iterations), eta_max=eta_max)
+        given = {"max_iterations": None if max_iterations is None else int(max_iterations), "eta_max": eta_max}
+        return BlockJacobiPCG(**{k: v for k, v in given.items() if v is not None})
     return LINEAR_SOLVERS[name]()

@@ -20,12 +20,19 @@ from swiftjax import options
 from swiftjax.options import option
 from swiftjax.posegraph.gnc import DEFAULT_SCALE
 from swiftjax.posegraph.kernels import ROBUST_CHOICES
+from swiftjax.posegraph.linear_solvers import BlockJacobiPCG
+from swiftjax.posegraph.solver import SparseSim3LM
 from swiftjax.posegraph.solver_choice import LINEAR_SOLVER_CHOICES
 
 __all__ = ["GraphOptions", "PIPELINE", "DAMPINGS", "INITIALIZATIONS"]
 
 DAMPINGS = ("identity", "marquardt")
 INITIALIZATIONS = ("none", "chordal")
+
+# The solver objects declare their own settings' defaults; GraphOptions reuses them (and adds
+# each one's schema: help, range, choices), so a default is written once.
+_LM = SparseSim3LM()
+_PCG = BlockJacobiPCG()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,17 +75,17 @@ class GraphOptions:
     max_steps: int = option(
         100, "most Levenberg-Marquardt steps of the pose graph (0: report the initial cost only)", low=0, high=100_000
     )
-    rtol: float = option(1e-10, "relative cost-decrease tolerance", low=0.0)
-    atol: float = option(0.0, "absolute cost-decrease tolerance", low=0.0)
-    gtol: float = option(1e-10, "gradient tolerance relative to the first", low=0.0)
-    lambda0: float = option(1e-5, "initial damping", low=0.0, low_open=True)
-    damping: Literal["identity", "marquardt"] = option("identity", "damping matrix", choices=DAMPINGS)
+    rtol: float = option(_LM.rtol, "relative cost-decrease tolerance", low=0.0)
+    atol: float = option(_LM.atol, "absolute cost-decrease tolerance", low=0.0)
+    gtol: float = option(_LM.gtol, "gradient tolerance relative to the first", low=0.0)
+    lambda0: float = option(_LM.lambda0, "initial damping", low=0.0, low_open=True)
+    damping: Literal["identity", "marquardt"] = option(_LM.damping, "damping matrix", choices=DAMPINGS)
     initialization: Literal["none", "chordal"] = option("none", "initial poses", choices=INITIALIZATIONS)
     linear_solver: Literal["auto", "dense", "pcg", "sparse"] = option(
         "auto", "linear solver of each LM step", choices=LINEAR_SOLVER_CHOICES
     )
-    max_linear_iterations: int = option(1000, "PCG cap per LM step", low=1)
-    eta_max: float = option(1e-4, "loosest PCG relative tolerance", low=0.0, low_open=True)
+    max_linear_iterations: int = option(_PCG.max_iterations, "PCG cap per LM step", low=1)
+    eta_max: float = option(_PCG.eta_max, "loosest PCG relative tolerance", low=0.0, low_open=True)
     kernel: Literal["huber", "cauchy", "gnc"] | None = option(
         None,
         "robust loop edges: gnc (graduated non-convexity, truncated least squares), cauchy, huber, "

@@ -160,7 +160,8 @@ class SparseSim3LM(optx.AbstractLeastSquaresSolver):
     ``fn(y, problem)`` returns the residuals (it is traced only for its output structure; the
     solver linearises with the analytic edge Jacobians).  Float fields may be JAX arrays so
     that changing them does not recompile; ``damping`` and the linear solver's static settings
-    are static.
+    are static.  Its defaults are the settings' defaults: :class:`~swiftjax.posegraph.GraphOptions`
+    reuses them (with each setting's range and help).
 
     Attributes:
         rtol, atol: relative / absolute cost-decrease tolerances (GTSAM semantics).
