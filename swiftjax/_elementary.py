@@ -14,6 +14,7 @@ import math
 
 import jax.numpy as jnp
 from jax import Array
+from jaxtyping import Float
 
 __all__ = ["sincos", "arctan2_nonneg"]
 
@@ -51,7 +52,7 @@ def _is_single(x: Array) -> bool:
     return jnp.finfo(x.dtype).bits <= 32
 
 
-def sincos(x: Array) -> tuple[Array, Array]:
+def sincos(x: Float[Array, "*s"]) -> tuple[Float[Array, "*s"], Float[Array, "*s"]]:
     """``(sin x, cos x)`` with Cephes' octant reduction and minimax polynomials."""
     single = _is_single(x)
     sin_c, cos_c, dp = (_SIN_F32, _COS_F32, _DP_F32) if single else (_SIN_F64, _COS_F64, _DP_F64)
@@ -92,7 +93,7 @@ _ATAN_Q64 = (
 _MOREBITS = 6.123233995736765886130e-17
 
 
-def arctan2_nonneg(y: Array, x: Array) -> Array:
+def arctan2_nonneg(y: Float[Array, "*s"], x: Float[Array, "*s"]) -> Float[Array, "*s"]:
     """``atan2(y, x)`` for ``y >= 0, x >= 0`` (not both zero), in ``[0, pi/2]``.
 
     Reduction: ``a = min(y, x) / max(y, x) in [0, 1]``; ``atan a`` is reduced once more about

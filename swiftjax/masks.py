@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.typing import ArrayLike
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from swiftjax.errors import SwiftjaxError
 from swiftjax.intrinsics import PreprocessGeometry, map_mask
@@ -142,15 +142,18 @@ class MaskDirectory:
             raise MaskError(f"mask {p} is {keep.shape[1]}x{keep.shape[0]} but the images are {w}x{h}")
         return keep
 
-    def read(self, frames: ArrayLike) -> np.ndarray:
+    def read(self, frames: Sequence[int] | Int[ArrayLike, " S"]) -> Bool[np.ndarray, "S H W"]:
         """Keep-masks of global ``frames [S]`` at the model's resolution: bool ``[S, H, W]``."""
         return np.stack([map_mask(self.read_original(int(k)), self.geometry) for k in np.asarray(frames).reshape(-1)])
 
 
 @jax.jit
 def sky_mask(
-    depth: ArrayLike, conf: ArrayLike, depth_ratio: float | ArrayLike = 5.0, conf_ratio: float | ArrayLike = 0.3
-) -> Array:
+    depth: Float[ArrayLike, "*s H W"],
+    conf: Float[ArrayLike, "*s H W"],
+    depth_ratio: float | Float[ArrayLike, ""] = 5.0,
+    conf_ratio: float | Float[ArrayLike, ""] = 0.3,
+) -> Bool[Array, "*s H W"]:
     """Sky pixels from depth and confidence alone: bool ``[..., H, W]`` (True = sky).
 
     ``sky = D > depth_ratio * median(D) and conf < conf_ratio * median(conf)``, medians per
@@ -171,7 +174,7 @@ def sky_mask(
     return (far & unsure) | ~jnp.isfinite(depth)
 
 
-def network_sky_mask(conf: ArrayLike) -> Array:
+def network_sky_mask(conf: Float[ArrayLike, "*s H W"]) -> Bool[Array, "*s H W"]:
     """Sky as a network with a sky head marks it: bool ``[..., H, W]``, ``conf <= 1``.
 
     The nested Depth Anything 3 model sets the confidence of the pixels its metric branch calls
@@ -183,13 +186,13 @@ def network_sky_mask(conf: ArrayLike) -> Array:
 
 
 def keep_mask(
-    depth: ArrayLike,
-    conf: ArrayLike,
-    user: ArrayLike | None = None,
+    depth: Float[ArrayLike, "S H W"],
+    conf: Float[ArrayLike, "S H W"],
+    user: Bool[ArrayLike, "S H W"] | None = None,
     drop_sky: bool = False,
     sky_rule: str = "cues",
     **sky_options: float,
-) -> Array | None:
+) -> Bool[Array, "S H W"] | None:
     """The combined keep-mask ``[S, H, W]`` (user mask AND not sky), or ``None`` when neither
     is asked for (the caller then uses every pixel, with no extra compile).  ``sky_rule``:
     :data:`SKY_RULES` (``network`` for a backbone that marks sky, see :func:`network_sky_mask`)."""

@@ -47,11 +47,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
+from jaxtyping import Bool, Float, Shaped
 from numpy.typing import ArrayLike as HostArrayLike
 
 from swiftjax import camera
+from swiftjax.errors import SwiftjaxError
 
 __all__ = [
+    "MetricScaleError",
     "PlaneFit",
     "fit_plane",
     "ground_points",
@@ -64,6 +67,11 @@ __all__ = [
     "apply_scale",
     "parse_metric",
 ]
+
+
+class MetricScaleError(SwiftjaxError, ValueError):
+    """The input gives no metric scale (no road seen, ...): one line saying why."""
+
 
 _UP = (0.0, -1.0, 0.0)  # OpenCV camera: y points down
 
@@ -146,15 +154,15 @@ def _fit_one(
 
 @functools.partial(jax.jit, static_argnames=("num_hypotheses", "iterations"))
 def fit_plane(
-    points: ArrayLike,
-    weights: ArrayLike,
-    key: ArrayLike,
-    up: ArrayLike = _UP,
+    points: Float[ArrayLike, "*b n 3"],
+    weights: Shaped[ArrayLike, "*b n"],
+    key: Shaped[ArrayLike, "..."],
+    up: Float[ArrayLike, "3"] = _UP,
     *,
     num_hypotheses: int = 64,
     iterations: int = 8,
-    inlier_scale: float | ArrayLike = 0.05,
-    max_tilt_deg: float | ArrayLike = 30.0,
+    inlier_scale: float | Float[ArrayLike, ""] = 0.05,
+    max_tilt_deg: float | Float[ArrayLike, ""] = 30.0,
 ) -> PlaneFit:
     """Robust plane ``n . x = d`` below the origin: RANSAC + IRLS (module docstring).
 
@@ -194,14 +202,14 @@ def fit_plane(
 
 
 def ground_points(
-    depth: ArrayLike,
-    conf: ArrayLike,
-    intrinsic: ArrayLike,
-    K_ref: ArrayLike,
-    keep: ArrayLike | None = None,
-    conf_ratio: float | ArrayLike = 0.5,
+    depth: Float[ArrayLike, "S H W"],
+    conf: Float[ArrayLike, "S H W"],
+    intrinsic: Float[ArrayLike, "S 3 3"],
+    K_ref: Float[ArrayLike, "3 3"],
+    keep: Bool[ArrayLike, "S H W"] | None = None,
+    conf_ratio: float | Float[ArrayLike, ""] = 0.5,
     stride: int | tuple[int, int] = 4,
-) -> tuple[Array, Array]:
+) -> tuple[Float[Array, "S h w 3"], Float[Array, "S h w"]]:
     """Candidate road points of each frame in its camera frame, on a pixel grid of ``stride``
     rows x columns (one int: both).
 
@@ -250,20 +258,20 @@ class GroundHeight(NamedTuple):
 
 @functools.partial(jax.jit, static_argnames=("stride", "frame_stride", "num_hypotheses", "iterations"))
 def chunk_ground_height(
-    depth: ArrayLike,
-    conf: ArrayLike,
-    intrinsic: ArrayLike,
-    K_ref: ArrayLike,
-    keep: ArrayLike | None = None,
-    key: ArrayLike | None = None,
+    depth: Float[ArrayLike, "S H W"],
+    conf: Float[ArrayLike, "S H W"],
+    intrinsic: Float[ArrayLike, "S 3 3"],
+    K_ref: Float[ArrayLike, "3 3"],
+    keep: Bool[ArrayLike, "S H W"] | None = None,
+    key: Shaped[ArrayLike, "..."] | None = None,
     *,
-    conf_ratio: float | ArrayLike = 0.5,
+    conf_ratio: float | Float[ArrayLike, ""] = 0.5,
     stride: int | tuple[int, int] = (4, 8),
     frame_stride: int = 5,
     num_hypotheses: int = 64,
     iterations: int = 8,
-    inlier_scale: float | ArrayLike = 0.05,
-    max_tilt_deg: float | ArrayLike = 30.0,
+    inlier_scale: float | Float[ArrayLike, ""] = 0.05,
+    max_tilt_deg: float | Float[ArrayLike, ""] = 30.0,
 ) -> GroundHeight:
     """The camera's height above the road in a chunk: per-frame :func:`fit_plane` on
     :func:`ground_points` of every ``frame_stride``-th frame, then the median over them.
@@ -308,7 +316,7 @@ def combine_scales(
     votes = camera_height / (h * s)
     ok = np.isfinite(votes) & (votes > 0)
     if not np.any(ok):
-        raise ValueError("--metric camera-height: no chunk has a valid road-plane fit (is the road visible?)")
+        raise MetricScaleError("--metric camera-height: no chunk has a valid road-plane fit (is the road visible?)")
     v = votes[ok]
     m = float(np.median(v))
     mad = float(np.median(np.abs(v - m)))
@@ -365,7 +373,7 @@ def scale_priors(
     return ScalePriors(np.where(used, log_m, np.nan), weight, used, start, stats)
 
 
-def apply_scale(poses: HostArrayLike, m: float) -> np.ndarray:
+def apply_scale(poses: HostArrayLike, m: float) -> Float[np.ndarray, "*b 8"]:
     """``M_m o S`` for Sim(3) poses ``[..., 8]``: translation and scale times ``m`` (the world
     stretched by ``m``; rotations unchanged).  Host NumPy float64."""
     S = np.array(poses, np.float64, copy=True)

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import DTypeLike
-from jaxtyping import ArrayLike, Float, Real
+from jaxtyping import ArrayLike, Float, Real, Shaped
 
 from swiftjax._elementary import arctan2_nonneg, sincos
 
@@ -70,17 +70,17 @@ Vec3 = tuple[Array, Array, Array]
 Quat = tuple[Array, Array, Array, Array]
 
 
-def split(x: Array) -> tuple[Array, ...]:
+def split(x: Shaped[Array, "*s k"]) -> tuple[Shaped[Array, "*s"], ...]:
     """``[..., k] -> k`` arrays of shape ``[...]`` (component axis moved to the front)."""
     return tuple(jnp.moveaxis(x, -1, 0))
 
 
-def join(components: tuple[Array, ...]) -> Array:
+def join(components: tuple[Shaped[ArrayLike, "*#s"], ...]) -> Shaped[Array, "*s k"]:
     """Inverse of :func:`split`: broadcast the components and stack them on a last axis."""
     return jnp.moveaxis(jnp.stack(jnp.broadcast_arrays(*components), axis=0), 0, -1)
 
 
-def hemisphere_sign(w: Array) -> Array:
+def hemisphere_sign(w: Float[Array, "*s"]) -> Float[Array, "*s"]:
     """``-1`` where ``w < 0``, else ``+1`` (in ``w``'s dtype): the factor that moves a quaternion
     with real part ``w`` to the ``w >= 0`` hemisphere (the one sign convention of this module)."""
     return jnp.where(w < 0, -1.0, 1.0).astype(w.dtype)
@@ -90,7 +90,7 @@ def cross(a: Vec3, b: Vec3) -> Vec3:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def dot(a: Vec3, b: Vec3) -> Array:
+def dot(a: Vec3, b: Vec3) -> Float[Array, "*s"]:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
@@ -139,7 +139,7 @@ def log_components(q: Quat) -> tuple[Vec3, HalfAngle]:
     return omega, half
 
 
-def half_angle(q: Quat, theta_sq: Array) -> HalfAngle:
+def half_angle(q: Quat, theta_sq: Float[Array, "*s"]) -> HalfAngle:
     """The :class:`HalfAngle` of the rotation ``q`` whose squared angle ``theta_sq = |log q|^2`` is
     known: ``sin(theta/2) = |v| / |q|`` and ``cos(theta/2) = |w| / |q|`` read off the quaternion
     (no trigonometric function).  As in :func:`log_components`, ``theta`` and ``sin_half`` are

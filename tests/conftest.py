@@ -27,7 +27,8 @@ import pathlib
 # of these modules with a runtime checker.  It must be installed before anything imports
 # swiftjax (this file is imported before any test module).  One module name per line.
 #
-# The modules of array functions are listed one by one.  Left out on purpose: the option
+# The modules of array functions are listed one by one (tests/test_jaxtyping_hook.py checks that
+# every core module with a public array function is here, or says why not).  Left out on purpose: the option
 # modules (swiftjax.loops.options, swiftjax.posegraph.options: host-boundary dataclasses whose
 # __post_init__ raises a ValueError naming the bad value, which a Literal annotation checked
 # first would hide) and the packages' __init__ modules.  Inside the listed
@@ -38,18 +39,22 @@ import jaxtyping
 JAXTYPED_MODULES = [
     "swiftjax.sim3",
     "swiftjax.so3",
+    "swiftjax._elementary",
     "swiftjax.camera",
+    "swiftjax.masks",
     "swiftjax.metric_scale",
     "swiftjax.align.umeyama",
     "swiftjax.align.chunk_pair",
     "swiftjax.align.mask",
     "swiftjax.align.irls",
     "swiftjax.align.checks",
+    "swiftjax.align.covariance",
     "swiftjax.loops.descriptors",
     "swiftjax.loops.detection",
     "swiftjax.loops.loop_chunk",
     "swiftjax.loops.find",
     "swiftjax.loops.cross_chunk",
+    "swiftjax.loops.null",
     "swiftjax.loops.pcm",
     "swiftjax.loops.verification",
     "swiftjax.posegraph.problem",

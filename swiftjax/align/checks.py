@@ -13,13 +13,16 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import Float
 
 __all__ = ["check_chunk_pair", "umeyama_inputs"]
 
 _FRAME_FIELDS = ("depth", "conf", "intrinsic", "extrinsic")  # ChunkFrames._fields
 
 
-def umeyama_inputs(src: Any, dst: Any, weights: Any) -> tuple[Array, Array, Array]:
+def umeyama_inputs(
+    src: Any, dst: Any, weights: Any
+) -> tuple[Float[Array, "*b n 3"], Float[Array, "*b n 3"], Float[Array, "*b n"]]:
     """``(src, dst, w)`` as arrays of one float dtype (float32 for integer points), ``w`` all
     ones when ``weights`` is None; raises ``TypeError`` for half precision, ``ValueError`` for
     shapes other than ``src, dst [..., N, 3]``, ``weights [..., N]``.  Runs at trace time."""

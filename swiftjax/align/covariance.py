@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jax.typing import ArrayLike
+from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax import sim3, so3
 
@@ -78,7 +78,9 @@ class EdgeInformation(NamedTuple):
 
 
 @jax.jit
-def source_moments(src: ArrayLike, weights: ArrayLike | None = None) -> tuple[Array, Array]:
+def source_moments(
+    src: Float[ArrayLike, "*b n 3"], weights: Float[ArrayLike, "*b n"] | None = None
+) -> tuple[Float[Array, "*b 3"], Float[Array, "*b 3 3"]]:
     """``(m [..., 3], C [..., 3, 3])``: weighted mean and covariance ``sum w (x - m)(x - m)^T / W`` of
     ``src [..., N, 3]`` (points with a non-finite coordinate or ``w <= 0`` ignored; zeros if none)."""
     src = jnp.asarray(src)
@@ -96,14 +98,14 @@ def source_moments(src: ArrayLike, weights: ArrayLike | None = None) -> tuple[Ar
 
 @jax.jit
 def umeyama_information(
-    scale: ArrayLike,
-    num_points: ArrayLike,
-    rms: ArrayLike,
-    src_mean: ArrayLike,
-    src_covariance: ArrayLike,
+    scale: Float[ArrayLike, "*b"],
+    num_points: Real[ArrayLike, "*b"],
+    rms: Float[ArrayLike, "*b"],
+    src_mean: Float[ArrayLike, "*b 3"],
+    src_covariance: Float[ArrayLike, "*b 3 3"],
     *,
-    pixels_per_sample: ArrayLike = 1.0,
-    rms_floor: ArrayLike = DEFAULT_RMS_FLOOR,
+    pixels_per_sample: Float[ArrayLike, ""] = 1.0,
+    rms_floor: Float[ArrayLike, ""] = DEFAULT_RMS_FLOOR,
 ) -> EdgeInformation:
     """``Omega = s^2 (3 n - 7) / rms^2 * A(m, M) * n_eff / n`` (module docstring).
 
@@ -152,12 +154,12 @@ def umeyama_information(
 
 @jax.jit
 def umeyama_information_from_points(
-    src: ArrayLike,
-    weights: ArrayLike | None,
-    S: ArrayLike,
-    num_points: ArrayLike,
-    rms: ArrayLike,
-    **options: ArrayLike,
+    src: Float[ArrayLike, "*b n 3"],
+    weights: Float[ArrayLike, "*b n"] | None,
+    S: Float[ArrayLike, "*b 8"],
+    num_points: Real[ArrayLike, "*b"],
+    rms: Float[ArrayLike, "*b"],
+    **options: Float[ArrayLike, ""],
 ) -> EdgeInformation:
     """:func:`umeyama_information` of an :func:`swiftjax.align.umeyama` solve from its source points
     (``src [..., N, 3]``, ``weights [..., N]`` or None, ``S [..., 8]`` and the solve's
@@ -167,7 +169,9 @@ def umeyama_information_from_points(
 
 
 @jax.jit
-def alignment_information(S: ArrayLike, info: AlignInfo, **options: ArrayLike) -> EdgeInformation:
+def alignment_information(
+    S: Float[ArrayLike, "*b 8"], info: AlignInfo, **options: Float[ArrayLike, ""]
+) -> EdgeInformation:
     """Information of an :func:`swiftjax.align.align_chunk_pair` edge from its ``(S, AlignInfo)``.
 
     Invalid (``valid`` False) also when the alignment fell back to the camera poses
@@ -189,7 +193,10 @@ def _covariance(info: Array) -> Array:
 
 @jax.jit
 def loop_edge_information(
-    S_i_loop: ArrayLike, info_i: EdgeInformation, S_j_loop: ArrayLike, info_j: EdgeInformation
+    S_i_loop: Float[ArrayLike, "*b 8"],
+    info_i: EdgeInformation,
+    S_j_loop: Float[ArrayLike, "*b 8"],
+    info_j: EdgeInformation,
 ) -> EdgeInformation:
     """Information of ``Z = S_j,loop S_i,loop^-1`` from its two half alignments::
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import ArrayLike, Bool, Float, Real
+from jaxtyping import ArrayLike, Bool, Float, Int, Real
 
 from swiftjax._reductions import variadic_sum
 from swiftjax.align.options import AlignOptions
@@ -55,7 +55,9 @@ def frame_conf_mean(conf: Real[ArrayLike, "*frames H W"]) -> Float[Array, "*fram
     return jax.lax.cond(jnp.all(jnp.isfinite(plain)), lambda f: plain, masked, flat)
 
 
-def masked_median(values: Real[ArrayLike, ...], keep: Bool[ArrayLike, ...]) -> tuple[Float[Array, ""], Array]:
+def masked_median(
+    values: Real[ArrayLike, "..."], keep: Bool[ArrayLike, "..."]
+) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Median of ``values[keep]`` with fixed shapes: ``(median, count)`` (NaN, 0 when nothing is kept).
 
     ``values`` and ``keep`` are flattened; the kept values are sorted to the front (the others
@@ -80,7 +82,7 @@ def overlap_scale_ratio(
     conf_b: Real[ArrayLike, "*frames H W"],
     conf_ratio: float | Real[ArrayLike, ""] = AlignOptions.conf_ratio,
     keep: Bool[ArrayLike, "*frames H W"] | None = None,
-) -> tuple[Float[Array, ""], Array]:
+) -> tuple[Float[Array, ""], Int[Array, ""]]:
     """Robust scale ``rho`` with ``D_a ~ rho D_b`` over all the given frames: ``(rho, count)``.
 
     ``rho`` is the median of ``D_a / D_b`` over the pixels that are finite, positive in both,

@@ -41,7 +41,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax import align, sim3
 from swiftjax._compile import LIGHT_COMPILE, quick_jit
@@ -59,7 +59,7 @@ __all__ = [
 ]
 
 
-def null_offsets(samples: int, min_shift: float, max_shift: float) -> np.ndarray:
+def null_offsets(samples: int, min_shift: float, max_shift: float) -> Float[np.ndarray, " K"]:
     """The ``K = samples`` (even, >= 4) sideways offsets ``δ_k`` of the null edges ``[K]``
     (fractions of the median depth): ``K/2`` evenly spaced in ``[min_shift, max_shift]``,
     each with both signs."""
@@ -157,7 +157,7 @@ class NullThreshold(NamedTuple):
 def null_threshold(
     score: Float[ArrayLike, " K"],
     overlap: Float[ArrayLike, " K"],
-    pairs_seen: Float[ArrayLike, " K"],
+    pairs_seen: Real[ArrayLike, " K"],
     false_alarm: float,
     min_overlap: float,
 ) -> NullThreshold:
