@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from swiftjax.options import OptionError
 from swiftjax.prediction import ChunkPrediction
 
 from .frames import FrameLoader
@@ -163,11 +164,11 @@ def build_runner(
         from inference.runners import OnnxRunner
 
         if not weights.endswith(".onnx"):
-            raise ValueError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
+            raise OptionError(f"--backend onnx needs an .onnx file (see 'swiftjax export-onnx'), got {weights}")
         providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device.startswith("cuda") else None
         return OnnxRunner(weights, providers=providers)
     if backend != "torch":
-        raise ValueError(f"backend must be 'torch' or 'onnx', got {backend!r}")
+        raise OptionError(f"backend must be 'torch' or 'onnx', got {backend!r}")
     backbone = get(model)
     return backbone.impl.build_runner(backbone, weights, device, dtype, model_config)
 

@@ -15,9 +15,12 @@ The stage option classes (``AlignOptions``, ``GraphOptions``, ``LoopOptions``,
 ``VerificationConfig``) declare their fields with :func:`option` too, without ``stage`` (a
 stage class belongs to one stage as a whole; ``stage`` is the pipeline's fingerprint key and
 only :class:`~swiftjax.pipeline.PipelineConfig` gives it).  A ``PipelineConfig`` field that
-feeds a stage option names it with ``target=(StageClass, "field")``; :func:`build` makes any
-stage options object from a config through those targets (nested stage objects, such as
-``LoopOptions.verification_config``, declared with :func:`nested`, are built the same way).
+feeds a stage option is declared by it: ``option(target=(StageClass, "field"), stage=...)``
+takes the stage field's default, help, range and choices (a keyword given beside ``target``
+may only narrow them or set the pipeline's own default).  :func:`build` makes any stage
+options object from a config through those targets (nested stage objects, such as
+``LoopOptions.verification_config``, declared with :func:`nested`, are built the same way),
+and :class:`built` makes it an attribute (``config.loops``).
 :func:`replace` is the one ``replace``: a validated copy, ``None`` a value like any other.
 
 Adding an option is one line in the dataclass::
@@ -25,8 +28,10 @@ Adding an option is one line in the dataclass::
     voxel_size: float | None = option(None, "voxel edge for per-chunk downsampling of the cloud",
                                       low=0.0, low_open=True, optional=True, stage="export")
 
-Rules (every violation is an :class:`OptionError`, one line naming the option, the value and
-what is allowed; the CLI prints it and exits with status 2):
+Rules (every violation is an :class:`OptionError`, one line naming the option first --
+``Class.field``, a flag, or a TOML key and its file -- then the value and what is allowed:
+``"LoopOptions.top_k: 0 is out of range; allowed: ..."``; the CLI prints it and exits with
+status 2):
 
 * ``bool`` options take ``true``/``false`` (TOML booleans, or the ``--x``/``--no-x`` flags):
   the string ``"no"`` or the number ``1`` is refused, never read as truthy;
@@ -50,7 +55,7 @@ import math
 import numbers
 import re
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, Generic, TypeVar, overload
 
 from swiftjax.errors import SwiftjaxError
 
@@ -71,6 +76,7 @@ __all__ = [
     "replace",
     "invalid",
     "build",
+    "built",
     "targets",
     "INT_LIMIT",
 ]
@@ -82,6 +88,8 @@ __all__ = [
 STAGES = ("temporal", "loops", "graph", "export")
 
 _KEY = "swiftjax.option"
+
+T = TypeVar("T")
 
 #: Largest magnitude any ``int`` option takes, whatever its own range (every integer the
 #: pipeline passes on must fit a 32-bit index; ``10**23`` overflowed after the model load).
@@ -295,6 +303,21 @@ def build(cls: Any, config: Any) -> Any:
         if inner is not None and f.name not in values and targets(type(config), inner):
             values[f.name] = build(inner, config)
     return cls(**values)
+
+
+class built(Generic[T]):
+    """A read-only attribute of a config class: the stage options ``cls`` of the instance,
+    :func:`build` at each access (``align = built(AlignOptions)`` gives ``config.align``)."""
+
+    def __init__(self, cls: type[T]) -> None:
+        self.cls = cls
+
+    @overload
+    def __get__(self, instance: None, owner: type) -> built[T]: ...
+    @overload
+    def __get__(self, instance: object, owner: type) -> T: ...
+    def __get__(self, instance: object | None, owner: type) -> built[T] | T:
+        return self if instance is None else build(self.cls, instance)
 
 
 def stage_options(cls: Any, values: Mapping[str, Any], stage: str) -> dict[str, Any]:

@@ -117,3 +117,27 @@ def test_workers_below_one_is_checked_in_one_place(tmp_path):
     ):
         with pytest.raises(ExecutorError, match="--workers must be >= 1, got 0"):
             call()
+
+
+def test_user_input_errors_of_the_library_are_swiftjax_errors(tmp_path):
+    """Errors a user's flag or file causes, raised below the CLI, are in the family (and keep
+    ValueError for callers that catch it)."""
+    import numpy as np
+
+    from inference.backbones import get
+    from inference.predictor import build_runner
+    from swiftjax.io.ply import read_ply
+    from swiftjax.metric_scale import combine_scales
+
+    not_ply = tmp_path / "cloud.ply"
+    not_ply.write_bytes(b"solid cube\n")
+    cases = [
+        (lambda: get("da3-tiny"), "--model 'da3-tiny' is not a backbone"),
+        (lambda: build_runner(tmp_path / "w.pt", backend="onnx"), "--backend onnx needs an .onnx file"),
+        (lambda: read_ply(not_ply), "cloud.ply is not a PLY file"),
+        (lambda: combine_scales(np.full(3, np.nan), np.ones(3), 1.65), "no chunk has a valid road-plane fit"),
+    ]
+    for call, fragment in cases:
+        with pytest.raises(SwiftjaxError, match=fragment) as err:
+            call()
+        assert isinstance(err.value, ValueError) and "\n" not in str(err.value)

@@ -99,11 +99,14 @@ BACKBONES: dict[str, Backbone] = {
 
 
 def get(name: str) -> Backbone:
-    """The backbone called ``name``; ``ValueError`` naming the choices otherwise."""
+    """The backbone called ``name``; an :class:`~swiftjax.options.OptionError` (a ``ValueError``)
+    naming the choices otherwise."""
+    from swiftjax.options import OptionError
+
     try:
         return BACKBONES[name]
     except KeyError:
-        raise ValueError(f"--model {name!r} is not a backbone; choose one of {', '.join(BACKBONES)}") from None
+        raise OptionError(f"--model {name!r} is not a backbone; choose one of {', '.join(BACKBONES)}") from None
 
 
 def family(name: str) -> Family:

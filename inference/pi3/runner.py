@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from swiftjax.options import OptionError
 from swiftjax.prediction import ChunkPrediction
 
 from ..device import to_host
@@ -42,7 +43,7 @@ class Pi3TorchRunner:
         self.model = model.to(self.device).eval()
         self.name = f"π³ ({model.config.variant})"  # for messages (a non-finite output)
         if intrinsics is not None and model.config.variant != "pi3x":
-            raise ValueError("--intrinsics as a condition needs π³X (π³ takes no conditions)")
+            raise OptionError("--intrinsics as a condition needs π³X (π³ takes no conditions)")
         self.intrinsics = None if intrinsics is None else np.asarray(intrinsics, dtype=np.float64)
 
     def forward(self, images: Any, conditions: Conditions | None = None) -> dict[str, torch.Tensor]:

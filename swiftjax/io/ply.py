@@ -31,9 +31,11 @@ from typing import IO, Any, NamedTuple
 
 import numpy as np
 
+from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
 
 __all__ = [
+    "PlyError",
     "PlyPoints",
     "PlyStreamWriter",
     "ply_dtype",
@@ -43,6 +45,11 @@ __all__ = [
 ]
 
 PathLike = str | os.PathLike[str]
+
+
+class PlyError(SwiftjaxError, ValueError):
+    """A file that is not a PLY point cloud this reader takes; the message names the file."""
+
 
 _COUNT_WIDTH = 20  # digits reserved for the streamed vertex count (uint64 max has 20)
 
@@ -223,13 +230,13 @@ def _parse_header(f: IO[bytes], path: PathLike) -> tuple[str, list[_Element], in
     """Parse a PLY header: returns (format, elements, header byte length)."""
     magic = f.readline()
     if magic.rstrip(b"\r\n") != b"ply":
-        raise ValueError(f"{path} is not a PLY file (first line is {magic[:20]!r}, expected 'ply')")
+        raise PlyError(f"{path} is not a PLY file (first line is {magic[:20]!r}, expected 'ply')")
     fmt = None
     elements: list[_Element] = []
     while True:
         raw = f.readline()
         if not raw:
-            raise ValueError(f"{path}: PLY header has no 'end_header' line")
+            raise PlyError(f"{path}: PLY header has no 'end_header' line")
         words = raw.decode("ascii", errors="replace").split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
@@ -241,20 +248,20 @@ def _parse_header(f: IO[bytes], path: PathLike) -> tuple[str, list[_Element], in
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:
-                raise ValueError(f"{path}: PLY property before any element: {raw!r}")
+                raise PlyError(f"{path}: PLY property before any element: {raw!r}")
             if words[1] == "list":
                 elements[-1][2].append((words[4], words[2], words[3]))
             else:
                 elements[-1][2].append((words[2], None, words[1]))
         else:
-            raise ValueError(f"{path}: unknown PLY header line {raw!r}")
+            raise PlyError(f"{path}: unknown PLY header line {raw!r}")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise ValueError(f"{path}: unsupported PLY format {fmt!r}")
+        raise PlyError(f"{path}: unsupported PLY format {fmt!r}")
     for _, _, props in elements:
         for name, lt, t in props:
             for typ in (t, lt) if lt else (t,):
                 if typ not in _PLY_TYPES:
-                    raise ValueError(f"{path}: unknown PLY property type {typ!r} for {name!r}")
+                    raise PlyError(f"{path}: unknown PLY property type {typ!r} for {name!r}")
     return fmt, elements, f.tell()
 
 
@@ -271,15 +278,15 @@ def read_ply(path: PathLike) -> PlyPoints:
         fmt, elements, offset = _parse_header(f, path)
     names = [e[0] for e in elements]
     if "vertex" not in names:
-        raise ValueError(f"{path}: PLY file has no 'vertex' element (elements: {names})")
+        raise PlyError(f"{path}: PLY file has no 'vertex' element (elements: {names})")
     vi = names.index("vertex")
     _, count, props = elements[vi]
     if any(lt is not None for _, lt, _ in props):
-        raise ValueError(f"{path}: PLY vertex element has a list property; only scalar properties are supported")
+        raise PlyError(f"{path}: PLY vertex element has a list property; only scalar properties are supported")
     prop_names = [p[0] for p in props]
     for axis in "xyz":
         if axis not in prop_names:
-            raise ValueError(f"{path}: PLY vertex element has no {axis!r} property (has {prop_names})")
+            raise PlyError(f"{path}: PLY vertex element has no {axis!r} property (has {prop_names})")
 
     if fmt == "ascii":
         with open(path, "rb") as f:
@@ -289,20 +296,18 @@ def read_ply(path: PathLike) -> PlyPoints:
                     f.readline()
             table = np.loadtxt(f, dtype=np.float64, max_rows=count, ndmin=2) if count else np.zeros((0, len(props)))
         if table.shape != (count, len(props)):
-            raise ValueError(
-                f"{path}: PLY ascii vertex data has shape {table.shape}, header says {(count, len(props))}"
-            )
+            raise PlyError(f"{path}: PLY ascii vertex data has shape {table.shape}, header says {(count, len(props))}")
         cols = {name: table[:, i] for i, name in enumerate(prop_names)}
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
         for name, n, pre in elements[:vi]:
             if any(lt is not None for _, lt, _ in pre):
-                raise ValueError(f"{path}: PLY element {name!r} with list properties precedes 'vertex'")
+                raise PlyError(f"{path}: PLY element {name!r} with list properties precedes 'vertex'")
             offset += n * np.dtype([(p, order + _PLY_TYPES[t]) for p, _, t in pre]).itemsize
         dtype = np.dtype([(p, order + _PLY_TYPES[t]) for p, _, t in props])
         available = os.path.getsize(path) - offset
         if available < count * dtype.itemsize:
-            raise ValueError(
+            raise PlyError(
                 f"{path}: PLY file is truncated: header says {count} vertices of {dtype.itemsize} bytes "
                 f"({count * dtype.itemsize} bytes) but only {max(available, 0)} bytes follow the header"
             )

@@ -43,8 +43,8 @@ class PipelineConfig:
 
     A field that feeds a stage option (``target=(StageClass, "field")``) is declared by that
     stage field: its default, help, range and choices are written once, in the stage class.
-    The stage objects of a config: :attr:`align`, :attr:`loops`, :attr:`verification`,
-    :attr:`graph` (:func:`swiftjax.options.build`).
+    The stage objects of a config: ``config.align``, ``config.loops``, ``config.verification``
+    (``= config.loops.verification_config``), ``config.graph`` (:func:`swiftjax.options.build`).
     """
 
     model: str = option(
@@ -243,25 +243,11 @@ class PipelineConfig:
             overlap = max(1, round(chunk * _FIELD_DEFAULTS["overlap"] / _FIELD_DEFAULTS["chunk_size"]))
         return {"loop_half_window": max(1, min(_FIELD_DEFAULTS["loop_half_window"], chunk // 2)), "overlap": overlap}
 
-    @property
-    def align(self) -> AlignOptions:
-        """The alignment options of this config (``options.build(AlignOptions, self)``)."""
-        return options.build(AlignOptions, self)
-
-    @property
-    def loops(self) -> LoopOptions:
-        """The loop options of this config, its :attr:`verification` included."""
-        return options.build(LoopOptions, self)
-
-    @property
-    def verification(self) -> VerificationConfig:
-        """The loop verification thresholds of this config (``self.loops.verification_config``)."""
-        return options.build(VerificationConfig, self)
-
-    @property
-    def graph(self) -> GraphOptions:
-        """The pose-graph options of this config (the pipeline's GNC defaults, posegraph.PIPELINE)."""
-        return options.build(GraphOptions, self)
+    # The stage options objects of this config (options.build at each access).
+    align = options.built(AlignOptions)
+    loops = options.built(LoopOptions)
+    verification = options.built(VerificationConfig)  # = loops.verification_config
+    graph = options.built(GraphOptions)  # the pipeline's GNC defaults (posegraph.PIPELINE)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

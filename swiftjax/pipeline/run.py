@@ -11,6 +11,8 @@ import numpy as np
 from swiftjax import _faults
 from swiftjax.io.atomic import output_set
 from swiftjax.io.chunk_store import ChunkCorruptError
+from swiftjax.io.images import InputError
+from swiftjax.options import OptionError
 from swiftjax.pipeline import export, graph, loop_closure, report, rundir, scale, temporal
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import Executor, LocalExecutor
@@ -66,11 +68,11 @@ def reconstruct(
     run_dir = pathlib.Path(run_dir)
     n = int(predictor.num_frames)
     if n < 1:
-        raise ValueError("the input has no frames")
+        raise InputError("the input has no frames")
     if ground_truth is not None:  # checked before the run: an evaluation failure never comes after it
         ground_truth = report.check_ground_truth(ground_truth, n)
     if config.metric == "gt" and ground_truth is None:
-        raise ValueError("--metric gt needs the ground-truth poses (--gt)")
+        raise OptionError("--metric gt needs the ground-truth poses (--gt)")
     executor = executor if executor is not None else LocalExecutor()
     ctx = rundir.open_run(predictor, run_dir, config, executor, overwrite=overwrite, progress=progress, log=log)
     chunk_export = export.ChunkExport(ctx)

@@ -26,6 +26,7 @@ import numpy as np
 
 from swiftjax import metric_scale
 from swiftjax.camera import world_cameras
+from swiftjax.options import OptionError
 from swiftjax.pipeline.results import UNIT_METRE, UP_TO_SCALE, GraphResult, ScaleResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 
@@ -70,7 +71,7 @@ def run(ctx: RunContext, temporal: TemporalResult, graph: GraphResult, ground_tr
             }
         else:
             if ground_truth is None:
-                raise ValueError("--metric gt needs the ground-truth poses (--gt)")
+                raise OptionError("--metric gt needs the ground-truth poses (--gt)")
             gt = np.asarray(ground_truth, np.float64)[:, :3, 3]
             m = _sim3_scale(ctx, graph.chunk_poses, gt)
             m0 = _sim3_scale(ctx, graph.chunk_poses_no_loops, gt)
