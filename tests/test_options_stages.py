@@ -280,3 +280,13 @@ def test_geometry_options_cross_field_rules(changes, match):
     with pytest.raises(OptionError, match=match):
         GeometryOptions(**changes)
     assert GeometryOptions(row_stride=3, column_stride=4).pixel_stride == (3, 4)
+
+
+def test_graph_options_take_the_solver_objects_defaults():
+    from swiftjax.posegraph.linear_solvers import BlockJacobiPCG, linear_solver
+    from swiftjax.posegraph.solver import SparseSim3LM
+
+    lm, pcg, g = SparseSim3LM(), BlockJacobiPCG(), posegraph.GraphOptions()
+    assert (g.rtol, g.atol, g.gtol, g.lambda0, g.damping) == (lm.rtol, lm.atol, lm.gtol, lm.lambda0, lm.damping)
+    assert (g.max_linear_iterations, g.eta_max) == (pcg.max_iterations, pcg.eta_max)
+    assert linear_solver("pcg") == pcg and linear_solver("pcg", max_iterations=7).max_iterations == 7

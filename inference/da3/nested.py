@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..runners import ModelOutputError
 from .config import NestedDA3Config
 from .model import DA3Net
 from .sky import MAX_QUANTILE_SAMPLES, MIN_PIXELS, non_sky_mask, sky_quantile
@@ -34,7 +35,7 @@ def metric_align(anyview: dict[str, Tensor], metric_depth: Tensor, metric_sky: T
     scaled = metric_depth * ((k[..., 0, 0] + k[..., 1, 1]) / 2)[..., None, None] / FOCAL_REFERENCE_PX
     ns = non_sky_mask(metric_sky)
     if int(ns.sum()) <= MIN_PIXELS:
-        raise ValueError("metric alignment: fewer than 11 non-sky pixels (the images look like sky only)")
+        raise ModelOutputError("metric alignment: fewer than 11 non-sky pixels (the images look like sky only)")
     depth, conf = anyview["depth"], anyview["depth_conf"]
     conf_ns = conf[ns]
     if conf_ns.numel() > MAX_QUANTILE_SAMPLES:
