@@ -124,7 +124,7 @@ def _torch_load(p: Path) -> object:
             f"checkpoints hold tensors only: this file is not one, or has been tampered with."
         ) from e
     except RuntimeError as e:
-        if "mmap" in str(e) and "zip" in str(e):  # legacy (non-zip) serialisation cannot be mmapped
+        if "mmap" in str(e) and "zip" in str(e):  # torch's pre-1.6 (non-zip) serialisation cannot be mmapped
             try:
                 return torch.load(p, map_location="cpu", weights_only=True)
             except pickle.UnpicklingError as e2:

@@ -226,7 +226,8 @@ def option(
 
 
 def spec(field: dataclasses.Field[Any]) -> Spec:
-    """The :class:`Spec` of a dataclass field declared with :func:`option`."""
+    """The :class:`Spec` of a dataclass field declared with :func:`option`, as declared (its help
+    may hold ``{field}`` references: :func:`specs` writes them out)."""
     try:
         return field.metadata[_KEY]
     except KeyError:

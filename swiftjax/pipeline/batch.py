@@ -29,6 +29,7 @@ import numpy as np
 
 from swiftjax.errors import SwiftjaxError
 from swiftjax.io.atomic import atomic_write
+from swiftjax.io.images import InputError
 from swiftjax.pipeline.config import PipelineConfig
 
 __all__ = ["Sequence", "BatchError", "read_list", "sequence_folders", "run_batch", "batch_table"]
@@ -194,7 +195,7 @@ def run_sequence(
             gt = trajectory.read_kitti(gt) if job.gt_format == "kitti" else trajectory.read_tum(gt)[1]
         predictor = job.spec.build()
         if gt is not None and len(gt) != predictor.num_frames:
-            raise ValueError(f"ground truth has {len(gt)} poses for {predictor.num_frames} frames")
+            raise InputError(f"ground truth has {len(gt)} poses for {predictor.num_frames} frames")
         times, note = _times(job, predictor)
         result = reconstruct(
             predictor,

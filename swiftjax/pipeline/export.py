@@ -46,6 +46,7 @@ from swiftjax import _faults, camera, sim3
 from swiftjax._compile import LOOP_EMITTER, quick_jit
 from swiftjax.align import frame_conf_mean
 from swiftjax.io.atomic import atomic_path, atomic_paths, atomic_write
+from swiftjax.options import OptionError
 from swiftjax.pipeline.results import LoopResult, ScaleResult, TemporalResult
 from swiftjax.pipeline.rundir import RunContext
 from swiftjax.prediction import ChunkPrediction
@@ -84,7 +85,7 @@ def check(ctx: RunContext) -> None:
         original_source(ctx)
         spaced = [n for n in ctx.predictor.frame_names() if any(c.isspace() for c in n)]
         if spaced:
-            raise ValueError(
+            raise OptionError(
                 f"colmap_original_resolution keeps the input's file names, and COLMAP's names cannot hold "
                 f"white space: {spaced[0]!r} ({len(spaced)} such files); rename them or export at the "
                 "model's resolution (PNG names with '_')"
@@ -302,10 +303,11 @@ def _check_frames(ctx: RunContext, names: list[str], frames_written: set[str]) -
 
 def original_source(ctx: RunContext) -> Any:
     """The predictor's frame source (:class:`swiftjax.io.images.FrameSource`) for
-    ``colmap_original_resolution``; :class:`ValueError` if it has none (the synthetic oracle)."""
+    ``colmap_original_resolution``; an :class:`~swiftjax.options.OptionError` if it has none
+    (the synthetic oracle)."""
     source = getattr(ctx.predictor, "source", None)
     if source is None or not hasattr(source, "image_hw"):
-        raise ValueError(
+        raise OptionError(
             "colmap_original_resolution needs the input images (an image folder, glob or video); "
             f"{type(ctx.predictor).__name__} has none"
         )

@@ -30,6 +30,7 @@ import numpy as np
 from swiftjax import intrinsics as _intrinsics
 from swiftjax import masks as _masks
 from swiftjax import metric_scale
+from swiftjax.options import OptionError
 
 __all__ = ["UserCamera"]
 
@@ -68,7 +69,7 @@ class UserCamera:
         if describe is not None:
             geometry = describe()
         elif needs_geometry:
-            raise ValueError(
+            raise OptionError(
                 f"--intrinsics / --mask-dir need the images' size and preprocessing, which "
                 f"{type(predictor).__name__} does not describe (no preprocess_geometry())"
             )
