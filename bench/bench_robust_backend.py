@@ -117,10 +117,14 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
     return rows
 
 
+#: The generators the back end was designed against (``gauge`` was added afterwards, held out).
+DESIGN_GENERATORS = ("random", "clustered", "slight")
+
+
 def run(
     routes=("00", "08"),
     seeds=(0, 1),
-    generators=rg.GENERATORS,
+    generators=DESIGN_GENERATORS,
     levels=rg.LEVELS,
     with_gtsam=True,
     shared_dir=None,
@@ -199,6 +203,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--routes", nargs="+", default=["00", "08"], choices=["00", "05", "08"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--generators", nargs="+", default=list(DESIGN_GENERATORS), choices=list(rg.GENERATORS))
     ap.add_argument("--levels", type=float, nargs="+", default=list(rg.LEVELS))
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--quick", action="store_true", help="KITTI 00, seed 0, 200 %% only (smoke test)")
@@ -206,7 +211,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.quick:
         args.routes, args.seeds, args.levels = ["00"], [0], [2.0]
-    result = run(args.routes, args.seeds, levels=args.levels, with_gtsam=not args.no_gtsam)
+    result = run(args.routes, args.seeds, args.generators, levels=args.levels, with_gtsam=not args.no_gtsam)
     print(markdown(result))
     if not args.no_write:
         from common import write_results
