@@ -194,6 +194,14 @@ def consistency_threshold(num_loops: int, probability: float = 0.99, *, extra_te
     return float(np.sqrt(chi2.isf((1.0 - probability) / tests, 7)))
 
 
+@quick_jit  # one program per graph size instead of a compile per primitive
+def _linearize(poses: Float[Array, "N 8"], problem: Any) -> tuple[Array, Array, Array]:
+    """:func:`swiftjax.posegraph.residuals_and_jacobians`, jitted: ``(r [E, 7], J_i, J_j [E, 7, 7])``."""
+    from swiftjax.posegraph import residuals_and_jacobians
+
+    return residuals_and_jacobians(poses, problem)
+
+
 def snooping_statistics(
     problem: Any, poses: Float[ArrayLike, "N 8"], active: ArrayLike
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -218,10 +226,8 @@ def snooping_statistics(
     """
     import scipy.linalg
 
-    from swiftjax import posegraph
-
     with jax.enable_x64(True):
-        r, Ji, Jj = posegraph.residuals_and_jacobians(jnp.asarray(poses, jnp.float64), problem)
+        r, Ji, Jj = _linearize(jnp.asarray(poses, jnp.float64), problem)
     r, Ji, Jj = (np.asarray(a, np.float64) for a in (r, Ji, Jj))
     edges = np.asarray(problem.edges, np.int64)
     E = len(edges)
