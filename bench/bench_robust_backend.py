@@ -186,22 +186,38 @@ def summary(rows: list[dict]) -> list[dict]:
 
 
 def markdown(result: dict) -> str:
+    """One row per (route, generator, information): per solver, the worst max distance (% of
+    extent) and in brackets the fewest true / most false loops kept, at each level."""
     solvers = [s for s in SOLVERS if any(r["solver"] == s for r in result["summary"])]
     by = {(r["route"], r["generator"], r["information"], r["level"], r["solver"]): r for r in result["summary"]}
-    head = (
-        "| route | false edges | information | level | "
-        + " | ".join(f"{s}: max dist % / true kept / false kept" for s in solvers)
-        + " |"
+    levels = sorted({k[3] for k in by})
+    pct = " / ".join(f"{100 * v:.0f}" for v in levels)
+    head = "| route | false edges | information | true loops | " + " | ".join(
+        f"{s}: max dist % (true/false kept) at {pct} %" for s in solvers
     )
-    lines = [head.replace("| level |", "| level | true loops |"), "| --- " * (5 + len(solvers)) + "|"]
-    for key in sorted({k[:4] for k in by}, key=lambda k: (k[0], rg.GENERATORS.index(k[1]), k[2], k[3])):
-        cells = [by[key + (s,)] for s in solvers]
-        lines.append(
-            f"| KITTI {key[0]} | {key[1]} | {key[2]} | {100 * key[3]:.0f} % | {cells[0]['true_loops']} | "
-            + " | ".join(f"{c['dist_max_pct']:.3f} / {c['true_kept_min']} / {c['false_kept_max']}" for c in cells)
-            + " |"
-        )
+    lines = [head + " |", "| --- " * (4 + len(solvers)) + "|"]
+    order = lambda k: (k[0], rg.GENERATORS.index(k[1]), k[2])
+    for key in sorted({k[:3] for k in by}, key=order):
+        cells = []
+        for s in solvers:
+            got = [by.get(key + (v, s)) for v in levels]
+            cells.append(
+                " · ".join(
+                    "–" if c is None else f"{c['dist_max_pct']:.2f} ({c['true_kept_min']}/{c['false_kept_max']})"
+                    for c in got
+                )
+            )
+        true = next(by[key + (v, solvers[0])]["true_loops"] for v in levels if key + (v, solvers[0]) in by)
+        lines.append(f"| KITTI {key[0]} | {key[1]} | {key[2]} | {true} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def merged(paths) -> dict:
+    """The rows of several result files as one result (the summary over all of their seeds)."""
+    import json
+
+    rows = [r for p in paths for r in json.loads(pathlib.Path(p).read_text())["rows"]]
+    return dict(rows=rows, summary=summary(rows))
 
 
 def main(argv=None) -> None:
@@ -213,7 +229,11 @@ def main(argv=None) -> None:
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--quick", action="store_true", help="KITTI 00, seed 0, 200 %% only (smoke test)")
     ap.add_argument("--no-write", action="store_true", help="print only (no JSON under bench/results/)")
+    ap.add_argument("--table", nargs="+", metavar="JSON", help="print the table of these result files and stop")
     args = ap.parse_args(argv)
+    if args.table:
+        print(markdown(merged(args.table)))
+        return merged(args.table)
     if args.quick:
         args.routes, args.seeds, args.levels = ["00"], [0], [2.0]
     result = run(args.routes, args.seeds, args.generators, levels=args.levels, with_gtsam=not args.no_gtsam)

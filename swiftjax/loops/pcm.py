@@ -245,7 +245,11 @@ def snooping_statistics(
     W = np.linalg.cholesky(0.5 * (om + np.swapaxes(om, -1, -2)))  # Ω = W Wᵀ
     Jw = np.einsum("eji,eja->eia", W, J)  # Wᵀ J_e
     Ja = Jw[active].reshape(-1, 7 * nf)
-    HiJ = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Ja.T @ Ja), Jw.reshape(-1, 7 * nf).T)
+    H, rhs = Ja.T @ Ja, Jw.reshape(-1, 7 * nf).T
+    try:
+        HiJ = scipy.linalg.cho_solve(scipy.linalg.cho_factor(H), rhs)
+    except np.linalg.LinAlgError:  # a gauge the fixed nodes leave free: the minimum-norm inverse
+        HiJ = np.linalg.pinv(H, hermitian=True) @ rhs
     A = np.einsum("eia,aej->eij", Jw, HiJ.reshape(7 * nf, E, 7))  # Wᵀ J_e H⁻¹ J_eᵀ W
     Q = np.eye(7) + np.where(active, -1.0, 1.0)[:, None, None] * A
     lam, V = np.linalg.eigh(0.5 * (Q + np.swapaxes(Q, -1, -2)))
