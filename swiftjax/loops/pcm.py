@@ -24,8 +24,11 @@ inliers, and the ``N = M (M − 1) / 2`` pair tests share the error budget, Bonf
 
 ``odometry_check=True`` adds Kimera's per-edge test (``m_k`` with ``Σ = P[[p, q)] + Ad Σ_Z Adᵀ``,
 the same threshold over ``N + M`` tests).  :func:`consistent_solve` is the whole back end: PCM,
-then GNC-TLS on the consistent set.  What PCM cannot reject, why ``odometry_check`` is off and
-how the back end treats equal weights: docs/design.md, "Pairwise consistency".
+GNC-TLS on the consistent set, then data snooping of the loops on the solved map
+(:func:`data_snooping`: Baarda's test ``T_e = r_eᵀ (Σ_e ∓ J_e H⁻¹ J_eᵀ)⁺ r_e ~ chi2_7``,
+:func:`snooping_statistics`, the bound ``chi2_7⁻¹(1 − (1 − p) / M)`` shared by the ``M`` loops).
+What PCM cannot reject, why ``odometry_check`` is off, how the back end treats equal weights
+and what no residual test can find: docs/design.md, "Pairwise consistency".
 """
 
 from __future__ import annotations
