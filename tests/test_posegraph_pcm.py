@@ -7,14 +7,17 @@ subset, the threshold against the regularised incomplete gamma function.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
 import scipy.special
+import scipy.stats
 
 from swiftjax import posegraph, sim3
 from swiftjax.loops import pcm
@@ -264,3 +267,128 @@ def test_bench_quick_run_meets_the_targets(shared_dir, monkeypatch):
     ours = [r for r in result["rows"] if r["solver"] == "PCM+GNC"]
     assert len(ours) == 6
     assert max(r["dist_max_pct"] for r in ours) <= 1.0
+
+
+# ------------------------------------------------------------------- data snooping
+
+
+def _numpy_snooping(g, poses, active, info):
+    """Baarda's ``T_e`` in float64 NumPy: residuals ``vee(logm(Z⁻¹ S_i⁻¹ S_j))`` of 4 x 4 matrices,
+    the Jacobian by central differences of right perturbations ``S expm(hat(δ))``, ``H`` dense."""
+    edges, meas = g["edges"], g["measurements"]
+    n = len(poses)
+    S = [_mat(x) for x in poses]
+    Zi = [np.linalg.inv(_mat(z)) for z in meas]
+
+    def res(e, Si, Sj):
+        return _vee(np.real(scipy.linalg.logm(Zi[e] @ np.linalg.inv(Si) @ Sj)))
+
+    E, h = len(edges), 1e-6
+    J = np.zeros((E, 7, 7 * (n - 1)))  # node 0 fixed
+    r = np.zeros((E, 7))
+    for e, (i, j) in enumerate(edges):
+        r[e] = res(e, S[i], S[j])
+        for node, side in ((i, 0), (j, 1)):
+            if node == 0:
+                continue
+            for d in range(7):
+                step = scipy.linalg.expm(_hat(h * np.eye(7)[d]))
+                plus = [S[i], S[j]]
+                minus = [S[i], S[j]]
+                plus[side] = plus[side] @ step
+                minus[side] = minus[side] @ np.linalg.inv(step)
+                J[e, :, 7 * (node - 1) + d] = (res(e, *plus) - res(e, *minus)) / (2 * h)
+    om = np.einsum("ei,ij->eij", info, np.eye(7))
+    H = sum(J[e].T @ om[e] @ J[e] for e in range(E) if active[e])
+    Hi = np.linalg.inv(H)
+    T = np.zeros(E)
+    for e in range(E):
+        Q = np.linalg.inv(om[e]) + (-1 if active[e] else 1) * J[e] @ Hi @ J[e].T
+        T[e] = r[e] @ np.linalg.solve(Q, r[e])
+    return T
+
+
+def test_snooping_statistics_match_a_numpy_reference(x64):
+    g = two_laps(false="slight", num_false=2, seed=4, n_lap=10, true_every=3)
+    active = g["kind"] != "false"
+    active[np.flatnonzero(g["kind"] == "loop")[1]] = False  # a true loop left out: the prediction branch
+    with jax.enable_x64(True):
+        prob = dataclasses.replace(_problem(g), edge_mask=jnp.asarray(active))
+        poses = np.asarray(posegraph.optimize(prob).poses)
+        T, dof = pcm.snooping_statistics(prob, poses, active)
+    want = _numpy_snooping(g, poses, active, g["information"])
+    np.testing.assert_array_equal(dof, 7)
+    np.testing.assert_allclose(T, want, rtol=1e-5, atol=1e-8)
+
+
+def test_the_statistic_of_a_kept_loop_is_its_leave_one_out_prediction(x64):
+    """For an active edge, ``r (Σ − J H⁻¹ Jᵀ)⁻¹ r`` at the full solve equals the test of its
+    prediction ``r (Σ + J H₋ₖ⁻¹ Jᵀ)⁻¹ r`` at the solve without it (exact for a linear model; the
+    graph's small noise keeps it near linear)."""
+    g = two_laps(seed=5)
+    loops = np.flatnonzero(g["kind"] == "loop")
+    with jax.enable_x64(True):
+        prob = _problem(g)
+        full = posegraph.optimize(prob, posegraph.GraphOptions(rtol=1e-12)).poses
+        T_in, _ = pcm.snooping_statistics(prob, full, np.ones(len(g["edges"]), bool))
+        for k in loops[[0, 3]]:
+            active = np.ones(len(g["edges"]), bool)
+            active[k] = False
+            without = posegraph.optimize(
+                dataclasses.replace(prob, edge_mask=jnp.asarray(active)), posegraph.GraphOptions(rtol=1e-12)
+            ).poses
+            T_out, _ = pcm.snooping_statistics(prob, without, active)
+            assert T_out[k] == pytest.approx(T_in[k], rel=2e-3)
+
+
+def _with_slightly_wrong_loop(g, metres, p=2):
+    """``g`` plus one loop ``(p, p + n_lap)`` off by ``metres`` along x and as many degrees in yaw."""
+    n_lap = len(g["truth"]) // 2
+    with jax.enable_x64(True):
+        rel = sim3.between(g["truth"][p], g["truth"][p + n_lap])
+        z = np.asarray(sim3.compose(rel, sim3.exp(np.array([metres, 0, 0, 0, 0, np.deg2rad(metres), 0]))))
+    return dict(
+        g,
+        edges=np.concatenate([g["edges"], [[p, p + n_lap]]]),
+        measurements=np.concatenate([g["measurements"], [z]]),
+        information=np.concatenate([g["information"], g["information"][-1:]]),
+        kind=np.concatenate([g["kind"], ["false"]]),
+    )
+
+
+def test_snooping_removes_a_wrong_loop_that_pcm_and_gnc_keep(x64):
+    """A loop 0.85 m and 0.85 degrees off between two true ones: it passes every pair test and GNC keeps
+    it (on the map bent to it ``s < c²``), and it masks a true loop (its ``T`` above the
+    bound too).  Snooping removes the worst first and ends on the outlier-free answer."""
+    g = _with_slightly_wrong_loop(two_laps(seed=1), 0.85)
+    false, true = g["kind"] == "false", g["kind"] == "loop"
+    with jax.enable_x64(True):
+        clean = posegraph.optimize(_problem(g, keep=~false), posegraph.GraphOptions(rtol=1e-12)).poses
+        check = pcm.graph_consistency(_problem(g))
+        gnc_only = posegraph.optimize(check.problem, posegraph.GraphOptions(kernel="gnc"), throw=False)
+        T, _ = pcm.snooping_statistics(_problem(g), gnc_only.poses, np.ones(len(g["edges"]), bool))
+        res, out = pcm.consistent_solve(_problem(g), throw=False)
+    bound = scipy.stats.chi2.isf(0.01 / 7, 7)
+    assert check.kept[false].all() and (gnc_only.inlier_weights[false] >= 0.5).all()  # what PCM + GNC keep
+    assert (T[true] > bound).sum() >= 1 and T[false].max() > T[true].max()  # masking: the wrong loop worst
+    np.testing.assert_array_equal(out.snooped, false)
+    np.testing.assert_array_equal(res.inlier_weights[false | true] >= 0.5, true[false | true])
+    assert _distance_pct(res.poses, clean, g) < 1e-6
+
+
+def test_snooping_readmits_a_true_loop_gnc_left_out(x64):
+    """A true loop left out of the start set (as GNC's unshared 1 % test can) fits the map's
+    prediction and comes back; the wrong loop never does."""
+    g = _with_slightly_wrong_loop(two_laps(seed=0), 3.0)
+    false, true = g["kind"] == "false", g["kind"] == "loop"
+    active = ~false
+    active[np.flatnonzero(true)[2]] = False
+    with jax.enable_x64(True):
+        prob = _problem(g)
+        clean = posegraph.optimize(_problem(g, keep=~false), posegraph.GraphOptions(rtol=1e-12)).poses
+        start = posegraph.optimize(dataclasses.replace(prob, edge_mask=jnp.asarray(active)))
+        res, kept, removed, readmitted = pcm.data_snooping(prob, start, active, np.flatnonzero(false | true))
+    np.testing.assert_array_equal(readmitted, true & ~active)
+    np.testing.assert_array_equal(kept, ~false)
+    assert not removed.any()
+    assert _distance_pct(res.poses, clean, g) < 1e-6

@@ -24,8 +24,11 @@ inliers, and the ``N = M (M − 1) / 2`` pair tests share the error budget, Bonf
 
 ``odometry_check=True`` adds Kimera's per-edge test (``m_k`` with ``Σ = P[[p, q)] + Ad Σ_Z Adᵀ``,
 the same threshold over ``N + M`` tests).  :func:`consistent_solve` is the whole back end: PCM,
-then GNC-TLS on the consistent set.  What PCM cannot reject, why ``odometry_check`` is off and
-how the back end treats equal weights: docs/design.md, "Pairwise consistency".
+GNC-TLS on the consistent set, then data snooping of the loops on the solved map
+(:func:`data_snooping`: Baarda's test ``T_e = r_eᵀ (Σ_e ∓ J_e H⁻¹ J_eᵀ)⁺ r_e ~ chi2_7``,
+:func:`snooping_statistics`, the bound ``chi2_7⁻¹(1 − (1 − p) / M)`` shared by the ``M`` loops).
+What PCM cannot reject, why ``odometry_check`` is off, how the back end treats equal weights
+and what no residual test can find: docs/design.md, "Pairwise consistency".
 """
 
 from __future__ import annotations
@@ -50,6 +53,8 @@ __all__ = [
     "consistency_threshold",
     "GraphConsistency",
     "graph_consistency",
+    "snooping_statistics",
+    "data_snooping",
     "consistent_solve",
 ]
 
@@ -192,6 +197,71 @@ def consistency_threshold(num_loops: int, probability: float = 0.99, *, extra_te
     return float(np.sqrt(chi2.isf((1.0 - probability) / tests, 7)))
 
 
+@quick_jit  # one program per graph size instead of a compile per primitive
+def _linearize(poses: Float[Array, "N 8"], problem: Any) -> tuple[Array, Array, Array]:
+    """:func:`swiftjax.posegraph.residuals_and_jacobians`, jitted: ``(r [E, 7], J_i, J_j [E, 7, 7])``."""
+    from swiftjax.posegraph import residuals_and_jacobians
+
+    return residuals_and_jacobians(poses, problem)
+
+
+def snooping_statistics(
+    problem: Any, poses: Float[ArrayLike, "N 8"], active: ArrayLike
+) -> tuple[np.ndarray, np.ndarray]:
+    """Baarda's test statistic of every edge at a least-squares solution (host, float64):
+    ``(T [E], dof [E])``.
+
+    Linearise at ``poses`` (right perturbations of the free nodes; ``J_e`` the ``[7, 7 n]`` block
+    row of edge ``e``), ``H = Σ_{e active} J_eᵀ Ω_e J_e`` the normal matrix of the ``active``
+    edges (bool ``[E]``; ``Ω_e = problem.information`` is the noise model, ``Σ_e = Ω_e⁻¹``).  If
+    every active edge is an inlier, the least-squares residual ``r_e`` of an active edge has the
+    covariance ``Q_e = Σ_e − J_e H⁻¹ J_eᵀ``, and the residual of an edge left out (its prediction
+    from the others) ``Q_e = Σ_e + J_e H⁻¹ J_eᵀ``; so::
+
+        T_e = r_eᵀ Q_e⁺ r_e  ~  chi2(dof_e),   dof_e = rank Q_e
+
+    (the w-test of data snooping, Baarda 1968, for a 7-D observation; for an active edge it is
+    the test of its leave-one-out prediction, which is why a wrong edge the map has bent to
+    cannot hide: ``Q_e`` shrinks with the bending).  ``Q_e`` is used whitened, ``I ∓ Wᵀ J_e H⁻¹
+    J_eᵀ W`` (``Ω_e = W Wᵀ``): eigenvalues in ``[0, 1]`` (the redundancy numbers) for an active
+    edge; directions with redundancy below ``1e-9`` (that nothing else checks) are left out of
+    ``T`` and ``dof``.  Dense ``H``: ``O((7 n)³)``, fine for the hundreds of chunks of a sequence.
+    """
+    import scipy.linalg
+
+    with jax.enable_x64(True):
+        r, Ji, Jj = _linearize(jnp.asarray(poses, jnp.float64), problem)
+    r, Ji, Jj = (np.asarray(a, np.float64) for a in (r, Ji, Jj))
+    edges = np.asarray(problem.edges, np.int64)
+    E = len(edges)
+    free = ~np.asarray(problem.fixed, bool)
+    col = np.cumsum(free) - 1
+    nf = int(free.sum())
+    active = np.asarray(active, bool)
+    J = np.zeros((E, 7, nf, 7))
+    rows = np.arange(E)
+    for end, Jb in ((edges[:, 0], Ji), (edges[:, 1], Jj)):
+        ok = free[end]
+        J[rows[ok], :, col[end[ok]], :] += Jb[ok]  # an edge's two ends are distinct nodes
+    J = J.reshape(E, 7, 7 * nf)
+    om = np.asarray(problem.information, np.float64)
+    W = np.linalg.cholesky(0.5 * (om + np.swapaxes(om, -1, -2)))  # Ω = W Wᵀ
+    Jw = np.einsum("eji,eja->eia", W, J)  # Wᵀ J_e
+    Ja = Jw[active].reshape(-1, 7 * nf)
+    H, rhs = Ja.T @ Ja, Jw.reshape(-1, 7 * nf).T
+    try:
+        HiJ = scipy.linalg.cho_solve(scipy.linalg.cho_factor(H), rhs)
+    except np.linalg.LinAlgError:  # a gauge the fixed nodes leave free: the minimum-norm inverse
+        HiJ = np.linalg.pinv(H, hermitian=True) @ rhs
+    A = np.einsum("eia,aej->eij", Jw, HiJ.reshape(7 * nf, E, 7))  # Wᵀ J_e H⁻¹ J_eᵀ W
+    Q = np.eye(7) + np.where(active, -1.0, 1.0)[:, None, None] * A
+    lam, V = np.linalg.eigh(0.5 * (Q + np.swapaxes(Q, -1, -2)))
+    u = np.einsum("eij,ej->ei", np.swapaxes(V, -1, -2), np.einsum("eji,ej->ei", W, r))
+    keep = lam > 1e-9
+    T = np.sum(np.where(keep, u**2 / np.where(keep, lam, 1.0), 0.0), -1)
+    return T, keep.sum(-1)
+
+
 class GraphConsistency(NamedTuple):
     """Outcome of :func:`graph_consistency` (host NumPy).
 
@@ -199,9 +269,9 @@ class GraphConsistency(NamedTuple):
     other edge True); ``loop_edges [M]``: the indices of the tested loop edges;
     ``residuals [M, M]``: ``m_ab``; ``odometry_residuals [M]``: ``m_k`` against the odometry
     alone (computed always, used with ``odometry_check``); ``threshold``; ``problem``: the input
-    with ``edge_mask &= kept`` (the graph GNC starts from); ``readmitted [E]`` (from
-    :func:`consistent_solve`, else None): the loop edges PCM left out that fitted the solved map
-    and went back into GNC.
+    with ``edge_mask &= kept`` (the graph GNC starts from); ``readmitted [E]`` / ``snooped [E]``
+    (from :func:`consistent_solve`, else None): the loop edges data snooping put back (PCM or GNC
+    had left them out and they fit the solved map) / took out (:func:`data_snooping`).
     """
 
     kept: np.ndarray
@@ -211,6 +281,7 @@ class GraphConsistency(NamedTuple):
     threshold: float
     problem: Any
     readmitted: np.ndarray | None = None
+    snooped: np.ndarray | None = None
 
 
 def _chain_edges(edges: np.ndarray, plain: np.ndarray, num: int) -> np.ndarray:
@@ -308,6 +379,64 @@ def graph_consistency(
     return GraphConsistency(kept, loop, m, m_odo, threshold, out)
 
 
+def data_snooping(
+    problem: Any,
+    result: Any,
+    active: ArrayLike,
+    loop_edges: ArrayLike,
+    *,
+    probability: float = 0.99,
+    options: Any = None,
+    throw: bool = True,
+) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """Iterative data snooping of the loop edges around a robust solve (host):
+    ``(Result, active [E], removed [E], readmitted [E])``.
+
+    ``problem``'s information is the noise model; ``result`` a solve of it on the ``active``
+    edges (bool ``[E]``); ``loop_edges`` ``[M]`` the edge indices under test.  Every other edge
+    stays as ``active`` says.  With :func:`snooping_statistics` at the current solve and the
+    error budget ``1 − p`` shared by the ``M`` loop tests (Bonferroni, as
+    :func:`consistency_threshold`)::
+
+        reject   the active loop with the smallest  P(chi2(dof_e) > T_e) < (1 − p) / M
+        else readmit the left-out loop with the largest P(chi2(dof_e) > T_e) >= (1 − p) / M
+
+    one edge per step, each step followed by a plain least-squares solve (``options`` with
+    ``kernel=None``, from the current poses); an edge rejected here is never readmitted, so at
+    most ``2 M`` steps.  Stops when no active loop fails and no left-out loop fits.  When
+    nothing changes ``result`` is returned as it is.
+    """
+    from scipy.stats import chi2
+
+    from swiftjax import posegraph
+
+    options = (posegraph.GraphOptions() if options is None else options).replace(kernel=None)
+    active = np.array(active, bool)
+    loops = np.asarray(loop_edges, np.int64)
+    removed = np.zeros_like(active)
+    readmitted = np.zeros_like(active)
+    alpha = (1.0 - probability) / max(len(loops), 1)
+    for _ in range(2 * len(loops)):
+        T, dof = snooping_statistics(problem, result.poses, active)
+        pval = np.where(dof > 0, chi2.sf(T, np.maximum(dof, 1)), 1.0)
+        inside = loops[active[loops]]
+        outside = loops[~active[loops] & ~removed[loops]]
+        if inside.size and pval[inside].min() < alpha:
+            k = inside[np.argmin(pval[inside])]
+            active[k], removed[k] = False, True
+        elif outside.size and pval[outside].max() >= alpha:
+            k = outside[np.argmax(pval[outside])]
+            active[k], readmitted[k] = True, True
+        else:
+            break
+        start = jnp.asarray(result.poses, jnp.asarray(problem.poses).dtype)
+        result = posegraph.optimize(
+            dataclasses.replace(problem, poses=start, edge_mask=jnp.asarray(active)), options, throw=throw
+        )
+        result = dataclasses.replace(result, inlier_weights=active.astype(np.float64))
+    return result, active, removed, readmitted
+
+
 def consistent_solve(
     problem: Any,
     covariance: Float[ArrayLike, "E 7 7"] | None = None,
@@ -318,25 +447,28 @@ def consistent_solve(
     options: Any = None,
     throw: bool = True,
 ) -> tuple[Any, GraphConsistency]:
-    """PCM over every loop edge (:func:`graph_consistency`), then GNC-TLS on the consistent set:
-    ``(Result, GraphConsistency)`` (host; Kimera-RPGO's recipe).
+    """PCM over every loop edge (:func:`graph_consistency`), GNC-TLS on the consistent set, then
+    data snooping of the loops (:func:`data_snooping`): ``(Result, GraphConsistency)`` (host;
+    Kimera-RPGO's recipe with Baarda's test after it).
 
     ``options``: the :class:`~swiftjax.posegraph.GraphOptions` of every
     :func:`swiftjax.posegraph.optimize` call (default ``GraphOptions()``; ``kernel`` is set to
     ``"gnc"``; its ``kernel_scale`` is the inlier threshold in the noise model's whitened
     units); ``throw`` is :func:`~swiftjax.posegraph.optimize`'s.  With
-    ``covariance`` None the noise model is ``problem.information`` and this is one GNC solve on
-    ``problem`` with the PCM-rejected edges out.  With a ``covariance`` (the noise model when the
-    solve's information is something else, e.g. equal weights): GNC runs on the problem with
-    ``information = covariance⁻¹`` to decide the inliers, then plain least squares with
-    ``problem.information`` on the edges it kept, from the same start.
+    ``covariance`` None the noise model is ``problem.information``.  With a ``covariance`` (the
+    noise model when the solve's information is something else, e.g. equal weights): GNC and the
+    snooping run on the problem with ``information = covariance⁻¹`` to decide the inliers, then
+    plain least squares with ``problem.information`` on the edges they kept, from the same start.
 
-    Second look: a maximum clique is one of possibly several, and loops that are slightly wrong
-    pass many pair tests, so the clique can hold them and leave a true loop out.  After the
-    first GNC solve every loop edge PCM left out is tested against the solved map (``s_e =
-    r_eᵀ Ω_e r_e <= c²``, the same chi-squared bound as GNC's) and those that fit go back in for
-    a second GNC solve (the rest stay out).  ``Result.inlier_weights`` are GNC's (0 for the
-    edges left out), ``gnc_iterations`` its outer iterations (of the last GNC solve).
+    Why snooping after GNC: a maximum clique is one of possibly several, and loops that are
+    slightly wrong pass many pair tests (a few metres is inside the odometry's drift over a
+    long revisit), so the clique can hold them and leave a true loop out; on the solved map a
+    wrong loop the map has bent to shows a small residual against ``Σ_e`` (GNC's test) but not
+    against ``Σ_e − J H⁻¹ Jᵀ``, and a left-out loop is judged by its prediction from the map
+    (``Σ_e + J H⁻¹ Jᵀ``), not by ``Σ_e`` alone.  ``Result.inlier_weights``: GNC's when snooping
+    changed nothing, else 1 for the kept edges and 0 for the others; ``gnc_iterations``: GNC's
+    outer iterations.  ``GraphConsistency.readmitted`` / ``snooped``: the loop edges snooping
+    put back / took out.
     """
     from swiftjax import posegraph
 
@@ -344,7 +476,6 @@ def consistent_solve(
         problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability, odometry_check=odometry_check
     )
     options = (posegraph.GraphOptions() if options is None else options).replace(kernel="gnc")
-    c = options.scale
     decide = check.problem
     if covariance is not None:  # GNC decides on the graph whitened by the noise model
         cov = np.asarray(covariance, np.float64)
@@ -352,20 +483,15 @@ def consistent_solve(
         info = jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), np.asarray(problem.poses).dtype)
         decide = dataclasses.replace(decide, information=info)
     res = posegraph.optimize(decide, options, throw=throw)
-    # second look: a loop PCM left out that fits the solved map (s <= c^2) comes back, and GNC reruns
-    out = np.zeros(problem.num_edges, bool)
-    out[check.loop_edges] = ~check.kept[check.loop_edges]
-    r = np.asarray(res.residuals, np.float64)
-    s = np.einsum("ei,eij,ej->e", r, np.asarray(decide.information, np.float64), r)
-    readmitted = out & (s <= c * c)
-    if readmitted.any():
-        decide = dataclasses.replace(decide, edge_mask=jnp.asarray(np.asarray(decide.edge_mask) | readmitted))
-        res = posegraph.optimize(decide, options, throw=throw)
-    check = check._replace(readmitted=readmitted)
+    active = np.asarray(decide.edge_mask, bool) & (res.inlier_weights >= 0.5)
+    res2, active, snooped, readmitted = data_snooping(
+        decide, res, active, check.loop_edges, probability=probability, options=options, throw=throw
+    )
+    res = res if res2 is res else dataclasses.replace(res2, gnc_iterations=res.gnc_iterations)
+    check = check._replace(readmitted=readmitted, snooped=snooped)
     if covariance is None:
         return res, check
-    inliers = np.asarray(decide.edge_mask) & (res.inlier_weights >= 0.5)
     final = posegraph.optimize(
-        dataclasses.replace(problem, edge_mask=jnp.asarray(inliers)), options.replace(kernel=None), throw=throw
+        dataclasses.replace(problem, edge_mask=jnp.asarray(active)), options.replace(kernel=None), throw=throw
     )
     return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check
