@@ -134,16 +134,23 @@ def _false_clustered(rng, truth, d, taken, count):
     return pairs, np.stack(meas), True
 
 
-def _false_slight(rng, truth, d, taken, count):
-    """Slightly wrong loops: revisit pairs (>= 8 chunks apart, chosen among the nearest ``3 count``
-    not taken) whose measurement is the true relative pose times an error of 2-5 m and 2-5 degrees
-    (random directions)."""
-    n = len(truth)
+def _revisit_pairs(rng, d, taken, count):
+    """``count`` revisit pairs (>= 8 chunks apart) drawn among the nearest ``3 count`` not in
+    ``taken`` (chunk distances ``d``), added to ``taken``."""
+    n = len(d)
     a, b = np.nonzero(np.subtract.outer(np.arange(n), np.arange(n)) <= -8)
     order = [(int(a[k]), int(b[k])) for k in np.argsort(d[a, b]) if (int(a[k]), int(b[k])) not in taken]
     pick = rng.choice(min(3 * count, len(order)), count, replace=False)
     pairs = [order[k] for k in sorted(pick)]
     taken.update(pairs)
+    return pairs
+
+
+def _false_slight(rng, truth, d, taken, count):
+    """Slightly wrong loops: revisit pairs (>= 8 chunks apart, chosen among the nearest ``3 count``
+    not taken) whose measurement is the true relative pose times an error of 2-5 m and 2-5 degrees
+    (random directions)."""
+    pairs = _revisit_pairs(rng, d, taken, count)
     unit = rng.normal(size=(2, count, 3))
     unit /= np.linalg.norm(unit, axis=-1, keepdims=True)
     err = np.zeros((count, 7))
@@ -160,12 +167,7 @@ def _false_gauge(rng, truth, d, taken, count):
     revisit pairs chosen as :func:`_false_slight`'s whose measurement is the true relative pose
     ``(t, R, s)`` seen through a loop chunk normalised to the wrong scale, ``(g t, R ΔR, g s)``,
     ``log g = ±U(0.1, 0.3)`` (10-35 %), ``ΔR`` a rotation of 1-3 degrees about a random axis."""
-    n = len(truth)
-    a, b = np.nonzero(np.subtract.outer(np.arange(n), np.arange(n)) <= -8)
-    order = [(int(a[k]), int(b[k])) for k in np.argsort(d[a, b]) if (int(a[k]), int(b[k])) not in taken]
-    pick = rng.choice(min(3 * count, len(order)), count, replace=False)
-    pairs = [order[k] for k in sorted(pick)]
-    taken.update(pairs)
+    pairs = _revisit_pairs(rng, d, taken, count)
     g = np.exp(rng.choice([-1.0, 1.0], count) * rng.uniform(0.1, 0.3, count))
     axis = rng.normal(size=(count, 3))
     axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
