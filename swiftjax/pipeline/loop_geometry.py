@@ -3,25 +3,28 @@
 Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 ``loop_geometry = true``: every temporal chunk's reliable points (``frame_stride``-th frames read
 back from the chunk store, memory-mapped) become :func:`swiftjax.loops.geometric.chunk_descriptors`
-(in fixed batches of :data:`BATCH` chunks: one compile per run); chunk pairs at least
-``loop_min_separation`` frames apart whose signatures match are registered
-(:func:`swiftjax.loops.geometric.register`, both yaw hypotheses ``ψ`` and ``ψ + π`` of the
-Scan Context shift, since a street is nearly symmetric end to end; the one with more structure
-inliers kept) and their edge is checked like every other candidate (the cross-chunk dense test
-over all frame pairs of the two chunks: a reverse revisit's nearest cameras face each other,
-and pairwise consistency).  No loop-centric chunk is predicted.
-
-Candidate chunk pairs must also lie near each other under the dead-reckoned chain (within
-``gate_min`` camera heights or ``gate_drift`` of the path driven between them: the odometry's
-drift), as Scan Context's users gate by the odometry: a signature alone is ambiguous among
-the many look-alike streets of a city.
+(in fixed batches of :data:`BATCH` chunks) and a structure cloud
+(:func:`swiftjax.loops.geometric.structure_cloud`).  The candidates are the chunk pairs that
+the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between them)`` of
+each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a reverse pass
+the chunks that share structure are the ones whose cameras face each other across a stretch,
+one or two chunks off the closest frames, so every gated pair is tried, not only the closest
+(docs/performance/reverse-revisits.md).  Each is registered from the chain's prior
+(:func:`swiftjax.loops.geometric.register_covisible`: bird's-eye FFT search within the gate,
+Sim(3) ICP per peak) and, in the same batch, against ``null_chunks`` unrelated chunks
+(:func:`_null_chunks`) from the same prior; a candidate must keep more structure inliers than
+the null's prediction bound (:func:`swiftjax.loops.null.null_threshold` at
+``null_false_alarm``), no second placement ``peak_separation`` away may keep more than
+``max_ambiguity`` of them, and the scale must agree with the chain's
+(:func:`swiftjax.loops.geometric.covisible_reason`, one-line reasons).  Survivors go through the
+cross-chunk dense test over all frame pairs of the two chunks and pairwise consistency with every
+other candidate, like the token candidates.  No loop-centric chunk is predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
-(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread); a
-registration that fails its own test (:func:`swiftjax.loops.geometric.registration_reason`) is
-rejected with that reason before verification.  The accepted edge's information comes from
-the registration's own residuals (:func:`swiftjax.align.covariance.umeyama_information` on its
-inliers).  The records are recomputed on every run (nothing is cached in the manifest).
+(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread, ambiguity, the
+null's mean and bound); the accepted edge's information comes from the registration's own
+residuals (:func:`swiftjax.align.covariance.umeyama_information` on its inliers).  The records
+are recomputed on every run (nothing is cached in the manifest).
 """
 
 from __future__ import annotations
