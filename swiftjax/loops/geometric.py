@@ -978,7 +978,7 @@ def register_covisible(
 
 def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
     """Why the numbers of a :func:`register_covisible` result (plain floats, with
-    ``ambiguity`` and ``null_threshold``: the structure inliers the same source reaches on
+    ``ambiguity`` and ``null_threshold``, None when not computable: the structure inliers the same source reaches on
     unrelated chunks at false-alarm rate ``null_false_alarm``) reject the candidate, in one
     line, or ``None``."""
     if not reg["valid"]:
@@ -996,8 +996,8 @@ def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
             f"ambiguous registration: a placement {options.peak_separation:g} camera heights away keeps "
             f"{reg['ambiguity']:.2f} of the structure inliers > {options.max_ambiguity}"
         )
-    th = reg.get("null_threshold", math.nan)
-    if not math.isfinite(th):
+    th = reg.get("null_threshold")
+    if th is None or not math.isfinite(th):
         return "registration null not computable (fewer than three unrelated chunks)"
     if not reg["num_structure"] > th:
         return (

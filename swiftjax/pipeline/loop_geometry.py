@@ -197,8 +197,8 @@ def candidates(
         record["registration"].update(
             ambiguity=float(cov.ambiguity[0]),
             window=float(window),
-            null_mean=float(np.mean(n_struct[1:])) if len(nulls) else math.nan,
-            null_threshold=float(null.threshold * pts),
+            null_mean=float(np.mean(n_struct[1:])) if len(nulls) else None,
+            null_threshold=float(null.threshold * pts) if math.isfinite(null.threshold) else None,
             yaw_deg=float(np.degrees(psi)),
         )
         record["_stats"] = (reg0, float(b.height))
