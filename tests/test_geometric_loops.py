@@ -321,23 +321,29 @@ def test_geometric_records_in_loops_txt_and_metrics(tmp_path):
 
 def test_odometry_gate():
     """Chunks on an out-and-back drive: the chunk driven back over the same stretch passes the
-    gate, a chunk far away does not (distances by hand)."""
+    gate (with its window in camera heights), a chunk far away or too close in time does not
+    (distances by hand)."""
     from types import SimpleNamespace
 
-    from swiftjax.pipeline.loop_geometry import _gate
+    from swiftjax.pipeline.loop_geometry import _pairs
 
     x = np.array([0, 50, 100, 150, 100, 50, 0, 300.0])  # metres; chunk 7 jumps far away
     chain = np.zeros((8, 8))
     chain[:, 0] = x
     chain[:, 6] = 1.0  # identity rotation (qw last)
     chain[:, 7] = 1.0
-    g = SimpleNamespace(anchors=np.zeros((8, 1, 3)), height=np.full(8, 1.65))
-    best = np.zeros((8, 8, 2), np.int32)
-    ok = _gate(chain, g, best, G.GeometryOptions(gate_min=15.0, gate_drift=0.1))
-    # 1 and 5: same place, 200 m of path apart -> 0 m <= max(24.75, 20)
-    assert ok[1, 5] and ok[0, 6] and ok[2, 4]
-    # 0 and 2: 100 m apart, path 100 m -> 100 > max(24.75, 10)
-    assert not ok[0, 2] and not ok[6, 7]
+    clouds = SimpleNamespace(origin=np.zeros((8, 3)), height=np.full(8, 1.65))
+    ids = np.arange(8)[:, None] * 100 + np.arange(3)[None, :]  # chunk c: frames 100 c ..
+    got = {(a, b): w for a, b, w in _pairs(chain, clouds, ids, 150, G.GeometryOptions(gate_min=15.0, gate_drift=0.1))}
+    # 5 and 1: same place, 200 m of path apart -> 0 m <= max(24.75, 20); window 24.75 m / 1.65 = 15 h
+    assert (5, 1) in got and (6, 0) in got and (4, 2) in got
+    assert got[(5, 1)] == pytest.approx(15.0)
+    # 6 and 0: 300 m of path -> window 30 m / 1.65 m
+    assert got[(6, 0)] == pytest.approx(30.0 / 1.65)
+    # 2 and 0: 100 m apart, path 100 m -> 100 > max(24.75, 10); 7 is 300 m from 6
+    assert (2, 0) not in got and (3, 1) not in got and (7, 6) not in got and (7, 0) not in got
+    # frames closer than the separation: not proposed
+    assert not _pairs(chain, clouds, ids, 800, G.GeometryOptions())
 
 
 def _rodrigues(u, theta):
@@ -465,3 +471,96 @@ def test_register_hypotheses_without_a_camera_height_is_rejected_not_nan():
     plain = {k: np.asarray(v).item() if np.asarray(v).ndim == 0 else v for k, v in reg._asdict().items()}
     why = G.registration_reason(plain, G.GeometryOptions())
     assert why is not None and "\n" not in why and "registration failed" in why
+
+
+def test_bev_raster_against_numpy_loop():
+    """Occupancy of random points (some outside the grid, some unweighted) against a NumPy loop."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-7, 7, (500, 2)).astype(np.float32)
+    w = (rng.uniform(size=500) > 0.3).astype(np.float32)
+    got = np.asarray(G.bev_raster(xy, w, 16, 0.75))
+    ref = np.zeros((16, 16))
+    for (x, y), wn in zip(xy, w):
+        i, j = int(np.floor(x / 0.75)) + 8, int(np.floor(y / 0.75)) + 8
+        if wn > 0 and 0 <= i < 16 and 0 <= j < 16:
+            ref[i, j] = 1.0
+    np.testing.assert_array_equal(got, ref)
+
+
+def test_edge_prior_closed_form():
+    """``(ψ, σ, τ)`` of a known edge between two gravity frames, worked by hand: a's frame the
+    identity at the origin with h = 1, b's frame turned 90 degrees about up at (1, 0, 0) with
+    h = 2; Z: yaw 0.7 rad, scale 1.5, translation (3, 4, 0)."""
+    a = G.ChunkCloud(jnp.zeros((4, 3)), jnp.ones(4), jnp.zeros(3), jnp.eye(3), jnp.float32(1.0))
+    Bb = jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), np.pi / 2), jnp.float32)
+    b = G.ChunkCloud(jnp.zeros((4, 3)), jnp.ones(4), jnp.asarray([1.0, 0, 0]), Bb, jnp.float32(2.0))
+    Z = sim3.from_rst(jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), 0.7), jnp.float32), jnp.asarray([3.0, 4, 0]), 1.5)
+    psi, sigma, tau = G.edge_prior(Z, a, b)
+    # M = Bbᵀ Rz(0.7) I = Rz(0.7 − π/2); σ = 1.5·1/2; τ = Bbᵀ((3, 4, 0) − (1, 0, 0))/2 = Rz(−π/2)(2, 4)/2 = (2, −1)
+    assert float(psi) == pytest.approx(0.7 - np.pi / 2, abs=1e-6)
+    assert float(sigma) == pytest.approx(0.75, abs=1e-6)
+    np.testing.assert_allclose(np.asarray(tau), [2.0, -1.0], atol=1e-5)
+
+
+def _clouds(src, dst, aa, ab, Ba, Bb, s_true, h_b=None):
+    a = G.ChunkCloud(jnp.asarray(src), jnp.ones(len(src)), jnp.asarray(aa.mean(0)), jnp.asarray(Ba), jnp.float32(1.0))
+    b = G.ChunkCloud(
+        jnp.asarray(dst),
+        jnp.ones(len(dst)),
+        jnp.asarray(ab.mean(0)),
+        jnp.asarray(Bb),
+        jnp.float32(s_true if h_b is None else h_b),
+    )
+    return a, b
+
+
+@pytest.mark.parametrize("s_true", [3.0, 0.4])
+def test_register_covisible_recovers_a_reverse_revisit_from_a_poor_prior(s_true):
+    """The same street driven the other way (180 degree yaw, scale 3x or 0.4x, b's gravity
+    basis turned): from an odometry prior 6 camera heights off along the street, 2 degrees off
+    in yaw and 10 % off in scale, the search within a 12 h window and the ICP give the true
+    Sim(3) (closed form), with the scale ratio against the prior (1 / 1.1)."""
+    rng = np.random.default_rng(12)
+    S_true, R_true, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, s_true, 0.7, 2.5)
+    a, b = _clouds(src, dst[:4096], aa, ab, Ba, Bb, s_true)
+    off = sim3.from_rst(
+        jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), np.radians(2.0)), jnp.float32),
+        jnp.asarray(Bb[:, 0] * 6.0 * s_true, jnp.float32),
+        1.1,
+    )
+    psi, sigma, tau = G.edge_prior(sim3.compose(off, S_true), a, b)
+    opts = G.GeometryOptions(refine_iterations=12, tau_end=0.15)
+    cov = G.register_covisible(a, b, psi, sigma, tau, 12.0, opts)
+    reg = cov.registration
+    M, M_true = np.asarray(sim3.as_matrix(reg.S), np.float64), np.asarray(sim3.as_matrix(S_true), np.float64)
+    R = M[:3, :3] / np.cbrt(np.linalg.det(M[:3, :3]))
+    assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_true) - 1) / 2, -1, 1))) < 0.2
+    assert abs(float(sim3.scale(reg.S)) / s_true - 1) < 3e-3
+    np.testing.assert_allclose(M[:3, 3], M_true[:3, 3], atol=0.05 * s_true)
+    assert bool(reg.valid) and float(reg.scale_ratio) == pytest.approx(1 / 1.1, rel=5e-3)
+    assert cov.scores.shape == (opts.peaks,) and float(cov.ambiguity) < 1.0
+
+
+def test_register_covisible_bad_input_rejected_not_nan():
+    """No camera height (NaN) or too few structure points: the result is finite, the verdict a
+    one-line reason (never a NaN pose)."""
+    rng = np.random.default_rng(13)
+    _, _, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, 2.0, 0.0, 0.0)
+    a, b = _clouds(src, dst[:4096], aa, ab, Ba, Bb, 2.0, h_b=float("nan"))
+    cov = G.register_covisible(a, b, 0.0, 1.0, jnp.zeros(2), 10.0)
+    assert np.all(np.isfinite(np.asarray(cov.registration.S))) and not bool(cov.registration.valid)
+    plain = {k: float(np.asarray(getattr(cov.registration, k))) for k in ("rms", "scale_ratio", "spread")}
+    plain.update(valid=False, num_structure=0, ambiguity=0.0, null_threshold=1.0)
+    why = G.covisible_reason(plain, G.GeometryOptions())
+    assert why and "\n" not in why and "failed" in why
+    # a handful of points: valid ICP maybe, but too few structure inliers
+    w = np.zeros(len(src), np.float32)
+    w[:10] = 1.0
+    a2 = a._replace(weights=jnp.asarray(w))
+    _, b2 = _clouds(src, dst[:4096], aa, ab, Ba, Bb, 2.0)
+    cov = G.register_covisible(a2, b2, np.pi, 1.0, jnp.zeros(2), 10.0)
+    reg = {k: np.asarray(v).item() for k, v in cov.registration._asdict().items() if np.asarray(v).ndim == 0}
+    reg.update(ambiguity=float(cov.ambiguity), null_threshold=0.0)
+    assert np.all(np.isfinite(np.asarray(cov.registration.S)))
+    why = G.covisible_reason(reg, G.GeometryOptions())
+    assert why is not None and "\n" not in why

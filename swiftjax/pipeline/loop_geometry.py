@@ -3,29 +3,33 @@
 Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 ``loop_geometry = true``: every temporal chunk's reliable points (``frame_stride``-th frames read
 back from the chunk store, memory-mapped) become :func:`swiftjax.loops.geometric.chunk_descriptors`
-(in fixed batches of :data:`BATCH` chunks: one compile per run); chunk pairs at least
-``loop_min_separation`` frames apart whose signatures match are registered
-(:func:`swiftjax.loops.geometric.register`, both yaw hypotheses ``ψ`` and ``ψ + π`` of the
-Scan Context shift, since a street is nearly symmetric end to end; the one with more structure
-inliers kept) and their edge is checked like every other candidate (the cross-chunk dense test
-over all frame pairs of the two chunks: a reverse revisit's nearest cameras face each other,
-and pairwise consistency).  No loop-centric chunk is predicted.
-
-Candidate chunk pairs must also lie near each other under the dead-reckoned chain (within
-``gate_min`` camera heights or ``gate_drift`` of the path driven between them: the odometry's
-drift), as Scan Context's users gate by the odometry: a signature alone is ambiguous among
-the many look-alike streets of a city.
+(in fixed batches of :data:`BATCH` chunks) and a structure cloud
+(:func:`swiftjax.loops.geometric.structure_cloud`).  The candidates are the chunk pairs that
+the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between them)`` of
+each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a reverse pass
+the chunks that share structure are the ones whose cameras face each other across a stretch,
+one or two chunks off the closest frames, so every gated pair is tried, not only the closest
+(docs/performance/reverse-revisits.md).  Each is registered from the chain's prior
+(:func:`swiftjax.loops.geometric.register_covisible`: bird's-eye FFT search within the gate,
+Sim(3) ICP per peak) and, in the same batch, against ``null_chunks`` unrelated chunks
+(:func:`_null_chunks`) from the same prior; a candidate must keep more structure inliers than
+the null's prediction bound (:func:`swiftjax.loops.null.null_threshold` at
+``null_false_alarm``), no second placement ``peak_separation`` away may keep more than
+``max_ambiguity`` of them, and the scale must agree with the chain's
+(:func:`swiftjax.loops.geometric.covisible_reason`, one-line reasons).  Survivors go through the
+cross-chunk dense test over all frame pairs of the two chunks and pairwise consistency with every
+other candidate, like the token candidates.  No loop-centric chunk is predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
-(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread); a
-registration that fails its own test (:func:`swiftjax.loops.geometric.registration_reason`) is
-rejected with that reason before verification.  The accepted edge's information comes from
-the registration's own residuals (:func:`swiftjax.align.covariance.umeyama_information` on its
-inliers).  The records are recomputed on every run (nothing is cached in the manifest).
+(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread, ambiguity, the
+null's mean and bound); the accepted edge's information comes from the registration's own
+residuals (:func:`swiftjax.align.covariance.umeyama_information` on its inliers).  The records
+are recomputed on every run (nothing is cached in the manifest).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -77,22 +81,47 @@ def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
 
 
-def _gate(chain: np.ndarray, g: Any, best: np.ndarray, options: geo.GeometryOptions) -> np.ndarray:
-    """``[T, T]`` bool: the best anchors of the two chunks lie within ``max(gate_min h,
-    gate_drift x path length between them)`` of each other under the dead-reckoned chain."""
-    import jax.numpy as jnp
-
-    from swiftjax import sim3
-
+def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int, options: geo.GeometryOptions):
+    """``[(c_i, c_j, window)]``: chunk pairs (``c_i − c_j >= 2``, frames more than ``sep``
+    apart) whose structure the dead-reckoned chain places within ``max(gate_min h, gate_drift x
+    path)`` of each other (centres), and that window in ``c_j``'s camera heights (at most
+    ``max_window``)."""
     T = len(chain)
     with jax.enable_x64(True):
-        anchors = np.asarray(sim3.act(jnp.asarray(chain)[:, None, :], jnp.asarray(g.anchors, jnp.float64)))
-    centre = chain[:, :3]
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centre, axis=0), axis=1))])
-    h_world = np.nanmedian(np.asarray(g.height) * chain[:, 7])
-    a, b = np.meshgrid(np.arange(T), np.arange(T), indexing="ij")
-    d = np.linalg.norm(anchors[a, best[..., 0]] - anchors[b, best[..., 1]], axis=-1)
-    return d <= np.maximum(options.gate_min * h_world, options.gate_drift * np.abs(path[a] - path[b]))
+        from swiftjax import sim3
+
+        centre = np.asarray(sim3.act(jnp.asarray(chain), jnp.asarray(np.asarray(clouds.origin), jnp.float64)))
+    cam = chain[:, :3]
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cam, axis=0), axis=1))])
+    h_world = np.asarray(clouds.height) * chain[:, 7]
+    h_med = float(np.nanmedian(h_world))
+    out = []
+    for ci in range(T):
+        for cj in range(ci - 1):
+            if not abs(float(np.mean(ids[ci])) - float(np.mean(ids[cj]))) > sep:
+                continue
+            gate = max(options.gate_min * h_med, options.gate_drift * abs(path[ci] - path[cj]))
+            if np.linalg.norm(centre[ci] - centre[cj]) <= gate:
+                out.append((ci, cj, min(gate / h_med, options.max_window)))
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def _batched(options: geo.GeometryOptions):
+    """:func:`swiftjax.loops.geometric.register_covisible` of one source against a batch of
+    targets (the candidate and its null chunks), jitted once per options."""
+    return jax.jit(
+        jax.vmap(functools.partial(geo.register_covisible, options=options), in_axes=(None, 0, None, None, 0, None))
+    )
+
+
+def _null_chunks(ci: int, cj: int, T: int, near: set[tuple[int, int]], k: int) -> list[int]:
+    """``k`` chunks evenly spread over those more than 3 chunks from ``c_i`` and ``c_j`` and not
+    paired with ``c_i`` by the gate: streets the source cannot be on."""
+    pool = [c for c in range(T) if abs(c - ci) > 3 and abs(c - cj) > 3 and (max(c, ci), min(c, ci)) not in near]
+    if len(pool) < k:
+        return pool
+    return [pool[int(round(x))] for x in np.linspace(0, len(pool) - 1, k)]
 
 
 def candidates(
@@ -106,52 +135,54 @@ def candidates(
     """The geometric candidates' records (module docstring), chunk pairs in ``taken`` (the
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
     set when its registration rejects it, else ready for :func:`verify_candidates`.
-    ``chain [T, 8]``: the dead-reckoned chunk poses; pairs whose anchors lie too far apart
-    under them are not proposed (:func:`_gate`)."""
+    ``chain [T, 8]``: the dead-reckoned chunk poses (the prior of every registration; without
+    it no candidate is proposed)."""
+    from swiftjax import sim3
+    from swiftjax.loops.null import null_threshold
+
+    if chain is None:
+        return []
+    chain = np.asarray(chain, np.float64)
     desc, ids = descriptors(ctx, K_ref, options)
     T = len(ids)
-    dist, best = (np.asarray(a) for a in geo.signature_distances(desc.signatures, desc.valid))
-    g = desc.geometry
-    if chain is not None:
-        dist = np.where(_gate(np.asarray(chain, np.float64), g, best, options), dist, np.inf)
-    sep = ctx.config.loop_min_separation
-    pairs: dict[tuple[int, int], float] = {}
-    for a in range(T):
-        order = [
-            b
-            for b in np.argsort(dist[a])
-            if abs(int(b) - a) >= 2
-            and np.isfinite(dist[a, b])
-            and dist[a, b] <= options.max_distance
-            and abs(int(ids[a, best[a, b, 0]]) - int(ids[b, best[a, b, 1]])) > sep
-        ]
-        for b in order[: options.top_k]:
-            key = (max(a, int(b)), min(a, int(b)))
-            if key not in taken:
-                pairs[key] = float(dist[a, b])
+    g = jax.tree_util.tree_map(jnp.asarray, desc.geometry)
+    keys = jax.random.split(jax.random.PRNGKey(0), T)
+    clouds = jax.vmap(lambda gg, k: geo.structure_cloud(gg, k, options))(g, keys)
+    pairs = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, options)
+    near = {(ci, cj) for ci, cj, _ in pairs}
+    take = lambda c: jax.tree_util.tree_map(lambda a: a[c], clouds)
+    batch = _batched(options)
     records = []
-    for (ci, cj), dsig in sorted(pairs.items(), key=lambda kv: kv[1]):
-        ai, aj = best[ci, cj]
-        sc, shift = (np.asarray(x) for x in geo.scan_context_distance(desc.grids[ci, ai], desc.grids[cj, aj]))
+    for ci, cj, window in pairs:
+        if (ci, cj) in taken:
+            continue
+        with jax.enable_x64(True):
+            Zc = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(chain[cj])), jnp.asarray(chain[ci])))
+        a, b = take(ci), take(cj)
+        psi, sigma, tau = geo.edge_prior(Zc, a, b)
+        nulls = _null_chunks(ci, cj, T, near, options.null_chunks)
+        dst = [cj, *nulls]
+        taus = jnp.stack([tau] + [jnp.zeros(2, jnp.float32)] * len(nulls))
+        with ctx.timer("loop geometry: registration"):
+            cov = batch(a, take(np.asarray(dst)), psi, sigma, taus, jnp.float32(window))
+        regs = jax.tree_util.tree_map(np.asarray, cov.registration)
+        reg0 = jax.tree_util.tree_map(lambda x: x[0], cov.registration)
+        n_struct = regs.num_structure.astype(np.float64)
+        pts = float(max(regs.num_points[0], 1))
+        null = null_threshold(
+            n_struct[1:] / pts, np.ones(len(nulls)), np.full(len(nulls), pts), options.null_false_alarm, 0.0
+        )
         record: dict[str, Any] = {
             "source": "geometry",
-            "i": int(ids[ci, ai]),
-            "j": int(ids[cj, aj]),
-            "score": float(1.0 - sc),
+            "i": int(ids[ci, len(ids[ci]) // 2]),
+            "j": int(ids[cj, len(ids[cj]) // 2]),
+            "score": float(n_struct[0] / pts),
             "chunk_i": int(ci),
             "chunk_j": int(cj),
-            "signature_distance": dsig,
-            "scan_context_distance": float(sc),
+            "Z": np.asarray(reg0.S, np.float64).tolist(),
         }
-        if not sc <= options.max_sc_distance:
-            record.update(accepted=False, reason=f"Scan Context distance {float(sc):.3f} > {options.max_sc_distance}")
-            records.append(record)
-            continue
-        with ctx.timer("loop geometry: registration"):
-            reg, unit = _register(g, ci, ai, cj, aj, int(shift), options)
-        record["Z"] = np.asarray(reg.S, np.float64).tolist()
         record["registration"] = {
-            k: _plain(getattr(reg, k))
+            k: _plain(getattr(reg0, k))
             for k in (
                 "inlier_ratio",
                 "rms",
@@ -163,11 +194,16 @@ def candidates(
                 "valid",
             )
         }
-        record["registration"]["yaw_deg"] = float(np.degrees(geo.sector_yaw(int(shift), options.sectors)))
-        record["_stats"] = (reg, unit)
-        why = geo.registration_reason(record["registration"], options)
-        # the loop-chunk fields of the decision rule: the registration stands in for the loop chunk
-        record.update(quality_valid=why is None, quality_min_fraction=float(reg.inlier_ratio))
+        record["registration"].update(
+            ambiguity=float(cov.ambiguity[0]),
+            window=float(window),
+            null_mean=float(np.mean(n_struct[1:])) if len(nulls) else None,
+            null_threshold=float(null.threshold * pts) if math.isfinite(null.threshold) else None,
+            yaw_deg=float(np.degrees(psi)),
+        )
+        record["_stats"] = (reg0, float(b.height))
+        why = geo.covisible_reason(record["registration"], options)
+        record.update(quality_valid=why is None, quality_min_fraction=1.0)
         if why is not None:
             record.update(accepted=False, reason=why)
         else:
@@ -180,48 +216,6 @@ def candidates(
 def _plain(v: Any) -> Any:
     a = np.asarray(v)
     return bool(a) if a.dtype == bool else (int(a) if a.dtype.kind in "iu" else float(a))
-
-
-def _register(g: geo.ChunkGeometry, ci: int, ai: int, cj: int, aj: int, shift: int, options: geo.GeometryOptions):
-    """The better of the two yaw hypotheses' registrations of chunk ``ci`` onto ``cj``."""
-    key = jax.random.PRNGKey(ci * 100003 + cj)
-
-    def near(c, a):
-        q = geo._normalised(jnp.asarray(g.points[c]), g.anchors[c, a], g.basis[c], g.height[c])
-        return jnp.asarray(g.weights[c]) * (jnp.hypot(q[:, 0], q[:, 1]) < options.max_radius)
-
-    src, ws = geo.subsample(g.points[ci], near(ci, ai), options.src_points, key)
-    dst, wd = geo.subsample(g.points[cj], near(cj, aj), options.dst_points, jax.random.fold_in(key, 1))
-    up = jnp.asarray(g.basis[cj][:, 2])
-    ground = up @ jnp.asarray(g.anchors[cj, aj]) - g.height[cj]
-    best = None
-    for m in (shift, shift + options.sectors // 2):
-        S0 = geo.coarse_edge(
-            g.anchors[ci, ai],
-            g.basis[ci],
-            g.height[ci],
-            g.anchors[cj, aj],
-            g.basis[cj],
-            g.height[cj],
-            geo.sector_yaw(m % options.sectors, options.sectors),
-        )
-        reg = geo.register(
-            src,
-            ws,
-            dst,
-            wd,
-            S0,
-            g.height[cj],
-            up,
-            ground,
-            options.tau_start,
-            options.tau_end,
-            options.ground_band,
-            iterations=options.iterations,
-        )
-        if best is None or float(reg.num_structure) > float(best.num_structure):
-            best = reg
-    return best, float(g.height[cj])
 
 
 def _dense(
