@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from swiftjax import sim3
 from swiftjax._compile import quick_jit
@@ -206,8 +206,8 @@ def _linearize(poses: Float[Array, "N 8"], problem: Any) -> tuple[Array, Array, 
 
 
 def snooping_statistics(
-    problem: Any, poses: Float[ArrayLike, "N 8"], active: ArrayLike
-) -> tuple[np.ndarray, np.ndarray]:
+    problem: Any, poses: Float[ArrayLike, "N 8"], active: Bool[ArrayLike, " E"]
+) -> tuple[Float[np.ndarray, " E"], Int[np.ndarray, " E"]]:
     """Baarda's test statistic of every edge at a least-squares solution (host, float64):
     ``(T [E], dof [E])``.
 
@@ -382,13 +382,13 @@ def graph_consistency(
 def data_snooping(
     problem: Any,
     result: Any,
-    active: ArrayLike,
-    loop_edges: ArrayLike,
+    active: Bool[ArrayLike, " E"],
+    loop_edges: Int[ArrayLike, " M"],
     *,
     probability: float = 0.99,
     options: Any = None,
     throw: bool = True,
-) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[Any, Bool[np.ndarray, " E"], Bool[np.ndarray, " E"], Bool[np.ndarray, " E"]]:
     """Iterative data snooping of the loop edges around a robust solve (host):
     ``(Result, active [E], removed [E], readmitted [E])``.
 
