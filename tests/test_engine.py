@@ -13,7 +13,7 @@ from test_pipeline_stages import assert_same_outputs
 from swiftjax import chunks, pipeline
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.engine import Prefix, Reconstruction
-from swiftjax.pipeline.live import LIVE_NAME, LiveLog
+from swiftjax.pipeline.live import LIVE_LOOPS_NAME, LIVE_NAME, LiveLog
 from swiftjax.synthetic import demo
 
 #: The CLI demo of tests/test_demo_outputs.py (155 frames, 8 chunks, one verified loop).
@@ -110,7 +110,10 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     steps = []  # frames posed after each live step
     for _ in range(n):
         if rec.add_frame():
+            rec.wait_for_poses()  # (the pose threads predict and pose the chunk)
             steps.append(len(rec.poses()[0]))
+    rec.wait_for_loops()
+    live_loops = json.loads((live_dir / LIVE_LOOPS_NAME).read_text())
     final = rec.finish()
     B, O = CONFIG.chunk_size, CONFIG.overlap
     assert steps == list(range(B, n + 1, B - O))
@@ -123,6 +126,7 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     np.testing.assert_array_equal(offline.cam_to_world, final.cam_to_world)
     records = reader.read_live_poses(live_dir)
     shutil.move(live_dir / LIVE_NAME, tmp_path / LIVE_NAME)
+    shutil.move(live_dir / LIVE_LOOPS_NAME, tmp_path / LIVE_LOOPS_NAME)
     assert_same_outputs(offline_dir, live_dir)
 
     # First poses: every frame once, in order, from the step that completed its chunk; before
@@ -155,6 +159,11 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     # The loop the offline run accepts is accepted live: a revision republishes every frame
     # posed then with the loop-closed graph, which pulls the trajectory towards the truth.
     assert [(r["i"], r["j"]) for r in rec.loops] == [(lp["i"], lp["j"]) for lp in offline.loops]
+    # loops_live.json: every live candidate with its verdict, at the revision it produced
+    assert [(r["i"], r["j"], r["accepted"]) for r in live_loops["loops"]] == [
+        (r["i"], r["j"], r["accepted"]) for r in rec.candidates
+    ]
+    assert live_loops["revision"] == 1 and all(isinstance(r["reason"], str) for r in live_loops["loops"])
     closing = [r for r in records if r["reason"] == "loop closure"]
     assert {r["revision"] for r in closing} == {1}
     m = len(closing)

@@ -51,13 +51,14 @@ revision.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import pathlib
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import jax
@@ -72,26 +73,57 @@ from swiftjax.options import build
 from swiftjax.pipeline import export, graph, loop_closure, rundir
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import LocalExecutor
-from swiftjax.pipeline.live import LiveLog
+from swiftjax.pipeline.live import LiveLog, write_loops
 from swiftjax.pipeline.results import GraphResult, LoopEdge, LoopResult, RunResult, TemporalResult
 from swiftjax.pipeline.run import reconstruct
 from swiftjax.pipeline.temporal import TemporalStage
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["Prefix", "Reconstruction"]
+__all__ = ["Prefix", "Reconstruction", "Turns"]
+
+
+class Turns:
+    """The one model's turns: a prediction waits while another runs, and the loop worker's
+    (``urgent=False``) also while a live chunk's is waiting, so that a chunk's first poses
+    wait for at most one loop-chunk prediction already under way."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._busy = False
+        self._urgent = 0  # urgent predictions waiting
+
+    @contextlib.contextmanager
+    def turn(self, urgent: bool) -> Iterator[None]:
+        with self._cond:
+            self._urgent += urgent
+            try:
+                while self._busy or (not urgent and self._urgent):
+                    self._cond.wait()
+            finally:
+                self._urgent -= urgent
+            self._busy = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._busy = False
+                self._cond.notify_all()
 
 
 class Prefix:
     """The first ``n`` frames of ``predictor`` as a predictor of their own.
 
     Its fingerprint lists the frames one by one (the predictor's own items, else its frame
-    names), so that a run directory written for fewer frames is resumed as "frames added"."""
+    names), so that a run directory written for fewer frames is resumed as "frames added".
+    Prefixes sharing ``turns`` (:class:`Turns`) predict one at a time, the ``urgent`` ones
+    first."""
 
-    def __init__(self, predictor: Any, n: int) -> None:
+    def __init__(self, predictor: Any, n: int, *, turns: Turns | None = None, urgent: bool = True) -> None:
         if not 1 <= n <= int(predictor.num_frames):
             raise ValueError(f"a prefix of {n} frames of a predictor with {predictor.num_frames}")
         self.inner, self.num_frames = predictor, int(n)
-        self._predicting = threading.Lock()  # one model: the live steps and the loop worker take turns
+        self._turns = Turns() if turns is None else turns
+        self._urgent = urgent
 
     def grow(self, n: int) -> None:
         """Take the first ``n`` frames now (``n`` at least the current count)."""
@@ -102,7 +134,7 @@ class Prefix:
     def predict(self, frames: np.ndarray) -> Any:
         if len(frames) and int(np.max(frames)) >= self.num_frames:
             raise ValueError(f"frame {int(np.max(frames))} is not among the first {self.num_frames}")
-        with self._predicting:
+        with self._turns.turn(self._urgent):
             return self.inner.predict(frames)
 
     def fingerprint(self) -> dict[str, Any]:
@@ -115,7 +147,7 @@ class Prefix:
         return list(self.inner.frame_names())[: self.num_frames]
 
     def __getattr__(self, name: str) -> Any:  # images, source, mode, prefetch ...: the inner predictor's
-        if name in ("inner", "_predicting"):
+        if name in ("inner", "_turns", "_urgent"):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
@@ -179,9 +211,14 @@ class Reconstruction:
         self._accepted: tuple[tuple[int, int], ...] = ()
         self._live: LiveLog | None = None
         self._starts: list[int] = []  # the live chunks' first frames
-        self._lock = threading.Lock()  # the poses and poses_live.jsonl: the step and the loop worker
-        self._jobs: queue.Queue[Any] = queue.Queue()
-        self._worker: threading.Thread | None = None
+        self._lock = threading.Lock()  # the poses and poses_live.jsonl: the pose thread and the loop worker
+        self._turns = Turns()  # the one model: the live chunks' predictions before the loop chunks'
+        self._feed: Prefix | None = None  # the frames added so far, for the live chunks' predictions
+        self._chunks: queue.Queue[Any] = queue.Queue()  # (t, n, completed at): for the predict thread
+        self._predicted: queue.Queue[Any] = queue.Queue(maxsize=1)  # its predictions, for the pose thread
+        self._jobs: queue.Queue[Any] = queue.Queue()  # the loop jobs, for the loop worker
+        self._threads: list[threading.Thread] = []
+        self._skip_loops = False  # finishing: the loop jobs still queued are dropped
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
 
@@ -192,7 +229,8 @@ class Reconstruction:
 
     def add_frame(self, frame: Any = None, time: float | None = None) -> bool:
         """Add the next frame (``time``: seconds; default its index); True when it completed a
-        chunk and the poses were updated."""
+        chunk, whose prediction and first poses then follow on the pose threads (the caller
+        never waits for them: :meth:`wait_for_poses` does)."""
         if frame is not None:
             append = getattr(self.predictor, "append", None)
             if append is None:
@@ -208,7 +246,12 @@ class Reconstruction:
         n = self.num_frames
         if n < B or (n - B) % (B - O):
             return False
-        self._step((n - B) // (B - O))
+        if self._feed is None:
+            self._feed = Prefix(self.predictor, n, turns=self._turns, urgent=True)
+        else:
+            self._feed.grow(n)
+        self._start_threads()
+        self._chunks.put(((n - B) // (B - O), n, _now()))
         return True
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
@@ -216,14 +259,29 @@ class Reconstruction:
         with self._lock:
             return np.arange(len(self._cam_to_world)), self._cam_to_world.copy()
 
+    def wait_for_poses(self) -> None:
+        """Wait until every chunk completed so far is predicted and its first poses published;
+        re-raises a pose thread's error."""
+        self._chunks.join()
+        self._predicted.join()
+        self._raise_worker_error()
+
+    def wait_for_loops(self) -> None:
+        """Wait until the loop worker has done every chunk added so far (its revision, if any,
+        published); re-raises its error."""
+        self.wait_for_poses()
+        self._jobs.join()
+        self._raise_worker_error()
+
     def finish(self) -> RunResult:
         """The final pass: the offline run of every frame added; its poses published as the
-        ``"final"`` revision."""
+        ``"final"`` revision.  The chunks completed are posed first; loop work still pending
+        is dropped (the final pass decides the loops)."""
         if self.num_frames == 0:
             raise ValueError("no frame was added: nothing to reconstruct")
         n = self.num_frames
         try:
-            self._stop_worker()  # the loop work of every live chunk, then the final pass
+            self._stop_threads(skip_loops=True)
             self._raise_worker_error()
             live = self._ctx is not None
             if self._ctx is not None and self._temporal is not None:
@@ -255,8 +313,8 @@ class Reconstruction:
 
     def close(self) -> None:
         """Stop the live stages and release the run directory (what is recorded stays: the same
-        command resumes it); :meth:`finish` calls it."""
-        self._stop_worker()
+        command resumes it); :meth:`finish` calls it.  The chunks completed are posed first."""
+        self._stop_threads(skip_loops=True)
         self._close_stages()
         if self._live is not None:
             self._live.close()
@@ -278,7 +336,7 @@ class Reconstruction:
 
     def _open(self, n: int) -> rundir.RunContext:
         """The run directory for the first ``n`` frames (created, or resumed as "frames added")."""
-        self._view = Prefix(self.predictor, n)
+        self._view = Prefix(self.predictor, n, turns=self._turns, urgent=False)  # the loop chunks'
         executor = self.executor if self.executor is not None else LocalExecutor()
         ctx = rundir.open_run(
             self._view, self.run_dir, self.config, executor, overwrite=self.overwrite, progress=False, log=self.log
@@ -302,10 +360,77 @@ class Reconstruction:
             self._live = LiveLog(self.run_dir)
         return ctx
 
-    def _step(self, t: int) -> None:
-        """Chunk ``t`` completed: the stages of the module docstring."""
-        started = time.perf_counter()
-        n = self.num_frames
+    # ------------------------------------------------------------------ the threads
+
+    def _start_threads(self) -> None:
+        if self._threads:
+            return
+        for target, name in (
+            (self._predict_chunks, "swiftjax-live-predict"),
+            (self._pose_chunks, "swiftjax-live-poses"),
+            (self._work, "swiftjax-live-loops"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def _stop_threads(self, skip_loops: bool) -> None:
+        """Every chunk completed predicted and posed, then the loop worker stopped (its jobs
+        still queued dropped when ``skip_loops``); the threads joined."""
+        threads, self._threads = self._threads, []
+        if not threads:
+            return
+        predict, pose, loops = threads
+        self._chunks.put(None)
+        predict.join()
+        self._predicted.put(None)
+        pose.join()
+        self._skip_loops = skip_loops
+        self._jobs.put(None)
+        loops.join()
+        self._skip_loops = False
+
+    def _predict_chunks(self) -> None:
+        """The predict thread: each completed chunk predicted as soon as it is complete (while
+        the pose thread aligns the one before), handed to the pose thread, until ``None``."""
+        while (item := self._chunks.get()) is not None:
+            try:
+                if self._worker_error is None:  # (failed: drain without work)
+                    t, n, completed = item
+                    B, O = self.config.chunk_size, self.config.overlap
+                    frames = np.arange(t * (B - O), t * (B - O) + B)
+                    executor = self.executor if self.executor is not None else LocalExecutor(prefetch=0)
+                    started = _now()
+                    stream = executor.map(self._feed, [frames], chunk_descriptors)
+                    try:
+                        pred = next(stream)
+                    finally:
+                        stream.close()
+                    self._predicted.put((t, n, frames, pred, completed, started, _now()))
+            except BaseException as err:  # re-raised in the caller's thread
+                self._worker_error = self._worker_error or err
+            finally:
+                self._chunks.task_done()
+        self._chunks.task_done()
+
+    def _pose_chunks(self) -> None:
+        """The pose thread: each predicted chunk stored, aligned and posed (:meth:`_step`), in
+        order, until ``None``."""
+        while (item := self._predicted.get()) is not None:
+            try:
+                if self._worker_error is None:
+                    self._step(*item)
+            except BaseException as err:
+                self._worker_error = self._worker_error or err
+            finally:
+                self._predicted.task_done()
+        self._predicted.task_done()
+
+    def _step(
+        self, t: int, n: int, frames: np.ndarray, pred: Any, completed: float, predict_start: float, predicted: float
+    ) -> None:
+        """Chunk ``t`` (the first ``n`` frames) predicted: the stages of the module docstring."""
+        started = _now()
         if self._ctx is None:
             ctx = self._open(n)
         else:
@@ -314,15 +439,9 @@ class Reconstruction:
             self._view.grow(n)
             rundir.grow_run(ctx)
         assert self._temporal is not None
-        frames = ctx.schedule.frames(t)
+        assert np.array_equal(frames, ctx.schedule.frames(t))
         if ctx.manifest.data["chunks"].get(str(t)):  # a resumed run's: stored as that run's schedule said
             rundir.forget_chunk(ctx.manifest, ctx.store, t)
-        stream = ctx.executor.map(ctx.predictor, [frames], chunk_descriptors)
-        try:
-            with ctx.timer("predict"):
-                pred = next(stream)
-        finally:
-            stream.close()
         extrinsic = np.asarray(pred.extrinsic, np.float64)
         chunk = self._temporal.add(t, pred, last=False)
         del pred
@@ -344,62 +463,67 @@ class Reconstruction:
             new = _world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :])
             self._publish(range(old, n), new, "new")
             self._cam_to_world = np.concatenate([self._cam_to_world, new])
-        posed = time.perf_counter()
-        self.steps.append({"chunk": t, "frames": n, "pose_s": posed - started})
+            posed = _now()
+            self.steps.append(
+                {
+                    "chunk": t,
+                    "frames": n,
+                    "completed_at": completed,
+                    "posed_at": posed,
+                    "pose_s": posed - completed,
+                    "queued_s": predict_start - completed,
+                    "predict_s": predicted - predict_start,
+                    "geometry_s": posed - started,
+                }
+            )
 
         if self._detector is not None:  # the loop work of this chunk, on the loop worker
             self._temporal.flush()  # the loop chunks read the chunk files
             snapshot = dataclasses.replace(ctx, timer=self._loop_timer)  # this step's schedule and camera
-            if self._worker is None:
-                self._worker = threading.Thread(target=self._work, name="swiftjax-live-loops", daemon=True)
-                self._worker.start()
             self._jobs.put((snapshot, t, frames, chunk.descriptors, self._relative.copy(), list(self._edges)))
 
     def _work(self) -> None:
-        """The loop worker: each chunk's loop job (:meth:`_loops`) in order, until ``None``."""
-        while (job := self._jobs.get()) is not None:
+        """The loop worker: the loop jobs in order, until ``None``; the jobs queued meanwhile
+        are done together (:meth:`_loops`: the detector fed every chunk, one proposal pass,
+        one decision and at most one solve for the newest state)."""
+        done = False
+        while not done:
+            batch = [self._jobs.get()]
+            while batch[-1] is not None:
+                try:
+                    batch.append(self._jobs.get_nowait())
+                except queue.Empty:
+                    break
+            done = batch[-1] is None
+            jobs = [job for job in batch if job is not None]
             try:
-                if self._worker_error is None:  # (failed: drain without work)
-                    self._loops(*job)
+                if jobs and self._worker_error is None and not (done and self._skip_loops):
+                    self._loops(jobs)
             except BaseException as err:  # re-raised in the caller's thread
-                self._worker_error = err
+                self._worker_error = self._worker_error or err
             finally:
-                self._jobs.task_done()
-        self._jobs.task_done()
-
-    def wait_for_loops(self) -> None:
-        """Wait until the loop worker has done every chunk added so far (its revision, if any,
-        published); re-raises its error."""
-        self._jobs.join()
-        self._raise_worker_error()
-
-    def _stop_worker(self) -> None:
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            self._jobs.put(None)
-            worker.join()
+                for _ in batch:
+                    self._jobs.task_done()
 
     def _raise_worker_error(self) -> None:
         if self._worker_error is not None:
             err, self._worker_error = self._worker_error, None
             raise err
 
-    def _loops(
-        self,
-        ctx: rundir.RunContext,
-        t: int,
-        frames: np.ndarray,
-        descriptors: np.ndarray,
-        relative: np.ndarray,
-        edges: list[dict[str, Any]],
-    ) -> None:
-        """Chunk ``t``'s loop work (``ctx``, ``relative [t, 8]``, ``edges``: the run as of chunk
-        ``t``): loop detection, the new candidates' loop chunks and verdicts, and, when the
-        accepted set changed, the pose graph over chunks ``0..t`` and a revision."""
-        started = time.perf_counter()
+    def _loops(self, jobs: list[tuple[Any, ...]]) -> None:
+        """The loop work of the chunks of ``jobs`` (each ``(ctx, t, frames, descriptors,
+        relative [t, 8], edges)``: the run as of chunk ``t``, in order): every chunk's
+        descriptors to the loop detector, one proposal pass for them all, the new candidates'
+        loop chunks and verdicts and, when the accepted set changed, the pose graph over the
+        chunks of the newest job and a revision.  The chunks queued while the worker was busy
+        are one batch, so the worker keeps up with the drive: the superseded detections and
+        solves are not run."""
+        started = _now()
         assert self._detector is not None
+        ctx, t, _, _, relative, edges = jobs[-1]
         with ctx.timer("loop detection"):
-            found = self._detector.add(frames, descriptors)
+            for k, (_, _, frames, descriptors, _, _) in enumerate(jobs):
+                found = self._detector.add(frames, descriptors, propose=k + 1 == len(jobs))
             found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
         solved = False
         if found:
@@ -426,7 +550,13 @@ class Reconstruction:
             if key != self._accepted:
                 self._accepted, solved = key, True
                 self._solve(ctx, accepted, relative, edges, K_ref)
-        self.steps[t].update(loop_s=time.perf_counter() - started, proposals=len(found), solved=solved)
+            write_loops(self.run_dir, self.candidates, self.revision)
+        with self._lock:
+            for _, c, *_ in jobs[:-1]:
+                self.steps[c].update(loop_batch=t)
+            self.steps[t].update(
+                loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), solved=solved, batch=len(jobs)
+            )
 
     def _solve(
         self,
@@ -462,14 +592,24 @@ class Reconstruction:
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
 
 
+def _now() -> float:
+    return time.monotonic()
+
+
 def _world(chunk_poses: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
     """Camera-to-world ``[F, 4, 4]`` float64 of cameras ``extrinsic [F, 3, 4]`` in chunks posed
-    ``chunk_poses [F or 1, 8]`` (:func:`swiftjax.camera.world_cameras`, as the export)."""
+    ``chunk_poses [F or 1, 8]`` (:func:`swiftjax.camera.world_cameras`, as the export).  The
+    rows are padded (repeating the first) to a power of two, so that a growing trajectory
+    compiles ``O(log F)`` times, not once per length."""
+    F = len(extrinsic)
+    size = 64
+    while size < F:
+        size *= 2
+    poses = np.broadcast_to(np.asarray(chunk_poses, np.float64), (F, 8))
+    pad = np.zeros(size - F, np.int64)
+    poses = np.concatenate([poses, poses[pad]]) if F else np.zeros((size, 8))
+    ext = np.concatenate([np.asarray(extrinsic, np.float64), np.asarray(extrinsic, np.float64)[pad]]) if F else None
+    if ext is None:
+        return np.zeros((0, 4, 4))
     with jax.enable_x64(True):
-        return np.asarray(
-            world_cameras(
-                jnp.broadcast_to(jnp.asarray(chunk_poses, jnp.float64), (len(extrinsic), 8)),
-                jnp.asarray(extrinsic, jnp.float64),
-            ),
-            np.float64,
-        )
+        return np.asarray(world_cameras(jnp.asarray(poses), jnp.asarray(ext)), np.float64)[:F]
