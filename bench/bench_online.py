@@ -40,6 +40,7 @@ the drive); without it the first arm of the process includes the compiles.
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 import tempfile
@@ -88,7 +89,7 @@ def _same_files(a: pathlib.Path, b: pathlib.Path) -> list[str]:
     files = {p.relative_to(a) for p in a.rglob("*") if p.is_file()} ^ {
         p.relative_to(b) for p in b.rglob("*") if p.is_file()
     }
-    differ = sorted(str(p) for p in files if p.name != "poses_live.jsonl")
+    differ = sorted(str(p) for p in files if p.name not in ("poses_live.jsonl", "loops_live.json"))
     for p in sorted(a.rglob("*")):
         rel = p.relative_to(a)
         if (
@@ -111,49 +112,56 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
     predictor = FixedCost(run.predictor, cost)
     run.predictor.predict(np.arange(min(B, n)))  # the oracle's world and first compile: before the clock
     rec = Reconstruction(tmp / f"{label}-live", predictor, config, ground_truth=gt, overwrite=True, log=lambda s: None)
-    published = np.full(n, np.nan)
     steps: list[dict[str, Any]] = []
     revisions: list[tuple[int, int, float]] = []  # (revision, frames posed, time) when seen
-    posed = 0
+    seen = 0  # engine steps seen
     t0 = time.monotonic()
-    for k in range(n):
-        time.sleep(max(0.0, t0 + k / fps - time.monotonic()))
-        started = time.monotonic()
-        if rec.add_frame():
-            now = time.monotonic()
+    arrival = t0 + np.arange(n) / fps
+
+    def poll() -> None:
+        nonlocal seen
+        if len(rec.steps) > seen:  # new first poses: the live ATE of the trajectory now
+            seen = len(rec.steps)
             frames, c2w = rec.poses()
-            published[posed : len(frames)] = now
-            posed = len(frames)
-            step_ate = float(evaluation.ate(c2w, gt[:posed]).rmse)
-            steps.append(
-                {
-                    "frames": posed,
-                    "revision": rec.revision,
-                    "seconds": now - started,
-                    "ate_m": step_ate,
-                }
-            )
+            step_ate = float(evaluation.ate(c2w, gt[: len(frames)]).rmse)
+            steps.append({"frames": len(frames), "revision": rec.revision, "ate_m": step_ate})
             print(
-                f"  {label}: {posed} frames posed, step {now - started:.2f} s, revision {rec.revision}, "
-                f"{len(rec.loops)} loops, live ATE {step_ate:.3f} m",
+                f"  {label}: {len(frames)} frames posed, revision {rec.revision}, {len(rec.loops)} loops, "
+                f"live ATE {step_ate:.3f} m, load {os.getloadavg()[0]:.1f}",
                 flush=True,
             )
         if rec.revision > (revisions[-1][0] if revisions else 0):
             revisions.append((rec.revision, len(rec.poses()[0]), time.monotonic()))
+
+    for k in range(n):
+        time.sleep(max(0.0, arrival[k] - time.monotonic()))
+        rec.add_frame()
+        poll()
+    end = time.monotonic()
     _, live_c2w = rec.poses()
     live_ate = float(evaluation.ate(live_c2w, gt[: len(live_c2w)]).rmse) if len(live_c2w) >= 3 else float("nan")
-    start_final = time.monotonic()
+    behind = [s["chunk"] for s in rec.steps if "loop_s" not in s and "loop_batch" not in s]
+    rec.wait_for_poses()
+    poll()
+    posed_s = time.monotonic() - end
+    _, posed_c2w = rec.poses()
+    posed_ate = float(evaluation.ate(posed_c2w, gt[: len(posed_c2w)]).rmse) if len(posed_c2w) >= 3 else None
     rec.wait_for_loops()
-    drained_s = time.monotonic() - start_final
-    if rec.revision > (revisions[-1][0] if revisions else 0):
-        revisions.append((rec.revision, len(rec.poses()[0]), time.monotonic()))
+    drained_s = time.monotonic() - end
+    poll()
     _, drained_c2w = rec.poses()
     drained_ate = float(evaluation.ate(drained_c2w, gt[: len(drained_c2w)]).rmse) if len(drained_c2w) >= 3 else None
     live_loops = [[int(lp["i"]), int(lp["j"])] for lp in rec.loops]
     engine_steps = [dict(s) for s in rec.steps]
+    start_final = time.monotonic()
     final = rec.finish()
-    published[posed:] = time.monotonic()  # the frames after the last chunk: posed by the final pass
-    latency = published - (t0 + np.arange(n) / fps)
+    posed = engine_steps[-1]["frames"] if engine_steps else 0
+    published = np.full(n, time.monotonic())  # the frames after the last chunk: posed by the final pass
+    old = 0
+    for s in engine_steps:  # each frame's first pose: the step that posed it
+        published[old : s["frames"]] = s["posed_at"]
+        old = s["frames"]
+    latency = published - arrival
 
     offline = pipeline.reconstruct(
         run.predictor,
@@ -172,11 +180,12 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
         revisions and live_loops
     ):  # the first loop-closure revision; its loop's later frame first posed at the step below
         later = max(live_loops[0])
-        revisit = next(s for s in steps if s["frames"] > later)
+        revisit = next(s for s in engine_steps if s["frames"] > later)
         loop_periods = (revisions[0][1] - revisit["frames"]) / (B - O)
         loop_seconds = revisions[0][2] - published[later]
     pose_times = [s["pose_s"] for s in engine_steps]
-    one_step = float(np.median(pose_times)) if pose_times else float("nan")
+    step_times = [s["predict_s"] + s["geometry_s"] for s in engine_steps]  # one chunk's predict + geometry
+    one_step = float(np.median(step_times)) if step_times else float("nan")
     target = (B - O) / fps + 1.5 * one_step
     p50, p95 = (float(v) for v in np.percentile(latency, [50, 95]))
     # the steady state: frames posed by the live steps after the first chunk (the first chunk's
@@ -199,9 +208,14 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
         "latency_steady_met": None if steady_p95 is None else bool(steady_p95 <= target),
         "latency_first_chunk_max_s": float(np.max(latency[: min(B, posed)])) if posed else None,
         "latency_final_pass_frames": int(n - posed),
-        "step_pose_median_s": one_step,
-        "step_pose_max_s": float(np.max(pose_times)) if pose_times else None,
-        "latency_target_first_step_s": (B - O) / fps + 1.5 * (pose_times[0] if pose_times else float("nan")),
+        "step_median_s": one_step,
+        "step_max_s": float(np.max(step_times)) if step_times else None,
+        "step_first_s": step_times[0] if step_times else None,
+        "predict_median_s": float(np.median([s["predict_s"] for s in engine_steps])) if engine_steps else None,
+        "geometry_median_s": float(np.median([s["geometry_s"] for s in engine_steps])) if engine_steps else None,
+        "queued_max_s": float(np.max([s["queued_s"] for s in engine_steps])) if engine_steps else None,
+        "completion_to_pose_p95_s": float(np.percentile(pose_times, 95)) if pose_times else None,
+        "load_average_1min_at_end": os.getloadavg()[0],
         "loop_closure_chunk_periods": loop_periods,
         "loop_closure_s": loop_seconds,
         "loop_met": None if loop_periods is None else loop_periods <= 2,
@@ -209,13 +223,17 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
         "offline_loops": [[int(lp["i"]), int(lp["j"])] for lp in offline.loops],
         "revisions": rec.revision,
         "revisions_seen": [[r, f, t - t0] for r, f, t in revisions],
-        "live_steps": len(steps),
+        "live_steps": len(engine_steps),
         "steps": steps,
         "engine_steps": engine_steps,
+        "loop_chunks_behind_at_end": len(behind),
+        "pose_drain_s": posed_s,
         "loop_worker_drain_s": drained_s,
         "final_pass_s": time.monotonic() - start_final,
         "live_ate_m": live_ate,
+        "live_ate_posed_m": posed_ate,
         "live_ate_drained_m": drained_ate,
+        "live_ate_met": bool(live_ate <= 1.1 * float(evaluation.ate(offline.cam_to_world, gt).rmse)),
         "offline_ate_m": float(evaluation.ate(offline.cam_to_world, gt).rmse),
         "offline_ate_no_loops_m": float(evaluation.ate(offline.cam_to_world_no_loops, gt).rmse),
         "identical_poses": identical_poses,

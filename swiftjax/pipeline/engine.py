@@ -477,6 +477,8 @@ class Reconstruction:
                 }
             )
 
+        if t == 0:  # chunk 1's alignment compiled now, while its frames arrive
+            self._temporal.warm_up()
         if self._detector is not None:  # the loop work of this chunk, on the loop worker
             self._temporal.flush()  # the loop chunks read the chunk files
             snapshot = dataclasses.replace(ctx, timer=self._loop_timer)  # this step's schedule and camera
