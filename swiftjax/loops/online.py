@@ -274,8 +274,9 @@ class OnlineLoopDetector:
 
         Raises:
             ValueError: frames not consecutive or not continuing the prefix, shape mismatch,
-                non-finite descriptors, a descriptor dimension other than the given
-                whitening's (naming ``whitening_source``).
+                non-finite descriptors.
+            WhiteningSourceError: a descriptor dimension other than the given whitening's
+                (naming ``whitening_source``; one line).
         """
         f = np.asarray(frames, np.int64).reshape(-1)
         G = np.asarray(descriptors, np.float32)
@@ -291,7 +292,7 @@ class OnlineLoopDetector:
         if self._G is not None and d != self._G.shape[1]:
             raise ValueError(f"OnlineLoopDetector.add: {d}-D descriptors after {self._G.shape[1]}-D ones")
         if self.given and d != self.whitening.mean.shape[-1]:
-            raise ValueError(
+            raise WhiteningSourceError(
                 f"{self.whitening_source}: its whitening is for {self.whitening.mean.shape[-1]}-D descriptors but "
                 f"this run's are {d}-D"
             )
