@@ -255,9 +255,10 @@ class Reconstruction:
         return True
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(frames [F], cam_to_world [F, 4, 4])`` of every frame posed so far (latest revision)."""
-        with self._lock:
-            return np.arange(len(self._cam_to_world)), self._cam_to_world.copy()
+        """``(frames [F], cam_to_world [F, 4, 4])`` of every frame posed so far (latest revision).
+        Never waits for the pose threads (the trajectory is replaced, never changed in place)."""
+        cam_to_world = self._cam_to_world
+        return np.arange(len(cam_to_world)), cam_to_world.copy()
 
     def wait_for_poses(self) -> None:
         """Wait until every chunk completed so far is predicted and its first poses published;
