@@ -3,6 +3,7 @@ closes, and a finished run directory equal to the offline run of the same frames
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -177,3 +178,50 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     final_lines = [r for r in records if r["reason"] == "final"]
     assert {r["revision"] for r in final_lines} == {2} and rec.revision == 2
     np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])
+
+
+@pytest.mark.slow
+def test_live_poses_in_metres_under_metric_camera_height(tmp_path):
+    """``--metric camera-height=H`` live: each chunk's road height votes ``H / (h_t s_t)`` (the
+    offline median rule on the prefix); the factor equals the one recomputed from the heights
+    the chunk files record and the chain of the manifest's edges (NumPy here), and the live
+    trajectory is metric: small without any scale alignment, unlike the same poses unscaled.
+    No thread outlives close()."""
+    import threading
+
+    from swiftjax import evaluation
+    from swiftjax.io.chunk_store import ChunkStore
+    from swiftjax.synthetic.routes import loop_route
+
+    before = set(threading.enumerate())
+    run = demo.trajectory_run(
+        loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=0.6), seed=3, image_hw=(42, 140)
+    )
+    config = dataclasses.replace(CONFIG, metric="camera-height=1.65", loop_closure=False)
+    rec = Reconstruction(tmp_path / "live", run.predictor, config, log=lambda s: None)
+    try:
+        for _ in range(run.predictor.num_frames):
+            rec.add_frame()
+        rec.wait_for_poses()
+        frames, live = rec.poses()
+        m = rec.metres_per_unit
+        manifest = json.loads((tmp_path / "live" / "manifest.json").read_text())
+    finally:
+        rec.close()
+    assert not set(threading.enumerate()) - before
+    T = len(rec.steps)
+    store = ChunkStore(tmp_path / "live")  # (complete once closed)
+    heights = np.array([float(store.load_extra("chunk", t)["ground_height"]) for t in range(T)])
+    scales, S = [1.0], np.eye(4)
+    for t in range(1, T):
+        S = S @ _matrix(np.asarray(manifest["edges"][str(t - 1)]["S"]))
+        scales.append(float(np.cbrt(np.linalg.det(S[:3, :3]))))
+    votes = 1.65 / (heights * np.asarray(scales))
+    votes = votes[np.isfinite(votes) & (votes > 0)]
+    assert len(votes) >= T // 2 and m == rec.steps[-1]["metres_per_unit"]
+    np.testing.assert_allclose(m, np.median(votes), rtol=1e-6)
+    gt = np.asarray(run.ground_truth)[: len(frames), :3, 3]
+    metric_ate = evaluation.ate(live[:, :3, 3], gt, "se3").rmse  # no scale alignment
+    assert metric_ate < 1.0, metric_ate
+    if abs(np.log(m)) > np.log(1.5):  # the same poses in chunk units are visibly not metric
+        assert evaluation.ate(live[:, :3, 3] / m, gt, "se3").rmse > 2 * metric_ate

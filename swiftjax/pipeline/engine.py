@@ -8,45 +8,57 @@
         frames, cam_to_world = rec.poses()    # [F], [F, 4, 4]: every frame posed so far
     result = rec.finish()                     # the offline run of the same frames
 
-The stages keep their state between chunks.  Each time the frames complete a chunk of the
-offline schedule (``n = B + k (B - O)``, chunk ``k``), in the run directory:
+The stages keep their state between chunks, on three threads besides the caller's
+(:meth:`Reconstruction.add_frame` only counts the frame and, when it completes a chunk of the
+offline schedule, ``n = B + k (B - O)``, queues chunk ``k``; it never waits):
 
-1. **Temporal** (:class:`~swiftjax.pipeline.temporal.TemporalStage`): chunk ``k`` alone is
-   predicted, stored (chunk file, manifest record: :func:`~swiftjax.pipeline.rundir.grow_run`
+1. **Predict thread**: chunk ``k`` alone is predicted as soon as its last frame was added --
+   while the pose thread still aligns chunk ``k - 1`` (at 2 s per prediction on the demo the
+   prediction and the geometry no longer add up within one chunk period).  At most one
+   prediction waits for the pose thread (memory stays flat).  The model is one: the predictions
+   of the live chunks and of the loop chunks take turns (:class:`Turns`), the live chunk's
+   first, so a chunk's first poses wait for at most one loop-chunk prediction under way.
+2. **Pose thread, temporal** (:class:`~swiftjax.pipeline.temporal.TemporalStage`): chunk
+   ``k`` is stored (chunk file, manifest record: :func:`~swiftjax.pipeline.rundir.grow_run`
    extends the run's fingerprint and schedule to the ``n`` frames first) and aligned with chunk
    ``k - 1`` (the float32 overlap kept in memory since the last step): one edge ``R_{k-1}``.
-2. **First poses**: ``S_k = S_{k-1} R_{k-1}`` on the current chunk poses
+   After chunk 0 the alignment is compiled for the run's shapes while chunk 1's frames arrive
+   (:meth:`~swiftjax.pipeline.temporal.TemporalStage.warm_up`).
+3. **Pose thread, first poses**: ``S_k = S_{k-1} R_{k-1}`` on the current chunk poses
    (:func:`~swiftjax.pipeline.graph.warm_start`), and the ``B - O`` new frames' camera-to-world
    ``S_k`` composed with their cameras in chunk ``k`` are appended to ``poses_live.jsonl`` at
    once (:mod:`~swiftjax.pipeline.live`, reason ``"new"``).  Before any loop closes these are
    the offline chain's poses (``chunk_poses_no_loops``), frame ``f`` in the chunk that first
    held it; the offline export poses the last ``O`` frames of each chunk in the next one.
-3. **Loops**, on one background thread (the loop worker, chunk by chunk in order, so that
-   the next chunk's first poses never wait for them; the predictions of both threads take
-   turns on the one predictor): the chunk's descriptors go to an
+4. **Loop worker**: the chunk's descriptors go to an
    :class:`~swiftjax.loops.online.OnlineLoopDetector` (whitening refitted on the prefix at a
    doubling schedule, or given; threshold calibrated on the prefix); each new proposal between
    non-neighbouring chunks gets its loop-centric chunk predicted and aligned and its
    verification numbers (:func:`~swiftjax.pipeline.loop_closure.loop_record`), then every live
-   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all).
-4. **Pose graph**: only when the set of accepted loops changed, the graph over the ``k + 1``
-   chunks is solved, warm-started from the last solution
+   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all)
+   and the candidates with their verdicts are written to ``loops_live.json``
+   (:func:`~swiftjax.pipeline.live.write_loops`, atomically).  Chunks that completed while the
+   worker was busy are taken together: every chunk's descriptors fed, one proposal pass, one
+   decision and at most one solve, for the newest state (the superseded ones are never run),
+   so the worker keeps up with the drive instead of falling behind by its backlog.
+5. **Pose graph** (loop worker): only when the set of accepted loops changed, the graph over
+   the chunks is solved, warm-started from the last solution
    (:func:`~swiftjax.pipeline.graph.run` with ``warm``), and every frame is published again
    with the next revision (reason ``"loop closure"``), each in its offline owner chunk.
 
-Per step: one chunk prediction and one alignment before the first poses; then, on the loop
-worker, the loop detector's pass over the prefix (:mod:`swiftjax.loops.online`), one
-prediction per new loop proposal, and a pose-graph solve only when the accepted loops change.  The live loop records are hypotheses of the
-prefix and are not recorded in the manifest (the final pass decides); the live poses are in
-the first chunk's units (``--metric`` applies at the final pass); ``loop_geometry`` candidates
-come at the final pass only.
+The live loop records are hypotheses of the prefix, not recorded in the manifest (the final
+pass decides).  The live poses are in the first chunk's units, except under ``--metric
+camera-height=H`` (metres: the median vote ``H / (h_t s_t)`` of the chunks posed so far, the
+offline median rule on the prefix; a frame's first pose takes the factor of its step, a
+revision the factor then) and ``--metric model`` (chunk 0's metres); ``--metric gt`` applies at
+the final pass.  ``loop_geometry`` candidates come at the final pass only.
 
 :meth:`Reconstruction.finish` keeps the offline guarantee: the last live chunk (stored as a
 chunk with a successor) is forgotten and :func:`~swiftjax.pipeline.run.reconstruct` runs over
 every frame in the same run directory, resuming every other chunk the live steps stored
 ("frames added", :mod:`~swiftjax.pipeline.rundir`).  The finished run directory is the offline
-run's (plus ``poses_live.jsonl``), and its poses are published once more as the ``"final"``
-revision.
+run's (plus ``poses_live.jsonl`` and ``loops_live.json``), and its poses are published once
+more as the ``"final"`` revision.
 """
 
 from __future__ import annotations
@@ -65,6 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from swiftjax import metric_scale
 from swiftjax.camera import world_cameras
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.loops.online import OnlineLoopDetector
@@ -166,9 +179,14 @@ class Reconstruction:
     Attributes:
         revision: the trajectory's revision (``poses_live.jsonl``).
         candidates: every live loop candidate's record, with its current verdict.
-        steps: per live step, ``{"chunk", "frames", "pose_s"}`` (seconds from the chunk's
-            completion to its new frames' publication), and once the loop worker is done with
-            the chunk ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``.
+        steps: per live step, ``{"chunk", "frames", "completed_at", "posed_at"}``
+            (``time.monotonic()`` when the chunk's last frame was added and when its new frames
+            were published), ``"pose_s"`` (the difference), ``"queued_s"``, ``"predict_s"``,
+            ``"geometry_s"`` (waiting for the predict thread, predicting, storing + aligning +
+            posing), ``"metres_per_unit"``; once the loop worker is done with the chunk
+            ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``, ``"batch"`` (chunks done
+            together), or ``"loop_batch"``: the chunk whose batch included it.
+        metres_per_unit: the live metric factor (``--metric``), None: chunk 0's units.
         result: the final run (:meth:`finish`), else None.
     """
 
@@ -207,6 +225,8 @@ class Reconstruction:
         self._chunk_poses = np.zeros((0, 8))  # [k+1, 8] the live chunk-to-world poses
         self._extrinsic = np.zeros((0, 3, 4))  # [n, 3, 4] each frame's camera in its latest chunk
         self._cam_to_world = np.zeros((0, 4, 4))  # [n, 4, 4] as published
+        self._heights: list[float] = []  # each live chunk's ground height (--metric camera-height), else NaN
+        self.metres_per_unit: float | None = None  # the live metric factor (--metric), None: chunk 0's units
         self._graph: GraphResult | None = None  # the last pose-graph solution
         self._accepted: tuple[tuple[int, int], ...] = ()
         self._live: LiveLog | None = None
@@ -461,7 +481,10 @@ class Reconstruction:
             grown[:old] = self._extrinsic
             grown[frames] = extrinsic  # the later chunk's camera (the offline owner)
             self._extrinsic = grown
-            new = _world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :])
+            height = chunk.ground_height
+            self._heights.append(float("nan") if height is None else float(height))
+            self.metres_per_unit = self._metric_factor()
+            new = _scaled(_world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :]), self.metres_per_unit)
             self._publish(range(old, n), new, "new")
             self._cam_to_world = np.concatenate([self._cam_to_world, new])
             posed = _now()
@@ -475,6 +498,7 @@ class Reconstruction:
                     "queued_s": predict_start - completed,
                     "predict_s": predicted - predict_start,
                     "geometry_s": posed - started,
+                    "metres_per_unit": self.metres_per_unit,
                 }
             )
 
@@ -586,13 +610,42 @@ class Reconstruction:
             n = len(self._cam_to_world)
             owner = np.searchsorted(np.asarray(self._starts), np.arange(n), side="right") - 1  # the export's
             self.revision += 1
-            self._cam_to_world = _world(self._chunk_poses[owner], self._extrinsic[:n])
+            self.metres_per_unit = self._metric_factor()
+            self._cam_to_world = _scaled(_world(self._chunk_poses[owner], self._extrinsic[:n]), self.metres_per_unit)
             self._publish(range(n), self._cam_to_world, "loop closure")
+
+    def _metric_factor(self) -> float | None:
+        """The live metres per world unit under ``--metric`` (None without it, or before any
+        chunk saw the road): ``camera-height=H``: the median vote ``H / (h_t s_t)`` of the
+        chunks posed so far (:func:`swiftjax.metric_scale.combine_scales`, the offline
+        ``metric_combine = "median"`` rule on the prefix); ``model``: 1 (chunk 0's metres);
+        ``gt``: None (the ground truth is for the final pass's evaluation)."""
+        ctx = self._ctx
+        spec = None if ctx is None or ctx.camera is None else ctx.camera.metric
+        if spec is None or spec[0] == "gt":
+            return None
+        if spec[0] == "model":
+            return 1.0
+        T = len(self._heights)
+        try:
+            m, _ = metric_scale.combine_scales(self._heights, self._chunk_poses[:T, 7], float(spec[1]))
+        except ValueError:  # no road seen yet
+            return None
+        return m
 
     def _publish(self, frames: range, cam_to_world: np.ndarray, reason: str) -> None:
         if self._live is None:
             self._live = LiveLog(self.run_dir)
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
+
+
+def _scaled(cam_to_world: np.ndarray, m: float | None) -> np.ndarray:
+    """``cam_to_world [F, 4, 4]`` with positions times ``m`` (unchanged for None)."""
+    if m is None:
+        return cam_to_world
+    out = cam_to_world.copy()
+    out[:, :3, 3] *= m
+    return out
 
 
 def _now() -> float:
