@@ -205,9 +205,9 @@ def test_live_poses_in_metres_under_metric_camera_height(tmp_path):
         rec.wait_for_poses()
         frames, live = rec.poses()
         m = rec.metres_per_unit
-        manifest = json.loads((tmp_path / "live" / "manifest.json").read_text())
     finally:
         rec.close()
+    manifest = json.loads((tmp_path / "live" / "manifest.json").read_text())  # (saved once closed)
     assert not set(threading.enumerate()) - before
     T = len(rec.steps)
     store = ChunkStore(tmp_path / "live")  # (complete once closed)

@@ -135,6 +135,7 @@ class Prefix:
         if not 1 <= n <= int(predictor.num_frames):
             raise ValueError(f"a prefix of {n} frames of a predictor with {predictor.num_frames}")
         self.inner, self.num_frames = predictor, int(n)
+        self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
         self._turns = Turns() if turns is None else turns
         self._urgent = urgent
 
@@ -232,6 +233,7 @@ class Reconstruction:
         self._live: LiveLog | None = None
         self._starts: list[int] = []  # the live chunks' first frames
         self._lock = threading.Lock()  # the poses and poses_live.jsonl: the pose thread and the loop worker
+        self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
         self._turns = Turns()  # the one model: the live chunks' predictions before the loop chunks'
         self._feed: Prefix | None = None  # the frames added so far, for the live chunks' predictions
         self._chunks: queue.Queue[Any] = queue.Queue()  # (t, n, completed at): for the predict thread
@@ -255,7 +257,8 @@ class Reconstruction:
             append = getattr(self.predictor, "append", None)
             if append is None:
                 raise TypeError(f"{type(self.predictor).__name__} takes no frames (no append()); call add_frame()")
-            append(frame)
+            with self._appending:
+                append(frame)
         self._raise_worker_error()
         if self.num_frames >= int(self.predictor.num_frames):
             raise ValueError(f"frame {self.num_frames} added, but the predictor has {self.predictor.num_frames} frames")
@@ -452,13 +455,14 @@ class Reconstruction:
     ) -> None:
         """Chunk ``t`` (the first ``n`` frames) predicted: the stages of the module docstring."""
         started = _now()
-        if self._ctx is None:
-            ctx = self._open(n)
-        else:
-            ctx = self._ctx
-            assert self._view is not None
-            self._view.grow(n)
-            rundir.grow_run(ctx)
+        with self._appending:  # the fingerprint reads the predictor's frame list: not while it grows
+            if self._ctx is None:
+                ctx = self._open(n)
+            else:
+                ctx = self._ctx
+                assert self._view is not None
+                self._view.grow(n)
+                rundir.grow_run(ctx)
         assert self._temporal is not None
         assert np.array_equal(frames, ctx.schedule.frames(t))
         if ctx.manifest.data["chunks"].get(str(t)):  # a resumed run's: stored as that run's schedule said
