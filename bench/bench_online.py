@@ -40,6 +40,7 @@ the drive); without it the first arm of the process includes the compiles.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pathlib
 import sys
@@ -285,6 +286,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 result = replay(run, config, cost, 1e3 if warm else args.fps, pathlib.Path(tmp), label)
                 if not warm:
                     runs.append(result)
+                    summary = {k: v for k, v in result.items() if not isinstance(v, (list, dict))}
+                    print(f"arm done: {json.dumps(summary)}", flush=True)  # in the log, should a later arm fail
     rows = [
         [
             r["route"],
