@@ -225,3 +225,66 @@ def test_live_poses_in_metres_under_metric_camera_height(tmp_path):
     assert metric_ate < 1.0, metric_ate
     if abs(np.log(m)) > np.log(1.5):  # the same poses in chunk units are visibly not metric
         assert evaluation.ate(live[:, :3, 3] / m, gt, "se3").rmse > 2 * metric_ate
+
+
+def test_turns_live_chunk_first_and_loop_chunks_in_the_gaps():
+    """Turns (the one model): a loop-chunk prediction lets a waiting live one go first, and
+    also one due before it would end (fake clock: the order cannot depend on the machine's
+    speed); it never waits for more than one live prediction, and goes at once when the gap
+    is long enough or the live chunk is overdue.  No thread outlives the test."""
+    import threading
+
+    from swiftjax.pipeline.engine import Turns
+
+    now = [0.0]
+    turns = Turns(clock=lambda: now[0])
+    order: list[str] = []
+
+    def take(name, urgent, hold=None):
+        with turns.turn(urgent):
+            order.append(name)
+            if hold is not None:
+                hold.wait(10)
+
+    def run(*threads):
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(20)
+            assert not th.is_alive()
+
+    # a live prediction waiting beats a loop chunk waiting, once the running one ends
+    release = threading.Event()
+    first = threading.Thread(target=take, args=("running", True, release))
+    first.start()
+    while not order:
+        pass
+    loop = threading.Thread(target=take, args=("loop", False))
+    loop.start()
+    live = threading.Thread(target=take, args=("live", True))
+    live.start()
+    while turns._urgent == 0:  # the live one is waiting
+        pass
+    release.set()
+    for th in (first, loop, live):
+        th.join(20)
+        assert not th.is_alive()
+    assert order == ["running", "live", "loop"]
+
+    # the next live chunk is due in 5 s, a live prediction takes 10 s: the loop chunk waits for it
+    turns.cost, turns.due = 10.0, now[0] + 5.0
+    order.clear()
+    loop = threading.Thread(target=take, args=("loop", False))
+    loop.start()
+    loop.join(0.3)
+    assert loop.is_alive() and order == []  # (the fake clock stands still: it waits for the live one)
+    run(threading.Thread(target=take, args=("live", True)))
+    loop.join(20)
+    assert order == ["live", "loop"]  # ... and for that one only, though the gap is still short
+
+    # a gap long enough, or a live chunk overdue: at once
+    for cost, due in ((1.0, 5.0), (10.0, -1.0)):
+        turns.cost, turns.due = cost, now[0] + due
+        order.clear()
+        run(threading.Thread(target=take, args=("loop", False)))
+        assert order == ["loop"]

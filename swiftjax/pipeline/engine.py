@@ -96,30 +96,58 @@ __all__ = ["Prefix", "Reconstruction", "Turns"]
 
 
 class Turns:
-    """The one model's turns: a prediction waits while another runs, and the loop worker's
-    (``urgent=False``) also while a live chunk's is waiting, so that a chunk's first poses
-    wait for at most one loop-chunk prediction already under way."""
+    """The one model's turns.  A prediction waits while another runs; the loop worker's
+    (``urgent=False``) also waits while a live chunk's is waiting, and, once, for a live chunk
+    due before it would end: when ``due`` (``time.monotonic()`` at which the next live chunk
+    is expected complete, set by the engine) falls within ``cost`` seconds (the last live
+    prediction's) from now, it lets that chunk go first.  So a chunk's first poses wait for a
+    loop-chunk prediction only when there is no gap for it (the model busier than the
+    chunk period), and a loop-chunk prediction waits for at most one live one.
+    ``clock``: the time source (tests)."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self._cond = threading.Condition()
         self._busy = False
         self._urgent = 0  # urgent predictions waiting
+        self._urgent_turns = 0  # urgent predictions done
+        self.due: float | None = None
+        self.cost = 0.0
+        self.clock = clock
+
+    def _gap_too_short(self) -> float | None:
+        """Seconds until the next live chunk is due, when a prediction started now would still
+        run then (else None)."""
+        if self.due is None:
+            return None
+        left = self.due - self.clock()
+        return left if 0 < left < self.cost else None
 
     @contextlib.contextmanager
     def turn(self, urgent: bool) -> Iterator[None]:
         with self._cond:
             self._urgent += urgent
+            seen = self._urgent_turns
             try:
-                while self._busy or (not urgent and self._urgent):
-                    self._cond.wait()
+                while True:
+                    if self._busy or (not urgent and self._urgent):
+                        self._cond.wait()
+                        continue
+                    wait = None if urgent or self._urgent_turns > seen else self._gap_too_short()
+                    if wait is None:
+                        break
+                    self._cond.wait(timeout=wait)  # the live chunk, due meanwhile, goes first
             finally:
                 self._urgent -= urgent
             self._busy = True
+        started = self.clock()
         try:
             yield
         finally:
             with self._cond:
                 self._busy = False
+                if urgent:
+                    self._urgent_turns += 1
+                    self.cost = self.clock() - started
                 self._cond.notify_all()
 
 
@@ -135,6 +163,7 @@ class Prefix:
         if not 1 <= n <= int(predictor.num_frames):
             raise ValueError(f"a prefix of {n} frames of a predictor with {predictor.num_frames}")
         self.inner, self.num_frames = predictor, int(n)
+        self._last_completed: float | None = None  # when the last chunk was completed
         self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
         self._turns = Turns() if turns is None else turns
         self._urgent = urgent
@@ -233,6 +262,7 @@ class Reconstruction:
         self._live: LiveLog | None = None
         self._starts: list[int] = []  # the live chunks' first frames
         self._lock = threading.Lock()  # the poses and poses_live.jsonl: the pose thread and the loop worker
+        self._last_completed: float | None = None  # when the last chunk was completed
         self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
         self._turns = Turns()  # the one model: the live chunks' predictions before the loop chunks'
         self._feed: Prefix | None = None  # the frames added so far, for the live chunks' predictions
@@ -274,7 +304,11 @@ class Reconstruction:
         else:
             self._feed.grow(n)
         self._start_threads()
-        self._chunks.put(((n - B) // (B - O), n, _now()))
+        now = _now()
+        if self._last_completed is not None:  # the next chunk is due one chunk period later
+            self._turns.due = now + (now - self._last_completed)
+        self._last_completed = now
+        self._chunks.put(((n - B) // (B - O), n, now))
         return True
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
