@@ -143,17 +143,18 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
         time.sleep(max(0.0, arrival[k] - time.monotonic()))
         rec.add_frame()
         poll()
-    end = time.monotonic()
     _, live_c2w = rec.poses()
     live_ate = float(evaluation.ate(live_c2w, gt[: len(live_c2w)]).rmse) if len(live_c2w) >= 3 else float("nan")
     behind = [s["chunk"] for s in rec.steps if "loop_s" not in s and "loop_batch" not in s]
+    waited = time.monotonic()
     rec.wait_for_poses()
+    posed_s = time.monotonic() - waited
     poll()
-    posed_s = time.monotonic() - end
     _, posed_c2w = rec.poses()
     posed_ate = float(evaluation.ate(posed_c2w, gt[: len(posed_c2w)]).rmse) if len(posed_c2w) >= 3 else None
+    waited = time.monotonic()
     rec.wait_for_loops()
-    drained_s = time.monotonic() - end
+    drained_s = time.monotonic() - waited + posed_s
     poll()
     _, drained_c2w = rec.poses()
     drained_ate = float(evaluation.ate(drained_c2w, gt[: len(drained_c2w)]).rmse) if len(drained_c2w) >= 3 else None
