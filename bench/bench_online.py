@@ -104,7 +104,9 @@ def _same_files(a: pathlib.Path, b: pathlib.Path) -> list[str]:
     return differ
 
 
-def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, label: str) -> dict[str, Any]:
+def replay(
+    run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, label: str, live_only: bool = False
+) -> dict[str, Any]:
     from swiftjax import evaluation, pipeline
     from swiftjax.pipeline.engine import Reconstruction
 
@@ -160,6 +162,21 @@ def replay(run: Any, config: Any, cost: float, fps: float, tmp: pathlib.Path, la
     drained_ate = float(evaluation.ate(drained_c2w, gt[: len(drained_c2w)]).rmse) if len(drained_c2w) >= 3 else None
     live_loops = [[int(lp["i"]), int(lp["j"])] for lp in rec.loops]
     engine_steps = [dict(s) for s in rec.steps]
+    if live_only:  # the live phase's numbers only (no final pass, no offline run)
+        rec.close()
+        return {
+            "route": label,
+            "cost_s": cost,
+            "live_ate_m": live_ate,
+            "live_ate_posed_m": posed_ate,
+            "live_ate_drained_m": drained_ate,
+            "loop_chunks_behind_at_end": len(behind),
+            "loop_worker_drain_s": drained_s,
+            "revisions_seen": [[r, f, t - t0] for r, f, t in revisions],
+            "live_loops": live_loops,
+            "engine_steps": engine_steps,
+            "load_average_1min_at_end": os.getloadavg()[0],
+        }
     start_final = time.monotonic()
     final = rec.finish()
     posed = engine_steps[-1]["frames"] if engine_steps else 0
@@ -262,6 +279,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--routes", nargs="+", choices=("demo", "kitti00"), default=None)
     parser.add_argument("--kitti-frames", type=int, default=None, help="truncate synthetic KITTI 00")
     parser.add_argument("--no-write", action="store_true", help="print only (no JSON under bench/results/)")
+    parser.add_argument("--live-only", action="store_true", help="the live phase only: print its numbers, no table")
     parser.add_argument("--warmup", action="store_true", help="replay each route once, untimed, first (JIT caches)")
     args = parser.parse_args(argv)
 
@@ -284,7 +302,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     config = pipeline.PipelineConfig()
                 warm = args.warmup and cost == 0.0
                 label = f"{route}-warmup" if warm else f"{route}-{cost:g}s"
-                result = replay(run, config, cost, 1e3 if warm else args.fps, pathlib.Path(tmp), label)
+                result = replay(
+                    run, config, cost, 1e3 if warm else args.fps, pathlib.Path(tmp), label, args.live_only and not warm
+                )
+                if args.live_only and not warm:
+                    summary = {k: v for k, v in result.items() if k != "engine_steps"}
+                    print(f"live only: {json.dumps(summary)}", flush=True)
+                    continue
                 if not warm:
                     runs.append(result)
                     summary = {k: v for k, v in result.items() if not isinstance(v, (list, dict))}

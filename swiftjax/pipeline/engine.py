@@ -271,6 +271,7 @@ class Reconstruction:
         self._jobs: queue.Queue[Any] = queue.Queue()  # the loop jobs, for the loop worker
         self._threads: list[threading.Thread] = []
         self._skip_loops = False  # finishing: the loop jobs still queued are dropped
+        self._backlog: list[Any] = []  # proposals not verified yet (the worker was behind)
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
 
@@ -570,6 +571,30 @@ class Reconstruction:
                 for _ in batch:
                     self._jobs.task_done()
 
+    def _verify_now(self, found: list[Any]) -> list[Any]:
+        """The proposals to verify in this batch: all the waiting ones when the worker has
+        caught up, else (more chunks queued) the :data:`_BEHIND_PROPOSALS` most novel --
+        farthest (in chunks, at either end) from the accepted loops and from each other, the
+        newest first among equals; the others wait for a later batch.  A revisit proposes a
+        loop at every chunk of it, and one or two of them already correct the drift."""
+        self._backlog += found
+        if not self._jobs.qsize() or len(self._backlog) <= _BEHIND_PROPOSALS:
+            chosen, self._backlog = self._backlog, []
+            return chosen
+        anchors = [(int(r["chunk_i"]), int(r["chunk_j"])) for r in self.candidates if r.get("accepted")]
+        chosen = []
+        for _ in range(_BEHIND_PROPOSALS):
+            taken = anchors + [(lp.chunk_i, lp.chunk_j) for lp in chosen]
+
+            def novelty(lp: Any) -> tuple[int, int]:
+                near = min((max(abs(lp.chunk_i - a), abs(lp.chunk_j - b)) for a, b in taken), default=1 << 30)
+                return near, lp.i
+
+            best = max(self._backlog, key=novelty)
+            chosen.append(best)
+            self._backlog.remove(best)
+        return chosen
+
     def _raise_worker_error(self) -> None:
         if self._worker_error is not None:
             err, self._worker_error = self._worker_error, None
@@ -590,6 +615,7 @@ class Reconstruction:
             for k, (_, _, frames, descriptors, _, _) in enumerate(jobs):
                 found = self._detector.add(frames, descriptors, propose=k + 1 == len(jobs))
             found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
+        found = self._verify_now(found)
         solved = False
         if found:
             assert self._temporal is not None and self._temporal.K_ref is not None
@@ -675,6 +701,10 @@ class Reconstruction:
         if self._live is None:
             self._live = LiveLog(self.run_dir)
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
+
+
+#: Proposals the loop worker verifies per batch while chunks are queued behind it.
+_BEHIND_PROPOSALS = 2
 
 
 def _scaled(cam_to_world: np.ndarray, m: float | None) -> np.ndarray:
