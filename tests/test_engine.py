@@ -3,6 +3,7 @@ closes, and a finished run directory equal to the offline run of the same frames
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -13,7 +14,7 @@ from test_pipeline_stages import assert_same_outputs
 from swiftjax import chunks, pipeline
 from swiftjax.pipeline import reader
 from swiftjax.pipeline.engine import Prefix, Reconstruction
-from swiftjax.pipeline.live import LIVE_NAME, LiveLog
+from swiftjax.pipeline.live import LIVE_LOOPS_NAME, LIVE_NAME, LiveLog
 from swiftjax.synthetic import demo
 
 #: The CLI demo of tests/test_demo_outputs.py (155 frames, 8 chunks, one verified loop).
@@ -110,7 +111,10 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     steps = []  # frames posed after each live step
     for _ in range(n):
         if rec.add_frame():
+            rec.wait_for_poses()  # (the pose threads predict and pose the chunk)
             steps.append(len(rec.poses()[0]))
+    rec.wait_for_loops()
+    live_loops = json.loads((live_dir / LIVE_LOOPS_NAME).read_text())
     final = rec.finish()
     B, O = CONFIG.chunk_size, CONFIG.overlap
     assert steps == list(range(B, n + 1, B - O))
@@ -123,6 +127,7 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     np.testing.assert_array_equal(offline.cam_to_world, final.cam_to_world)
     records = reader.read_live_poses(live_dir)
     shutil.move(live_dir / LIVE_NAME, tmp_path / LIVE_NAME)
+    shutil.move(live_dir / LIVE_LOOPS_NAME, tmp_path / LIVE_LOOPS_NAME)
     assert_same_outputs(offline_dir, live_dir)
 
     # First poses: every frame once, in order, from the step that completed its chunk; before
@@ -155,6 +160,11 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     # The loop the offline run accepts is accepted live: a revision republishes every frame
     # posed then with the loop-closed graph, which pulls the trajectory towards the truth.
     assert [(r["i"], r["j"]) for r in rec.loops] == [(lp["i"], lp["j"]) for lp in offline.loops]
+    # loops_live.json: every live candidate with its verdict, at the revision it produced
+    assert [(r["i"], r["j"], r["accepted"]) for r in live_loops["loops"]] == [
+        (r["i"], r["j"], r["accepted"]) for r in rec.candidates
+    ]
+    assert live_loops["revision"] == 1 and all(isinstance(r["reason"], str) for r in live_loops["loops"])
     closing = [r for r in records if r["reason"] == "loop closure"]
     assert {r["revision"] for r in closing} == {1}
     m = len(closing)
@@ -168,3 +178,134 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     final_lines = [r for r in records if r["reason"] == "final"]
     assert {r["revision"] for r in final_lines} == {2} and rec.revision == 2
     np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])
+
+
+@pytest.mark.slow
+def test_live_poses_in_metres_under_metric_camera_height(tmp_path):
+    """``--metric camera-height=H`` live: each chunk's road height votes ``H / (h_t s_t)`` (the
+    offline median rule on the prefix); the factor equals the one recomputed from the heights
+    the chunk files record and the chain of the manifest's edges (NumPy here), and the live
+    trajectory is metric: small without any scale alignment, unlike the same poses unscaled.
+    No thread outlives close()."""
+    import threading
+
+    from swiftjax import evaluation
+    from swiftjax.io.chunk_store import ChunkStore
+    from swiftjax.synthetic.routes import loop_route
+
+    before = set(threading.enumerate())
+    run = demo.trajectory_run(
+        loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=0.6), seed=3, image_hw=(42, 140)
+    )
+    config = dataclasses.replace(CONFIG, metric="camera-height=1.65", loop_closure=False)
+    rec = Reconstruction(tmp_path / "live", run.predictor, config, log=lambda s: None)
+    try:
+        for _ in range(run.predictor.num_frames):
+            rec.add_frame()
+        rec.wait_for_poses()
+        frames, live = rec.poses()
+        m = rec.metres_per_unit
+    finally:
+        rec.close()
+    manifest = json.loads((tmp_path / "live" / "manifest.json").read_text())  # (saved once closed)
+    assert not set(threading.enumerate()) - before
+    T = len(rec.steps)
+    store = ChunkStore(tmp_path / "live")  # (complete once closed)
+    heights = np.array([float(store.load_extra("chunk", t)["ground_height"]) for t in range(T)])
+    scales, S = [1.0], np.eye(4)
+    for t in range(1, T):
+        S = S @ _matrix(np.asarray(manifest["edges"][str(t - 1)]["S"]))
+        scales.append(float(np.cbrt(np.linalg.det(S[:3, :3]))))
+    votes = 1.65 / (heights * np.asarray(scales))
+    votes = votes[np.isfinite(votes) & (votes > 0)]
+    assert len(votes) >= T // 2 and m == rec.steps[-1]["metres_per_unit"]
+    np.testing.assert_allclose(m, np.median(votes), rtol=1e-6)
+    gt = np.asarray(run.ground_truth)[: len(frames), :3, 3]
+    metric_ate = evaluation.ate(live[:, :3, 3], gt, "se3").rmse  # no scale alignment
+    assert metric_ate < 1.0, metric_ate
+    if abs(np.log(m)) > np.log(1.5):  # the same poses in chunk units are visibly not metric
+        assert evaluation.ate(live[:, :3, 3] / m, gt, "se3").rmse > 2 * metric_ate
+
+
+def test_turns_live_chunk_first_and_loop_chunks_in_the_gaps():
+    """Turns (the one model): a loop-chunk prediction lets a waiting live one go first, and
+    also one due before it would end (fake clock: the order cannot depend on the machine's
+    speed); it never waits for more than one live prediction, and goes at once when the gap
+    is long enough or the live chunk is overdue.  No thread outlives the test."""
+    import threading
+
+    from swiftjax.pipeline.engine import Turns
+
+    now = [0.0]
+    turns = Turns(clock=lambda: now[0])
+    order: list[str] = []
+
+    def take(name, urgent, hold=None):
+        with turns.turn(urgent):
+            order.append(name)
+            if hold is not None:
+                hold.wait(10)
+
+    def run(*threads):
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(20)
+            assert not th.is_alive()
+
+    # a live prediction waiting beats a loop chunk waiting, once the running one ends
+    release = threading.Event()
+    first = threading.Thread(target=take, args=("running", True, release))
+    first.start()
+    while not order:
+        pass
+    loop = threading.Thread(target=take, args=("loop", False))
+    loop.start()
+    live = threading.Thread(target=take, args=("live", True))
+    live.start()
+    while turns._urgent == 0:  # the live one is waiting
+        pass
+    release.set()
+    for th in (first, loop, live):
+        th.join(20)
+        assert not th.is_alive()
+    assert order == ["running", "live", "loop"]
+
+    # the next live chunk is due in 5 s, a live prediction takes 10 s: the loop chunk waits for it
+    turns.cost, turns.due = 10.0, now[0] + 5.0
+    order.clear()
+    loop = threading.Thread(target=take, args=("loop", False))
+    loop.start()
+    loop.join(0.3)
+    assert loop.is_alive() and order == []  # (the fake clock stands still: it waits for the live one)
+    run(threading.Thread(target=take, args=("live", True)))
+    loop.join(20)
+    assert order == ["live", "loop"]  # ... and for that one only, though the gap is still short
+
+    # a gap long enough, or a live chunk overdue: at once
+    for cost, due in ((1.0, 5.0), (10.0, -1.0)):
+        turns.cost, turns.due = cost, now[0] + due
+        order.clear()
+        run(threading.Thread(target=take, args=("loop", False)))
+        assert order == ["loop"]
+
+
+def test_loop_worker_behind_verifies_the_most_novel_proposals_first(tmp_path):
+    """While chunks are queued behind the loop worker it verifies two proposals per batch:
+    those farthest from the accepted loops and from each other (a revisit proposes one loop
+    per chunk); the others wait, and all go once it has caught up."""
+    from types import SimpleNamespace as L
+
+    run = demo.loop_route_run(40, image_hw=(28, 98), spacing_m=4.0)
+    rec = Reconstruction(tmp_path / "live", run.predictor, CONFIG, log=lambda s: None)
+    rec.candidates = [{"chunk_i": 20, "chunk_j": 3, "accepted": True}]
+    near = [L(chunk_i=20 + k, chunk_j=3 + k, i=1000 + k) for k in range(1, 4)]  # the accepted loop's revisit
+    far = L(chunk_i=40, chunk_j=10, i=2000)  # another revisit
+    newest_far = L(chunk_i=41, chunk_j=11, i=2050)
+    rec._jobs.put("a chunk queued behind the worker")
+    chosen = rec._verify_now([*near, far, newest_far])
+    assert chosen == [newest_far, near[-1]]  # the most novel, then the farthest from it and the accepted loop
+    assert rec._backlog == [near[0], near[1], far]
+    rec._jobs.get_nowait()  # caught up: the rest at once
+    assert rec._verify_now([]) == [near[0], near[1], far] and rec._backlog == []
+    rec.close()

@@ -5,6 +5,7 @@ the thread is gone at the end; every test runs in well under a few seconds."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -147,6 +148,31 @@ def test_frame_deleted_after_it_was_read_is_harmless(tmp_path):
     assert [f.index for f in got] == list(range(6)) and not list(tmp_path.glob("*.png"))
     for f, img in zip(got, imgs):
         np.testing.assert_array_equal(f.image, img)
+
+
+def test_kept_frames_survive_the_recorder_deleting_them(tmp_path):
+    """``keep``: each frame hard-linked aside as it is read; the recorder deleting the original
+    (a ring buffer) loses nothing: the kept file is the same file (inode, name, size, mtime:
+    the run's fingerprint) and decodes to the same pixels."""
+    folder, keep = tmp_path / "rec", tmp_path / "kept"
+    folder.mkdir()
+    imgs = frames(5, seed=9)
+    src = follow.FollowSource(folder, timeout_s=5.0, poll_s=POLL, keep=keep)
+    got, stats = [], []
+    with follow.Recorder(folder, imgs, fps=30.0) as rec:
+        for f in src:
+            original = folder / f.name
+            stats.append(original.stat())
+            assert f.path == keep / f.name and os.path.samefile(f.path, original)
+            original.unlink()  # the recorder deletes what was read
+            got.append(f)
+        rec.wait()
+    assert [f.index for f in got] == list(range(5)) and not list(folder.glob("*.png"))
+    for f, img, st in zip(got, imgs, stats):
+        kept = f.path.stat()
+        assert (kept.st_size, kept.st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+        np.testing.assert_array_equal(f.image, img)
+        np.testing.assert_array_equal(follow.ImageFiles([f.path]).read(0), img)  # read again: the same
 
 
 def test_end_marker_before_any_frame(tmp_path):

@@ -255,3 +255,34 @@ def test_add_rejects_out_of_order_frames_and_nan():
         det.add(np.arange(40, 60), bad)
     with pytest.raises(ValueError, match="no frame was added"):
         online.OnlineLoopDetector().finish()
+
+
+def test_coalesced_chunks_propose_once_and_finish_unchanged():
+    """``add(..., propose=False)`` (the engine's loop worker catching up): the chunks fed
+    without a pass are tested at the next proposing ``add``, so a planted loop is proposed
+    as when every chunk proposes; no refit happens in between; ``finish`` is still
+    ``find_loops`` bit for bit."""
+    n = 400
+    G = planted(n, 32, seed=5, loops=((300, 40, 30),), noise=0.1)
+    sched = chunk_schedule(n)
+    chunks, assembled = chunk_copies(G, sched, seed=1)
+    o = dataclasses.replace(L.LoopOptions(), min_separation=50)
+    every = online.OnlineLoopDetector(o)
+    feed(every, chunks)
+    batched = online.OnlineLoopDetector(o)
+    passes = []
+    for k, (f, g) in enumerate(chunks):
+        last = k + 1 == len(chunks)
+        propose = last or k % 3 == 2
+        fits = list(batched.fits)
+        out = batched.add(f, g, propose=propose)
+        if not propose:
+            assert out == [] and batched.fits == fits  # recorded only
+        else:
+            passes.append(batched.n)
+    assert set(batched.fits) <= set(passes)
+    pairs = lambda det: {(lp.chunk_i, lp.chunk_j) for lp in det.proposed}
+    assert pairs(every) and pairs(every) == pairs(batched)
+    assert all(lp.i >= 300 for lp in batched.proposed)
+    _same_loops(batched.finish(), L.find_loops(assembled, sched, o))
+    _same_loops(batched.finish(), every.finish())

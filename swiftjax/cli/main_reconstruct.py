@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import logging
 import math
 import pathlib
+import shutil
 import sys
 from typing import Any
 
@@ -57,6 +59,15 @@ def add_parser(sub: Any, **kw: Any) -> argparse.ArgumentParser:
         metavar="FPS",
         help="replay INPUT (folder, glob or video) at FPS frames per second through the live engine",
     )
+    group.add_argument(
+        "--whitening-from",
+        type=pathlib.Path,
+        default=None,
+        metavar="RUN_DIR",
+        help="with --follow or --replay-fps: live loop detection whitens with the whitening of the "
+        "finished run RUN_DIR (same model; fitted on the descriptors its chunk files record) "
+        "instead of refitting on the frames seen so far (default: refit on the prefix)",
+    )
     arguments.add_run_options(p)
     arguments.add_view_options(p)
     arguments.add_method_options(p)
@@ -92,6 +103,10 @@ def _check_live_flags(args: argparse.Namespace) -> None:
         ]
         if used:
             raise CliError(f"{', '.join(used)} cannot be used with --follow (the frames are not known in advance)")
+    if args.whitening_from is not None and not (args.follow or args.replay_fps is not None):
+        raise CliError(
+            "--whitening-from needs --follow or --replay-fps (an offline run fits its whitening on every frame)"
+        )
     if (args.follow or args.replay_fps is not None) and args.executor != "local":
         raise CliError("--follow and --replay-fps run with --executor local")
 
@@ -126,8 +141,64 @@ def _reconstruct_live(args: argparse.Namespace, rec: Any, frames: Any, times: An
     return rec.finish()
 
 
+def _whitening_from(args: argparse.Namespace, config: Any, predictor: Any) -> Any:
+    """``--whitening-from RUN_DIR``'s whitening, before any frame is predicted: RUN_DIR must be
+    a run of the same model (its manifest's model identity) whose chunk files record the
+    descriptors (:func:`swiftjax.loops.online.load_whitening`, with this run's loop options).
+
+    Raises:
+        WhiteningSourceError: one line naming RUN_DIR (not a run, another model, nothing usable).
+    """
+    from swiftjax.loops.online import WhiteningSourceError, load_whitening
+    from swiftjax.loops.options import LoopOptions
+    from swiftjax.options import build
+    from swiftjax.pipeline import reader
+
+    run_dir = args.whitening_from
+    try:
+        manifest = reader.read_manifest(run_dir)
+    except reader.RunReadError as err:
+        raise WhiteningSourceError(f"--whitening-from: {one_line(err)}") from None
+    recorded = (manifest.get("fingerprint") or {}).get("temporal", {}).get("identity", {}).get("model")
+    ours = {k: v for k, v in predictor.fingerprint().items() if k != "frames"}.get("model")
+    if (
+        recorded is not None
+        and ours is not None
+        and json.dumps(recorded, sort_keys=True) != json.dumps(ours, sort_keys=True)
+    ):
+        raise WhiteningSourceError(
+            f"--whitening-from {run_dir}: that run used another model than this one (its manifest's model "
+            "identity differs), so its descriptors' whitening does not apply"
+        )
+    return load_whitening(run_dir, build(LoopOptions, config))
+
+
+def kept_frames_dir(out: pathlib.Path) -> pathlib.Path:
+    """Where ``--follow`` keeps the frames it read (``OUT/../.OUT.follow-frames``): beside the run
+    directory, not in it (the finished run directory is the offline run's, file by file)."""
+    return out.parent / f".{out.name}.follow-frames"
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command; its exit status (1: the run wrote no point)."""
+    keep = kept_frames_dir(pathlib.Path(args.out)) if args.follow and args.out.strip() else None
+    try:
+        code = _run(args)
+    except BaseException:
+        if keep is not None and keep.is_dir():
+            if not (pathlib.Path(args.out) / "manifest.json").exists():
+                shutil.rmtree(keep, ignore_errors=True)  # no run to resume: nothing worth keeping
+            else:
+                logger.info(
+                    f"swiftjax: the frames this run read are kept in {keep} (the recorder may have deleted some)"
+                )
+        raise
+    if keep is not None:
+        shutil.rmtree(keep, ignore_errors=True)
+    return code
+
+
+def _run(args: argparse.Namespace) -> int:
     from swiftjax import pipeline
     from swiftjax.io import images
 
@@ -137,10 +208,16 @@ def run(args: argparse.Namespace) -> int:
     if args.stride < 1:
         raise CliError(f"--stride must be >= 1, got {args.stride}")
     _check_live_flags(args)
+    if args.whitening_from is not None and not config.loop_closure:
+        raise CliError("--whitening-from is for live loop detection, which --no-loop-closure turns off")
     if args.follow:  # frames join the source as they arrive (ImagePredictor.append)
         from swiftjax.io.follow import FollowSource
 
-        live: Any = FollowSource(args.input, timeout_s=args.follow_timeout or 60.0)
+        # Each frame is kept (hard link) beside the run directory as it is read, so that a
+        # recorder may delete it (a ring buffer): the live chunks and the final pass read it
+        # there; removed once the run is finished (kept if it fails: its frames, to resume).
+        keep = kept_frames_dir(out)
+        live: Any = FollowSource(args.input, timeout_s=args.follow_timeout or 60.0, keep=keep)
         source = images.ImageFiles([], description=str(args.input))
         runs.check_out_not_in_input(out, source, pathlib.Path(args.input))
     else:
@@ -190,6 +267,7 @@ def run(args: argparse.Namespace) -> int:
         else:  # each worker loads its own (ImageSpec)
             runner = spec.runner_factory()
         predictor = ImagePredictor(source, runner, mode=spec.mode, spec=spec)
+        whitening = _whitening_from(args, config, predictor) if args.whitening_from is not None else None
         with contextlib.closing(predictor), runs.LiveView(args) as view:
             if args.follow or args.replay_fps is not None:
                 from swiftjax.pipeline.engine import Reconstruction
@@ -202,6 +280,8 @@ def run(args: argparse.Namespace) -> int:
                     executor=executor,
                     overwrite=args.overwrite,
                     timestamps_note=note,
+                    whitening=whitening,
+                    whitening_source=None if whitening is None else str(args.whitening_from),
                 )
                 result = _reconstruct_live(
                     args, rec, live, lambda k: float(k if args.follow else timestamps[k]), check_size

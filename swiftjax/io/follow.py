@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import shutil
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -83,6 +84,12 @@ class FollowSource:
             frame at all, :class:`FollowTimeoutError`.
         poll_s: seconds between looks at the folder (a frame is yielded ``poll_s`` to
             ``2 poll_s`` after its last byte is written).
+        keep: a folder (created) where each frame's file is kept the moment it is found
+            complete, before it is decoded: hard-linked (no copy; the same inode, so the same
+            name, size, times and bytes), else copied with its times (another file system).
+            The frame is read from there and its ``path`` is the kept file, so a recorder may
+            delete a frame once it was read (a ring buffer) and the run still has it.  A file
+            deleted before it was kept was never read: it is skipped, as without ``keep``.
 
     Attributes:
         ended_by: ``None`` while running, then ``"end_marker"``, ``"timeout"`` or ``"stop"``.
@@ -96,9 +103,16 @@ class FollowSource:
     """
 
     def __init__(
-        self, folder: PathLike, *, end_marker: str | None = "END", timeout_s: float | None = 60.0, poll_s: float = 0.05
+        self,
+        folder: PathLike,
+        *,
+        end_marker: str | None = "END",
+        timeout_s: float | None = 60.0,
+        poll_s: float = 0.05,
+        keep: PathLike | None = None,
     ) -> None:
         self.folder = pathlib.Path(folder)
+        self.keep = None if keep is None else pathlib.Path(keep)
         if not self.folder.is_dir():
             raise FollowError(f"{self.folder}: no such folder to follow")
         if timeout_s is not None and not timeout_s > 0:
@@ -118,6 +132,24 @@ class FollowSource:
 
     def __iter__(self) -> Iterator[Frame]:
         return self._frames()
+
+    def _kept(self, path: pathlib.Path) -> pathlib.Path | None:
+        """``path`` kept in :attr:`keep` (see the class docstring); None when it is gone."""
+        assert self.keep is not None
+        self.keep.mkdir(parents=True, exist_ok=True)
+        kept = self.keep / path.name
+        kept.unlink(missing_ok=True)  # a file of an earlier attempt: keep the current one
+        try:
+            os.link(path, kept)
+        except FileNotFoundError:
+            return None
+        except OSError:  # another file system, or no hard links there
+            try:
+                shutil.copy2(path, kept)
+            except FileNotFoundError:
+                kept.unlink(missing_ok=True)
+                return None
+        return kept
 
     def _read(self, path: pathlib.Path) -> np.ndarray | None:
         """The frame's RGB pixels, or None while it is not a complete image."""
@@ -168,7 +200,14 @@ class FollowSource:
                 stats[p.name] = now_stat
                 if before != now_stat:
                     progress = time.monotonic()  # the recorder is writing: not idle
-                img = self._read(p) if before == now_stat and st.st_size > 0 else None
+                source = p
+                if before == now_stat and st.st_size > 0 and self.keep is not None:
+                    kept = self._kept(p)
+                    if kept is None:  # deleted before it was read
+                        stats.pop(p.name, None)
+                        continue
+                    source = kept
+                img = self._read(source) if before == now_stat and st.st_size > 0 else None
                 if img is None:
                     if ended and before == now_stat:
                         raise FollowError(
@@ -188,7 +227,7 @@ class FollowSource:
                 read.add(p.name)
                 del stats[p.name]
                 last_key, last_name = natural_key(p.name), p.name
-                yield Frame(self.count, p.name, p, img, time.monotonic())
+                yield Frame(self.count, p.name, source, img, time.monotonic())
                 self.count += 1
                 progress = time.monotonic()  # the consumer's time is not the recorder's idleness
             if self._stop.is_set():

@@ -261,16 +261,22 @@ class OnlineLoopDetector:
         overlap = max([0] + [e - s for s, e in zip(self._starts[1:], self._ends[:-1])])
         return ChunkSchedule(self.n, size, overlap, starts, ends)
 
-    def add(self, frames: ArrayLike, descriptors: ArrayLike) -> list[Loop]:
+    def add(self, frames: ArrayLike, descriptors: ArrayLike, *, propose: bool = True) -> list[Loop]:
         """Feed one chunk: ``frames [S]`` (consecutive indices) and their ``descriptors [S, d]``
         ``g⁰``.  Returns the new proposals (loops of the prefix whose chunk pair was not
         proposed before), each a :class:`~swiftjax.loops.Loop` whose loop-centric chunk lies
         in the chunks seen so far.
 
+        ``propose=False``: only record the chunk (no refit, no detection; returns ``[]``); the
+        next proposing ``add`` tests every frame not tested yet as a loop's later end, so
+        feeding chunks ``a, b, c`` with ``propose`` only on ``c`` proposes what ``c``'s
+        prefix holds for all three (a worker catching up does one pass, not three).
+
         Raises:
             ValueError: frames not consecutive or not continuing the prefix, shape mismatch,
-                non-finite descriptors, a descriptor dimension other than the given
-                whitening's (naming ``whitening_source``).
+                non-finite descriptors.
+            WhiteningSourceError: a descriptor dimension other than the given whitening's
+                (naming ``whitening_source``; one line).
         """
         f = np.asarray(frames, np.int64).reshape(-1)
         G = np.asarray(descriptors, np.float32)
@@ -286,7 +292,7 @@ class OnlineLoopDetector:
         if self._G is not None and d != self._G.shape[1]:
             raise ValueError(f"OnlineLoopDetector.add: {d}-D descriptors after {self._G.shape[1]}-D ones")
         if self.given and d != self.whitening.mean.shape[-1]:
-            raise ValueError(
+            raise WhiteningSourceError(
                 f"{self.whitening_source}: its whitening is for {self.whitening.mean.shape[-1]}-D descriptors but "
                 f"this run's are {d}-D"
             )
@@ -301,6 +307,8 @@ class OnlineLoopDetector:
         self.n = end
         self._starts.append(int(f[0]))
         self._ends.append(end)
+        if not propose:
+            return []
         if not self.given and refit_due(self.n, self.fits[-1] if self.fits else None, self.minimum):
             self.whitening = fit_sequence_whitening(self._G[: self.n], self.options)
             self.fits.append(self.n)

@@ -8,62 +8,76 @@
         frames, cam_to_world = rec.poses()    # [F], [F, 4, 4]: every frame posed so far
     result = rec.finish()                     # the offline run of the same frames
 
-The stages keep their state between chunks.  Each time the frames complete a chunk of the
-offline schedule (``n = B + k (B - O)``, chunk ``k``), in the run directory:
+The stages keep their state between chunks, on three threads besides the caller's
+(:meth:`Reconstruction.add_frame` only counts the frame and, when it completes a chunk of the
+offline schedule, ``n = B + k (B - O)``, queues chunk ``k``; it never waits):
 
-1. **Temporal** (:class:`~swiftjax.pipeline.temporal.TemporalStage`): chunk ``k`` alone is
-   predicted, stored (chunk file, manifest record: :func:`~swiftjax.pipeline.rundir.grow_run`
+1. **Predict thread**: chunk ``k`` alone is predicted as soon as its last frame was added --
+   while the pose thread still aligns chunk ``k - 1`` (at 2 s per prediction on the demo the
+   prediction and the geometry no longer add up within one chunk period).  At most one
+   prediction waits for the pose thread (memory stays flat).  The model is one: the predictions
+   of the live chunks and of the loop chunks take turns (:class:`Turns`), the live chunk's
+   first, so a chunk's first poses wait for at most one loop-chunk prediction under way.
+2. **Pose thread, temporal** (:class:`~swiftjax.pipeline.temporal.TemporalStage`): chunk
+   ``k`` is stored (chunk file, manifest record: :func:`~swiftjax.pipeline.rundir.grow_run`
    extends the run's fingerprint and schedule to the ``n`` frames first) and aligned with chunk
    ``k - 1`` (the float32 overlap kept in memory since the last step): one edge ``R_{k-1}``.
-2. **First poses**: ``S_k = S_{k-1} R_{k-1}`` on the current chunk poses
+   After chunk 0 the alignment is compiled for the run's shapes while chunk 1's frames arrive
+   (:meth:`~swiftjax.pipeline.temporal.TemporalStage.warm_up`).
+3. **Pose thread, first poses**: ``S_k = S_{k-1} R_{k-1}`` on the current chunk poses
    (:func:`~swiftjax.pipeline.graph.warm_start`), and the ``B - O`` new frames' camera-to-world
    ``S_k`` composed with their cameras in chunk ``k`` are appended to ``poses_live.jsonl`` at
    once (:mod:`~swiftjax.pipeline.live`, reason ``"new"``).  Before any loop closes these are
    the offline chain's poses (``chunk_poses_no_loops``), frame ``f`` in the chunk that first
    held it; the offline export poses the last ``O`` frames of each chunk in the next one.
-3. **Loops**, on one background thread (the loop worker, chunk by chunk in order, so that
-   the next chunk's first poses never wait for them; the predictions of both threads take
-   turns on the one predictor): the chunk's descriptors go to an
+4. **Loop worker**: the chunk's descriptors go to an
    :class:`~swiftjax.loops.online.OnlineLoopDetector` (whitening refitted on the prefix at a
    doubling schedule, or given; threshold calibrated on the prefix); each new proposal between
    non-neighbouring chunks gets its loop-centric chunk predicted and aligned and its
    verification numbers (:func:`~swiftjax.pipeline.loop_closure.loop_record`), then every live
-   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all).
-4. **Pose graph**: only when the set of accepted loops changed, the graph over the ``k + 1``
-   chunks is solved, warm-started from the last solution
+   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all)
+   and the candidates with their verdicts are written to ``loops_live.json``
+   (:func:`~swiftjax.pipeline.live.write_loops`, atomically).  Chunks that completed while the
+   worker was busy are taken together: every chunk's descriptors fed, one proposal pass, one
+   decision and at most one solve, for the newest state (the superseded ones are never run),
+   so the worker keeps up with the drive instead of falling behind by its backlog.
+5. **Pose graph** (loop worker): only when the set of accepted loops changed, the graph over
+   the chunks is solved, warm-started from the last solution
    (:func:`~swiftjax.pipeline.graph.run` with ``warm``), and every frame is published again
    with the next revision (reason ``"loop closure"``), each in its offline owner chunk.
 
-Per step: one chunk prediction and one alignment before the first poses; then, on the loop
-worker, the loop detector's pass over the prefix (:mod:`swiftjax.loops.online`), one
-prediction per new loop proposal, and a pose-graph solve only when the accepted loops change.  The live loop records are hypotheses of the
-prefix and are not recorded in the manifest (the final pass decides); the live poses are in
-the first chunk's units (``--metric`` applies at the final pass); ``loop_geometry`` candidates
-come at the final pass only.
+The live loop records are hypotheses of the prefix, not recorded in the manifest (the final
+pass decides).  The live poses are in the first chunk's units, except under ``--metric
+camera-height=H`` (metres: the median vote ``H / (h_t s_t)`` of the chunks posed so far, the
+offline median rule on the prefix; a frame's first pose takes the factor of its step, a
+revision the factor then) and ``--metric model`` (chunk 0's metres); ``--metric gt`` applies at
+the final pass.  ``loop_geometry`` candidates come at the final pass only.
 
 :meth:`Reconstruction.finish` keeps the offline guarantee: the last live chunk (stored as a
 chunk with a successor) is forgotten and :func:`~swiftjax.pipeline.run.reconstruct` runs over
 every frame in the same run directory, resuming every other chunk the live steps stored
 ("frames added", :mod:`~swiftjax.pipeline.rundir`).  The finished run directory is the offline
-run's (plus ``poses_live.jsonl``), and its poses are published once more as the ``"final"``
-revision.
+run's (plus ``poses_live.jsonl`` and ``loops_live.json``), and its poses are published once
+more as the ``"final"`` revision.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import pathlib
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from swiftjax import metric_scale
 from swiftjax.camera import world_cameras
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.loops.online import OnlineLoopDetector
@@ -72,26 +86,87 @@ from swiftjax.options import build
 from swiftjax.pipeline import export, graph, loop_closure, rundir
 from swiftjax.pipeline.config import PipelineConfig
 from swiftjax.pipeline.executors import LocalExecutor
-from swiftjax.pipeline.live import LiveLog
+from swiftjax.pipeline.live import LiveLog, write_loops
 from swiftjax.pipeline.results import GraphResult, LoopEdge, LoopResult, RunResult, TemporalResult
 from swiftjax.pipeline.run import reconstruct
 from swiftjax.pipeline.temporal import TemporalStage
 from swiftjax.posegraph import chain_poses
 
-__all__ = ["Prefix", "Reconstruction"]
+__all__ = ["Prefix", "Reconstruction", "Turns"]
+
+
+class Turns:
+    """The one model's turns.  A prediction waits while another runs; the loop worker's
+    (``urgent=False``) also waits while a live chunk's is waiting, and, once, for a live chunk
+    due before it would end: when ``due`` (``time.monotonic()`` at which the next live chunk
+    is expected complete, set by the engine) falls within ``cost`` seconds (the last live
+    prediction's) from now, it lets that chunk go first.  So a chunk's first poses wait for a
+    loop-chunk prediction only when there is no gap for it (the model busier than the
+    chunk period), and a loop-chunk prediction waits for at most one live one.
+    ``clock``: the time source (tests)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._cond = threading.Condition()
+        self._busy = False
+        self._urgent = 0  # urgent predictions waiting
+        self._urgent_turns = 0  # urgent predictions done
+        self.due: float | None = None
+        self.cost = 0.0
+        self.clock = clock
+
+    def _gap_too_short(self) -> float | None:
+        """Seconds until the next live chunk is due, when a prediction started now would still
+        run then (else None)."""
+        if self.due is None:
+            return None
+        left = self.due - self.clock()
+        return left if 0 < left < self.cost else None
+
+    @contextlib.contextmanager
+    def turn(self, urgent: bool) -> Iterator[None]:
+        with self._cond:
+            self._urgent += urgent
+            seen = self._urgent_turns
+            try:
+                while True:
+                    if self._busy or (not urgent and self._urgent):
+                        self._cond.wait()
+                        continue
+                    wait = None if urgent or self._urgent_turns > seen else self._gap_too_short()
+                    if wait is None:
+                        break
+                    self._cond.wait(timeout=wait)  # the live chunk, due meanwhile, goes first
+            finally:
+                self._urgent -= urgent
+            self._busy = True
+        started = self.clock()
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._busy = False
+                if urgent:
+                    self._urgent_turns += 1
+                    self.cost = self.clock() - started
+                self._cond.notify_all()
 
 
 class Prefix:
     """The first ``n`` frames of ``predictor`` as a predictor of their own.
 
     Its fingerprint lists the frames one by one (the predictor's own items, else its frame
-    names), so that a run directory written for fewer frames is resumed as "frames added"."""
+    names), so that a run directory written for fewer frames is resumed as "frames added".
+    Prefixes sharing ``turns`` (:class:`Turns`) predict one at a time, the ``urgent`` ones
+    first."""
 
-    def __init__(self, predictor: Any, n: int) -> None:
+    def __init__(self, predictor: Any, n: int, *, turns: Turns | None = None, urgent: bool = True) -> None:
         if not 1 <= n <= int(predictor.num_frames):
             raise ValueError(f"a prefix of {n} frames of a predictor with {predictor.num_frames}")
         self.inner, self.num_frames = predictor, int(n)
-        self._predicting = threading.Lock()  # one model: the live steps and the loop worker take turns
+        self._last_completed: float | None = None  # when the last chunk was completed
+        self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
+        self._turns = Turns() if turns is None else turns
+        self._urgent = urgent
 
     def grow(self, n: int) -> None:
         """Take the first ``n`` frames now (``n`` at least the current count)."""
@@ -102,7 +177,7 @@ class Prefix:
     def predict(self, frames: np.ndarray) -> Any:
         if len(frames) and int(np.max(frames)) >= self.num_frames:
             raise ValueError(f"frame {int(np.max(frames))} is not among the first {self.num_frames}")
-        with self._predicting:
+        with self._turns.turn(self._urgent):
             return self.inner.predict(frames)
 
     def fingerprint(self) -> dict[str, Any]:
@@ -115,7 +190,7 @@ class Prefix:
         return list(self.inner.frame_names())[: self.num_frames]
 
     def __getattr__(self, name: str) -> Any:  # images, source, mode, prefetch ...: the inner predictor's
-        if name in ("inner", "_predicting"):
+        if name in ("inner", "_turns", "_urgent"):
             raise AttributeError(name)
         return getattr(self.inner, name)
 
@@ -134,9 +209,14 @@ class Reconstruction:
     Attributes:
         revision: the trajectory's revision (``poses_live.jsonl``).
         candidates: every live loop candidate's record, with its current verdict.
-        steps: per live step, ``{"chunk", "frames", "pose_s"}`` (seconds from the chunk's
-            completion to its new frames' publication), and once the loop worker is done with
-            the chunk ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``.
+        steps: per live step, ``{"chunk", "frames", "completed_at", "posed_at"}``
+            (``time.monotonic()`` when the chunk's last frame was added and when its new frames
+            were published), ``"pose_s"`` (the difference), ``"queued_s"``, ``"predict_s"``,
+            ``"geometry_s"`` (waiting for the predict thread, predicting, storing + aligning +
+            posing), ``"metres_per_unit"``; once the loop worker is done with the chunk
+            ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``, ``"batch"`` (chunks done
+            together), or ``"loop_batch"``: the chunk whose batch included it.
+        metres_per_unit: the live metric factor (``--metric``), None: chunk 0's units.
         result: the final run (:meth:`finish`), else None.
     """
 
@@ -175,13 +255,23 @@ class Reconstruction:
         self._chunk_poses = np.zeros((0, 8))  # [k+1, 8] the live chunk-to-world poses
         self._extrinsic = np.zeros((0, 3, 4))  # [n, 3, 4] each frame's camera in its latest chunk
         self._cam_to_world = np.zeros((0, 4, 4))  # [n, 4, 4] as published
+        self._heights: list[float] = []  # each live chunk's ground height (--metric camera-height), else NaN
+        self.metres_per_unit: float | None = None  # the live metric factor (--metric), None: chunk 0's units
         self._graph: GraphResult | None = None  # the last pose-graph solution
         self._accepted: tuple[tuple[int, int], ...] = ()
         self._live: LiveLog | None = None
         self._starts: list[int] = []  # the live chunks' first frames
-        self._lock = threading.Lock()  # the poses and poses_live.jsonl: the step and the loop worker
-        self._jobs: queue.Queue[Any] = queue.Queue()
-        self._worker: threading.Thread | None = None
+        self._lock = threading.Lock()  # the poses and poses_live.jsonl: the pose thread and the loop worker
+        self._last_completed: float | None = None  # when the last chunk was completed
+        self._appending = threading.Lock()  # predictor.append (caller) vs its fingerprint (pose thread)
+        self._turns = Turns()  # the one model: the live chunks' predictions before the loop chunks'
+        self._feed: Prefix | None = None  # the frames added so far, for the live chunks' predictions
+        self._chunks: queue.Queue[Any] = queue.Queue()  # (t, n, completed at): for the predict thread
+        self._predicted: queue.Queue[Any] = queue.Queue(maxsize=1)  # its predictions, for the pose thread
+        self._jobs: queue.Queue[Any] = queue.Queue()  # the loop jobs, for the loop worker
+        self._threads: list[threading.Thread] = []
+        self._skip_loops = False  # finishing: the loop jobs still queued are dropped
+        self._backlog: list[Any] = []  # proposals not verified yet (the worker was behind)
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
 
@@ -192,12 +282,14 @@ class Reconstruction:
 
     def add_frame(self, frame: Any = None, time: float | None = None) -> bool:
         """Add the next frame (``time``: seconds; default its index); True when it completed a
-        chunk and the poses were updated."""
+        chunk, whose prediction and first poses then follow on the pose threads (the caller
+        never waits for them: :meth:`wait_for_poses` does)."""
         if frame is not None:
             append = getattr(self.predictor, "append", None)
             if append is None:
                 raise TypeError(f"{type(self.predictor).__name__} takes no frames (no append()); call add_frame()")
-            append(frame)
+            with self._appending:
+                append(frame)
         self._raise_worker_error()
         if self.num_frames >= int(self.predictor.num_frames):
             raise ValueError(f"frame {self.num_frames} added, but the predictor has {self.predictor.num_frames} frames")
@@ -208,22 +300,47 @@ class Reconstruction:
         n = self.num_frames
         if n < B or (n - B) % (B - O):
             return False
-        self._step((n - B) // (B - O))
+        if self._feed is None:
+            self._feed = Prefix(self.predictor, n, turns=self._turns, urgent=True)
+        else:
+            self._feed.grow(n)
+        self._start_threads()
+        now = _now()
+        if self._last_completed is not None:  # the next chunk is due one chunk period later
+            self._turns.due = now + (now - self._last_completed)
+        self._last_completed = now
+        self._chunks.put(((n - B) // (B - O), n, now))
         return True
 
     def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(frames [F], cam_to_world [F, 4, 4])`` of every frame posed so far (latest revision)."""
-        with self._lock:
-            return np.arange(len(self._cam_to_world)), self._cam_to_world.copy()
+        """``(frames [F], cam_to_world [F, 4, 4])`` of every frame posed so far (latest revision).
+        Never waits for the pose threads (the trajectory is replaced, never changed in place)."""
+        cam_to_world = self._cam_to_world
+        return np.arange(len(cam_to_world)), cam_to_world.copy()
+
+    def wait_for_poses(self) -> None:
+        """Wait until every chunk completed so far is predicted and its first poses published;
+        re-raises a pose thread's error."""
+        self._chunks.join()
+        self._predicted.join()
+        self._raise_worker_error()
+
+    def wait_for_loops(self) -> None:
+        """Wait until the loop worker has done every chunk added so far (its revision, if any,
+        published); re-raises its error."""
+        self.wait_for_poses()
+        self._jobs.join()
+        self._raise_worker_error()
 
     def finish(self) -> RunResult:
         """The final pass: the offline run of every frame added; its poses published as the
-        ``"final"`` revision."""
+        ``"final"`` revision.  The chunks completed are posed first; loop work still pending
+        is dropped (the final pass decides the loops)."""
         if self.num_frames == 0:
             raise ValueError("no frame was added: nothing to reconstruct")
         n = self.num_frames
         try:
-            self._stop_worker()  # the loop work of every live chunk, then the final pass
+            self._stop_threads(skip_loops=True)
             self._raise_worker_error()
             live = self._ctx is not None
             if self._ctx is not None and self._temporal is not None:
@@ -255,8 +372,8 @@ class Reconstruction:
 
     def close(self) -> None:
         """Stop the live stages and release the run directory (what is recorded stays: the same
-        command resumes it); :meth:`finish` calls it."""
-        self._stop_worker()
+        command resumes it); :meth:`finish` calls it.  The chunks completed are posed first."""
+        self._stop_threads(skip_loops=True)
         self._close_stages()
         if self._live is not None:
             self._live.close()
@@ -278,7 +395,7 @@ class Reconstruction:
 
     def _open(self, n: int) -> rundir.RunContext:
         """The run directory for the first ``n`` frames (created, or resumed as "frames added")."""
-        self._view = Prefix(self.predictor, n)
+        self._view = Prefix(self.predictor, n, turns=self._turns, urgent=False)  # the loop chunks'
         executor = self.executor if self.executor is not None else LocalExecutor()
         ctx = rundir.open_run(
             self._view, self.run_dir, self.config, executor, overwrite=self.overwrite, progress=False, log=self.log
@@ -302,27 +419,89 @@ class Reconstruction:
             self._live = LiveLog(self.run_dir)
         return ctx
 
-    def _step(self, t: int) -> None:
-        """Chunk ``t`` completed: the stages of the module docstring."""
-        started = time.perf_counter()
-        n = self.num_frames
-        if self._ctx is None:
-            ctx = self._open(n)
-        else:
-            ctx = self._ctx
-            assert self._view is not None
-            self._view.grow(n)
-            rundir.grow_run(ctx)
+    # ------------------------------------------------------------------ the threads
+
+    def _start_threads(self) -> None:
+        if self._threads:
+            return
+        for target, name in (
+            (self._predict_chunks, "swiftjax-live-predict"),
+            (self._pose_chunks, "swiftjax-live-poses"),
+            (self._work, "swiftjax-live-loops"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def _stop_threads(self, skip_loops: bool) -> None:
+        """Every chunk completed predicted and posed, then the loop worker stopped (its jobs
+        still queued dropped when ``skip_loops``); the threads joined."""
+        threads, self._threads = self._threads, []
+        if not threads:
+            return
+        predict, pose, loops = threads
+        self._chunks.put(None)
+        predict.join()
+        self._predicted.put(None)
+        pose.join()
+        self._skip_loops = skip_loops
+        self._jobs.put(None)
+        loops.join()
+        self._skip_loops = False
+
+    def _predict_chunks(self) -> None:
+        """The predict thread: each completed chunk predicted as soon as it is complete (while
+        the pose thread aligns the one before), handed to the pose thread, until ``None``."""
+        while (item := self._chunks.get()) is not None:
+            try:
+                if self._worker_error is None:  # (failed: drain without work)
+                    t, n, completed = item
+                    B, O = self.config.chunk_size, self.config.overlap
+                    frames = np.arange(t * (B - O), t * (B - O) + B)
+                    executor = self.executor if self.executor is not None else LocalExecutor(prefetch=0)
+                    started = _now()
+                    stream = executor.map(self._feed, [frames], chunk_descriptors)
+                    try:
+                        pred = next(stream)
+                    finally:
+                        stream.close()
+                    self._predicted.put((t, n, frames, pred, completed, started, _now()))
+            except BaseException as err:  # re-raised in the caller's thread
+                self._worker_error = self._worker_error or err
+            finally:
+                self._chunks.task_done()
+        self._chunks.task_done()
+
+    def _pose_chunks(self) -> None:
+        """The pose thread: each predicted chunk stored, aligned and posed (:meth:`_step`), in
+        order, until ``None``."""
+        while (item := self._predicted.get()) is not None:
+            try:
+                if self._worker_error is None:
+                    self._step(*item)
+            except BaseException as err:
+                self._worker_error = self._worker_error or err
+            finally:
+                self._predicted.task_done()
+        self._predicted.task_done()
+
+    def _step(
+        self, t: int, n: int, frames: np.ndarray, pred: Any, completed: float, predict_start: float, predicted: float
+    ) -> None:
+        """Chunk ``t`` (the first ``n`` frames) predicted: the stages of the module docstring."""
+        started = _now()
+        with self._appending:  # the fingerprint reads the predictor's frame list: not while it grows
+            if self._ctx is None:
+                ctx = self._open(n)
+            else:
+                ctx = self._ctx
+                assert self._view is not None
+                self._view.grow(n)
+                rundir.grow_run(ctx)
         assert self._temporal is not None
-        frames = ctx.schedule.frames(t)
+        assert np.array_equal(frames, ctx.schedule.frames(t))
         if ctx.manifest.data["chunks"].get(str(t)):  # a resumed run's: stored as that run's schedule said
             rundir.forget_chunk(ctx.manifest, ctx.store, t)
-        stream = ctx.executor.map(ctx.predictor, [frames], chunk_descriptors)
-        try:
-            with ctx.timer("predict"):
-                pred = next(stream)
-        finally:
-            stream.close()
         extrinsic = np.asarray(pred.extrinsic, np.float64)
         chunk = self._temporal.add(t, pred, last=False)
         del pred
@@ -341,66 +520,102 @@ class Reconstruction:
             grown[:old] = self._extrinsic
             grown[frames] = extrinsic  # the later chunk's camera (the offline owner)
             self._extrinsic = grown
-            new = _world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :])
+            height = chunk.ground_height
+            self._heights.append(float("nan") if height is None else float(height))
+            self.metres_per_unit = self._metric_factor()
+            new = _scaled(_world(self._chunk_poses[t][None], extrinsic[old - int(frames[0]) :]), self.metres_per_unit)
             self._publish(range(old, n), new, "new")
             self._cam_to_world = np.concatenate([self._cam_to_world, new])
-        posed = time.perf_counter()
-        self.steps.append({"chunk": t, "frames": n, "pose_s": posed - started})
+            posed = _now()
+            self.steps.append(
+                {
+                    "chunk": t,
+                    "frames": n,
+                    "completed_at": completed,
+                    "posed_at": posed,
+                    "pose_s": posed - completed,
+                    "queued_s": predict_start - completed,
+                    "predict_s": predicted - predict_start,
+                    "geometry_s": posed - started,
+                    "metres_per_unit": self.metres_per_unit,
+                }
+            )
 
+        if t == 0:  # chunk 1's alignment compiled now, while its frames arrive
+            self._temporal.warm_up()
         if self._detector is not None:  # the loop work of this chunk, on the loop worker
             self._temporal.flush()  # the loop chunks read the chunk files
             snapshot = dataclasses.replace(ctx, timer=self._loop_timer)  # this step's schedule and camera
-            if self._worker is None:
-                self._worker = threading.Thread(target=self._work, name="swiftjax-live-loops", daemon=True)
-                self._worker.start()
             self._jobs.put((snapshot, t, frames, chunk.descriptors, self._relative.copy(), list(self._edges)))
 
     def _work(self) -> None:
-        """The loop worker: each chunk's loop job (:meth:`_loops`) in order, until ``None``."""
-        while (job := self._jobs.get()) is not None:
+        """The loop worker: the loop jobs in order, until ``None``; the jobs queued meanwhile
+        are done together (:meth:`_loops`: the detector fed every chunk, one proposal pass,
+        one decision and at most one solve for the newest state)."""
+        done = False
+        while not done:
+            batch = [self._jobs.get()]
+            while batch[-1] is not None:
+                try:
+                    batch.append(self._jobs.get_nowait())
+                except queue.Empty:
+                    break
+            done = batch[-1] is None
+            jobs = [job for job in batch if job is not None]
             try:
-                if self._worker_error is None:  # (failed: drain without work)
-                    self._loops(*job)
+                if jobs and self._worker_error is None and not (done and self._skip_loops):
+                    self._loops(jobs)
             except BaseException as err:  # re-raised in the caller's thread
-                self._worker_error = err
+                self._worker_error = self._worker_error or err
             finally:
-                self._jobs.task_done()
-        self._jobs.task_done()
+                for _ in batch:
+                    self._jobs.task_done()
 
-    def wait_for_loops(self) -> None:
-        """Wait until the loop worker has done every chunk added so far (its revision, if any,
-        published); re-raises its error."""
-        self._jobs.join()
-        self._raise_worker_error()
+    def _verify_now(self, found: list[Any]) -> list[Any]:
+        """The proposals to verify in this batch: all the waiting ones when the worker has
+        caught up, else (more chunks queued) the :data:`_BEHIND_PROPOSALS` most novel --
+        farthest (in chunks, at either end) from the accepted loops and from each other, the
+        newest first among equals; the others wait for a later batch.  A revisit proposes a
+        loop at every chunk of it, and one or two of them already correct the drift."""
+        self._backlog += found
+        if not self._jobs.qsize() or len(self._backlog) <= _BEHIND_PROPOSALS:
+            chosen, self._backlog = self._backlog, []
+            return chosen
+        anchors = [(int(r["chunk_i"]), int(r["chunk_j"])) for r in self.candidates if r.get("accepted")]
+        chosen = []
+        for _ in range(_BEHIND_PROPOSALS):
+            taken = anchors + [(lp.chunk_i, lp.chunk_j) for lp in chosen]
 
-    def _stop_worker(self) -> None:
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            self._jobs.put(None)
-            worker.join()
+            def novelty(lp: Any) -> tuple[int, int]:
+                near = min((max(abs(lp.chunk_i - a), abs(lp.chunk_j - b)) for a, b in taken), default=1 << 30)
+                return near, lp.i
+
+            best = max(self._backlog, key=novelty)
+            chosen.append(best)
+            self._backlog.remove(best)
+        return chosen
 
     def _raise_worker_error(self) -> None:
         if self._worker_error is not None:
             err, self._worker_error = self._worker_error, None
             raise err
 
-    def _loops(
-        self,
-        ctx: rundir.RunContext,
-        t: int,
-        frames: np.ndarray,
-        descriptors: np.ndarray,
-        relative: np.ndarray,
-        edges: list[dict[str, Any]],
-    ) -> None:
-        """Chunk ``t``'s loop work (``ctx``, ``relative [t, 8]``, ``edges``: the run as of chunk
-        ``t``): loop detection, the new candidates' loop chunks and verdicts, and, when the
-        accepted set changed, the pose graph over chunks ``0..t`` and a revision."""
-        started = time.perf_counter()
+    def _loops(self, jobs: list[tuple[Any, ...]]) -> None:
+        """The loop work of the chunks of ``jobs`` (each ``(ctx, t, frames, descriptors,
+        relative [t, 8], edges)``: the run as of chunk ``t``, in order): every chunk's
+        descriptors to the loop detector, one proposal pass for them all, the new candidates'
+        loop chunks and verdicts and, when the accepted set changed, the pose graph over the
+        chunks of the newest job and a revision.  The chunks queued while the worker was busy
+        are one batch, so the worker keeps up with the drive: the superseded detections and
+        solves are not run."""
+        started = _now()
         assert self._detector is not None
+        ctx, t, _, _, relative, edges = jobs[-1]
         with ctx.timer("loop detection"):
-            found = self._detector.add(frames, descriptors)
+            for k, (_, _, frames, descriptors, _, _) in enumerate(jobs):
+                found = self._detector.add(frames, descriptors, propose=k + 1 == len(jobs))
             found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
+        found = self._verify_now(found)
         solved = False
         if found:
             assert self._temporal is not None and self._temporal.K_ref is not None
@@ -426,7 +641,13 @@ class Reconstruction:
             if key != self._accepted:
                 self._accepted, solved = key, True
                 self._solve(ctx, accepted, relative, edges, K_ref)
-        self.steps[t].update(loop_s=time.perf_counter() - started, proposals=len(found), solved=solved)
+            write_loops(self.run_dir, self.candidates, self.revision)
+        with self._lock:
+            for _, c, *_ in jobs[:-1]:
+                self.steps[c].update(loop_batch=t)
+            self.steps[t].update(
+                loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), solved=solved, batch=len(jobs)
+            )
 
     def _solve(
         self,
@@ -453,8 +674,28 @@ class Reconstruction:
             n = len(self._cam_to_world)
             owner = np.searchsorted(np.asarray(self._starts), np.arange(n), side="right") - 1  # the export's
             self.revision += 1
-            self._cam_to_world = _world(self._chunk_poses[owner], self._extrinsic[:n])
+            self.metres_per_unit = self._metric_factor()
+            self._cam_to_world = _scaled(_world(self._chunk_poses[owner], self._extrinsic[:n]), self.metres_per_unit)
             self._publish(range(n), self._cam_to_world, "loop closure")
+
+    def _metric_factor(self) -> float | None:
+        """The live metres per world unit under ``--metric`` (None without it, or before any
+        chunk saw the road): ``camera-height=H``: the median vote ``H / (h_t s_t)`` of the
+        chunks posed so far (:func:`swiftjax.metric_scale.combine_scales`, the offline
+        ``metric_combine = "median"`` rule on the prefix); ``model``: 1 (chunk 0's metres);
+        ``gt``: None (the ground truth is for the final pass's evaluation)."""
+        ctx = self._ctx
+        spec = None if ctx is None or ctx.camera is None else ctx.camera.metric
+        if spec is None or spec[0] == "gt":
+            return None
+        if spec[0] == "model":
+            return 1.0
+        T = len(self._heights)
+        try:
+            m, _ = metric_scale.combine_scales(self._heights, self._chunk_poses[:T, 7], float(spec[1]))
+        except ValueError:  # no road seen yet
+            return None
+        return m
 
     def _publish(self, frames: range, cam_to_world: np.ndarray, reason: str) -> None:
         if self._live is None:
@@ -462,14 +703,37 @@ class Reconstruction:
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
 
 
+#: Proposals the loop worker verifies per batch while chunks are queued behind it.
+_BEHIND_PROPOSALS = 2
+
+
+def _scaled(cam_to_world: np.ndarray, m: float | None) -> np.ndarray:
+    """``cam_to_world [F, 4, 4]`` with positions times ``m`` (unchanged for None)."""
+    if m is None:
+        return cam_to_world
+    out = cam_to_world.copy()
+    out[:, :3, 3] *= m
+    return out
+
+
+def _now() -> float:
+    return time.monotonic()
+
+
 def _world(chunk_poses: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
     """Camera-to-world ``[F, 4, 4]`` float64 of cameras ``extrinsic [F, 3, 4]`` in chunks posed
-    ``chunk_poses [F or 1, 8]`` (:func:`swiftjax.camera.world_cameras`, as the export)."""
+    ``chunk_poses [F or 1, 8]`` (:func:`swiftjax.camera.world_cameras`, as the export).  The
+    rows are padded (repeating the first) to a power of two, so that a growing trajectory
+    compiles ``O(log F)`` times, not once per length."""
+    F = len(extrinsic)
+    size = 64
+    while size < F:
+        size *= 2
+    poses = np.broadcast_to(np.asarray(chunk_poses, np.float64), (F, 8))
+    pad = np.zeros(size - F, np.int64)
+    poses = np.concatenate([poses, poses[pad]]) if F else np.zeros((size, 8))
+    ext = np.concatenate([np.asarray(extrinsic, np.float64), np.asarray(extrinsic, np.float64)[pad]]) if F else None
+    if ext is None:
+        return np.zeros((0, 4, 4))
     with jax.enable_x64(True):
-        return np.asarray(
-            world_cameras(
-                jnp.broadcast_to(jnp.asarray(chunk_poses, jnp.float64), (len(extrinsic), 8)),
-                jnp.asarray(extrinsic, jnp.float64),
-            ),
-            np.float64,
-        )
+        return np.asarray(world_cameras(jnp.asarray(poses), jnp.asarray(ext)), np.float64)[:F]

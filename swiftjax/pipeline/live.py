@@ -9,6 +9,11 @@ final pass (``"final"``) start the next revision and publish every frame again.
 An append-only log: the lines of one chunk are written, flushed and fsync'd together
 (:meth:`LiveLog.append`), so after a crash the file holds every complete chunk and at most one
 half-written last line, which :func:`swiftjax.pipeline.reader.read_live_poses` ignores.
+
+``loops_live.json``: the live loop candidates (:func:`write_loops`), rewritten atomically
+each time the loop worker decides: ``{"revision": r, "loops": [{"i", "j", "score",
+"chunk_i", "chunk_j", "accepted", "reason", "live_chunk"}, ...]}`` -- the hypotheses of the
+prefix, which the final pass decides again (the manifest records the final ones).
 """
 
 from __future__ import annotations
@@ -17,12 +22,17 @@ import json
 import os
 import pathlib
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-__all__ = ["LIVE_NAME", "LiveLog"]
+from swiftjax.io.atomic import atomic_write
+
+__all__ = ["LIVE_LOOPS_NAME", "LIVE_NAME", "LiveLog", "write_loops"]
 
 LIVE_NAME = "poses_live.jsonl"
+LIVE_LOOPS_NAME = "loops_live.json"
+_LOOP_FIELDS = ("i", "j", "score", "chunk_i", "chunk_j", "accepted", "reason", "live_chunk")
 
 
 class LiveLog:
@@ -59,6 +69,18 @@ class LiveLog:
 
     def close(self) -> None:
         self._file.close()
+
+
+def write_loops(run_dir: str | pathlib.Path, candidates: Sequence[dict[str, Any]], revision: int) -> None:
+    """``run_dir/loops_live.json`` (module docstring), atomically: every live candidate's
+    record (its verdict as now) and the trajectory's revision."""
+
+    def plain(v: Any) -> Any:
+        return v.item() if isinstance(v, np.generic) else v
+
+    loops = [{k: plain(r[k]) for k in _LOOP_FIELDS if k in r} for r in candidates]
+    with atomic_write(pathlib.Path(run_dir) / LIVE_LOOPS_NAME) as f:
+        json.dump({"revision": int(revision), "loops": loops}, f, indent=1)
 
 
 def _drop_partial_line(path: pathlib.Path) -> None:

@@ -266,6 +266,18 @@ class TemporalStage:
                 manifest.save_soon()
         return TemporalChunk(t, frames, desc, chunk_edge, height)
 
+    def warm_up(self) -> None:
+        """Compile the temporal alignment for this run's shapes before the next chunk needs it:
+        the last chunk's overlap aligned with itself (the same shapes and options as the next
+        edge; the result is dropped).  The live engine calls it after chunk 0, while it waits
+        for chunk 1's frames, so that chunk 1's first poses do not wait for the compile."""
+        tail, K_ref = self._prev_tail, self.K_ref
+        if tail is None or K_ref is None:
+            return
+        with self.ctx.timer("align"):
+            mask = both(self._prev_tail_mask, self._prev_tail_mask)
+            align_pair(tail, tail, K_ref, self.ctx.config, False, "warm-up", mask=mask)
+
     def flush(self) -> None:
         """Wait for the chunk files being written and record them (the chunk store then holds
         every chunk added, e.g. for a loop chunk's alignment)."""

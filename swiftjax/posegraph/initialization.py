@@ -144,6 +144,13 @@ def chordal_initialization(
     return jnp.where(ok, out, poses), ok
 
 
+def _chain_step(s: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """One link of :func:`chain_poses` (module level: the scan's trace and compile are cached
+    per length; a closure made per call compiled the scan at every call, ~0.5 s)."""
+    nxt = sim3.normalize(sim3.compose(s, r))
+    return nxt, nxt
+
+
 def chain_poses(relative: Float[ArrayLike, "t 8"]) -> Float[np.ndarray, "t+1 8"]:
     """Dead reckoning along a chain: ``S_0 = I, S_{t+1} = S_t S_{t->t+1}``, renormalised.
 
@@ -153,13 +160,8 @@ def chain_poses(relative: Float[ArrayLike, "t 8"]) -> Float[np.ndarray, "t+1 8"]
     """
     relative = np.asarray(relative, np.float64).reshape(-1, 8)
     with jax.enable_x64(True):
-
-        def step(s, r):
-            nxt = sim3.normalize(sim3.compose(s, r))
-            return nxt, nxt
-
         first = sim3.identity((), jnp.float64)
         if relative.shape[0] == 0:
             return np.asarray(first)[None]
-        _, rest = jax.lax.scan(step, first, jnp.asarray(relative))
+        _, rest = jax.lax.scan(_chain_step, first, jnp.asarray(relative))
         return np.concatenate([np.asarray(first)[None], np.asarray(rest)], axis=0)
