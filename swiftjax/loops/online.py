@@ -36,11 +36,12 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike
+from jaxtyping import ArrayLike, Float
 
 from swiftjax.chunks import ChunkSchedule
 from swiftjax.io.images import InputError
@@ -84,7 +85,7 @@ def refit_due(n: int, fitted_at: int | None, minimum: int) -> bool:
     return n >= level
 
 
-def fit_sequence_whitening(descriptors: ArrayLike, options: LoopOptions | None = None) -> Whitening:
+def fit_sequence_whitening(descriptors: Float[ArrayLike, "N d"], options: LoopOptions | None = None) -> Whitening:
     """The whitening :func:`~swiftjax.loops.find_loops` fits for ``descriptors [N, d]`` (``g⁰``,
     finite): ``fit_whitening`` of ``g¹ = power_normalize(g⁰)`` (or of ``g⁰`` for
     ``fit_on="raw"`` / ``rule="authors"``) with ``d′`` from
@@ -102,7 +103,7 @@ class WhiteningSourceError(InputError):
     """``--whitening-from RUN_DIR`` is unusable; the message is one line naming the path."""
 
 
-def recorded_descriptors(run_dir: str | os.PathLike[str]) -> np.ndarray:
+def recorded_descriptors(run_dir: str | os.PathLike[str]) -> Float[np.ndarray, "N d"]:
     """The per-frame descriptors ``g⁰ [N, d]`` float32 an offline run recorded in
     ``run_dir/chunks/chunk_*.npz`` (each file's ``descriptors`` rows at its ``frames``; in
     overlaps the later chunk's copy, as the temporal stage assembles them).
@@ -349,10 +350,13 @@ class OnlineLoopDetector:
         self.proposed += new
         return new
 
-    def finish(self, schedule: ChunkSchedule | None = None, **kwargs) -> list[Loop]:
+    def finish(
+        self, schedule: ChunkSchedule | None = None, **kwargs: Any
+    ) -> list[Loop] | tuple[list[Loop], dict[str, Any]]:
         """Loop detection over the whole sequence exactly as offline: ``find_loops(descriptors,
-        schedule, options, **kwargs)`` (``schedule``: the chunks as added, by default).  The
-        result is the offline one, bit for bit (same inputs, same call)."""
+        schedule, options, **kwargs)`` (``schedule``: the chunks as added, by default; with
+        ``return_details=True`` also its details).  The result is the offline one, bit for bit
+        (same inputs, same call)."""
         if self.n == 0:
             raise ValueError("OnlineLoopDetector.finish: no frame was added")
         return find_loops(
