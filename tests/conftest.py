@@ -56,6 +56,7 @@ JAXTYPED_MODULES = [
     "swiftjax.loops.cross_chunk",
     "swiftjax.loops.null",
     "swiftjax.loops.pcm",
+    "swiftjax.loops.geometric",
     "swiftjax.loops.verification",
     "swiftjax.posegraph.problem",
     "swiftjax.posegraph.kernels",
