@@ -57,6 +57,7 @@ JAXTYPED_MODULES = [
     "swiftjax.loops.null",
     "swiftjax.loops.pcm",
     "swiftjax.loops.online",
+    "swiftjax.loops.geometric",
     "swiftjax.loops.verification",
     "swiftjax.posegraph.problem",
     "swiftjax.posegraph.kernels",

@@ -34,7 +34,6 @@ NOT_HOOKED = {
     "swiftjax.align._kernels": "Pallas/FFI kernel plumbing (private), traced by the jitted callers only",
     "swiftjax.loops._checks": "host-side input checks (private); their own errors name the input",
     "swiftjax._reductions": "a jax.custom_jvp rule (variadic operands of any shape): a wrapper would hide .defjvp",
-    "swiftjax.loops.geometric": "being reworked on another branch (loop geometry); to add after that merge",
 }
 
 #: Host-boundary checkers that take any array-like on purpose: their own ValueError naming the

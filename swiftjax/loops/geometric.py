@@ -74,7 +74,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Bool, Float, Int, Key, UInt32
 
 from swiftjax import align, camera, options, sim3, so3
 from swiftjax.align.mask import frame_conf_mean
@@ -299,7 +299,9 @@ def chunk_frame(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], optio
     )
 
 
-def _normalised(points: Array, anchor: Array, basis: Array, height: Array) -> Array:
+def _normalised(
+    points: Float[Array, "N 3"], anchor: Float[Array, "3"], basis: Float[Array, "3 3"], height: Float[ArrayLike, ""]
+) -> Float[Array, "N 3"]:
     """``q = Bᵀ (x − a) / h`` with ``z = q_z + 1``: ``[N, 3]`` (module docstring)."""
     q = (points - anchor) @ basis / height
     return q.at[:, 2].add(1.0)
@@ -312,7 +314,7 @@ def polar_grid(
     sectors: int,
     max_radius: float,
     max_height: float,
-) -> tuple[Array, Array]:
+) -> tuple[Float[Array, "R S"], Int[Array, ""]]:
     """Scan Context grid of normalised points ``q`` (module docstring): ``([rings, sectors], count)``.
 
     Cell value ``max(0, min(z, max_height))`` over the points with ``weights > 0`` and ``ρ <
@@ -331,7 +333,7 @@ def polar_grid(
     return jnp.maximum(grid, 0.0).reshape(rings, sectors), jnp.sum(ok).astype(jnp.int32)
 
 
-def grid_signature(grid: Float[ArrayLike, "*b R S"]) -> Array:
+def grid_signature(grid: Float[ArrayLike, "*b R S"]) -> Float[Array, "*b D"]:
     """The rotation-invariant signature ``vec|rfft_θ(G)| / ‖·‖``: ``[..., R, S] -> [..., R (S//2+1)]``."""
     g = jnp.asarray(grid)
     mag = jnp.abs(jnp.fft.rfft(g, axis=-1)).reshape(*g.shape[:-2], -1)
@@ -376,7 +378,9 @@ def chunk_descriptors(
 
 
 @jax.jit
-def signature_distances(signatures: Float[ArrayLike, "T A D"], valid: ArrayLike) -> tuple[Array, Array]:
+def signature_distances(
+    signatures: Float[ArrayLike, "T A D"], valid: Bool[ArrayLike, "T A"]
+) -> tuple[Float[Array, "T T"], Int[Array, "T T 2"]]:
     """``(d [T, T], best [T, T, 2])``: per chunk pair the smallest ``1 − σ_a · σ_b`` over
     valid anchor pairs (``inf`` when none) and the anchors achieving it."""
     s = jnp.asarray(signatures)
@@ -390,8 +394,8 @@ def signature_distances(signatures: Float[ArrayLike, "T A D"], valid: ArrayLike)
 
 @jax.jit
 def scan_context_distance(
-    grid_a: Float[ArrayLike, "*b R S"], grid_b: Float[ArrayLike, "*b R S"]
-) -> tuple[Array, Array]:
+    grid_a: Float[ArrayLike, "*#b R S"], grid_b: Float[ArrayLike, "*#b R S"]
+) -> tuple[Float[Array, "*#b"], Int[Array, "*#b"]]:
     """``(d_SC(m*), m*)`` (module docstring): the column-wise cosine distance at the best
     sector shift, with ``G_b[:, k + m*]`` matching ``G_a[:, k]``; columns empty in both grids do
     not count (1 when no column counts).  Batched over leading axes."""
@@ -420,14 +424,14 @@ def _rot_z(psi: Array) -> Array:
 
 @jax.jit
 def coarse_edge(
-    anchor_a: ArrayLike,
-    basis_a: ArrayLike,
-    height_a: ArrayLike,
-    anchor_b: ArrayLike,
-    basis_b: ArrayLike,
-    height_b: ArrayLike,
-    yaw: ArrayLike,
-) -> Array:
+    anchor_a: Float[ArrayLike, "*#b 3"],
+    basis_a: Float[ArrayLike, "*#b 3 3"],
+    height_a: Float[ArrayLike, "*#b"],
+    anchor_b: Float[ArrayLike, "*#b 3"],
+    basis_b: Float[ArrayLike, "*#b 3 3"],
+    height_b: Float[ArrayLike, "*#b"],
+    yaw: Float[ArrayLike, "*#b"],
+) -> Float[Array, "*#b 8"]:
     """The coarse Sim(3) ``[8]`` from chunk ``a`` into chunk ``b``: ``s₀ = h_b / h_a``,
     ``R₀ = B_b R_z(ψ) B_aᵀ``, ``t₀ = a_b − s₀ R₀ a_a`` (module docstring)."""
     R = jnp.asarray(basis_b) @ _rot_z(jnp.asarray(yaw, jnp.float32)) @ jnp.swapaxes(jnp.asarray(basis_a), -1, -2)
@@ -441,8 +445,11 @@ def coarse_edge(
 
 
 def subsample(
-    points: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, " N"], n: int, key: ArrayLike
-) -> tuple[Array, Array]:
+    points: Float[ArrayLike, "N 3"],
+    weights: Float[ArrayLike, " N"],
+    n: int,
+    key: Key[ArrayLike, ""] | UInt32[ArrayLike, "2"],
+) -> tuple[Float[Array, "n 3"], Float[Array, " n"]]:
     """``n`` of the points with ``weights > 0``, drawn without replacement (all of them, padded
     with zero-weight rows, when fewer): ``(points [n, 3], weights [n])``.  Fixed shape: the
     ``n`` largest of ``1[w > 0] + U(0, 1)`` (``key``)."""
@@ -516,12 +523,12 @@ def register(
     dst: Float[ArrayLike, "Q 3"],
     w_dst: Float[ArrayLike, " Q"],
     S0: Float[ArrayLike, "8"],
-    unit: ArrayLike,
+    unit: Float[ArrayLike, ""],
     up: Float[ArrayLike, "3"],
-    ground: ArrayLike,
-    tau_start: float | ArrayLike = 3.0,
-    tau_end: float | ArrayLike = 0.25,
-    ground_band: float | ArrayLike = 0.35,
+    ground: Float[ArrayLike, ""],
+    tau_start: float | Float[ArrayLike, ""] = 3.0,
+    tau_end: float | Float[ArrayLike, ""] = 0.25,
+    ground_band: float | Float[ArrayLike, ""] = 0.35,
     *,
     iterations: int = 16,
     four_dof: bool = False,
@@ -628,7 +635,7 @@ def registration_reason(reg: dict, options: GeometryOptions) -> str | None:
     return None
 
 
-def sector_yaw(shift: int | ArrayLike, sectors: int) -> float | Array:
+def sector_yaw(shift: int | Int[ArrayLike, "*b"], sectors: int) -> float | Float[ArrayLike, "*b"]:
     """The yaw ``ψ = m 2π / N_s`` of a sector shift."""
     return shift * (2 * math.pi / sectors)
 
@@ -636,7 +643,7 @@ def sector_yaw(shift: int | ArrayLike, sectors: int) -> float | Array:
 # ----------------------------------------------------------------------- several starts
 
 
-def path_weights(geometry: ChunkGeometry, max_radius: float) -> Array:
+def path_weights(geometry: ChunkGeometry, max_radius: float) -> Float[Array, "*b N"]:
     """``[..., N]`` the weights of the reliable points lying within ``max_radius`` camera
     heights (horizontally, in the chunk's gravity frame) of one of its anchors: the part of the
     chunk's cloud the camera path saw from close by (what both passes of a street share)."""
@@ -656,13 +663,13 @@ def path_weights(geometry: ChunkGeometry, max_radius: float) -> Array:
 def coarse_hypotheses(
     grids_a: Float[ArrayLike, "A R S"],
     grids_b: Float[ArrayLike, "A R S"],
-    anchors_a: ArrayLike,
-    basis_a: ArrayLike,
-    height_a: ArrayLike,
-    anchors_b: ArrayLike,
-    basis_b: ArrayLike,
-    height_b: ArrayLike,
-) -> tuple[Array, Array, Array]:
+    anchors_a: Float[ArrayLike, "A 3"],
+    basis_a: Float[ArrayLike, "3 3"],
+    height_a: Float[ArrayLike, ""],
+    anchors_b: Float[ArrayLike, "A 3"],
+    basis_b: Float[ArrayLike, "3 3"],
+    height_b: Float[ArrayLike, ""],
+) -> tuple[Float[Array, "2*A*A 8"], Int[Array, "2*A*A 2"], Float[Array, " 2*A*A"]]:
     """Every start of the registration of chunk ``a`` onto ``b``: ``(S0 [2 A², 8], anchors
     [2 A², 2] int32, yaw [2 A²])``.
 
@@ -693,11 +700,11 @@ def register_hypotheses(
     dst: Float[ArrayLike, "Q 3"],
     w_dst: Float[ArrayLike, " Q"],
     S0: Float[ArrayLike, "H 8"],
-    unit: ArrayLike,
+    unit: Float[ArrayLike, ""],
     up: Float[ArrayLike, "3"],
-    ground: ArrayLike,
+    ground: Float[ArrayLike, ""],
     options: GeometryOptions = GeometryOptions(),
-) -> tuple[Registration, Array, Array]:
+) -> tuple[Registration, Int[Array, ""], Int[Array, " H"]]:
     """The registration of ``src`` onto ``dst`` from the best of ``H`` starts: ``(Registration,
     chosen int32, scores [H])``.
 
@@ -776,7 +783,9 @@ class ChunkCloud(NamedTuple):
 
 @functools.partial(jax.jit, static_argnames=("options",))
 def structure_cloud(
-    geometry: ChunkGeometry, key: ArrayLike, options: GeometryOptions = GeometryOptions()
+    geometry: ChunkGeometry,
+    key: Key[ArrayLike, ""] | UInt32[ArrayLike, "2"],
+    options: GeometryOptions = GeometryOptions(),
 ) -> ChunkCloud:
     """:class:`ChunkCloud` of one chunk's :class:`ChunkGeometry` (``dst_points`` rows; vmap it
     over chunks with one key each).  ``z = u·(x − o)/h + 1 >= structure_height`` keeps what
@@ -790,7 +799,9 @@ def structure_cloud(
     return ChunkCloud(pts, ws, o, g.basis, g.height)
 
 
-def edge_prior(Z: Float[ArrayLike, "8"], a: ChunkCloud, b: ChunkCloud) -> tuple[Array, Array, Array]:
+def edge_prior(
+    Z: Float[ArrayLike, "8"], a: ChunkCloud, b: ChunkCloud
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, "2"]]:
     """The yaw ``ψ``, relative scale ``σ`` and translation ``τ [2]`` of an edge ``Z`` (``a``
     into ``b``) in the two chunks' normalised gravity frames ``q = Bᵀ(x − o)/h``::
 
@@ -805,7 +816,9 @@ def edge_prior(Z: Float[ArrayLike, "8"], a: ChunkCloud, b: ChunkCloud) -> tuple[
     return jnp.arctan2(M[1, 0], M[0, 0]), s * a.height / b.height, tau[:2]
 
 
-def bev_raster(xy: Float[ArrayLike, "N 2"], weights: Float[ArrayLike, " N"], cells: int, cell: float) -> Array:
+def bev_raster(
+    xy: Float[ArrayLike, "N 2"], weights: Float[ArrayLike, " N"], cells: int, cell: float
+) -> Float[Array, "C C"]:
     """Bird's-eye occupancy ``[cells, cells]``: cell ``(⌊x/c⌋ + n/2, ⌊y/c⌋ + n/2)`` is 1 when a
     point with ``weights > 0`` falls in it.  Pure; ``cells`` static."""
     xy = jnp.asarray(xy, jnp.float32)
@@ -831,12 +844,12 @@ def _start(a: ChunkCloud, b: ChunkCloud, psi: Array, sigma: Array, t: Array) -> 
 def bev_starts(
     a: ChunkCloud,
     b: ChunkCloud,
-    psi: ArrayLike,
-    sigma: ArrayLike,
-    tau: ArrayLike,
-    window: ArrayLike,
+    psi: Float[ArrayLike, ""],
+    sigma: Float[ArrayLike, ""],
+    tau: Float[ArrayLike, "2"],
+    window: Float[ArrayLike, ""],
     options: GeometryOptions,
-) -> tuple[Array, Array]:
+) -> tuple[Float[Array, "K 8"], Float[Array, " K"]]:
     """The ``peaks`` best placements of ``a`` on ``b``: ``(S0 [peaks, 8], correlation [peaks])``.
 
     Both clouds are rasterised (:func:`bev_raster`, ``b``'s dilated by one cell) in their
@@ -905,10 +918,10 @@ class Covisible(NamedTuple):
 def register_covisible(
     a: ChunkCloud,
     b: ChunkCloud,
-    psi: ArrayLike,
-    sigma: ArrayLike,
-    tau: ArrayLike,
-    window: ArrayLike,
+    psi: Float[ArrayLike, ""],
+    sigma: Float[ArrayLike, ""],
+    tau: Float[ArrayLike, "2"],
+    window: Float[ArrayLike, ""],
     options: GeometryOptions = GeometryOptions(),
 ) -> Covisible:
     """Register chunk ``a``'s structure onto chunk ``b``'s from a prior ``(ψ, σ, τ)``
