@@ -11,8 +11,7 @@ import math
 import pytest
 
 from swiftjax import align, loops, options, posegraph
-from swiftjax.loops.geometric import GeometryOptions
-from swiftjax.loops.options import VerificationConfig
+from swiftjax.loops.options import GeometryOptions, VerificationConfig
 from swiftjax.options import OptionError
 from swiftjax.pipeline import PipelineConfig
 from swiftjax.posegraph.options import PIPELINE
@@ -270,10 +269,19 @@ def test_no_override_keywords_on_the_stage_entry_points():
 @pytest.mark.parametrize(
     "changes, match",
     [
-        (dict(tau_end=4.0), "tau_end 4.0 > tau_start 3.0"),
-        (dict(coarse_tau_start=0.4), "coarse_tau_end 0.5 > coarse_tau_start 0.4"),
-        (dict(coarse_src_points=2048), "coarse_src_points 2048 > src_points 1024"),
-        (dict(dst_points=1024), "coarse_dst_points 4096 > dst_points 1024"),
+        (dict(tau_end=4.0), r"GeometryOptions\.tau_end: invalid value 4\.0; allowed: at most tau_start = 3\.0$"),
+        (
+            dict(coarse_tau_start=0.4),
+            r"GeometryOptions\.coarse_tau_end: invalid value 0\.5; allowed: at most coarse_tau_start = 0\.4$",
+        ),
+        (
+            dict(coarse_src_points=2048),
+            r"GeometryOptions\.coarse_src_points: invalid value 2048; allowed: at most src_points = 1024 \(its first",
+        ),
+        (
+            dict(dst_points=1024),
+            r"GeometryOptions\.coarse_dst_points: invalid value 4096; allowed: at most dst_points = 1024 \(its first",
+        ),
     ],
 )
 def test_geometry_options_cross_field_rules(changes, match):

@@ -22,6 +22,7 @@ from swiftjax.options import nested, option
 __all__ = [
     "LoopOptions",
     "VerificationConfig",
+    "GeometryOptions",
     "DEFAULT_THRESHOLD",
     "AUTHORS_THRESHOLD",
     "DEFAULT_FALSE_ALARMS",
@@ -256,3 +257,118 @@ def check_values(values: dict[str, Any], where: str) -> None:
     for key, value in values.items():
         if key in table:
             options.coerce(table[key], f"LoopOptions.{key} ({where})", value)
+
+
+@dataclasses.dataclass(frozen=True)
+class GeometryOptions:
+    """Options of the geometric loop source (every field is static: a change recompiles).
+
+    Declared with :func:`swiftjax.options.option` (ranges checked at construction, an
+    :class:`~swiftjax.options.OptionError` naming the field); the Tukey schedules must not grow
+    (``tau_end <= tau_start``) and the coarse subsamples are the first points of the fine ones.
+
+    Attributes:
+        frame_stride: every ``frame_stride``-th frame of a chunk is read (host level).
+        row_stride, column_stride: the pixel grid sampled in those frames.
+        anchors: anchors per chunk (camera centres spread evenly over the loaded frames).
+        rings, sectors: the polar grid ``N_r x N_s``.
+        max_radius: ``ρ_max`` in camera heights (24 h ≈ 40 m at KITTI's 1.65 m).
+        max_height: ``z_max``, heights are clipped there (camera heights).
+        conf_ratio: reliable points: confidence ``> conf_ratio x`` the frame mean (eq. 2's λ_γ).
+        min_points: fewest reliable points near an anchor for a signature.
+        ground_band: points with ``z < ground_band`` are road (not structure).
+        max_distance: largest signature distance ``d_σ`` of a candidate.
+        max_sc_distance: largest Scan Context distance ``d_SC(m*)`` of a candidate.
+        top_k: best matches kept per chunk.
+        gate_min, gate_drift: the odometry gate of the pipeline's candidates (camera heights;
+            fraction of the path driven between the two chunks).
+        src_points, dst_points: registration subsample sizes ``P``, ``Q``.
+        iterations: ICP iterations ``n``.
+        tau_start, tau_end: Tukey radius schedule ``τ_0 → τ_n`` (camera heights).
+        min_inlier_ratio: the verdict's bound on the structure inlier ratio.
+        max_rms: the verdict's bound on the inliers' RMS (camera heights).
+        max_scale_ratio: ``s / s₀`` must lie in ``[1 / r, r]``.
+        min_spread: ``λ₂ / λ₁`` of the inlying structure's horizontal spread.
+        min_structure: fewest inlying structure points.
+        coarse_src_points, coarse_dst_points, coarse_iterations, coarse_tau_start, coarse_tau_end:
+            the coarse ICP
+            run from every start hypothesis (:func:`register_hypotheses`): the first points of
+            the registration subsamples, its iterations and its Tukey radii.  The target keeps
+            all ``dst_points`` rows by default: with a sparser target the structure-inlier score
+            cannot tell a street's half turn from the truth (tests: the corner scene).
+    """
+
+    frame_stride: int = option(5, "every k-th frame of a chunk is read", low=1)
+    row_stride: int = option(6, "rows between sampled pixels", low=1)
+    column_stride: int = option(8, "columns between sampled pixels", low=1)
+    anchors: int = option(5, "anchors (camera centres) per chunk", low=1)
+    rings: int = option(20, "rings N_r of the polar grid", low=1)
+    sectors: int = option(60, "sectors N_s of the polar grid", low=1)
+    max_radius: float = option(24.0, "grid radius rho_max (camera heights)", low=0.0, low_open=True)
+    max_height: float = option(8.0, "heights clipped at z_max (camera heights)", low=0.0, low_open=True)
+    conf_ratio: float = option(0.5, "reliable: confidence > ratio x frame mean", low=0.0, high=10.0)
+    min_points: int = option(200, "fewest reliable points near an anchor", low=1)
+    ground_band: float = option(0.35, "points below this height are road (camera heights)", low=0.0)
+    max_distance: float = option(0.25, "largest signature distance of a candidate", low=0.0, low_open=True)
+    max_sc_distance: float = option(0.45, "largest Scan Context distance of a candidate", low=0.0, low_open=True)
+    top_k: int = option(2, "best matches kept per chunk", low=1)
+    gate_min: float = option(15.0, "odometry gate floor (camera heights)", low=0.0)
+    gate_drift: float = option(0.1, "odometry gate per path length driven", low=0.0)
+    src_points: int = option(1024, "registration source subsample P", low=1)
+    dst_points: int = option(4096, "registration target subsample Q", low=1)
+    iterations: int = option(16, "ICP iterations", low=1)
+    tau_start: float = option(3.0, "first Tukey radius (camera heights)", low=0.0, low_open=True)
+    tau_end: float = option(0.25, "last Tukey radius (camera heights)", low=0.0, low_open=True)
+    min_inlier_ratio: float = option(0.5, "verdict: least structure inlier ratio", low=0.0, high=1.0)
+    max_rms: float = option(0.2, "verdict: largest inlier RMS (camera heights)", low=0.0, low_open=True)
+    max_scale_ratio: float = option(1.3, "verdict: s / s0 within [1/r, r]", low=1.0)
+    min_spread: float = option(0.02, "verdict: least horizontal spread lambda_2 / lambda_1", low=0.0, high=1.0)
+    min_structure: int = option(60, "verdict: fewest inlying structure points", low=0)
+    coarse_src_points: int = option(256, "coarse ICP: source points (first of the subsample)", low=1)
+    coarse_dst_points: int = option(4096, "coarse ICP: target points (first of the subsample)", low=1)
+    coarse_iterations: int = option(8, "coarse ICP iterations", low=1)
+    coarse_tau_start: float = option(3.0, "coarse ICP: first Tukey radius", low=0.0, low_open=True)
+    coarse_tau_end: float = option(0.5, "coarse ICP: last Tukey radius", low=0.0, low_open=True)
+    bev_cells: int = option(128, "co-visible search: bird's-eye grid cells per side", low=8)
+    bev_cell: float = option(0.75, "co-visible search: bird's-eye cell (camera heights)", low=0.0, low_open=True)
+    structure_height: float = option(0.5, "co-visible search: structure above the road (camera heights)", low=0.0)
+    yaw_search: float = option(4.0, "co-visible search: yaw around the chain's (degrees)", low=0.0)
+    yaw_steps: int = option(5, "co-visible search: yaws tried", low=1)
+    scale_search: float = option(0.18, "co-visible search: log-scale around the chain's", low=0.0)
+    scale_steps: int = option(3, "co-visible search: scales tried", low=1)
+    peaks: int = option(4, "co-visible search: correlation peaks refined", low=1)
+    peak_separation: float = option(4.0, "co-visible search: distinct placements (camera heights)", low=0.0)
+    max_window: float = option(40.0, "co-visible search: largest translation window (camera heights)", low=1.0)
+    peak_src_points: int = option(256, "co-visible search: source points refined per peak", low=1)
+    peak_dst_points: int = option(1024, "co-visible search: target points refined per peak", low=1)
+    refine_iterations: int = option(6, "co-visible search: ICP iterations of the best placement on all rows", low=1)
+    max_ambiguity: float = option(0.7, "verdict: second placement's structure inliers / the best's", low=0.0, high=1.0)
+    null_chunks: int = option(8, "verdict: unrelated chunks the source is also registered against", low=3)
+    null_false_alarm: float = option(
+        1e-2, "verdict: false-alarm rate of the registration null", low=0.0, high=1.0, low_open=True, high_open=True
+    )
+
+    def __post_init__(self) -> None:
+        options.validate(self)
+        # (a, b, why): a must not exceed b.
+        for a, b, why in (
+            ("tau_end", "tau_start", ""),
+            ("coarse_tau_end", "coarse_tau_start", ""),
+            ("coarse_src_points", "src_points", " (its first points)"),
+            ("coarse_dst_points", "dst_points", " (its first points)"),
+            ("peak_src_points", "src_points", " (its first points)"),
+            ("peak_dst_points", "dst_points", " (its first points)"),
+        ):
+            if getattr(self, a) > getattr(self, b):
+                raise options.invalid(
+                    f"GeometryOptions.{a}", getattr(self, a), f"at most {b} = {getattr(self, b)!r}{why}"
+                )
+
+    @property
+    def pixel_stride(self) -> tuple[int, int]:
+        """``(row_stride, column_stride)``."""
+        return self.row_stride, self.column_stride
+
+    def replace(self, **changes: Any) -> GeometryOptions:
+        """A validated copy with ``changes`` (:func:`swiftjax.options.replace`)."""
+        return options.replace(self, **changes)
