@@ -501,19 +501,32 @@ def register(
     )
 
 
-def registration_reason(reg: dict, options: GeometryOptions) -> str | None:
-    """Why a registration's numbers (a :class:`Registration` as plain floats) reject the
-    candidate, in one line, or ``None``."""
+def _placement_reason(reg: dict, options: GeometryOptions, failed: str, *, scale_of: str) -> str | None:
+    """The checks every registration verdict starts with (:func:`registration_reason`,
+    :func:`covisible_reason`): a failed solve (``failed`` says how), a scale outside
+    ``[1 / max_scale_ratio, max_scale_ratio]`` times the prior's (``scale_of`` names it), or too
+    little or too straight structure; ``None`` when all pass."""
     if not reg["valid"]:
-        return "registration failed (an Umeyama solve was degenerate or not finite)"
+        return f"registration failed ({failed})"
     r = options.max_scale_ratio
     if not (1.0 / r <= reg["scale_ratio"] <= r):
-        return f"registration scale {reg['scale_ratio']:.2f} x the camera-height ratio, outside [{1 / r:.2f}, {r:.2f}]"
+        return f"registration scale {reg['scale_ratio']:.2f} x {scale_of}, outside [{1 / r:.2f}, {r:.2f}]"
     if reg["num_structure"] < options.min_structure or reg["spread"] < options.min_spread:
         return (
             f"degenerate registration: {reg['num_structure']} structure inliers, spread "
             f"{reg['spread']:.3f} (a featureless or straight road leaves the edge free)"
         )
+    return None
+
+
+def registration_reason(reg: dict, options: GeometryOptions) -> str | None:
+    """Why a registration's numbers (a :class:`Registration` as plain floats) reject the
+    candidate, in one line, or ``None``."""
+    why = _placement_reason(
+        reg, options, "an Umeyama solve was degenerate or not finite", scale_of="the camera-height ratio"
+    )
+    if why is not None:
+        return why
     if not reg["inlier_ratio"] >= options.min_inlier_ratio:
         return f"registration inlier ratio {reg['inlier_ratio']:.2f} < {options.min_inlier_ratio}"
     if not reg["rms"] <= options.max_rms:
@@ -880,16 +893,11 @@ def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
     ``ambiguity`` and ``null_threshold``, None when not computable: the structure inliers the same source reaches on
     unrelated chunks at false-alarm rate ``null_false_alarm``) reject the candidate, in one
     line, or ``None``."""
-    if not reg["valid"]:
-        return "registration failed (no valid placement, an Umeyama solve degenerate or not finite)"
-    r = options.max_scale_ratio
-    if not (1.0 / r <= reg["scale_ratio"] <= r):
-        return f"registration scale {reg['scale_ratio']:.2f} x the odometry's, outside [{1 / r:.2f}, {r:.2f}]"
-    if reg["num_structure"] < options.min_structure or reg["spread"] < options.min_spread:
-        return (
-            f"degenerate registration: {reg['num_structure']} structure inliers, spread "
-            f"{reg['spread']:.3f} (a featureless or straight road leaves the edge free)"
-        )
+    why = _placement_reason(
+        reg, options, "no valid placement, an Umeyama solve degenerate or not finite", scale_of="the odometry's"
+    )
+    if why is not None:
+        return why
     if not reg["ambiguity"] <= options.max_ambiguity:
         return (
             f"ambiguous registration: a placement {options.peak_separation:g} camera heights away keeps "
