@@ -10,13 +10,18 @@ One command, one JSON and one log (about 8 minutes on an H200):
 3. the precision modes at one chunk size: float32, bf16 autocast (float32 weights) and bf16
    weights (aggregator cast, heads float32): time and the depth / pose difference to float32;
    the attention backend that ran is asserted (flash or memory-efficient; never a silent math
-   fallback) and recorded; ``torch.compile`` of the aggregator measured (compile seconds and
-   steady seconds) when ``--compile``;
+   fallback) and recorded;
 4. the tiny golden VGGT on the device in float32 against ``golden/vggt`` (``--golden``; the
    shared folder does not travel to a GPU machine: copy ``golden/vggt`` beside the script);
 5. an end-to-end :func:`swiftjax.pipeline.reconstruct` of a synthetic route (the oracle's
    renders written as PNG files, ``--e2e-frames``) with the random-weight model: wall time,
-   predict share, GPU idle share and the pipeline's own stage times.
+   predict share, GPU idle share and the pipeline's own stage times;
+6. every other ``--model`` backbone (DA3 presets, π³; ``--backbones``) with random weights at
+   the chunk size of section 3 through its own runner in bf16: seconds per chunk, frames/s and
+   peak memory;
+7. last, ``torch.compile`` of the aggregator (``--compile``): the one section whose time is not
+   known in advance.  The JSON and the log are rewritten after every section (a run cut short
+   keeps what it measured), and a section that fails is recorded and the next one runs.
 
 ``--smoke`` runs every section on the CPU with the tiny configuration and two chunks in
 seconds (the test suite runs it, so the script cannot rot). Results go to
@@ -53,6 +58,9 @@ sys.path.insert(0, str(HERE))
 from flops import vggt_chunk_flops
 
 LOG: list[str] = []
+
+#: The other backbones timed by default (section 6): every DA3 preset and π³.
+BACKBONES = ["da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large", "pi3"]
 
 
 def log(msg: str) -> None:
@@ -414,6 +422,62 @@ def golden_on_device(golden: pathlib.Path, device: Any) -> dict[str, Any]:
     }
 
 
+def backbone_sweep(
+    presets: list[str], device: Any, frames: int, hw: tuple[int, int] | None, dtype: Any, repeat: int
+) -> list[dict[str, Any]]:
+    """Section 6: each ``--model`` backbone (random weights, bench_inference's initialisation) at
+    ``frames`` per chunk through its own runner in ``dtype``: seconds per chunk (CUDA events
+    around ``predict``: upload, network, conversion, download), frames/s and peak memory.
+    ``hw`` None: the backbone's KITTI size (504 × 154 for DA3 and π³, 518 × 154 for VGGT)."""
+    import torch
+    from bench_inference import KITTI_HW, random_model
+
+    clock = Clock(device)
+    rows = []
+    for name in presets:
+        row: dict[str, Any] = {"model": name, "frames": frames}
+        try:
+            b, model = random_model(name, device=str(device))
+            row["params"] = sum(p.numel() for p in model.parameters())
+            h, w = hw or KITTI_HW[b.family]
+            row["image_hw"] = [h, w]
+            if b.family == "vggt":
+                from inference.runners import TorchRunner as Runner
+            elif b.family == "pi3":
+                from inference.pi3.runner import Pi3TorchRunner as Runner
+            else:
+                from inference.backbones.da3 import DA3Runner as Runner
+            runner = Runner(model, device, dtype=dtype)
+            x = np.random.default_rng(0).random((frames, 3, h, w), dtype=np.float32)
+            if device.type == "cuda":
+                torch.cuda.empty_cache()
+                torch.cuda.reset_peak_memory_stats()
+            with np.errstate(all="ignore"):
+                runner.predict(x)  # warm-up
+                times = []
+                for _ in range(repeat):
+                    with clock.measure() as t:
+                        runner.predict(x)
+                    times.append(t[0])
+            row.update(seconds=min(times), frames_per_s=frames / min(times))
+            if device.type == "cuda":
+                row.update(
+                    peak_allocated_gb=torch.cuda.max_memory_allocated() / 2**30,
+                    peak_reserved_gb=torch.cuda.max_memory_reserved() / 2**30,
+                )
+            del runner, model
+        except Exception as err:  # one preset's failure is recorded; the others still run
+            row["error"] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+        rows.append(row)
+        log(
+            f"  {name:>22}: "
+            + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items() if k != "model")
+        )
+    return rows
+
+
 class TimedRunner:
     """A :class:`inference.runners.TorchRunner` whose device time per chunk is recorded."""
 
@@ -459,7 +523,10 @@ def end_to_end(
     workdir: pathlib.Path,
     oracle: bool = True,
 ) -> dict[str, Any]:
-    """Section 5: the whole pipeline over PNG files with the random-weight model."""
+    """Section 5: the whole pipeline over PNG files with the random-weight model (the geometry
+    on JAX's default backend: ``JAX_PLATFORMS=cpu`` puts it on the host, as on a CPU machine)."""
+    import jax
+
     from inference.predictor import ImagePredictor
     from inference.runners import TorchRunner
     from swiftjax import pipeline
@@ -489,6 +556,7 @@ def end_to_end(
         "predict_only_new_frames_per_s": predict_only,
         "e2e_over_predict_only": (frames / wall) / predict_only,
         "stage_seconds": {k: float(v) for k, v in result.timings.items()},
+        "jax": f"{jax.__version__} on {jax.default_backend()}",
     }
     log(
         "  "
@@ -531,6 +599,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=None,
         help="measure torch.compile of the aggregator (default: on CUDA)",
     )
+    ap.add_argument(
+        "--backbones", nargs="*", default=None, metavar="MODEL", help="--model presets timed per chunk (no names: none)"
+    )
     ap.add_argument("--json", type=pathlib.Path, default=None)
     ap.add_argument("--log", type=pathlib.Path, default=None)
     args = ap.parse_args(argv)
@@ -560,11 +631,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         props = torch.cuda.get_device_properties(device)
         results.update(device_name=props.name, device_memory_gb=props.total_memory / 2**30)
     log(f"== device {results.get('device_name', device)} torch {torch.__version__} cuda {torch.version.cuda}")
+    out = Recorder(results, args.json, args.log, smoke=args.smoke)
 
-    mm_dtype = dtype if device.type == "cuda" else torch.float32
-    rate = matmul_rate(device, args.matmul, mm_dtype)
-    results["matmul"] = {"n": args.matmul, "dtype": str(mm_dtype), "tflops": rate / 1e12}
-    log(f"== matmul {args.matmul}^3 {mm_dtype}: {rate / 1e12:.1f} TFLOP/s")
+    def matmul() -> dict[str, Any]:
+        mm_dtype = dtype if device.type == "cuda" else torch.float32
+        rate = matmul_rate(device, args.matmul, mm_dtype)
+        log(f"== matmul {args.matmul}^3 {mm_dtype}: {rate / 1e12:.1f} TFLOP/s")
+        return {"n": args.matmul, "dtype": str(mm_dtype), "tflops": rate / 1e12}
+
+    out.section("matmul", matmul)
+    rate = out.results["matmul"].get("tflops", 0.0) * 1e12 or math.nan
 
     from inference.config import VGGTConfig
 
@@ -572,32 +648,32 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     model = random_vggt(config, device)
     results["params"] = sum(p.numel() for p in model.parameters())
     log(f"== VGGT ({results['params'] / 1e6:.1f} M params, random weights) at {hw[1]}x{hw[0]}, bf16 autocast")
-    results["chunks"] = chunk_sweep(model, config, device, args.chunks, hw, dtype, rate, args.repeat)
+    out.section("chunks", lambda: chunk_sweep(model, config, device, args.chunks, hw, dtype, rate, args.repeat))
 
     log(f"== precision modes at S = {args.modes_chunk}")
-    results["precision"] = precision_modes(
-        lambda: random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat
+    out.section(
+        "precision",
+        lambda: precision_modes(lambda: random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat),
     )
-    if args.compile if args.compile is not None else device.type == "cuda":
-        log(f"== torch.compile of the aggregator at S = {args.modes_chunk}")
-        results["compile"] = compile_measure(
-            random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat
-        )
 
     if golden is not None:
         log(f"== tiny golden VGGT on {device.type} (float32) against {golden}")
-        results["golden"] = golden_on_device(golden, device)
+        out.section("golden", lambda: golden_on_device(golden, device))
         log("== precision modes on the tiny golden VGGT (its seeded weights and images)")
-        images = golden_images(golden, device)
-        results["precision_golden"] = precision_modes(
-            lambda: golden_model(golden, device),
-            device,
-            images.shape[1],
-            tuple(images.shape[-2:]),
-            dtype,
-            args.repeat,
-            images=images,
-        )
+
+        def golden_precision() -> list[dict[str, Any]]:
+            images = golden_images(golden, device)
+            return precision_modes(
+                lambda: golden_model(golden, device),
+                device,
+                images.shape[1],
+                tuple(images.shape[-2:]),
+                dtype,
+                args.repeat,
+                images=images,
+            )
+
+        out.section("precision_golden", golden_precision)
     else:
         log("== golden: skipped (no golden/vggt folder: --golden DIR)")
 
@@ -605,29 +681,84 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     log(
         f"== end to end: {args.e2e_frames} PNG frames ({render_hw[1]}x{render_hw[0]}), chunk {chunk}, overlap {overlap}"
     )
-    with tempfile.TemporaryDirectory() as tmp:
-        results["end_to_end"] = end_to_end(
-            model, device, dtype, args.e2e_frames, chunk, overlap, render_hw, pathlib.Path(tmp), oracle=not args.smoke
+
+    def e2e() -> dict[str, Any]:
+        with tempfile.TemporaryDirectory() as tmp:
+            return end_to_end(
+                model, device, dtype, args.e2e_frames, chunk, overlap, render_hw, pathlib.Path(tmp), not args.smoke
+            )
+
+    out.section("end_to_end", e2e)
+    backbones = args.backbones if args.backbones is not None else (["da3-small"] if args.smoke else BACKBONES)
+    if backbones:
+        log(f"== backbones at S = {args.modes_chunk} ({dtype} autocast, their own runners)")
+        out.section(
+            "backbones",
+            lambda: backbone_sweep(
+                backbones, device, args.modes_chunk, (28, 42) if args.smoke else None, dtype, args.repeat
+            ),
+        )
+    # Last: compiling the 1B aggregator is the one section whose time is not known in advance,
+    # and everything before it is already on disk if the run's time limit cuts it short.
+    if args.compile if args.compile is not None else device.type == "cuda":
+        log(f"== torch.compile of the aggregator at S = {args.modes_chunk}")
+        out.section(
+            "compile",
+            lambda: compile_measure(random_vggt(config, device), device, args.modes_chunk, hw, dtype, args.repeat),
         )
     results["total_seconds"] = time.perf_counter() - started
     log(f"== done in {results['total_seconds']:.0f} s")
-
-    from common import write_results
-
-    if args.json is not None:
-        tmp = args.json.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(results, indent=2, default=float))
-        os.replace(tmp, args.json)
-        path = args.json
-    elif not args.smoke:
-        path = write_results("gpu", results)
-    else:
-        path = None
+    path = out.write(final=True)
     if path is not None:
         log(f"results: {path}")
-    if args.log is not None:
-        args.log.write_text("\n".join(LOG) + "\n")
+    out.write_log()
     return results
+
+
+class Recorder:
+    """The results and the log, written after every section (temp file + rename), so a run cut
+    short by its time limit keeps what it measured; a section that raises is recorded as
+    ``{"error": ...}`` and the next one runs (one GPU run must not be lost to one section)."""
+
+    def __init__(
+        self, results: dict[str, Any], json_path: pathlib.Path | None, log_path: pathlib.Path | None, smoke: bool
+    ) -> None:
+        self.results, self.json_path, self.log_path, self.smoke = results, json_path, log_path, smoke
+        self.path: pathlib.Path | None = None
+
+    def section(self, name: str, fn: Callable[[], Any]) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.results[name] = fn()
+        except Exception as err:  # recorded and reported; the run goes on
+            import traceback
+
+            log(f"  {name} FAILED: {type(err).__name__}: {err}")
+            log("".join(traceback.format_exception(err)[-6:]))
+            self.results[name] = {"error": f"{type(err).__name__}: {err}"}
+            if self.smoke:
+                raise
+        self.results.setdefault("section_seconds", {})[name] = time.perf_counter() - t0
+        self.write()
+
+    def write(self, final: bool = False) -> pathlib.Path | None:
+        from common import write_results
+
+        if self.json_path is not None:
+            tmp = self.json_path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(self.results, indent=2, default=float))
+            os.replace(tmp, self.json_path)
+            self.path = self.json_path
+        elif final and not self.smoke:
+            self.path = write_results("gpu", self.results)
+        self.write_log()
+        return self.path
+
+    def write_log(self) -> None:
+        if self.log_path is not None:
+            tmp = self.log_path.with_suffix(".log.tmp")
+            tmp.write_text("\n".join(LOG) + "\n")
+            os.replace(tmp, self.log_path)
 
 
 if __name__ == "__main__":

@@ -187,8 +187,8 @@ MANIFEST = {
 }
 
 
-def _random_model(name: str):  # type: ignore[no-untyped-def]
-    """The preset's network on the CPU with small random weights (no checkpoint needed)."""
+def random_model(name: str, device: str = "cpu"):  # type: ignore[no-untyped-def]
+    """The preset's network on ``device`` with small random weights (no checkpoint needed)."""
     import torch
 
     from inference.backbones import get
@@ -207,8 +207,8 @@ def _random_model(name: str):  # type: ignore[no-untyped-def]
         from inference.da3 import build_da3
 
         model = build_da3(b.preset, device="meta")
-    model = model.to_empty(device="cpu")
-    gen = torch.Generator().manual_seed(0)
+    model = model.to_empty(device=device)
+    gen = torch.Generator(device=device).manual_seed(0)
     with torch.no_grad():
         for pname, p in model.named_parameters():
             if pname.endswith("bias"):
@@ -229,7 +229,7 @@ def preset_child(args: argparse.Namespace) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    b, model = _random_model(args.preset)
+    b, model = random_model(args.preset)
     params = sum(p.numel() for p in model.parameters())
     h, w = KITTI_HW[b.family]
     x = np.random.default_rng(0).random((args.frames, 3, h, w), dtype=np.float32)

@@ -27,6 +27,8 @@ __all__ = [
     "check_device",
     "fused_attention",
     "largest_chunk_that_fits",
+    "runner_device",
+    "share_gpu_with_jax",
     "to_device",
     "to_host",
 ]
@@ -38,6 +40,37 @@ class GPUMemoryError(SwiftjaxError, ValueError):
 
 class DeviceError(SwiftjaxError, ValueError):
     """A device that is not one, or that this machine or build does not have."""
+
+
+def share_gpu_with_jax(environ: Any = None) -> bool:
+    """Keep JAX from taking the GPU's memory that the model needs; whether it did anything.
+
+    A CUDA build of JAX reserves 75 % of a GPU's memory at its first operation
+    (``XLA_PYTHON_CLIENT_PREALLOCATE``), so a geometry call made after the model was put on the
+    same GPU would leave torch a quarter of the card, and one made before it would make the
+    first chunk fail for want of memory.  This sets ``XLA_PYTHON_CLIENT_PREALLOCATE=false``
+    (JAX then allocates what it uses) unless the user set it; it must run before JAX starts
+    its backend, which is why the torch runner calls it when it is put on a CUDA device and the
+    CLI when it checks ``--device``.  A JAX backend started earlier keeps its pool: the value
+    is read once.
+    """
+    import os
+
+    environ = os.environ if environ is None else environ
+    if "XLA_PYTHON_CLIENT_PREALLOCATE" in environ:
+        return False
+    environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    return True
+
+
+def runner_device(device: Any) -> torch.device:
+    """``torch.device(device)`` for a runner; on CUDA, :func:`share_gpu_with_jax` first."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        share_gpu_with_jax()
+    return device
 
 
 def check_device(text: str, backend: str = "torch", *, name: str = "device") -> Any:
@@ -73,6 +106,7 @@ def check_device(text: str, backend: str = "torch", *, name: str = "device") -> 
             raise DeviceError(f"{name} {text}: {why} (torch {torch.__version__}); use {name} cpu")
         if device.index is not None and device.index >= torch.cuda.device_count():
             raise DeviceError(f"{name} {text}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+        share_gpu_with_jax()
     elif device.type == "mps":
         if not torch.backends.mps.is_available():
             raise DeviceError(f"{name} {text}: this torch build or machine has no MPS support; use {name} cpu")

@@ -127,7 +127,9 @@ class TorchRunner:
     ) -> None:
         import torch
 
-        self.device = torch.device(device)
+        from .device import runner_device
+
+        self.device = runner_device(device)
         self.dtype = dtype or torch.float32
         self.name = "VGGT"  # for messages; build_runner names the weights file
         self.model = model.to(self.device).eval()

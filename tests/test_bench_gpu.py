@@ -52,3 +52,22 @@ def test_bench_gpu_smoke_runs_every_section(tmp_path, shared_dir):
     assert e2e["chunks"] == 2 and e2e["frames"] == 10
     assert 0 < e2e["predict_share"] <= 1 and e2e["gpu_idle_share"] == pytest.approx(1 - e2e["predict_share"])
     assert {"predict", "align", "export"} <= set(e2e["stage_seconds"])
+    (backbone,) = results["backbones"]
+    assert backbone["model"] == "da3-small" and "error" not in backbone
+    assert backbone["frames_per_s"] == pytest.approx(backbone["frames"] / backbone["seconds"])
+    assert set(results["section_seconds"]) >= {"matmul", "chunks", "precision", "golden", "end_to_end", "backbones"}
+
+
+def test_a_failing_section_is_recorded_and_the_next_one_runs(tmp_path):
+    """On a GPU run (not --smoke) one section's exception must not lose the others: it is
+    recorded as an error and the JSON is on disk after every section."""
+    import bench_gpu
+
+    out = tmp_path / "gpu.json"
+    rec = bench_gpu.Recorder({}, out, tmp_path / "gpu.log", smoke=False)
+    rec.section("first", lambda: 1 / 0)
+    assert json.loads(out.read_text())["first"] == {"error": "ZeroDivisionError: division by zero"}
+    rec.section("second", lambda: {"ok": 1})
+    written = json.loads(out.read_text())
+    assert written["second"] == {"ok": 1} and set(written["section_seconds"]) == {"first", "second"}
+    assert "first FAILED: ZeroDivisionError" in (tmp_path / "gpu.log").read_text()

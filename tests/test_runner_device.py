@@ -88,3 +88,18 @@ def test_to_host_and_to_device_are_plain_copies_on_the_cpu():
     t = to_device(a, torch.device("cpu"))
     out = to_host({"a": t.to(torch.bfloat16), "b": t})
     assert out["a"].dtype == np.float32 and np.array_equal(out["b"], a) and np.array_equal(out["a"], a)
+
+
+def test_share_gpu_with_jax_turns_preallocation_off_unless_the_user_chose():
+    from inference.device import runner_device, share_gpu_with_jax
+
+    env: dict[str, str] = {}
+    assert share_gpu_with_jax(env) and env == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "true"}
+    assert not share_gpu_with_jax(env) and env == {"XLA_PYTHON_CLIENT_PREALLOCATE": "true"}
+    # A CPU runner leaves the environment alone (no GPU to share).
+    import os
+
+    before = os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE")
+    assert runner_device("cpu") == torch.device("cpu")
+    assert os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE") == before

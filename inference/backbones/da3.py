@@ -175,7 +175,9 @@ class DA3Runner:
     ) -> None:
         import torch
 
-        self.device = torch.device(device)
+        from inference.device import runner_device
+
+        self.device = runner_device(device)
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
         self.ref_view_strategy = ref_view_strategy

@@ -10,7 +10,7 @@ import torch
 from swiftjax.options import OptionError
 from swiftjax.prediction import ChunkPrediction
 
-from ..device import to_host
+from ..device import runner_device, to_host
 from ..runners import ModelOutputError, check_outputs
 from .conditioning import Conditions, intrinsics_condition
 from .convert import to_chunk_prediction
@@ -38,7 +38,7 @@ class Pi3TorchRunner:
         dtype: torch.dtype | None = None,
         intrinsics: Any | None = None,
     ) -> None:
-        self.device = torch.device(device)
+        self.device = runner_device(device)
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
         self.name = f"π³ ({model.config.variant})"  # for messages (a non-finite output)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import DTypeLike
 
-from swiftjax._compile import LIGHT_COMPILE, quick_jit
+from swiftjax._compile import LIGHT_COMPILE, quick_jit, supported
 
 _ffi_kernels: Any
 try:  # the optional compiled extension
@@ -50,10 +50,11 @@ def available(dtype: DTypeLike) -> bool:
 
 def compiler_options(dtype: DTypeLike | None) -> dict[str, Any] | None:
     """XLA options of a program whose moment passes run on ``dtype`` arrays:
-    :data:`swiftjax._compile.LIGHT_COMPILE` when the fused kernels do the work (:func:`available`,
-    CPU backend), else None (XLA's defaults: the pure-JAX passes are the hot loop)."""
+    :data:`swiftjax._compile.LIGHT_COMPILE` (what the running XLA accepts of it) when the fused
+    kernels do the work (:func:`available`, CPU backend), else None (XLA's defaults: the
+    pure-JAX passes are the hot loop)."""
     fast = dtype is not None and available(dtype) and jax.default_backend() == "cpu"
-    return LIGHT_COMPILE if fast else None
+    return supported(LIGHT_COMPILE) if fast else None
 
 
 def jit(fun: Callable[..., Any], **jit_kwargs: Any) -> Callable[..., Any]:

@@ -39,7 +39,7 @@ from jax import Array
 from jaxtyping import Float
 
 from swiftjax import sim3
-from swiftjax._compile import QUICK_COMPILE
+from swiftjax._compile import QUICK_COMPILE, supported
 from swiftjax.errors import SwiftjaxError
 from swiftjax.posegraph import gnc, sparse_direct
 from swiftjax.posegraph.factors import cost
@@ -194,7 +194,7 @@ DENSE_COMPILER_OPTIONS = QUICK_COMPILE
 
 def compiler_options(solver: AbstractLinearSolver) -> dict:
     """XLA compiler options of a bucket's programs (:data:`DENSE_COMPILER_OPTIONS` for the dense path)."""
-    return dict(DENSE_COMPILER_OPTIONS) if isinstance(solver, DenseCholesky) else {}
+    return supported(DENSE_COMPILER_OPTIONS) if isinstance(solver, DenseCholesky) else {}
 
 
 class _Bucket:
