@@ -59,6 +59,9 @@ from flops import vggt_chunk_flops
 
 LOG: list[str] = []
 
+#: The sections, in the order they run (``--sections`` picks some).
+SECTIONS = ["matmul", "chunks", "precision", "golden", "precision_golden", "end_to_end", "backbones", "compile"]
+
 #: The other backbones timed by default (section 6): every DA3 preset and π³.
 BACKBONES = ["da3-small", "da3-base", "da3-large", "da3-giant", "da3-nested-giant-large", "pi3"]
 
@@ -199,14 +202,14 @@ class Precision:
         self.torch = torch
 
     def __call__(self, images: Any) -> dict[str, Any]:
+        from inference.device import model_math
+
         torch = self.torch
-        with torch.inference_mode():
-            if self.mode == "float32":
-                return self.model(images)
-            if self.mode == "weights":
+        if self.mode == "weights":
+            with torch.inference_mode():
                 return self.model(images.to(self.dtype))
-            with torch.autocast(device_type=images.device.type, dtype=self.dtype):
-                return self.model(images)
+        with model_math(images.device, torch.float32 if self.mode == "float32" else self.dtype):
+            return self.model(images)
 
 
 def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
@@ -401,11 +404,12 @@ def golden_on_device(golden: pathlib.Path, device: Any) -> dict[str, Any]:
     import torch
 
     from inference.check_golden import TOLERANCES, compare
+    from inference.device import model_math
 
     model = golden_model(golden, device)
     images = golden_images(golden, device)
     ref = np.load(golden / "tiny_golden.npz")
-    with torch.inference_mode():
+    with model_math(device, torch.float32):  # float32 without TF32, as the runner's float32
         out = model(images)
     got = {
         "patch_tokens": out["patch_tokens"],
@@ -602,6 +606,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument(
         "--backbones", nargs="*", default=None, metavar="MODEL", help="--model presets timed per chunk (no names: none)"
     )
+    ap.add_argument(
+        "--sections", nargs="+", default=None, choices=SECTIONS, help="run only these sections (default: all)"
+    )
     ap.add_argument("--json", type=pathlib.Path, default=None)
     ap.add_argument("--log", type=pathlib.Path, default=None)
     args = ap.parse_args(argv)
@@ -631,7 +638,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         props = torch.cuda.get_device_properties(device)
         results.update(device_name=props.name, device_memory_gb=props.total_memory / 2**30)
     log(f"== device {results.get('device_name', device)} torch {torch.__version__} cuda {torch.version.cuda}")
-    out = Recorder(results, args.json, args.log, smoke=args.smoke)
+    out = Recorder(results, args.json, args.log, smoke=args.smoke, only=args.sections)
 
     def matmul() -> dict[str, Any]:
         mm_dtype = dtype if device.type == "cuda" else torch.float32
@@ -640,7 +647,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return {"n": args.matmul, "dtype": str(mm_dtype), "tflops": rate / 1e12}
 
     out.section("matmul", matmul)
-    rate = out.results["matmul"].get("tflops", 0.0) * 1e12 or math.nan
+    rate = out.results.get("matmul", {}).get("tflops", 0.0) * 1e12 or math.nan
 
     from inference.config import VGGTConfig
 
@@ -721,12 +728,20 @@ class Recorder:
     ``{"error": ...}`` and the next one runs (one GPU run must not be lost to one section)."""
 
     def __init__(
-        self, results: dict[str, Any], json_path: pathlib.Path | None, log_path: pathlib.Path | None, smoke: bool
+        self,
+        results: dict[str, Any],
+        json_path: pathlib.Path | None,
+        log_path: pathlib.Path | None,
+        smoke: bool,
+        only: list[str] | None = None,
     ) -> None:
         self.results, self.json_path, self.log_path, self.smoke = results, json_path, log_path, smoke
+        self.only = only
         self.path: pathlib.Path | None = None
 
     def section(self, name: str, fn: Callable[[], Any]) -> None:
+        if self.only is not None and name not in self.only:
+            return
         t0 = time.perf_counter()
         try:
             self.results[name] = fn()

@@ -220,6 +220,16 @@ def random_model(name: str, device: str = "cpu"):  # type: ignore[no-untyped-def
         for pname, p in model.named_parameters():  # nested: no sky, so the metric alignment has pixels
             if "sky_output_conv2" in pname and pname.endswith("bias"):
                 p.fill_(-10.0)
+        # to_empty leaves buffers as uninitialised memory (π³'s input normalisation turned every
+        # output into NaN): each gets its real value or the build stops here.
+        from inference.preprocess import IMAGENET_MEAN, IMAGENET_STD
+
+        values = {"image_mean": IMAGENET_MEAN, "image_std": IMAGENET_STD}
+        for bname, buf in model.named_buffers():
+            leaf = bname.rsplit(".", 1)[-1]
+            if leaf not in values:
+                raise RuntimeError(f"{name}: buffer {bname} has no value in a random model")
+            buf.copy_(torch.tensor(values[leaf], dtype=buf.dtype).reshape(buf.shape))
     return b, model.eval()
 
 

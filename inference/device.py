@@ -27,9 +27,11 @@ __all__ = [
     "check_device",
     "fused_attention",
     "largest_chunk_that_fits",
+    "model_math",
     "runner_device",
     "share_gpu_with_jax",
     "to_device",
+    "without_autocast",
     "to_host",
 ]
 
@@ -61,6 +63,18 @@ def share_gpu_with_jax(environ: Any = None) -> bool:
         return False
     environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     return True
+
+
+@contextlib.contextmanager
+def without_autocast(device: torch.device) -> Iterator[None]:
+    """Full precision inside a reduced-precision forward, for the geometry at the end of a head
+    (SVD, determinants, QR, RANSAC fits): torch has no bf16 / fp16 kernels for some of it on
+    CUDA (``torch.det`` raises there), and 8 bits of mantissa would ruin the rest.  Tensors
+    made inside are float32 when their inputs are; inputs in bf16 must be cast by the caller."""
+    import torch
+
+    with torch.autocast(device_type=device.type, enabled=False):
+        yield
 
 
 def runner_device(device: Any) -> torch.device:
@@ -161,6 +175,30 @@ def fused_attention(device: torch.device) -> Iterator[None]:
         raise RuntimeError(
             f"no fused attention kernel (flash, memory-efficient) runs this model on {device}: {err}"
         ) from None
+
+
+@contextlib.contextmanager
+def model_math(device: torch.device, dtype: torch.dtype) -> Iterator[None]:
+    """How every runner's forward computes: ``inference_mode``; :func:`fused_attention`;
+    ``dtype`` float32 means float32 (on CUDA without TF32, for cuDNN's convolutions too, whose
+    TF32 torch allows by default: it moved the tiny golden VGGT's depth by 2.6e-3 relative on
+    an H200, 26 × the golden's tolerance); a reduced ``dtype`` is ``torch.autocast`` over the
+    forward (heads that need full precision leave it themselves: :func:`without_autocast`).
+    """
+    import torch
+
+    with torch.inference_mode(), fused_attention(device), contextlib.ExitStack() as stack:
+        if dtype != torch.float32:
+            stack.enter_context(torch.autocast(device_type=device.type, dtype=dtype))
+        elif device.type == "cuda":
+            saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+            torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+
+            def restore() -> None:
+                torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
+
+            stack.callback(restore)
+        yield
 
 
 def largest_chunk_that_fits(run: Callable[[int], Any], frames: int, *, device: torch.device) -> int:

@@ -141,16 +141,12 @@ class TorchRunner:
         """Raw model outputs (torch tensors, batch axis 1) for ``[S, 3, H, W]`` images; on CUDA
         the frames go up through pinned memory and attention runs on a fused kernel only
         (:mod:`inference.device`)."""
-        import torch
 
-        from .device import fused_attention, to_device
+        from .device import model_math, to_device
 
         x = to_device(_check_images(images), self.device)[None]
-        with torch.inference_mode(), fused_attention(self.device):
-            if self.dtype == torch.float32:
-                return self.model(x)
-            with torch.autocast(device_type=self.device.type, dtype=self.dtype):
-                return self.model(x)
+        with model_math(self.device, self.dtype):
+            return self.model(x)
 
     def predict(self, images: Any) -> ChunkPrediction:
         """See :class:`Runner`.  Out of device memory: :class:`~inference.device.GPUMemoryError`

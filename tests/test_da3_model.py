@@ -240,3 +240,17 @@ def test_check_golden_finds_a_perturbed_key(da3_dir, tmp_path, capsys):
     assert main([str(tmp_path), "--no-onnx"]) == 1
     failed = [line.split()[1] for line in capsys.readouterr().out.splitlines() if line.endswith("FAIL")]
     assert failed == ["middle_ray_conf"]
+
+
+def test_ray_decoder_ignores_an_enclosing_autocast(golden):
+    """A bf16 forward (``--dtype bfloat16``) decodes the rays in float32: the same cameras as a
+    float32 call, bit for bit (on CUDA the bf16 ``det`` has no kernel at all)."""
+    args = (torch.from_numpy(golden["raysynth_ray"]), torch.from_numpy(golden["raysynth_ray_conf"]))
+    hw = golden["images"].shape[-2:]
+    idx = torch.randint(0, 100, (100, 8), generator=torch.Generator().manual_seed(0))
+    ref = cameras_from_rays(*args, hw, sample_idx=idx)
+    with torch.autocast(device_type="cpu", dtype=torch.bfloat16):
+        got = cameras_from_rays(*args, hw, sample_idx=idx)
+    for name in ("extrinsics", "intrinsics", "c2w"):
+        assert getattr(got, name).dtype == torch.float32
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name

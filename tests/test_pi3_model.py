@@ -259,3 +259,21 @@ def test_pi3x_batch_of_scenes_equals_each_scene_alone(pi3x, golden_dir) -> None:
     for key in ("points", "conf", "camera_poses", "metric"):
         torch.testing.assert_close(batch[key][:1], first[key], atol=1e-4, rtol=1e-4)
         torch.testing.assert_close(batch[key][1:], second[key], atol=1e-4, rtol=1e-4)
+
+
+def test_svd_orthogonalize_is_float32_rotation_under_bf16_autocast() -> None:
+    """The pose head's orthogonalisation runs outside autocast (a bf16 ``det`` has no CUDA
+    kernel; a bf16 product would leave R off orthonormal by ~1e-2): under a bf16 autocast it
+    gives the float32 call's rotation, orthonormal to float32 rounding, also from bf16 input."""
+    from inference.pi3.heads import svd_orthogonalize
+
+    m = torch.randn(5, 9, generator=torch.Generator().manual_seed(3))
+    ref = svd_orthogonalize(m)
+    with torch.autocast(device_type="cpu", dtype=torch.bfloat16):
+        got = svd_orthogonalize(m)
+        from_bf16 = svd_orthogonalize(m.bfloat16())
+    assert got.dtype == from_bf16.dtype == torch.float32
+    assert torch.equal(got, ref)
+    eye = torch.eye(3).expand(5, 3, 3)
+    torch.testing.assert_close(got @ got.transpose(-1, -2), eye, atol=2e-6, rtol=0)
+    torch.testing.assert_close(torch.det(got), torch.ones(5), atol=2e-6, rtol=0)

@@ -27,7 +27,7 @@ import numpy as np
 
 from swiftjax.prediction import ChunkPrediction
 
-from ..device import to_host
+from ..device import model_math, runner_device, to_host
 from ..runners import check_outputs
 from .header import FAMILY_TEXT, checkpoint_header, compare_shapes, describe_family
 
@@ -175,8 +175,6 @@ class DA3Runner:
     ) -> None:
         import torch
 
-        from inference.device import runner_device
-
         self.device = runner_device(device)
         self.dtype = dtype or torch.float32
         self.model = model.to(self.device).eval()
@@ -195,11 +193,8 @@ class DA3Runner:
         mean = np.asarray(IMAGENET_MEAN, np.float32)[:, None, None]
         std = np.asarray(IMAGENET_STD, np.float32)[:, None, None]
         x = torch.as_tensor((arr - mean) / std, device=self.device)[None]
-        with torch.inference_mode():
-            if self.dtype == torch.float32:
-                return self.model(x, ref_view_strategy=self.ref_view_strategy)
-            with torch.autocast(device_type=self.device.type, dtype=self.dtype):
-                return self.model(x, ref_view_strategy=self.ref_view_strategy)
+        with model_math(self.device, self.dtype):
+            return self.model(x, ref_view_strategy=self.ref_view_strategy)
 
     def predict(self, images: Any) -> ChunkPrediction:
         arr = np.asarray(images, np.float32)

@@ -29,6 +29,7 @@ import dataclasses
 import torch
 from torch import Tensor
 
+from ..device import without_autocast
 from .camera import affine_inverse
 
 __all__ = ["RayPose", "ransac_sample_indices", "cameras_from_rays"]
@@ -126,7 +127,13 @@ def cameras_from_rays(
     """Decodes cameras from ``ray [B, S, ny, nx, 6]`` and ``ray_conf [B, S, ny, nx]`` (see module doc).
 
     ``sample_idx [100, 8]``: RANSAC candidate indices; drawn from the global RNG when None.
+    Runs in float32 outside autocast (a bf16 forward's ``det`` has no CUDA kernel).
     """
+    with without_autocast(ray.device):
+        return _cameras_from_rays(ray, ray_conf, image_hw, sample_idx)
+
+
+def _cameras_from_rays(ray: Tensor, ray_conf: Tensor, image_hw: tuple[int, int], sample_idx: Tensor | None) -> RayPose:
     b, s, ny, nx, _ = ray.shape
     n = ny * nx
     rays = ray.reshape(b * s, n, 6).float()

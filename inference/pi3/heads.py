@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..device import without_autocast
+
 __all__ = ["LinearPts3d", "CameraHead", "ConvHead", "svd_orthogonalize", "pose_from_raw", "view_plane_uv"]
 
 
@@ -77,14 +79,16 @@ def svd_orthogonalize(m: Tensor) -> Tensor:
 
     ``m [..., 9]`` (row-major) -> ``R [..., 3, 3]``: with ``N`` the row-normalised matrix and
     ``N = U S V^T``, ``R = U diag(1, 1, det(U V^T)) V^T`` (reflections corrected).  Computed
-    in float32 or wider as given.
+    in float32 or wider as given (half types are widened to float32), outside autocast.
     """
-    n = F.normalize(m.reshape(*m.shape[:-1], 3, 3), p=2, dim=-1)
-    u, _, vh = torch.linalg.svd(n)
-    det = torch.det(u @ vh)
-    fix = torch.ones_like(u[..., 0, :])
-    fix = torch.cat([fix[..., :2], det[..., None]], dim=-1)
-    return (u * fix[..., None, :]) @ vh
+    m = m if m.dtype in (torch.float32, torch.float64) else m.float()
+    with without_autocast(m.device):
+        n = F.normalize(m.reshape(*m.shape[:-1], 3, 3), p=2, dim=-1)
+        u, _, vh = torch.linalg.svd(n)
+        det = torch.det(u @ vh)
+        fix = torch.ones_like(u[..., 0, :])
+        fix = torch.cat([fix[..., :2], det[..., None]], dim=-1)
+        return (u * fix[..., None, :]) @ vh
 
 
 def pose_from_raw(rot9: Tensor, trans: Tensor) -> Tensor:

@@ -10,7 +10,7 @@ import torch
 from swiftjax.options import OptionError
 from swiftjax.prediction import ChunkPrediction
 
-from ..device import runner_device, to_host
+from ..device import model_math, runner_device, to_host
 from ..runners import ModelOutputError, check_outputs
 from .conditioning import Conditions, intrinsics_condition
 from .convert import to_chunk_prediction
@@ -56,11 +56,8 @@ class Pi3TorchRunner:
         x = torch.from_numpy(arr).to(self.device)[None]
         args = () if self.model.config.variant == "pi3" else (_to(conditions, self.device),)
         try:
-            with torch.inference_mode():
-                if self.dtype == torch.float32:
-                    return self.model(x, *args)
-                with torch.autocast(device_type=self.device.type, dtype=self.dtype):
-                    return self.model(x, *args)
+            with model_math(self.device, self.dtype):
+                return self.model(x, *args)
         except torch.linalg.LinAlgError as err:  # the pose SVD of a non-finite camera head output
             raise ModelOutputError(
                 f"{self.name} predicted non-finite values (NaN/inf) in its camera poses ({err}): the weights hold "
