@@ -52,6 +52,10 @@ def test_bench_gpu_smoke_runs_every_section(tmp_path, shared_dir):
     assert e2e["chunks"] == 2 and e2e["frames"] == 10
     assert 0 < e2e["predict_share"] <= 1 and e2e["gpu_idle_share"] == pytest.approx(1 - e2e["predict_share"])
     assert {"predict", "align", "export"} <= set(e2e["stage_seconds"])
+    # One reconstruction per prefetch: the first cold (the row is its), the later ones warm.
+    runs = e2e["runs"]
+    assert [(r["run"], r["prefetch"]) for r in runs] == [("cold", 1), ("warm", 2)]
+    assert runs[0]["wall_seconds"] == e2e["wall_seconds"] and all(r["chunks"] == 2 for r in runs)
     (backbone,) = results["backbones"]
     assert backbone["model"] == "da3-small" and "error" not in backbone
     assert backbone["frames_per_s"] == pytest.approx(backbone["frames"] / backbone["seconds"])
