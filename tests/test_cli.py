@@ -369,3 +369,11 @@ def test_a_library_warning_is_one_prefixed_line_on_stderr(monkeypatch, capsys, f
     assert err.splitlines() == ["swiftjax: warning: pose graph did not converge (max_steps)"]
     assert out.splitlines() == ([] if flags else ["swiftjax: an information line"])
     assert not logging.getLogger("swiftjax").handlers and logging.getLogger("swiftjax").level == logging.NOTSET
+
+
+@pytest.mark.parametrize(("device", "prefetch"), [("cpu", 1), ("cuda", 3), ("cuda:1", 3), ("mps", 1)])
+def test_local_executor_predicts_further_ahead_on_a_gpu(device, prefetch):
+    """--device cuda: three predictions ahead of the geometry (bench/bench_gpu.py's end-to-end
+    runs measured it); elsewhere one (the model is the slow stage)."""
+    args = argparse.Namespace(executor="local", workers=1, gpus_per_worker=0, ray_address=None, device=device)
+    assert arguments.make_executor(args).prefetch == prefetch
