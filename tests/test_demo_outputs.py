@@ -8,6 +8,17 @@ pose, point and loop verdict unchanged) by
 the file: the text with its numbers taken out (a SHA-256, exact) and the numbers (compared with
 a relative tolerance of 1e-6 of the file's largest magnitude); PLY, chunk ``.npz`` members and
 images as counts, shapes and float64 sums; binary COLMAP files by size.  Timings are dropped.
+
+The run is not bit-identical across processors: XLA compiles for the host's vector width and
+FMA, and the fused alignment kernels sum in 16 or 8 lanes.  Poses, points, images and chunk
+files agree to 1e-6 between the AMD EPYC the recording was made on and an Intel Xeon.  The
+statistics of thresholded tests do not: a pixel on a threshold's edge flips with the last bit
+of a float32 sum.  These are the loop verification's dense-agreement counts, in ``loops.txt``,
+``manifest.json`` and ``metrics.json`` (1297 vs 1298 agreeing pixels, 523 vs 522 in front).
+Those three files are compared to 1 % relative (:data:`_STATISTICS`).  Left out entirely are
+the records' CRC32 columns and the pose graph's ``status``, which names the LM stopping test
+that fired first (``relative cost decrease`` or ``gradient``).  Re-recorded on the Xeon (commit
+2c8b1b4); the EPYC recording agreed with it under these rules.
 """
 
 from __future__ import annotations
@@ -30,8 +41,11 @@ pytestmark = pytest.mark.slow
 REPO = pathlib.Path(__file__).resolve().parents[1]
 RECORDING = REPO / "tests" / "data" / "demo_outputs.json"
 _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf)\b")
-#: Left out: timings, and the CRC32s of records (they follow the exact bits of the floats beside them).
-_SKIPPED_KEYS = {"timings_seconds", "compile_seconds", "solve_seconds", "crc32"}
+#: Left out: timings, the CRC32s of records (they follow the exact bits of the floats beside them)
+#: and the LM stopping test that fired first (module docstring).
+_SKIPPED_KEYS = {"timings_seconds", "compile_seconds", "solve_seconds", "crc32", "status"}
+#: Files of thresholded-test statistics and their relative tolerance (module docstring).
+_STATISTICS = {"loops.txt": 1e-2, "manifest.json": 1e-2, "metrics.json": 1e-2}
 
 
 def _sha(data: bytes | str) -> str:
@@ -42,7 +56,27 @@ def _round(values: list[float]) -> list[float]:
     return [float(f"{v:.8g}") for v in values]  # 8 digits: far inside the 1e-6 tolerance
 
 
+def _without_columns(text: str, names: set[str]) -> str:
+    """``text`` without the columns ``names`` of its table: the last ``# `` comment line names
+    the columns of the lines after it (``loops.txt``'s layout); other text is returned as is."""
+    lines = text.splitlines()
+    header = max((k for k, line in enumerate(lines) if line.startswith("# ")), default=None)
+    if header is None:
+        return text
+    columns = lines[header][2:].split()
+    drop = [k for k, name in enumerate(columns) if name in names]
+    if not drop:
+        return text
+
+    def cut(line: str) -> str:
+        fields = line.split(" ", len(columns) - 1)  # the last column holds spaces
+        return " ".join(f for k, f in enumerate(fields) if k not in drop)
+
+    return "\n".join([*lines[: header + 1], *(cut(line) for line in lines[header + 1 :])])
+
+
 def _text(text: str) -> dict:
+    text = _without_columns(text, {"crc32"})
     numbers = [float(m) for m in _NUMBER.findall(text)]
     return {"skeleton": _sha(_NUMBER.sub("#", text)), "numbers": _round(numbers)}
 
@@ -110,8 +144,9 @@ def summarise(run_dir: pathlib.Path) -> dict[str, dict]:
     return out
 
 
-def assert_matches(got: dict, want: dict, where: str = "") -> None:
-    """Every key equal, ``numbers`` lists within 1e-6 relative to their largest magnitude."""
+def assert_matches(got: dict, want: dict, where: str = "", rtol: float = 1e-6) -> None:
+    """Every key equal, ``numbers`` lists within 1e-6 relative to their largest magnitude (and
+    ``rtol`` relative to each number: the statistics files' tolerance)."""
     assert sorted(got) == sorted(want), where
     for key in want:
         g, w = got[key], want[key]
@@ -119,9 +154,9 @@ def assert_matches(got: dict, want: dict, where: str = "") -> None:
             g, w = np.asarray(g, np.float64), np.asarray(w, np.float64)
             assert g.shape == w.shape, where
             scale = max(float(np.max(np.abs(w[np.isfinite(w)]), initial=0.0)), 1e-12)
-            np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6 * scale, equal_nan=True, err_msg=where)
+            np.testing.assert_allclose(g, w, rtol=rtol, atol=1e-6 * scale, equal_nan=True, err_msg=where)
         elif isinstance(w, dict):
-            assert_matches(g, w, f"{where}/{key}")
+            assert_matches(g, w, f"{where}/{key}", rtol)
         else:
             assert g == w, f"{where}/{key}: {g!r} != {w!r}"
 
@@ -145,7 +180,13 @@ def test_demo_outputs_equal_the_recording(tmp_path):
     got = summarise(tmp_path / "demo")
     assert sorted(got) == sorted(want)
     for rel in want:
-        assert_matches(got[rel], want[rel], rel)
+        assert_matches(got[rel], want[rel], rel, _STATISTICS.get(rel, 1e-6))
+
+
+def test_the_crc32_column_is_left_out_of_a_table():
+    text = "# a\n# i crc32 score reason\n1 6db4c5f2 0.5 kept, the best\n2 00000012 0.25 rejected\n"
+    assert _without_columns(text, {"crc32"}).splitlines()[2:] == ["1 0.5 kept, the best", "2 0.25 rejected"]
+    assert _without_columns("no table here\n", {"crc32"}) == "no table here\n"
 
 
 if __name__ == "__main__":
