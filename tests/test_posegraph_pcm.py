@@ -257,15 +257,15 @@ def test_bad_input_names_the_problem(x64):
 
 def test_bench_quick_run_meets_the_targets(shared_dir, monkeypatch):
     """``bench/bench_robust_backend.py --quick`` (KITTI 00, seed 0, 200 % of every generator,
-    matched and equal information, no GTSAM): PCM + GNC within 1 % of the extent; at 200 % a
-    true loop may go (the target keeps them all below 100 %)."""
+    matched, equal and equal-own information, no GTSAM): PCM + GNC within 1 % of the extent; at
+    200 % a true loop may go (the target keeps them all below 100 %)."""
     monkeypatch.setenv("SWIFTJAX_SHARED", str(shared_dir))
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "bench"))
     import bench_robust_backend
 
     result = bench_robust_backend.main(["--quick", "--no-gtsam", "--no-write"])
     ours = [r for r in result["rows"] if r["solver"] == "PCM+GNC"]
-    assert len(ours) == 6
+    assert len(ours) == 9
     assert max(r["dist_max_pct"] for r in ours) <= 1.0
 
 
