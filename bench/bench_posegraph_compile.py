@@ -22,7 +22,10 @@ Per call: the XLA compilations (count, seconds, programs), the wall time and the
 with ``--baseline`` the two checkouts' poses are compared call by call (the padded programs
 against the exact-size ones).  Writes ``bench/results/posegraph_compile_growing-<stamp>.json``.
 
-    .venv/bin/python bench/bench_posegraph_compile.py --growing [--first 24] [--last 101] [--baseline OTHER]
+    .venv/bin/python bench/bench_posegraph_compile.py --growing [--first 24] [--last 101] [--capacity 101 130] [--baseline OTHER]
+
+``--capacity N E`` adds a run of this checkout with ``pad=(N, E)`` (the capacity an online run
+knows: every size up to it in one bucket).
 """
 
 from __future__ import annotations
@@ -95,6 +98,7 @@ from swiftjax import posegraph
 from swiftjax.loops import pcm
 from swiftjax.posegraph import gnc
 first, last = int(sys.argv[1]), int(sys.argv[2])
+capacity = json.loads(sys.argv[3])  # None or [max_nodes, max_edges]: consistent_solve's pad
 g = rg.kitti_chunk_graph(None, seed=0, route="00", generator="slight", max_false=rg.NUM_TRUE)
 kind, edges = g["kind"], g["edges"]
 calls = []
@@ -107,8 +111,9 @@ with jax.enable_x64(True):
         )
         records.clear()
         t0 = time.perf_counter()
+        extra = {} if capacity is None else {"pad": tuple(capacity)}
         res, check = pcm.consistent_solve(
-            prob, None, options=posegraph.GraphOptions(kernel_scale=gnc.DEFAULT_SCALE), throw=False
+            prob, None, options=posegraph.GraphOptions(kernel_scale=gnc.DEFAULT_SCALE), throw=False, **extra
         )
         wall = time.perf_counter() - t0
         calls.append(dict(
@@ -122,11 +127,11 @@ print(json.dumps(calls))
 """
 
 
-def run_growing(first: int, last: int, repo: pathlib.Path = REPO) -> list[dict]:
+def run_growing(first: int, last: int, repo: pathlib.Path = REPO, capacity=None) -> list[dict]:
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(repo))
         out = subprocess.run(
-            [sys.executable, "-c", GROWING, str(first), str(last)],
+            [sys.executable, "-c", GROWING, str(first), str(last), json.dumps(capacity)],
             capture_output=True,
             text=True,
             env=env,
@@ -141,8 +146,12 @@ def growing_main(args) -> None:
 
     from bench.common import markdown_table, write_results
 
-    checkouts = [("this", REPO)] + ([("baseline", args.baseline.resolve())] if args.baseline else [])
-    runs = {name: run_growing(args.first, args.last, repo) for name, repo in checkouts}
+    checkouts = [("this", REPO, None)]
+    if args.capacity:
+        checkouts.append(("this, pad=capacity", REPO, args.capacity))
+    if args.baseline:
+        checkouts.append(("baseline", args.baseline.resolve(), None))
+    runs = {name: run_growing(args.first, args.last, repo, cap) for name, repo, cap in checkouts}
     summary = {}
     for name, calls in runs.items():
         warm = calls[1:]  # the first call compiles everything in either checkout
@@ -157,29 +166,47 @@ def growing_main(args) -> None:
             false_loops_kept_max=max(c["kept_false"] for c in calls),
             load=[min(c["load"] for c in calls), max(c["load"] for c in calls)],
         )
-    if args.baseline:
-        diff = [
-            float(np.abs(np.asarray(a["poses"])[:, :3] - np.asarray(b["poses"])[:, :3]).max())
-            for a, b in zip(runs["this"], runs["baseline"])
-        ]
-        summary["max_translation_difference_m"] = max(diff)
-        summary["per_call_translation_difference_m"] = diff
-    head = ["checkout", "calls", "XLA compiles", "compile s", "wall s", "calls after the first that compile",
-            "compile s after the first", "load"]
+    diffs = {}
+    for name in runs:
+        if name != "this":
+            diff = [
+                float(np.abs(np.asarray(a["poses"])[:, :3] - np.asarray(b["poses"])[:, :3]).max())
+                for a, b in zip(runs["this"], runs[name])
+            ]
+            diffs[name] = dict(max_m=max(diff), per_call_m=diff)
+    summary["translation_difference_from_this"] = diffs
+    head = [
+        "checkout",
+        "calls",
+        "XLA compiles",
+        "compile s",
+        "wall s",
+        "calls after the first that compile",
+        "compile s after the first",
+        "load",
+    ]
     rows = [
-        [name, v["calls"], v["compiles_total"], f"{v['compile_seconds_total']:.1f}", f"{v['wall_seconds_total']:.1f}",
-         v["calls_after_first_with_compiles"], f"{v['compile_seconds_after_first']:.1f}",
-         f"{v['load'][0]:.1f}-{v['load'][1]:.1f}"]
-        for name, v in summary.items() if isinstance(v, dict)
+        [
+            name,
+            v["calls"],
+            v["compiles_total"],
+            f"{v['compile_seconds_total']:.1f}",
+            f"{v['wall_seconds_total']:.1f}",
+            v["calls_after_first_with_compiles"],
+            f"{v['compile_seconds_after_first']:.1f}",
+            f"{v['load'][0]:.1f}-{v['load'][1]:.1f}",
+        ]
+        for name, v in summary.items()
+        if name in runs
     ]
     print(markdown_table(head, rows))
-    if args.baseline:
-        print(f"largest node translation difference between the checkouts: {summary['max_translation_difference_m']:.3g} m")
-    for c in runs["this"]:
-        c.pop("poses")
-    for c in runs.get("baseline", []):
-        c.pop("poses")
-    print(write_results("posegraph_compile_growing", {"first": args.first, "last": args.last, "summary": summary, "runs": runs}))
+    for name, d in diffs.items():
+        print(f"largest node translation difference, {name} vs this: {d['max_m']:.3g} m")
+    for calls in runs.values():
+        for c in calls:
+            c.pop("poses")
+    result = {"first": args.first, "last": args.last, "capacity": args.capacity, "summary": summary, "runs": runs}
+    print(write_results("posegraph_compile_growing", result))
 
 
 def run_once(kernel: str, repo: pathlib.Path = REPO) -> dict:
@@ -204,6 +231,13 @@ def main() -> None:
     ap.add_argument("--growing", action="store_true", help="the robust back end on a growing graph (docstring)")
     ap.add_argument("--first", type=int, default=24, help="--growing: chunks at the first call")
     ap.add_argument("--last", type=int, default=101, help="--growing: chunks at the last call")
+    ap.add_argument(
+        "--capacity",
+        type=int,
+        nargs=2,
+        metavar=("NODES", "EDGES"),
+        help="--growing: also run this checkout with consistent_solve(..., pad=(NODES, EDGES))",
+    )
     args = ap.parse_args()
     if args.growing:
         growing_main(args)
