@@ -270,7 +270,8 @@ _SUMMED = ("num_steps", "num_accepted", "num_rejected", "linear_iterations")
 def _weighted(problem: Problem, w: np.ndarray) -> Problem:
     """``Omega_e <- w_e Omega_e`` (GTSAM's ``makeWeightedGraph``), on the host."""
     info = np.asarray(problem.information)
-    return dataclasses.replace(problem, information=jnp.asarray(info * w.astype(info.dtype)[:, None, None]))
+    # device_put: jnp.asarray of a NumPy array compiles a copy program per shape
+    return dataclasses.replace(problem, information=jax.device_put(info * w.astype(info.dtype)[:, None, None]))
 
 
 def _gnc_continuation(lm, problem: Problem, start: Array, params, options: GraphOptions):
