@@ -24,6 +24,11 @@ setting's outlier-free solve (plain LM without the false edges):
   loop on the solved map, :func:`~swiftjax.loops.pcm.data_snooping`) decide the inliers on the
   graph whitened by that model, the last solve has equal weights
   (:func:`~swiftjax.loops.pcm.consistent_solve`);
+* ``PCM+GNC`` with ``equal-own`` information: the solve's weights equal as ``equal``, but the
+  back end decides the inliers with each edge's own noise covariance ``diag(sigma_e²)`` (what
+  a registration's own residuals and point statistics give the pipeline,
+  :func:`swiftjax.align.covariance.umeyama_information`) instead of the nominal model; its
+  reference is the ``equal`` outlier-free solve (the other solvers' rows are the ``equal`` ones);
 * ``GNC``: GNC-TLS alone (today's default before this change);
 * ``GTSAM GncLM``: GTSAM 4.3's ``GncLMOptimizer`` (TLS, odometry as known inliers).
 
@@ -70,16 +75,33 @@ def nominal_covariance(kind: np.ndarray) -> np.ndarray:
     return np.exp(2 * 0.5**2) * sigma[:, :, None] ** 2 * np.eye(7)
 
 
-def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
-    """Every (information, level, solver) row of one generated graph."""
+#: Information settings: the solve's weights and what the back end decides the inliers with.
+INFORMATION = ("matched", "equal", "equal-own")
+
+
+def own_covariance(g: dict, num_false: int) -> np.ndarray:
+    """``[E, 7, 7]``: each kept edge's own noise covariance ``diag(sigma_e²)`` (what a
+    registration's residuals give each edge), in :func:`_robust_graph._subgraph`'s edge order."""
+    keep = g["kind"] != "false"
+    keep[np.nonzero(g["kind"] == "false")[0][:num_false]] = True
+    return g["sigma"][keep][:, :, None] ** 2 * np.eye(7)
+
+
+def graph_rows(g: dict, levels, with_gtsam: bool, informations=INFORMATION) -> list[dict]:
+    """Every (information, level, solver) row of one generated graph (``equal-own``: PCM+GNC
+    only, the other solvers' rows are the ``equal`` ones)."""
     rows = []
     with jax.enable_x64(True):
-        for information in ("matched", "equal"):
-            clean, c = rg.clean_solve(g, information)
+        for information in informations:
+            weights = "equal" if information.startswith("equal") else "matched"
+            clean, c = rg.clean_solve(g, weights)
             for level in levels:
-                edges, meas, info, kind = rg._subgraph(g, int(round(level * g["num_true"])), information)
+                num_false = int(round(level * g["num_true"]))
+                edges, meas, info, kind = rg._subgraph(g, num_false, weights)
                 prob = posegraph.Problem(g["initial"], edges, meas, information=info, robust=kind != "odometry")
-                cov = None if information == "matched" else nominal_covariance(kind)
+                cov = {"matched": None, "equal": nominal_covariance(kind)}.get(information)
+                if information == "equal-own":
+                    cov = own_covariance(g, num_false)
                 base = dict(
                     route=g["route"],
                     seed=g["seed"],
@@ -95,12 +117,13 @@ def graph_rows(g: dict, levels, with_gtsam: bool) -> list[dict]:
                     prob, cov, options=posegraph.GraphOptions(kernel_scale=gnc.DEFAULT_SCALE), throw=False
                 )
                 out = {"PCM+GNC": (res.poses, res.inlier_weights, time.perf_counter() - t0)}
-                t0 = time.perf_counter()
-                res = posegraph.optimize(prob, posegraph.GraphOptions(kernel="gnc", kernel_scale=c), throw=False)
-                out["GNC"] = (res.poses, res.inlier_weights, time.perf_counter() - t0)
-                if with_gtsam:
-                    poses, secs, w = rg._gtsam(g, edges, meas, info, kind, 1, c)
-                    out["GTSAM GncLM"] = (poses, w, secs)
+                if information != "equal-own":
+                    t0 = time.perf_counter()
+                    res = posegraph.optimize(prob, posegraph.GraphOptions(kernel="gnc", kernel_scale=c), throw=False)
+                    out["GNC"] = (res.poses, res.inlier_weights, time.perf_counter() - t0)
+                    if with_gtsam:
+                        poses, secs, w = rg._gtsam(g, edges, meas, info, kind, 1, c)
+                        out["GTSAM GncLM"] = (poses, w, secs)
                 for solver, (poses, w, secs) in out.items():
                     dmax, drms = rg._distances(poses, clean.poses, g["extent"])
                     row = dict(
@@ -134,6 +157,7 @@ def run(
     with_gtsam=True,
     shared_dir=None,
     log=print,
+    informations=INFORMATION,
 ) -> dict:
     rows = []
     t0 = time.perf_counter()
@@ -148,7 +172,7 @@ def run(
                     max_false=int(round(max(levels) * rg.NUM_TRUE)),
                 )
                 g["seed"] = seed
-                rows += graph_rows(g, levels, with_gtsam)
+                rows += graph_rows(g, levels, with_gtsam, informations)
                 log(f"KITTI {route} seed {seed} {generator}: {time.perf_counter() - t0:.0f} s")
     return dict(
         rows=rows,
@@ -156,6 +180,7 @@ def run(
         seeds=list(seeds),
         generators=list(generators),
         levels=list(levels),
+        informations=list(informations),
         num_true_loops=rg.NUM_TRUE,
         load_average=os.getloadavg(),
         seconds=time.perf_counter() - t0,
@@ -226,6 +251,7 @@ def main(argv=None) -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--generators", nargs="+", default=list(DESIGN_GENERATORS), choices=list(rg.GENERATORS))
     ap.add_argument("--levels", type=float, nargs="+", default=list(rg.LEVELS))
+    ap.add_argument("--information", nargs="+", default=list(INFORMATION), choices=list(INFORMATION))
     ap.add_argument("--no-gtsam", action="store_true")
     ap.add_argument("--quick", action="store_true", help="KITTI 00, seed 0, 200 %% only (smoke test)")
     ap.add_argument("--no-write", action="store_true", help="print only (no JSON under bench/results/)")
@@ -236,7 +262,14 @@ def main(argv=None) -> None:
         return merged(args.table)
     if args.quick:
         args.routes, args.seeds, args.levels = ["00"], [0], [2.0]
-    result = run(args.routes, args.seeds, args.generators, levels=args.levels, with_gtsam=not args.no_gtsam)
+    result = run(
+        args.routes,
+        args.seeds,
+        args.generators,
+        levels=args.levels,
+        with_gtsam=not args.no_gtsam,
+        informations=args.information,
+    )
     print(markdown(result))
     if not args.no_write:
         from common import write_results
