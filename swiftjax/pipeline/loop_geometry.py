@@ -43,7 +43,7 @@ from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
 
-__all__ = ["BATCH", "descriptors", "candidates", "edge_information"]
+__all__ = ["BATCH", "descriptors", "geometries", "candidates", "edge_information"]
 
 #: Chunks per call of :func:`swiftjax.loops.geometric.chunk_descriptors` (the last batch padded).
 BATCH = 8
@@ -79,6 +79,28 @@ def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions
         parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], d))
         ids += [f for _, f in loaded[:n]]
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _geometry(frames: align.ChunkFrames, K_ref: jax.Array, options: geo.GeometryOptions) -> geo.ChunkGeometry:
+    return jax.vmap(lambda f: geo.chunk_frame(f, K_ref, options))(frames)
+
+
+def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
+    """``(ChunkGeometry [T, ...], global frame ids [T, F])`` of every chunk (what
+    :func:`descriptors` computes without the polar grids, which the co-visible search does not
+    use)."""
+    T = ctx.schedule.num_chunks
+    parts, ids = [], []
+    for b0 in range(0, T, BATCH):
+        loaded = [_frames(ctx, min(c, T - 1), options) for c in range(b0, b0 + BATCH)]
+        stack = align.ChunkFrames(*(np.stack(x) for x in zip(*(f for f, _ in loaded))))
+        n = min(BATCH, T - b0)
+        parts.append(
+            jax.tree_util.tree_map(lambda a: a[:n], _geometry(stack, jnp.asarray(K_ref, jnp.float32), options))
+        )
+        ids += [f for _, f in loaded[:n]]
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts), np.stack(ids)
 
 
 def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int, options: geo.GeometryOptions):
@@ -171,9 +193,8 @@ def candidates(
     chain = np.asarray(chain, np.float64)
     o = options
     with ctx.timer("loop geometry: clouds"):
-        desc, ids = descriptors(ctx, K_ref, o)
+        g, ids = geometries(ctx, K_ref, o)
         T = len(ids)
-        g = jax.tree_util.tree_map(jnp.asarray, desc.geometry)
         clouds, spectra = _clouds(g, jax.random.split(jax.random.PRNGKey(0), T), o)
     gated = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, o)
     near = {(ci, cj) for ci, cj, _ in gated}
@@ -210,36 +231,69 @@ def candidates(
         cols[5].astype(np.float32),
     )
     with ctx.timer("loop geometry: placement"):
-        S0, corr = _run_batched(geo.starts_batch, len(jobs), JOB_BATCH, arrays, clouds, spectra, o)
-        # the ICP only where some peak overlaps a cell (peak_icp scores the others -1 anyway)
-        live = np.flatnonzero(corr.max(-1) >= 0.5)
-        pl = geo.Placements(S0, np.full(corr.shape, -1, np.int32), corr)
-        if len(live):
-            got = _run_batched(
-                geo.peaks_batch,
-                len(live),
-                PEAK_BATCH,
-                (arrays[0][live], arrays[1][live], S0[live], corr[live]),
-                clouds,
-                o,
+        K = o.peaks
+        pl = geo.Placements(
+            np.zeros((len(jobs), K, 8), np.float32),
+            np.full((len(jobs), K), -1, np.int32),
+            np.zeros((len(jobs), K), np.float32),
+        )
+        done = np.zeros(len(jobs), bool)
+
+        def icp(which: np.ndarray) -> None:
+            """Jobs ``which``: the bird's-eye starts, then the peak ICP where some peak overlaps
+            a cell (peak_icp scores the others -1 anyway)."""
+            done[which] = True
+            S0, corr = _run_batched(
+                geo.starts_batch, len(which), JOB_BATCH, tuple(a[which] for a in arrays), clouds, spectra, o
             )
-            pl.S[live], pl.scores[live] = got.S, got.scores
+            pl.S[which], pl.correlation[which] = S0, corr
+            live = which[corr.max(-1) >= 0.5]
+            if len(live):
+                args = (arrays[0][live], arrays[1][live], pl.S[live], pl.correlation[live])
+                got = _run_batched(geo.peaks_batch, len(live), PEAK_BATCH, args, clouds, o)
+                pl.S[live], pl.scores[live] = got.S, got.scores
+
+        icp(np.arange(P))
+        cand_best = pl.scores[:P].max(-1)
+        # The null's jobs in rounds, one unrelated chunk per source per round, while some
+        # candidate of the source beats every null sample so far: a candidate at or below the
+        # largest sample is below the final bound whatever the other samples (_null_settled).
+        settled = {c: _null_settled(o.null_false_alarm, len(null_of[c])) for c in sources}
+        rest = [null_of[c] for c in sources if not settled[c] and np.any(cand_best[ci_ == c] >= 0)]
+        if rest:
+            icp(np.concatenate(rest))
+        for r in range(o.null_chunks):
+            need = [
+                null_of[c][r]
+                for c in sources
+                if settled[c]
+                and len(null_of[c]) > r
+                and np.any(cand_best[ci_ == c] > pl.scores[null_of[c][:r]].max(initial=-1))
+            ]
+            if not need:
+                break
+            icp(np.asarray(need))
     best = pl.scores.max(-1).astype(np.float64)  # [J]
     used = np.asarray(jnp.sum(clouds.weights[:, : o.peak_src_points] > 0, -1), np.float64)  # [T]
     thresholds = {}
     for c in sources:
-        nb = best[null_of[c]]
+        ran = null_of[c][done[null_of[c]]]
+        nb = best[ran]
         pts = max(used[c], 1.0)
+        if len(ran) < len(null_of[c]):  # stopped early: every candidate is at or below a sample
+            thresholds[c] = (float(nb.max(initial=-1)), float(np.mean(nb)) if len(nb) else None, len(nb))
+            continue
         th = null_threshold(nb / pts, np.ones(len(nb)), np.full(len(nb), pts), o.null_false_alarm, 0.0)
         thresholds[c] = (
             th.threshold * pts if math.isfinite(th.threshold) else None,
             float(np.mean(nb)) if len(nb) else None,
+            len(nb),
         )
     records: list[dict[str, Any]] = []
     survivors = []
     for k in range(P):
         ci, cj = int(ci_[k]), int(cj_[k])
-        th, null_mean = thresholds[ci]
+        th, null_mean, null_samples = thresholds[ci]
         kb = int(np.argmax(pl.scores[k]))
         plausible = pl.scores[k] > (th if th is not None else np.inf)
         record: dict[str, Any] = {
@@ -258,6 +312,7 @@ def candidates(
             "window": float(win[k]),
             "null_mean": null_mean,
             "null_threshold": th,
+            "null_samples": null_samples,
             "yaw_deg": float(np.degrees(psi[k])),
         }
         records.append(record)
@@ -288,7 +343,7 @@ def candidates(
                     jnp.asarray([kb for _, kb, _ in survivors]),
                 )
             )
-        for n, (k, kb, _) in enumerate(survivors):
+        for n, (k, _, _) in enumerate(survivors):
             record = records[k]
             reg0 = jax.tree_util.tree_map(lambda x: x[n], regs)
             ci, cj = int(ci_[k]), int(cj_[k])
@@ -320,6 +375,21 @@ def candidates(
                 with ctx.timer("loop geometry: verification"):
                     record.update(_dense(ctx, ci, cj, record["Z"], K_ref, o, verification))
     return records
+
+
+def _null_settled(false_alarm: float, k: int) -> bool:
+    """Whether the null may stop early: its bound over ``k`` samples,
+    ``m + t_{k−1}(1 − α) s sqrt(1 + 1/k)`` (:func:`swiftjax.loops.null.null_threshold`, ``s`` the
+    sample standard deviation or more), is at least the largest sample whatever the samples,
+    i.e. ``t_{k−1}(1 − α) sqrt(1 + 1/k) >= (k − 1)/sqrt(k)`` (Samuelson's inequality:
+    ``max_i x_i − m <= s (k − 1)/sqrt(k)``).  Then a candidate at or below some sample is
+    rejected by the complete null, and the remaining null jobs of its source need not run
+    (α = 0.01, k = 8: 3.18 >= 2.47)."""
+    from scipy import stats
+
+    if k < 3:
+        return False
+    return float(stats.t.ppf(1.0 - false_alarm, k - 1)) * math.sqrt(1.0 + 1.0 / k) >= (k - 1) / math.sqrt(k)
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
