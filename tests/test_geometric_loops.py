@@ -257,7 +257,13 @@ def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
 
     out = bench_hard_sequences.main(["--quick", "--frames", "400"])
     (rec,) = out["records"]
-    assert set(rec["arms"]) == {"tokens (defaults)", "tokens + geometry", "authors", "truth edges"}
+    assert set(rec["arms"]) == {
+        "tokens (defaults)",
+        "tokens + geometry",
+        "authors",
+        "truth edges",
+        "pipeline (its own graph)",
+    }
     assert all(np.isfinite(a["ate_rmse"]) for a in rec["arms"].values())
     assert rec["loop_geometry_seconds"] > 0  # the geometric source ran on every chunk
     # KITTI 08's first 400 frames hold no revisit: nothing the geometry proposes may be accepted.

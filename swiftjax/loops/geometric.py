@@ -1013,6 +1013,7 @@ def placement_spread(
     the best is plausible.  Pure."""
     S = jnp.asarray(S, jnp.float32)
     d = sim3.log(sim3.compose(sim3.inverse(S[best])[None], S))  # [K, 7]
+    d = d.at[best].set(0.0)  # δ_best = 0 exactly (not log's rounding)
     w = jnp.asarray(plausible).astype(jnp.float32)
     d = jnp.where((w > 0)[:, None] & jnp.all(jnp.isfinite(d), -1, keepdims=True), d, 0.0)
     return jnp.einsum("k,ki,kj->ij", w, d, d) / jnp.maximum(jnp.sum(w), 1.0)
