@@ -2,29 +2,46 @@
 
 Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 ``loop_geometry = true``: every temporal chunk's reliable points (``frame_stride``-th frames read
-back from the chunk store, memory-mapped) become :func:`swiftjax.loops.geometric.chunk_descriptors`
-(in fixed batches of :data:`BATCH` chunks) and a structure cloud
-(:func:`swiftjax.loops.geometric.structure_cloud`).  The candidates are the chunk pairs that
-the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between them)`` of
-each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a reverse pass
-the chunks that share structure are the ones whose cameras face each other across a stretch,
-one or two chunks off the closest frames, so every gated pair is tried, not only the closest
-(docs/performance/reverse-revisits.md).  Each is registered from the chain's prior
-(:func:`swiftjax.loops.geometric.register_covisible`: bird's-eye FFT search within the gate,
-Sim(3) ICP per peak) and, in the same batch, against ``null_chunks`` unrelated chunks
-(:func:`_null_chunks`) from the same prior; a candidate must keep more structure inliers than
-the null's prediction bound (:func:`swiftjax.loops.null.null_threshold` at
-``null_false_alarm``), no second placement ``peak_separation`` away may keep more than
-``max_ambiguity`` of them, and the scale must agree with the chain's
-(:func:`swiftjax.loops.geometric.covisible_reason`, one-line reasons).  Survivors go through the
-cross-chunk dense test over all frame pairs of the two chunks and pairwise consistency with every
-other candidate, like the token candidates.  No loop-centric chunk is predicted.
+back from the chunk store, memory-mapped) become its gravity frame and reliable points
+(:func:`geometries`, fixed batches of :data:`BATCH` chunks), a structure cloud
+(:func:`swiftjax.loops.geometric.structure_cloud`) and a bird's-eye spectrum
+(:func:`swiftjax.loops.geometric.bev_spectrum`), once per chunk.  The candidates are the chunk
+pairs that the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between
+them)`` of each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a
+reverse pass the chunks that share structure are the ones whose cameras face each other across
+a stretch, one or two chunks off the closest frames, so every gated pair is tried, not only the
+closest (docs/performance/reverse-revisits.md).
+
+Work, in fixed-size batches (:data:`JOB_BATCH`, :data:`PEAK_BATCH`, :data:`REFINE_BATCH`; the
+last of each padded, so one compile per chunk count and options):
+
+1. one placement job per candidate from the chain's prior (bird's-eye FFT search within the
+   gate, Sim(3) ICP per peak: :func:`swiftjax.loops.geometric.starts_batch`,
+   :func:`~swiftjax.loops.geometric.peaks_batch`);
+2. the null, ONE per source chunk ``c_i`` shared by all its candidates: ``c_i`` placed on
+   ``null_chunks`` unrelated chunks (:func:`_null_chunks`) from ``ψ = kπ, σ = 1, τ = 0`` (streets
+   laid along streets, both ways) within the largest window of its candidates; run in rounds
+   and stopped once every candidate of the source is at or below a null sample (exact,
+   :func:`_null_settled`); the bound is :func:`swiftjax.loops.null.null_threshold` at
+   ``null_false_alarm`` on the best placements' structure inliers;
+3. for the candidates above it, the best placement refined on all points
+   (:func:`~swiftjax.loops.geometric.refine_batch`); the scale must agree with the chain's and
+   the structure must not be degenerate (:func:`swiftjax.loops.geometric.covisible_reason`,
+   one-line reasons).  Every placement above the bound is plausible; their spread widens the
+   edge's covariance (:func:`~swiftjax.loops.geometric.placement_spread`) instead of rejecting
+   an edge along a straight street.
+
+Survivors go through the cross-chunk dense test over the frame pairs of every other loaded frame
+of the two chunks and pairwise consistency with every other candidate, like the token
+candidates.  No loop-centric chunk is predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
-(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread, ambiguity, the
-null's mean and bound); the accepted edge's information comes from the registration's own
-residuals (:func:`swiftjax.align.covariance.umeyama_information` on its inliers).  The records
-are recomputed on every run (nothing is cached in the manifest).
+(``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
+bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
+spread, the slide in camera heights); the accepted edge's information comes from the
+registration's own residuals widened by the plausible placements' spread
+(:func:`edge_information`).  The records are recomputed on every run (nothing is cached in the
+manifest).
 """
 
 from __future__ import annotations
@@ -43,9 +60,9 @@ from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
 
-__all__ = ["BATCH", "descriptors", "geometries", "candidates", "edge_information"]
+__all__ = ["BATCH", "JOB_BATCH", "PEAK_BATCH", "REFINE_BATCH", "geometries", "candidates", "edge_information"]
 
-#: Chunks per call of :func:`swiftjax.loops.geometric.chunk_descriptors` (the last batch padded).
+#: Chunks per call of :func:`geometries`' jitted :func:`swiftjax.loops.geometric.chunk_frame` (the last batch padded).
 BATCH = 8
 
 
@@ -66,30 +83,15 @@ def _frames(ctx: RunContext, c: int, options: geo.GeometryOptions) -> tuple[alig
     ]
 
 
-def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
-    """``(ChunkDescriptors [T, ...], global frame ids [T, F])`` of every chunk."""
-    T = ctx.schedule.num_chunks
-    parts, ids = [], []
-    for b0 in range(0, T, BATCH):
-        chunk_ids = [min(c, T - 1) for c in range(b0, b0 + BATCH)]
-        loaded = [_frames(ctx, c, options) for c in chunk_ids]
-        stack = align.ChunkFrames(*(np.stack(x) for x in zip(*(f for f, _ in loaded))))
-        d = geo.chunk_descriptors(stack, K_ref, options)
-        n = min(BATCH, T - b0)
-        parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], d))
-        ids += [f for _, f in loaded[:n]]
-    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
-
-
 @functools.partial(jax.jit, static_argnames=("options",))
 def _geometry(frames: align.ChunkFrames, K_ref: jax.Array, options: geo.GeometryOptions) -> geo.ChunkGeometry:
     return jax.vmap(lambda f: geo.chunk_frame(f, K_ref, options))(frames)
 
 
 def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
-    """``(ChunkGeometry [T, ...], global frame ids [T, F])`` of every chunk (what
-    :func:`descriptors` computes without the polar grids, which the co-visible search does not
-    use)."""
+    """``(ChunkGeometry [T, ...], global frame ids [T, F])`` of every chunk
+    (:func:`swiftjax.loops.geometric.chunk_frame`; the polar grids of
+    :func:`~swiftjax.loops.geometric.chunk_descriptors` are not needed by the co-visible search)."""
     T = ctx.schedule.num_chunks
     parts, ids = [], []
     for b0 in range(0, T, BATCH):
@@ -180,7 +182,7 @@ def candidates(
     ``chain [T, 8]``: the dead-reckoned chunk poses (the prior of every registration; without
     it no candidate is proposed).
 
-    Work, all in fixed-shape batches: every chunk's descriptors, structure cloud and bird's-eye
+    Work, all in fixed-shape batches: every chunk's geometry, structure cloud and bird's-eye
     spectrum once; one placement job (:func:`swiftjax.loops.geometric.starts_batch`, then :func:`~swiftjax.loops.geometric.peaks_batch` where a peak overlaps a cell) per
     candidate and ``null_chunks`` per SOURCE chunk (its null, shared by all its candidates);
     the refinement on all points (:func:`swiftjax.loops.geometric.refine_batch`) and the dense
@@ -437,7 +439,10 @@ def _dense(
 
 
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
-    """Information ``[7, 7]`` of a registration edge from its own inliers' residuals, or None."""
+    """Information ``[7, 7]`` of a registration edge, or None: ``Ω = (Ω_reg⁻¹ + Σ_P)⁻¹`` with
+    ``Ω_reg`` from its own inliers' residuals (:func:`swiftjax.align.covariance.umeyama_information`)
+    and ``Σ_P`` its plausible placements' spread (:func:`swiftjax.loops.geometric.placement_spread`;
+    ``Ω_reg`` alone when only one placement is plausible)."""
     stats = record.get("_stats")
     if stats is None:
         return None
