@@ -428,10 +428,7 @@ def _dense(
     """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared."""
     import dataclasses
 
-    # every other loaded frame of each chunk: a quarter of the frame pairs (the test's null is
-    # computed on the same pairs, so it stays calibrated)
-    half = lambda side: jax.tree_util.tree_map(lambda x: np.asarray(x)[::2], side)
-    side_i, side_j = half(_frames(ctx, ci, options)[0]), half(_frames(ctx, cj, options)[0])
+    (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
     return lv.candidate_numbers(
         side_i, side_j, np.asarray(Z), K_ref, info, info, dataclasses.replace(verification, neighbours=0)
