@@ -641,3 +641,23 @@ def test_edge_information_widened_along_the_slide(x64):
     cov_p, cov_w = np.linalg.inv(plain), np.linalg.inv(wide)
     assert cov_w[0, 0] == pytest.approx(cov_p[0, 0] + 16.0)
     np.testing.assert_allclose(cov_w[1:, 1:], cov_p[1:, 1:], rtol=1e-9)
+
+
+def test_null_early_stop_is_exact():
+    """The null may stop early (``_null_settled``) only where its bound exceeds every sample
+    whatever the samples (Samuelson's inequality): then a candidate at or below some sample is
+    rejected by the complete null.  Checked against ``null_threshold`` on random and extreme
+    samples; the rule refuses where it would not hold (large k or large α)."""
+    from swiftjax.loops.null import null_threshold
+    from swiftjax.pipeline.loop_geometry import _null_settled
+
+    assert _null_settled(0.01, 8) and not _null_settled(0.01, 16) and not _null_settled(0.3, 8)
+    assert not _null_settled(0.01, 2)
+    rng = np.random.default_rng(5)
+    for k in (3, 5, 8):
+        assert _null_settled(0.01, k)
+        for trial in range(200):
+            n = 256
+            x = rng.integers(0, 80, k) if trial % 2 else np.r_[np.zeros(k - 1), rng.integers(1, 200)]
+            th = null_threshold(x / n, np.ones(k), np.full(k, n), 0.01, 0.0).threshold * n
+            assert th >= x.max() - 1e-9
