@@ -44,7 +44,7 @@ translation::
 
     θ = atan2(Σ w u·(a × b), Σ w a·b),   a, b: horizontal parts of the centred pairs
 
-**Co-visible chunk pairs** (:func:`register_covisible`, what the pipeline uses).  A reverse
+**Co-visible chunk pairs** (:func:`register_covisible`; the pipeline runs its steps batched).  A reverse
 revisit's chunks at the same place look away from each other; the pairs that share structure
 are the ones facing each other across a stretch, and the odometry chain's prior between them is
 good in yaw (≤ 2° on synthetic KITTI 08) but 8–30 camera heights off in translation.  With
