@@ -205,6 +205,12 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
                 row[f"recall_{d}"] = found / len(np.unique(lab)) if len(p) else None
                 row[f"regions_found_{d}"] = found
         out["arms"][name] = row
+    out["arms"]["pipeline (its own graph)"] = {
+        "accepted": sum(bool(r["accepted"]) for r in cands),
+        "ate_rmse": float(res.metrics["ate_rmse"]),
+        "note": "the run's own pose graph: each edge's information (a geometric edge's widened by its "
+        "plausible placements' spread) and the robust back end",
+    }
     out["candidate_records"] = [
         {
             "i": r["i"],

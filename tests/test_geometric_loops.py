@@ -257,7 +257,13 @@ def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
 
     out = bench_hard_sequences.main(["--quick", "--frames", "400"])
     (rec,) = out["records"]
-    assert set(rec["arms"]) == {"tokens (defaults)", "tokens + geometry", "authors", "truth edges"}
+    assert set(rec["arms"]) == {
+        "tokens (defaults)",
+        "tokens + geometry",
+        "authors",
+        "truth edges",
+        "pipeline (its own graph)",
+    }
     assert all(np.isfinite(a["ate_rmse"]) for a in rec["arms"].values())
     assert rec["loop_geometry_seconds"] > 0  # the geometric source ran on every chunk
     # KITTI 08's first 400 frames hold no revisit: nothing the geometry proposes may be accepted.
@@ -549,8 +555,9 @@ def test_register_covisible_bad_input_rejected_not_nan():
     a, b = _clouds(src, dst[:4096], aa, ab, Ba, Bb, 2.0, h_b=float("nan"))
     cov = G.register_covisible(a, b, 0.0, 1.0, jnp.zeros(2), 10.0)
     assert np.all(np.isfinite(np.asarray(cov.registration.S))) and not bool(cov.registration.valid)
+    assert int(np.max(np.asarray(cov.scores))) == -1  # no placement without a camera height
     plain = {k: float(np.asarray(getattr(cov.registration, k))) for k in ("rms", "scale_ratio", "spread")}
-    plain.update(valid=False, num_structure=0, ambiguity=0.0, null_threshold=1.0)
+    plain.update(valid=False, num_structure=0, peak_score=int(np.max(np.asarray(cov.scores))), null_threshold=1.0)
     why = G.covisible_reason(plain, G.GeometryOptions())
     assert why and "\n" not in why and "failed" in why
     # a handful of points: valid ICP maybe, but too few structure inliers
@@ -560,7 +567,97 @@ def test_register_covisible_bad_input_rejected_not_nan():
     _, b2 = _clouds(src, dst[:4096], aa, ab, Ba, Bb, 2.0)
     cov = G.register_covisible(a2, b2, np.pi, 1.0, jnp.zeros(2), 10.0)
     reg = {k: np.asarray(v).item() for k, v in cov.registration._asdict().items() if np.asarray(v).ndim == 0}
-    reg.update(ambiguity=float(cov.ambiguity), null_threshold=0.0)
+    reg.update(peak_score=max(int(np.max(np.asarray(cov.scores))), 1), null_threshold=0.0)
     assert np.all(np.isfinite(np.asarray(cov.registration.S)))
     why = G.covisible_reason(reg, G.GeometryOptions())
     assert why is not None and "\n" not in why
+
+
+def test_batched_placements_equal_one_pair_at_a_time():
+    """``starts_batch`` + ``peaks_batch`` (chunks gathered from stacked clouds, the target's
+    spectrum computed once by ``bev_spectrum``) give each job's ``place_covisible`` result."""
+    rng = np.random.default_rng(21)
+    _, _, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, 2.0, 0.3, 1.0)
+    n = min(len(src), len(dst))
+    a, b = _clouds(src[:n], dst[:n], aa, ab, Ba, Bb, 2.0)
+    stack = jax.tree_util.tree_map(lambda x, y: jnp.stack([x, y]), a, b)
+    o = G.GeometryOptions()
+    spectra = jax.vmap(lambda c: G.bev_spectrum(c, o))(stack)
+    src_i, dst_i = jnp.array([0, 0, 1]), jnp.array([1, 1, 0])
+    psi, sigma = jnp.array([np.pi, np.pi - 0.03, 0.2]), jnp.array([1.0, 1.1, 0.9])
+    tau, window = jnp.array([[0.0, 0.0], [3.0, -1.0], [0.0, 2.0]]), jnp.array([10.0, 6.0, 12.0])
+    S0, corr = G.starts_batch(stack, spectra, src_i, dst_i, psi, sigma, tau, window, o)
+    got = G.peaks_batch(stack, src_i, dst_i, S0, corr, o)
+    for k in range(3):
+        one = (a, b) if int(src_i[k]) == 0 else (b, a)
+        want = G.place_covisible(*one, psi[k], sigma[k], tau[k], window[k], o)
+        np.testing.assert_array_equal(np.asarray(got.scores[k]), np.asarray(want.scores))
+        np.testing.assert_allclose(np.asarray(got.S[k]), np.asarray(want.S), atol=2e-4)
+        np.testing.assert_allclose(np.asarray(corr[k]), np.asarray(want.correlation), atol=1e-3)
+
+
+def test_placement_spread_closed_form():
+    """Placements ``S_k = S_best exp(δ_k)`` with known ``δ_k`` (a street slid along x): the
+    spread is the NumPy second moment ``Σ_{k ∈ P} δ_k δ_kᵀ / |P|`` over the plausible ones only,
+    rank one along the slide."""
+    S_best = sim3.from_rst(
+        jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), 2.5), jnp.float32), jnp.array([4.0, -2, 1]), 1.7
+    )
+    deltas = np.zeros((4, 7), np.float32)
+    deltas[1, 0], deltas[2, 0], deltas[3, :] = 3.0, -5.0, [1, 2, 3, 0.1, 0.2, 0.3, 0.05]
+    S = sim3.compose(S_best[None], sim3.exp(jnp.asarray(deltas)))
+    plausible = np.array([True, True, True, False])
+    got = np.asarray(G.placement_spread(S, jnp.asarray(plausible), 0))
+    want = deltas[plausible].T.astype(np.float64) @ deltas[plausible] / plausible.sum()
+    np.testing.assert_allclose(got, want, atol=2e-4)
+    assert got[0, 0] == pytest.approx((9 + 25) / 3, rel=1e-4) and np.linalg.matrix_rank(got, tol=1e-3) == 1
+    assert np.all(np.asarray(G.placement_spread(S, jnp.array([True, False, False, False]), 0)) == 0)
+
+
+def test_edge_information_widened_along_the_slide(x64):
+    """A registration edge with plausible placements along the street: its information is
+    ``(Ω_reg⁻¹ + Σ_P)⁻¹`` — the direction across the street and yaw keep (nearly) all their
+    information, the slide direction keeps little."""
+    from swiftjax.pipeline.loop_geometry import edge_information
+
+    reg = G.Registration(
+        S=jnp.array([0, 0, 0, 0, 0, 0, 1, 1.0]),
+        rms=jnp.float32(0.1),
+        inlier_ratio=jnp.float32(0.6),
+        num_inliers=jnp.int32(800),
+        num_structure=jnp.int32(400),
+        spread=jnp.float32(0.1),
+        scale_ratio=jnp.float32(1.0),
+        valid=jnp.asarray(True),
+        src_mean=jnp.array([0.0, 0.0, 5.0]),
+        src_covariance=jnp.diag(jnp.array([100.0, 9.0, 4.0])),
+        num_points=jnp.int32(1024),
+    )
+    slide = np.zeros((7, 7))
+    slide[0, 0] = 16.0  # 4 units along x
+    plain = edge_information({"_stats": (reg, 1.0, np.zeros((7, 7)))}, 1.0)
+    wide = edge_information({"_stats": (reg, 1.0, slide)}, 1.0)
+    np.testing.assert_allclose(wide, np.linalg.inv(np.linalg.inv(plain) + slide), rtol=1e-9)
+    cov_p, cov_w = np.linalg.inv(plain), np.linalg.inv(wide)
+    assert cov_w[0, 0] == pytest.approx(cov_p[0, 0] + 16.0)
+    np.testing.assert_allclose(cov_w[1:, 1:], cov_p[1:, 1:], rtol=1e-9)
+
+
+def test_null_early_stop_is_exact():
+    """The null may stop early (``_null_settled``) only where its bound exceeds every sample
+    whatever the samples (Samuelson's inequality): then a candidate at or below some sample is
+    rejected by the complete null.  Checked against ``null_threshold`` on random and extreme
+    samples; the rule refuses where it would not hold (large k or large α)."""
+    from swiftjax.loops.null import null_threshold
+    from swiftjax.pipeline.loop_geometry import _null_settled
+
+    assert _null_settled(0.01, 8) and not _null_settled(0.01, 16) and not _null_settled(0.3, 8)
+    assert not _null_settled(0.01, 2)
+    rng = np.random.default_rng(5)
+    for k in (3, 5, 8):
+        assert _null_settled(0.01, k)
+        for trial in range(200):
+            n = 256
+            x = rng.integers(0, 80, k) if trial % 2 else np.r_[np.zeros(k - 1), rng.integers(1, 200)]
+            th = null_threshold(x / n, np.ones(k), np.full(k, n), 0.01, 0.0).threshold * n
+            assert th >= x.max() - 1e-9

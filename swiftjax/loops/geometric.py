@@ -44,7 +44,7 @@ translation::
 
     θ = atan2(Σ w u·(a × b), Σ w a·b),   a, b: horizontal parts of the centred pairs
 
-**Co-visible chunk pairs** (:func:`register_covisible`, what the pipeline uses).  A reverse
+**Co-visible chunk pairs** (:func:`register_covisible`; the pipeline runs its steps batched).  A reverse
 revisit's chunks at the same place look away from each other; the pairs that share structure
 are the ones facing each other across a stretch, and the odometry chain's prior between them is
 good in yaw (≤ 2° on synthetic KITTI 08) but 8–30 camera heights off in translation.  With
@@ -52,12 +52,31 @@ the prior ``(ψ, σ, τ)`` (:func:`edge_prior`, normalised frames ``q = Bᵀ(x �
 structure clouds are rasterised (:func:`bev_raster`) and correlated by FFT over translations
 for a few yaws ``ψ ± yaw_search`` and scales ``σ e^{±scale_search}``; the ``peaks`` best
 translations within ``window`` of ``τ`` (:func:`bev_starts`) are refined by the Sim(3) ICP
-and scored by their structure inliers ``n``.  Verdict (:func:`covisible_reason`): ``n`` above
-the null's bound (the same source registered onto unrelated chunks from the same prior), an
-ambiguity ``n_alt / n`` (best placement more than ``peak_separation`` away) at most
-``max_ambiguity`` (a street slid along itself keeps its façades), and the scale ratio.
-Failure modes: a straight street with regular façades (ambiguous), a chain more than
-``max_window`` off, chunks of very different structure density (the null's spread grows).
+(:func:`peak_icp`) and scored by their structure inliers ``n_k``.  Verdict
+(:func:`covisible_reason`): the best ``n`` above the null's bound ``θ`` (the same source
+registered onto unrelated chunks, :func:`swiftjax.loops.null.null_threshold`), then the best
+placement refined on all points (:func:`refine_placement`): scale ratio, structure, residual.
+
+**A street slid along itself** is a 1-D degeneracy, not a wrong answer: several placements
+``P = {k : n_k > θ}`` (each explained by no unrelated chunk) lie along the street.  Instead
+of rejecting the edge, its covariance gets their spread (:func:`placement_spread`)::
+
+    δ_k = log(S_best⁻¹ S_k),   Σ_P = Σ_{k ∈ P} δ_k δ_kᵀ / |P|,   Ω = (Ω_reg⁻¹ + Σ_P)⁻¹
+
+(``Ω_reg``: the registration's own information from its residuals,
+:func:`swiftjax.align.covariance.umeyama_information`).  ``Σ_P`` is large along the slide and
+zero across it, in yaw and in scale: the loop edge constrains only the well-determined
+directions.  Nothing is read off a route: ``θ`` comes from the null at ``null_false_alarm``.
+
+**Cost** (the pipeline, :mod:`swiftjax.pipeline.loop_geometry`): each chunk's structure cloud
+and bird's-eye spectrum once (:func:`bev_spectrum`); fixed-size ``vmap`` batches of jobs
+(:func:`starts_batch`, :func:`peaks_batch`, :func:`refine_batch`), one compile per (chunk
+count, options); one null per source chunk, stopped early where exact; the refinement and the
+dense test only above the null.
+
+Failure modes: a chain more than ``max_window`` off, chunks of very different structure
+density (the null's spread grows), reverse views of little shared structure (the structure
+count stays within the null's spread: most reverse pairs on synthetic KITTI 08).
 
 Pure, jit-compiled, static shapes, ``vmap`` over chunks; one compile per (frames per chunk,
 image size, :class:`GeometryOptions`).
@@ -73,7 +92,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import ArrayLike, Bool, Float, Int, Key, UInt32
+from jaxtyping import ArrayLike, Bool, Complex, Float, Int, Key, UInt32
 
 from swiftjax import align, camera, sim3, so3
 from swiftjax.align.mask import frame_conf_mean
@@ -100,7 +119,16 @@ __all__ = [
     "structure_cloud",
     "edge_prior",
     "bev_raster",
+    "bev_spectrum",
     "bev_starts",
+    "Placements",
+    "peak_icp",
+    "place_covisible",
+    "starts_batch",
+    "peaks_batch",
+    "refine_placement",
+    "refine_batch",
+    "placement_spread",
     "Covisible",
     "register_covisible",
     "covisible_reason",
@@ -377,12 +405,14 @@ class Registration(NamedTuple):
 
 def _nearest(y: Array, dst: Array, w_dst: Array) -> tuple[Array, Array]:
     """Brute-force nearest neighbour of each ``y [P, 3]`` among the ``dst [Q, 3]`` with weight:
-    ``(index [P], distance [P])``."""
-    d2 = jnp.sum(y * y, -1)[:, None] - 2.0 * y @ dst.T + jnp.sum(dst * dst, -1)[None, :]
+    ``(index [P], distance [P])``.
+
+    ``d²_pq = Σ_c (y_pc − x_qc)²`` coordinate by coordinate: one fused elementwise pass and
+    reduction over ``[P, Q]`` (no ``[P, Q, 3]`` intermediate, no rank-3 matrix product, whose
+    ``|y|² − 2 y·x + |x|²`` also cancels in float32); 2.8x faster on CPU than the product form."""
+    d2 = (y[:, 0:1] - dst[None, :, 0]) ** 2 + (y[:, 1:2] - dst[None, :, 1]) ** 2 + (y[:, 2:3] - dst[None, :, 2]) ** 2
     d2 = jnp.where(w_dst[None, :] > 0, d2, jnp.inf)
-    k = jnp.argmin(d2, -1)
-    diff = y - dst[k]
-    return k, jnp.sqrt(jnp.sum(diff * diff, -1))
+    return jnp.argmin(d2, -1), jnp.sqrt(jnp.min(d2, -1))
 
 
 def _yaw_step(y: Array, z: Array, w: Array, up: Array) -> tuple[Array, Array]:
@@ -740,6 +770,20 @@ def _start(a: ChunkCloud, b: ChunkCloud, psi: Array, sigma: Array, t: Array) -> 
     return sim3.from_rst(R, tt, s)
 
 
+def bev_spectrum(b: ChunkCloud, options: GeometryOptions) -> Complex[Array, "C C2"]:
+    """``F(D_b)``: the 2-D real FFT ``[bev_cells, bev_cells // 2 + 1]`` of chunk ``b``'s
+    bird's-eye structure raster (:func:`bev_raster` in its normalised gravity frame
+    ``q = Bᵀ(x − o)/h``, dilated by one cell, ``D ← max(D, shifts of D by ±1 cell)``).  It
+    depends on ``b`` alone: computed once per chunk and reused by every pair it is the target
+    of (:func:`bev_starts`).  Pure; vmap it over chunks."""
+    n, c = options.bev_cells, options.bev_cell
+    qb = (b.points - b.origin) @ b.basis / b.height
+    D = bev_raster(qb[:, :2], b.weights, n, c)
+    for ax in (0, 1):
+        D = jnp.maximum(D, jnp.maximum(jnp.roll(D, 1, ax), jnp.roll(D, -1, ax)))
+    return jnp.fft.rfft2(D)
+
+
 def bev_starts(
     a: ChunkCloud,
     b: ChunkCloud,
@@ -748,23 +792,22 @@ def bev_starts(
     tau: Float[ArrayLike, "2"],
     window: Float[ArrayLike, ""],
     options: GeometryOptions,
+    spectrum: Complex[ArrayLike, "C C2"] | None = None,
 ) -> tuple[Float[Array, "K 8"], Float[Array, " K"]]:
     """The ``peaks`` best placements of ``a`` on ``b``: ``(S0 [peaks, 8], correlation [peaks])``.
 
-    Both clouds are rasterised (:func:`bev_raster`, ``b``'s dilated by one cell) in their
-    normalised gravity frames; for every yaw ``ψ + δψ`` (``yaw_steps`` over ``±yaw_search``°)
-    and scale ``σ e^{δ}`` (``scale_steps`` over ``±scale_search``) the cross-correlation over
-    translations is one FFT, ``C(τ') = F⁻¹[F(D_b) · conj F(D_a)]``.  Over the translations with
-    ``|τ' − τ| <= window`` (the odometry's uncertainty) the best (yaw, scale) per translation is
-    taken and ``peaks`` maxima at least ``peak_separation`` apart are returned, in order.  Pure.
+    ``a``'s structure is rasterised (:func:`bev_raster`) in its normalised gravity frame for
+    every yaw ``ψ + δψ`` (``yaw_steps`` over ``±yaw_search``°) and scale ``σ e^{δ}``
+    (``scale_steps`` over ``±scale_search``); the cross-correlation with ``b``'s dilated raster
+    ``D_b`` over translations is one FFT, ``C(τ') = F⁻¹[F(D_b) · conj F(D_a)]`` (``spectrum``:
+    ``F(D_b)`` from :func:`bev_spectrum`, computed here when None).  Over the translations with
+    ``|τ' − τ| <= window`` (the odometry's uncertainty) the best (yaw, scale) per translation
+    is taken and ``peaks`` maxima at least ``peak_separation`` apart are returned, in order.
+    Pure.
     """
     n, c = options.bev_cells, options.bev_cell
     qa = (a.points - a.origin) @ a.basis / a.height
-    qb = (b.points - b.origin) @ b.basis / b.height
-    D = bev_raster(qb[:, :2], b.weights, n, c)
-    for ax in (0, 1):
-        D = jnp.maximum(D, jnp.maximum(jnp.roll(D, 1, ax), jnp.roll(D, -1, ax)))
-    FD = jnp.fft.rfft2(D)
+    FD = bev_spectrum(b, options) if spectrum is None else jnp.asarray(spectrum)
     lin = lambda half, k: jnp.linspace(-half, half, k) if k > 1 else jnp.zeros(1)
     dy, ds = jnp.meshgrid(
         jnp.deg2rad(lin(options.yaw_search, options.yaw_steps)),
@@ -797,45 +840,38 @@ def bev_starts(
     return S0, jnp.stack(vals)
 
 
-class Covisible(NamedTuple):
-    """Result of :func:`register_covisible` (batch axes ``[...]`` in front).
+class Placements(NamedTuple):
+    """The refined placements of one source on one target (:func:`place_covisible`; batch axes
+    ``[...]`` in front).
 
     Attributes:
-        registration: :class:`Registration` of the best placement (``scale_ratio`` against the
-            prior's scale ``σ h_b / h_a``).
-        ambiguity: structure inliers of the best placement more than ``peak_separation``
-            camera heights away from it, over the best's (a street slid along itself).
-        scores: ``[peaks]`` structure inliers of every refined placement.
+        S: ``[..., K, 8]`` each correlation peak after the peak ICP (Sim(3), ``a`` into ``b``).
+        scores: ``[..., K]`` int32 structure inliers of each (−1: an invalid solve or a peak
+            outside the window).
+        correlation: ``[..., K]`` the bird's-eye correlation at the peaks (overlapping cells).
     """
 
-    registration: Registration
-    ambiguity: Array
+    S: Array
     scores: Array
+    correlation: Array
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
-def register_covisible(
+def peak_icp(
     a: ChunkCloud,
     b: ChunkCloud,
-    psi: Float[ArrayLike, ""],
-    sigma: Float[ArrayLike, ""],
-    tau: Float[ArrayLike, "2"],
-    window: Float[ArrayLike, ""],
+    S0: Float[ArrayLike, "K 8"],
+    correlation: Float[ArrayLike, " K"],
     options: GeometryOptions = GeometryOptions(),
-) -> Covisible:
-    """Register chunk ``a``'s structure onto chunk ``b``'s from a prior ``(ψ, σ, τ)``
-    (:func:`edge_prior` of the odometry chain) searched within ``window`` camera heights.
-
-    :func:`bev_starts` gives ``peaks`` placements; each is refined by the robust Sim(3) ICP
-    (:func:`register`, ``coarse_iterations``, ``τ: tau_start → tau_end``) on the first
-    ``peak_src_points`` / ``peak_dst_points`` rows, scored by its structure inliers; the best is
-    refined again on all rows (``refine_iterations``, ``coarse_tau_end → tau_end``).  Pure; vmap it
-    over ``b`` (the null chunks) with ``in_axes``.  Recompiles per shapes and ``options``.
-    """
+) -> Placements:
+    """:class:`Placements` from the starts ``S0`` of :func:`bev_starts`: each refined by the
+    robust Sim(3) ICP (:func:`register`, ``coarse_iterations``, ``τ: tau_start → tau_end``) on
+    the first ``peak_src_points`` / ``peak_dst_points`` rows and scored by its structure
+    inliers ``n_k``; a peak that overlaps no cell (``correlation < 1/2``: the correlation
+    counts overlapping cells) is no placement (−1).  Cost: ``peaks x coarse_iterations``
+    brute-force nearest-neighbour passes of ``peak_src_points x peak_dst_points``.  Pure."""
     o = options
     up = b.basis[:, 2]
     ground = up @ b.origin - b.height
-    S0, _ = bev_starts(a, b, psi, sigma, tau, window, o)
     ps, pd = o.peak_src_points, o.peak_dst_points
 
     def refine(s0):
@@ -854,26 +890,95 @@ def register_covisible(
             iterations=o.coarse_iterations,
         )
 
-    regs = jax.vmap(refine)(S0)
-    scores = jnp.where(regs.valid, regs.num_structure, -1)
-    k = jnp.argmax(scores)
-    Sk = regs.S[k]
-    probe = a.points[:64]
-    here = sim3.act(Sk, probe)
-    moved = jax.vmap(
-        lambda S: jnp.sqrt(
-            jnp.sum(a.weights[:64] * jnp.sum((sim3.act(S, probe) - here) ** 2, -1))
-            / jnp.maximum(jnp.sum(a.weights[:64]), 1.0)
-        )
-    )(regs.S)
-    far = moved > o.peak_separation * b.height
-    alt = jnp.max(jnp.where(far, scores, 0))
+    corr = jnp.asarray(correlation)
+    regs = jax.vmap(refine)(jnp.asarray(S0))
+    ok = regs.valid & (corr >= 0.5) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
+    return Placements(regs.S, jnp.where(ok, regs.num_structure, -1).astype(jnp.int32), corr)
+
+
+def place_covisible(
+    a: ChunkCloud,
+    b: ChunkCloud,
+    psi: Float[ArrayLike, ""],
+    sigma: Float[ArrayLike, ""],
+    tau: Float[ArrayLike, "2"],
+    window: Float[ArrayLike, ""],
+    options: GeometryOptions = GeometryOptions(),
+    spectrum: Complex[ArrayLike, "C C2"] | None = None,
+) -> Placements:
+    """:class:`Placements` of ``a`` on ``b`` from the prior ``(ψ, σ, τ)`` within ``window``
+    camera heights: :func:`bev_starts` then :func:`peak_icp`.  Pure."""
+    S0, corr = bev_starts(a, b, psi, sigma, tau, window, options, spectrum)
+    return peak_icp(a, b, S0, corr, options)
+
+
+def _take(clouds: ChunkCloud, index: Array) -> ChunkCloud:
+    return jax.tree_util.tree_map(lambda x: x[index], clouds)
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def starts_batch(
+    clouds: ChunkCloud,
+    spectra: Complex[ArrayLike, "T C C2"],
+    src: Int[ArrayLike, " B"],
+    dst: Int[ArrayLike, " B"],
+    psi: Float[ArrayLike, " B"],
+    sigma: Float[ArrayLike, " B"],
+    tau: Float[ArrayLike, "B 2"],
+    window: Float[ArrayLike, " B"],
+    options: GeometryOptions = GeometryOptions(),
+) -> tuple[Float[Array, "B K 8"], Float[Array, "B K"]]:
+    """:func:`bev_starts` of ``B`` jobs at once (``vmap``): chunk ``src[k]`` (of the stacked
+    ``clouds [T, ...]``) onto chunk ``dst[k]`` (its spectrum ``spectra[dst[k]]``, from
+    :func:`bev_spectrum`) from the prior ``(psi, sigma, tau, window)[k]``.  One compile per
+    ``(T, B, options)``: the caller pads its jobs to a multiple of ``B``."""
+    sp = jnp.asarray(spectra)
+
+    def one(i, j, p, s, t, w):
+        return bev_starts(_take(clouds, i), _take(clouds, j), p, s, t, w, options, sp[j])
+
+    return jax.vmap(one)(
+        jnp.asarray(src), jnp.asarray(dst), jnp.asarray(psi), jnp.asarray(sigma), jnp.asarray(tau), jnp.asarray(window)
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def peaks_batch(
+    clouds: ChunkCloud,
+    src: Int[ArrayLike, " B"],
+    dst: Int[ArrayLike, " B"],
+    S0: Float[ArrayLike, "B K 8"],
+    correlation: Float[ArrayLike, "B K"],
+    options: GeometryOptions = GeometryOptions(),
+) -> Placements:
+    """:func:`peak_icp` of ``B`` jobs at once (``vmap``).  One compile per ``(T, B, options)``."""
+
+    def one(i, j, s, c):
+        return peak_icp(_take(clouds, i), _take(clouds, j), s, c, options)
+
+    return jax.vmap(one)(jnp.asarray(src), jnp.asarray(dst), jnp.asarray(S0), jnp.asarray(correlation))
+
+
+def refine_placement(
+    a: ChunkCloud,
+    b: ChunkCloud,
+    S: Float[ArrayLike, "8"],
+    prior_scale: Float[ArrayLike, ""],
+    options: GeometryOptions = GeometryOptions(),
+) -> Registration:
+    """The chosen placement ``S`` refined on all rows (:func:`register`, ``src_points x
+    dst_points``, ``refine_iterations``, ``τ: coarse_tau_end → tau_end``); ``scale_ratio``
+    against ``prior_scale`` (the chain's ``σ h_b / h_a``), ``S`` the identity when invalid.
+    Pure."""
+    o = options
+    up = b.basis[:, 2]
+    ground = up @ b.origin - b.height
     reg = register(
         a.points[: o.src_points],
         a.weights[: o.src_points],
         b.points,
         b.weights,
-        Sk,
+        S,
         b.height,
         up,
         ground,
@@ -882,35 +987,140 @@ def register_covisible(
         o.ground_band,
         iterations=o.refine_iterations,
     )
+    ok = reg.valid & jnp.all(jnp.isfinite(jnp.asarray(S))) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
+    return reg._replace(
+        S=jnp.where(ok, reg.S, sim3.identity()),
+        scale_ratio=sim3.scale(reg.S) / jnp.asarray(prior_scale, jnp.float32),
+        valid=ok,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def refine_batch(
+    clouds: ChunkCloud,
+    src: Int[ArrayLike, " B"],
+    dst: Int[ArrayLike, " B"],
+    S: Float[ArrayLike, "B 8"],
+    prior_scale: Float[ArrayLike, " B"],
+    options: GeometryOptions = GeometryOptions(),
+) -> Registration:
+    """:func:`refine_placement` of ``B`` jobs at once (``vmap``, chunks gathered from the
+    stacked ``clouds [T, ...]``).  One compile per ``(T, B, options)``.  ``[B, ...]``."""
+
+    def one(i, j, s, p):
+        return refine_placement(_take(clouds, i), _take(clouds, j), s, p, options)
+
+    return jax.vmap(one)(jnp.asarray(src), jnp.asarray(dst), jnp.asarray(S), jnp.asarray(prior_scale))
+
+
+def placement_spread(
+    S: Float[ArrayLike, "K 8"], plausible: Bool[ArrayLike, " K"], best: Int[ArrayLike, ""]
+) -> Float[Array, "7 7"]:
+    """The covariance ``[7, 7]`` of the edge over its plausible placements (tangent order
+    ``(ρ, ω, σ)``, right perturbation of ``S[best]`` as in :mod:`swiftjax.align.covariance`)::
+
+        δ_k = log(S_best⁻¹ S_k),   Σ_P = Σ_{k ∈ P} δ_k δ_kᵀ / |P|
+
+    ``P``: the placements whose structure inliers exceed what the source reaches on unrelated
+    chunks (the null's bound), the best among them.  With the true edge equally likely to be
+    any plausible placement, ``Σ_P`` is its second moment about the chosen one.  A street slid
+    along itself gives placements on a line: ``Σ_P`` has rank one, large along the street and
+    zero across it, in yaw and in scale; the registration's own covariance (its residuals) is
+    added to it (:func:`swiftjax.pipeline.loop_geometry.edge_information`).  Zeros when only
+    the best is plausible.  Pure."""
+    S = jnp.asarray(S, jnp.float32)
+    d = sim3.log(sim3.compose(sim3.inverse(S[best])[None], S))  # [K, 7]
+    d = d.at[best].set(0.0)  # δ_best = 0 exactly (not log's rounding)
+    w = jnp.asarray(plausible).astype(jnp.float32)
+    d = jnp.where((w > 0)[:, None] & jnp.all(jnp.isfinite(d), -1, keepdims=True), d, 0.0)
+    return jnp.einsum("k,ki,kj->ij", w, d, d) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _ambiguity(pl: Placements, best: Array, separation: Array, probe: Array, w_probe: Array) -> Array:
+    """The structure inliers of the best placement more than ``separation`` (chunk-``b`` units,
+    RMS over the probe points) away from ``S[best]``, over the best's."""
+    here = sim3.act(pl.S[best], probe)
+    moved = jax.vmap(
+        lambda S: jnp.sqrt(
+            jnp.sum(w_probe * jnp.sum((sim3.act(S, probe) - here) ** 2, -1)) / jnp.maximum(jnp.sum(w_probe), 1.0)
+        )
+    )(pl.S)
+    alt = jnp.max(jnp.where(moved > separation, pl.scores, 0))
+    return alt / jnp.maximum(pl.scores[best], 1).astype(jnp.float32)
+
+
+class Covisible(NamedTuple):
+    """Result of :func:`register_covisible` (batch axes ``[...]`` in front).
+
+    Attributes:
+        registration: :class:`Registration` of the best placement (``scale_ratio`` against the
+            prior's scale ``σ h_b / h_a``).
+        ambiguity: structure inliers of the best placement more than ``peak_separation``
+            camera heights away from it, over the best's (a street slid along itself).
+        scores: ``[peaks]`` structure inliers of every refined placement.
+        placements: ``[peaks, 8]`` the placements (:class:`Placements`).
+    """
+
+    registration: Registration
+    ambiguity: Array
+    scores: Array
+    placements: Array
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def register_covisible(
+    a: ChunkCloud,
+    b: ChunkCloud,
+    psi: Float[ArrayLike, ""],
+    sigma: Float[ArrayLike, ""],
+    tau: Float[ArrayLike, "2"],
+    window: Float[ArrayLike, ""],
+    options: GeometryOptions = GeometryOptions(),
+) -> Covisible:
+    """Register chunk ``a``'s structure onto chunk ``b``'s from a prior ``(ψ, σ, τ)``
+    (:func:`edge_prior` of the odometry chain) searched within ``window`` camera heights: the
+    placements of :func:`place_covisible`, the best (most structure inliers) refined on all
+    rows (:func:`refine_placement`).  The pipeline runs the two steps separately, batched
+    (:func:`starts_batch`, :func:`peaks_batch`, :func:`refine_batch`), refining only the candidates that pass the
+    null.  Pure."""
+    pl = place_covisible(a, b, psi, sigma, tau, window, options)
+    k = jnp.argmax(pl.scores)
+    amb = _ambiguity(pl, k, options.peak_separation * b.height, a.points[:64], a.weights[:64])
     prior_scale = jnp.asarray(sigma, jnp.float32) * b.height / a.height
-    ok = reg.valid & (scores[k] >= 0) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
-    reg = reg._replace(S=jnp.where(ok, reg.S, sim3.identity()), scale_ratio=sim3.scale(reg.S) / prior_scale, valid=ok)
-    return Covisible(reg, alt / jnp.maximum(scores[k], 1).astype(jnp.float32), scores)
+    reg = refine_placement(a, b, pl.S[k], prior_scale, options)
+    reg = reg._replace(valid=reg.valid & (pl.scores[k] >= 0))
+    reg = reg._replace(S=jnp.where(reg.valid, reg.S, sim3.identity()))
+    return Covisible(reg, amb, pl.scores, pl.S)
 
 
 def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
-    """Why the numbers of a :func:`register_covisible` result (plain floats, with
-    ``ambiguity`` and ``null_threshold``, None when not computable: the structure inliers the same source reaches on
-    unrelated chunks at false-alarm rate ``null_false_alarm``) reject the candidate, in one
-    line, or ``None``."""
-    why = _placement_reason(
-        reg, options, "no valid placement, an Umeyama solve degenerate or not finite", scale_of="the odometry's"
-    )
-    if why is not None:
-        return why
-    if not reg["ambiguity"] <= options.max_ambiguity:
-        return (
-            f"ambiguous registration: a placement {options.peak_separation:g} camera heights away keeps "
-            f"{reg['ambiguity']:.2f} of the structure inliers > {options.max_ambiguity}"
-        )
+    """Why a co-visible registration's numbers reject the candidate, in one line, or ``None``.
+
+    ``reg`` (plain floats): ``peak_score``, the best placement's structure inliers
+    (:class:`Placements`, −1 when none is valid); ``null_threshold``, the bound those reach on
+    unrelated chunks at false-alarm rate ``null_false_alarm`` (None when not computable); and,
+    when the candidate passed those two tests, the refined :class:`Registration`'s numbers
+    (``valid``, ``scale_ratio``, ``num_structure``, ``spread``, ``rms``).  A second plausible
+    placement does not reject the candidate: it widens the edge's covariance
+    (:func:`placement_spread`).
+    """
+    if not reg["peak_score"] >= 0:
+        return "registration failed (no valid placement: every peak's Umeyama solve degenerate or not finite)"
     th = reg.get("null_threshold")
     if th is None or not math.isfinite(th):
         return "registration null not computable (fewer than three unrelated chunks)"
-    if not reg["num_structure"] > th:
+    if not reg["peak_score"] > th:
         return (
-            f"no more structure inliers than against unrelated chunks: {reg['num_structure']} <= "
+            f"no more structure inliers than against unrelated chunks: {reg['peak_score']} <= "
             f"{th:.0f} (false-alarm rate {options.null_false_alarm:g})"
         )
+    if "valid" not in reg:
+        return None
+    why = _placement_reason(
+        reg, options, "the refinement's Umeyama solve degenerate or not finite", scale_of="the odometry's"
+    )
+    if why is not None:
+        return why
     if not reg["rms"] <= options.max_rms:
         return f"registration residual {reg['rms']:.3f} camera heights > {options.max_rms}"
     return None

@@ -342,7 +342,6 @@ class GeometryOptions:
     peak_src_points: int = option(256, "co-visible search: source points refined per peak", low=1)
     peak_dst_points: int = option(1024, "co-visible search: target points refined per peak", low=1)
     refine_iterations: int = option(6, "co-visible search: ICP iterations of the best placement on all rows", low=1)
-    max_ambiguity: float = option(0.7, "verdict: second placement's structure inliers / the best's", low=0.0, high=1.0)
     null_chunks: int = option(8, "verdict: unrelated chunks the source is also registered against", low=3)
     null_false_alarm: float = option(
         1e-2, "verdict: false-alarm rate of the registration null", low=0.0, high=1.0, low_open=True, high_open=True

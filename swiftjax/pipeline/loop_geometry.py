@@ -2,29 +2,46 @@
 
 Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 ``loop_geometry = true``: every temporal chunk's reliable points (``frame_stride``-th frames read
-back from the chunk store, memory-mapped) become :func:`swiftjax.loops.geometric.chunk_descriptors`
-(in fixed batches of :data:`BATCH` chunks) and a structure cloud
-(:func:`swiftjax.loops.geometric.structure_cloud`).  The candidates are the chunk pairs that
-the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between them)`` of
-each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a reverse pass
-the chunks that share structure are the ones whose cameras face each other across a stretch,
-one or two chunks off the closest frames, so every gated pair is tried, not only the closest
-(docs/performance/reverse-revisits.md).  Each is registered from the chain's prior
-(:func:`swiftjax.loops.geometric.register_covisible`: bird's-eye FFT search within the gate,
-Sim(3) ICP per peak) and, in the same batch, against ``null_chunks`` unrelated chunks
-(:func:`_null_chunks`) from the same prior; a candidate must keep more structure inliers than
-the null's prediction bound (:func:`swiftjax.loops.null.null_threshold` at
-``null_false_alarm``), no second placement ``peak_separation`` away may keep more than
-``max_ambiguity`` of them, and the scale must agree with the chain's
-(:func:`swiftjax.loops.geometric.covisible_reason`, one-line reasons).  Survivors go through the
-cross-chunk dense test over all frame pairs of the two chunks and pairwise consistency with every
-other candidate, like the token candidates.  No loop-centric chunk is predicted.
+back from the chunk store, memory-mapped) become its gravity frame and reliable points
+(:func:`geometries`, fixed batches of :data:`BATCH` chunks), a structure cloud
+(:func:`swiftjax.loops.geometric.structure_cloud`) and a bird's-eye spectrum
+(:func:`swiftjax.loops.geometric.bev_spectrum`), once per chunk.  The candidates are the chunk
+pairs that the dead-reckoned chain places within ``max(gate_min h, gate_drift x path between
+them)`` of each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a
+reverse pass the chunks that share structure are the ones whose cameras face each other across
+a stretch, one or two chunks off the closest frames, so every gated pair is tried, not only the
+closest (docs/performance/reverse-revisits.md).
+
+Work, in fixed-size batches (:data:`JOB_BATCH`, :data:`PEAK_BATCH`, :data:`REFINE_BATCH`; the
+last of each padded, so one compile per chunk count and options):
+
+1. one placement job per candidate from the chain's prior (bird's-eye FFT search within the
+   gate, Sim(3) ICP per peak: :func:`swiftjax.loops.geometric.starts_batch`,
+   :func:`~swiftjax.loops.geometric.peaks_batch`);
+2. the null, ONE per source chunk ``c_i`` shared by all its candidates: ``c_i`` placed on
+   ``null_chunks`` unrelated chunks (:func:`_null_chunks`) from ``ψ = kπ, σ = 1, τ = 0`` (streets
+   laid along streets, both ways) within the largest window of its candidates; run in rounds
+   and stopped once every candidate of the source is at or below a null sample (exact,
+   :func:`_null_settled`); the bound is :func:`swiftjax.loops.null.null_threshold` at
+   ``null_false_alarm`` on the best placements' structure inliers;
+3. for the candidates above it, the best placement refined on all points
+   (:func:`~swiftjax.loops.geometric.refine_batch`); the scale must agree with the chain's and
+   the structure must not be degenerate (:func:`swiftjax.loops.geometric.covisible_reason`,
+   one-line reasons).  Every placement above the bound is plausible; their spread widens the
+   edge's covariance (:func:`~swiftjax.loops.geometric.placement_spread`) instead of rejecting
+   an edge along a straight street.
+
+Survivors go through the cross-chunk dense test over the frame pairs of every other loaded frame
+of the two chunks and pairwise consistency with every other candidate, like the token
+candidates.  No loop-centric chunk is predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
-(``registration.*``: inlier ratio, RMS in camera heights, scale ratio, spread, ambiguity, the
-null's mean and bound); the accepted edge's information comes from the registration's own
-residuals (:func:`swiftjax.align.covariance.umeyama_information` on its inliers).  The records
-are recomputed on every run (nothing is cached in the manifest).
+(``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
+bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
+spread, the slide in camera heights); the accepted edge's information comes from the
+registration's own residuals widened by the plausible placements' spread
+(:func:`edge_information`).  The records are recomputed on every run (nothing is cached in the
+manifest).
 """
 
 from __future__ import annotations
@@ -43,9 +60,9 @@ from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
 
-__all__ = ["BATCH", "descriptors", "candidates", "edge_information"]
+__all__ = ["BATCH", "JOB_BATCH", "PEAK_BATCH", "REFINE_BATCH", "geometries", "candidates", "edge_information"]
 
-#: Chunks per call of :func:`swiftjax.loops.geometric.chunk_descriptors` (the last batch padded).
+#: Chunks per call of :func:`geometries`' jitted :func:`swiftjax.loops.geometric.chunk_frame` (the last batch padded).
 BATCH = 8
 
 
@@ -66,19 +83,26 @@ def _frames(ctx: RunContext, c: int, options: geo.GeometryOptions) -> tuple[alig
     ]
 
 
-def descriptors(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
-    """``(ChunkDescriptors [T, ...], global frame ids [T, F])`` of every chunk."""
+@functools.partial(jax.jit, static_argnames=("options",))
+def _geometry(frames: align.ChunkFrames, K_ref: jax.Array, options: geo.GeometryOptions) -> geo.ChunkGeometry:
+    return jax.vmap(lambda f: geo.chunk_frame(f, K_ref, options))(frames)
+
+
+def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
+    """``(ChunkGeometry [T, ...], global frame ids [T, F])`` of every chunk
+    (:func:`swiftjax.loops.geometric.chunk_frame`; the polar grids of
+    :func:`~swiftjax.loops.geometric.chunk_descriptors` are not needed by the co-visible search)."""
     T = ctx.schedule.num_chunks
     parts, ids = [], []
     for b0 in range(0, T, BATCH):
-        chunk_ids = [min(c, T - 1) for c in range(b0, b0 + BATCH)]
-        loaded = [_frames(ctx, c, options) for c in chunk_ids]
+        loaded = [_frames(ctx, min(c, T - 1), options) for c in range(b0, b0 + BATCH)]
         stack = align.ChunkFrames(*(np.stack(x) for x in zip(*(f for f, _ in loaded))))
-        d = geo.chunk_descriptors(stack, K_ref, options)
         n = min(BATCH, T - b0)
-        parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], d))
+        parts.append(
+            jax.tree_util.tree_map(lambda a: a[:n], _geometry(stack, jnp.asarray(K_ref, jnp.float32), options))
+        )
         ids += [f for _, f in loaded[:n]]
-    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts), np.stack(ids)
 
 
 def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int, options: geo.GeometryOptions):
@@ -106,22 +130,42 @@ def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int,
     return out
 
 
-@functools.lru_cache(maxsize=4)
-def _batched(options: geo.GeometryOptions):
-    """:func:`swiftjax.loops.geometric.register_covisible` of one source against a batch of
-    targets (the candidate and its null chunks), jitted once per options."""
-    return jax.jit(
-        jax.vmap(functools.partial(geo.register_covisible, options=options), in_axes=(None, 0, None, None, 0, None))
-    )
+#: Placement jobs per call of :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch` (the last call padded).
+JOB_BATCH = 16
+#: Placement jobs per call of :func:`swiftjax.loops.geometric.peaks_batch` (smaller: its
+#: ``[B, peaks, P, Q]`` distance matrices stay in cache; 30 % less time per job than 16 on CPU).
+PEAK_BATCH = 4
+#: Refinements per call of :func:`swiftjax.loops.geometric.refine_batch` (the last call padded).
+REFINE_BATCH = 4
 
 
-def _null_chunks(ci: int, cj: int, T: int, near: set[tuple[int, int]], k: int) -> list[int]:
-    """``k`` chunks evenly spread over those more than 3 chunks from ``c_i`` and ``c_j`` and not
-    paired with ``c_i`` by the gate: streets the source cannot be on."""
-    pool = [c for c in range(T) if abs(c - ci) > 3 and abs(c - cj) > 3 and (max(c, ci), min(c, ci)) not in near]
+def _null_chunks(ci: int, partners: set[int], T: int, near: set[tuple[int, int]], k: int) -> list[int]:
+    """``k`` chunks evenly spread over those more than 3 chunks from ``c_i`` and from every
+    chunk it is gated with (``partners``), and not paired with ``c_i`` by the gate: streets the
+    source cannot be on."""
+    far = lambda c: abs(c - ci) > 3 and all(abs(c - p) > 3 for p in partners)
+    pool = [c for c in range(T) if far(c) and (max(c, ci), min(c, ci)) not in near]
     if len(pool) < k:
         return pool
     return [pool[int(round(x))] for x in np.linspace(0, len(pool) - 1, k)]
+
+
+def _batches(n: int, size: int) -> list[np.ndarray]:
+    """Index arrays of ``ceil(n / size)`` batches of ``size``, the last padded with its last index."""
+    out = []
+    for b0 in range(0, n, size):
+        idx = np.arange(b0, min(b0 + size, n))
+        out.append(np.concatenate([idx, np.repeat(idx[-1:], size - len(idx))]))
+    return out
+
+
+def _run_batched(fn, n: int, size: int, arrays: tuple[np.ndarray, ...], *static) -> Any:
+    """``fn(*static, *(a[idx] for a in arrays))`` over fixed-size batches, concatenated, ``[n, ...]``."""
+    parts = []
+    for idx in _batches(n, size):
+        out = fn(*static[:-1], *(jnp.asarray(a[idx]) for a in arrays), static[-1])
+        parts.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: min(size, n - int(idx[0]))], out))
+    return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
 
 
 def candidates(
@@ -136,81 +180,235 @@ def candidates(
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
     set when its registration rejects it, else ready for :func:`verify_candidates`.
     ``chain [T, 8]``: the dead-reckoned chunk poses (the prior of every registration; without
-    it no candidate is proposed)."""
+    it no candidate is proposed).
+
+    Work, all in fixed-shape batches: every chunk's geometry, structure cloud and bird's-eye
+    spectrum once; one placement job (:func:`swiftjax.loops.geometric.starts_batch`, then :func:`~swiftjax.loops.geometric.peaks_batch` where a peak overlaps a cell) per
+    candidate and ``null_chunks`` per SOURCE chunk (its null, shared by all its candidates);
+    the refinement on all points (:func:`swiftjax.loops.geometric.refine_batch`) and the dense
+    test only for the candidates above their null."""
     from swiftjax import sim3
     from swiftjax.loops.null import null_threshold
 
     if chain is None:
         return []
     chain = np.asarray(chain, np.float64)
-    desc, ids = descriptors(ctx, K_ref, options)
-    T = len(ids)
-    g = jax.tree_util.tree_map(jnp.asarray, desc.geometry)
-    keys = jax.random.split(jax.random.PRNGKey(0), T)
-    clouds = jax.vmap(lambda gg, k: geo.structure_cloud(gg, k, options))(g, keys)
-    pairs = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, options)
-    near = {(ci, cj) for ci, cj, _ in pairs}
-    take = lambda c: jax.tree_util.tree_map(lambda a: a[c], clouds)
-    batch = _batched(options)
-    records = []
-    for ci, cj, window in pairs:
-        if (ci, cj) in taken:
-            continue
-        with jax.enable_x64(True):
-            Zc = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(chain[cj])), jnp.asarray(chain[ci])))
-        a, b = take(ci), take(cj)
-        psi, sigma, tau = geo.edge_prior(Zc, a, b)
-        nulls = _null_chunks(ci, cj, T, near, options.null_chunks)
-        dst = [cj, *nulls]
-        taus = jnp.stack([tau] + [jnp.zeros(2, jnp.float32)] * len(nulls))
-        with ctx.timer("loop geometry: registration"):
-            cov = batch(a, take(np.asarray(dst)), psi, sigma, taus, jnp.float32(window))
-        regs = jax.tree_util.tree_map(np.asarray, cov.registration)
-        reg0 = jax.tree_util.tree_map(lambda x: x[0], cov.registration)
-        n_struct = regs.num_structure.astype(np.float64)
-        pts = float(max(regs.num_points[0], 1))
-        null = null_threshold(
-            n_struct[1:] / pts, np.ones(len(nulls)), np.full(len(nulls), pts), options.null_false_alarm, 0.0
+    o = options
+    with ctx.timer("loop geometry: clouds"):
+        g, ids = geometries(ctx, K_ref, o)
+        T = len(ids)
+        clouds, spectra = _clouds(g, jax.random.split(jax.random.PRNGKey(0), T), o)
+    gated = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, o)
+    near = {(ci, cj) for ci, cj, _ in gated}
+    pairs = [(ci, cj, w) for ci, cj, w in gated if (ci, cj) not in taken]
+    if not pairs:
+        return []
+    P = len(pairs)
+    ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
+    win = np.asarray([p[2] for p in pairs], np.float32)
+    with jax.enable_x64(True):
+        Zc = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(chain[cj_])), jnp.asarray(chain[ci_])), np.float32)
+    psi, sigma, tau = (np.asarray(x) for x in _priors(clouds, jnp.asarray(Zc), jnp.asarray(ci_), jnp.asarray(cj_)))
+    # the null: per source chunk, null_chunks unrelated chunks from (ψ = kπ, σ = 1, τ = 0) within
+    # the largest window of its candidates (streets laid along streets, both ways)
+    sources = sorted(set(ci_.tolist()))
+    null_of: dict[int, np.ndarray] = {}
+    jobs = [
+        (int(a), int(b), float(p), float(s), t, float(w)) for a, b, p, s, t, w in zip(ci_, cj_, psi, sigma, tau, win)
+    ]
+    for c in sources:
+        partners = {int(b) for a, b in zip(ci_, cj_) if a == c} | {b for a, b in near if a == c}
+        partners |= {a for a, b in near if b == c}
+        nulls = _null_chunks(c, partners, T, near, o.null_chunks)
+        w = float(win[ci_ == c].max())
+        null_of[c] = np.arange(len(jobs), len(jobs) + len(nulls))
+        jobs += [(c, n, math.pi * (k % 2), 1.0, np.zeros(2, np.float32), w) for k, n in enumerate(nulls)]
+    cols = [np.asarray([j[k] for j in jobs]) for k in range(6)]
+    arrays = (
+        cols[0].astype(np.int32),
+        cols[1].astype(np.int32),
+        cols[2].astype(np.float32),
+        cols[3].astype(np.float32),
+        np.stack(cols[4]).astype(np.float32),
+        cols[5].astype(np.float32),
+    )
+    with ctx.timer("loop geometry: placement"):
+        K = o.peaks
+        pl = geo.Placements(
+            np.zeros((len(jobs), K, 8), np.float32),
+            np.full((len(jobs), K), -1, np.int32),
+            np.zeros((len(jobs), K), np.float32),
         )
+        done = np.zeros(len(jobs), bool)
+
+        def icp(which: np.ndarray) -> None:
+            """Jobs ``which``: the bird's-eye starts, then the peak ICP where some peak overlaps
+            a cell (peak_icp scores the others -1 anyway)."""
+            done[which] = True
+            S0, corr = _run_batched(
+                geo.starts_batch, len(which), JOB_BATCH, tuple(a[which] for a in arrays), clouds, spectra, o
+            )
+            pl.S[which], pl.correlation[which] = S0, corr
+            live = which[corr.max(-1) >= 0.5]
+            if len(live):
+                args = (arrays[0][live], arrays[1][live], pl.S[live], pl.correlation[live])
+                got = _run_batched(geo.peaks_batch, len(live), PEAK_BATCH, args, clouds, o)
+                pl.S[live], pl.scores[live] = got.S, got.scores
+
+        icp(np.arange(P))
+        cand_best = pl.scores[:P].max(-1)
+        # The null's jobs in rounds, one unrelated chunk per source per round, while some
+        # candidate of the source beats every null sample so far: a candidate at or below the
+        # largest sample is below the final bound whatever the other samples (_null_settled).
+        settled = {c: _null_settled(o.null_false_alarm, len(null_of[c])) for c in sources}
+        rest = [null_of[c] for c in sources if not settled[c] and np.any(cand_best[ci_ == c] >= 0)]
+        if rest:
+            icp(np.concatenate(rest))
+        for r in range(o.null_chunks):
+            need = [
+                null_of[c][r]
+                for c in sources
+                if settled[c]
+                and len(null_of[c]) > r
+                and np.any(cand_best[ci_ == c] > pl.scores[null_of[c][:r]].max(initial=-1))
+            ]
+            if not need:
+                break
+            icp(np.asarray(need))
+    best = pl.scores.max(-1).astype(np.float64)  # [J]
+    used = np.asarray(jnp.sum(clouds.weights[:, : o.peak_src_points] > 0, -1), np.float64)  # [T]
+    thresholds = {}
+    for c in sources:
+        ran = null_of[c][done[null_of[c]]]
+        nb = best[ran]
+        pts = max(used[c], 1.0)
+        if len(ran) < len(null_of[c]):  # stopped early: every candidate is at or below a sample
+            thresholds[c] = (float(nb.max(initial=-1)), float(np.mean(nb)) if len(nb) else None, len(nb))
+            continue
+        th = null_threshold(nb / pts, np.ones(len(nb)), np.full(len(nb), pts), o.null_false_alarm, 0.0)
+        thresholds[c] = (
+            th.threshold * pts if math.isfinite(th.threshold) else None,
+            float(np.mean(nb)) if len(nb) else None,
+            len(nb),
+        )
+    records: list[dict[str, Any]] = []
+    survivors = []
+    for k in range(P):
+        ci, cj = int(ci_[k]), int(cj_[k])
+        th, null_mean, null_samples = thresholds[ci]
+        kb = int(np.argmax(pl.scores[k]))
+        plausible = pl.scores[k] > (th if th is not None else np.inf)
         record: dict[str, Any] = {
             "source": "geometry",
             "i": int(ids[ci, len(ids[ci]) // 2]),
             "j": int(ids[cj, len(ids[cj]) // 2]),
-            "score": float(n_struct[0] / pts),
-            "chunk_i": int(ci),
-            "chunk_j": int(cj),
-            "Z": np.asarray(reg0.S, np.float64).tolist(),
+            "score": float(pl.scores[k, kb] / max(used[ci], 1.0)),
+            "chunk_i": ci,
+            "chunk_j": cj,
+            "Z": np.asarray(pl.S[k, kb], np.float64).tolist(),
         }
         record["registration"] = {
-            k: _plain(getattr(reg0, k))
-            for k in (
-                "inlier_ratio",
-                "rms",
-                "scale_ratio",
-                "spread",
-                "num_inliers",
-                "num_structure",
-                "num_points",
-                "valid",
-            )
+            "peak_score": int(pl.scores[k, kb]),
+            "peak_scores": [int(x) for x in pl.scores[k]],
+            "plausible": int(plausible.sum()),
+            "window": float(win[k]),
+            "null_mean": null_mean,
+            "null_threshold": th,
+            "null_samples": null_samples,
+            "yaw_deg": float(np.degrees(psi[k])),
         }
-        record["registration"].update(
-            ambiguity=float(cov.ambiguity[0]),
-            window=float(window),
-            null_mean=float(np.mean(n_struct[1:])) if len(nulls) else None,
-            null_threshold=float(null.threshold * pts) if math.isfinite(null.threshold) else None,
-            yaw_deg=float(np.degrees(psi)),
-        )
-        record["_stats"] = (reg0, float(b.height))
-        why = geo.covisible_reason(record["registration"], options)
-        record.update(quality_valid=why is None, quality_min_fraction=1.0)
-        if why is not None:
-            record.update(accepted=False, reason=why)
-        else:
-            with ctx.timer("loop geometry: verification"):
-                record.update(_dense(ctx, ci, cj, record["Z"], K_ref, options, verification))
         records.append(record)
+        why = geo.covisible_reason(record["registration"], o)
+        if why is not None:
+            record.update(accepted=False, reason=why, quality_valid=False, quality_min_fraction=1.0)
+        else:
+            survivors.append((k, kb, plausible))
+    if survivors:
+        sk = np.asarray([k for k, _, _ in survivors])
+        start = np.stack([pl.S[k, kb] for k, kb, _ in survivors]).astype(np.float32)
+        prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
+            np.float32
+        )
+        with ctx.timer("loop geometry: refinement"):
+            regs = _run_batched(
+                geo.refine_batch,
+                len(sk),
+                REFINE_BATCH,
+                (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
+                clouds,
+                o,
+            )
+            spreads = np.asarray(
+                _spreads(
+                    jnp.asarray(pl.S[sk]),
+                    jnp.asarray(np.stack([p for _, _, p in survivors])),
+                    jnp.asarray([kb for _, kb, _ in survivors]),
+                )
+            )
+        for n, (k, _, _) in enumerate(survivors):
+            record = records[k]
+            reg0 = jax.tree_util.tree_map(lambda x: x[n], regs)
+            ci, cj = int(ci_[k]), int(cj_[k])
+            record["Z"] = np.asarray(reg0.S, np.float64).tolist()
+            record["score"] = float(reg0.num_structure / max(int(reg0.num_points), 1))
+            record["registration"].update(
+                {
+                    key: _plain(getattr(reg0, key))
+                    for key in (
+                        "inlier_ratio",
+                        "rms",
+                        "scale_ratio",
+                        "spread",
+                        "num_inliers",
+                        "num_structure",
+                        "num_points",
+                        "valid",
+                    )
+                }
+            )
+            ev = np.linalg.eigvalsh(spreads[n][:3, :3])
+            record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
+            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n])
+            why = geo.covisible_reason(record["registration"], o)
+            record.update(quality_valid=why is None, quality_min_fraction=1.0)
+            if why is not None:
+                record.update(accepted=False, reason=why)
+            else:
+                with ctx.timer("loop geometry: verification"):
+                    record.update(_dense(ctx, ci, cj, record["Z"], K_ref, o, verification))
     return records
+
+
+def _null_settled(false_alarm: float, k: int) -> bool:
+    """Whether the null may stop early: its bound over ``k`` samples,
+    ``m + t_{k−1}(1 − α) s sqrt(1 + 1/k)`` (:func:`swiftjax.loops.null.null_threshold`, ``s`` the
+    sample standard deviation or more), is at least the largest sample whatever the samples,
+    i.e. ``t_{k−1}(1 − α) sqrt(1 + 1/k) >= (k − 1)/sqrt(k)`` (Samuelson's inequality:
+    ``max_i x_i − m <= s (k − 1)/sqrt(k)``).  Then a candidate at or below some sample is
+    rejected by the complete null, and the remaining null jobs of its source need not run
+    (α = 0.01, k = 8: 3.18 >= 2.47)."""
+    from scipy import stats
+
+    if k < 3:
+        return False
+    return float(stats.t.ppf(1.0 - false_alarm, k - 1)) * math.sqrt(1.0 + 1.0 / k) >= (k - 1) / math.sqrt(k)
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _clouds(geometry: geo.ChunkGeometry, keys: jax.Array, options: geo.GeometryOptions):
+    """Every chunk's :class:`~swiftjax.loops.geometric.ChunkCloud` and bird's-eye spectrum."""
+    clouds = jax.vmap(lambda gg, k: geo.structure_cloud(gg, k, options))(geometry, keys)
+    return clouds, jax.vmap(lambda c: geo.bev_spectrum(c, options))(clouds)
+
+
+@jax.jit
+def _priors(clouds: geo.ChunkCloud, Z: jax.Array, ci: jax.Array, cj: jax.Array):
+    """:func:`swiftjax.loops.geometric.edge_prior` of every pair ``(ψ [P], σ [P], τ [P, 2])``."""
+    take = lambda c: jax.tree_util.tree_map(lambda x: x[c], clouds)
+    return jax.vmap(lambda z, a, b: geo.edge_prior(z, take(a), take(b)))(Z, ci, cj)
+
+
+_spreads = jax.jit(jax.vmap(geo.placement_spread))
 
 
 def _plain(v: Any) -> Any:
@@ -238,11 +436,14 @@ def _dense(
 
 
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
-    """Information ``[7, 7]`` of a registration edge from its own inliers' residuals, or None."""
+    """Information ``[7, 7]`` of a registration edge, or None: ``Ω = (Ω_reg⁻¹ + Σ_P)⁻¹`` with
+    ``Ω_reg`` from its own inliers' residuals (:func:`swiftjax.align.covariance.umeyama_information`)
+    and ``Σ_P`` its plausible placements' spread (:func:`swiftjax.loops.geometric.placement_spread`;
+    ``Ω_reg`` alone when only one placement is plausible)."""
     stats = record.get("_stats")
     if stats is None:
         return None
-    reg, unit = stats
+    reg, unit, slide = stats
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
             np.float64(np.asarray(reg.S)[7]),
@@ -253,4 +454,7 @@ def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
             pixels_per_sample=pixels_per_sample,
         )
         info = np.asarray(out.information, np.float64)
+    if bool(out.valid) and np.any(slide != 0):  # Ω = (Ω_reg⁻¹ + Σ_P)⁻¹ (geometric.placement_spread)
+        info = np.linalg.inv(np.linalg.inv(info) + np.asarray(slide, np.float64))
+        info = 0.5 * (info + info.T)
     return info if bool(out.valid) and np.all(np.isfinite(info)) and not math.isnan(info[0, 0]) else None
