@@ -609,6 +609,7 @@ class Reconstruction:
         are one batch, so the worker keeps up with the drive: the superseded detections and
         solves are not run."""
         started = _now()
+        booked = dict(self._loop_timer.seconds)
         assert self._detector is not None
         ctx, t, _, _, relative, edges = jobs[-1]
         with ctx.timer("loop detection"):
@@ -635,18 +636,27 @@ class Reconstruction:
                         self.candidates.append(record)
             finally:
                 stream.close()
-            loop_closure.decide(ctx, relative, self.candidates)
+            with ctx.timer("loop decision"):
+                loop_closure.decide(ctx, relative, self.candidates)
             accepted = [r for r in self.candidates if r["accepted"]]
             key = tuple((int(r["i"]), int(r["j"])) for r in accepted)
             if key != self._accepted:
                 self._accepted, solved = key, True
                 self._solve(ctx, accepted, relative, edges, K_ref)
             write_loops(self.run_dir, self.candidates, self.revision)
+        stages = {
+            k: round(v - booked.get(k, 0.0), 4) for k, v in self._loop_timer.seconds.items() if v > booked.get(k, 0.0)
+        }
         with self._lock:
             for _, c, *_ in jobs[:-1]:
                 self.steps[c].update(loop_batch=t)
             self.steps[t].update(
-                loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), solved=solved, batch=len(jobs)
+                loop_s=_now() - started,
+                loop_done_at=_now(),
+                proposals=len(found),
+                solved=solved,
+                batch=len(jobs),
+                loop_stages=stages,
             )
 
     def _solve(
@@ -669,7 +679,7 @@ class Reconstruction:
             solution = self._graph.chunk_poses
         else:  # every accepted loop withdrawn: the chain
             self._graph, solution = None, chain_poses(relative)
-        with self._lock:
+        with ctx.timer("live revision"), self._lock:
             self._chunk_poses = graph.warm_start(solution, self._relative)
             n = len(self._cam_to_world)
             owner = np.searchsorted(np.asarray(self._starts), np.arange(n), side="right") - 1  # the export's
