@@ -13,7 +13,16 @@ load average is recorded with each run.
 ``--baseline`` runs another checkout (e.g. ``git worktree add /tmp/base <commit>``) alternately
 with this one, so both see the same machine load.
 
-Writes ``bench/results/posegraph_compile-<stamp>.json``.
+``--growing`` measures the robust back end as an online run calls it: the KITTI 00 chunk graph
+of ``bench/_robust_graph.py`` (``slight`` false loops at 100 %, matched information) cut to its
+first ``T`` chunks for ``T = --first .. --last`` (one more chunk per call, each loop and false loop
+joining when its later chunk arrives), :func:`swiftjax.loops.pcm.consistent_solve` (PCM, GNC,
+data snooping, float64) once per ``T`` in one fresh process with an empty compilation cache.
+Per call: the XLA compilations (count, seconds, programs), the wall time and the final poses;
+with ``--baseline`` the two checkouts' poses are compared call by call (the padded programs
+against the exact-size ones).  Writes ``bench/results/posegraph_compile_growing-<stamp>.json``.
+
+    .venv/bin/python bench/bench_posegraph_compile.py --growing [--first 24] [--last 101] [--baseline OTHER]
 """
 
 from __future__ import annotations
@@ -68,6 +77,111 @@ print(json.dumps(dict(
 """
 
 
+GROWING = r"""
+import json, logging, os, re, sys, time
+import numpy as np, jax
+records = []
+class _H(logging.Handler):
+    def emit(self, rec):
+        m = re.search(r"Finished XLA compilation of (\S+) in ([0-9.e-]+) sec", rec.getMessage())
+        if m:
+            records.append((m.group(1), float(m.group(2))))
+jax.config.update("jax_log_compiles", True)
+logging.getLogger("jax").addHandler(_H())
+logging.getLogger("jax").setLevel(logging.WARNING)
+sys.path.insert(0, "bench")
+import _robust_graph as rg
+from swiftjax import posegraph
+from swiftjax.loops import pcm
+from swiftjax.posegraph import gnc
+first, last = int(sys.argv[1]), int(sys.argv[2])
+g = rg.kitti_chunk_graph(None, seed=0, route="00", generator="slight", max_false=rg.NUM_TRUE)
+kind, edges = g["kind"], g["edges"]
+calls = []
+with jax.enable_x64(True):
+    for T in range(first, last + 1):
+        keep = edges.max(1) < T
+        prob = posegraph.Problem(
+            g["initial"][:T], edges[keep], g["measurements"][keep],
+            information=1.0 / g["sigma"][keep] ** 2, robust=kind[keep] != "odometry",
+        )
+        records.clear()
+        t0 = time.perf_counter()
+        res, check = pcm.consistent_solve(
+            prob, None, options=posegraph.GraphOptions(kernel_scale=gnc.DEFAULT_SCALE), throw=False
+        )
+        wall = time.perf_counter() - t0
+        calls.append(dict(
+            nodes=T, edges=int(keep.sum()), loops=int(np.sum(kind[keep] == "loop")),
+            false_loops=int(np.sum(kind[keep] == "false")), wall_seconds=wall,
+            compiles=len(records), compile_seconds=sum(s for _, s in records), programs=sorted({n for n, _ in records}),
+            kept_false=int(np.sum(res.inlier_weights[kind[keep] == "false"] >= 0.5)),
+            poses=np.asarray(res.poses, np.float64).tolist(), load=os.getloadavg()[0],
+        ))
+print(json.dumps(calls))
+"""
+
+
+def run_growing(first: int, last: int, repo: pathlib.Path = REPO) -> list[dict]:
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(repo))
+        out = subprocess.run(
+            [sys.executable, "-c", GROWING, str(first), str(last)],
+            capture_output=True,
+            text=True,
+            env=env,
+            check=True,
+            cwd=repo,
+        )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def growing_main(args) -> None:
+    import numpy as np
+
+    from bench.common import markdown_table, write_results
+
+    checkouts = [("this", REPO)] + ([("baseline", args.baseline.resolve())] if args.baseline else [])
+    runs = {name: run_growing(args.first, args.last, repo) for name, repo in checkouts}
+    summary = {}
+    for name, calls in runs.items():
+        warm = calls[1:]  # the first call compiles everything in either checkout
+        summary[name] = dict(
+            calls=len(calls),
+            compiles_total=sum(c["compiles"] for c in calls),
+            compile_seconds_total=sum(c["compile_seconds"] for c in calls),
+            wall_seconds_total=sum(c["wall_seconds"] for c in calls),
+            calls_after_first_with_compiles=sum(c["compiles"] > 0 for c in warm),
+            compile_seconds_after_first=sum(c["compile_seconds"] for c in warm),
+            wall_seconds_after_first=sum(c["wall_seconds"] for c in warm),
+            false_loops_kept_max=max(c["kept_false"] for c in calls),
+            load=[min(c["load"] for c in calls), max(c["load"] for c in calls)],
+        )
+    if args.baseline:
+        diff = [
+            float(np.abs(np.asarray(a["poses"])[:, :3] - np.asarray(b["poses"])[:, :3]).max())
+            for a, b in zip(runs["this"], runs["baseline"])
+        ]
+        summary["max_translation_difference_m"] = max(diff)
+        summary["per_call_translation_difference_m"] = diff
+    head = ["checkout", "calls", "XLA compiles", "compile s", "wall s", "calls after the first that compile",
+            "compile s after the first", "load"]
+    rows = [
+        [name, v["calls"], v["compiles_total"], f"{v['compile_seconds_total']:.1f}", f"{v['wall_seconds_total']:.1f}",
+         v["calls_after_first_with_compiles"], f"{v['compile_seconds_after_first']:.1f}",
+         f"{v['load'][0]:.1f}-{v['load'][1]:.1f}"]
+        for name, v in summary.items() if isinstance(v, dict)
+    ]
+    print(markdown_table(head, rows))
+    if args.baseline:
+        print(f"largest node translation difference between the checkouts: {summary['max_translation_difference_m']:.3g} m")
+    for c in runs["this"]:
+        c.pop("poses")
+    for c in runs.get("baseline", []):
+        c.pop("poses")
+    print(write_results("posegraph_compile_growing", {"first": args.first, "last": args.last, "summary": summary, "runs": runs}))
+
+
 def run_once(kernel: str, repo: pathlib.Path = REPO) -> dict:
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=cache, PYTHONPATH=str(repo))
@@ -87,7 +201,13 @@ def main() -> None:
         default=None,
         help="another checkout (e.g. an older commit's worktree) run alternately with this one",
     )
+    ap.add_argument("--growing", action="store_true", help="the robust back end on a growing graph (docstring)")
+    ap.add_argument("--first", type=int, default=24, help="--growing: chunks at the first call")
+    ap.add_argument("--last", type=int, default=101, help="--growing: chunks at the last call")
     args = ap.parse_args()
+    if args.growing:
+        growing_main(args)
+        return
     from bench.common import markdown_table, write_results
 
     checkouts = [("this", REPO)] + ([("baseline", args.baseline.resolve())] if args.baseline else [])

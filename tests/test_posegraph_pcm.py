@@ -392,3 +392,101 @@ def test_snooping_readmits_a_true_loop_gnc_left_out(x64):
     np.testing.assert_array_equal(kept, ~false)
     assert not removed.any()
     assert _distance_pct(res.poses, clean, g) < 1e-6
+
+
+# ------------------------------------------------------- size buckets (compile once per bucket)
+
+
+def _prefix(g, T):
+    """``g`` cut to its first ``T`` nodes (the edges with both ends among them): a graph that
+    grows one chunk per call, as an online run's."""
+    keep = g["edges"].max(1) < T
+    out = {k: (v[keep] if k in ("edges", "measurements", "information", "kind") else v) for k, v in g.items()}
+    return dict(out, initial=g["initial"][:T], truth=g["truth"][:T])
+
+
+class _Compiles:
+    """XLA compilations logged by JAX while the context is open (``jax_log_compiles``)."""
+
+    def __enter__(self):
+        import logging
+
+        self.names: list[str] = []
+        outer = self
+
+        class _H(logging.Handler):
+            def emit(self, rec):
+                msg = rec.getMessage()
+                if msg.startswith("Finished XLA compilation of"):
+                    outer.names.append(msg.split()[4])
+
+        self.handler, self.logger = _H(), logging.getLogger("jax")
+        self.level = self.logger.level
+        self.logger.addHandler(self.handler)
+        self.logger.setLevel(logging.WARNING)
+        self.flag = jax.config.jax_log_compiles
+        jax.config.update("jax_log_compiles", True)
+        return self
+
+    def __exit__(self, *exc):
+        jax.config.update("jax_log_compiles", self.flag)
+        self.logger.removeHandler(self.handler)
+        self.logger.setLevel(self.level)
+
+
+def test_padded_statistics_equal_the_exact_size_ones(x64):
+    """Snooping statistics, cycle residuals (loops given both ways round) and the chain on the
+    padded programs against the exact-size programs: equal to float rounding."""
+    g = two_laps(false="slight", num_false=2, seed=4, n_lap=10, true_every=3)
+    with jax.enable_x64(True):
+        k = np.flatnonzero(g["kind"] == "loop")[1]
+        g["edges"][k] = g["edges"][k][::-1]
+        g["measurements"][k] = np.asarray(sim3.inverse(g["measurements"][k]))
+        active = g["kind"] != "false"
+        prob = dataclasses.replace(_problem(g), edge_mask=jnp.asarray(active))
+        poses = np.asarray(posegraph.optimize(prob).poses)
+        T, dof = pcm.snooping_statistics(prob, poses, active)
+        T0, dof0 = pcm.snooping_statistics(prob, poses, active, pad=False)
+        T1, _ = pcm.snooping_statistics(prob, poses, active, pad=(100, 200))
+        a, b = pcm.graph_consistency(_problem(g)), pcm.graph_consistency(_problem(g), pad=False)
+        c = pcm.graph_consistency(_problem(g), pad=(100, 200))
+        X = posegraph.chain_poses(g["measurements"][:19])
+        X0 = posegraph.chain_poses(g["measurements"][:19], pad=False)
+    np.testing.assert_array_equal(dof, dof0)
+    np.testing.assert_allclose(T, T0, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(T1, T0, rtol=1e-10, atol=1e-12)
+    for check in (a, c):
+        np.testing.assert_allclose(check.residuals, b.residuals, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(check.odometry_residuals, b.odometry_residuals, rtol=1e-10, atol=1e-12)
+        np.testing.assert_array_equal(check.kept, b.kept)
+    np.testing.assert_array_equal(X, X0)  # the scan is sequential: the padded links come after
+    assert X.shape == (20, 8)
+
+
+def test_a_growing_graph_solves_as_the_exact_size_solve_and_compiles_once_per_bucket(x64):
+    """The whole back end (PCM, GNC, snooping with a step) on a graph that grows by one node:
+    the padded solve equals the exact-size one, and the second size in the same bucket
+    compiles nothing; ``pad=(N, E)`` keeps a larger graph in the capacity's bucket too."""
+    g = _with_slightly_wrong_loop(two_laps(seed=1), 0.85)
+    sizes = (42, 43)  # (N, E) buckets (48, 48) for both; M + 1 = 7 loops -> 32
+    with jax.enable_x64(True):
+        results = {}
+        for T in sizes:
+            prob = _problem(_prefix(g, T))
+            with _Compiles() as log:
+                res, check = pcm.consistent_solve(prob, throw=False)
+            exact, check0 = pcm.consistent_solve(prob, throw=False, pad=False)
+            np.testing.assert_allclose(np.asarray(res.poses), np.asarray(exact.poses), rtol=0, atol=1e-9)
+            np.testing.assert_array_equal(res.inlier_weights, exact.inlier_weights)
+            np.testing.assert_array_equal(check.snooped, check0.snooped)
+            results[T] = (res, log.names)
+        assert results[42][0].bucket == results[43][0].bucket == (48, 48)
+        assert results[43][1] == []  # nothing compiled for the second size
+        # a capacity: the bigger graph stays in the capacity's bucket (one compile for both sizes)
+        res = pcm.consistent_solve(_problem(_prefix(g, 44)), throw=False, pad=(60, 70))[0]
+        prob = _problem(g)
+        with _Compiles() as log:
+            res2 = pcm.consistent_solve(prob, throw=False, pad=(60, 70))[0]
+    assert res.bucket == res2.bucket == (64, 80) and log.names == []
+    false = g["kind"] == "false"
+    assert (res2.inlier_weights[false] < 0.5).all()

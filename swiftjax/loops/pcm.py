@@ -197,7 +197,12 @@ def consistency_threshold(num_loops: int, probability: float = 0.99, *, extra_te
     return float(np.sqrt(chi2.isf((1.0 - probability) / tests, 7)))
 
 
-@quick_jit  # one program per graph size instead of a compile per primitive
+def _put(a: np.ndarray) -> Array:
+    """A NumPy array on the device without a program (``jnp.asarray`` compiles a copy per shape)."""
+    return jax.device_put(np.ascontiguousarray(a))
+
+
+@quick_jit  # one program per size bucket instead of a compile per primitive
 def _linearize(poses: Float[Array, "N 8"], problem: Any) -> tuple[Array, Array, Array]:
     """:func:`swiftjax.posegraph.residuals_and_jacobians`, jitted: ``(r [E, 7], J_i, J_j [E, 7, 7])``."""
     from swiftjax.posegraph import residuals_and_jacobians
@@ -206,7 +211,7 @@ def _linearize(poses: Float[Array, "N 8"], problem: Any) -> tuple[Array, Array, 
 
 
 def snooping_statistics(
-    problem: Any, poses: Float[ArrayLike, "N 8"], active: Bool[ArrayLike, " E"]
+    problem: Any, poses: Float[ArrayLike, "N 8"], active: Bool[ArrayLike, " E"], *, pad: bool | tuple[int, int] = True
 ) -> tuple[Float[np.ndarray, " E"], Int[np.ndarray, " E"]]:
     """Baarda's test statistic of every edge at a least-squares solution (host, float64):
     ``(T [E], dof [E])``.
@@ -226,14 +231,25 @@ def snooping_statistics(
     J_eᵀ W`` (``Ω_e = W Wᵀ``): eigenvalues in ``[0, 1]`` (the redundancy numbers) for an active
     edge; directions with redundancy below ``1e-9`` (that nothing else checks) are left out of
     ``T`` and ``dof``.  Dense ``H``: ``O((7 n)³)``, fine for the hundreds of chunks of a sequence.
+
+    Compiles: the linearisation is the one XLA program, run on the problem padded as
+    :func:`swiftjax.posegraph.optimize` pads it (``pad``:
+    :func:`~swiftjax.posegraph.problem.padded_sizes`; padded nodes fixed, padded edges
+    masked), so it recompiles only for a new ``(N_bucket, E_bucket)`` (or dtype); the padded
+    rows are dropped before the host algebra, which sees exactly the unpadded graph.
     """
     import scipy.linalg
 
-    with jax.enable_x64(True):
-        r, Ji, Jj = _linearize(jnp.asarray(poses, jnp.float64), problem)
-    r, Ji, Jj = (np.asarray(a, np.float64) for a in (r, Ji, Jj))
+    from swiftjax.posegraph import pad_problem, padded_sizes
+
     edges = np.asarray(problem.edges, np.int64)
-    E = len(edges)
+    E, N = len(edges), problem.num_nodes
+    nb, eb = padded_sizes(N, E, pad)
+    with jax.enable_x64(True):
+        x = np.asarray(poses, np.float64)
+        x = np.concatenate([x, np.broadcast_to(np.asarray([0, 0, 0, 0, 0, 0, 1, 1.0]), (nb - N, 8))])
+        r, Ji, Jj = _linearize(x, pad_problem(problem, nb, eb))
+    r, Ji, Jj = (np.asarray(a, np.float64)[:E] for a in (r, Ji, Jj))
     free = ~np.asarray(problem.fixed, bool)
     col = np.cumsum(free) - 1
     nf = int(free.sum())
@@ -303,6 +319,7 @@ def graph_consistency(
     num_chain_nodes: int | None = None,
     probability: float = 0.99,
     odometry_check: bool = False,
+    pad: bool | tuple[int, int] = True,
 ) -> GraphConsistency:
     """Pairwise consistency of every loop edge of a pose graph before its robust solve (host).
 
@@ -322,13 +339,18 @@ def graph_consistency(
 
     A loop edge ``(a, b)`` with ``a > b`` is tested as ``(b, a)`` with ``Z⁻¹`` and covariance
     ``Ad(Z) Σ Ad(Z)ᵀ`` (``(Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ)``).  Runs
-    :func:`pairwise_consistency` in float64 (a compile per ``(T, M)``) and
-    :func:`max_consistent_set`; ties between cliques of one size go to the most consistent one
+    :func:`pairwise_consistency` in float64 and :func:`max_consistent_set`.  Compiles: with
+    ``pad`` (:func:`~swiftjax.posegraph.problem.padded_sizes`; True by default) the chain is
+    padded to ``T_bucket`` nodes by identity links of zero covariance and the ``M`` loops (plus
+    the virtual one below) to ``M_bucket`` by ``(0, 0)`` identity loops of unit covariance;
+    their rows and columns are dropped, so the programs recompile only for a new
+    ``(T_bucket, M_bucket)`` (with ``pad=(min_nodes, min_edges)``: ``M_bucket`` at least the
+    bucket of ``min_edges − min_nodes + 2``); ``pad=False`` compiles per ``(T, M)``.  Ties between cliques of one size go to the most consistent one
     (the smallest sum of ``m_ab²`` over its pairs), then to the one that agrees best with the
     odometry (the smallest sum of ``m_k``: of two inconsistent loops alone, the one the
     odometry supports).
     """
-    from swiftjax.posegraph import chain_poses
+    from swiftjax.posegraph import bucket_size, chain_poses
 
     edges = np.asarray(problem.edges, np.int64)
     E = len(edges)
@@ -348,26 +370,29 @@ def graph_consistency(
     loop = np.flatnonzero(robust & (edges.max(1) < T) & (edges[:, 0] != edges[:, 1]))
     M = len(loop)
     kept = np.ones(E, bool)
+    Tb, Mb = T, M + 1
+    if pad is not False:
+        lo_n, lo_e = (0, 0) if pad is True else (int(v) for v in pad)
+        Tb, Mb = bucket_size(max(T, lo_n)), bucket_size(max(M + 1, lo_e - lo_n + 2))
+    ident = np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float64)
     with jax.enable_x64(True):
-        X = chain_poses(meas[chain])
-        nodes, Z, L = edges[loop], meas[loop], cov[loop]
+        odo = np.concatenate([meas[chain], np.broadcast_to(ident, (Tb - T, 8))])
+        X = chain_poses(odo, pad=pad is not False)
+        odo_cov = np.concatenate([cov[chain], np.zeros((Tb - T, 7, 7))])
+        # the M loops, a virtual identity loop (0, 0) with zero covariance (its pair with loop
+        # k is loop k's cycle with the odometry alone), then (0, 0) identity padding of unit
+        # covariance
+        nodes = np.concatenate([edges[loop], np.zeros((Mb - M, 2), np.int64)])
+        Z = np.concatenate([meas[loop], np.broadcast_to(ident, (Mb - M, 8))])
+        L = np.concatenate([cov[loop], np.zeros((1, 7, 7)), np.broadcast_to(np.eye(7), (Mb - M - 1, 7, 7))])
         flip = nodes[:, 0] > nodes[:, 1]
-        if flip.any():
-            Ad = np.asarray(sim3.adjoint(jnp.asarray(Z[flip])))
-            Z[flip] = np.asarray(sim3.inverse(jnp.asarray(Z[flip])))
-            L[flip] = Ad @ L[flip] @ np.swapaxes(Ad, -1, -2)
-            nodes[flip] = nodes[flip][:, ::-1]
-        # a virtual identity loop (0, 0) with zero covariance: its pair with loop k is loop k's
-        # cycle with the odometry alone
-        nodes = np.concatenate([nodes, [[0, 0]]])
-        Z = np.concatenate([Z, np.asarray(sim3.identity((1,), jnp.float64))])
-        L = np.concatenate([L, np.zeros((1, 7, 7))])
-        m = np.asarray(
-            pairwise_consistency(
-                jnp.asarray(X), jnp.asarray(cov[chain]), jnp.asarray(nodes), jnp.asarray(Z), jnp.asarray(L)
-            ),
-            np.float64,
-        )
+        if flip.any():  # on every row: one program per M_bucket
+            Ad = np.asarray(sim3.adjoint(Z))
+            Zi = np.asarray(sim3.inverse(Z))
+            L = np.where(flip[:, None, None], Ad @ L @ np.swapaxes(Ad, -1, -2), L)
+            Z = np.where(flip[:, None], Zi, Z)
+            nodes = np.where(flip[:, None], nodes[:, ::-1], nodes)
+        m = np.asarray(pairwise_consistency(X, odo_cov, nodes, Z, L), np.float64)
     m, m_odo = m[:M, :M], m[:M, M]
     threshold = consistency_threshold(M, probability, extra_tests=M if odometry_check else 0)
     ok = m <= threshold
@@ -375,7 +400,7 @@ def graph_consistency(
     ok &= alone[:, None] & alone[None, :]
     clique = [k for k in max_consistent_set(ok, -m_odo, pair_cost=np.where(ok, m**2, 0)) if alone[k]]
     kept[loop] = np.isin(np.arange(M), clique)
-    out = dataclasses.replace(problem, edge_mask=jnp.asarray(mask & kept))
+    out = dataclasses.replace(problem, edge_mask=_put(mask & kept))
     return GraphConsistency(kept, loop, m, m_odo, threshold, out)
 
 
@@ -388,6 +413,7 @@ def data_snooping(
     probability: float = 0.99,
     options: Any = None,
     throw: bool = True,
+    pad: bool | tuple[int, int] = True,
 ) -> tuple[Any, Bool[np.ndarray, " E"], Bool[np.ndarray, " E"], Bool[np.ndarray, " E"]]:
     """Iterative data snooping of the loop edges around a robust solve (host):
     ``(Result, active [E], removed [E], readmitted [E])``.
@@ -404,7 +430,9 @@ def data_snooping(
     one edge per step, each step followed by a plain least-squares solve (``options`` with
     ``kernel=None``, from the current poses); an edge rejected here is never readmitted, so at
     most ``2 M`` steps.  Stops when no active loop fails and no left-out loop fits.  When
-    nothing changes ``result`` is returned as it is.
+    nothing changes ``result`` is returned as it is.  ``pad`` goes to
+    :func:`snooping_statistics` and every :func:`swiftjax.posegraph.optimize` (one program set
+    per size bucket).
     """
     from scipy.stats import chi2
 
@@ -417,7 +445,7 @@ def data_snooping(
     readmitted = np.zeros_like(active)
     alpha = (1.0 - probability) / max(len(loops), 1)
     for _ in range(2 * len(loops)):
-        T, dof = snooping_statistics(problem, result.poses, active)
+        T, dof = snooping_statistics(problem, result.poses, active, pad=pad)
         pval = np.where(dof > 0, chi2.sf(T, np.maximum(dof, 1)), 1.0)
         inside = loops[active[loops]]
         outside = loops[~active[loops] & ~removed[loops]]
@@ -431,7 +459,7 @@ def data_snooping(
             break
         start = jnp.asarray(result.poses, jnp.asarray(problem.poses).dtype)
         result = posegraph.optimize(
-            dataclasses.replace(problem, poses=start, edge_mask=jnp.asarray(active)), options, throw=throw
+            dataclasses.replace(problem, poses=start, edge_mask=_put(active)), options, throw=throw, pad=pad
         )
         result = dataclasses.replace(result, inlier_weights=active.astype(np.float64))
     return result, active, removed, readmitted
@@ -446,6 +474,7 @@ def consistent_solve(
     odometry_check: bool = False,
     options: Any = None,
     throw: bool = True,
+    pad: bool | tuple[int, int] = True,
 ) -> tuple[Any, GraphConsistency]:
     """PCM over every loop edge (:func:`graph_consistency`), GNC-TLS on the consistent set, then
     data snooping of the loops (:func:`data_snooping`): ``(Result, GraphConsistency)`` (host;
@@ -469,29 +498,48 @@ def consistent_solve(
     changed nothing, else 1 for the kept edges and 0 for the others; ``gnc_iterations``: GNC's
     outer iterations.  ``GraphConsistency.readmitted`` / ``snooped``: the loop edges snooping
     put back / took out.
+
+    What compiles (``pad``, default True: every program runs on the graph padded to a size
+    bucket, :func:`swiftjax.posegraph.problem.padded_sizes`, padded nodes fixed and padded
+    edges masked with weight 0, and the answer equals the exact-size solve to float rounding):
+    the chain's scan per ``bucket_size(T − 1)``, :func:`pairwise_consistency` per
+    ``(T_bucket, M_bucket)``, the LM programs and the snooping linearisation per
+    ``(N_bucket, E_bucket)``, each also per dtype and per static option
+    (:class:`~swiftjax.posegraph.GraphOptions`' ``max_steps``, ``damping``, ``initialization``,
+    the resolved linear solver); nothing else (thresholds, probabilities, weights, the loops'
+    values never recompile).  A graph that grows by one chunk or loop per call therefore
+    compiles only when it crosses into a new bucket (4 buckets per doubling); a caller that
+    knows its capacity passes ``pad=(max_nodes, max_edges)`` and compiles once for every size
+    up to it.  ``pad=False``: programs for the exact sizes (a compile per call on a growing
+    graph).
     """
     from swiftjax import posegraph
 
     check = graph_consistency(
-        problem, covariance, num_chain_nodes=num_chain_nodes, probability=probability, odometry_check=odometry_check
+        problem,
+        covariance,
+        num_chain_nodes=num_chain_nodes,
+        probability=probability,
+        odometry_check=odometry_check,
+        pad=pad,
     )
     options = (posegraph.GraphOptions() if options is None else options).replace(kernel="gnc")
     decide = check.problem
     if covariance is not None:  # GNC decides on the graph whitened by the noise model
         cov = np.asarray(covariance, np.float64)
         info = np.linalg.inv(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-        info = jnp.asarray(0.5 * (info + np.swapaxes(info, -1, -2)), np.asarray(problem.poses).dtype)
+        info = _put((0.5 * (info + np.swapaxes(info, -1, -2))).astype(np.asarray(problem.poses).dtype))
         decide = dataclasses.replace(decide, information=info)
-    res = posegraph.optimize(decide, options, throw=throw)
+    res = posegraph.optimize(decide, options, throw=throw, pad=pad)
     active = np.asarray(decide.edge_mask, bool) & (res.inlier_weights >= 0.5)
     res2, active, snooped, readmitted = data_snooping(
-        decide, res, active, check.loop_edges, probability=probability, options=options, throw=throw
+        decide, res, active, check.loop_edges, probability=probability, options=options, throw=throw, pad=pad
     )
     res = res if res2 is res else dataclasses.replace(res2, gnc_iterations=res.gnc_iterations)
     check = check._replace(readmitted=readmitted, snooped=snooped)
     if covariance is None:
         return res, check
     final = posegraph.optimize(
-        dataclasses.replace(problem, edge_mask=jnp.asarray(active)), options.replace(kernel=None), throw=throw
+        dataclasses.replace(problem, edge_mask=_put(active)), options.replace(kernel=None), throw=throw, pad=pad
     )
     return dataclasses.replace(final, inlier_weights=res.inlier_weights, gnc_iterations=res.gnc_iterations), check

@@ -37,7 +37,7 @@ from swiftjax.posegraph.initialization import chain_poses, chordal_initializatio
 from swiftjax.posegraph.kernels import KERNELS, ROBUST_CHOICES, check_kernel, kernel_code, robust_rho, robust_weight
 from swiftjax.posegraph.linear_solvers import BlockJacobiPCG, DenseCholesky, HostSparse
 from swiftjax.posegraph.options import GraphOptions
-from swiftjax.posegraph.problem import Problem, ProblemError, bucket_size, pad_problem, validate
+from swiftjax.posegraph.problem import Problem, ProblemError, bucket_size, pad_problem, padded_sizes, validate
 from swiftjax.posegraph.solver import LMResult, SparseSim3LM, linearize, retract
 from swiftjax.posegraph.solver_choice import DENSE_MAX_NODES, choose_linear_solver
 
@@ -67,6 +67,7 @@ __all__ = [
     "linearize",
     "optimize",
     "pad_problem",
+    "padded_sizes",
     "residuals",
     "residuals_and_jacobians",
     "retract",

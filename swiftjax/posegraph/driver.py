@@ -47,7 +47,7 @@ from swiftjax.posegraph.initialization import chordal_initialization
 from swiftjax.posegraph.kernels import kernel_code
 from swiftjax.posegraph.linear_solvers import AbstractLinearSolver, DenseCholesky, HostSparse, linear_solver
 from swiftjax.posegraph.options import GraphOptions
-from swiftjax.posegraph.problem import Problem, bucket_size, pad_problem, validate
+from swiftjax.posegraph.problem import Problem, pad_problem, padded_sizes, validate
 from swiftjax.posegraph.solver import CONVERGED, LMResult, LMState, SparseSim3LM, residual_fn, result_index
 from swiftjax.posegraph.solver_choice import (  # re-exported: their home is solver_choice
     DENSE_MAX_NODES,
@@ -346,7 +346,7 @@ def optimize(
     options: GraphOptions | None = None,
     *,
     throw: bool = True,
-    pad: bool = True,
+    pad: bool | tuple[int, int] = True,
 ) -> Result:
     """Solve the Sim(3) pose graph by Levenberg–Marquardt (see :mod:`swiftjax.posegraph.solver`).
 
@@ -360,7 +360,10 @@ def optimize(
             (:func:`~swiftjax.posegraph.validate`, a :class:`~swiftjax.posegraph.ProblemError`
             before any work) and raise :class:`SolveError` if the solve does not converge;
             False: no host checks, the outcome is in :attr:`Result.result` / ``converged``.
-        pad: pad to the size bucket (compile once per bucket); False compiles for the exact size.
+        pad: pad to the size bucket (compile once per bucket); False compiles for the exact size;
+            ``(min_nodes, min_edges)`` pads to the bucket of at least these sizes
+            (:func:`~swiftjax.posegraph.problem.padded_sizes`: a growing graph's capacity, so
+            that its re-solves share one bucket).
 
     Returns:
         :class:`Result` with the unpadded poses.
@@ -375,7 +378,7 @@ def optimize(
     if raise_on_failure:
         validate(problem)
     n, e = problem.num_nodes, problem.num_edges
-    nb, eb = (bucket_size(n), bucket_size(e)) if pad else (n, e)
+    nb, eb = padded_sizes(n, e, pad)
     padded = pad_problem(problem, nb, eb)
     valid_edges = None
     if options.linear_solver == "auto":
@@ -428,7 +431,9 @@ def optimize(
         result = LMResult.gnc_not_converged
         status = f"GNC: {options.gnc_max_iterations} outer iterations without converged weights or cost"
     res = Result(
-        poses=out["poses"][:n],
+        # unpadded on the host (a device slice, or jnp.asarray of the NumPy slice, would
+        # compile a program per size n)
+        poses=out["poses"] if n == nb else jax.device_put(np.ascontiguousarray(np.asarray(out["poses"])[:n])),
         cost_initial=float(out["cost_given"]),
         cost_start=float(out["cost_initial"]),
         cost_final=float(out["cost_final"]),

@@ -34,7 +34,7 @@ from swiftjax.posegraph import linear
 from swiftjax.posegraph.blockmat import bmtm, bmtv, bmv
 from swiftjax.posegraph.linear_solvers import AbstractLinearSolver
 from swiftjax.posegraph.linear_solvers import linear_solver as make_linear_solver
-from swiftjax.posegraph.problem import Problem
+from swiftjax.posegraph.problem import Problem, bucket_size
 
 __all__ = ["chordal_initialization", "solve_difference_system"]
 
@@ -151,17 +151,26 @@ def _chain_step(s: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
     return nxt, nxt
 
 
-def chain_poses(relative: Float[ArrayLike, "t 8"]) -> Float[np.ndarray, "t+1 8"]:
+def chain_poses(relative: Float[ArrayLike, "t 8"], *, pad: bool = True) -> Float[np.ndarray, "t+1 8"]:
     """Dead reckoning along a chain: ``S_0 = I, S_{t+1} = S_t S_{t->t+1}``, renormalised.
 
     ``relative [T-1, 8]`` (edge ``t`` maps node ``t+1`` into node ``t``) -> ``[T, 8]``
     float64 node-to-world poses (host in/out, a ``lax.scan`` in float64 inside; the
     pipeline's start for the pose graph and its "no loop closure" trajectory).
+
+    ``pad``: the scan runs over :func:`~swiftjax.posegraph.problem.bucket_size` ``(T - 1)``
+    links, identity links after the given ones (their outputs are dropped), so a chain that
+    grows by one chunk per call (an online run) compiles once per bucket, not per length; the
+    scan is sequential, so the first ``T`` poses are those of the exact-length scan.
     """
     relative = np.asarray(relative, np.float64).reshape(-1, 8)
+    links = relative.shape[0]
     with jax.enable_x64(True):
         first = sim3.identity((), jnp.float64)
-        if relative.shape[0] == 0:
+        if links == 0:
             return np.asarray(first)[None]
+        if pad:
+            ident = np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float64)
+            relative = np.concatenate([relative, np.broadcast_to(ident, (bucket_size(links) - links, 8))])
         _, rest = jax.lax.scan(_chain_step, first, jnp.asarray(relative))
-        return np.concatenate([np.asarray(first)[None], np.asarray(rest)], axis=0)
+        return np.concatenate([np.asarray(first)[None], np.asarray(rest)[:links]], axis=0)

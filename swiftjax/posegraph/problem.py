@@ -48,6 +48,7 @@ __all__ = [
     "robust_rho_weight",
     "validate",
     "bucket_size",
+    "padded_sizes",
     "pad_problem",
     "ProblemError",
 ]
@@ -150,13 +151,16 @@ class Problem(eqx.Module):
         edge_mask = xp.ones((num_edges,), bool) if edge_mask is None else xp.asarray(edge_mask, bool)
         if edge_mask.shape != (num_edges,):
             raise ProblemError(f"edge_mask has shape {tuple(edge_mask.shape)}; expected [E] = [{num_edges}]")
-        self.poses = jnp.asarray(poses)
-        self.edges = jnp.asarray(edges.astype(np.int32))
-        self.measurements = jnp.asarray(measurements)
-        self.information = jnp.asarray(_as_information(information, num_edges, dtype, xp))
-        self.fixed = jnp.asarray(fixed)
-        self.robust = jnp.asarray(robust)
-        self.edge_mask = jnp.asarray(edge_mask)
+        # NumPy arrays go to the device by device_put: jnp.asarray of a NumPy array compiles a
+        # small copy program per shape (~0.1 s each: a growing graph paid it on every call)
+        put = jnp.asarray if xp is jnp else lambda a: jax.device_put(np.ascontiguousarray(a))
+        self.poses = put(poses)
+        self.edges = put(edges.astype(np.int32))
+        self.measurements = put(measurements)
+        self.information = put(_as_information(information, num_edges, dtype, xp))
+        self.fixed = put(fixed)
+        self.robust = put(robust)
+        self.edge_mask = put(edge_mask)
 
     @property
     def num_nodes(self) -> int:
@@ -286,6 +290,23 @@ def bucket_size(n: int, minimum: int = 32) -> int:
             if m * 2**k >= n:
                 return m * 2**k
         k += 1
+
+
+def padded_sizes(num_nodes: int, num_edges: int, pad: bool | tuple[int, int] = True) -> tuple[int, int]:
+    """The ``(N_bucket, E_bucket)`` a graph of ``num_nodes`` / ``num_edges`` is padded to.
+
+    ``pad``: True — :func:`bucket_size` of each; False — the sizes themselves (a program per
+    exact size); ``(min_nodes, min_edges)`` — :func:`bucket_size` of ``max(size, minimum)``: a
+    caller that knows how large its graph will grow (an online reconstruction re-solving after
+    every chunk) passes its capacity and gets one bucket, so no solve recompiles until the graph
+    outgrows it.
+    """
+    if pad is True:
+        return bucket_size(num_nodes), bucket_size(num_edges)
+    if pad is False:
+        return int(num_nodes), int(num_edges)
+    lo_n, lo_e = (int(v) for v in pad)
+    return bucket_size(max(num_nodes, lo_n)), bucket_size(max(num_edges, lo_e))
 
 
 def pad_problem(problem: Problem, num_nodes: int, num_edges: int) -> Problem:
