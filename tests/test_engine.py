@@ -290,22 +290,22 @@ def test_turns_live_chunk_first_and_loop_chunks_in_the_gaps():
         assert order == ["loop"]
 
 
-def test_loop_worker_behind_verifies_the_most_novel_proposals_first(tmp_path):
-    """While chunks are queued behind the loop worker it verifies two proposals per batch:
-    those farthest from the accepted loops and from each other (a revisit proposes one loop
-    per chunk); the others wait, and all go once it has caught up."""
+def test_loop_worker_verifies_the_most_novel_proposal_first(tmp_path):
+    """The loop worker verifies one proposal at a time, the farthest (in chunks, at either end)
+    from the accepted loops, the newest first among equals: a new revisit before the
+    neighbours of a loop already closed, which wait until nothing more novel does."""
     from types import SimpleNamespace as L
 
     run = demo.loop_route_run(40, image_hw=(28, 98), spacing_m=4.0)
     rec = Reconstruction(tmp_path / "live", run.predictor, CONFIG, log=lambda s: None)
-    rec.candidates = [{"chunk_i": 20, "chunk_j": 3, "accepted": True}]
+    rec.candidates = [{"chunk_i": 20, "chunk_j": 3, "accepted": True}, {"chunk_i": 30, "chunk_j": 9, "accepted": False}]
     near = [L(chunk_i=20 + k, chunk_j=3 + k, i=1000 + k) for k in range(1, 4)]  # the accepted loop's revisit
     far = L(chunk_i=40, chunk_j=10, i=2000)  # another revisit
     newest_far = L(chunk_i=41, chunk_j=11, i=2050)
-    rec._jobs.put("a chunk queued behind the worker")
-    chosen = rec._verify_now([*near, far, newest_far])
-    assert chosen == [newest_far, near[-1]]  # the most novel, then the farthest from it and the accepted loop
-    assert rec._backlog == [near[0], near[1], far]
-    rec._jobs.get_nowait()  # caught up: the rest at once
-    assert rec._verify_now([]) == [near[0], near[1], far] and rec._backlog == []
+    by_rejected = L(chunk_i=30, chunk_j=9, i=1500)  # near a rejected loop only: novel
+    rec._backlog = [(lp, 0, 0.0) for lp in (*near, far, newest_far, by_rejected)]
+    order = []
+    while rec.proposals_waiting:
+        order.append(rec._next_proposal()[0])
+    assert order == [newest_far, far, by_rejected, near[2], near[1], near[0]]
     rec.close()

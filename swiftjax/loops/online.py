@@ -244,6 +244,8 @@ class OnlineLoopDetector:
         self._ends: list[int] = []
         self._fixed_threshold: float | None = None
         self._tested = 0  # frames 0.._tested-1 were tested as a loop's later end
+        self._warmed: set[tuple[str, int, int]] = set()  # what warm_up compiled
+        self._next_whitening: Whitening | None = None  # warm_up's stand-in for the next refit
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -252,10 +254,12 @@ class OnlineLoopDetector:
             return np.zeros((0, 0), np.float32)
         return self._G[: self.n].copy()
 
-    def _schedule(self, padded: bool) -> ChunkSchedule:
+    def _schedule(self, padded: bool, rows: int | None = None) -> ChunkSchedule:
+        """The chunks as added (``padded``: with chunks holding no frame up to ``rows``, by
+        default the chunk count's bucket, so that the programs compile once per bucket)."""
         starts, ends = np.asarray(self._starts, np.int64), np.asarray(self._ends, np.int64)
         if padded:
-            t = _bucket(len(starts), 4)
+            t = _bucket(len(starts), 4) if rows is None else rows
             starts = np.concatenate([starts, np.full(t - len(starts), _NO_CHUNK)])
             ends = np.concatenate([ends, np.full(t - len(ends), _NO_CHUNK)])
         size = int(max(e - s for s, e in zip(self._starts, self._ends)))
@@ -324,7 +328,30 @@ class OnlineLoopDetector:
             self._fixed_threshold = effective_settings(
                 dataclasses.replace(o, dim=self.whitening.dim_requested), self.whitening.dim_requested * 4
             )[0]
-        Z = _whitened_prefix(self.whitening, jnp.asarray(self._G), jnp.int32(self.n), jnp.float32(o.beta))
+        assert self._G is not None
+        found, threshold = self._detect(self._G, min(first, self._tested), self._schedule(padded=True))
+        self.threshold = threshold
+        self._tested = self.n
+        new = []
+        r = o.nms_radius
+        for lp in found:
+            # a loop within ±r of an earlier proposal at both ends is that proposal again
+            if not any(abs(lp.i - p.i) <= r and abs(lp.j - p.j) <= r for p in self.proposed + new):
+                new.append(lp)
+        self.proposed += new
+        return new
+
+    def _detect(
+        self, G: np.ndarray, first: int, schedule: ChunkSchedule, whitening: Whitening | None = None
+    ) -> tuple[list[Loop], float]:
+        """``(loops, threshold)``: the loops among the first :attr:`n` rows of ``G [cap, d]``
+        (the rest ignored) whose later frame is at least ``first``, each with its loop chunk in
+        ``schedule`` (padded), and the prefix threshold.  Compiles per ``cap`` and ``schedule``
+        size (and whitening, ``whitening`` or the current one)."""
+        o = self.options
+        w = self.whitening if whitening is None else whitening
+        assert w is not None and self._fixed_threshold is not None
+        Z = _whitened_prefix(w, jnp.asarray(G), jnp.int32(self.n), jnp.float32(o.beta))
         cand = detect_loops(
             Z,
             self._fixed_threshold,
@@ -337,18 +364,40 @@ class OnlineLoopDetector:
             false_alarms=o.false_alarms,
             throw=False,
         )
-        self.threshold = float(cand.threshold)
-        cand = _later_end_from(cand, jnp.int32(min(first, self._tested)))
-        self._tested = self.n
-        schedule = self._schedule(padded=True)
-        new = []
-        r = o.nms_radius
-        for lp in as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window):
-            # a loop within ±r of an earlier proposal at both ends is that proposal again
-            if not any(abs(lp.i - p.i) <= r and abs(lp.j - p.j) <= r for p in self.proposed + new):
-                new.append(lp)
-        self.proposed += new
-        return new
+        threshold = float(cand.threshold)
+        cand = _later_end_from(cand, jnp.int32(first))
+        return as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window), threshold
+
+    def warm_up(self) -> bool:
+        """Compile ahead, while the caller has time, one program set the prefix's next growth
+        will need (each once; True when something was compiled): the whitening fit of the next
+        refit's prefix size (predicted from the chunk stride; fitted on the prefix's rows
+        repeated), then detection on the descriptor buffer of twice the size (which grows with
+        that refit, so with the fit's output dimension) and on the chunk table of twice the
+        chunks (run on the current prefix).  Every result is dropped: nothing the detector
+        proposes or records changes."""
+        if self._G is None or self.whitening is None or self._fixed_threshold is None or len(self._ends) < 2:
+            return False
+        cap, rows, d = self._G.shape[0], _bucket(len(self._starts), 4), self._G.shape[1]
+        if not self.given and ("fit", cap, 0) not in self._warmed:
+            self._warmed.add(("fit", cap, 0))
+            level = self.minimum
+            while level <= self.fits[-1]:
+                level *= 2
+            stride = max(self._ends[-1] - self._ends[-2], 1)
+            n = self._ends[-1] + max(-(-(level - self._ends[-1]) // stride), 1) * stride
+            self._next_whitening = fit_sequence_whitening(np.resize(self._G[: self.n], (n, d)), self.options)
+            return True
+        following = self.whitening if self.given else self._next_whitening
+        for size, b, w in ((cap, 2 * rows, self.whitening), (2 * cap, rows, following), (2 * cap, 2 * rows, following)):
+            if ("detect", size, b) in self._warmed:
+                continue
+            self._warmed.add(("detect", size, b))
+            G = np.zeros((size, d), np.float32)
+            G[: self.n] = self._G[: self.n]
+            self._detect(G, self.n, self._schedule(padded=True, rows=b), w)
+            return True
+        return False
 
     def finish(
         self, schedule: ChunkSchedule | None = None, **kwargs: Any
