@@ -34,8 +34,10 @@ recorded in its chunk files (which :func:`~swiftjax.pipeline.rundir.prune` keeps
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import pathlib
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -173,11 +175,15 @@ def load_whitening(
         ) from None
 
 
-@jax.jit
-def _whitened_prefix(w: Whitening, G: jax.Array, n: jax.Array, beta: jax.Array) -> jax.Array:
-    """``ẑ`` of the first ``n`` rows of ``G [cap, d]``, NaN below (no match, not calibrated):
-    ``[cap, d′]``.  Recompiles per ``(cap, d, d′)``."""
+@functools.partial(jax.jit, static_argnames="width")
+def _whitened_prefix(w: Whitening, G: jax.Array, n: jax.Array, beta: jax.Array, width: int) -> jax.Array:
+    """``ẑ`` of the first ``n`` rows of ``G [cap, d]``, NaN below (no match, not calibrated),
+    with zero columns after ``d′`` up to ``width`` (a prefix whose ``d′`` grows with its
+    length, :func:`~swiftjax.loops.find.effective_settings`, keeps one detection program per
+    ``cap``; zeros add nothing to a similarity): ``[cap, max(d′, width)]``.  Recompiles per
+    ``(cap, d, d′, width)``."""
     Z = whiten(w, power_normalize(G, beta))
+    Z = jnp.pad(Z, ((0, 0), (0, max(width - Z.shape[1], 0))))
     return jnp.where((jnp.arange(G.shape[0]) < n)[:, None], Z, jnp.nan)
 
 
@@ -245,7 +251,6 @@ class OnlineLoopDetector:
         self._fixed_threshold: float | None = None
         self._tested = 0  # frames 0.._tested-1 were tested as a loop's later end
         self._warmed: set[tuple[str, int, int]] = set()  # what warm_up compiled
-        self._next_whitening: Whitening | None = None  # warm_up's stand-in for the next refit
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -342,16 +347,22 @@ class OnlineLoopDetector:
         return new
 
     def _detect(
-        self, G: np.ndarray, first: int, schedule: ChunkSchedule, whitening: Whitening | None = None
+        self,
+        G: np.ndarray,
+        first: int,
+        schedule: ChunkSchedule,
+        whitening: Whitening | None = None,
+        n: int | None = None,
     ) -> tuple[list[Loop], float]:
         """``(loops, threshold)``: the loops among the first :attr:`n` rows of ``G [cap, d]``
         (the rest ignored) whose later frame is at least ``first``, each with its loop chunk in
-        ``schedule`` (padded), and the prefix threshold.  Compiles per ``cap`` and ``schedule``
-        size (and whitening, ``whitening`` or the current one)."""
+        ``schedule`` (padded), and the prefix threshold (``n``: the prefix size, by default
+        :attr:`n`).  Compiles per ``cap`` and ``schedule`` size (and whitening, ``whitening`` or the current one)."""
         o = self.options
         w = self.whitening if whitening is None else whitening
         assert w is not None and self._fixed_threshold is not None
-        Z = _whitened_prefix(w, jnp.asarray(G), jnp.int32(self.n), jnp.float32(o.beta))
+        width = min(o.dim, G.shape[1])
+        Z = _whitened_prefix(w, jnp.asarray(G), jnp.int32(self.n if n is None else n), jnp.float32(o.beta), width)
         cand = detect_loops(
             Z,
             self._fixed_threshold,
@@ -369,35 +380,52 @@ class OnlineLoopDetector:
         return as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window), threshold
 
     def warm_up(self) -> bool:
-        """Compile ahead, while the caller has time, one program set the prefix's next growth
-        will need (each once; True when something was compiled): the whitening fit of the next
-        refit's prefix size (predicted from the chunk stride; fitted on the prefix's rows
-        repeated), then detection on the descriptor buffer of twice the size (which grows with
-        that refit, so with the fit's output dimension) and on the chunk table of twice the
-        chunks (run on the current prefix).  Every result is dropped: nothing the detector
-        proposes or records changes."""
-        if self._G is None or self.whitening is None or self._fixed_threshold is None or len(self._ends) < 2:
+        """:meth:`warm_plan`, run at once: True when it compiled something."""
+        plan = self.warm_plan()
+        if plan is None:
             return False
-        cap, rows, d = self._G.shape[0], _bucket(len(self._starts), 4), self._G.shape[1]
+        plan()
+        return True
+
+    def warm_plan(self) -> Callable[[], None] | None:
+        """The next program set the prefix's growth will need, to compile ahead while the
+        caller has time (each once; None when all are planned): the whitening fit of the next
+        refit's prefix size (predicted from the chunk stride; fitted on the prefix's rows
+        repeated), then detection on the descriptor buffer of twice the size and on the chunk
+        table of twice the chunks (on the current prefix).  The plan holds copies: it may run on another thread
+        while chunks are added.  Its results are dropped: nothing the detector proposes or
+        records changes."""
+        if self._G is None or self.whitening is None or self._fixed_threshold is None or len(self._ends) < 2:
+            return None
+        cap, rows, d, n = self._G.shape[0], _bucket(len(self._starts), 4), self._G.shape[1], self.n
+        prefix = self._G[:n].copy()
         if not self.given and ("fit", cap, 0) not in self._warmed:
             self._warmed.add(("fit", cap, 0))
             level = self.minimum
             while level <= self.fits[-1]:
                 level *= 2
             stride = max(self._ends[-1] - self._ends[-2], 1)
-            n = self._ends[-1] + max(-(-(level - self._ends[-1]) // stride), 1) * stride
-            self._next_whitening = fit_sequence_whitening(np.resize(self._G[: self.n], (n, d)), self.options)
-            return True
-        following = self.whitening if self.given else self._next_whitening
-        for size, b, w in ((cap, 2 * rows, self.whitening), (2 * cap, rows, following), (2 * cap, 2 * rows, following)):
+            size = self._ends[-1] + max(-(-(level - self._ends[-1]) // stride), 1) * stride
+            options = self.options
+
+            def fit() -> None:
+                fit_sequence_whitening(np.resize(prefix, (size, d)), options)
+
+            return fit
+        w = self.whitening
+        for size, b in ((cap, 2 * rows), (2 * cap, rows), (2 * cap, 2 * rows)):
             if ("detect", size, b) in self._warmed:
                 continue
             self._warmed.add(("detect", size, b))
-            G = np.zeros((size, d), np.float32)
-            G[: self.n] = self._G[: self.n]
-            self._detect(G, self.n, self._schedule(padded=True, rows=b), w)
-            return True
-        return False
+            schedule = self._schedule(padded=True, rows=b)
+
+            def detect(size: int = size, schedule: ChunkSchedule = schedule) -> None:
+                G = np.zeros((size, d), np.float32)
+                G[:n] = prefix
+                self._detect(G, n, schedule, w, n=n)
+
+            return detect
+        return None
 
     def finish(
         self, schedule: ChunkSchedule | None = None, **kwargs: Any

@@ -70,7 +70,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
+import os
 import pathlib
 import queue
 import threading
@@ -288,7 +290,8 @@ class Reconstruction:
         self._settled.set()
         self._state: Any = None  # (ctx, t, relative, edges) of the newest chunk the loop worker took
         self.verifications: list[dict[str, Any]] = []
-        self._graph_warmed: set[int] = set()  # the capacities whose decision and solve compiled
+        self._graph_warmed: set[int] = set()  # the capacities whose decision and solve were planned
+        self._warm: queue.Queue[Any] = queue.Queue()  # the warm-up plans, for the warm-up thread
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
 
@@ -451,6 +454,7 @@ class Reconstruction:
             (self._predict_chunks, "swiftjax-live-predict"),
             (self._pose_chunks, "swiftjax-live-poses"),
             (self._work, "swiftjax-live-loops"),
+            (self._warm_ups, "swiftjax-live-warm-up"),
         ):
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
@@ -462,7 +466,7 @@ class Reconstruction:
         threads, self._threads = self._threads, []
         if not threads:
             return
-        predict, pose, loops = threads
+        predict, pose, loops, warm = threads
         self._chunks.put(None)
         predict.join()
         self._predicted.put(None)
@@ -471,6 +475,12 @@ class Reconstruction:
         self._jobs.put(None)
         loops.join()
         self._skip_loops = False
+        with contextlib.suppress(queue.Empty):  # the plans not started: dropped
+            while True:
+                self._warm.get_nowait()
+                self._warm.task_done()
+        self._warm.put(None)
+        warm.join()  # (a compile under way ends first)
 
     def _predict_chunks(self) -> None:
         """The predict thread: each completed chunk predicted as soon as it is complete (while
@@ -577,11 +587,10 @@ class Reconstruction:
         is verified (:meth:`_verify_next`: the most novel), and so on -- the queue is looked at
         again between two proposals, so a new chunk's proposals (a new revisit) never wait
         behind a backlog of proposals near a loop already closed."""
-        warming = False  # the last warm-up compiled something: there may be more
         while True:
             batch: list[Any] = []
             try:
-                batch.append(self._jobs.get(block=not (self._backlog or warming)))
+                batch.append(self._jobs.get(block=not self._backlog))
             except queue.Empty:
                 pass
             while batch and batch[-1] is not None:
@@ -596,9 +605,8 @@ class Reconstruction:
                     self._detect(jobs)
                 if self._backlog and not stop and self._worker_error is None:
                     self._verify_next()
-                warming = False
                 if not (stop or self._backlog or self._worker_error is not None) and self._jobs.empty():
-                    warming = self._warm_up()
+                    self._plan_warm_up()
             except BaseException as err:  # re-raised in the caller's thread
                 self._worker_error = self._worker_error or err
             finally:
@@ -632,32 +640,47 @@ class Reconstruction:
                 self.steps[c].update(loop_batch=t)
             self.steps[t].update(loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), batch=len(jobs))
 
-    def _warm_up(self) -> bool:
-        """Idle time (no chunk queued, no proposal waiting): compile, ahead of the drive, one
-        program set that the loop work will need, so that no decision compiles when a revisit
-        comes: the detector's next growth (:meth:`~swiftjax.loops.online.OnlineLoopDetector.warm_up`),
-        then the decision and the pose graph of the current capacity and, once the chunks fill
-        half of it, of the next (:meth:`_warm_graph`).  True when something was compiled."""
-        if self._detector is not None and self._detector.warm_up():
-            return True
+    def _plan_warm_up(self) -> None:
+        """Idle time (no chunk queued, no proposal waiting): the programs the loop work will need
+        next, queued to be compiled ahead on the warm-up thread (:meth:`_warm_ups`), so that no
+        decision compiles when a revisit comes: the detector's next growth
+        (:meth:`~swiftjax.loops.online.OnlineLoopDetector.warm_plan`), the decision and the
+        pose graph of the current capacity and, once the chunks fill a quarter of it, of the
+        next (:meth:`_warm_graph`).  Each once."""
+        if self._detector is not None:
+            while (plan := self._detector.warm_plan()) is not None:
+                self._warm.put(plan)
         if self._state is None or self.config.loop_verification == "none":
-            return False
+            return
         T = len(self._state[2]) + 1
-        C = _capacity(T, 0)[1]
-        for cap in (C, 2 * C) if 2 * T > C else (C,):
+        C = _capacity(T)[1]
+        for cap in (C, 2 * C) if 4 * T > C else (C,):
             if cap not in self._graph_warmed and T >= 4:
                 self._graph_warmed.add(cap)
-                self._warm_graph(cap)
-                return True
-        return False
+                assert self._temporal is not None and self._temporal.K_ref is not None
+                self._warm.put(functools.partial(self._warm_graph, cap, self._state, self._temporal.K_ref))
 
-    def _warm_graph(self, capacity: int) -> None:
+    def _warm_ups(self) -> None:
+        """The warm-up thread (at a lower OS priority where the system allows): each queued
+        plan run, until ``None``; a plan that fails is logged and skipped (the work it stood
+        for compiles when it is needed)."""
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), _WARM_UP_NICENESS)
+        while (plan := self._warm.get()) is not None:
+            try:
+                plan()
+            except Exception as err:  # an ahead-of-time compile: nothing depends on it
+                logging.getLogger(__name__).debug(f"live warm-up skipped: {err!r}")
+            finally:
+                self._warm.task_done()
+        self._warm.task_done()
+
+    def _warm_graph(self, capacity: int, state: tuple[Any, ...], K_ref: np.ndarray) -> None:
         """Decide two made-up loops, ``(T-1, 0)`` and ``(T-2, 1)`` consistent with the chain,
         and solve the graph with them, at ``capacity`` chunks (:func:`_capacity`): the programs
         of every later decision and solve of that capacity compile now.  Nothing is kept or
         published; the run's timer and log see nothing."""
-        ctx, _, relative, edges = self._state
-        assert self._temporal is not None and self._temporal.K_ref is not None
+        ctx, _, relative, edges = state
         quiet = dataclasses.replace(ctx, timer=rundir.StageTimer(), log=lambda s: None)
         chain = chain_poses(relative)
         T = len(chain)
@@ -677,7 +700,7 @@ class Reconstruction:
         loop_edges = [LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in records]
         for r in records:
             r["accepted"] = True
-        temporal = TemporalResult(np.zeros((0, 0), np.float32), relative, edges, self._temporal.K_ref)
+        temporal = TemporalResult(np.zeros((0, 0), np.float32), relative, edges, K_ref)
         graph.run(
             quiet, temporal, LoopResult(records, loop_edges), scale_priors=False, capacity=(capacity - 1, capacity)
         )
@@ -816,6 +839,10 @@ class Reconstruction:
         if self._live is None:
             self._live = LiveLog(self.run_dir)
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
+
+
+#: The warm-up thread's niceness (Linux: per thread), above the live threads'.
+_WARM_UP_NICENESS = 5
 
 
 def _capacity(chunks: int, loops: int = 0) -> tuple[int, int]:

@@ -223,9 +223,7 @@ def without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
     return dataclasses.replace(pred, patch_tokens=None)
 
 
-def decide(
-    ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]], *, rows: int | None = None
-) -> None:
+def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]], *, rows: int | None = None) -> None:
     """Set ``accepted``, ``reason`` (and ``pcm_residual``) on every record, in place, given the
     temporal edges ``relative [T-1, 8]`` (the chain the candidates are checked against).
 
