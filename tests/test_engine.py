@@ -309,3 +309,41 @@ def test_loop_worker_verifies_the_most_novel_proposal_first(tmp_path):
         order.append(rec._next_proposal()[0])
     assert order == [newest_far, far, by_rejected, near[2], near[1], near[0]]
     rec.close()
+
+
+def test_live_decisions_padded_to_a_capacity_equal_the_exact_ones():
+    """``decide(..., rows=C - 1)`` (the live engine: the chain extended by identity edges so
+    that the consistency programs compile once per capacity) accepts and rejects as the exact
+    chain does, with the same PCM residuals up to rounding."""
+    from types import SimpleNamespace
+
+    from swiftjax import sim3
+    from swiftjax.pipeline import loop_closure, rundir
+    from swiftjax.posegraph import chain_poses
+
+    rng = np.random.default_rng(0)
+    T = 12
+    relative = np.zeros((T - 1, 8))
+    relative[:, 0] = 1.0 + 0.05 * rng.normal(size=T - 1)
+    relative[:, 3:7] = [0, np.sin(0.1), 0, np.cos(0.1)]
+    relative[:, 7] = 1.0
+    chain = chain_poses(relative)
+
+    def record(ci, cj, shift=0.0):
+        Z = np.asarray(sim3.compose(sim3.inverse(chain[cj]), chain[ci]), np.float64)
+        Z[0] += shift
+        return {
+            "i": 10 * ci, "j": 10 * cj, "chunk_i": ci, "chunk_j": cj, "Z": Z.tolist(), "quality_valid": True,
+            "quality_min_fraction": 1.0, "dense_agreement": 0.9, "dense_overlap": 0.9,
+        }  # fmt: skip
+
+    ctx = SimpleNamespace(config=CONFIG, timer=rundir.StageTimer())
+    exact = [record(11, 2), record(10, 1), record(9, 0, shift=25.0), record(8, 3)]
+    padded = [dict(r) for r in exact]
+    loop_closure.decide(ctx, relative, exact)
+    loop_closure.decide(ctx, relative, padded, rows=63)
+    assert [r["accepted"] for r in exact] == [True, True, False, True]
+    assert [(r["accepted"], r["reason"]) for r in padded] == [(r["accepted"], r["reason"]) for r in exact]
+    np.testing.assert_allclose(
+        [r["pcm_residual"] for r in padded], [r["pcm_residual"] for r in exact], rtol=1e-9, atol=1e-9
+    )
