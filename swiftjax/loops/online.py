@@ -337,7 +337,7 @@ class OnlineLoopDetector:
         found, threshold = self._detect(self._G, min(first, self._tested), self._schedule(padded=True))
         self.threshold = threshold
         self._tested = self.n
-        new = []
+        new: list[Loop] = []
         r = o.nms_radius
         for lp in found:
             # a loop within ±r of an earlier proposal at both ends is that proposal again

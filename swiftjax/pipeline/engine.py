@@ -229,7 +229,7 @@ class Reconstruction:
             "proposed_at", "started_at", "done_at"`` (``time.monotonic()``)``, "accepted",
             "solved"`` (the accepted set changed: a solve and a revision)``, "revision",
             "stages"}`` (seconds per stage: loop-chunk prediction, alignment, verification,
-            decision, pose graph, revision).
+            decision, pose graph, revision; "numbers" and "decision" split "loop verification").
         metres_per_unit: the live metric factor (``--metric``), None: chunk 0's units.
         result: the final run (:meth:`finish`), else None.
     """
@@ -292,6 +292,7 @@ class Reconstruction:
         self.verifications: list[dict[str, Any]] = []
         self._graph_warmed: set[int] = set()  # the capacities whose decision and solve were planned
         self._warm: queue.Queue[Any] = queue.Queue()  # the warm-up plans, for the warm-up thread
+        self._stopping = False  # the threads are being stopped: no new warm-up
         self.warm_up_errors: list[str] = []  # the warm-up plans that failed (their work compiles when needed)
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
@@ -467,6 +468,7 @@ class Reconstruction:
         threads, self._threads = self._threads, []
         if not threads:
             return
+        self._stopping = True
         predict, pose, loops, warm = threads
         self._chunks.put(None)
         predict.join()
@@ -482,6 +484,7 @@ class Reconstruction:
                 self._warm.task_done()
         self._warm.put(None)
         warm.join()  # (a compile under way ends first)
+        self._stopping = False
 
     def _predict_chunks(self) -> None:
         """The predict thread: each completed chunk predicted as soon as it is complete (while
@@ -663,13 +666,17 @@ class Reconstruction:
 
     def _warm_ups(self) -> None:
         """The warm-up thread (at a lower OS priority where the system allows): each queued
-        plan run, until ``None``; a plan that fails is logged and skipped (the work it stood
+        plan run when no live chunk is being predicted or posed, until ``None``; a plan that fails is logged and skipped (the work it stood
         for compiles when it is needed)."""
         with contextlib.suppress(OSError, AttributeError):
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), _WARM_UP_NICENESS)
         while (plan := self._warm.get()) is not None:
             try:
-                plan()
+                # the live chunks first: a plan starts only while none is being predicted or posed
+                while (self._chunks.unfinished_tasks or self._predicted.unfinished_tasks) and not self._stopping:
+                    time.sleep(_WARM_UP_POLL_S)
+                if not self._stopping:
+                    plan()
             except Exception as err:  # an ahead-of-time compile: nothing depends on it
                 self.warm_up_errors.append(repr(err))
                 logging.getLogger(__name__).debug(f"live warm-up skipped: {err!r}")
@@ -745,13 +752,16 @@ class Reconstruction:
                 del pred
         finally:
             stream.close()
+        numbers_started = _now()
         if loop_closure.needs_numbers(self.config, record):
             record.update(loop_closure.verification_numbers(ctx, lp, record, K_ref))
+        numbers_s = _now() - numbers_started
         record["source"] = "tokens"
         record["live_chunk"] = t_proposed
         self.candidates.append(record)
-        with ctx.timer("loop decision"):
-            loop_closure.decide(ctx, relative, self.candidates, rows=_capacity(len(relative) + 1, 0)[0])
+        decide_started = _now()
+        loop_closure.decide(ctx, relative, self.candidates, rows=_capacity(len(relative) + 1, 0)[0])
+        decide_s = _now() - decide_started
         accepted = [r for r in self.candidates if r["accepted"]]
         key = tuple((int(r["i"]), int(r["j"])) for r in accepted)
         solved = key != self._accepted
@@ -762,6 +772,7 @@ class Reconstruction:
         stages = {
             k: round(v - booked.get(k, 0.0), 4) for k, v in self._loop_timer.seconds.items() if v > booked.get(k, 0.0)
         }
+        stages.update(numbers=round(numbers_s, 4), decision=round(decide_s, 4))  # (both "loop verification")
         self.verifications.append(
             {
                 "i": lp.i,
@@ -846,6 +857,8 @@ class Reconstruction:
 
 #: The warm-up thread's niceness (Linux: per thread), above the live threads'.
 _WARM_UP_NICENESS = 5
+#: How often (seconds) a waiting warm-up plan looks whether the live chunks are done.
+_WARM_UP_POLL_S = 0.05
 
 
 def _capacity(chunks: int, loops: int = 0) -> tuple[int, int]:
