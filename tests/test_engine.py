@@ -290,22 +290,60 @@ def test_turns_live_chunk_first_and_loop_chunks_in_the_gaps():
         assert order == ["loop"]
 
 
-def test_loop_worker_behind_verifies_the_most_novel_proposals_first(tmp_path):
-    """While chunks are queued behind the loop worker it verifies two proposals per batch:
-    those farthest from the accepted loops and from each other (a revisit proposes one loop
-    per chunk); the others wait, and all go once it has caught up."""
+def test_loop_worker_verifies_the_most_novel_proposal_first(tmp_path):
+    """The loop worker verifies one proposal at a time, the farthest (in chunks, at either end)
+    from the accepted loops, the newest first among equals: a new revisit before the
+    neighbours of a loop already closed, which wait until nothing more novel does."""
     from types import SimpleNamespace as L
 
     run = demo.loop_route_run(40, image_hw=(28, 98), spacing_m=4.0)
     rec = Reconstruction(tmp_path / "live", run.predictor, CONFIG, log=lambda s: None)
-    rec.candidates = [{"chunk_i": 20, "chunk_j": 3, "accepted": True}]
+    rec.candidates = [{"chunk_i": 20, "chunk_j": 3, "accepted": True}, {"chunk_i": 30, "chunk_j": 9, "accepted": False}]
     near = [L(chunk_i=20 + k, chunk_j=3 + k, i=1000 + k) for k in range(1, 4)]  # the accepted loop's revisit
     far = L(chunk_i=40, chunk_j=10, i=2000)  # another revisit
     newest_far = L(chunk_i=41, chunk_j=11, i=2050)
-    rec._jobs.put("a chunk queued behind the worker")
-    chosen = rec._verify_now([*near, far, newest_far])
-    assert chosen == [newest_far, near[-1]]  # the most novel, then the farthest from it and the accepted loop
-    assert rec._backlog == [near[0], near[1], far]
-    rec._jobs.get_nowait()  # caught up: the rest at once
-    assert rec._verify_now([]) == [near[0], near[1], far] and rec._backlog == []
+    by_rejected = L(chunk_i=30, chunk_j=9, i=1500)  # near a rejected loop only: novel
+    rec._backlog = [(lp, 0, 0.0) for lp in (*near, far, newest_far, by_rejected)]
+    order = []
+    while rec.proposals_waiting:
+        order.append(rec._next_proposal()[0])
+    assert order == [newest_far, far, by_rejected, near[2], near[1], near[0]]
     rec.close()
+
+
+def test_live_decisions_padded_to_a_capacity_equal_the_exact_ones():
+    """``decide(..., rows=C - 1)`` (the live engine: the chain extended by identity edges so
+    that the consistency programs compile once per capacity) accepts and rejects as the exact
+    chain does, with the same PCM residuals up to rounding."""
+    from types import SimpleNamespace
+
+    from swiftjax import sim3
+    from swiftjax.pipeline import loop_closure, rundir
+    from swiftjax.posegraph import chain_poses
+
+    rng = np.random.default_rng(0)
+    T = 12
+    relative = np.zeros((T - 1, 8))
+    relative[:, 0] = 1.0 + 0.05 * rng.normal(size=T - 1)
+    relative[:, 3:7] = [0, np.sin(0.1), 0, np.cos(0.1)]
+    relative[:, 7] = 1.0
+    chain = chain_poses(relative)
+
+    def record(ci, cj, shift=0.0):
+        Z = np.asarray(sim3.compose(sim3.inverse(chain[cj]), chain[ci]), np.float64)
+        Z[0] += shift
+        return {
+            "i": 10 * ci, "j": 10 * cj, "chunk_i": ci, "chunk_j": cj, "Z": Z.tolist(), "quality_valid": True,
+            "quality_min_fraction": 1.0, "dense_agreement": 0.9, "dense_overlap": 0.9,
+        }  # fmt: skip
+
+    ctx = SimpleNamespace(config=CONFIG, timer=rundir.StageTimer())
+    exact = [record(11, 2), record(10, 1), record(9, 0, shift=25.0), record(8, 3)]
+    padded = [dict(r) for r in exact]
+    loop_closure.decide(ctx, relative, exact)
+    loop_closure.decide(ctx, relative, padded, rows=63)
+    assert [r["accepted"] for r in exact] == [True, True, False, True]
+    assert [(r["accepted"], r["reason"]) for r in padded] == [(r["accepted"], r["reason"]) for r in exact]
+    np.testing.assert_allclose(
+        [r["pcm_residual"] for r in padded], [r["pcm_residual"] for r in exact], rtol=1e-9, atol=1e-9
+    )

@@ -286,3 +286,31 @@ def test_coalesced_chunks_propose_once_and_finish_unchanged():
     assert all(lp.i >= 300 for lp in batched.proposed)
     _same_loops(batched.finish(), L.find_loops(assembled, sched, o))
     _same_loops(batched.finish(), every.finish())
+
+
+def test_warm_up_compiles_ahead_and_changes_nothing():
+    """``warm_up`` (the engine's loop worker when idle) compiles the programs of the next
+    buffer / chunk-table growth and of the next refit, once each (then returns False), and the
+    proposals, fits and threshold are those of a detector never warmed up."""
+    n = 400
+    G = planted(n, 32, seed=5, loops=((300, 40, 30),), noise=0.1)
+    sched = chunk_schedule(n)
+    chunks, _ = chunk_copies(G, sched, seed=1)
+    o = dataclasses.replace(L.LoopOptions(), min_separation=50)
+    plain, warmed = online.OnlineLoopDetector(o), online.OnlineLoopDetector(o)
+    from swiftjax.loops.detection import _detect_loops
+
+    compiled, grown = 0, []
+    for f, g in chunks:
+        cap = None if warmed._G is None else warmed._G.shape[0]
+        programs = _detect_loops._cache_size()
+        a, b = plain.add(f, g), warmed.add(f, g)
+        if cap is not None and warmed._G.shape[0] > cap and warmed._warmed:
+            grown.append(_detect_loops._cache_size() - programs)  # warmed: no new detection program
+        _same_loops(a, b)
+        assert warmed.fits == plain.fits and warmed.threshold == plain.threshold
+        while warmed.warm_up():
+            compiled += 1
+        assert not warmed.warm_up()
+    assert compiled >= 3 and grown and not any(grown)
+    _same_loops(warmed.proposed, plain.proposed)

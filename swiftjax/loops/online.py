@@ -34,8 +34,10 @@ recorded in its chunk files (which :func:`~swiftjax.pipeline.rundir.prune` keeps
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import pathlib
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -173,11 +175,15 @@ def load_whitening(
         ) from None
 
 
-@jax.jit
-def _whitened_prefix(w: Whitening, G: jax.Array, n: jax.Array, beta: jax.Array) -> jax.Array:
-    """``ẑ`` of the first ``n`` rows of ``G [cap, d]``, NaN below (no match, not calibrated):
-    ``[cap, d′]``.  Recompiles per ``(cap, d, d′)``."""
+@functools.partial(jax.jit, static_argnames="width")
+def _whitened_prefix(w: Whitening, G: jax.Array, n: jax.Array, beta: jax.Array, width: int) -> jax.Array:
+    """``ẑ`` of the first ``n`` rows of ``G [cap, d]``, NaN below (no match, not calibrated),
+    with zero columns after ``d′`` up to ``width`` (a prefix whose ``d′`` grows with its
+    length, :func:`~swiftjax.loops.find.effective_settings`, keeps one detection program per
+    ``cap``; zeros add nothing to a similarity): ``[cap, max(d′, width)]``.  Recompiles per
+    ``(cap, d, d′, width)``."""
     Z = whiten(w, power_normalize(G, beta))
+    Z = jnp.pad(Z, ((0, 0), (0, max(width - Z.shape[1], 0))))
     return jnp.where((jnp.arange(G.shape[0]) < n)[:, None], Z, jnp.nan)
 
 
@@ -244,6 +250,7 @@ class OnlineLoopDetector:
         self._ends: list[int] = []
         self._fixed_threshold: float | None = None
         self._tested = 0  # frames 0.._tested-1 were tested as a loop's later end
+        self._warmed: set[tuple[str, int, int]] = set()  # what warm_up compiled
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -252,10 +259,12 @@ class OnlineLoopDetector:
             return np.zeros((0, 0), np.float32)
         return self._G[: self.n].copy()
 
-    def _schedule(self, padded: bool) -> ChunkSchedule:
+    def _schedule(self, padded: bool, rows: int | None = None) -> ChunkSchedule:
+        """The chunks as added (``padded``: with chunks holding no frame up to ``rows``, by
+        default the chunk count's bucket, so that the programs compile once per bucket)."""
         starts, ends = np.asarray(self._starts, np.int64), np.asarray(self._ends, np.int64)
         if padded:
-            t = _bucket(len(starts), 4)
+            t = _bucket(len(starts), 4) if rows is None else rows
             starts = np.concatenate([starts, np.full(t - len(starts), _NO_CHUNK)])
             ends = np.concatenate([ends, np.full(t - len(ends), _NO_CHUNK)])
         size = int(max(e - s for s, e in zip(self._starts, self._ends)))
@@ -324,7 +333,36 @@ class OnlineLoopDetector:
             self._fixed_threshold = effective_settings(
                 dataclasses.replace(o, dim=self.whitening.dim_requested), self.whitening.dim_requested * 4
             )[0]
-        Z = _whitened_prefix(self.whitening, jnp.asarray(self._G), jnp.int32(self.n), jnp.float32(o.beta))
+        assert self._G is not None
+        found, threshold = self._detect(self._G, min(first, self._tested), self._schedule(padded=True))
+        self.threshold = threshold
+        self._tested = self.n
+        new: list[Loop] = []
+        r = o.nms_radius
+        for lp in found:
+            # a loop within ±r of an earlier proposal at both ends is that proposal again
+            if not any(abs(lp.i - p.i) <= r and abs(lp.j - p.j) <= r for p in self.proposed + new):
+                new.append(lp)
+        self.proposed += new
+        return new
+
+    def _detect(
+        self,
+        G: np.ndarray,
+        first: int,
+        schedule: ChunkSchedule,
+        whitening: Whitening | None = None,
+        n: int | None = None,
+    ) -> tuple[list[Loop], float]:
+        """``(loops, threshold)``: the loops among the first :attr:`n` rows of ``G [cap, d]``
+        (the rest ignored) whose later frame is at least ``first``, each with its loop chunk in
+        ``schedule`` (padded), and the prefix threshold (``n``: the prefix size, by default
+        :attr:`n`).  Compiles per ``cap`` and ``schedule`` size (and whitening, ``whitening`` or the current one)."""
+        o = self.options
+        w = self.whitening if whitening is None else whitening
+        assert w is not None and self._fixed_threshold is not None
+        width = min(o.dim, G.shape[1])
+        Z = _whitened_prefix(w, jnp.asarray(G), jnp.int32(self.n if n is None else n), jnp.float32(o.beta), width)
         cand = detect_loops(
             Z,
             self._fixed_threshold,
@@ -337,18 +375,57 @@ class OnlineLoopDetector:
             false_alarms=o.false_alarms,
             throw=False,
         )
-        self.threshold = float(cand.threshold)
-        cand = _later_end_from(cand, jnp.int32(min(first, self._tested)))
-        self._tested = self.n
-        schedule = self._schedule(padded=True)
-        new = []
-        r = o.nms_radius
-        for lp in as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window):
-            # a loop within ±r of an earlier proposal at both ends is that proposal again
-            if not any(abs(lp.i - p.i) <= r and abs(lp.j - p.j) <= r for p in self.proposed + new):
-                new.append(lp)
-        self.proposed += new
-        return new
+        threshold = float(cand.threshold)
+        cand = _later_end_from(cand, jnp.int32(first))
+        return as_loops(filter_by_chunks(cand, schedule), schedule, o.half_window), threshold
+
+    def warm_up(self) -> bool:
+        """:meth:`warm_plan`, run at once: True when it compiled something."""
+        plan = self.warm_plan()
+        if plan is None:
+            return False
+        plan()
+        return True
+
+    def warm_plan(self) -> Callable[[], None] | None:
+        """The next program set the prefix's growth will need, to compile ahead while the
+        caller has time (each once; None when all are planned): the whitening fit of the next
+        refit's prefix size (predicted from the chunk stride; fitted on the prefix's rows
+        repeated), then detection on the descriptor buffer of twice the size and on the chunk
+        table of twice the chunks (on the current prefix).  The plan holds copies: it may run on another thread
+        while chunks are added.  Its results are dropped: nothing the detector proposes or
+        records changes."""
+        if self._G is None or self.whitening is None or self._fixed_threshold is None or len(self._ends) < 2:
+            return None
+        cap, rows, d, n = self._G.shape[0], _bucket(len(self._starts), 4), self._G.shape[1], self.n
+        prefix = self._G[:n].copy()
+        if not self.given and ("fit", cap, 0) not in self._warmed:
+            self._warmed.add(("fit", cap, 0))
+            level = self.minimum
+            while level <= self.fits[-1]:
+                level *= 2
+            stride = max(self._ends[-1] - self._ends[-2], 1)
+            size = self._ends[-1] + max(-(-(level - self._ends[-1]) // stride), 1) * stride
+            options = self.options
+
+            def fit() -> None:
+                fit_sequence_whitening(np.resize(prefix, (size, d)), options)
+
+            return fit
+        w = self.whitening
+        for size, b in ((cap, 2 * rows), (2 * cap, rows), (2 * cap, 2 * rows)):
+            if ("detect", size, b) in self._warmed:
+                continue
+            self._warmed.add(("detect", size, b))
+            schedule = self._schedule(padded=True, rows=b)
+
+            def detect(size: int = size, schedule: ChunkSchedule = schedule) -> None:
+                G = np.zeros((size, d), np.float32)
+                G[:n] = prefix
+                self._detect(G, n, schedule, w, n=n)
+
+            return detect
+        return None
 
     def finish(
         self, schedule: ChunkSchedule | None = None, **kwargs: Any

@@ -32,18 +32,23 @@ offline schedule, ``n = B + k (B - O)``, queues chunk ``k``; it never waits):
    held it; the offline export poses the last ``O`` frames of each chunk in the next one.
 4. **Loop worker**: the chunk's descriptors go to an
    :class:`~swiftjax.loops.online.OnlineLoopDetector` (whitening refitted on the prefix at a
-   doubling schedule, or given; threshold calibrated on the prefix); each new proposal between
-   non-neighbouring chunks gets its loop-centric chunk predicted and aligned and its
-   verification numbers (:func:`~swiftjax.pipeline.loop_closure.loop_record`), then every live
-   candidate is decided again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all)
-   and the candidates with their verdicts are written to ``loops_live.json``
-   (:func:`~swiftjax.pipeline.live.write_loops`, atomically).  Chunks that completed while the
-   worker was busy are taken together: every chunk's descriptors fed, one proposal pass, one
-   decision and at most one solve, for the newest state (the superseded ones are never run),
-   so the worker keeps up with the drive instead of falling behind by its backlog.
+   doubling schedule, or given; threshold calibrated on the prefix); its proposals between
+   non-neighbouring chunks wait in a backlog.  The worker verifies one proposal at a time: its
+   loop-centric chunk predicted and aligned, its verification numbers
+   (:func:`~swiftjax.pipeline.loop_closure.loop_record`), then every live candidate decided
+   again (:func:`~swiftjax.pipeline.loop_closure.decide`: PCM over all, the chain padded to a
+   size bucket so that it compiles once per bucket) and the candidates with their verdicts
+   written to ``loops_live.json`` (:func:`~swiftjax.pipeline.live.write_loops`, atomically).
+   Between two proposals it takes the chunks queued meanwhile (all together: every chunk's
+   descriptors fed, one proposal pass), and the next proposal is the most novel one: the
+   farthest, in chunks at either end, from the loops accepted so far.  A revisit proposes a
+   loop at nearly every chunk of it; once one is accepted its neighbours add little, so they
+   wait while a new revisit goes first (those still waiting at the end are left to the final
+   pass).
 5. **Pose graph** (loop worker): only when the set of accepted loops changed, the graph over
    the chunks is solved, warm-started from the last solution
-   (:func:`~swiftjax.pipeline.graph.run` with ``warm``), and every frame is published again
+   (:func:`~swiftjax.pipeline.graph.run` with ``warm`` and a ``capacity`` that grows by
+   doubling, so that the solve compiles once per doubling), and every frame is published again
    with the next revision (reason ``"loop closure"``), each in its offline owner chunk.
 
 The live loop records are hypotheses of the prefix, not recorded in the manifest (the final
@@ -65,7 +70,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
+import os
 import pathlib
 import queue
 import threading
@@ -77,7 +84,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import metric_scale
+from swiftjax import metric_scale, sim3
 from swiftjax.camera import world_cameras
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.loops.online import OnlineLoopDetector
@@ -213,9 +220,16 @@ class Reconstruction:
             (``time.monotonic()`` when the chunk's last frame was added and when its new frames
             were published), ``"pose_s"`` (the difference), ``"queued_s"``, ``"predict_s"``,
             ``"geometry_s"`` (waiting for the predict thread, predicting, storing + aligning +
-            posing), ``"metres_per_unit"``; once the loop worker is done with the chunk
-            ``"loop_s"`` (its seconds), ``"proposals"``, ``"solved"``, ``"batch"`` (chunks done
-            together), or ``"loop_batch"``: the chunk whose batch included it.
+            posing), ``"metres_per_unit"``; once the loop worker has run loop detection on the
+            chunk ``"loop_s"`` (its seconds), ``"loop_done_at"``, ``"proposals"`` (new ones),
+            ``"batch"`` (chunks taken together), or ``"loop_batch"``: the chunk whose batch
+            included it.
+        verifications: per proposal verified live, in order: ``{"i", "j", "chunk_i",
+            "chunk_j", "proposed_chunk", "chunks_posed"`` (the chunks its decision saw)``,
+            "proposed_at", "started_at", "done_at"`` (``time.monotonic()``)``, "accepted",
+            "solved"`` (the accepted set changed: a solve and a revision)``, "revision",
+            "stages"}`` (seconds per stage: loop-chunk prediction, alignment, verification,
+            decision, pose graph, revision; "numbers" and "decision" split "loop verification").
         metres_per_unit: the live metric factor (``--metric``), None: chunk 0's units.
         result: the final run (:meth:`finish`), else None.
     """
@@ -271,9 +285,22 @@ class Reconstruction:
         self._jobs: queue.Queue[Any] = queue.Queue()  # the loop jobs, for the loop worker
         self._threads: list[threading.Thread] = []
         self._skip_loops = False  # finishing: the loop jobs still queued are dropped
-        self._backlog: list[Any] = []  # proposals not verified yet (the worker was behind)
+        self._backlog: list[Any] = []  # (proposal, chunk that proposed it, when): not verified yet
+        self._settled = threading.Event()  # set while the loop worker has no proposal waiting
+        self._settled.set()
+        self._state: Any = None  # (ctx, t, relative, edges) of the newest chunk the loop worker took
+        self.verifications: list[dict[str, Any]] = []
+        self._graph_warmed: set[int] = set()  # the capacities whose decision and solve were planned
+        self._warm: queue.Queue[Any] = queue.Queue()  # the warm-up plans, for the warm-up thread
+        self._stopping = False  # the threads are being stopped: no new warm-up
+        self.warm_up_errors: list[str] = []  # the warm-up plans that failed (their work compiles when needed)
         self._worker_error: BaseException | None = None
         self._loop_timer = rundir.StageTimer()  # the loop worker's clock (a StageTimer is one thread's)
+
+    @property
+    def proposals_waiting(self) -> int:
+        """Loop proposals the loop worker has not verified yet."""
+        return len(self._backlog)
 
     @property
     def loops(self) -> list[dict[str, Any]]:
@@ -330,6 +357,7 @@ class Reconstruction:
         published); re-raises its error."""
         self.wait_for_poses()
         self._jobs.join()
+        self._settled.wait()
         self._raise_worker_error()
 
     def finish(self) -> RunResult:
@@ -428,6 +456,7 @@ class Reconstruction:
             (self._predict_chunks, "swiftjax-live-predict"),
             (self._pose_chunks, "swiftjax-live-poses"),
             (self._work, "swiftjax-live-loops"),
+            (self._warm_ups, "swiftjax-live-warm-up"),
         ):
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
@@ -439,7 +468,8 @@ class Reconstruction:
         threads, self._threads = self._threads, []
         if not threads:
             return
-        predict, pose, loops = threads
+        self._stopping = True
+        predict, pose, loops, warm = threads
         self._chunks.put(None)
         predict.join()
         self._predicted.put(None)
@@ -448,6 +478,13 @@ class Reconstruction:
         self._jobs.put(None)
         loops.join()
         self._skip_loops = False
+        with contextlib.suppress(queue.Empty):  # the plans not started: dropped
+            while True:
+                self._warm.get_nowait()
+                self._warm.task_done()
+        self._warm.put(None)
+        warm.join()  # (a compile under way ends first)
+        self._stopping = False
 
     def _predict_chunks(self) -> None:
         """The predict thread: each completed chunk predicted as soon as it is complete (while
@@ -549,105 +586,215 @@ class Reconstruction:
             self._jobs.put((snapshot, t, frames, chunk.descriptors, self._relative.copy(), list(self._edges)))
 
     def _work(self) -> None:
-        """The loop worker: the loop jobs in order, until ``None``; the jobs queued meanwhile
-        are done together (:meth:`_loops`: the detector fed every chunk, one proposal pass,
-        one decision and at most one solve for the newest state)."""
-        done = False
-        while not done:
-            batch = [self._jobs.get()]
-            while batch[-1] is not None:
+        """The loop worker, until ``None``: the chunk jobs queued are taken together
+        (:meth:`_detect`: the detector fed every chunk, one proposal pass), then one proposal
+        is verified (:meth:`_verify_next`: the most novel), and so on -- the queue is looked at
+        again between two proposals, so a new chunk's proposals (a new revisit) never wait
+        behind a backlog of proposals near a loop already closed."""
+        while True:
+            batch: list[Any] = []
+            try:
+                batch.append(self._jobs.get(block=not self._backlog))
+            except queue.Empty:
+                pass
+            while batch and batch[-1] is not None:
                 try:
                     batch.append(self._jobs.get_nowait())
                 except queue.Empty:
                     break
-            done = batch[-1] is None
+            stop = bool(batch) and batch[-1] is None
             jobs = [job for job in batch if job is not None]
             try:
-                if jobs and self._worker_error is None and not (done and self._skip_loops):
-                    self._loops(jobs)
+                if jobs and self._worker_error is None and not (stop and self._skip_loops):
+                    self._detect(jobs)
+                if self._backlog and not stop and self._worker_error is None:
+                    self._verify_next()
+                if jobs and not stop and self._worker_error is None:
+                    self._plan_warm_up()
             except BaseException as err:  # re-raised in the caller's thread
                 self._worker_error = self._worker_error or err
             finally:
+                if stop or self._worker_error is not None:
+                    self._backlog = []  # (the final pass decides the loops)
+                if not self._backlog:
+                    self._settled.set()
                 for _ in batch:
                     self._jobs.task_done()
+            if stop:
+                return
 
-    def _verify_now(self, found: list[Any]) -> list[Any]:
-        """The proposals to verify in this batch: all the waiting ones when the worker has
-        caught up, else (more chunks queued) the :data:`_BEHIND_PROPOSALS` most novel --
-        farthest (in chunks, at either end) from the accepted loops and from each other, the
-        newest first among equals; the others wait for a later batch.  A revisit proposes a
-        loop at every chunk of it, and one or two of them already correct the drift."""
-        self._backlog += found
-        if not self._jobs.qsize() or len(self._backlog) <= _BEHIND_PROPOSALS:
-            chosen, self._backlog = self._backlog, []
-            return chosen
-        anchors = [(int(r["chunk_i"]), int(r["chunk_j"])) for r in self.candidates if r.get("accepted")]
-        chosen = []
-        for _ in range(_BEHIND_PROPOSALS):
-            taken = anchors + [(lp.chunk_i, lp.chunk_j) for lp in chosen]
-
-            def novelty(lp: Any) -> tuple[int, int]:
-                near = min((max(abs(lp.chunk_i - a), abs(lp.chunk_j - b)) for a, b in taken), default=1 << 30)
-                return near, lp.i
-
-            best = max(self._backlog, key=novelty)
-            chosen.append(best)
-            self._backlog.remove(best)
-        return chosen
-
-    def _raise_worker_error(self) -> None:
-        if self._worker_error is not None:
-            err, self._worker_error = self._worker_error, None
-            raise err
-
-    def _loops(self, jobs: list[tuple[Any, ...]]) -> None:
-        """The loop work of the chunks of ``jobs`` (each ``(ctx, t, frames, descriptors,
-        relative [t, 8], edges)``: the run as of chunk ``t``, in order): every chunk's
-        descriptors to the loop detector, one proposal pass for them all, the new candidates'
-        loop chunks and verdicts and, when the accepted set changed, the pose graph over the
-        chunks of the newest job and a revision.  The chunks queued while the worker was busy
-        are one batch, so the worker keeps up with the drive: the superseded detections and
-        solves are not run."""
+    def _detect(self, jobs: list[tuple[Any, ...]]) -> None:
+        """The chunks of ``jobs`` (each ``(ctx, t, frames, descriptors, relative [t, 8],
+        edges)``: the run as of chunk ``t``, in order) fed to the loop detector, one proposal
+        pass for them all; the proposals between non-neighbouring chunks join the backlog, and
+        the newest job's run is the one the next decisions and solves see."""
         started = _now()
         assert self._detector is not None
         ctx, t, _, _, relative, edges = jobs[-1]
         with ctx.timer("loop detection"):
             for k, (_, _, frames, descriptors, _, _) in enumerate(jobs):
                 found = self._detector.add(frames, descriptors, propose=k + 1 == len(jobs))
-            found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
-        found = self._verify_now(found)
-        solved = False
+        found = [lp for lp in found if abs(lp.chunk_i - lp.chunk_j) >= 2]  # not a temporal edge's
+        self._state = (ctx, t, relative, edges)
         if found:
-            assert self._temporal is not None and self._temporal.K_ref is not None
-            K_ref = self._temporal.K_ref
-            stream = ctx.executor.map(ctx.predictor, [lp.frames for lp in found], loop_closure.without_tokens)
-            try:
-                with ctx.timer("loop chunks"):
-                    for lp in found:
-                        with ctx.timer("predict (loop chunks)"):
-                            pred = next(stream)
-                        record = loop_closure.loop_record(ctx, lp, pred, K_ref)
-                        del pred
-                        if loop_closure.needs_numbers(self.config, record):
-                            record.update(loop_closure.verification_numbers(ctx, lp, record, K_ref))
-                        record["source"] = "tokens"
-                        record["live_chunk"] = t
-                        self.candidates.append(record)
-            finally:
-                stream.close()
-            loop_closure.decide(ctx, relative, self.candidates)
-            accepted = [r for r in self.candidates if r["accepted"]]
-            key = tuple((int(r["i"]), int(r["j"])) for r in accepted)
-            if key != self._accepted:
-                self._accepted, solved = key, True
-                self._solve(ctx, accepted, relative, edges, K_ref)
-            write_loops(self.run_dir, self.candidates, self.revision)
+            self._settled.clear()
+            self._backlog += [(lp, t, started) for lp in found]
         with self._lock:
             for _, c, *_ in jobs[:-1]:
                 self.steps[c].update(loop_batch=t)
-            self.steps[t].update(
-                loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), solved=solved, batch=len(jobs)
-            )
+            self.steps[t].update(loop_s=_now() - started, loop_done_at=_now(), proposals=len(found), batch=len(jobs))
+
+    def _plan_warm_up(self) -> None:
+        """After each detection: the programs the loop work will need next, queued to be
+        compiled ahead on the warm-up thread (:meth:`_warm_ups`), so that no decision compiles
+        when a revisit comes: the detector's next growth
+        (:meth:`~swiftjax.loops.online.OnlineLoopDetector.warm_plan`), the decision and the
+        pose graph of the current capacity and, once the chunks fill a quarter of it, of the
+        next (:meth:`_warm_graph`).  Each once."""
+        if self._detector is not None:
+            while (plan := self._detector.warm_plan()) is not None:
+                self._warm.put(plan)
+        if self._state is None or self.config.loop_verification == "none":
+            return
+        T = len(self._state[2]) + 1
+        C = _capacity(T)[1]
+        for cap in (C, 2 * C) if 4 * T > C else (C,):
+            if cap not in self._graph_warmed and T >= 4:
+                self._graph_warmed.add(cap)
+                assert self._temporal is not None and self._temporal.K_ref is not None
+                self._warm.put(functools.partial(self._warm_graph, cap, self._state, self._temporal.K_ref))
+
+    def _warm_ups(self) -> None:
+        """The warm-up thread (at a lower OS priority where the system allows): each queued
+        plan run when no live chunk is being predicted or posed, until ``None``; a plan that fails is logged and skipped (the work it stood
+        for compiles when it is needed)."""
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), _WARM_UP_NICENESS)
+        while (plan := self._warm.get()) is not None:
+            try:
+                # the live chunks first: a plan starts only while none is being predicted or posed
+                while (self._chunks.unfinished_tasks or self._predicted.unfinished_tasks) and not self._stopping:
+                    time.sleep(_WARM_UP_POLL_S)
+                if not self._stopping:
+                    plan()
+            except Exception as err:  # an ahead-of-time compile: nothing depends on it
+                self.warm_up_errors.append(repr(err))
+                logging.getLogger(__name__).debug(f"live warm-up skipped: {err!r}")
+            finally:
+                self._warm.task_done()
+        self._warm.task_done()
+
+    def _warm_graph(self, capacity: int, state: tuple[Any, ...], K_ref: np.ndarray) -> None:
+        """Decide two made-up loops, ``(T-1, 0)`` and ``(T-1, 1)`` nearly consistent with the chain,
+        and solve the graph with them, at ``capacity`` chunks (:func:`_capacity`): the programs
+        of every later decision and solve of that capacity compile now.  Nothing is kept or
+        published; the run's timer and log see nothing."""
+        ctx, _, relative, edges = state
+        quiet = dataclasses.replace(ctx, timer=rundir.StageTimer(), log=lambda s: None)
+        chain = chain_poses(relative)
+        T = len(chain)
+        records = []
+        with jax.enable_x64(True):
+            for ci, cj in ((T - 1, 0), (T - 1, 1)):
+                Z = np.array(sim3.compose(sim3.inverse(jnp.asarray(chain[cj])), jnp.asarray(chain[ci])), np.float64)
+                Z[:3] *= 1.01  # (not exactly consistent: the solver iterates, its every program compiles)
+                stats = edges[-1]
+                records.append(
+                    {
+                        "i": ci, "j": cj, "chunk_i": ci, "chunk_j": cj, "Z": Z.tolist(), "align_i": stats,
+                        "align_j": stats, "quality_valid": True, "quality_min_fraction": 1.0,
+                        "dense_agreement": 1.0, "dense_overlap": 1.0,
+                    }
+                )  # fmt: skip
+        loop_closure.decide(quiet, relative, records, rows=capacity - 1)
+        loop_edges = [LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in records]
+        for r in records:
+            r["accepted"] = True
+        temporal = TemporalResult(np.zeros((0, 0), np.float32), relative, edges, K_ref)
+        graph.run(
+            quiet, temporal, LoopResult(records, loop_edges), scale_priors=False, capacity=(capacity - 1, capacity)
+        )
+
+    def _next_proposal(self) -> tuple[Any, int, float]:
+        """The backlog's most novel proposal, removed from it: the farthest, in chunks at
+        either end (``max(|c_i - a_i|, |c_j - a_j|)``), from every loop accepted so far, the
+        newest first among equals.  A revisit proposes a loop at nearly every chunk of it; once
+        one of them is accepted, its neighbours add little, and they wait until nothing more
+        novel does (those still waiting when the drive ends are left to the final pass)."""
+        anchors = [(int(r["chunk_i"]), int(r["chunk_j"])) for r in self.candidates if r.get("accepted")]
+
+        def novelty(item: tuple[Any, int, float]) -> tuple[int, int]:
+            lp = item[0]
+            near = min((max(abs(lp.chunk_i - a), abs(lp.chunk_j - b)) for a, b in anchors), default=1 << 30)
+            return near, lp.i
+
+        best = max(self._backlog, key=novelty)
+        self._backlog.remove(best)
+        return best
+
+    def _verify_next(self) -> None:
+        """One proposal (:meth:`_next_proposal`): its loop chunk predicted and aligned, its
+        verification numbers, every live candidate decided again and, when the accepted set
+        changed, the pose graph over the chunks of the newest job and a revision; a record
+        of it appended to :attr:`verifications`."""
+        started = _now()
+        booked = dict(self._loop_timer.seconds)
+        lp, t_proposed, proposed_at = self._next_proposal()
+        ctx, t, relative, edges = self._state
+        assert self._temporal is not None and self._temporal.K_ref is not None
+        K_ref = self._temporal.K_ref
+        stream = ctx.executor.map(ctx.predictor, [lp.frames], loop_closure.without_tokens)
+        try:
+            with ctx.timer("loop chunks"):
+                with ctx.timer("predict (loop chunks)"):
+                    pred = next(stream)
+                record = loop_closure.loop_record(ctx, lp, pred, K_ref)
+                del pred
+        finally:
+            stream.close()
+        numbers_started = _now()
+        if loop_closure.needs_numbers(self.config, record):
+            record.update(loop_closure.verification_numbers(ctx, lp, record, K_ref))
+        numbers_s = _now() - numbers_started
+        record["source"] = "tokens"
+        record["live_chunk"] = t_proposed
+        self.candidates.append(record)
+        decide_started = _now()
+        loop_closure.decide(ctx, relative, self.candidates, rows=_capacity(len(relative) + 1, 0)[0])
+        decide_s = _now() - decide_started
+        accepted = [r for r in self.candidates if r["accepted"]]
+        key = tuple((int(r["i"]), int(r["j"])) for r in accepted)
+        solved = key != self._accepted
+        if solved:
+            self._accepted = key
+            self._solve(ctx, accepted, relative, edges, K_ref)
+        write_loops(self.run_dir, self.candidates, self.revision)
+        stages = {
+            k: round(v - booked.get(k, 0.0), 4) for k, v in self._loop_timer.seconds.items() if v > booked.get(k, 0.0)
+        }
+        stages.update(numbers=round(numbers_s, 4), decision=round(decide_s, 4))  # (both "loop verification")
+        self.verifications.append(
+            {
+                "i": lp.i,
+                "j": lp.j,
+                "chunk_i": lp.chunk_i,
+                "chunk_j": lp.chunk_j,
+                "proposed_chunk": t_proposed,
+                "chunks_posed": t + 1,
+                "proposed_at": proposed_at,
+                "started_at": started,
+                "done_at": _now(),
+                "accepted": bool(record["accepted"]),
+                "solved": solved,
+                "revision": self.revision,
+                "stages": stages,
+            }
+        )
+
+    def _raise_worker_error(self) -> None:
+        if self._worker_error is not None:
+            err, self._worker_error = self._worker_error, None
+            raise err
 
     def _solve(
         self,
@@ -664,12 +811,17 @@ class Reconstruction:
             loop_edges = [LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in accepted]
             temporal = TemporalResult(np.zeros((0, 0), np.float32), relative, edges, K_ref)
             self._graph = graph.run(
-                ctx, temporal, LoopResult(accepted, loop_edges), warm=self._graph, scale_priors=False
+                ctx,
+                temporal,
+                LoopResult(accepted, loop_edges),
+                warm=self._graph,
+                scale_priors=False,
+                capacity=_capacity(len(relative) + 1, len(loop_edges)),
             )
             solution = self._graph.chunk_poses
         else:  # every accepted loop withdrawn: the chain
             self._graph, solution = None, chain_poses(relative)
-        with self._lock:
+        with ctx.timer("live revision"), self._lock:
             self._chunk_poses = graph.warm_start(solution, self._relative)
             n = len(self._cam_to_world)
             owner = np.searchsorted(np.asarray(self._starts), np.arange(n), side="right") - 1  # the export's
@@ -703,8 +855,20 @@ class Reconstruction:
         self._live.append(frames, self.times[frames.start : frames.stop], cam_to_world, self.revision, reason)
 
 
-#: Proposals the loop worker verifies per batch while chunks are queued behind it.
-_BEHIND_PROPOSALS = 2
+#: The warm-up thread's niceness (Linux: per thread), above the live threads'.
+_WARM_UP_NICENESS = 5
+#: How often (seconds) a waiting warm-up plan looks whether the live chunks are done.
+_WARM_UP_POLL_S = 0.05
+
+
+def _capacity(chunks: int, loops: int = 0) -> tuple[int, int]:
+    """The live pose graph's capacity ``(temporal edges, loop edges)``: ``C - 1`` and ``C`` for
+    the power of two ``C >= 32`` at least the chunks and the loops, so that a drive compiles the
+    solve about once per doubling of its chunks (:func:`swiftjax.pipeline.graph.run`)."""
+    C = 32
+    while C < max(chunks, loops):
+        C *= 2
+    return C - 1, C
 
 
 def _scaled(cam_to_world: np.ndarray, m: float | None) -> np.ndarray:

@@ -61,9 +61,13 @@ logger = logging.getLogger(__name__)
 _STATS = ("S", "num_points", "rms", "src_mean", "src_covariance")
 
 
-def edge_information(records: list[dict[str, Any]], pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray]:
+def edge_information(
+    records: list[dict[str, Any]], pixels_per_sample: float, rows: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(information [K, 7, 7], valid [K])`` of alignment records (``align_pair`` diagnostics with
-    ``S``, ``num_points``, ``rms``, ``src_mean``, ``src_covariance``); invalid rows are zero."""
+    ``S``, ``num_points``, ``rms``, ``src_mean``, ``src_covariance``); invalid rows are zero.
+    ``rows``: computed on the records padded to ``rows`` (repeating the first; a growing graph
+    compiles once per padded size, not per ``K``)."""
     k = len(records)
     ok = np.array([all(key in r for key in _STATS) and not r.get("pose_fallback", False) for r in records], bool)
     if not ok.any():
@@ -71,16 +75,12 @@ def edge_information(records: list[dict[str, Any]], pixels_per_sample: float) ->
     get = lambda key, shape: np.array([r[key] if o else np.zeros(shape) for r, o in zip(records, ok)], np.float64)
     S = get("S", (8,))
     S[~ok, 6:8] = 1.0
+    args = [S[:, 7], get("num_points", ()), get("rms", ()), get("src_mean", (3,)), get("src_covariance", (3, 3))]
+    if rows is not None:
+        args = [_pad_rows(a, rows) for a in args]
     with jax.enable_x64(True):
-        out = covariance.umeyama_information(
-            S[:, 7],
-            get("num_points", ()),
-            get("rms", ()),
-            get("src_mean", (3,)),
-            get("src_covariance", (3, 3)),
-            pixels_per_sample=pixels_per_sample,
-        )
-        info, valid = np.asarray(out.information, np.float64), np.asarray(out.valid) & ok
+        out = covariance.umeyama_information(*args, pixels_per_sample=pixels_per_sample)
+        info, valid = np.asarray(out.information, np.float64)[:k], np.asarray(out.valid)[:k] & ok
     return np.where(valid[:, None, None], info, 0.0), valid
 
 
@@ -102,38 +102,53 @@ def loop_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
         return np.asarray(out.information, np.float64) if bool(out.valid) else None
 
 
+def _pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
+    """``a [K, ...]`` padded to ``[max(K, rows), ...]`` by repeating its first row (``K >= 1``)."""
+    return np.concatenate([a, np.repeat(a[:1], max(rows - len(a), 0), axis=0)])
+
+
 def _inverse(m: np.ndarray) -> np.ndarray:
     out = np.linalg.inv(m)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
-def _drift_covariance(temporal: TemporalResult, loops: LoopResult) -> tuple[np.ndarray, np.ndarray]:
-    """The drift model's covariances ``([T-1, 7, 7], [L, 7, 7])`` of the temporal and loop edges."""
+def _drift_covariance(
+    temporal: TemporalResult, loops: LoopResult, capacity: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The drift model's covariances ``([T-1, 7, 7], [L, 7, 7])`` of the temporal and loop edges
+    (``capacity``: computed on edges padded to that many temporal / loop edges, see :func:`run`)."""
     drift = lv.VerificationConfig()
+    relative = np.asarray(temporal.relative)
+    Z = np.stack([e.Z for e in loops.edges]) if loops.edges else None
+    if capacity is not None:
+        relative = _pad_rows(relative, capacity[0])
+        Z = None if Z is None else _pad_rows(Z, capacity[1])
     with jax.enable_x64(True):
         odo = np.asarray(
             lv.odometry_covariance(
-                jnp.asarray(temporal.relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
+                jnp.asarray(relative), drift.odo_sigma_rot, drift.odo_sigma_trans, drift.odo_sigma_scale
             ),
             np.float64,
-        )
+        )[: len(temporal.relative)]
         lc = (
             np.asarray(
                 lv.loop_covariance(
-                    jnp.asarray(np.stack([e.Z for e in loops.edges])),
+                    jnp.asarray(Z),
                     drift.loop_sigma_rot,
                     drift.loop_sigma_trans,
                     drift.loop_sigma_scale,
                 ),
                 np.float64,
-            )
-            if loops.edges
+            )[: len(loops.edges)]
+            if Z is not None
             else np.zeros((0, 7, 7))
         )
     return odo, lc
 
 
-def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopResult) -> np.ndarray | None:
+def _graph_information(
+    ctx: RunContext, temporal: TemporalResult, loops: LoopResult, capacity: tuple[int, int] | None = None
+) -> np.ndarray | None:
     """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
 
     ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loops.verification`
@@ -146,7 +161,7 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
     if config.edge_information == "equal":
         return None
     pps = config.edge_pixels_per_sample
-    info, valid = edge_information(temporal.edges, pps)
+    info, valid = edge_information(temporal.edges, pps, None if capacity is None else capacity[0])
     accepted = [r for r in loops.records if r.get("accepted", True) and "Z" in r]
     if len(accepted) != len(loops.edges) or any(
         (r["chunk_j"], r["chunk_i"]) != (e.chunk_a, e.chunk_b) for r, e in zip(accepted, loops.edges)
@@ -155,7 +170,7 @@ def _graph_information(ctx: RunContext, temporal: TemporalResult, loops: LoopRes
     loop_info = [
         e.information if e.information is not None else loop_information(r, pps) for r, e in zip(accepted, loops.edges)
     ]
-    odo, lc = _drift_covariance(temporal, loops)
+    odo, lc = _drift_covariance(temporal, loops, capacity)
     safe = np.where(valid[:, None, None], info, np.eye(7))
     odo = odo + np.where(valid[:, None, None], _inverse(safe), 0.0)
     lc = np.stack([c if x is None else c + _inverse(x) for c, x in zip(lc, loop_info)]) if loops.edges else lc
@@ -225,10 +240,13 @@ def _scale_priors(ctx: RunContext, temporal: TemporalResult, chain: np.ndarray) 
     return metric_scale.scale_priors(temporal.ground_heights, chain[:, 7], spec[1], ctx.config.metric_prior_sigma)
 
 
-def _solve(problem: posegraph.Problem, config: Any, kernel: Any) -> tuple[Any, np.ndarray]:
+def _solve(
+    problem: posegraph.Problem, config: Any, kernel: Any, capacity: tuple[int, int] | None = None
+) -> tuple[Any, np.ndarray]:
     posegraph.validate(problem)
     options = config.graph.replace(kernel=kernel)
-    res = posegraph.optimize(problem, options, throw=False)  # not converged: the caller warns
+    pad = True if capacity is None else (capacity[0] + 1, sum(capacity))
+    res = posegraph.optimize(problem, options, throw=False, pad=pad)  # not converged: the caller warns
     return res, np.asarray(sim3.normalize(res.poses), np.float64)
 
 
@@ -265,13 +283,17 @@ def run(
     warm: GraphResult | None = None,
     *,
     scale_priors: bool = True,
+    capacity: tuple[int, int] | None = None,
 ) -> GraphResult:
     """Chain the temporal edges; optimise the pose graph when there are loop edges (or scale priors).
 
     ``warm``: the last solution of a graph with fewer edges (a live run): the loop solve starts
     from it (:func:`warm_start`) instead of the chain; offline runs start from the chain.
     ``scale_priors``: False leaves out ``--metric camera-height``'s priors (the live engine's
-    poses stay in the first chunk's units until the final pass)."""
+    poses stay in the first chunk's units until the final pass).  ``capacity``: ``(temporal
+    edges, loop edges)`` that a growing graph (the live engine's) is padded to at least, so that
+    its programs compile once per capacity, not per chunk (None: the exact sizes, as offline;
+    the solver's own size buckets, :func:`swiftjax.posegraph.padded_sizes`)."""
     config = ctx.config
     relative = temporal.relative
     T = ctx.schedule.num_chunks
@@ -282,7 +304,7 @@ def run(
         priors = _scale_priors(ctx, temporal, chunk_poses_no_loops) if scale_priors else None
         information = None
         if loops.edges or priors is not None:
-            information = _graph_information(ctx, temporal, loops)
+            information = _graph_information(ctx, temporal, loops, capacity)
         if priors is not None:
             start = metric_scale.apply_scale(chunk_poses_no_loops, priors.start_factor)
             tedges = np.array([(t, t + 1) for t in range(T - 1)], np.int32).reshape(-1, 2)
@@ -330,7 +352,7 @@ def run(
                     cov = None
                     if information is None:  # equal weights: the drift model is the noise model
                         cov = np.linalg.inv(np.asarray(problem.information, np.float64))
-                        cov[: T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops))
+                        cov[: T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops, capacity))
                     posegraph.validate(problem)
                     res, check = pcm.consistent_solve(
                         problem,
@@ -338,10 +360,11 @@ def run(
                         num_chain_nodes=T,
                         options=config.graph,
                         throw=False,
+                        pad=True if capacity is None else (capacity[0] + 1, sum(capacity)),
                     )
                     chunk_poses = np.asarray(sim3.normalize(res.poses), np.float64)
                 else:
-                    res, chunk_poses = _solve(problem, config, config.robust_loops)
+                    res, chunk_poses = _solve(problem, config, config.robust_loops, capacity)
                 chunk_poses = chunk_poses[:T]
                 r = np.asarray(res.residuals, np.float64)[T - 1 : T - 1 + L]
             om = np.asarray(problem.information, np.float64)[T - 1 : T - 1 + L]

@@ -223,13 +223,22 @@ def without_tokens(pred: ChunkPrediction) -> ChunkPrediction:
     return dataclasses.replace(pred, patch_tokens=None)
 
 
-def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]]) -> None:
+def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]], *, rows: int | None = None) -> None:
     """Set ``accepted``, ``reason`` (and ``pcm_residual``) on every record, in place, given the
-    temporal edges ``relative [T-1, 8]`` (the chain the candidates are checked against)."""
+    temporal edges ``relative [T-1, 8]`` (the chain the candidates are checked against).
+
+    ``rows`` (the live engine, which decides again as the chain grows): the chain is extended
+    by identity edges to ``max(T - 1, rows)`` edges, so that the consistency programs compile
+    once per ``rows``, not once per chunk count.  The loops only reach chunks ``< T``: the
+    padded chunks enter no cycle (the same decisions, up to rounding)."""
     if ctx.config.loop_verification == "none":
         for r in records:
             r.update(accepted=True, reason="accepted without verification (loop_verification = none)")
         return
+    if rows is not None:
+        relative = np.asarray(relative, np.float64).reshape(-1, 8)
+        identity = np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float64)
+        relative = np.concatenate([relative, np.tile(identity, (max(rows - len(relative), 0), 1))])
     with ctx.timer("loop verification"):
         decisions = lv.verify_candidates(records, chain_poses(relative), relative, ctx.config.verification)
     for r, d in zip(records, decisions):
