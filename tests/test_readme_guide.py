@@ -4,6 +4,7 @@ against the code where the code decides), the viewer caption's numbers match the
 
 from __future__ import annotations
 
+import json
 import pathlib
 import re
 
@@ -51,7 +52,20 @@ def test_your_images_section_and_tutorial():
 def test_gpu_section_says_what_is_and_is_not_known():
     text = " ".join(_section("The real model and a GPU").split())
     assert "facebook/VGGT-1B" in text and "non-commercial" in text and "gated" in text
-    assert "not measured" in text.lower()
+    # The GPU figures quoted are the measured ones (bench_gpu.py's latest JSON), with random weights said.
+    (result,) = sorted((REPO / "bench" / "results").glob("gpu-*.json"))[-1:]
+    gpu = json.loads(result.read_text())
+    chunk = next(r for r in gpu["chunks"] if r["frames"] == 75)
+    warm = [r for r in gpu["end_to_end"]["runs"] if r["run"] == "warm"][-1]
+    assert "random weights" in text and "`python bench/bench_gpu.py`" in text
+    for quoted in (
+        f"{chunk['seconds']:.2f} s per chunk",
+        f"{chunk['frames_per_s']:.0f} frames/s",
+        f"{round(100 * chunk['aggregator_fraction_of_matmul'])} % of the measured bf16 matmul",
+        f"{chunk['peak_reserved_gb']:.1f} GB reserved",
+        f"{warm['frames_per_s']:.0f} frames/s warm, {warm['e2e_over_predict_only']:.2f} of the predict-only rate",
+    ):
+        assert quoted in text, quoted
     assert "constraints.txt" in text and "--index-url https://download.pytorch.org/whl/" in text
     pinned = re.search(r"^torch==(\S+)$", (REPO / "constraints.txt").read_text(), re.M).group(1)
     assert f"pip install torch=={pinned} --index-url" in text  # the pinned version, so the constraint holds
