@@ -86,7 +86,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -916,6 +917,15 @@ def _take(clouds: ChunkCloud, index: Array) -> ChunkCloud:
     return jax.tree_util.tree_map(lambda x: x[index], clouds)
 
 
+def _over_pairs(fn: Callable[..., Any], clouds: ChunkCloud, src: ArrayLike, dst: ArrayLike, *jobs: ArrayLike) -> Any:
+    """``fn(clouds[src[k]], clouds[dst[k]], *(x[k] for x in jobs))`` for ``k < B`` (``vmap``)."""
+
+    def one(i: Array, j: Array, *job: Array) -> Any:
+        return fn(_take(clouds, i), _take(clouds, j), *job)
+
+    return jax.vmap(one)(jnp.asarray(src), jnp.asarray(dst), *(jnp.asarray(x) for x in jobs))
+
+
 @functools.partial(jax.jit, static_argnames=("options",))
 def starts_batch(
     clouds: ChunkCloud,
@@ -932,13 +942,17 @@ def starts_batch(
     ``clouds [T, ...]``) onto chunk ``dst[k]`` (its spectrum ``spectra[dst[k]]``, from
     :func:`bev_spectrum`) from the prior ``(psi, sigma, tau, window)[k]``.  One compile per
     ``(T, B, options)``: the caller pads its jobs to a multiple of ``B``."""
-    sp = jnp.asarray(spectra)
-
-    def one(i, j, p, s, t, w):
-        return bev_starts(_take(clouds, i), _take(clouds, j), p, s, t, w, options, sp[j])
-
-    return jax.vmap(one)(
-        jnp.asarray(src), jnp.asarray(dst), jnp.asarray(psi), jnp.asarray(sigma), jnp.asarray(tau), jnp.asarray(window)
+    sp = jnp.asarray(spectra)[jnp.asarray(dst)]
+    return _over_pairs(
+        lambda a, b, p, s, t, w, f: bev_starts(a, b, p, s, t, w, options, f),
+        clouds,
+        src,
+        dst,
+        psi,
+        sigma,
+        tau,
+        window,
+        sp,
     )
 
 
@@ -953,10 +967,7 @@ def peaks_batch(
 ) -> Placements:
     """:func:`peak_icp` of ``B`` jobs at once (``vmap``).  One compile per ``(T, B, options)``."""
 
-    def one(i, j, s, c):
-        return peak_icp(_take(clouds, i), _take(clouds, j), s, c, options)
-
-    return jax.vmap(one)(jnp.asarray(src), jnp.asarray(dst), jnp.asarray(S0), jnp.asarray(correlation))
+    return _over_pairs(lambda a, b, s, c: peak_icp(a, b, s, c, options), clouds, src, dst, S0, correlation)
 
 
 def refine_placement(
@@ -1007,10 +1018,7 @@ def refine_batch(
     """:func:`refine_placement` of ``B`` jobs at once (``vmap``, chunks gathered from the
     stacked ``clouds [T, ...]``).  One compile per ``(T, B, options)``.  ``[B, ...]``."""
 
-    def one(i, j, s, p):
-        return refine_placement(_take(clouds, i), _take(clouds, j), s, p, options)
-
-    return jax.vmap(one)(jnp.asarray(src), jnp.asarray(dst), jnp.asarray(S), jnp.asarray(prior_scale))
+    return _over_pairs(lambda a, b, s, p: refine_placement(a, b, s, p, options), clouds, src, dst, S, prior_scale)
 
 
 def placement_spread(
