@@ -41,11 +41,9 @@ import tempfile
 REPO = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-CHILD = r"""
-import json, logging, os, re, sys, time
-t_import = time.perf_counter()
-import numpy as np, jax
-records = []
+#: The children's record of XLA compiles, ``records = [(program, seconds), ...]``, read off JAX's
+#: compile log (after ``import jax``).
+RECORD_COMPILES = r"""records = []
 class _H(logging.Handler):
     def emit(self, rec):
         m = re.search(r"Finished XLA compilation of (\S+) in ([0-9.e-]+) sec", rec.getMessage())
@@ -54,7 +52,16 @@ class _H(logging.Handler):
 jax.config.update("jax_log_compiles", True)
 logging.getLogger("jax").addHandler(_H())
 logging.getLogger("jax").setLevel(logging.WARNING)
-from swiftjax import posegraph
+"""
+
+CHILD = (
+    r"""
+import json, logging, os, re, sys, time
+t_import = time.perf_counter()
+import numpy as np, jax
+"""
+    + RECORD_COMPILES
+    + r"""from swiftjax import posegraph
 try:
     from swiftjax.synthetic.pose_graphs import chain_graph
 except ImportError:  # a checkout from before the move (for A/B runs with --repo)
@@ -78,21 +85,16 @@ print(json.dumps(dict(
     compiles=records[:n_first], compiles_second_call=records[n_first:], load=os.getloadavg(),
 )))
 """
+)
 
 
-GROWING = r"""
+GROWING = (
+    r"""
 import json, logging, os, re, sys, time
 import numpy as np, jax
-records = []
-class _H(logging.Handler):
-    def emit(self, rec):
-        m = re.search(r"Finished XLA compilation of (\S+) in ([0-9.e-]+) sec", rec.getMessage())
-        if m:
-            records.append((m.group(1), float(m.group(2))))
-jax.config.update("jax_log_compiles", True)
-logging.getLogger("jax").addHandler(_H())
-logging.getLogger("jax").setLevel(logging.WARNING)
-sys.path.insert(0, "bench")
+"""
+    + RECORD_COMPILES
+    + r"""sys.path.insert(0, "bench")
 import _robust_graph as rg
 from swiftjax import posegraph
 from swiftjax.loops import pcm
@@ -125,6 +127,7 @@ with jax.enable_x64(True):
         ))
 print(json.dumps(calls))
 """
+)
 
 
 def run_growing(first: int, last: int, repo: pathlib.Path = REPO, capacity=None) -> list[dict]:
