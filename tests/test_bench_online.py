@@ -27,4 +27,5 @@ def test_bench_online_quick_ends_as_offline_with_finite_latencies(capsys):
     assert run["latency_max_s"] >= (B - 1) / fps + run["cost_s"]
     assert run["revisions"] >= 1  # the final pass at least
     assert math.isfinite(run["live_ate_m"]) and math.isfinite(run["offline_ate_m"])
+    assert run["latency_final_pass_frames"] == 0 and math.isfinite(run["live_ate_end_m"])  # every frame posed live
     assert "final = offline" in capsys.readouterr().out

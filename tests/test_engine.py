@@ -117,8 +117,14 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     live_loops = json.loads((live_dir / LIVE_LOOPS_NAME).read_text())
     final = rec.finish()
     B, O = CONFIG.chunk_size, CONFIG.overlap
+    schedule = chunks.chunk_schedule(n, B, O)
+    T = schedule.num_chunks
     assert steps == list(range(B, n + 1, B - O))
-    assert [s["chunk"] for s in rec.steps] == list(range(len(steps)))
+    # The input ends between two boundaries (155 frames: 150 + 5): finish() posed the short
+    # last chunk [140, 155) as one more live step before the final pass.
+    assert steps[-1] < n and T == len(steps) + 1
+    assert [s["chunk"] for s in rec.steps] == list(range(T))
+    assert rec.steps[-1]["frames"] == n
 
     # The finished run directory is the offline run of the same frames, file by file.
     offline = pipeline.reconstruct(
@@ -137,13 +143,15 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     for r in records:
         first.setdefault(r["frame"], r)
     assert sorted(first) == list(range(n))
-    assert [r["frame"] for r in records if r["reason"] == "new"] == list(range(steps[-1]))
+    new = [r for r in records if r["reason"] == "new"]
+    assert [r["frame"] for r in new] == list(range(n))  # the tail's too: none waits for the final pass
+    reasons = [r["reason"] for r in records]
+    assert max(i for i, r in enumerate(reasons) if r == "new") < reasons.index("final")
     manifest = json.loads((offline_dir / "manifest.json").read_text())
     chain = [np.eye(4)]
-    for t in range(1, len(steps)):
+    for t in range(1, T):
         chain.append(chain[-1] @ _matrix(np.asarray(manifest["edges"][str(t - 1)]["S"])))
     store = ChunkStore(offline_dir)
-    schedule = chunks.chunk_schedule(n, B, O)
     unrevised = [r for r in records if r["reason"] == "new" and r["revision"] == 0]
     assert len(unrevised) >= 100  # the loop closes late in the drive
     owned_offline = 0
@@ -178,6 +186,39 @@ def test_engine_publishes_live_poses_and_finishes_as_offline(tmp_path):
     final_lines = [r for r in records if r["reason"] == "final"]
     assert {r["revision"] for r in final_lines} == {2} and rec.revision == 2
     np.testing.assert_array_equal(np.stack([r["pose"] for r in final_lines]), final.cam_to_world[:, :3])
+
+
+@pytest.mark.parametrize("n", [20, 50, 61])
+def test_finish_poses_the_last_chunk_live_and_equals_offline(tmp_path, n):
+    """Inputs that end before one chunk (20 < B), on a chunk boundary (50 = B + (B - O)) or
+    just after one (61): at ``end_of_input()`` every frame gets a first pose (reason "new";
+    after a boundary from one more live step, the short last chunk's), no frame can be added
+    any more, and the finished run's poses are the offline run's of the same frames."""
+    run = demo.loop_route_run(None, image_hw=(28, 98), spacing_m=4.0)
+    config = dataclasses.replace(CONFIG, loop_closure=False)
+    rec = Reconstruction(tmp_path / "live", Prefix(run.predictor, n + 1), config, log=lambda s: None)
+    for _ in range(n):
+        rec.add_frame()
+    B, O = config.chunk_size, config.overlap
+    assert rec.end_of_input() == (n < B or (n - B) % (B - O) != 0)
+    rec.wait_for_poses()
+    assert len(rec.poses()[0]) == n
+    with pytest.raises(ValueError, match="after the end of the input"):
+        rec.add_frame()
+    final = rec.finish()
+    T = chunks.chunk_schedule(n, B, O).num_chunks
+    assert [s["chunk"] for s in rec.steps] == list(range(T))
+    records = reader.read_live_poses(tmp_path / "live")
+    reasons = [r["reason"] for r in records]
+    assert [r["frame"] for r in records if r["reason"] == "new"] == list(range(n))
+    assert reasons[n:] == ["final"] * n
+    offline = pipeline.reconstruct(
+        Prefix(run.predictor, n), tmp_path / "offline", config, progress=False, log=lambda s: None
+    )
+    np.testing.assert_array_equal(offline.cam_to_world, final.cam_to_world)
+    for name in (LIVE_NAME, LIVE_LOOPS_NAME):  # the live run's own files
+        (tmp_path / "live" / name).unlink(missing_ok=True)
+    assert_same_outputs(tmp_path / "offline", tmp_path / "live")
 
 
 @pytest.mark.slow

@@ -58,10 +58,14 @@ offline median rule on the prefix; a frame's first pose takes the factor of its 
 revision the factor then) and ``--metric model`` (chunk 0's metres); ``--metric gt`` applies at
 the final pass.  ``loop_geometry`` candidates come at the final pass only.
 
-:meth:`Reconstruction.finish` keeps the offline guarantee: the last live chunk (stored as a
-chunk with a successor) is forgotten and :func:`~swiftjax.pipeline.run.reconstruct` runs over
-every frame in the same run directory, resuming every other chunk the live steps stored
-("frames added", :mod:`~swiftjax.pipeline.rundir`).  The finished run directory is the offline
+:meth:`Reconstruction.finish` keeps the offline guarantee.  When the input ends between two
+chunk boundaries, the schedule's short last chunk ``[start, n)`` is first posed as one more
+live step (its new frames' first poses, reason ``"new"``, before the final pass: otherwise up
+to ``B - O - 1`` frames would wait for the whole final pass), stored as the offline run stores
+its last chunk; when it ends on a boundary, the last live chunk (stored as a chunk with a
+successor) is forgotten.  Then :func:`~swiftjax.pipeline.run.reconstruct` runs over every
+frame in the same run directory, resuming every chunk the live steps stored ("frames added",
+:mod:`~swiftjax.pipeline.rundir`).  The finished run directory is the offline
 run's (plus ``poses_live.jsonl`` and ``loops_live.json``), and its poses are published once
 more as the ``"final"`` revision.
 """
@@ -84,7 +88,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import metric_scale, sim3
+from swiftjax import chunks, metric_scale, sim3
 from swiftjax.camera import world_cameras
 from swiftjax.loops.descriptors import chunk_descriptors
 from swiftjax.loops.online import OnlineLoopDetector
@@ -291,6 +295,7 @@ class Reconstruction:
         self._state: Any = None  # (ctx, t, relative, edges) of the newest chunk the loop worker took
         self.verifications: list[dict[str, Any]] = []
         self._graph_warmed: set[int] = set()  # the capacities whose decision and solve were planned
+        self._ended: bool | None = None  # end_of_input() called (True: the short last chunk queued)
         self._warm: queue.Queue[Any] = queue.Queue()  # the warm-up plans, for the warm-up thread
         self._stopping = False  # the threads are being stopped: no new warm-up
         self.warm_up_errors: list[str] = []  # the warm-up plans that failed (their work compiles when needed)
@@ -311,6 +316,8 @@ class Reconstruction:
         """Add the next frame (``time``: seconds; default its index); True when it completed a
         chunk, whose prediction and first poses then follow on the pose threads (the caller
         never waits for them: :meth:`wait_for_poses` does)."""
+        if self._ended is not None:
+            raise ValueError(f"frame {self.num_frames} added after the end of the input (end_of_input())")
         if frame is not None:
             append = getattr(self.predictor, "append", None)
             if append is None:
@@ -368,14 +375,17 @@ class Reconstruction:
             raise ValueError("no frame was added: nothing to reconstruct")
         n = self.num_frames
         try:
+            tail = self.end_of_input()
             self._stop_threads(skip_loops=True)
             self._raise_worker_error()
             live = self._ctx is not None
             if self._ctx is not None and self._temporal is not None:
                 self._temporal.finish(drop_tails=False)
-                # The last live chunk was stored as one with a successor (its frames up to the
-                # next start, a float32 tail): the final pass predicts it as its schedule says.
-                rundir.forget_chunk(self._ctx.manifest, self._ctx.store, len(self._chunk_poses) - 1)
+                if not tail:
+                    # The last live chunk was stored as one with a successor (its frames up to
+                    # the next start, a float32 tail), yet the input ends with it: the final
+                    # pass predicts it again as the schedule's last chunk.
+                    rundir.forget_chunk(self._ctx.manifest, self._ctx.store, len(self._chunk_poses) - 1)
             self._close_stages()
             gt = None if self.ground_truth is None else np.asarray(self.ground_truth)[:n]
             result = reconstruct(
@@ -397,6 +407,31 @@ class Reconstruction:
         finally:
             self.close()
         return result
+
+    def end_of_input(self) -> bool:
+        """No more frames (:meth:`finish` calls it; the caller may call it earlier, when the
+        drive ends, and finish later).  When the input ends between two chunk boundaries
+        (``n != B + k (B - O)``), the schedule's short last chunk ``[start, n)`` (fewer than
+        ``B`` frames) is queued as a live chunk, so that its new frames get their first poses
+        now, on the pose threads, rather than from the final pass.  It is stored as the offline
+        run stores its last chunk (all its frames, no float32 tail), so the final pass resumes
+        it and every live chunk before it.  True when the short chunk is (or was) queued.
+        :meth:`add_frame` raises afterwards."""
+        if self._ended is not None:
+            return self._ended
+        B, O = self.config.chunk_size, self.config.overlap
+        n = self.num_frames
+        self._ended = False
+        if n == 0 or self._worker_error is not None or (n >= B and (n - B) % (B - O) == 0):
+            return False  # (the last chunk was queued by add_frame)
+        self._ended = True
+        if self._feed is None:
+            self._feed = Prefix(self.predictor, n, turns=self._turns, urgent=True)
+        else:
+            self._feed.grow(n)
+        self._start_threads()
+        self._chunks.put((chunks.chunk_schedule(n, B, O).num_chunks - 1, n, _now()))
+        return True
 
     def close(self) -> None:
         """Stop the live stages and release the run directory (what is recorded stays: the same
@@ -494,7 +529,7 @@ class Reconstruction:
                 if self._worker_error is None:  # (failed: drain without work)
                     t, n, completed = item
                     B, O = self.config.chunk_size, self.config.overlap
-                    frames = np.arange(t * (B - O), t * (B - O) + B)
+                    frames = np.arange(t * (B - O), min(t * (B - O) + B, n))  # (the last: short)
                     executor = self.executor if self.executor is not None else LocalExecutor(prefetch=0)
                     started = _now()
                     stream = executor.map(self._feed, [frames], chunk_descriptors)
@@ -540,7 +575,8 @@ class Reconstruction:
         if ctx.manifest.data["chunks"].get(str(t)):  # a resumed run's: stored as that run's schedule said
             rundir.forget_chunk(ctx.manifest, ctx.store, t)
         extrinsic = np.asarray(pred.extrinsic, np.float64)
-        chunk = self._temporal.add(t, pred, last=False)
+        last = len(frames) < self.config.chunk_size  # the input's short last chunk (finish())
+        chunk = self._temporal.add(t, pred, last=last)
         del pred
 
         # First poses: the chunk's pose chained on the current ones, its new frames published.
@@ -578,7 +614,7 @@ class Reconstruction:
                 }
             )
 
-        if t == 0:  # chunk 1's alignment compiled now, while its frames arrive
+        if t == 0 and not last:  # chunk 1's alignment compiled now, while its frames arrive
             self._temporal.warm_up()
         if self._detector is not None:  # the loop work of this chunk, on the loop worker
             self._temporal.flush()  # the loop chunks read the chunk files
@@ -861,12 +897,12 @@ _WARM_UP_NICENESS = 5
 _WARM_UP_POLL_S = 0.05
 
 
-def _capacity(chunks: int, loops: int = 0) -> tuple[int, int]:
+def _capacity(num_chunks: int, loops: int = 0) -> tuple[int, int]:
     """The live pose graph's capacity ``(temporal edges, loop edges)``: ``C - 1`` and ``C`` for
     the power of two ``C >= 32`` at least the chunks and the loops, so that a drive compiles the
     solve about once per doubling of its chunks (:func:`swiftjax.pipeline.graph.run`)."""
     C = 32
-    while C < max(chunks, loops):
+    while C < max(num_chunks, loops):
         C *= 2
     return C - 1, C
 
