@@ -26,6 +26,8 @@ the engine is busy (a car does not wait).  Measured per route and cost:
   ``live_ate_2_periods_m``; once the loop worker has verified every proposal:
   ``live_ate_drained_m``; every frame's latest live pose when the final pass begins, the
   short last chunk's frames included: ``live_ate_end_m``), and the offline run's;
+* the driver's resident memory at the live steps a quarter of the way through and at the end,
+  and its growth per 1,000 frames between them (memory flat in the sequence length);
 * the finished run compared with an offline ``reconstruct`` of the same frames: the poses
   bit for bit and every output file byte for byte (except ``metrics.json``'s timings,
   ``manifest.json`` and the chunk store's ``.npz`` zip headers).
@@ -137,7 +139,7 @@ def replay(
             seen = len(rec.steps)
             frames, c2w = rec.poses()
             snapshots.append(c2w[:, :3, 3].copy())
-            steps.append({"frames": len(frames), "revision": rec.revision})
+            steps.append({"frames": len(frames), "revision": rec.revision, "rss_mb": _rss_mb()})
             print(
                 f"  {label}: {len(frames)} frames posed, revision {rec.revision}, {len(rec.loops)} loops, "
                 f"load {os.getloadavg()[0]:.1f}",
@@ -300,7 +302,28 @@ def replay(
         "differing_files": differ,
         "identical": identical_poses and not differ,
         "slowest_oracle_predict_s": predictor.slowest,
+        **_memory_growth(steps),
     }
+
+
+def _rss_mb() -> float | None:
+    """This process's resident memory now (MB; Linux ``/proc/self/statm``), else None."""
+    try:
+        pages = int(pathlib.Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _memory_growth(steps: list[dict[str, Any]]) -> dict[str, Any]:
+    """The driver's resident memory over the live steps: at the step a quarter of the way
+    through (the compiles done) and at the last, and the growth per 1,000 frames between
+    them (flat in the sequence length: about 0)."""
+    rows = [(s["frames"], s["rss_mb"]) for s in steps if s.get("rss_mb") is not None]
+    if len(rows) < 4:
+        return {"rss_quarter_mb": None, "rss_last_mb": None, "rss_growth_mb_per_1000_frames": None}
+    (f0, m0), (f1, m1) = rows[len(rows) // 4], rows[-1]
+    return {"rss_quarter_mb": m0, "rss_last_mb": m1, "rss_growth_mb_per_1000_frames": 1e3 * (m1 - m0) / (f1 - f0)}
 
 
 def _relative_times(records: list[dict[str, Any]], t0: float) -> list[dict[str, Any]]:
@@ -370,6 +393,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             r["offline_ate_m"],
             "yes" if r["identical"] else "NO",
             r["slowest_oracle_predict_s"],
+            "-" if r["rss_growth_mb_per_1000_frames"] is None else r["rss_growth_mb_per_1000_frames"],
         ]
         for r in runs
     ]
@@ -394,6 +418,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 "offline ATE m",
                 "final = offline",
                 "slowest oracle s",
+                "RSS growth MB / 1000 frames",
             ],
             rows,
         )
