@@ -117,6 +117,40 @@ def test_false_loop_is_rejected_true_loop_kept(x64):
     assert bend > 1.0 and np.abs(out.chunk_poses[:, :3] - ref.chunk_poses[:, :3]).max() < 1e-3 * bend
 
 
+def test_equal_weights_decide_inliers_on_each_edges_own_covariance(x64, monkeypatch):
+    """``edge_information="equal"``: the solve's weights are equal, but PCM and GNC get each
+    edge's own covariance (drift model + its alignment's statistics): the inverse of the
+    ``data`` information, recomputed here from the core functions per edge; the false loop
+    still goes, the true one stays."""
+    from swiftjax.loops import pcm
+
+    truth, temporal, loop_result = _chain_case(seed=2)
+    T = len(truth)
+    edges = [dict(e) for e in temporal.edges]
+    edges[4].update(num_points=30, rms=0.5)  # one weak alignment: its own covariance is larger
+    temporal = temporal._replace(edges=edges)
+    seen = {}
+    solve = pcm.consistent_solve
+
+    def spy(problem, cov, **kw):
+        seen["cov"], seen["information"] = np.array(cov), np.asarray(problem.information)
+        return solve(problem, cov, **kw)
+
+    monkeypatch.setattr(pcm, "consistent_solve", spy)
+    ctx, _ = _ctx(T, edge_information="equal")
+    out = graph.run(ctx, temporal, loop_result)
+    np.testing.assert_array_equal(out.inlier_weights, [1.0, 0.0])
+    E = T - 1 + len(loop_result.edges)
+    np.testing.assert_array_equal(seen["information"][:E], np.broadcast_to(np.eye(7), (E, 7, 7)))
+    data, _ = _ctx(T)
+    want = np.linalg.inv(graph._graph_information(data, temporal, loop_result))
+    np.testing.assert_allclose(seen["cov"][:E], want, rtol=1e-9, atol=1e-15)
+    # ... which is not the nominal drift model: the weak edge's own covariance is larger.
+    odo, _ = graph._drift_covariance(temporal, loop_result)
+    assert np.trace(seen["cov"][4]) > 1.5 * np.trace(odo[4])
+    assert np.allclose(np.trace(seen["cov"][3]), np.trace(odo[3]), rtol=0.5)
+
+
 def test_missing_statistics_fall_back_to_the_drift_model_and_say_so(x64):
     truth, temporal, loop_result = _chain_case(seed=1)
     edges = [dict(e) for e in temporal.edges]

@@ -107,7 +107,8 @@ class PipelineConfig:
     )
     edge_information: str = option(
         "data",
-        "edge information: data (drift model + each alignment's own statistics) or equal (identity, the authors')",
+        "edge information: data (drift model + each alignment's own statistics) or equal (identity weights, the "
+        "authors'; the robust back end still decides inliers on each edge's own noise)",
         choices=("data", "equal"),
         stage="graph",
     )

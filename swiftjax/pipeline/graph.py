@@ -8,7 +8,11 @@ chain, temporal edges plain (never down-weighted), loop edges robust: GNC-TLS by
 (``graph_pcm``, default on) every loop edge goes through pairwise consistency against the
 odometry (:func:`swiftjax.loops.pcm.consistent_solve`): GNC starts from the maximum consistent
 set, the other loop edges are out (weight 0; ``metrics["loop_pcm_kept"]``).  With equal
-weights the test and GNC's decision use the drift model below as the noise model.
+weights the solve weighs every edge alike, but the test and GNC's decision use each edge's own
+noise covariance below (the drift model plus its alignment's statistics: an edge's inlier test
+whitened by its own noise, not by a nominal one; ``bench/bench_robust_backend.py``'s
+``equal-own`` arm, which held every random, clustered and gauge cell where the nominal model
+dropped a true loop).
 
 Edge information (``edge_information = "data"``): each edge's covariance is the drift model of
 :mod:`swiftjax.loops.verification` (``odometry_covariance`` / ``loop_covariance``: translation
@@ -149,7 +153,18 @@ def _drift_covariance(
 def _graph_information(
     ctx: RunContext, temporal: TemporalResult, loops: LoopResult, capacity: tuple[int, int] | None = None
 ) -> np.ndarray | None:
-    """``[E, 7, 7]`` for the temporal then the loop edges, or None (identity: equal weights).
+    """``[E, 7, 7]`` for the temporal then the loop edges: the inverse of
+    :func:`_data_covariance`, or None under ``edge_information = "equal"`` (identity: equal
+    weights)."""
+    if ctx.config.edge_information == "equal":
+        return None
+    return _inverse(_data_covariance(ctx, temporal, loops, capacity))
+
+
+def _data_covariance(
+    ctx: RunContext, temporal: TemporalResult, loops: LoopResult, capacity: tuple[int, int] | None = None
+) -> np.ndarray:
+    """``[E, 7, 7]`` covariance of the temporal then the loop edges.
 
     ``Cov_e = drift_e + Omega_align,e^-1``: the drift model of :mod:`swiftjax.loops.verification`
     (VGGT's chunk-to-chunk model error, which an alignment's point statistics cannot see; see
@@ -157,10 +172,7 @@ def _graph_information(
     plus the alignment's own estimation covariance (large only for weak alignments: few reliable
     points, a large residual; missing statistics add nothing and are reported).
     """
-    config = ctx.config
-    if config.edge_information == "equal":
-        return None
-    pps = config.edge_pixels_per_sample
+    pps = ctx.config.edge_pixels_per_sample
     info, valid = edge_information(temporal.edges, pps, None if capacity is None else capacity[0])
     accepted = [r for r in loops.records if r.get("accepted", True) and "Z" in r]
     if len(accepted) != len(loops.edges) or any(
@@ -177,7 +189,7 @@ def _graph_information(
     missing = int((~valid).sum()) + sum(x is None for x in loop_info)
     if missing:
         ctx.log(f"pose graph: {missing} edge(s) without alignment statistics: drift model alone")
-    return _inverse(np.concatenate([odo, lc]))
+    return np.concatenate([odo, lc])
 
 
 PRIOR_EPS = 1e-9  # the prior edges' weight on the non-scale entries, relative to 1 / sigma^2
@@ -350,9 +362,9 @@ def run(
                 check = None
                 if config.graph_pcm and config.robust_loops == "gnc":
                     cov = None
-                    if information is None:  # equal weights: the drift model is the noise model
+                    if information is None:  # equal weights: the inliers decided on each edge's own noise
                         cov = np.linalg.inv(np.asarray(problem.information, np.float64))
-                        cov[: T - 1 + L] = np.concatenate(_drift_covariance(temporal, loops, capacity))
+                        cov[: T - 1 + L] = _data_covariance(ctx, temporal, loops, capacity)
                     posegraph.validate(problem)
                     res, check = pcm.consistent_solve(
                         problem,
