@@ -819,8 +819,9 @@ def bev_starts(
         z(τ') = (C(τ') − N p) / sqrt(N p (1 − p))
 
     the overlap in standard deviations above what that raster reaches by chance, comparable
-    across ``N`` (the same ten pairs: +0.02).  At one (yaw, scale) ``z`` ranks translations as
-    ``C`` does.
+    across ``N`` (the same pairs, seven noisy and seven noise-free: the best start at the true
+    scale in 12 of 14, ±0.18 in two, mean 0.00).  At one (yaw, scale) ``z`` ranks translations
+    as ``C`` does.
 
     Over the translations with ``|τ' − τ| <= window`` (the odometry's uncertainty) the best
     (yaw, scale) per translation by ``z`` is taken and ``peaks`` maxima of ``z`` at least
