@@ -770,3 +770,40 @@ def test_refine_placement_recovers_the_scale_the_icp_keeps():
     without = G.refine_placement(a, b, S0, s_true, G.GeometryOptions(refine_scale_steps=1))
     assert abs(float(sim3.scale(with_sweep.S)) / s_true - 1) < 0.01
     assert abs(float(sim3.scale(without.S)) / s_true - 1) > 0.03  # measured 4.6 %: the ICP keeps 2/3 of it
+
+
+def test_redundant_geometric_edges_beside_token_edges_are_rejected():
+    """``redundant_geometry``: an accepted geometric candidate whose chunks are each within one
+    chunk of an accepted token candidate's (either order) is rejected with a one-line reason;
+    one two chunks off, one beside a REJECTED token candidate, and the token candidates
+    themselves are untouched (checked against the rule written out as a loop)."""
+    from swiftjax.pipeline.loop_closure import redundant_geometry
+
+    recs = [
+        {"chunk_i": 75, "chunk_j": 9, "accepted": True, "source": "tokens"},
+        {"chunk_i": 8, "chunk_j": 76, "accepted": True, "source": "geometry"},  # beside 75/9
+        {"chunk_i": 77, "chunk_j": 9, "accepted": True, "source": "geometry"},  # 2 chunks off
+        {"chunk_i": 40, "chunk_j": 3, "accepted": False, "source": "tokens"},
+        {"chunk_i": 40, "chunk_j": 4, "accepted": True, "source": "geometry"},  # beside a rejected one
+        {"chunk_i": 60, "chunk_j": 20, "accepted": False, "source": "geometry", "reason": "null"},
+    ]
+    before = [dict(r) for r in recs]
+    redundant_geometry(recs)
+    for r, b in zip(recs, before):
+        near = (
+            b["source"] == "geometry"
+            and b["accepted"]
+            and any(
+                t["source"] == "tokens"
+                and t["accepted"]
+                and abs(max(t["chunk_i"], t["chunk_j"]) - max(b["chunk_i"], b["chunk_j"])) <= 1
+                and abs(min(t["chunk_i"], t["chunk_j"]) - min(b["chunk_i"], b["chunk_j"])) <= 1
+                for t in before
+            )
+        )
+        assert r["accepted"] == (b["accepted"] and not near)
+        if near:
+            assert r["reason"].startswith("redundant") and "\n" not in r["reason"]
+        else:
+            assert r.get("reason") == b.get("reason")
+    assert [r["accepted"] for r in recs] == [True, False, True, False, True, False]
