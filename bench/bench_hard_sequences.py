@@ -101,6 +101,22 @@ def edge_error(record: dict, truth_gauges, centres: list[np.ndarray], schedule) 
         return float(np.sqrt(np.mean(np.sum(np.asarray(a - b) ** 2, -1))))
 
 
+def edge_log_scales(record: dict, truth_gauges, chain: np.ndarray) -> dict[str, float]:
+    """The edge's log-scale against the truth edge ``G_{c_j}⁻¹ G_{c_i}`` (the oracle's true
+    gauges) and against the dead-reckoned chain's ``X_{c_j}⁻¹ X_{c_i}``: ``log_scale_vs_truth``,
+    ``log_scale_vs_chain`` (their difference is the chain's own scale drift between the chunks,
+    ``chain_log_scale_vs_truth``)."""
+    ci, cj = record["chunk_i"], record["chunk_j"]
+    ls = float(np.log(np.asarray(record["Z"], np.float64)[7]))
+    truth = float(np.log(truth_gauges(ci)[7] / truth_gauges(cj)[7]))
+    drift = float(np.log(chain[ci][7] / chain[cj][7]))
+    return {
+        "log_scale_vs_truth": ls - truth,
+        "log_scale_vs_chain": ls - drift,
+        "chain_log_scale_vs_truth": drift - truth,
+    }
+
+
 def regions_found(chosen: list[dict], ok: list[bool], pairs: np.ndarray, labels: np.ndarray, schedule) -> int:
     """Regions with a true accepted candidate whose chunks lie within 2 chunks of both chunks
     of one of the region's true pairs."""
@@ -156,6 +172,8 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
         if r.get("source") == "geometry" and "Z" in r:
             r["edge_error_m"] = edge_error(r, truth_gauges, centres, schedule)
             correct[k] = r["edge_error_m"] <= 5.0
+        if "Z" in r:
+            r.update(edge_log_scales(r, truth_gauges, res.chunk_poses_no_loops))
     arms = {
         "tokens (defaults)": [r for r in cands if r["accepted"] and r.get("source", "tokens") == "tokens"],
         "tokens + geometry": [r for r in cands if r["accepted"]],
@@ -232,6 +250,9 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
                     "pcm_residual",
                     "registration",
                     "edge_error_m",
+                    "log_scale_vs_truth",
+                    "log_scale_vs_chain",
+                    "chain_log_scale_vs_truth",
                 )
             },
         }

@@ -127,6 +127,7 @@ __all__ = [
     "place_covisible",
     "starts_batch",
     "peaks_batch",
+    "scale_sweep",
     "refine_placement",
     "refine_batch",
     "placement_spread",
@@ -801,10 +802,31 @@ def bev_starts(
     every yaw ``ψ + δψ`` (``yaw_steps`` over ``±yaw_search``°) and scale ``σ e^{δ}``
     (``scale_steps`` over ``±scale_search``); the cross-correlation with ``b``'s dilated raster
     ``D_b`` over translations is one FFT, ``C(τ') = F⁻¹[F(D_b) · conj F(D_a)]`` (``spectrum``:
-    ``F(D_b)`` from :func:`bev_spectrum`, computed here when None).  Over the translations with
-    ``|τ' − τ| <= window`` (the odometry's uncertainty) the best (yaw, scale) per translation
-    is taken and ``peaks`` maxima at least ``peak_separation`` apart are returned, in order.
-    Pure.
+    ``F(D_b)`` from :func:`bev_spectrum`, computed here when None): the number of ``a``'s
+    occupied cells that land on ``b``'s structure.
+
+    **Scale without bias.**  ``C`` cannot compare scales: ``a``'s raster has ``N(δ) = Σ D_a``
+    occupied cells, and structure seen from above is mostly lines (facades, kerbs), so ``N``
+    grows like ``e^{δ}``; a placement a few per cent too large keeps nearly every cell within
+    the dilation of ``b``'s, so ``argmax_δ C`` sits at the largest scale tried (on synthetic
+    KITTI 00 from the TRUE prior: +0.10 in log-scale on average over ten chunk pairs, the
+    ICP then keeps most of it: edges 12–14 % too large).  The fraction ``C / N`` is biased the
+    other way (a shrunk raster packs into fewer cells: −0.05).  Against chance, a placement
+    whose ``N`` cells fall on ``b``'s raster independently with ``b``'s fill fraction
+    ``p = Σ D_b / n²`` (``F(D_b)`` at frequency 0 over ``n²``) overlaps ``C ~ Bin(N, p)``;
+    each (yaw, scale) is scored by its z-score::
+
+        z(τ') = (C(τ') − N p) / sqrt(N p (1 − p))
+
+    the overlap in standard deviations above what that raster reaches by chance, comparable
+    across ``N`` (the same pairs, seven noisy and seven noise-free: the best start at the true
+    scale in 12 of 14, ±0.18 in two, mean 0.00).  At one (yaw, scale) ``z`` ranks translations
+    as ``C`` does.
+
+    Over the translations with ``|τ' − τ| <= window`` (the odometry's uncertainty) the best
+    (yaw, scale) per translation by ``z`` is taken and ``peaks`` maxima of ``z`` at least
+    ``peak_separation`` apart are returned, in order, with their overlap count ``C`` (−1 when
+    the window holds no more translations).  Pure.
     """
     n, c = options.bev_cells, options.bev_cell
     qa = (a.points - a.origin) @ a.basis / a.height
@@ -820,20 +842,26 @@ def bev_starts(
     tx, ty = (x.reshape(-1) for x in jnp.meshgrid(shift, shift, indexing="ij"))
     psi, sigma, tau = jnp.asarray(psi, jnp.float32), jnp.asarray(sigma, jnp.float32), jnp.asarray(tau, jnp.float32)
 
+    fill = jnp.clip(jnp.real(FD[0, 0]) / (n * n), 1e-6, 1.0 - 1e-6)  # p = Σ D_b / n²
+
     def surface(y, e):
         xy = sigma * jnp.exp(e) * qa[:, :2] @ _rot_z(psi + y)[:2, :2].T
         Da = bev_raster(xy, a.weights, n, c)
-        return jnp.fft.irfft2(FD * jnp.conj(jnp.fft.rfft2(Da)), s=(n, n)).reshape(-1)
+        C = jnp.fft.irfft2(FD * jnp.conj(jnp.fft.rfft2(Da)), s=(n, n)).reshape(-1)
+        N = jnp.sum(Da)
+        return C, (C - N * fill) / jnp.sqrt(jnp.maximum(N * fill * (1.0 - fill), 1e-12))
 
-    C = jax.vmap(surface)(dy, ds)  # [Y, n²]
-    which = jnp.argmax(C, 0)
-    best = jnp.where((tx - tau[0]) ** 2 + (ty - tau[1]) ** 2 <= jnp.asarray(window) ** 2, jnp.max(C, 0), -1.0)
+    C, z = jax.vmap(surface)(dy, ds)  # [Y, n²] each
+    which = jnp.argmax(z, 0)
+    count = jnp.take_along_axis(C, which[None], 0)[0]
+    inside = (tx - tau[0]) ** 2 + (ty - tau[1]) ** 2 <= jnp.asarray(window) ** 2
+    best = jnp.where(inside, jnp.max(z, 0), -jnp.inf)
     ks, vals = [], []
     for _ in range(options.peaks):
         k = jnp.argmax(best)
         ks.append(k)
-        vals.append(best[k])
-        best = jnp.where((tx - tx[k]) ** 2 + (ty - ty[k]) ** 2 < options.peak_separation**2, -1.0, best)
+        vals.append(jnp.where(best[k] > -jnp.inf, count[k], -1.0))
+        best = jnp.where((tx - tx[k]) ** 2 + (ty - ty[k]) ** 2 < options.peak_separation**2, -jnp.inf, best)
     k = jnp.stack(ks)
     S0 = jax.vmap(
         lambda kk: _start(a, b, psi + dy[which[kk]], sigma * jnp.exp(ds[which[kk]]), jnp.stack([tx[kk], ty[kk]]))
@@ -970,6 +998,58 @@ def peaks_batch(
     return _over_pairs(lambda a, b, s, c: peak_icp(a, b, s, c, options), clouds, src, dst, S0, correlation)
 
 
+def scale_sweep(
+    src: Float[ArrayLike, "P 3"],
+    w_src: Float[ArrayLike, " P"],
+    dst: Float[ArrayLike, "Q 3"],
+    w_dst: Float[ArrayLike, " Q"],
+    S: Float[ArrayLike, "8"],
+    tau: Float[ArrayLike, ""],
+    half_range: float,
+    steps: int,
+) -> tuple[Float[Array, "8"], Float[Array, " K"]]:
+    """The placement ``S`` rescaled about the source's centroid to the best of ``steps`` scales:
+    ``(S ∘ D_k*, scores [steps])``.
+
+    The robust ICP (:func:`register`) barely moves the scale: on a street the scale along it
+    is as free as a slide (facade points scaled along the facade keep their neighbours), and
+    the cross-street displacement a wrong scale makes (``δ`` times the street's half width,
+    0.5–1 camera heights at ``δ`` = 0.1) leaves the Tukey radius, which shrinks to
+    ``τ_end`` within a few iterations, before the scale has moved; the structure that still
+    fits is what matches at the wrong scale.  Measured on synthetic KITTI 00 from the TRUE
+    edge prior, noise off: starts at ``δ = ±0.18`` end their peak ICP at ``±0.14…0.24``; so
+    the edge's scale is the bird's-eye grid's (:func:`bev_starts`, steps of ``2 scale_search
+    / (scale_steps − 1)``) within a few per cent.  Here the scale is searched directly::
+
+        D_k(x) = m + e^{δ_k} (x − m),   δ_k ∈ linspace(−half_range, half_range, steps),
+        score_k = Σ_p w_p ρ(r_p),   ρ(r) = (1 − (r/τ)²)² [r < τ],   r_p = min_q |S D_k(x_p) − y_q|
+
+    (``m``: the weighted mean of the source points; the Tukey score of :func:`register` at the
+    radius ``τ``, in ``b``'s units), ``k* = argmax score_k``, the unscaled ``S`` (``δ = 0``)
+    kept unless another scale scores strictly higher.  A wrong scale moves the facades across
+    the street out of ``τ``; the right one brings them in.  Cost: ``steps`` nearest-neighbour
+    passes.  Pure; ``steps`` static (odd)."""
+    src = jnp.asarray(src, jnp.float32)
+    w = jnp.asarray(w_src, jnp.float32)
+    dst, w_dst = jnp.asarray(dst, jnp.float32), jnp.asarray(w_dst, jnp.float32)
+    S = jnp.asarray(S, jnp.float32)
+    tau = jnp.asarray(tau, jnp.float32)
+    m = jnp.sum(w[:, None] * src, 0) / jnp.maximum(jnp.sum(w), 1e-30)
+    deltas = jnp.linspace(-half_range, half_range, steps) if steps > 1 else jnp.zeros(1)
+
+    def one(d: Array) -> tuple[Array, Array]:
+        e = jnp.exp(d)
+        Sk = sim3.compose(S, sim3.from_rst(jnp.eye(3), (1.0 - e) * m, e))
+        _, r = _nearest(sim3.act(Sk, src), dst, w_dst)
+        return Sk, jnp.sum(w * jnp.where(r < tau, (1.0 - (r / tau) ** 2) ** 2, 0.0))
+
+    Sk, scores = jax.vmap(one)(deltas)
+    mid = steps // 2
+    k = jnp.argmax(scores)
+    k = jnp.where(scores[k] > scores[mid], k, mid)
+    return jnp.where(jnp.all(jnp.isfinite(Sk[k])), Sk[k], S), scores
+
+
 def refine_placement(
     a: ChunkCloud,
     b: ChunkCloud,
@@ -977,13 +1057,26 @@ def refine_placement(
     prior_scale: Float[ArrayLike, ""],
     options: GeometryOptions = GeometryOptions(),
 ) -> Registration:
-    """The chosen placement ``S`` refined on all rows (:func:`register`, ``src_points x
-    dst_points``, ``refine_iterations``, ``τ: coarse_tau_end → tau_end``); ``scale_ratio``
-    against ``prior_scale`` (the chain's ``σ h_b / h_a``), ``S`` the identity when invalid.
-    Pure."""
+    """The chosen placement ``S`` refined on all rows: its scale searched first
+    (:func:`scale_sweep`, ``refine_scale_steps`` over ± half a bird's-eye scale step,
+    ``scale_search / (scale_steps − 1)``, at the Tukey radius ``coarse_tau_end``), then
+    :func:`register` (``src_points x dst_points``, ``refine_iterations``, ``τ: coarse_tau_end →
+    tau_end``); ``scale_ratio`` against ``prior_scale`` (the chain's ``σ h_b / h_a``), ``S`` the
+    identity when invalid.  Pure."""
     o = options
     up = b.basis[:, 2]
     ground = up @ b.origin - b.height
+    if o.refine_scale_steps > 1:
+        S, _ = scale_sweep(
+            a.points[: o.src_points],
+            a.weights[: o.src_points],
+            b.points,
+            b.weights,
+            S,
+            o.coarse_tau_end * b.height,
+            o.scale_search / max(o.scale_steps - 1, 1),
+            o.refine_scale_steps,
+        )
     reg = register(
         a.points[: o.src_points],
         a.weights[: o.src_points],

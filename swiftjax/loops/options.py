@@ -342,6 +342,9 @@ class GeometryOptions:
     peak_src_points: int = option(256, "co-visible search: source points refined per peak", low=1)
     peak_dst_points: int = option(1024, "co-visible search: target points refined per peak", low=1)
     refine_iterations: int = option(6, "co-visible search: ICP iterations of the best placement on all rows", low=1)
+    refine_scale_steps: int = option(
+        9, "co-visible search: scales tried about the best placement before its ICP (odd; 1: none)", low=1
+    )
     null_chunks: int = option(8, "verdict: unrelated chunks the source is also registered against", low=3)
     null_false_alarm: float = option(
         1e-2, "verdict: false-alarm rate of the registration null", low=0.0, high=1.0, low_open=True, high_open=True
@@ -362,6 +365,8 @@ class GeometryOptions:
                 raise options.invalid(
                     f"GeometryOptions.{a}", getattr(self, a), f"at most {b} = {getattr(self, b)!r}{why}"
                 )
+        if self.refine_scale_steps % 2 == 0:
+            raise options.invalid("GeometryOptions.refine_scale_steps", self.refine_scale_steps, "an odd integer")
 
     @property
     def pixel_stride(self) -> tuple[int, int]:
