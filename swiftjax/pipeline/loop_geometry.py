@@ -425,13 +425,21 @@ def _dense(
     options: geo.GeometryOptions,
     verification: lv.VerificationConfig,
 ) -> dict[str, Any]:
-    """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared."""
+    """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared;
+    its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`)."""
     import dataclasses
 
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
     return lv.candidate_numbers(
-        side_i, side_j, np.asarray(Z), K_ref, info, info, dataclasses.replace(verification, neighbours=0)
+        side_i,
+        side_j,
+        np.asarray(Z),
+        K_ref,
+        info,
+        info,
+        dataclasses.replace(verification, neighbours=0),
+        null_when_needed=True,
     )
 
 
