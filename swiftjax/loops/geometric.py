@@ -72,7 +72,12 @@ directions.  Nothing is read off a route: ``θ`` comes from the null at ``null_f
 and bird's-eye spectrum once (:func:`bev_spectrum`); fixed-size ``vmap`` batches of jobs
 (:func:`starts_batch`, :func:`peaks_batch`, :func:`refine_batch`), one compile per (chunk
 count, options); one null per source chunk, stopped early where exact; the refinement and the
-dense test only above the null.
+dense test only above the null.  The ICP's nearest-neighbour pass (:func:`_nearest`, most of
+its time) takes its index from two plain reductions, bitwise ``argmin``'s.  Where the time goes
+on synthetic KITTI 00 (1,002 gated candidates, 310 null jobs): the bird's-eye starts of every
+job (FFTs), the peak ICP of the ~860 jobs whose peaks overlap a cell (the ~450 others end "no
+valid placement" without ICP: no raster cell overlaps within the window), the dense tests;
+the numbers are in docs/performance/reverse-revisits.md.
 
 Failure modes: a chain more than ``max_window`` off, chunks of very different structure
 density (the null's spread grows), reverse views of little shared structure (the structure
