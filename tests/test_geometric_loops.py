@@ -807,3 +807,39 @@ def test_redundant_geometric_edges_beside_token_edges_are_rejected():
         else:
             assert r.get("reason") == b.get("reason")
     assert [r["accepted"] for r in recs] == [True, False, True, False, True, False]
+
+
+def test_nearest_is_argmin_bitwise_and_the_numpy_loop():
+    """``_nearest``'s two-reduction index is ``argmin``'s, bit for bit, for finite points: ties
+    (duplicate target points), masked targets, an all-masked target; a non-finite source point
+    gets a non-finite distance (never an inlier); and the nearest point of a float64 NumPy loop."""
+    rng = np.random.default_rng(11)
+    y = rng.normal(size=(300, 3)).astype(np.float32) * 3
+    dst = rng.normal(size=(500, 3)).astype(np.float32) * 3
+    dst[250:260] = dst[240:250]  # exact ties: the first index wins
+    y[:5] = dst[240:245]
+    w = (rng.uniform(size=500) > 0.2).astype(np.float32)
+    w[240:250] = 1.0
+    y[7] = np.nan
+    y[8, 1] = np.inf
+
+    @jax.jit
+    def argmin(y, d, w):  # the former _nearest: same d², argmin's pair reduction
+        d2 = (y[:, 0:1] - d[None, :, 0]) ** 2 + (y[:, 1:2] - d[None, :, 1]) ** 2 + (y[:, 2:3] - d[None, :, 2]) ** 2
+        d2 = jnp.where(w[None, :] > 0, d2, jnp.inf)
+        return jnp.argmin(d2, -1), jnp.sqrt(jnp.min(d2, -1))
+
+    for ww in (w, np.zeros_like(w)):
+        k, r = jax.jit(G._nearest)(jnp.asarray(y), jnp.asarray(dst), jnp.asarray(ww))
+        k0, r0 = argmin(jnp.asarray(y), jnp.asarray(dst), jnp.asarray(ww))
+        fin = np.all(np.isfinite(y), -1)
+        np.testing.assert_array_equal(np.asarray(k)[fin], np.asarray(k0)[fin])
+        np.testing.assert_array_equal(np.asarray(r)[fin], np.asarray(r0)[fin])
+        assert not np.any(np.isfinite(np.asarray(r)[~fin]))
+    k = np.asarray(k := jax.jit(G._nearest)(jnp.asarray(y), jnp.asarray(dst), jnp.asarray(w))[0])
+    for p in range(len(y)):
+        if not np.all(np.isfinite(y[p])):
+            continue
+        d = np.where(w > 0, np.sum((y[p].astype(np.float64) - dst.astype(np.float64)) ** 2, -1), np.inf)
+        assert abs(d[k[p]] - d.min()) <= 1e-4 * max(d.min(), 1.0)
+    assert list(k[:5]) == list(range(240, 245))

@@ -211,3 +211,50 @@ def test_pipeline_option_reaches_the_verification_config():
     assert build(V.VerificationConfig, PipelineConfig(loop_agreement="fixed")).agreement_rule == "fixed"
     with pytest.raises(ValueError, match="loop_agreement"):
         PipelineConfig(loop_agreement="tuned")
+
+
+def test_null_needed_is_exact(x64):
+    """A candidate the null cannot save (null_needed False) is rejected by every complete null:
+    checked by brute force over agreements, overlaps and null means/spreads (and no null)."""
+    rel, X, nodes, Z = chain_problem(4)
+    p, q = (int(v) for v in nodes[0])
+    cfg = V.VerificationConfig(pcm=False)
+    rng = np.random.default_rng(3)
+    nulls = [(m, s) for m in (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 0.999) for s in (0.0, 0.01, 0.1)]
+    nulls += [tuple(x) for x in rng.uniform(0, 1, (40, 2)) * [1.0, 0.2]]
+    for a in (*np.linspace(0.0, 1.0, 41), 0.1999, 0.2, math.nan):
+        for ov in (0.1, 0.2, 0.9, math.nan):
+            skip = not V.null_needed(a, ov, cfg)
+            recs = [null_record(q, p, Z[0], a, m, s) for m, s in nulls] + [record(q, p, Z[0], a, ov)]
+            for r in recs:
+                r["dense_overlap"] = ov
+            got = V.verify_candidates(recs, X, rel, cfg)
+            if skip:  # every null (and none) rejects it; so does the record without its null
+                assert not any(d.accepted for d in got), (a, ov)
+                r = record(q, p, Z[0], a, ov)
+                r["null_skipped"] = True
+                assert not V.verify_candidates([r], X, rel, cfg)[0].accepted
+            else:  # some null accepts it: the null is needed (κ_min = 0.2 <= a, overlap seen)
+                assert math.isfinite(a) and ov >= cfg.min_overlap and a >= 0.2
+                assert V.verify_candidates([null_record(q, p, Z[0], a, 0.0, 0.0)], X, rel, cfg)[0].accepted or a == 0.0
+
+
+def test_candidate_numbers_null_when_needed():
+    """Without the null where it cannot change the verdict; the same numbers elsewhere."""
+    src, dst, S = scene(seed=7)
+    half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
+    cfg = V.VerificationConfig(null_samples=4)
+    full = V.candidate_numbers(src, dst, S, K, half, half, cfg)
+    lazy = V.candidate_numbers(src, dst, S, K, half, half, cfg, null_when_needed=True)
+    assert full.keys() == lazy.keys() and "null_skipped" not in lazy  # the true edge agrees: the null decides
+    for k in full:
+        np.testing.assert_equal(lazy[k], full[k])
+    wrong = np.asarray(S, np.float64).copy()
+    wrong[:3] += [6.0, 0.0, 4.0]  # slid away: little agrees
+    full = V.candidate_numbers(src, dst, wrong, K, half, half, cfg)
+    lazy = V.candidate_numbers(src, dst, wrong, K, half, half, cfg, null_when_needed=True)
+    assert full["dense_agreement"] < 0.2 and lazy["null_skipped"]
+    assert {k for k in full if not k.startswith("null_")} == {k for k in lazy if not k.startswith("null_")}
+    for k in full:
+        if not k.startswith("null_"):
+            np.testing.assert_equal(lazy[k], full[k])

@@ -52,6 +52,7 @@ __all__ = [
     "LoopQuality",
     "loop_chunk_quality",
     "candidate_numbers",
+    "null_needed",
     "odometry_covariance",
     "loop_covariance",
     "pairwise_consistency",
@@ -104,6 +105,8 @@ def candidate_numbers(
     info_i: Any,
     info_j: Any,
     config: VerificationConfig | None = None,
+    *,
+    null_when_needed: bool = False,
 ) -> dict[str, Any]:
     """The verification numbers of one candidate as a plain dict (host level, for records).
 
@@ -116,6 +119,9 @@ def candidate_numbers(
     ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, NaN when fewer
     than three null edges see the other chunk), ``null_mean``, ``null_std``, ``null_samples``
     (``K'``) and ``null_kappa`` (the chance-corrected agreement; :mod:`swiftjax.loops.null`).
+    With ``null_when_needed`` the null (``K`` times the candidate's own test) runs only when it
+    can change the verdict (:func:`null_needed`); otherwise ``null_skipped = True`` stands in
+    for its keys and :func:`verify_candidates` rejects the candidate on its own numbers.
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))
@@ -126,21 +132,25 @@ def candidate_numbers(
         for k, v in info._asdict().items()
     }
     q = loop_chunk_quality(info_i, info_j)
-    null = {}
-    if config.agreement_rule == "null":
+    null: dict[str, Any] = {}
+    agreement = float(np.asarray(cc.score)[0])
+    overlap = float(min(np.asarray(cc.i_to_j.overlap)[0], np.asarray(cc.j_to_i.overlap)[0]))
+    if config.agreement_rule == "null" and null_when_needed and not null_needed(agreement, overlap, config):
+        null = {"null_skipped": True}
+    elif config.agreement_rule == "null":
         nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
-        score, overlap, seen = (np.asarray(a)[0] for a in nc)
-        th = null_threshold(score, overlap, seen, config.null_false_alarm, config.min_overlap)
+        score, null_overlap, seen = (np.asarray(a)[0] for a in nc)
+        th = null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap)
         null = {
             "null_threshold": th.threshold,
             "null_mean": th.mean,
             "null_std": th.std,
             "null_samples": th.samples,
-            "null_kappa": chance_corrected(float(np.asarray(cc.score)[0]), th.mean),
+            "null_kappa": chance_corrected(agreement, th.mean),
         }
     return {
-        "dense_agreement": float(np.asarray(cc.score)[0]),
-        "dense_overlap": float(min(np.asarray(cc.i_to_j.overlap)[0], np.asarray(cc.j_to_i.overlap)[0])),
+        "dense_agreement": agreement,
+        "dense_overlap": overlap,
         "dense_i_to_j": plain(cc.i_to_j),
         "dense_j_to_i": plain(cc.j_to_i),
         "quality_valid": bool(q.valid),
@@ -149,6 +159,22 @@ def candidate_numbers(
         "quality_max_rms": float(q.max_rms),
         **null,
     }
+
+
+def null_needed(agreement: float, overlap: float, config: VerificationConfig) -> bool:
+    """Whether the null (``agreement_rule = "null"``) can change the verdict of a candidate
+    whose own dense test gave ``agreement`` and ``overlap`` (:func:`_dense_reason`, host level).
+
+    It cannot when the candidate is rejected whatever the null: a non-finite number, ``overlap
+    < min_overlap``, or ``agreement < min(null_min_kappa, min_agreement)``.  The last because
+    every null sample is an agreement in ``[0, 1]``, so their mean ``m`` is too, and the
+    chance-corrected agreement ``κ(m) = (a − m) / (1 − m)`` has ``dκ/dm = (a − 1) / (1 − m)² <= 0``:
+    ``κ <= κ(0) = a < κ_min`` (``m = 1``: ``κ <= 0``); when the null is not computable the fixed
+    bound rejects ``a < min_agreement``.  Exact: the verdict is the one the complete null gives.
+    """
+    if not (math.isfinite(agreement) and math.isfinite(overlap)) or overlap < config.min_overlap:
+        return False
+    return bool(agreement >= min(config.null_min_kappa, config.min_agreement))
 
 
 # ----------------------------------------------------------------------- decisions
@@ -178,6 +204,12 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
     if overlap < config.min_overlap:
         return f"the temporal chunks do not see each other under the edge: overlap {overlap:.3f} < {config.min_overlap}"
     if config.agreement_rule == "null":
+        if r.get("null_skipped"):  # null_needed: rejected whatever the null
+            return (
+                f"depths agree little whatever the null: agreement {agreement:.3f} < "
+                f"{min(config.null_min_kappa, config.min_agreement)} (the chance-corrected agreement "
+                "(a - m)/(1 - m) <= a for every null mean m; null not run)"
+            )
         tau = float(r.get("null_threshold", math.nan))
         if math.isfinite(tau):
             null = f"null {float(r['null_mean']):.3f} +- {float(r['null_std']):.3f}"

@@ -33,7 +33,10 @@ last of each padded, so one compile per chunk count and options):
 
 Survivors go through the cross-chunk dense test over the frame pairs of every other loaded frame
 of the two chunks and pairwise consistency with every other candidate, like the token
-candidates.  No loop-centric chunk is predicted.
+candidates.  The dense test's null (``null_samples`` times the candidate's own test) runs only
+where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`: an agreement
+below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
+No loop-centric chunk is predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
@@ -425,13 +428,21 @@ def _dense(
     options: geo.GeometryOptions,
     verification: lv.VerificationConfig,
 ) -> dict[str, Any]:
-    """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared."""
+    """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared;
+    its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`)."""
     import dataclasses
 
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
     return lv.candidate_numbers(
-        side_i, side_j, np.asarray(Z), K_ref, info, info, dataclasses.replace(verification, neighbours=0)
+        side_i,
+        side_j,
+        np.asarray(Z),
+        K_ref,
+        info,
+        info,
+        dataclasses.replace(verification, neighbours=0),
+        null_when_needed=True,
     )
 
 
