@@ -27,7 +27,10 @@ the engine is busy (a car does not wait).  Measured per route and cost:
   ``live_ate_drained_m``; every frame's latest live pose when the final pass begins, the
   short last chunk's frames included: ``live_ate_end_m``), and the offline run's;
 * the driver's resident memory at every live step (``steps[k]["rss_mb"]``), a quarter of the way
-  through and at the end (memory flat in the sequence length, but for compiled programs);
+  through and at the end (memory flat in the sequence length, but for compiled programs), and
+  what of it is data: the live JAX arrays' bytes (``jax_live_mb``) and, with
+  ``--trace-memory`` (Python's ``tracemalloc``: slower, so its latencies are not the table's),
+  the Python heap (``py_heap_mb``);
 * the finished run compared with an offline ``reconstruct`` of the same frames: the poses
   bit for bit and every output file byte for byte (except ``metrics.json``'s timings,
   ``manifest.json`` and the chunk store's ``.npz`` zip headers).
@@ -52,6 +55,7 @@ import pathlib
 import sys
 import tempfile
 import time
+import tracemalloc
 from typing import Any
 
 import numpy as np
@@ -139,7 +143,7 @@ def replay(
             seen = len(rec.steps)
             frames, c2w = rec.poses()
             snapshots.append(c2w[:, :3, 3].copy())
-            steps.append({"frames": len(frames), "revision": rec.revision, "rss_mb": _rss_mb()})
+            steps.append({"frames": len(frames), "revision": rec.revision, **_memory_now()})
             print(
                 f"  {label}: {len(frames)} frames posed, revision {rec.revision}, {len(rec.loops)} loops, "
                 f"load {os.getloadavg()[0]:.1f}",
@@ -315,16 +319,30 @@ def _rss_mb() -> float | None:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def _memory_now() -> dict[str, float | None]:
+    """The driver's memory now (MB): resident (``rss_mb``), the live JAX arrays' bytes
+    (``jax_live_mb``) and, while ``tracemalloc`` traces, the Python heap (``py_heap_mb``)."""
+    import jax
+
+    now = {"rss_mb": _rss_mb(), "jax_live_mb": sum(a.nbytes for a in jax.live_arrays()) / 2**20}
+    if tracemalloc.is_tracing():
+        now["py_heap_mb"] = tracemalloc.get_traced_memory()[0] / 2**20
+    return now
+
+
 def _memory_growth(steps: list[dict[str, Any]]) -> dict[str, Any]:
-    """The driver's resident memory over the live steps: at the step a quarter of the way
-    through and at the last, and the growth between them.  What grows is compiled programs
-    (a new size bucket of the loop decision or the pose graph at each doubling of the chunks:
-    ``O(log N)`` steps), not data: the live JAX arrays and the Python heap stay flat."""
-    rows = [(s["frames"], s["rss_mb"]) for s in steps if s.get("rss_mb") is not None]
-    if len(rows) < 4:
-        return {"rss_quarter_mb": None, "rss_last_mb": None, "rss_growth_mb": None}
-    m0, m1 = rows[len(rows) // 4][1], rows[-1][1]
-    return {"rss_quarter_mb": m0, "rss_last_mb": m1, "rss_growth_mb": m1 - m0}
+    """The driver's memory over the live steps (:func:`_memory_now`'s kinds): at the step a
+    quarter of the way through and at the last, and the growth between them (``rss_*``,
+    ``jax_live_*``, ``py_heap_*``).  What the resident memory adds beyond the data is compiled
+    programs (a new size bucket of the loop decision or the pose graph at each doubling of the
+    chunks, the detector's at each doubling of the frames: ``O(log N)`` steps) and the
+    allocator's free lists."""
+    out: dict[str, Any] = {}
+    for kind in ("rss", "jax_live", "py_heap"):
+        rows = [s[f"{kind}_mb"] for s in steps if s.get(f"{kind}_mb") is not None]
+        m0, m1 = (rows[len(rows) // 4], rows[-1]) if len(rows) >= 4 else (None, None)
+        out |= {f"{kind}_quarter_mb": m0, f"{kind}_last_mb": m1, f"{kind}_growth_mb": None if m0 is None else m1 - m0}
+    return out
 
 
 def _relative_times(records: list[dict[str, Any]], t0: float) -> list[dict[str, Any]]:
@@ -342,7 +360,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--no-write", action="store_true", help="print only (no JSON under bench/results/)")
     parser.add_argument("--live-only", action="store_true", help="the live phase only: print its numbers, no table")
     parser.add_argument("--warmup", action="store_true", help="replay each route once, untimed, first (JIT caches)")
+    parser.add_argument(
+        "--trace-memory", action="store_true", help="trace the Python heap at every step (tracemalloc: slower)"
+    )
     args = parser.parse_args(argv)
+    if args.trace_memory:
+        tracemalloc.start()
 
     from swiftjax import pipeline
     from swiftjax.synthetic import demo
@@ -395,6 +418,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "yes" if r["identical"] else "NO",
             r["slowest_oracle_predict_s"],
             "-" if r["rss_quarter_mb"] is None else f"{r['rss_quarter_mb']:.0f} -> {r['rss_last_mb']:.0f}",
+            "-"
+            if r["jax_live_quarter_mb"] is None
+            else f"{r['jax_live_quarter_mb']:.0f} -> {r['jax_live_last_mb']:.0f}",
         ]
         for r in runs
     ]
@@ -420,6 +446,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 "final = offline",
                 "slowest oracle s",
                 "RSS MB (quarter -> end)",
+                "JAX arrays MB (quarter -> end)",
             ],
             rows,
         )

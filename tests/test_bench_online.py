@@ -28,4 +28,7 @@ def test_bench_online_quick_ends_as_offline_with_finite_latencies(capsys):
     assert run["revisions"] >= 1  # the final pass at least
     assert math.isfinite(run["live_ate_m"]) and math.isfinite(run["offline_ate_m"])
     assert run["latency_final_pass_frames"] == 0 and math.isfinite(run["live_ate_end_m"])  # every frame posed live
+    # the memory at every step: resident, and the live JAX arrays (data: a part of it)
+    assert all(0 < s["jax_live_mb"] < s["rss_mb"] for s in run["steps"])
+    assert run["jax_live_growth_mb"] == run["jax_live_last_mb"] - run["jax_live_quarter_mb"]
     assert "final = offline" in capsys.readouterr().out
