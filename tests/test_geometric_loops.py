@@ -843,3 +843,110 @@ def test_nearest_is_argmin_bitwise_and_the_numpy_loop():
         d = np.where(w > 0, np.sum((y[p].astype(np.float64) - dst.astype(np.float64)) ** 2, -1), np.inf)
         assert abs(d[k[p]] - d.min()) <= 1e-4 * max(d.min(), 1.0)
     assert list(k[:5]) == list(range(240, 245))
+
+
+def test_closed_pairs_are_exactly_the_ones_redundant_geometry_rejects():
+    """``loop_geometry.split_closed`` leaves unregistered exactly the gated pairs that
+    ``redundant_geometry`` rejects when every candidate is accepted (random token pairs and
+    gated pairs); each such pair's record is a rejected geometric candidate with a one-line
+    reason naming the token edge, no ``Z`` (no edge) and its chunks' middle frames."""
+    from swiftjax.pipeline.loop_closure import redundant_geometry
+    from swiftjax.pipeline.loop_geometry import split_closed
+
+    rng = np.random.default_rng(40)
+    T = 60
+    ids = np.arange(T * 10).reshape(T, 10)
+    for _ in range(20):
+        tokens = [(int(a), int(a) - int(d)) for a, d in zip(rng.integers(10, T, 6), rng.integers(2, 10, 6))]
+        gated = sorted({(int(a), int(a) - int(d)) for a, d in zip(rng.integers(10, T, 80), rng.integers(2, 10, 80))})
+        pairs = [(ci, cj, 3.0) for ci, cj in gated]
+        kept, unregistered = split_closed(pairs, tokens, ids)
+        assert sorted([(a, b) for a, b, _ in kept] + [(r["chunk_i"], r["chunk_j"]) for r in unregistered]) == gated
+        recs = [{"chunk_i": a, "chunk_j": b, "accepted": True, "source": "tokens"} for a, b in tokens]
+        recs += [{"chunk_i": b, "chunk_j": a, "accepted": True, "source": "geometry"} for a, b in gated]  # either order
+        redundant_geometry(recs)
+        rejected = {(r["chunk_j"], r["chunk_i"]) for r in recs if r["source"] == "geometry" and not r["accepted"]}
+        assert {(r["chunk_i"], r["chunk_j"]) for r in unregistered} == rejected
+        for r in unregistered:
+            assert r["source"] == "geometry" and r["accepted"] is False and "Z" not in r
+            assert r["reason"].startswith("not registered") and "\n" not in r["reason"]
+            y, x = r["_closed_by"][1], r["_closed_by"][0]
+            assert f"chunks {y} and {x}" in r["reason"] and r["_closed_by"] in tokens
+            assert (r["i"], r["j"]) == (ids[r["chunk_i"], 5], ids[r["chunk_j"], 5])
+
+
+def _loop_candidate(ci, cj, source, t=(0.0, 0.0, 0.0), agreement=0.9):
+    """A candidate record that passes the dense test (``t``: its edge's translation; the chain
+    is the identity, so any ``t`` far from 0 is pairwise inconsistent with a ``t = 0`` one)."""
+    return {
+        "i": 10 * ci + 5,
+        "j": 10 * cj + 5,
+        "score": 0.5,
+        "chunk_i": ci,
+        "chunk_j": cj,
+        "source": source,
+        "Z": [*t, 0.0, 0.0, 0.0, 1.0, 1.0],
+        "quality_valid": True,
+        "quality_min_fraction": 1.0,
+        "dense_agreement": agreement,
+        "dense_overlap": 0.9,
+    }
+
+
+@pytest.mark.parametrize("case", ["closed", "rejected jointly"])
+def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
+    """``loop_closure._decide_with_geometry`` with a stand-in registration (the records below;
+    the real ``split_closed``): the pairs beside a provisionally accepted token candidate are
+    never registered, and the verdicts equal those of the unpruned path (every gated pair
+    registered, one joint decision).  ``"rejected jointly"``: the lone token candidate is
+    accepted alone but pairwise inconsistent with two geometric edges, so the joint decision
+    rejects it; the pair left unregistered beside it is then registered and accepted, as
+    without the prune."""
+    from types import SimpleNamespace
+
+    from swiftjax.pipeline import loop_closure, loop_geometry
+    from swiftjax.pipeline.config import PipelineConfig
+    from swiftjax.pipeline.rundir import StageTimer
+
+    T = 50
+    ids = np.arange(T * 10).reshape(T, 10)
+    bad = (300.0, 0.0, 0.0) if case == "rejected jointly" else (0.0, 0.0, 0.0)
+    tokens = [_loop_candidate(20, 5, "tokens", bad)]
+    table = {
+        (21, 5): _loop_candidate(21, 5, "geometry"),  # beside the token candidate
+        (20, 6): _loop_candidate(20, 6, "geometry", agreement=0.2),  # beside it, rejected anyway
+        (40, 10): _loop_candidate(40, 10, "geometry"),
+        (42, 12): _loop_candidate(42, 12, "geometry"),
+    }
+    registered: list[list[tuple[int, int]]] = []
+
+    def candidates(ctx, K_ref, taken, verification, options=None, chain=None, closed=(), only=None):
+        pairs = [(ci, cj, 3.0) for ci, cj in table if (ci, cj) not in taken]
+        pairs = [p for p in pairs if only is None or (p[0], p[1]) in only]
+        pairs, unregistered = loop_geometry.split_closed(pairs, closed, ids)
+        registered.append([(ci, cj) for ci, cj, _ in pairs])
+        return [dict(table[ci, cj]) for ci, cj, _ in pairs] + unregistered
+
+    monkeypatch.setattr(loop_geometry, "candidates", candidates)
+    ctx = SimpleNamespace(config=PipelineConfig(loop_geometry=True), timer=StageTimer(), log=lambda s: None)
+    relative = np.tile([0, 0, 0, 0, 0, 0, 1, 1.0], (T - 1, 1))
+    temporal = SimpleNamespace(relative=relative, K_ref=None)
+    unpruned = [dict(r) for r in tokens] + [dict(r) for r in table.values()]
+    loop_closure.decide(ctx, relative, unpruned)
+    want = {(r["source"], loop_geometry.chunk_pair(r)) for r in unpruned if r["accepted"]}
+
+    geometric = loop_closure._decide_with_geometry(ctx, temporal, tokens)
+    got = {(r["source"], loop_geometry.chunk_pair(r)) for r in tokens + geometric if r["accepted"]}
+    assert got == want
+    assert sorted(loop_geometry.chunk_pair(r) for r in geometric) == sorted(table)
+    by_pair = {loop_geometry.chunk_pair(r): r for r in geometric}
+    if case == "closed":
+        assert want == {("tokens", (20, 5)), ("geometry", (40, 10)), ("geometry", (42, 12))}
+        assert registered == [[(40, 10), (42, 12)]]  # the two beside the token edge never registered
+        for pair in ((21, 5), (20, 6)):
+            r = by_pair[pair]
+            assert not r["accepted"] and "Z" not in r and r["reason"].startswith("not registered")
+    else:
+        assert want == {("geometry", (21, 5)), ("geometry", (40, 10)), ("geometry", (42, 12))}
+        assert registered == [[(40, 10), (42, 12)], [(21, 5), (20, 6)]]
+        assert all("Z" in r for r in geometric)

@@ -17,7 +17,8 @@ with its numbers, ``accepted`` and a one-line ``reason``; only accepted ones bec
 ``loop_geometry = true`` adds a second candidate source beside the tokens, chunk pairs whose
 dense geometry matches whichever way the revisit was driven, with edges from registering the
 two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry ``source``
-(``tokens`` or ``geometry``).
+(``tokens`` or ``geometry``).  A gated pair beside an accepted token candidate is recorded but not
+registered (:func:`redundant_geometry` would reject it; :func:`_decide_with_geometry`).
 """
 
 from __future__ import annotations
@@ -101,15 +102,12 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
             manifest.flush()  # also when interrupted: keep the finished loop edges
     for r in loop_records:
         r.setdefault("source", "tokens")
+    # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     geometric: list[dict[str, Any]] = []
     if config.loop_geometry:  # the second candidate source (swiftjax.pipeline.loop_geometry)
-        with timer("loop geometry"):
-            taken = {(max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"])) for r in loop_records}
-            geometric = loop_geometry.candidates(
-                ctx, K_ref, taken, config.verification, chain=chain_poses(temporal.relative)
-            )
-    # The decisions depend on all candidates: recomputed every run, written beside the numbers.
-    decide(ctx, temporal.relative, loop_records + [r for r in geometric if "accepted" not in r])
+        geometric = _decide_with_geometry(ctx, temporal, loop_records)
+    else:
+        decide(ctx, temporal.relative, loop_records)
     loop_records += geometric
     for r in loop_records:
         if r["accepted"]:
@@ -120,6 +118,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
             loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"]), info))
     for r in geometric:
         r.pop("_stats", None)
+        r.pop("_closed_by", None)
     loop_records += [
         {
             "i": lp.i,
@@ -142,6 +141,53 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     manifest.flush()
     _log_decisions(ctx, loop_records)
     return LoopResult(loop_records, loop_edges)
+
+
+def _decide_with_geometry(
+    ctx: RunContext, temporal: TemporalResult, tokens: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The geometric candidates' records (:func:`swiftjax.pipeline.loop_geometry.candidates`),
+    decided together with the token candidates ``tokens`` (both decided in place).
+
+    The gated pairs beside a token candidate that the decision accepts are not registered
+    (``closed``, :func:`~swiftjax.pipeline.loop_geometry.closing`): :func:`redundant_geometry`
+    would reject them whatever their numbers.  Which token candidates are accepted is known
+    before the geometric ones are registered from a provisional decision of the token
+    candidates alone; the joint decision (PCM over both sources) may reject one of them, and
+    then the pairs it left unregistered that no jointly accepted token candidate closes are
+    registered and everything is decided again, until no such pair is left.  The verdicts
+    then equal those without the prune, unless the unregistered pairs, had they reached PCM,
+    would have changed the maximum consistent set (docs/performance/reverse-revisits.md)."""
+    config = ctx.config
+    taken = {loop_geometry.chunk_pair(r) for r in tokens}
+    closed: list[tuple[int, int]] = []
+    if config.loop_verification != "none":  # without verification nothing is redundant
+        provisional = [dict(r) for r in tokens]
+        decide(ctx, temporal.relative, provisional)
+        closed = [loop_geometry.chunk_pair(r) for r in provisional if r["accepted"]]
+    chain = chain_poses(temporal.relative)
+    with ctx.timer("loop geometry"):
+        geometric = loop_geometry.candidates(
+            ctx, temporal.K_ref, taken, config.verification, chain=chain, closed=closed
+        )
+    pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
+    decide(ctx, temporal.relative, tokens + pool)
+    while True:
+        accepted = [loop_geometry.chunk_pair(r) for r in tokens if r["accepted"]]
+        reopen = {
+            loop_geometry.chunk_pair(r)
+            for r in geometric
+            if "_closed_by" in r and loop_geometry.closing(loop_geometry.chunk_pair(r), accepted) is None
+        }
+        if not reopen:
+            return geometric
+        ctx.log(f"loop geometry: {len(reopen)} pair(s) left unregistered beside a token loop the decision rejects")
+        with ctx.timer("loop geometry"):
+            more = loop_geometry.candidates(ctx, temporal.K_ref, taken, config.verification, chain=chain, only=reopen)
+        new = {loop_geometry.chunk_pair(r): r for r in more}
+        geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
+        pool += [r for r in more if "accepted" not in r]
+        decide(ctx, temporal.relative, tokens + pool)
 
 
 def loop_record(ctx: RunContext, lp: loops.Loop, pred: ChunkPrediction, K_ref: np.ndarray) -> dict[str, Any]:
@@ -263,16 +309,21 @@ def redundant_geometry(records: list[dict[str, Any]]) -> None:
     Added to the token edges they cost ATE 2.95 → 3.18 m with their own information, 3.04 m
     with a tenth of it, 2.98 m with the true edge in their place: where a token edge closes the
     revisit, a geometric one adds its error and no constraint.  Where none does (a reverse
-    revisit, which tokens cannot match: synthetic KITTI 08) the geometric edge is the loop."""
-    key = lambda r: (max(r["chunk_i"], r["chunk_j"]), min(r["chunk_i"], r["chunk_j"]))
-    tokens = [key(r) for r in records if r.get("accepted") and r.get("source", "tokens") == "tokens"]
+    revisit, which tokens cannot match: synthetic KITTI 08) the geometric edge is the loop.
+
+    The rule is :func:`swiftjax.pipeline.loop_geometry.closing`; :func:`run` does not even
+    register the gated pairs it would reject beside the token candidates accepted before the
+    geometric ones are decided (:func:`_decide_with_geometry`), so here it rejects the ones
+    registered beside a token candidate that only the joint decision accepts."""
+    tokens = [
+        loop_geometry.chunk_pair(r) for r in records if r.get("accepted") and r.get("source", "tokens") == "tokens"
+    ]
     for r in records:
         if r.get("source") != "geometry" or not r.get("accepted"):
             continue
-        a, b = key(r)
-        near = [(x, y) for x, y in tokens if abs(x - a) <= 1 and abs(y - b) <= 1]
-        if near:
-            x, y = near[0]
+        near = loop_geometry.closing(loop_geometry.chunk_pair(r), tokens)
+        if near is not None:
+            x, y = near
             r.update(
                 accepted=False,
                 reason=f"redundant: the token loop edge of chunks {y} and {x} closes this revisit "

@@ -10,7 +10,8 @@ pairs that the dead-reckoned chain places within ``max(gate_min h, gate_drift x 
 them)`` of each other (:func:`_pairs`), frames more than ``loop_min_separation`` apart: on a
 reverse pass the chunks that share structure are the ones whose cameras face each other across
 a stretch, one or two chunks off the closest frames, so every gated pair is tried, not only the
-closest (docs/performance/reverse-revisits.md).
+closest (docs/performance/reverse-revisits.md), except the pairs beside a token candidate the
+decision accepts (``closed``: recorded, not registered; :func:`candidates`).
 
 Work, in fixed-size batches (:data:`JOB_BATCH`, :data:`PEAK_BATCH`, :data:`REFINE_BATCH`; the
 last of each padded, so one compile per chunk count and options):
@@ -51,6 +52,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import jax
@@ -63,7 +65,18 @@ from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline.rundir import RunContext
 
-__all__ = ["BATCH", "JOB_BATCH", "PEAK_BATCH", "REFINE_BATCH", "geometries", "candidates", "edge_information"]
+__all__ = [
+    "BATCH",
+    "JOB_BATCH",
+    "PEAK_BATCH",
+    "REFINE_BATCH",
+    "candidates",
+    "chunk_pair",
+    "closing",
+    "edge_information",
+    "geometries",
+    "split_closed",
+]
 
 #: Chunks per call of :func:`geometries`' jitted :func:`swiftjax.loops.geometric.chunk_frame` (the last batch padded).
 BATCH = 8
@@ -133,6 +146,51 @@ def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int,
     return out
 
 
+def chunk_pair(record: dict[str, Any]) -> tuple[int, int]:
+    """A candidate's chunks ``(larger, smaller)``."""
+    return max(int(record["chunk_i"]), int(record["chunk_j"])), min(int(record["chunk_i"]), int(record["chunk_j"]))
+
+
+def closing(pair: tuple[int, int], tokens: Iterable[tuple[int, int]]) -> tuple[int, int] | None:
+    """The first of the accepted token candidates ``tokens`` (chunk pairs ``(larger, smaller)``)
+    whose chunks each lie within one chunk of ``pair``'s (``(larger, smaller)``), or None: the
+    token loop edge that closes the revisit ``pair`` would close.  The one rule behind
+    :func:`swiftjax.pipeline.loop_closure.redundant_geometry` (which explains why such a
+    geometric edge is rejected) and the pairs :func:`candidates` does not register (``closed``)."""
+    a, b = pair
+    return next(((x, y) for x, y in tokens if abs(x - a) <= 1 and abs(y - b) <= 1), None)
+
+
+def split_closed(
+    pairs: list[tuple[int, int, float]], closed: Sequence[tuple[int, int]], ids: np.ndarray
+) -> tuple[list[tuple[int, int, float]], list[dict[str, Any]]]:
+    """``pairs`` (``[(c_i, c_j, window)]``, :func:`_pairs`) split into those to register and the
+    records of those a token candidate in ``closed`` closes (:func:`closing`): ``accepted =
+    False``, a one-line reason naming the token edge, no ``Z`` (no edge), the middle frames of
+    both chunks as ``i``, ``j`` (``ids [T, F]``: each chunk's loaded frames), and the token
+    pair under ``_closed_by`` (popped by :func:`swiftjax.pipeline.loop_closure.run`)."""
+    kept, unregistered = [], []
+    for ci, cj, w in pairs:
+        token = closing((ci, cj), closed)
+        if token is None:
+            kept.append((ci, cj, w))
+            continue
+        unregistered.append(
+            {
+                "source": "geometry",
+                "i": int(ids[ci, len(ids[ci]) // 2]),
+                "j": int(ids[cj, len(ids[cj]) // 2]),
+                "chunk_i": int(ci),
+                "chunk_j": int(cj),
+                "accepted": False,
+                "reason": f"not registered: the token loop edge of chunks {token[1]} and {token[0]} closes this "
+                "revisit (a geometric edge beside it is rejected as redundant)",
+                "_closed_by": token,
+            }
+        )
+    return kept, unregistered
+
+
 #: Placement jobs per call of :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch` (the last call padded).
 JOB_BATCH = 16
 #: Placement jobs per call of :func:`swiftjax.loops.geometric.peaks_batch` (smaller: its
@@ -178,12 +236,27 @@ def candidates(
     verification: lv.VerificationConfig,
     options: geo.GeometryOptions = geo.GeometryOptions(),
     chain: np.ndarray | None = None,
+    closed: Sequence[tuple[int, int]] = (),
+    only: set[tuple[int, int]] | None = None,
 ) -> list[dict[str, Any]]:
     """The geometric candidates' records (module docstring), chunk pairs in ``taken`` (the
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
     set when its registration rejects it, else ready for :func:`verify_candidates`.
     ``chain [T, 8]``: the dead-reckoned chunk poses (the prior of every registration; without
     it no candidate is proposed).
+
+    ``closed``: the token candidates the decision accepts (chunk pairs ``(larger, smaller)``).
+    A gated pair whose chunks each lie within one chunk of one of them (:func:`closing`) is not
+    registered: :func:`swiftjax.pipeline.loop_closure.redundant_geometry` would reject it
+    whatever its registration (its docstring says why).  Its record keeps the candidate
+    (``accepted = False``, a reason naming the token edge, no ``Z``: no edge); a source chunk
+    left with no pair to register runs no null.  The others' verdicts do not depend on it:
+    a source's null window is its largest over ALL its candidates, registered or not, and its
+    null's early stop is exact per candidate (:func:`_null_settled`), so each registered
+    pair gets the verdict it gets without the prune (the null's recorded numbers may differ
+    where the stop comes earlier).  ``only``: register only these pairs (the other gated
+    pairs get no record; :func:`swiftjax.pipeline.loop_closure.run` registers the pruned
+    pairs whose token edge the joint decision rejects).
 
     Work, all in fixed-shape batches: every chunk's geometry, structure cloud and bird's-eye
     spectrum once; one placement job (:func:`swiftjax.loops.geometric.starts_batch`, then :func:`~swiftjax.loops.geometric.peaks_batch` where a peak overlaps a cell) per
@@ -204,8 +277,15 @@ def candidates(
     gated = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, o)
     near = {(ci, cj) for ci, cj, _ in gated}
     pairs = [(ci, cj, w) for ci, cj, w in gated if (ci, cj) not in taken]
+    order = {(ci, cj): n for n, (ci, cj, _) in enumerate(pairs)}
+    window: dict[int, float] = {}  # the null's window: the largest of ALL the source's candidates
+    for ci, _, w in pairs:
+        window[ci] = max(window.get(ci, 0.0), w)
+    if only is not None:
+        pairs = [p for p in pairs if (p[0], p[1]) in only]
+    pairs, unregistered = split_closed(pairs, closed, ids)
     if not pairs:
-        return []
+        return unregistered
     P = len(pairs)
     ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
     win = np.asarray([p[2] for p in pairs], np.float32)
@@ -223,7 +303,7 @@ def candidates(
         partners = {int(b) for a, b in zip(ci_, cj_) if a == c} | {b for a, b in near if a == c}
         partners |= {a for a, b in near if b == c}
         nulls = _null_chunks(c, partners, T, near, o.null_chunks)
-        w = float(win[ci_ == c].max())
+        w = window[c]
         null_of[c] = np.arange(len(jobs), len(jobs) + len(nulls))
         jobs += [(c, n, math.pi * (k % 2), 1.0, np.zeros(2, np.float32), w) for k, n in enumerate(nulls)]
     cols = [np.asarray([j[k] for j in jobs]) for k in range(6)]
@@ -379,7 +459,7 @@ def candidates(
             else:
                 with ctx.timer("loop geometry: verification"):
                     record.update(_dense(ctx, ci, cj, record["Z"], K_ref, o, verification))
-    return records
+    return sorted(records + unregistered, key=lambda r: order[r["chunk_i"], r["chunk_j"]])
 
 
 def _null_settled(false_alarm: float, k: int) -> bool:
