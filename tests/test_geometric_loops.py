@@ -716,6 +716,30 @@ def test_bev_starts_z_score_against_numpy_loop():
     assert float(count[0]) == pytest.approx(C, abs=1e-3)
 
 
+def test_window_on_grid_against_the_grid_translations():
+    """``window_on_grid`` against the grid enumerated: false only where no translation
+    ``c {−n/2, …, n/2 − 1}²`` lies within the window (what makes skipping such a job exact), and
+    true wherever one does; and a job it rejects gets ``bev_starts``' "no placement" (every
+    peak's count −1) whatever the clouds."""
+    n, c = 16, 0.75
+    o = G.GeometryOptions(bev_cells=n, bev_cell=c, yaw_steps=3, scale_steps=3, peaks=2)
+    shifts = np.fft.fftfreq(n, 1.0 / n) * c
+    grid = np.stack(np.meshgrid(shifts, shifts, indexing="ij"), -1).reshape(-1, 2)
+    rng = np.random.default_rng(32)
+    tau = rng.uniform(-14.0, 14.0, (400, 2)).astype(np.float32)
+    window = rng.uniform(0.2, 4.0, 400).astype(np.float32)
+    got = np.asarray(G.window_on_grid(tau, window, o))
+    inside = np.any(np.sum((grid[None] - tau[:, None]) ** 2, -1) <= window[:, None] ** 2, -1)
+    assert np.all(got[inside]), "a window holding a grid translation must be searched"
+    assert 50 < np.sum(~got) < 350, "both outcomes must be exercised"
+    assert np.sum(inside) < np.sum(got), "the one-cell margin keeps some empty windows: never the other way"
+    pa = np.c_[rng.uniform(-4, 4, (60, 2)), rng.uniform(0.5, 2, 60)].astype(np.float32)
+    a = G.ChunkCloud(jnp.asarray(pa), jnp.ones(60), jnp.zeros(3), jnp.eye(3), jnp.float32(1.0))
+    for k in np.flatnonzero(~got)[:3]:
+        _, count = G.bev_starts(a, a, 0.0, 1.0, jnp.asarray(tau[k]), window[k], o)
+        np.testing.assert_array_equal(np.asarray(count), -1.0)
+
+
 def test_bev_starts_scale_is_unbiased_from_the_true_prior():
     """A street seen from above is lines (facades, kerbs, poles): a raster scaled up covers more
     cells and overlaps more of the target's dilated raster, so the raw overlap count picks the

@@ -127,6 +127,7 @@ __all__ = [
     "bev_raster",
     "bev_spectrum",
     "bev_starts",
+    "window_on_grid",
     "Placements",
     "peak_icp",
     "place_covisible",
@@ -885,6 +886,25 @@ def bev_starts(
         lambda kk: _start(a, b, psi + dy[which[kk]], sigma * jnp.exp(ds[which[kk]]), jnp.stack([tx[kk], ty[kk]]))
     )(k)
     return S0, jnp.stack(vals)
+
+
+def window_on_grid(
+    tau: Float[ArrayLike, "*b 2"], window: Float[ArrayLike, "*b"], options: GeometryOptions
+) -> Bool[Array, "*b"]:
+    """Whether :func:`bev_starts`' window ``|τ' − τ| <= window`` may hold a translation of its
+    correlation grid, ``τ' ∈ c {−n/2, …, n/2 − 1}²`` (``n = bev_cells``, ``c = bev_cell``).
+
+    The grid is the product of two 1-D grids, so the translation nearest ``τ`` is per axis
+    ``τ*_x = c clip(round(τ_x / c), −n/2, n/2 − 1)``; the test is ``|τ* − τ| <= window + c``
+    (one cell of margin against rounding at the boundary).  Where it is false, no translation
+    is inside: every ``z`` of :func:`bev_starts` is ``−∞``, each peak's correlation ``−1``, and
+    :func:`peak_icp` scores the job −1 ("no valid placement") whatever the clouds; the
+    pipeline does not run such a job (a chain that puts the chunks farther apart than the
+    window plus the grid's half-width).  Pure; works on NumPy arrays too."""
+    n, c = options.bev_cells, options.bev_cell
+    tau = jnp.asarray(tau, jnp.float32)
+    near = c * jnp.clip(jnp.round(tau / c), -(n // 2), n // 2 - 1)
+    return jnp.linalg.norm(near - tau, axis=-1) <= jnp.asarray(window, jnp.float32) + c
 
 
 class Placements(NamedTuple):
