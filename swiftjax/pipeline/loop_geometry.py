@@ -110,13 +110,19 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
     :func:`~swiftjax.loops.geometric.chunk_descriptors` are not needed by the co-visible search)."""
     T = ctx.schedule.num_chunks
     parts, ids = [], []
+    stack: align.ChunkFrames | None = None
     for b0 in range(0, T, BATCH):
         loaded = [_frames(ctx, min(c, T - 1), options) for c in range(b0, b0 + BATCH)]
-        stack = align.ChunkFrames(*(np.stack(x) for x in zip(*(f for f, _ in loaded))))
+        # One batch buffer, filled in place: a fresh ~40 MB array per batch costs its page
+        # faults every time (np.stack: 0.85 s per batch of 8 KITTI chunks against 0.01 s reused)
+        if stack is None:
+            stack = align.ChunkFrames(*(np.empty((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in loaded[0][0]))
+        for k, (frames, _) in enumerate(loaded):
+            for buf, x in zip(stack, frames):
+                buf[k] = x
         n = min(BATCH, T - b0)
-        parts.append(
-            jax.tree_util.tree_map(lambda a: a[:n], _geometry(stack, jnp.asarray(K_ref, jnp.float32), options))
-        )
+        out = _geometry(stack, jnp.asarray(K_ref, jnp.float32), options)
+        parts.append(jax.block_until_ready(jax.tree_util.tree_map(lambda a: a[:n], out)))  # before the refill
         ids += [f for _, f in loaded[:n]]
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts), np.stack(ids)
 
