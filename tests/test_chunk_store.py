@@ -51,6 +51,24 @@ def test_round_trip_values(tmp_path):
         assert z["extrinsic"].dtype == np.float32 and z["images"].dtype == np.uint8
 
 
+def test_as_stored_gives_the_stored_dtypes_and_the_same_values(tmp_path):
+    """``load(as_stored=True)``: depth and confidence in float16 as stored, each converting to
+    exactly the float32 that the default load returns (the conversion is exact), partial loads
+    too; a value outside float16's range stays float32."""
+    store = ChunkStore(tmp_path)
+    pred = _pred()
+    pred.depth[0, 0, 0] = 1e6  # the out-of-range array is stored float32
+    store.save("chunk", 0, pred)
+    store.save("chunk", 1, _pred(seed=1))
+    for index, depth_dtype in ((0, np.float32), (1, np.float16)):
+        for frames in (None, np.array([0, 2])):
+            raw = store.load("chunk", index, frames=frames, fields=(), as_stored=True)
+            want = store.load("chunk", index, frames=frames, fields=())
+            assert raw.depth.dtype == depth_dtype and raw.conf.dtype == np.float16
+            for name in ("depth", "conf", "intrinsic", "extrinsic"):
+                np.testing.assert_array_equal(getattr(raw, name).astype(np.float32), getattr(want, name))
+
+
 def test_depth_error_small_against_mask_threshold(tmp_path):
     """At depths up to 10 (VGGT units) float16 moves depth by <= 0.005, 2.5 % of lambda_D = 0.2."""
     d = np.linspace(0.01, 10.0, S * H * W, dtype=np.float32).reshape(S, H, W)

@@ -270,7 +270,15 @@ class ChunkStore:
             )
         return path, data
 
-    def load(self, kind: str, index: int, frames: Any = None, fields: tuple[str, ...] | None = None) -> ChunkPrediction:
+    def load(
+        self,
+        kind: str,
+        index: int,
+        frames: Any = None,
+        fields: tuple[str, ...] | None = None,
+        *,
+        as_stored: bool = False,
+    ) -> ChunkPrediction:
         """The saved prediction, every float field as float32 (images uint8).
 
         Args:
@@ -280,6 +288,9 @@ class ChunkStore:
             fields: which optional fields (``descriptors``, ``patch_tokens``, ``images``) to
                 read; the others are returned as ``None``.  ``None`` reads every field.
                 ``depth, conf, extrinsic, intrinsic`` are always read.
+            as_stored: float fields in the dtype they are stored in (float16 for the half
+                fields) instead of float32: for a caller that converts them into a buffer of its
+                own (a fresh float32 copy of every field costs its page faults each time).
         """
         names = _HALF_FIELDS + _FLOAT32_FIELDS + ("images",)
         optional = ("descriptors", "patch_tokens", "images")
@@ -297,7 +308,7 @@ class ChunkStore:
                     out[name] = None
                     continue
                 value = _read_member(path, data, name, frames)
-                out[name] = value if name == "images" else value.astype(np.float32)
+                out[name] = value if name == "images" or as_stored else value.astype(np.float32)
         if out["depth"] is None and dropped:
             raise ChunkMismatchError(path, "its depth and confidence maps were dropped ('swiftjax prune')")
         if out["depth"] is None or out["extrinsic"] is None:

@@ -82,21 +82,23 @@ __all__ = [
 BATCH = 8
 
 
-def _frames(ctx: RunContext, c: int, options: geo.GeometryOptions) -> tuple[align.ChunkFrames, np.ndarray]:
+def _frames(
+    ctx: RunContext, c: int, options: geo.GeometryOptions, dtype: Any = np.float32
+) -> tuple[align.ChunkFrames, np.ndarray]:
     """``ceil(chunk_size / frame_stride)`` frames of chunk ``c``, evenly spread (fixed count), and
-    their global frame ids."""
+    their global frame ids; depth and confidence as ``dtype`` (None: as stored)."""
     frames = ctx.schedule.frames(c)
     count = -(-ctx.config.chunk_size // options.frame_stride)
     local = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(np.int64))
     local = np.concatenate([local, np.repeat(local[-1:], count - len(local))])
-    side = align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=()))
+    side = align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=(), as_stored=True))
     if ctx.camera is not None:  # masked pixels (user / sky) count as missing depth
         keep = ctx.camera.keep(frames[local], side.depth, side.conf)
         if keep is not None:
-            side = side._replace(depth=np.where(np.asarray(keep), np.asarray(side.depth, np.float32), np.nan))
-    return side._replace(depth=np.asarray(side.depth, np.float32), conf=np.asarray(side.conf, np.float32)), frames[
-        local
-    ]
+            side = side._replace(depth=np.where(np.asarray(keep), side.depth, np.nan))
+    if dtype is not None:
+        side = side._replace(depth=np.asarray(side.depth, dtype), conf=np.asarray(side.conf, dtype))
+    return side, frames[local]
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
@@ -112,11 +114,12 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
     parts, ids = [], []
     stack: align.ChunkFrames | None = None
     for b0 in range(0, T, BATCH):
-        loaded = [_frames(ctx, min(c, T - 1), options) for c in range(b0, b0 + BATCH)]
-        # One batch buffer, filled in place: a fresh ~40 MB array per batch costs its page
-        # faults every time (np.stack: 0.85 s per batch of 8 KITTI chunks against 0.01 s reused)
+        loaded = [_frames(ctx, min(c, T - 1), options, dtype=None) for c in range(b0, b0 + BATCH)]
+        # One float32 batch buffer, filled (and converted) in place: a fresh ~40 MB array per
+        # batch, or a float32 copy per chunk, costs its page faults every time (np.stack: 0.85 s
+        # per batch of 8 KITTI chunks against 0.01 s reused)
         if stack is None:
-            stack = align.ChunkFrames(*(np.empty((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in loaded[0][0]))
+            stack = align.ChunkFrames(*(np.empty((BATCH, *np.shape(x)), np.float32) for x in loaded[0][0]))
         for k, (frames, _) in enumerate(loaded):
             for buf, x in zip(stack, frames):
                 buf[k] = x
