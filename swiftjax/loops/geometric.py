@@ -890,9 +890,10 @@ def bev_starts(
 
 def window_on_grid(
     tau: Float[ArrayLike, "*b 2"], window: Float[ArrayLike, "*b"], options: GeometryOptions
-) -> Bool[Array, "*b"]:
+) -> np.ndarray:
     """Whether :func:`bev_starts`' window ``|τ' − τ| <= window`` may hold a translation of its
-    correlation grid, ``τ' ∈ c {−n/2, …, n/2 − 1}²`` (``n = bev_cells``, ``c = bev_cell``).
+    correlation grid, ``τ' ∈ c {−n/2, …, n/2 − 1}²`` (``n = bev_cells``, ``c = bev_cell``):
+    bool ``[*b]``.
 
     The grid is the product of two 1-D grids, so the translation nearest ``τ`` is per axis
     ``τ*_x = c clip(round(τ_x / c), −n/2, n/2 − 1)``; the test is ``|τ* − τ| <= window + c``
@@ -900,11 +901,12 @@ def window_on_grid(
     is inside: every ``z`` of :func:`bev_starts` is ``−∞``, each peak's correlation ``−1``, and
     :func:`peak_icp` scores the job −1 ("no valid placement") whatever the clouds; the
     pipeline does not run such a job (a chain that puts the chunks farther apart than the
-    window plus the grid's half-width).  Pure; works on NumPy arrays too."""
+    window plus the grid's half-width).  Host side (NumPy, float64): it decides which jobs
+    run, and costs no compile."""
     n, c = options.bev_cells, options.bev_cell
-    tau = jnp.asarray(tau, jnp.float32)
-    near = c * jnp.clip(jnp.round(tau / c), -(n // 2), n // 2 - 1)
-    return jnp.linalg.norm(near - tau, axis=-1) <= jnp.asarray(window, jnp.float32) + c
+    tau = np.asarray(tau, np.float64)
+    near = c * np.clip(np.round(tau / c), -(n // 2), n // 2 - 1)
+    return np.linalg.norm(near - tau, axis=-1) <= np.asarray(window, np.float64) + c
 
 
 class Placements(NamedTuple):
