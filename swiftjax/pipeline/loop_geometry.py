@@ -18,7 +18,9 @@ last of each padded, so one compile per chunk count and options):
 
 1. one placement job per candidate from the chain's prior (bird's-eye FFT search within the
    gate, Sim(3) ICP per peak: :func:`swiftjax.loops.geometric.starts_batch`,
-   :func:`~swiftjax.loops.geometric.peaks_batch`);
+   :func:`~swiftjax.loops.geometric.peaks_batch`); a candidate whose window holds no
+   translation of the bird's-eye grid (:func:`swiftjax.loops.geometric.window_on_grid`: it
+   would end "no valid placement" whatever the clouds) is recorded "not searched" instead;
 2. the null, ONE per source chunk ``c_i`` shared by all its candidates: ``c_i`` placed on
    ``null_chunks`` unrelated chunks (:func:`_null_chunks`) from ``ψ = kπ, σ = 1, τ = 0`` (streets
    laid along streets, both ways) within the largest window of its candidates; run in rounds
