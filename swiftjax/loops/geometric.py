@@ -891,7 +891,7 @@ def bev_starts(
 
 def window_on_grid(
     tau: Float[ArrayLike, "*b 2"], window: Float[ArrayLike, "*b"], options: GeometryOptions
-) -> np.ndarray:
+) -> Bool[np.ndarray, "*b"]:
     """Whether :func:`bev_starts`' window ``|τ' − τ| <= window`` may hold a translation of its
     correlation grid, ``τ' ∈ c {−n/2, …, n/2 − 1}²`` (``n = bev_cells``, ``c = bev_cell``):
     bool ``[*b]``.
