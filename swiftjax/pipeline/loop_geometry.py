@@ -297,6 +297,7 @@ def candidates(
     near = {(ci, cj) for ci, cj, _ in gated}
     pairs = [(ci, cj, w) for ci, cj, w in gated if (ci, cj) not in taken]
     order = {(ci, cj): n for n, (ci, cj, _) in enumerate(pairs)}
+    in_order = lambda records: sorted(records, key=lambda r: order[r["chunk_i"], r["chunk_j"]])
     window: dict[int, float] = {}  # the null's window: the largest of ALL the source's candidates
     for ci, _, w in pairs:
         window[ci] = max(window.get(ci, 0.0), w)
@@ -305,7 +306,6 @@ def candidates(
     pairs, unregistered = split_closed(pairs, closed, ids)
     if not pairs:
         return unregistered
-    P = len(pairs)
     ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
     win = np.asarray([p[2] for p in pairs], np.float32)
     with jax.enable_x64(True):
@@ -313,7 +313,7 @@ def candidates(
     psi, sigma, tau = (np.asarray(x) for x in _priors(clouds, jnp.asarray(Zc), jnp.asarray(ci_), jnp.asarray(cj_)))
     # a window that holds no translation of the bird's-eye grid ends "no valid placement"
     # whatever the clouds (geo.window_on_grid): recorded, not searched
-    reach = np.asarray(geo.window_on_grid(tau, win, o))
+    reach = geo.window_on_grid(tau, win, o)
     half = o.bev_cells // 2 * o.bev_cell
     for k in np.flatnonzero(~reach):
         unregistered.append(
@@ -327,7 +327,7 @@ def candidates(
             )
         )
     if not reach.any():
-        return sorted(unregistered, key=lambda r: order[r["chunk_i"], r["chunk_j"]])
+        return in_order(unregistered)
     ci_, cj_, win, psi, sigma, tau = (x[reach] for x in (ci_, cj_, win, psi, sigma, tau))
     P = len(ci_)
     # the null: per source chunk, null_chunks unrelated chunks from (ψ = kπ, σ = 1, τ = 0) within
@@ -497,7 +497,7 @@ def candidates(
             else:
                 with ctx.timer("loop geometry: verification"):
                     record.update(_dense(ctx, ci, cj, record["Z"], K_ref, o, verification))
-    return sorted(records + unregistered, key=lambda r: order[r["chunk_i"], r["chunk_j"]])
+    return in_order(records + unregistered)
 
 
 def _null_settled(false_alarm: float, k: int) -> bool:
