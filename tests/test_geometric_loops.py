@@ -974,3 +974,90 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
         assert want == {("geometry", (21, 5)), ("geometry", (40, 10)), ("geometry", (42, 12))}
         assert registered == [[(40, 10), (42, 12)], [(21, 5), (20, 6)]]
         assert all("Z" in r for r in geometric)
+
+
+def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
+    """The geometric stage's fixed-shape programs are traced on the compile-ahead thread
+    (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`) with the argument shapes the stage then
+    passes: each is traced there once, none again when the placement, the refinement and the
+    spreads run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
+    fewer reliable points than the registration's subsample, padded with zero-weight rows.)"""
+    import logging
+    import re
+    import threading
+
+    from swiftjax import pipeline
+    from swiftjax.pipeline import export, loop_geometry, rundir, temporal
+    from swiftjax.pipeline.executors import LocalExecutor
+    from swiftjax.posegraph import chain_poses
+    from swiftjax.synthetic import demo
+    from swiftjax.synthetic.routes import loop_route
+    from tests.conftest import SMALL_RUN_CONFIG
+
+    poses = loop_route(width=120.0, length=80.0, corner_radius=10.0, laps=1.3)
+    run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
+    out = tmp_path / "run"
+    pipeline.reconstruct(
+        run.predictor, out, pipeline.PipelineConfig(**SMALL_RUN_CONFIG), progress=False, log=lambda _: None
+    )
+    config = pipeline.PipelineConfig(**SMALL_RUN_CONFIG, loop_geometry=True)
+    ctx = rundir.open_run(
+        run.predictor, out, config, LocalExecutor(), overwrite=False, progress=False, log=lambda _: None
+    )
+    try:
+        chain = temporal.run(ctx, export.ChunkExport(ctx))
+        traced: list[str] = []
+
+        class Traces(logging.Handler):
+            def emit(self, record: logging.LogRecord) -> None:
+                m = re.match(r"Finished tracing (\S+) for jit", record.getMessage())
+                if m:
+                    traced.append(m.group(1))
+
+        handler, logger = Traces(), logging.getLogger("jax")
+        level = logger.level
+        logger.addHandler(handler)
+        logger.setLevel(logging.DEBUG)
+        jax.config.update("jax_log_compiles", True)
+        try:
+            jax.clear_caches()  # (the same shapes compiled by an earlier test would not be traced at all)
+            ahead = loop_geometry.compile_ahead(ctx, chain.K_ref)
+            ahead.wait()
+            before = list(traced)
+            records = loop_geometry.candidates(
+                ctx, chain.K_ref, set(), config.verification, chain=chain_poses(chain.relative)
+            )
+            during = traced[len(before) :]
+        finally:
+            jax.config.update("jax_log_compiles", False)
+            logger.removeHandler(handler)
+            logger.setLevel(level)
+    finally:
+        ctx.close()
+    assert ahead.errors == []
+    assert not any(t.name == "swiftjax-geometry-compile" for t in threading.enumerate())
+    ran = set(ctx.timer.seconds)
+    assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
+    assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
+    programs = ["_geometry", "_clouds", "_priors", "starts_batch", "peaks_batch", "refine_batch", "placement_spread"]
+    assert "_cross_jit" in during  # (the dense test is not compiled ahead: the log sees the stage's traces)
+    assert [p for p in programs if p in during] == [], during
+
+
+def test_subsample_draws_without_replacement_and_pads_fewer_rows():
+    """``subsample``: ``n`` distinct weighted rows when there are more, exactly the weighted rows
+    (each once) padded with zero-weight rows when there are fewer, also when the input has fewer
+    than ``n`` rows at all (small images; before, ``top_k`` refused ``n > N``)."""
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(50, 3)).astype(np.float32)
+    w = (rng.random(50) < 0.6).astype(np.float32)
+    key = jax.random.PRNGKey(1)
+    for n in (10, int(w.sum()) + 5, 80):
+        p, ws = (np.asarray(x) for x in G.subsample(pts, w, n, key))
+        assert p.shape == (n, 3) and ws.shape == (n,)
+        chosen = p[ws > 0]
+        assert len(chosen) == min(n, int(w.sum()))
+        weighted = {tuple(r) for r in pts[w > 0]}
+        assert all(tuple(r) in weighted for r in chosen) and len({tuple(r) for r in chosen}) == len(chosen)
+        if n > w.sum():
+            assert {tuple(r) for r in chosen} == weighted

@@ -375,11 +375,15 @@ def subsample(
 ) -> tuple[Float[Array, "n 3"], Float[Array, " n"]]:
     """``n`` of the points with ``weights > 0``, drawn without replacement (all of them, padded
     with zero-weight rows, when fewer): ``(points [n, 3], weights [n])``.  Fixed shape: the
-    ``n`` largest of ``1[w > 0] + U(0, 1)`` (``key``)."""
-    w = jnp.asarray(weights)
+    ``n`` largest of ``1[w > 0] + U(0, 1)`` (``key``).  Fewer than ``n`` rows (small images):
+    zero-weight rows are appended first (static: ``N`` is known when traced)."""
+    points, w = jnp.asarray(points), jnp.asarray(weights)
+    if n > w.shape[0]:
+        points = jnp.concatenate([points, jnp.zeros((n - w.shape[0], 3), points.dtype)])
+        w = jnp.concatenate([w, jnp.zeros(n - w.shape[0], w.dtype)])
     score = (w > 0).astype(jnp.float32) + jax.random.uniform(jnp.asarray(key), w.shape)
     _, idx = jax.lax.top_k(score, n)
-    return jnp.asarray(points)[idx], jnp.where(w[idx] > 0, w[idx], 0.0)
+    return points[idx], jnp.where(w[idx] > 0, w[idx], 0.0)
 
 
 class Registration(NamedTuple):

@@ -63,12 +63,29 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     """Loop edges from ``temporal``'s descriptors and the chunk store (none when loop closure
     is off or there are fewer than three chunks); ``candidates``: where the loop candidates
     come from (default: every frame's descriptor, :func:`swiftjax.loops.find_loops`)."""
+    config = ctx.config
+    if not (config.loop_closure and ctx.schedule.num_chunks > 2):
+        return LoopResult([], [])
+    # the geometric source's programs compile on a thread while the token candidates are worked on
+    ahead = loop_geometry.compile_ahead(ctx, temporal.K_ref) if config.loop_geometry else None
+    try:
+        return _run(ctx, temporal, candidates, ahead)
+    finally:
+        if ahead is not None:
+            ahead.wait()  # no thread outlives the stage (also when interrupted)
+
+
+def _run(
+    ctx: RunContext,
+    temporal: TemporalResult,
+    candidates: CandidateSource | None,
+    ahead: loop_geometry.CompileAhead | None,
+) -> LoopResult:
+    """:func:`run` once loop closure is on; ``ahead``: the geometric source's compiles under way."""
     config, schedule, manifest, timer = ctx.config, ctx.schedule, ctx.manifest, ctx.timer
     K_ref = temporal.K_ref
     loop_records: list[dict[str, Any]] = []
     loop_edges: list[LoopEdge] = []
-    if not (config.loop_closure and schedule.num_chunks > 2):
-        return LoopResult(loop_records, loop_edges)
     with timer("loop detection"):
         found = (candidates or loops.find_loops)(temporal.descriptors, schedule, config.loops)
         # A loop between neighbouring chunks duplicates their temporal edge: drop it.
@@ -104,7 +121,9 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
         r.setdefault("source", "tokens")
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     geometric: list[dict[str, Any]] = []
-    if config.loop_geometry:  # the second candidate source (swiftjax.pipeline.loop_geometry)
+    if ahead is not None:  # the second candidate source (swiftjax.pipeline.loop_geometry)
+        with timer("loop geometry"):
+            ahead.wait()
         geometric = _decide_with_geometry(ctx, temporal, loop_records)
     else:
         decide(ctx, temporal.relative, loop_records)

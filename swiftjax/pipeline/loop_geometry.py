@@ -54,11 +54,10 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from swiftjax import align
@@ -70,11 +69,13 @@ from swiftjax.pipeline.rundir import RunContext
 __all__ = [
     "BATCH",
     "JOB_BATCH",
+    "CompileAhead",
     "PEAK_BATCH",
     "REFINE_BATCH",
     "candidates",
     "chunk_pair",
     "closing",
+    "compile_ahead",
     "edge_information",
     "geometries",
     "split_closed",
@@ -126,10 +127,85 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
             for buf, x in zip(stack, frames):
                 buf[k] = x
         n = min(BATCH, T - b0)
-        out = _geometry(stack, jnp.asarray(K_ref, jnp.float32), options)
-        parts.append(jax.block_until_ready(jax.tree_util.tree_map(lambda a: a[:n], out)))  # before the refill
+        out = _geometry(stack, np.asarray(K_ref, np.float32), options)
+        # host arrays, sliced and joined by NumPy (before the refill): an eager jnp slice or
+        # concatenate compiles a program per shape (13 on KITTI 00, 0.3 s of a cold run)
+        parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out))
         ids += [f for _, f in loaded[:n]]
-    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *parts), np.stack(ids)
+    return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
+
+
+class CompileAhead:
+    """The stage's fixed-shape programs traced and compiled on a background thread
+    (:func:`compile_ahead`) while the token candidates are worked on; :meth:`wait` before the
+    stage runs.  A compile that fails is recorded in ``errors`` and left to the stage (the same
+    call then compiles there, and raises there if it must)."""
+
+    def __init__(self, plans: list[Callable[[], Any]]) -> None:
+        import threading
+
+        self.errors: list[str] = []
+        self._thread = threading.Thread(target=self._run, args=(plans,), name="swiftjax-geometry-compile", daemon=True)
+        self._thread.start()
+
+    def _run(self, plans: list[Callable[[], Any]]) -> None:
+        for plan in plans:
+            try:
+                plan()
+            except Exception as err:  # an ahead-of-time compile: nothing depends on it
+                self.errors.append(repr(err))
+
+    def wait(self) -> None:
+        """Block until every program is compiled (or failed)."""
+        self._thread.join()
+
+
+def compile_ahead(
+    ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions = geo.GeometryOptions()
+) -> CompileAhead:
+    """Start compiling, on a background thread, the programs :func:`candidates` runs for this run's
+    chunk count: :func:`_geometry` and :func:`_clouds`, and one batch each of
+    :func:`swiftjax.loops.geometric.starts_batch`, :func:`~swiftjax.loops.geometric.peaks_batch`
+    and :func:`~swiftjax.loops.geometric.refine_batch` (``jit(f).trace(...).lower().compile()``
+    on the argument shapes the stage passes; the stage's calls then find them compiled).
+
+    Their tracing alone is 0.8 s of Python on KITTI 00 (compiling, or loading from the persistent
+    cache, as much again), paid by every process; done while the token candidates' loop chunks
+    and dense tests run, the stage starts with its programs ready.  Reads one chunk's frames
+    here, on the caller's thread (their shapes); the thread only traces and compiles."""
+    side, _ = _frames(ctx, 0, options, dtype=None)
+    spec = lambda lead, x, dtype=None: jax.ShapeDtypeStruct((*lead, *np.shape(x)), dtype or np.asarray(x).dtype)
+    frames = align.ChunkFrames(*(spec((BATCH,), x, np.float32) for x in side))
+    K = jax.ShapeDtypeStruct((3, 3), np.float32)
+    T = ctx.schedule.num_chunks
+    per_chunk = jax.eval_shape(lambda f, k: _geometry(f, k, options), frames, K)
+    geometry = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((T, *x.shape[1:]), x.dtype), per_chunk)
+    clouds, spectra = jax.eval_shape(lambda g: _clouds(g, options), geometry)
+    job = lambda size, *shape, dtype=np.float32: jax.ShapeDtypeStruct((size, *shape), dtype)
+    ij = lambda size: (job(size, dtype=np.int32), job(size, dtype=np.int32))
+    starts = (clouds, spectra, *ij(JOB_BATCH), job(JOB_BATCH), job(JOB_BATCH), job(JOB_BATCH, 2), job(JOB_BATCH))
+    S0, corr = jax.eval_shape(lambda *a: geo.starts_batch(*a, options), *starts)
+    peaks = (clouds, *ij(PEAK_BATCH), job(PEAK_BATCH, *S0.shape[1:]), job(PEAK_BATCH, *corr.shape[1:]))
+    refine = (clouds, *ij(REFINE_BATCH), job(REFINE_BATCH, 8), job(REFINE_BATCH))
+    K_peaks = S0.shape[1]
+    spreads = (
+        job(REFINE_BATCH, K_peaks, 8),
+        job(REFINE_BATCH, K_peaks, dtype=np.bool_),
+        job(REFINE_BATCH, dtype=np.int32),
+    )
+    plans = [
+        functools.partial(lambda f, *a: f.trace(*a).lower().compile(), f, *args)
+        for f, args in (
+            (_geometry, (frames, K, options)),
+            (_clouds, (geometry, options)),
+            (_priors, (clouds, job(JOB_BATCH, 8), *ij(JOB_BATCH))),
+            (geo.starts_batch, (*starts, options)),
+            (geo.peaks_batch, (*peaks, options)),
+            (geo.refine_batch, (*refine, options)),
+            (_spreads, spreads),
+        )
+    ]
+    return CompileAhead(plans)
 
 
 def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int, options: geo.GeometryOptions):
@@ -141,7 +217,7 @@ def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int,
     with jax.enable_x64(True):
         from swiftjax import sim3
 
-        centre = np.asarray(sim3.act(jnp.asarray(chain), jnp.asarray(np.asarray(clouds.origin), jnp.float64)))
+        centre = np.asarray(sim3.act(chain, np.asarray(clouds.origin, np.float64)))
     cam = chain[:, :3]
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cam, axis=0), axis=1))])
     h_world = np.asarray(clouds.height) * chain[:, 7]
@@ -239,11 +315,14 @@ def _batches(n: int, size: int) -> list[np.ndarray]:
     return out
 
 
-def _run_batched(fn, n: int, size: int, arrays: tuple[np.ndarray, ...], *static) -> Any:
-    """``fn(*static, *(a[idx] for a in arrays))`` over fixed-size batches, concatenated, ``[n, ...]``."""
+def _run_batched(fn: Callable[..., Any], size: int, arrays: tuple[np.ndarray, ...]) -> Any:
+    """``fn(*(a[idx] for a in arrays))`` over fixed-size batches of the ``n = len(arrays[0])``
+    rows, concatenated as host arrays, ``[n, ...]`` (one compile per batch size, whatever ``n``).
+    The batches go in as NumPy arrays: ``jnp.asarray`` would compile a program per shape."""
+    n = len(arrays[0])
     parts = []
     for idx in _batches(n, size):
-        out = fn(*static[:-1], *(jnp.asarray(a[idx]) for a in arrays), static[-1])
+        out = fn(*(a[idx] for a in arrays))
         parts.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: min(size, n - int(idx[0]))], out))
     return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *parts)
 
@@ -292,7 +371,7 @@ def candidates(
     with ctx.timer("loop geometry: clouds"):
         g, ids = geometries(ctx, K_ref, o)
         T = len(ids)
-        clouds, spectra = _clouds(g, jax.random.split(jax.random.PRNGKey(0), T), o)
+        clouds, spectra = _clouds(g, o)
     gated = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, o)
     near = {(ci, cj) for ci, cj, _ in gated}
     pairs = [(ci, cj, w) for ci, cj, w in gated if (ci, cj) not in taken]
@@ -309,8 +388,10 @@ def candidates(
     ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
     win = np.asarray([p[2] for p in pairs], np.float32)
     with jax.enable_x64(True):
-        Zc = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(chain[cj_])), jnp.asarray(chain[ci_])), np.float32)
-    psi, sigma, tau = (np.asarray(x) for x in _priors(clouds, jnp.asarray(Zc), jnp.asarray(ci_), jnp.asarray(cj_)))
+        Zc = np.asarray(sim3.compose(sim3.inverse(chain[cj_]), chain[ci_]), np.float32)
+    psi, sigma, tau = _run_batched(
+        lambda *a: _priors(clouds, *a), JOB_BATCH, (Zc, ci_.astype(np.int32), cj_.astype(np.int32))
+    )
     # a window that holds no translation of the bird's-eye grid ends "no valid placement"
     # whatever the clouds (geo.window_on_grid): recorded, not searched
     reach = geo.window_on_grid(tau, win, o)
@@ -366,14 +447,13 @@ def candidates(
             """Jobs ``which``: the bird's-eye starts, then the peak ICP where some peak overlaps
             a cell (peak_icp scores the others -1 anyway)."""
             done[which] = True
-            S0, corr = _run_batched(
-                geo.starts_batch, len(which), JOB_BATCH, tuple(a[which] for a in arrays), clouds, spectra, o
-            )
+            starts = lambda *a: geo.starts_batch(clouds, spectra, *a, o)
+            S0, corr = _run_batched(starts, JOB_BATCH, tuple(a[which] for a in arrays))
             pl.S[which], pl.correlation[which] = S0, corr
             live = which[corr.max(-1) >= 0.5]
             if len(live):
                 args = (arrays[0][live], arrays[1][live], pl.S[live], pl.correlation[live])
-                got = _run_batched(geo.peaks_batch, len(live), PEAK_BATCH, args, clouds, o)
+                got = _run_batched(lambda *a: geo.peaks_batch(clouds, *a, o), PEAK_BATCH, args)
                 pl.S[live], pl.scores[live] = got.S, got.scores
 
         icp(np.arange(P))
@@ -397,7 +477,7 @@ def candidates(
                 break
             icp(np.asarray(need))
     best = pl.scores.max(-1).astype(np.float64)  # [J]
-    used = np.asarray(jnp.sum(clouds.weights[:, : o.peak_src_points] > 0, -1), np.float64)  # [T]
+    used = np.sum(np.asarray(clouds.weights)[:, : o.peak_src_points] > 0, -1).astype(np.float64)  # [T]
     thresholds = {}
     for c in sources:
         ran = null_of[c][done[null_of[c]]]
@@ -452,19 +532,18 @@ def candidates(
         )
         with ctx.timer("loop geometry: refinement"):
             regs = _run_batched(
-                geo.refine_batch,
-                len(sk),
+                lambda *a: geo.refine_batch(clouds, *a, o),
                 REFINE_BATCH,
                 (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
-                clouds,
-                o,
             )
-            spreads = np.asarray(
-                _spreads(
-                    jnp.asarray(pl.S[sk]),
-                    jnp.asarray(np.stack([p for _, _, p in survivors])),
-                    jnp.asarray([kb for _, kb, _ in survivors]),
-                )
+            spreads = _run_batched(
+                _spreads,
+                REFINE_BATCH,
+                (
+                    pl.S[sk],
+                    np.stack([p for _, _, p in survivors]),
+                    np.asarray([kb for _, kb, _ in survivors], np.int32),
+                ),
             )
         for n, (k, _, _) in enumerate(survivors):
             record = records[k]
@@ -516,8 +595,10 @@ def _null_settled(false_alarm: float, k: int) -> bool:
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def _clouds(geometry: geo.ChunkGeometry, keys: jax.Array, options: geo.GeometryOptions):
-    """Every chunk's :class:`~swiftjax.loops.geometric.ChunkCloud` and bird's-eye spectrum."""
+def _clouds(geometry: geo.ChunkGeometry, options: geo.GeometryOptions):
+    """Every chunk's :class:`~swiftjax.loops.geometric.ChunkCloud` and bird's-eye spectrum (chunk
+    ``c``'s subsample drawn with the ``c``-th of ``T`` keys split from ``PRNGKey(0)``)."""
+    keys = jax.random.split(jax.random.PRNGKey(0), geometry.height.shape[0])
     clouds = jax.vmap(lambda gg, k: geo.structure_cloud(gg, k, options))(geometry, keys)
     return clouds, jax.vmap(lambda c: geo.bev_spectrum(c, options))(clouds)
 
