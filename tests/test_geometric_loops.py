@@ -979,8 +979,8 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
 def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     """The geometric stage's fixed-shape programs are traced on the compile-ahead thread
     (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`) with the argument shapes the stage then
-    passes: each is traced there once, none again when the placement, the refinement and the
-    spreads run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
+    passes: none is traced again when the placement, the refinement, the spreads and the dense
+    test run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
     fewer reliable points than the registration's subsample, padded with zero-weight rows.)"""
     import logging
     import re
@@ -1040,7 +1040,8 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
     assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
     programs = ["_geometry", "_clouds", "_priors", "starts_batch", "peaks_batch", "refine_batch", "placement_spread"]
-    assert "_cross_jit" in during  # (the dense test is not compiled ahead: the log sees the stage's traces)
+    programs += ["_cross_jit", "_null_jit"]  # the dense test and its null
+    assert "act" in during  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
     assert [p for p in programs if p in during] == [], during
 
 

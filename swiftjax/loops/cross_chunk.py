@@ -40,10 +40,10 @@ from jax import lax
 from jaxtyping import ArrayLike, Float
 
 from swiftjax import align, camera, sim3
-from swiftjax._compile import LIGHT_COMPILE, quick_jit
+from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
 from swiftjax.loops.options import VerificationConfig
 
-__all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_consistency"]
+__all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_consistency", "compile_cross_chunk"]
 
 _DEFAULTS = VerificationConfig()
 _ALIGN = align.AlignOptions()  # conf_ratio: λ_γ, the alignment's (eq. 2)
@@ -174,10 +174,12 @@ def _dense_consistency(
 
 
 def _frames(x, dtype=None) -> align.ChunkFrames:
-    f = align.ChunkFrames(*(jnp.asarray(getattr(x, k)) for k in align.ChunkFrames._fields))
+    """``x``'s arrays on the device in ``dtype`` (None: the depth's float dtype, float32 for
+    another), converted on the host (an eager ``astype`` or ``jnp.asarray`` compiles per shape)."""
     if dtype is None:
-        dtype = f.depth.dtype if f.depth.dtype in (jnp.float32, jnp.float64) else jnp.float32
-    return align.ChunkFrames(*(a.astype(dtype) for a in f))
+        dtype = jax.dtypes.canonicalize_dtype(x.depth.dtype)
+        dtype = dtype if dtype in (jnp.float32, jnp.float64) else jnp.float32
+    return align.ChunkFrames(*(to_device(getattr(x, k), dtype) for k in align.ChunkFrames._fields))
 
 
 @functools.partial(jax.jit, static_argnames=("stride", "neighbours"))
@@ -194,10 +196,10 @@ def _traced_args(src, dst, S, K_ref, conf_ratio: float, config: VerificationConf
     return (
         src,
         dst,
-        jnp.asarray(S, dt),
-        jnp.asarray(K_ref, dt),
-        jnp.asarray(conf_ratio, dt),
-        jnp.asarray(config.depth_tolerance, dt),
+        to_device(S, dt),
+        to_device(K_ref, dt),
+        to_device(conf_ratio, dt),
+        to_device(config.depth_tolerance, dt),
         config.stride,
         config.neighbours,
     )
@@ -268,6 +270,23 @@ def _cross_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, stride, ne
         return CrossCheck(a, b, jnp.minimum(a.agreement, b.agreement))
 
     return jax.vmap(one)(side_i, side_j, Z)
+
+
+def traced_specs(side_i, side_j, Z, K_ref, conf_ratio: float, config: VerificationConfig) -> tuple:
+    """The jitted programs' arguments (``_traced_args``) as ``jax.ShapeDtypeStruct``s, for
+    arguments given as ``jax.ShapeDtypeStruct``s: what an ahead-of-time compile traces on."""
+    arrays = jax.eval_shape(lambda *a: _traced_args(*a, conf_ratio, config)[:6], side_i, side_j, Z, K_ref)
+    return (*arrays, config.stride, config.neighbours)
+
+
+def compile_cross_chunk(
+    side_i, side_j, Z, K_ref, config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio
+) -> None:
+    """Compile :func:`cross_chunk_consistency`'s program ahead of time for arguments of these
+    shapes (``jax.ShapeDtypeStruct``s or arrays); its calls with such arguments then find it
+    compiled."""
+    config = _DEFAULTS if config is None else config
+    _cross_jit.trace(*traced_specs(side_i, side_j, Z, K_ref, conf_ratio, config)).lower().compile()
 
 
 def cross_chunk_consistency(

@@ -36,7 +36,7 @@ Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batch
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -44,8 +44,8 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax import align, sim3
-from swiftjax._compile import LIGHT_COMPILE, quick_jit
-from swiftjax.loops.cross_chunk import _ALIGN, _dense_consistency, _normalised, _traced_args
+from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
+from swiftjax.loops.cross_chunk import _ALIGN, _dense_consistency, _normalised, _traced_args, traced_specs
 from swiftjax.loops.options import VerificationConfig
 
 __all__ = [
@@ -53,6 +53,7 @@ __all__ = [
     "null_edges",
     "NullCheck",
     "null_consistency",
+    "compile_null",
     "NullThreshold",
     "null_threshold",
     "chance_corrected",
@@ -138,10 +139,22 @@ def null_consistency(
     """
     config = VerificationConfig() if config is None else config
     args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
-    offsets = jnp.asarray(
-        null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift), args[0].depth.dtype
-    )
-    return _null_jit(*args[:6], offsets, *args[6:])
+    return _null_jit(*args[:6], _offsets(config, args[0].depth.dtype), *args[6:])
+
+
+def _offsets(config: VerificationConfig, dtype: Any) -> jax.Array:
+    return to_device(null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift), dtype)
+
+
+def compile_null(
+    side_i, side_j, Z, K_ref, config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio
+) -> None:
+    """Compile :func:`null_consistency`'s program ahead of time for arguments of these shapes
+    (``jax.ShapeDtypeStruct``s or arrays), as :func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`."""
+    config = VerificationConfig() if config is None else config
+    args = traced_specs(side_i, side_j, Z, K_ref, conf_ratio, config)
+    offsets = jax.ShapeDtypeStruct((config.null_samples,), args[0].depth.dtype)
+    _null_jit.trace(*args[:6], offsets, *args[6:]).lower().compile()
 
 
 class NullThreshold(NamedTuple):

@@ -35,8 +35,14 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from swiftjax import align, sim3
-from swiftjax.loops.cross_chunk import ConsistencyInfo, CrossCheck, cross_chunk_consistency, dense_consistency
-from swiftjax.loops.null import NullCheck, chance_corrected, null_consistency, null_threshold
+from swiftjax.loops.cross_chunk import (
+    ConsistencyInfo,
+    CrossCheck,
+    compile_cross_chunk,
+    cross_chunk_consistency,
+    dense_consistency,
+)
+from swiftjax.loops.null import NullCheck, chance_corrected, compile_null, null_consistency, null_threshold
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.loops.pcm import loop_covariance, max_consistent_set, odometry_covariance, pairwise_consistency
 
@@ -52,6 +58,7 @@ __all__ = [
     "LoopQuality",
     "loop_chunk_quality",
     "candidate_numbers",
+    "compile_candidate_numbers",
     "null_needed",
     "odometry_covariance",
     "loop_covariance",
@@ -95,6 +102,21 @@ def loop_chunk_quality(info_i: Any, info_j: Any) -> LoopQuality:
             get(info_i, "valid") & get(info_j, "valid") & ~get(info_i, "pose_fallback") & ~get(info_j, "pose_fallback")
         ),
     )
+
+
+def compile_candidate_numbers(
+    frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], config: VerificationConfig | None = None
+) -> None:
+    """Compile ahead of time the programs :func:`candidate_numbers` runs on two chunks' frames
+    of ``frames``' shapes (``[F, H, W]``, ``jax.ShapeDtypeStruct``s or arrays): the
+    cross-chunk test and its null (:func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`,
+    :func:`~swiftjax.loops.null.compile_null`)."""
+    config = config or VerificationConfig()
+    one = align.ChunkFrames(*(jax.ShapeDtypeStruct((1, *np.shape(a)), np.float32) for a in frames))
+    Z = jax.ShapeDtypeStruct((1, 8), np.float32)
+    K = jax.ShapeDtypeStruct(np.shape(K_ref), np.float32)
+    compile_cross_chunk(one, one, Z, K, config)
+    compile_null(one, one, Z, K, config)
 
 
 def candidate_numbers(

@@ -52,6 +52,7 @@ manifest).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable, Iterable, Sequence
@@ -139,21 +140,28 @@ class CompileAhead:
     """The stage's fixed-shape programs traced and compiled on a background thread
     (:func:`compile_ahead`) while the token candidates are worked on; :meth:`wait` before the
     stage runs.  A compile that fails is recorded in ``errors`` and left to the stage (the same
-    call then compiles there, and raises there if it must)."""
+    call then compiles there, and raises there if it must).  ``seconds``: the thread's wall time
+    (not in the run's stage timer, whose seconds each count once; the benchmark adds it to the
+    stage's cost)."""
 
     def __init__(self, plans: list[Callable[[], Any]]) -> None:
         import threading
 
         self.errors: list[str] = []
+        self.seconds = 0.0
         self._thread = threading.Thread(target=self._run, args=(plans,), name="swiftjax-geometry-compile", daemon=True)
         self._thread.start()
 
     def _run(self, plans: list[Callable[[], Any]]) -> None:
+        import time
+
+        start = time.perf_counter()
         for plan in plans:
             try:
                 plan()
             except Exception as err:  # an ahead-of-time compile: nothing depends on it
                 self.errors.append(repr(err))
+        self.seconds = time.perf_counter() - start
 
     def wait(self) -> None:
         """Block until every program is compiled (or failed)."""
@@ -164,18 +172,21 @@ def compile_ahead(
     ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions = geo.GeometryOptions()
 ) -> CompileAhead:
     """Start compiling, on a background thread, the programs :func:`candidates` runs for this run's
-    chunk count: :func:`_geometry` and :func:`_clouds`, and one batch each of
-    :func:`swiftjax.loops.geometric.starts_batch`, :func:`~swiftjax.loops.geometric.peaks_batch`
-    and :func:`~swiftjax.loops.geometric.refine_batch` (``jit(f).trace(...).lower().compile()``
-    on the argument shapes the stage passes; the stage's calls then find them compiled).
+    chunk count: :func:`_geometry`, :func:`_clouds`, one batch each of :func:`_priors`,
+    :func:`swiftjax.loops.geometric.starts_batch`, :func:`~swiftjax.loops.geometric.peaks_batch`,
+    :func:`~swiftjax.loops.geometric.refine_batch` and the placements' spread, and the dense test
+    with its null (:func:`swiftjax.loops.verification.compile_candidate_numbers`): each
+    ``jit(f).trace(...).lower().compile()`` on the argument shapes the stage passes, so that the
+    stage's calls find them compiled (``tests/test_geometric_loops.py`` checks that none is
+    traced again).
 
-    Their tracing alone is 0.8 s of Python on KITTI 00 (compiling, or loading from the persistent
-    cache, as much again), paid by every process; done while the token candidates' loop chunks
-    and dense tests run, the stage starts with its programs ready.  Reads one chunk's frames
-    here, on the caller's thread (their shapes); the thread only traces and compiles."""
+    Tracing them is about 1.5 s of Python on KITTI 00 and lowering and compiling (or loading
+    from the persistent cache) as much again, paid by every process; done while the token
+    candidates' loop chunks and dense tests run, the stage starts with its programs ready.
+    Reads one chunk's frames here, on the caller's thread (for their shapes); the thread only
+    traces and compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
-    spec = lambda lead, x, dtype=None: jax.ShapeDtypeStruct((*lead, *np.shape(x)), dtype or np.asarray(x).dtype)
-    frames = align.ChunkFrames(*(spec((BATCH,), x, np.float32) for x in side))
+    frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.float32) for x in side))
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
     T = ctx.schedule.num_chunks
     per_chunk = jax.eval_shape(lambda f, k: _geometry(f, k, options), frames, K)
@@ -205,6 +216,9 @@ def compile_ahead(
             (_spreads, spreads),
         )
     ]
+    # the dense test of the survivors (_dense): every frame pair of two chunks' loaded frames
+    dense = dataclasses.replace(ctx.config.verification, neighbours=0)
+    plans.append(functools.partial(lv.compile_candidate_numbers, side, K_ref, dense))
     return CompileAhead(plans)
 
 
@@ -629,8 +643,6 @@ def _dense(
 ) -> dict[str, Any]:
     """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared;
     its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`)."""
-    import dataclasses
-
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
     return lv.candidate_numbers(
