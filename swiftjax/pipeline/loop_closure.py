@@ -18,7 +18,9 @@ with its numbers, ``accepted`` and a one-line ``reason``; only accepted ones bec
 dense geometry matches whichever way the revisit was driven, with edges from registering the
 two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry ``source``
 (``tokens`` or ``geometry``).  A gated pair beside an accepted token candidate is recorded but not
-registered (:func:`redundant_geometry` would reject it; :func:`_decide_with_geometry`).
+registered (:func:`redundant_geometry` would reject it; :func:`_decide_with_geometry`).  Its
+programs compile on a background thread from the stage's start
+(:func:`swiftjax.pipeline.loop_geometry.compile_ahead`), beside the token candidates' work.
 """
 
 from __future__ import annotations

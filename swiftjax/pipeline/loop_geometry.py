@@ -34,8 +34,14 @@ last of each padded, so one compile per chunk count and options):
    edge's covariance (:func:`~swiftjax.loops.geometric.placement_spread`) instead of rejecting
    an edge along a straight street.
 
-Survivors go through the cross-chunk dense test over the frame pairs of every other loaded frame
-of the two chunks and pairwise consistency with every other candidate, like the token
+Every one of these programs has a fixed shape for a run (the chunk count, the batch sizes, the
+frames' size): :func:`compile_ahead` traces and compiles them on a background thread while the
+token candidates are worked on (:func:`swiftjax.pipeline.loop_closure.run` starts it and waits
+for it before the stage), and the stage passes its batches as NumPy arrays (``jnp.asarray``,
+an eager slice or a concatenate compiles a small program per shape).
+
+Survivors go through the cross-chunk dense test over every pair of the two chunks' loaded frames
+(``neighbours = 0``) and pairwise consistency with every other candidate, like the token
 candidates.  The dense test's null (``null_samples`` times the candidate's own test) runs only
 where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`: an agreement
 below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
