@@ -1,4 +1,4 @@
-"""Hard sequences: revisits driven the other way (synthetic KITTI 08, 05, 06, 00).
+"""Hard sequences: revisits driven the other way (synthetic KITTI 08, 05, 06, 00; and the demo).
 
 For each sequence the pipeline runs ONCE (defaults plus ``loop_geometry = true``: the token
 candidates and the geometric ones, :mod:`swiftjax.pipeline.loop_geometry`); the arms reuse that
@@ -30,7 +30,10 @@ sequence: ATE without loops, the new stage's time (``loop geometry``) against th
 compile-ahead thread (``loop_geometry.compile_ahead``, which runs beside the token stages) counted
 in full as the stage's: the most the stage can have cost.
 
-    python bench/bench_hard_sequences.py [--sequences 08 05 06 00] [--frames N] [--quick]
+The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIASING``) checks that the
+geometric source costs nothing where every revisit is driven the same way.
+
+    python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick]
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from bench_loop_robustness import _centres, _relative, graph_poses
 from bench_pipeline import _shared
 from common import markdown_table, write_results
 
-SEQUENCES = ("08", "05", "06", "00")
+SEQUENCES = ("08", "05", "06", "00", "demo")
 
 
 def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> list[tuple[int, int, np.ndarray]]:
@@ -142,11 +145,15 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     from swiftjax.pipeline import loop_geometry
     from swiftjax.synthetic import demo, places
 
-    poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
-    if frames:
-        poses = poses[:frames]
-    aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
-    run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
+    if seq == "demo":  # the demo route, with its look-alike candidates (swiftjax demo)
+        aliasing = demo.DEMO_ALIASING
+        run = demo.loop_route_run(frames, aliasing=aliasing)
+    else:
+        poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
+        if frames:
+            poses = poses[:frames]
+        aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
+        run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
     config = pipeline.PipelineConfig(loop_geometry=True)
     load = os.getloadavg()
     ahead: list = []  # the stage's compile-ahead thread, for its seconds (loop_geometry.compile_ahead)
