@@ -944,7 +944,7 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
     }
     registered: list[list[tuple[int, int]]] = []
 
-    def candidates(ctx, K_ref, taken, verification, options=None, chain=None, closed=(), only=None):
+    def candidates(ctx, K_ref, taken, verification, options=None, chain=None, closed=(), only=None, ahead=None):
         pairs = [(ci, cj, 3.0) for ci, cj in table if (ci, cj) not in taken]
         pairs = [p for p in pairs if only is None or (p[0], p[1]) in only]
         pairs, unregistered = loop_geometry.split_closed(pairs, closed, ids)
@@ -981,7 +981,8 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`) with the argument shapes the stage then
     passes: none is traced again when the placement, the refinement, the spreads and the dense
     test run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
-    fewer reliable points than the registration's subsample, padded with zero-weight rows.)"""
+    fewer reliable points than the registration's subsample, padded with zero-weight rows.)
+    The chunks padded to their size bucket give the real chunks' clouds bitwise."""
     import logging
     import re
     import threading
@@ -1006,13 +1007,13 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     )
     try:
         chain = temporal.run(ctx, export.ChunkExport(ctx))
-        traced: list[str] = []
+        traced: list[tuple[str, str]] = []  # (thread, program)
 
         class Traces(logging.Handler):
             def emit(self, record: logging.LogRecord) -> None:
                 m = re.match(r"Finished tracing (\S+) for jit", record.getMessage())
                 if m:
-                    traced.append(m.group(1))
+                    traced.append((record.threadName, m.group(1)))
 
         handler, logger = Traces(), logging.getLogger("jax")
         level = logger.level
@@ -1022,12 +1023,21 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
         try:
             jax.clear_caches()  # (the same shapes compiled by an earlier test would not be traced at all)
             ahead = loop_geometry.compile_ahead(ctx, chain.K_ref)
-            ahead.wait()
-            before = list(traced)
             records = loop_geometry.candidates(
-                ctx, chain.K_ref, set(), config.verification, chain=chain_poses(chain.relative)
+                ctx, chain.K_ref, set(), config.verification, chain=chain_poses(chain.relative), ahead=ahead
             )
-            during = traced[len(before) :]
+            ahead.cancel()
+            stage = [name for thread, name in traced if thread != "swiftjax-geometry-compile"]
+            compiled_ahead = [name for thread, name in traced if thread == "swiftjax-geometry-compile"]
+            # the chunks padded to their size bucket: the real chunks' clouds are bitwise the
+            # unpadded ones (the subsample keys are prefix-stable)
+            o = G.GeometryOptions()
+            g, ids = loop_geometry.geometries(ctx, chain.K_ref, o)
+            T = len(ids)
+            exact = loop_geometry._clouds(g, o)
+            padded = loop_geometry._clouds(loop_geometry._pad_chunks(g, loop_geometry._padded_chunks(T + 1)), o)
+            for a, b in zip(jax.tree_util.tree_leaves(exact), jax.tree_util.tree_leaves(padded)):
+                np.testing.assert_array_equal(np.asarray(b)[:T], np.asarray(a))
         finally:
             jax.config.update("jax_log_compiles", False)
             logger.removeHandler(handler)
@@ -1039,10 +1049,11 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     ran = set(ctx.timer.seconds)
     assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
     assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
-    programs = ["_geometry", "_clouds", "_priors", "starts_batch", "peaks_batch", "refine_batch", "placement_spread"]
-    programs += ["_cross_jit", "_null_jit"]  # the dense test and its null
-    assert "act" in during  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
-    assert [p for p in programs if p in during] == [], during
+    # (starts_batch, _geometry and _clouds are first traced inside compile_ahead's eval_shape)
+    programs = ["_priors", "peaks_batch", "refine_batch", "placement_spread", "_cross_jit", "_null_jit"]
+    assert set(programs) <= set(compiled_ahead), compiled_ahead  # (the dense test's null too)
+    assert "act" in stage  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
+    assert [p for p in [*programs, "starts_batch"] if p in stage] == [], stage
 
 
 def test_subsample_draws_without_replacement_and_pads_fewer_rows():
@@ -1062,3 +1073,44 @@ def test_subsample_draws_without_replacement_and_pads_fewer_rows():
         assert all(tuple(r) in weighted for r in chosen) and len({tuple(r) for r in chosen}) == len(chosen)
         if n > w.sum():
             assert {tuple(r) for r in chosen} == weighted
+
+
+def test_compile_ahead_groups_wait_and_cancel():
+    """``CompileAhead``: groups run in order on one thread, the first at once, a later one only
+    once started (``start`` or ``wait``); ``wait(k)`` returns once group ``k`` is done;
+    ``cancel`` starts no further plan, waits for the one under way and ends the thread; a
+    failing plan is recorded, not raised, and the next runs."""
+    import threading
+
+    from swiftjax.pipeline.loop_geometry import CompileAhead
+
+    ran: list[str] = []
+    gate, started = threading.Event(), threading.Event()
+
+    def plan(name, block=False, fail=False):
+        def run():
+            if block:
+                started.set()
+                gate.wait(10)
+            if fail:
+                raise RuntimeError(name)
+            ran.append(name)
+
+        return run
+
+    job = CompileAhead([[plan("a"), plan("bad", fail=True), plan("b")], [plan("c", block=True)], [plan("d")]])
+    job.wait(0)
+    assert ran == ["a", "b"] and job.errors == ["RuntimeError('bad')"]
+    assert not started.wait(0.2)  # a later group waits for its start
+    job.start(1)
+    assert started.wait(10)  # "c" is under way when cancel comes
+    timer = threading.Timer(0.2, gate.set)
+    timer.start()
+    job.cancel()
+    timer.join()
+    assert ran == ["a", "b", "c"]  # "c" finished, "d" never started
+    assert not job._thread.is_alive() and job.seconds > 0
+    job.wait(2)  # (every group counts as done after a cancel: no wait hangs)
+    empty = CompileAhead([])
+    empty.wait(0)
+    empty.cancel()

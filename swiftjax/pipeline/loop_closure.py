@@ -19,8 +19,8 @@ dense geometry matches whichever way the revisit was driven, with edges from reg
 two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry ``source``
 (``tokens`` or ``geometry``).  A gated pair beside an accepted token candidate is recorded but not
 registered (:func:`redundant_geometry` would reject it; :func:`_decide_with_geometry`).  Its
-programs compile on a background thread from the stage's start
-(:func:`swiftjax.pipeline.loop_geometry.compile_ahead`), beside the token candidates' work.
+programs compile on a background thread (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`),
+the first of them beside the token candidates' work.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
         return _run(ctx, temporal, candidates, ahead)
     finally:
         if ahead is not None:
-            ahead.wait()  # no thread outlives the stage (also when interrupted)
+            ahead.cancel()  # no thread outlives the stage (also when interrupted)
 
 
 def _run(
@@ -124,9 +124,7 @@ def _run(
     # The decisions depend on all candidates: recomputed every run, written beside the numbers.
     geometric: list[dict[str, Any]] = []
     if ahead is not None:  # the second candidate source (swiftjax.pipeline.loop_geometry)
-        with timer("loop geometry"):
-            ahead.wait()
-        geometric = _decide_with_geometry(ctx, temporal, loop_records)
+        geometric = _decide_with_geometry(ctx, temporal, loop_records, ahead)
     else:
         decide(ctx, temporal.relative, loop_records)
     loop_records += geometric
@@ -165,10 +163,14 @@ def _run(
 
 
 def _decide_with_geometry(
-    ctx: RunContext, temporal: TemporalResult, tokens: list[dict[str, Any]]
+    ctx: RunContext,
+    temporal: TemporalResult,
+    tokens: list[dict[str, Any]],
+    ahead: loop_geometry.CompileAhead | None = None,
 ) -> list[dict[str, Any]]:
     """The geometric candidates' records (:func:`swiftjax.pipeline.loop_geometry.candidates`),
-    decided together with the token candidates ``tokens`` (both decided in place).
+    decided together with the token candidates ``tokens`` (both decided in place); ``ahead``:
+    the geometric programs' compiles under way (:func:`~swiftjax.pipeline.loop_geometry.compile_ahead`).
 
     The gated pairs beside a token candidate that the decision accepts are not registered
     (``closed``, :func:`~swiftjax.pipeline.loop_geometry.closing`): :func:`redundant_geometry`
@@ -189,7 +191,7 @@ def _decide_with_geometry(
     chain = chain_poses(temporal.relative)
     with ctx.timer("loop geometry"):
         geometric = loop_geometry.candidates(
-            ctx, temporal.K_ref, taken, config.verification, chain=chain, closed=closed
+            ctx, temporal.K_ref, taken, config.verification, chain=chain, closed=closed, ahead=ahead
         )
     pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
     decide(ctx, temporal.relative, tokens + pool)

@@ -14,7 +14,8 @@ closest (docs/performance/reverse-revisits.md), except the pairs beside a token 
 decision accepts (``closed``: recorded, not registered; :func:`candidates`).
 
 Work, in fixed-size batches (:data:`JOB_BATCH`, :data:`PEAK_BATCH`, :data:`REFINE_BATCH`; the
-last of each padded, so one compile per chunk count and options):
+last of each padded, and the chunks padded to a size bucket, :func:`_padded_chunks`: one compile per
+bucket of chunk counts and options):
 
 1. one placement job per candidate from the chain's prior (bird's-eye FFT search within the
    gate, Sim(3) ICP per peak: :func:`swiftjax.loops.geometric.starts_batch`,
@@ -35,10 +36,10 @@ last of each padded, so one compile per chunk count and options):
    an edge along a straight street.
 
 Every one of these programs has a fixed shape for a run (the chunk count, the batch sizes, the
-frames' size): :func:`compile_ahead` traces and compiles them on a background thread while the
-token candidates are worked on (:func:`swiftjax.pipeline.loop_closure.run` starts it and waits
-for it before the stage), and the stage passes its batches as NumPy arrays (``jnp.asarray``,
-an eager slice or a concatenate compiles a small program per shape).
+frames' size): :func:`compile_ahead` traces and compiles them on a background thread, each
+group beside the work before it (:func:`swiftjax.pipeline.loop_closure.run` starts it with the
+token candidates), and the stage passes its batches as NumPy arrays (``jnp.asarray``, an eager
+slice or a concatenate compiles a small program per shape).
 
 Survivors go through the cross-chunk dense test over every pair of the two chunks' loaded frames
 (``neighbours = 0``) and pairwise consistency with every other candidate, like the token
@@ -144,57 +145,123 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
 
 class CompileAhead:
     """The stage's fixed-shape programs traced and compiled on a background thread
-    (:func:`compile_ahead`) while the token candidates are worked on; :meth:`wait` before the
-    stage runs.  A compile that fails is recorded in ``errors`` and left to the stage (the same
-    call then compiles there, and raises there if it must).  ``seconds``: the thread's wall time
-    (not in the run's stage timer, whose seconds each count once; the benchmark adds it to the
-    stage's cost)."""
+    (:func:`compile_ahead`), in groups the stage needs one after the other (the clouds, the
+    placement, the refinement and dense test).  The first group starts at once (it runs beside
+    the token candidates' work); a later one when the stage says it will be needed
+    (:meth:`start`: the placement's when the stage begins, beside the clouds' work; the
+    refinement's once there are placement jobs, beside them), so that a run whose stage
+    registers nothing does not compile what it never runs.  :meth:`wait` for a group before
+    its first call; :meth:`cancel` once the rest will not run.  A compile that fails is recorded
+    in ``errors`` and left to the stage (the same call then compiles there, and raises there if
+    it must).  ``seconds``: the thread's busy time (not in the run's stage timer, whose seconds
+    each count once; the benchmark adds it to the stage's cost)."""
 
-    def __init__(self, plans: list[Callable[[], Any]]) -> None:
+    def __init__(self, groups: list[list[Callable[[], Any]]]) -> None:
         import threading
 
         self.errors: list[str] = []
         self.seconds = 0.0
-        self._thread = threading.Thread(target=self._run, args=(plans,), name="swiftjax-geometry-compile", daemon=True)
+        self._go = [threading.Event() for _ in groups]
+        self._done = [threading.Event() for _ in groups]
+        self._stop = threading.Event()
+        if groups:
+            self._go[0].set()
+        self._thread = threading.Thread(target=self._run, args=(groups,), name="swiftjax-geometry-compile", daemon=True)
         self._thread.start()
 
-    def _run(self, plans: list[Callable[[], Any]]) -> None:
+    def _run(self, groups: list[list[Callable[[], Any]]]) -> None:
+        import contextlib
+        import os
+        import threading
         import time
 
-        start = time.perf_counter()
-        for plan in plans:
-            try:
-                plan()
-            except Exception as err:  # an ahead-of-time compile: nothing depends on it
-                self.errors.append(repr(err))
-        self.seconds = time.perf_counter() - start
+        # below the stages it runs beside: it takes the CPU they leave
+        with contextlib.suppress(OSError, AttributeError):
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), _NICENESS)
+        try:
+            for go, done, plans in zip(self._go, self._done, groups):
+                go.wait()
+                start = time.perf_counter()
+                for plan in plans:
+                    if self._stop.is_set():
+                        return
+                    try:
+                        plan()
+                    except Exception as err:  # an ahead-of-time compile: nothing depends on it
+                        self.errors.append(repr(err))
+                self.seconds += time.perf_counter() - start
+                done.set()
+        finally:
+            for done in self._done:
+                done.set()
 
-    def wait(self) -> None:
-        """Block until every program is compiled (or failed)."""
+    def start(self, group: int) -> None:
+        """Let group ``group`` compile once the ones before it have."""
+        if group < len(self._go):
+            self._go[group].set()
+
+    def wait(self, group: int) -> None:
+        """Start group ``group`` (:meth:`start`) and block until it is compiled (or failed)."""
+        if group < len(self._done):
+            self.start(group)
+            self._done[group].wait()
+
+    def cancel(self) -> None:
+        """Start no further compile and wait for the one under way (the thread then ends)."""
+        self._stop.set()
+        for go in self._go:
+            go.set()
         self._thread.join()
+
+
+#: The compile-ahead thread's niceness (Linux: per thread; elsewhere ignored).
+_NICENESS = 10
+
+#: :class:`CompileAhead`'s groups, in the order the stage needs them.
+_CLOUDS, _PLACEMENT, _REFINEMENT = 0, 1, 2
+
+
+def _padded_chunks(T: int) -> int:
+    """The chunk count the stage's device programs are compiled for: the size bucket of ``T``
+    (:func:`swiftjax.posegraph.problem.bucket_size`, 4 per doubling, at least 8), so that runs of
+    similar length share their compiled programs (in the persistent cache too)."""
+    from swiftjax.posegraph.problem import bucket_size
+
+    return bucket_size(T, minimum=8)
+
+
+def _pad_chunks(tree: Any, size: int) -> Any:
+    """Every ``[T, ...]`` leaf of ``tree`` padded to ``[size, ...]`` with copies of its last row
+    (valid values; a job never indexes them).  Chunk ``c``'s subsample key does not change:
+    ``jax.random.split`` is prefix-stable (JAX's default partitionable threefry)."""
+    return jax.tree_util.tree_map(lambda x: np.concatenate([x, np.repeat(x[-1:], size - len(x), 0)]), tree)
 
 
 def compile_ahead(
     ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions = geo.GeometryOptions()
 ) -> CompileAhead:
     """Start compiling, on a background thread, the programs :func:`candidates` runs for this run's
-    chunk count: :func:`_geometry`, :func:`_clouds`, one batch each of :func:`_priors`,
-    :func:`swiftjax.loops.geometric.starts_batch`, :func:`~swiftjax.loops.geometric.peaks_batch`,
+    chunk count, in three groups (:class:`CompileAhead`): the clouds (:func:`_geometry`,
+    :func:`_clouds`), at once; the placement (one batch each of :func:`_priors`,
+    :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch`),
+    when the stage begins; the refinement (one batch each of
     :func:`~swiftjax.loops.geometric.refine_batch` and the placements' spread, and the dense test
-    with its null (:func:`swiftjax.loops.verification.compile_candidate_numbers`): each
-    ``jit(f).trace(...).lower().compile()`` on the argument shapes the stage passes, so that the
-    stage's calls find them compiled (``tests/test_geometric_loops.py`` checks that none is
-    traced again).
+    with its null, :func:`swiftjax.loops.verification.compile_candidate_numbers`), once there are
+    placement jobs.  Each is ``jit(f).trace(...).lower().compile()`` on the argument shapes the
+    stage passes, so that the stage's calls find it compiled (``tests/test_geometric_loops.py``
+    checks that none is traced again).
 
     Tracing them is about 1.5 s of Python on KITTI 00 and lowering and compiling (or loading
-    from the persistent cache) as much again, paid by every process; done while the token
-    candidates' loop chunks and dense tests run, the stage starts with its programs ready.
-    Reads one chunk's frames here, on the caller's thread (for their shapes); the thread only
-    traces and compiles."""
+    from the persistent cache) as much again, paid by every process, and 10 s to compile them
+    on an empty cache; each group is compiled beside the work before it (the token candidates',
+    the clouds', the placement's), and a group the stage will not run is not compiled (the
+    demo, whose gated pairs all lie beside token loops, compiles only the clouds').  Reads one
+    chunk's frames here, on the caller's thread (for their shapes); the thread only traces and
+    compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
     frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.float32) for x in side))
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
-    T = ctx.schedule.num_chunks
+    T = _padded_chunks(ctx.schedule.num_chunks)
     per_chunk = jax.eval_shape(lambda f, k: _geometry(f, k, options), frames, K)
     geometry = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((T, *x.shape[1:]), x.dtype), per_chunk)
     clouds, spectra = jax.eval_shape(lambda g: _clouds(g, options), geometry)
@@ -210,22 +277,24 @@ def compile_ahead(
         job(REFINE_BATCH, K_peaks, dtype=np.bool_),
         job(REFINE_BATCH, dtype=np.int32),
     )
-    plans = [
-        functools.partial(lambda f, *a: f.trace(*a).lower().compile(), f, *args)
-        for f, args in (
-            (_geometry, (frames, K, options)),
-            (_clouds, (geometry, options)),
-            (_priors, (clouds, job(JOB_BATCH, 8), *ij(JOB_BATCH))),
-            (geo.starts_batch, (*starts, options)),
-            (geo.peaks_batch, (*peaks, options)),
-            (geo.refine_batch, (*refine, options)),
-            (_spreads, spreads),
-        )
-    ]
+    ahead = lambda f, *args: functools.partial(lambda *a: f.trace(*a).lower().compile(), *args)
     # the dense test of the survivors (_dense): every frame pair of two chunks' loaded frames
     dense = dataclasses.replace(ctx.config.verification, neighbours=0)
-    plans.append(functools.partial(lv.compile_candidate_numbers, side, K_ref, dense))
-    return CompileAhead(plans)
+    return CompileAhead(
+        [
+            [ahead(_geometry, frames, K, options), ahead(_clouds, geometry, options)],  # CLOUDS
+            [
+                ahead(_priors, clouds, job(JOB_BATCH, 8), *ij(JOB_BATCH)),
+                ahead(geo.starts_batch, *starts, options),
+                ahead(geo.peaks_batch, *peaks, options),
+            ],  # PLACEMENT
+            [
+                ahead(geo.refine_batch, *refine, options),
+                ahead(_spreads, *spreads),
+                functools.partial(lv.compile_candidate_numbers, side, K_ref, dense),
+            ],  # REFINEMENT
+        ]
+    )
 
 
 def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int, options: geo.GeometryOptions):
@@ -356,6 +425,7 @@ def candidates(
     chain: np.ndarray | None = None,
     closed: Sequence[tuple[int, int]] = (),
     only: set[tuple[int, int]] | None = None,
+    ahead: CompileAhead | None = None,
 ) -> list[dict[str, Any]]:
     """The geometric candidates' records (module docstring), chunk pairs in ``taken`` (the
     token source's, ``(larger, smaller)``) left out; each record with ``accepted``/``reason``
@@ -380,7 +450,9 @@ def candidates(
     spectrum once; one placement job (:func:`swiftjax.loops.geometric.starts_batch`, then :func:`~swiftjax.loops.geometric.peaks_batch` where a peak overlaps a cell) per
     candidate and ``null_chunks`` per SOURCE chunk (its null, shared by all its candidates);
     the refinement on all points (:func:`swiftjax.loops.geometric.refine_batch`) and the dense
-    test only for the candidates above their null."""
+    test only for the candidates above their null.  ``ahead``: the programs being compiled
+    (:func:`compile_ahead`): each group waited for before its first call, the rest cancelled
+    once it will not run."""
     from swiftjax import sim3
     from swiftjax.loops.null import null_threshold
 
@@ -388,11 +460,18 @@ def candidates(
         return []
     chain = np.asarray(chain, np.float64)
     o = options
+    if ahead is None:
+        ahead = CompileAhead([])  # (nothing to wait for)
+    ahead.start(_PLACEMENT)  # (beside the clouds' work)
     with ctx.timer("loop geometry: clouds"):
+        ahead.wait(_CLOUDS)
         g, ids = geometries(ctx, K_ref, o)
         T = len(ids)
-        clouds, spectra = _clouds(g, o)
-    gated = _pairs(chain, clouds, ids, ctx.config.loop_min_separation, o)
+        # the device programs take the clouds of a bucket of chunk counts (_padded_chunks)
+        clouds, spectra = _clouds(_pad_chunks(g, _padded_chunks(T)), o)
+    gated = _pairs(
+        chain, jax.tree_util.tree_map(lambda x: np.asarray(x)[:T], clouds), ids, ctx.config.loop_min_separation, o
+    )
     near = {(ci, cj) for ci, cj, _ in gated}
     pairs = [(ci, cj, w) for ci, cj, w in gated if (ci, cj) not in taken]
     order = {(ci, cj): n for n, (ci, cj, _) in enumerate(pairs)}
@@ -404,11 +483,13 @@ def candidates(
         pairs = [p for p in pairs if (p[0], p[1]) in only]
     pairs, unregistered = split_closed(pairs, closed, ids)
     if not pairs:
+        ahead.cancel()
         return unregistered
     ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
     win = np.asarray([p[2] for p in pairs], np.float32)
     with jax.enable_x64(True):
         Zc = np.asarray(sim3.compose(sim3.inverse(chain[cj_]), chain[ci_]), np.float32)
+    ahead.wait(_PLACEMENT)
     psi, sigma, tau = _run_batched(
         lambda *a: _priors(clouds, *a), JOB_BATCH, (Zc, ci_.astype(np.int32), cj_.astype(np.int32))
     )
@@ -428,8 +509,10 @@ def candidates(
             )
         )
     if not reach.any():
+        ahead.cancel()
         return in_order(unregistered)
     ci_, cj_, win, psi, sigma, tau = (x[reach] for x in (ci_, cj_, win, psi, sigma, tau))
+    ahead.start(_REFINEMENT)  # (beside the placement jobs)
     P = len(ci_)
     # the null: per source chunk, null_chunks unrelated chunks from (ψ = kπ, σ = 1, τ = 0) within
     # the largest window of its candidates (streets laid along streets, both ways)
@@ -544,7 +627,10 @@ def candidates(
             record.update(accepted=False, reason=why, quality_valid=False, quality_min_fraction=1.0)
         else:
             survivors.append((k, kb, plausible))
-    if survivors:
+    if not survivors:
+        ahead.cancel()
+    else:
+        ahead.wait(_REFINEMENT)
         sk = np.asarray([k for k, _, _ in survivors])
         start = np.stack([pl.S[k, kb] for k, kb, _ in survivors]).astype(np.float32)
         prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
