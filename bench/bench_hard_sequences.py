@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from bench_loop_robustness import _centres, _relative, graph_poses
 from bench_pipeline import _shared
-from common import markdown_table, write_results
+from common import markdown_table, reconstruct, write_results
 
 SEQUENCES = ("08", "05", "06", "00", "demo")
 
@@ -161,15 +161,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
     loop_geometry.compile_ahead = lambda *a, **k: ahead.append(start_ahead(*a, **k)) or ahead[-1]
     t0 = time.perf_counter()
     try:
-        res = pipeline.reconstruct(
-            run.predictor,
-            out_dir,
-            config,
-            ground_truth=run.ground_truth,
-            progress=False,
-            overwrite=True,
-            log=lambda s: None,
-        )
+        res = reconstruct(run, out_dir, config)
     finally:
         loop_geometry.compile_ahead = start_ahead
     wall = time.perf_counter() - t0

@@ -53,7 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from bench_pipeline import _shared
-from common import markdown_table, write_results
+from common import markdown_table, reconstruct, write_results
 
 HERE = pathlib.Path(__file__).resolve().parent
 
@@ -132,15 +132,7 @@ def run_level(route: str, level: float, out_dir: pathlib.Path) -> dict:
     config = pipeline.PipelineConfig()
     t0 = time.perf_counter()
     load = os.getloadavg()
-    res = pipeline.reconstruct(
-        run.predictor,
-        out_dir,
-        config,
-        ground_truth=run.ground_truth,
-        progress=False,
-        overwrite=True,
-        log=lambda s: None,
-    )
+    res = reconstruct(run, out_dir, config)
     wall = time.perf_counter() - t0
     schedule = chunks.chunk_schedule(res.num_frames, config.chunk_size, config.overlap)
     gt = run.ground_truth[:, :3, 3]

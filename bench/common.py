@@ -49,6 +49,22 @@ def compile_time(jitted: Callable, *args: Any, **kwargs: Any) -> tuple[Callable,
     return compiled, time.perf_counter() - t0
 
 
+def reconstruct(run: Any, out_dir: pathlib.Path, config: Any) -> Any:
+    """``pipeline.reconstruct`` of a synthetic run (``swiftjax.synthetic.demo``) into ``out_dir``,
+    overwriting, with its ground truth, quietly (no progress bar, no log)."""
+    from swiftjax import pipeline
+
+    return pipeline.reconstruct(
+        run.predictor,
+        out_dir,
+        config,
+        ground_truth=run.ground_truth,
+        progress=False,
+        overwrite=True,
+        log=lambda s: None,
+    )
+
+
 def machine_info() -> dict[str, Any]:
     import jax
 

@@ -20,8 +20,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
+from collections.abc import Iterator
 
 # Shapes in annotations are enforced in the tests: jaxtyping's import hook wraps every function
 # of these modules with a runtime checker.  It must be installed before anything imports
@@ -107,6 +109,35 @@ def _release_compiled_code():
 
         jax.clear_caches()
         gc.collect()
+
+
+@contextlib.contextmanager
+def jax_log(pattern: str) -> Iterator[list[tuple[str, str]]]:
+    """JAX's compile log while the block runs (``jax_log_compiles``): ``(thread name, group 1)``
+    of every message that ``re.match``-es ``pattern``, e.g. ``r"Compiling (?:jit\\()?([^) ]+)"``
+    (the programs compiled) or ``r"Finished tracing (\\S+) for jit"`` (traced)."""
+    import logging
+    import re
+
+    found: list[tuple[str, str]] = []
+
+    class Matches(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            m = re.match(pattern, record.getMessage())
+            if m:
+                found.append((record.threadName, m.group(1)))
+
+    handler, logger = Matches(), logging.getLogger("jax")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    jax.config.update("jax_log_compiles", True)
+    try:
+        yield found
+    finally:
+        jax.config.update("jax_log_compiles", False)
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 def find_shared() -> pathlib.Path | None:

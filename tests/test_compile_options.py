@@ -37,29 +37,11 @@ def test_quick_jit_runs_when_an_option_is_unknown():
 
 def _compiled_during(fn) -> list[str]:
     """The programs JAX compiles while ``fn()`` runs (its compile log)."""
-    import logging
-    import re
+    from tests.conftest import jax_log
 
-    names: list[str] = []
-
-    class Compiles(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            m = re.match(r"Compiling (?:jit\()?([^) ]+)", record.getMessage())
-            if m:
-                names.append(m.group(1))
-
-    handler, logger = Compiles(), logging.getLogger("jax")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.DEBUG)
-    jax.config.update("jax_log_compiles", True)
-    try:
+    with jax_log(r"Compiling (?:jit\()?([^) ]+)") as compiled:
         fn()
-    finally:
-        jax.config.update("jax_log_compiles", False)
-        logger.removeHandler(handler)
-        logger.setLevel(level)
-    return names
+    return [name for _, name in compiled]
 
 
 def test_to_device_is_jnp_asarray_without_a_compile():

@@ -983,8 +983,6 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     test run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
     fewer reliable points than the registration's subsample, padded with zero-weight rows.)
     The chunks padded to their size bucket give the real chunks' clouds bitwise."""
-    import logging
-    import re
     import threading
 
     from swiftjax import pipeline
@@ -993,7 +991,7 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     from swiftjax.posegraph import chain_poses
     from swiftjax.synthetic import demo
     from swiftjax.synthetic.routes import loop_route
-    from tests.conftest import SMALL_RUN_CONFIG
+    from tests.conftest import SMALL_RUN_CONFIG, jax_log
 
     poses = loop_route(width=120.0, length=80.0, corner_radius=10.0, laps=1.3)
     run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
@@ -1007,20 +1005,7 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
     )
     try:
         chain = temporal.run(ctx, export.ChunkExport(ctx))
-        traced: list[tuple[str, str]] = []  # (thread, program)
-
-        class Traces(logging.Handler):
-            def emit(self, record: logging.LogRecord) -> None:
-                m = re.match(r"Finished tracing (\S+) for jit", record.getMessage())
-                if m:
-                    traced.append((record.threadName, m.group(1)))
-
-        handler, logger = Traces(), logging.getLogger("jax")
-        level = logger.level
-        logger.addHandler(handler)
-        logger.setLevel(logging.DEBUG)
-        jax.config.update("jax_log_compiles", True)
-        try:
+        with jax_log(r"Finished tracing (\S+) for jit") as traced:  # (thread, program)
             jax.clear_caches()  # (the same shapes compiled by an earlier test would not be traced at all)
             ahead = loop_geometry.compile_ahead(ctx, chain.K_ref)
             records = loop_geometry.candidates(
@@ -1038,10 +1023,6 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
             padded = loop_geometry._clouds(loop_geometry._pad_chunks(g, loop_geometry._padded_chunks(T + 1)), o)
             for a, b in zip(jax.tree_util.tree_leaves(exact), jax.tree_util.tree_leaves(padded)):
                 np.testing.assert_array_equal(np.asarray(b)[:T], np.asarray(a))
-        finally:
-            jax.config.update("jax_log_compiles", False)
-            logger.removeHandler(handler)
-            logger.setLevel(level)
     finally:
         ctx.close()
     assert ahead.errors == []
