@@ -39,6 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from common import markdown_table, write_results
+from common import reconstruct as reconstruct_run
 
 from swiftjax import evaluation, masks, pipeline
 from swiftjax.io.ply import read_ply
@@ -106,15 +107,7 @@ def metric_scores(res, gt: np.ndarray) -> dict:
 def reconstruct(run, out: pathlib.Path, config, overwrite: bool = True) -> object:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    res = pipeline.reconstruct(
-        run.predictor,
-        out,
-        config,
-        ground_truth=run.ground_truth,
-        progress=False,
-        overwrite=overwrite,
-        log=lambda s: None,
-    )
+    res = reconstruct_run(run, out, config, overwrite)
     res.wall = time.perf_counter() - t0
     res.load_before = load
     print(f"  {out.name}: {res.wall:.0f} s (load {load:.1f})", flush=True)
