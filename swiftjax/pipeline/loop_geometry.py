@@ -254,8 +254,9 @@ def compile_ahead(
     Tracing them is about 1.5 s of Python on KITTI 00 and lowering and compiling (or loading
     from the persistent cache) as much again, paid by every process, and 10 s to compile them
     on an empty cache; each group is compiled beside the work before it (the token candidates',
-    the clouds', the placement's), and a group the stage will not run is not compiled (the
-    demo, whose gated pairs all lie beside token loops, compiles only the clouds').  Reads one
+    the clouds', the placement's), and a group the stage will not run is cancelled (the demo,
+    whose gated pairs all lie beside token loops, cancels the placement's once its pairs are
+    known and never starts the refinement's).  Reads one
     chunk's frames here, on the caller's thread (for their shapes); the thread only traces and
     compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
