@@ -36,7 +36,7 @@ Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batch
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -139,11 +139,12 @@ def null_consistency(
     """
     config = VerificationConfig() if config is None else config
     args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
-    return _null_jit(*args[:6], _offsets(config, args[0].depth.dtype), *args[6:])
+    return _null_jit(*args[:6], to_device(_offsets(config), args[0].depth.dtype), *args[6:])
 
 
-def _offsets(config: VerificationConfig, dtype: Any) -> jax.Array:
-    return to_device(null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift), dtype)
+def _offsets(config: VerificationConfig) -> Float[np.ndarray, " K"]:
+    """``config``'s null offsets (:func:`null_offsets`), on the host."""
+    return null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)
 
 
 def compile_null(
@@ -153,7 +154,7 @@ def compile_null(
     (``jax.ShapeDtypeStruct``s or arrays), as :func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`."""
     config = VerificationConfig() if config is None else config
     args = traced_specs(side_i, side_j, Z, K_ref, conf_ratio, config)
-    offsets = jax.ShapeDtypeStruct((config.null_samples,), args[0].depth.dtype)
+    offsets = jax.ShapeDtypeStruct(_offsets(config).shape, args[0].depth.dtype)
     _null_jit.trace(*args[:6], offsets, *args[6:]).lower().compile()
 
 

@@ -206,7 +206,9 @@ def _decide_with_geometry(
             return geometric
         ctx.log(f"loop geometry: {len(reopen)} pair(s) left unregistered beside a token loop the decision rejects")
         with ctx.timer("loop geometry"):
-            more = loop_geometry.candidates(ctx, temporal.K_ref, taken, config.verification, chain=chain, only=reopen)
+            more = loop_geometry.candidates(
+                ctx, temporal.K_ref, taken, config.verification, chain=chain, only=reopen, ahead=ahead
+            )
         new = {loop_geometry.chunk_pair(r): r for r in more}
         geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
         pool += [r for r in more if "accepted" not in r]

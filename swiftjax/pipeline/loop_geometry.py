@@ -279,8 +279,7 @@ def compile_ahead(
         job(REFINE_BATCH, dtype=np.int32),
     )
     ahead = lambda f, *args: functools.partial(lambda *a: f.trace(*a).lower().compile(), *args)
-    # the dense test of the survivors (_dense): every frame pair of two chunks' loaded frames
-    dense = dataclasses.replace(ctx.config.verification, neighbours=0)
+    dense = _dense_config(ctx.config.verification)
     return CompileAhead(
         [
             [ahead(_geometry, frames, K, options), ahead(_clouds, geometry, options)],  # CLOUDS
@@ -725,6 +724,12 @@ def _plain(v: Any) -> Any:
     return bool(a) if a.dtype == bool else (int(a) if a.dtype.kind in "iu" else float(a))
 
 
+def _dense_config(verification: lv.VerificationConfig) -> lv.VerificationConfig:
+    """The dense test of a geometric candidate (:func:`_dense`, compiled ahead by
+    :func:`compile_ahead`): every frame pair of the two chunks' loaded frames."""
+    return dataclasses.replace(verification, neighbours=0)
+
+
 def _dense(
     ctx: RunContext,
     ci: int,
@@ -745,7 +750,7 @@ def _dense(
         K_ref,
         info,
         info,
-        dataclasses.replace(verification, neighbours=0),
+        _dense_config(verification),
         null_when_needed=True,
     )
 
