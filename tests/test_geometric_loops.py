@@ -834,9 +834,11 @@ def test_redundant_geometric_edges_beside_token_edges_are_rejected():
 
 
 def test_nearest_is_argmin_bitwise_and_the_numpy_loop():
-    """``_nearest``'s two-reduction index is ``argmin``'s, bit for bit, for finite points: ties
-    (duplicate target points), masked targets, an all-masked target; a non-finite source point
-    gets a non-finite distance (never an inlier); and the nearest point of a float64 NumPy loop."""
+    """``_nearest``'s block-wise index is ``argmin``'s, bit for bit, for finite points: ties
+    (duplicate target points, across a block boundary), masked targets, an all-masked target,
+    a target count that is not a multiple of the block (padded), inside ``vmap`` as the ICP
+    runs it; a non-finite source point gets a non-finite distance (never an inlier); and the
+    nearest point of a float64 NumPy loop."""
     rng = np.random.default_rng(11)
     y = rng.normal(size=(300, 3)).astype(np.float32) * 3
     dst = rng.normal(size=(500, 3)).astype(np.float32) * 3
@@ -860,6 +862,13 @@ def test_nearest_is_argmin_bitwise_and_the_numpy_loop():
         np.testing.assert_array_equal(np.asarray(k)[fin], np.asarray(k0)[fin])
         np.testing.assert_array_equal(np.asarray(r)[fin], np.asarray(r0)[fin])
         assert not np.any(np.isfinite(np.asarray(r)[~fin]))
+    assert G._block_size(500) == 32 and 500 % 32 and 240 // 32 != 259 // 32  # padded; ties span blocks
+    ys, ds = np.stack([y, y[::-1]]), np.stack([dst, dst[::-1]])
+    kv, rv = jax.jit(jax.vmap(G._nearest))(jnp.asarray(ys), jnp.asarray(ds), jnp.asarray(np.stack([w, w[::-1]])))
+    k0, r0 = jax.vmap(argmin)(jnp.asarray(ys), jnp.asarray(ds), jnp.asarray(np.stack([w, w[::-1]])))
+    fin = np.all(np.isfinite(ys), -1)
+    np.testing.assert_array_equal(np.asarray(kv)[fin], np.asarray(k0)[fin])
+    np.testing.assert_array_equal(np.asarray(rv)[fin], np.asarray(r0)[fin])
     k = np.asarray(k := jax.jit(G._nearest)(jnp.asarray(y), jnp.asarray(dst), jnp.asarray(w))[0])
     for p in range(len(y)):
         if not np.all(np.isfinite(y[p])):
