@@ -480,13 +480,17 @@ def test_register_hypotheses_without_a_camera_height_is_rejected_not_nan():
 
 
 def test_bev_raster_against_numpy_loop():
-    """Occupancy of random points (some outside the grid, some unweighted) against a NumPy loop."""
+    """Occupancy of random points (some outside the grid, some unweighted, some not finite)
+    against a NumPy loop."""
     rng = np.random.default_rng(3)
     xy = rng.uniform(-7, 7, (500, 2)).astype(np.float32)
     w = (rng.uniform(size=500) > 0.3).astype(np.float32)
+    xy[:3], w[:3] = [[np.nan, 0.0], [0.0, np.inf], [-np.inf, 1.0]], 1.0
     got = np.asarray(G.bev_raster(xy, w, 16, 0.75))
     ref = np.zeros((16, 16))
     for (x, y), wn in zip(xy, w):
+        if not np.isfinite([x, y]).all():
+            continue
         i, j = int(np.floor(x / 0.75)) + 8, int(np.floor(y / 0.75)) + 8
         if wn > 0 and 0 <= i < 16 and 0 <= j < 16:
             ref[i, j] = 1.0
