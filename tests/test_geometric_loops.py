@@ -1108,3 +1108,37 @@ def test_compile_ahead_groups_wait_and_cancel():
     empty = CompileAhead([])
     empty.wait(0)
     empty.cancel()
+
+
+def test_run_batched_on_threads_is_the_same_in_order():
+    """``loop_geometry._run_batched`` with a thread pool (the placement's) returns the batches'
+    results bit for bit and in row order, as without it and as one call on all rows: 11 rows in
+    batches of 4 (the last padded and cut), a tuple output; and the pool runs the batches on
+    its threads."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from swiftjax.pipeline.loop_geometry import PLACEMENT_WORKERS, _run_batched
+
+    rng = np.random.default_rng(12)
+    a = rng.normal(size=(11, 5)).astype(np.float32)
+    b = rng.integers(0, 9, 11).astype(np.int32)
+    names = set()
+
+    @jax.jit
+    def fn(x, k):
+        return jnp.cumsum(x * x, -1), k * 2 + 1
+
+    def traced(x, k):
+        names.add(threading.current_thread().name)
+        return fn(x, k)
+
+    plain = _run_batched(fn, 4, (a, b))
+    with ThreadPoolExecutor(PLACEMENT_WORKERS, thread_name_prefix="test-pool") as pool:
+        pooled = _run_batched(traced, 4, (a, b), pool)
+    whole = fn(a, b)
+    for got in (plain, pooled):
+        assert got[0].shape == (11, 5) and got[1].shape == (11,)
+        np.testing.assert_array_equal(got[0], np.asarray(whole[0]))
+        np.testing.assert_array_equal(got[1], 2 * b + 1)
+    assert names and all(n.startswith("test-pool") for n in names)
