@@ -1103,7 +1103,10 @@ def scale_sweep(
     radius ``τ``, in ``b``'s units), ``k* = argmax score_k``, the unscaled ``S`` (``δ = 0``)
     kept unless another scale scores strictly higher.  A wrong scale moves the facades across
     the street out of ``τ``; the right one brings them in.  Cost: ``steps`` nearest-neighbour
-    passes.  Pure; ``steps`` static (odd)."""
+    passes, one after the other (``lax.map``; XLA:CPU materialises each pass's ``[P, Q]``
+    distances for its reduction, so all at once would hold ``steps`` of them: 576 MB for the
+    refinement's batch of 4, faulted in afresh on every call, against 64 MB).  Pure; ``steps``
+    static (odd)."""
     src = jnp.asarray(src, jnp.float32)
     w = jnp.asarray(w_src, jnp.float32)
     dst, w_dst = jnp.asarray(dst, jnp.float32), jnp.asarray(w_dst, jnp.float32)
@@ -1112,13 +1115,16 @@ def scale_sweep(
     m = jnp.sum(w[:, None] * src, 0) / jnp.maximum(jnp.sum(w), 1e-30)
     deltas = jnp.linspace(-half_range, half_range, steps) if steps > 1 else jnp.zeros(1)
 
-    def one(d: Array) -> tuple[Array, Array]:
+    def scaled(d: Array) -> Array:
         e = jnp.exp(d)
-        Sk = sim3.compose(S, sim3.from_rst(jnp.eye(3), (1.0 - e) * m, e))
-        _, r = _nearest(sim3.act(Sk, src), dst, w_dst)
-        return Sk, jnp.sum(w * jnp.where(r < tau, (1.0 - (r / tau) ** 2) ** 2, 0.0))
+        return sim3.compose(S, sim3.from_rst(jnp.eye(3), (1.0 - e) * m, e))
 
-    Sk, scores = jax.vmap(one)(deltas)
+    Sk = jax.vmap(scaled)(deltas)
+    # one scale at a time: XLA:CPU materialises each [P, Q] distance matrix for its reduction,
+    # and all scales at once (vmap) would make that steps x P x Q (576 MB for the refinement's
+    # batch of 4, fresh pages every call)
+    r = jax.lax.map(lambda s: _nearest(sim3.act(s, src), dst, w_dst)[1], Sk)
+    scores = jax.vmap(lambda rk: jnp.sum(w * jnp.where(rk < tau, (1.0 - (rk / tau) ** 2) ** 2, 0.0)))(r)
     mid = steps // 2
     k = jnp.argmax(scores)
     k = jnp.where(scores[k] > scores[mid], k, mid)
