@@ -73,7 +73,10 @@ and bird's-eye spectrum once (:func:`bev_spectrum`); fixed-size ``vmap`` batches
 (:func:`starts_batch`, :func:`peaks_batch`, :func:`refine_batch`), one compile per (chunk
 count, options); one null per source chunk, stopped early where exact; the refinement and the
 dense test only above the null.  The ICP's nearest-neighbour pass (:func:`_nearest`, most of
-its time) takes its index from two plain reductions, bitwise ``argmin``'s.  A job whose window
+its time) is one distance pass that keeps each block's minimum, the index then searched in one
+block (bitwise ``argmin``'s); the refinement's scale sweep runs its passes one scale at a time
+(each pass's distances are materialised by XLA:CPU).  The pipeline runs two placement batches
+at a time (:data:`swiftjax.pipeline.loop_geometry.PLACEMENT_WORKERS`).  A job whose window
 holds no translation of the bird's-eye grid (:func:`window_on_grid`) is not run at all.  Where
 the time goes on synthetic KITTI 00 (1,002 gated candidates, 395 of them beyond the grid, 91
 closed by a token loop; ~290 null jobs): the peak ICP of the ~740 jobs whose peaks overlap a
