@@ -473,6 +473,12 @@ def _nearest(y: Array, dst: Array, w_dst: Array) -> tuple[Array, Array]:
     return jnp.minimum(g * b + i, Q - 1), jnp.sqrt(m)
 
 
+def _tukey(r: Array, tau: Array) -> Array:
+    """Tukey's biweight of residuals ``r`` at radius ``τ``: ``(1 − (r/τ)²)²`` for ``r < τ``, else 0
+    (a non-finite ``r`` gets 0)."""
+    return jnp.where(r < tau, (1.0 - (r / tau) ** 2) ** 2, 0.0)
+
+
 def _yaw_step(y: Array, z: Array, w: Array, up: Array) -> tuple[Array, Array]:
     """The weighted least-squares rotation about ``up`` and translation ``D`` taking ``y [P, 3]``
     onto ``z [P, 3]`` (scale fixed): with the weighted means ``ȳ, z̄`` and the horizontal parts
@@ -538,7 +544,7 @@ def register(
     def step(carry, tau):
         S, ok = carry
         k, r = _nearest(sim3.act(S, src), dst, w_dst)
-        w = w_src * jnp.where(r < tau, (1.0 - (r / tau) ** 2) ** 2, 0.0)
+        w = w_src * _tukey(r, tau)
         if four_dof:
             D, good = _yaw_step(sim3.act(S, src), dst[k], w, up)
             S_new = sim3.compose(D, S)
@@ -1127,7 +1133,7 @@ def scale_sweep(
     # and all scales at once (vmap) would make that steps x P x Q (576 MB for the refinement's
     # batch of 4, fresh pages every call)
     r = jax.lax.map(lambda s: _nearest(sim3.act(s, src), dst, w_dst)[1], Sk)
-    scores = jax.vmap(lambda rk: jnp.sum(w * jnp.where(rk < tau, (1.0 - (rk / tau) ** 2) ** 2, 0.0)))(r)
+    scores = jax.vmap(lambda rk: jnp.sum(w * _tukey(rk, tau)))(r)
     mid = steps // 2
     k = jnp.argmax(scores)
     k = jnp.where(scores[k] > scores[mid], k, mid)
