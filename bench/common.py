@@ -49,9 +49,10 @@ def compile_time(jitted: Callable, *args: Any, **kwargs: Any) -> tuple[Callable,
     return compiled, time.perf_counter() - t0
 
 
-def reconstruct(run: Any, out_dir: pathlib.Path, config: Any) -> Any:
-    """``pipeline.reconstruct`` of a synthetic run (``swiftjax.synthetic.demo``) into ``out_dir``,
-    overwriting, with its ground truth, quietly (no progress bar, no log)."""
+def reconstruct(run: Any, out_dir: pathlib.Path, config: Any, overwrite: bool = True) -> Any:
+    """``pipeline.reconstruct`` of a synthetic run (``swiftjax.synthetic.demo``) into ``out_dir``
+    (overwriting it unless ``overwrite`` is False), with its ground truth, quietly (no progress
+    bar, no log)."""
     from swiftjax import pipeline
 
     return pipeline.reconstruct(
@@ -60,7 +61,7 @@ def reconstruct(run: Any, out_dir: pathlib.Path, config: Any) -> Any:
         config,
         ground_truth=run.ground_truth,
         progress=False,
-        overwrite=True,
+        overwrite=overwrite,
         log=lambda s: None,
     )
 
