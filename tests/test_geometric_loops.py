@@ -1129,13 +1129,13 @@ def test_run_batched_on_threads_is_the_same_in_order():
     def fn(x, k):
         return jnp.cumsum(x * x, -1), k * 2 + 1
 
-    def traced(x, k):
+    def on_thread(x, k):  # fn, noting the thread it runs on
         names.add(threading.current_thread().name)
         return fn(x, k)
 
     plain = _run_batched(fn, 4, (a, b))
     with ThreadPoolExecutor(PLACEMENT_WORKERS, thread_name_prefix="test-pool") as pool:
-        pooled = _run_batched(traced, 4, (a, b), pool)
+        pooled = _run_batched(on_thread, 4, (a, b), pool)
     whole = fn(a, b)
     for got in (plain, pooled):
         assert got[0].shape == (11, 5) and got[1].shape == (11,)
