@@ -492,24 +492,3 @@ def test_loops_txt_and_plot_with_rejected_candidates(tmp_path):
     assert (tmp_path / "t.png").stat().st_size > 1000
     with pytest.raises(ValueError, match="rejected"):
         plot.plot_trajectory(tmp_path / "u.png", est, rejected=[[260, 30]])
-
-
-def test_affine_is_the_dot_bitwise():
-    """The dense test's per-coordinate ``y Rᵀ + t`` rounds as the ``[P, 3] x [3, 3]`` dot does
-    (compiled as the dense test is, and at XLA's defaults), and matches a float32 NumPy loop
-    ``((y₀ r₀ + y₁ r₁) + y₂ r₂) + t``."""
-    from swiftjax._compile import LIGHT_COMPILE, supported
-    from swiftjax.loops.cross_chunk import _affine
-
-    rng = np.random.default_rng(5)
-    y = jnp.asarray((rng.normal(size=(20000, 3)) * 10).astype(np.float32))
-    E = jnp.asarray(rng.normal(size=(3, 4)).astype(np.float32))
-    for options in (supported(LIGHT_COMPILE), {}):
-        dot = jax.jit(lambda y, E: y @ E[:, :3].T + E[:, 3]).lower(y, E).compile(compiler_options=options)
-        mine = jax.jit(_affine).lower(y, E).compile(compiler_options=options)
-        np.testing.assert_array_equal(np.asarray(mine(y, E)), np.asarray(dot(y, E)))
-    yn, En = np.asarray(y), np.asarray(E)
-    ref = np.empty((len(yn), 3), np.float32)
-    for i in range(3):
-        ref[:, i] = ((yn[:, 0] * En[i, 0] + yn[:, 1] * En[i, 1]) + yn[:, 2] * En[i, 2]) + En[i, 3]
-    np.testing.assert_array_equal(np.asarray(_affine(y, E)), ref)

@@ -41,6 +41,7 @@ from jaxtyping import ArrayLike, Float
 
 from swiftjax import align, camera, sim3
 from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
+from swiftjax._products import small_matmul
 from swiftjax.loops.options import VerificationConfig
 
 __all__ = ["ConsistencyInfo", "dense_consistency", "CrossCheck", "cross_chunk_consistency", "compile_cross_chunk"]
@@ -90,18 +91,6 @@ def _normalised(frames: align.ChunkFrames, K_ref: jax.Array, conf_ratio: jax.Arr
     return jnp.where(ok, d, jnp.nan)
 
 
-def _affine(y: jax.Array, E: jax.Array) -> jax.Array:
-    """``y Rᵀ + t`` for ``y [P, 3]``, ``E = [R | t] [3, 4]``, written out per coordinate:
-    ``((y₀ R_·0 + y₁ R_·1) + y₂ R_·2) + t``, one fused elementwise pass (the ``[P, 3] x [3, 3]``
-    dot is a separate, unfused XLA:CPU kernel: the dense test's step is 3x slower with it).
-    Bitwise the dot's result: each product passes a ``where(isfinite(x), x, NaN)`` (the identity
-    on the finite products of finite points) that keeps LLVM from contracting it into a fused
-    multiply-add with the sum, so the products are rounded as the dot rounds them."""
-    keep = lambda x: jnp.where(jnp.isfinite(x), x, jnp.nan)
-    products = [keep(y[:, k : k + 1] * E[None, :, k]) for k in range(3)]
-    return (products[0] + products[1]) + products[2] + E[None, :, 3]
-
-
 def _dense_consistency(
     src, dst, S, K_ref, conf_ratio, depth_tolerance, stride: int, neighbours: int
 ) -> ConsistencyInfo:
@@ -137,7 +126,7 @@ def _dense_consistency(
     def step(carry, xs):
         seen, agree, n_seen, n_agree, n_front = carry
         depth_g, E, pair_g = xs
-        p = _affine(y, E)
+        p = small_matmul(y, E[:, :3].T) + E[None, :, 3]  # y Rᵀ + t
         z = p[:, 2]
         use = ok & jnp.repeat(pair_g, n_per, total_repeat_length=y.shape[0]) & (z > 0)
         zs = jnp.where(use, z, 1)

@@ -105,6 +105,8 @@ from jax import Array
 from jaxtyping import ArrayLike, Bool, Complex, Float, Int, Key, UInt32
 
 from swiftjax import align, camera, sim3, so3
+from swiftjax._products import small_matmul
+from swiftjax._select import nanmedian
 from swiftjax.align.mask import frame_conf_mean
 from swiftjax.loops.options import GeometryOptions
 
@@ -187,7 +189,7 @@ def chunk_frame(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], optio
     cam_pts = camera.unproject(d, Ks)  # [F, h, w, 3] camera frame
     c2w = camera.camera_to_world(jnp.asarray(frames.extrinsic, jnp.float32))  # [F, 3, 4]
     R, c = c2w[..., :3], c2w[..., 3]
-    pts = jnp.einsum("fij,fhwj->fhwi", R, cam_pts) + c[:, None, None, :]
+    pts = small_matmul(cam_pts, jnp.swapaxes(R, -1, -2)[:, None, None]) + c[:, None, None, :]
     cf = conf[sub]
     mean = frame_conf_mean(conf)
     ok = (
@@ -212,7 +214,7 @@ def chunk_frame(frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], optio
     cy, cx = K_ref[1, 2], K_ref[0, 2]
     band = (v > cy + 0.5 * (H - cy)) & (jnp.abs(u - cx) < W / 6.0)
     ys = jnp.where(ok & band[None], cam_pts[..., 1], jnp.nan)
-    height = jnp.nanmedian(ys)
+    height = nanmedian(ys)  # jnp.nanmedian's value, counted instead of sorted
     F = depth.shape[0]
     idx = jnp.asarray(np.round(np.linspace(0, F - 1, options.anchors)).astype(np.int32))
     return ChunkGeometry(
@@ -643,7 +645,7 @@ def path_weights(geometry: ChunkGeometry, max_radius: float) -> Float[Array, "*b
 
     def one(g: ChunkGeometry) -> Array:
         rel = g.points[None, :, :] - g.anchors[:, None, :]  # [A, N, 3]
-        xy = rel @ g.basis[:, :2] / g.height  # [A, N, 2]
+        xy = small_matmul(rel, g.basis[:, :2]) / g.height  # [A, N, 2]
         near = jnp.any(jnp.sum(xy * xy, -1) < max_radius**2, 0)
         return jnp.where(near & jnp.isfinite(g.height), g.weights, 0.0)
 
@@ -842,8 +844,8 @@ def bev_spectrum(b: ChunkCloud, options: GeometryOptions) -> Complex[Array, "C C
     depends on ``b`` alone: computed once per chunk and reused by every pair it is the target
     of (:func:`bev_starts`).  Pure; vmap it over chunks."""
     n, c = options.bev_cells, options.bev_cell
-    qb = (b.points - b.origin) @ b.basis / b.height
-    D = bev_raster(qb[:, :2], b.weights, n, c)
+    qb = small_matmul(b.points - b.origin, b.basis[:, :2]) / b.height
+    D = bev_raster(qb, b.weights, n, c)
     for ax in (0, 1):
         D = jnp.maximum(D, jnp.maximum(jnp.roll(D, 1, ax), jnp.roll(D, -1, ax)))
     return jnp.fft.rfft2(D)
@@ -892,7 +894,7 @@ def bev_starts(
     the window holds no more translations).  Pure.
     """
     n, c = options.bev_cells, options.bev_cell
-    qa = (a.points - a.origin) @ a.basis / a.height
+    qa = small_matmul(a.points - a.origin, a.basis[:, :2]) / a.height
     FD = bev_spectrum(b, options) if spectrum is None else jnp.asarray(spectrum)
     lin = lambda half, k: jnp.linspace(-half, half, k) if k > 1 else jnp.zeros(1)
     dy, ds = jnp.meshgrid(
@@ -908,7 +910,7 @@ def bev_starts(
     fill = jnp.clip(jnp.real(FD[0, 0]) / (n * n), 1e-6, 1.0 - 1e-6)  # p = Σ D_b / n²
 
     def surface(y, e):
-        xy = sigma * jnp.exp(e) * qa[:, :2] @ _rot_z(psi + y)[:2, :2].T
+        xy = small_matmul(sigma * jnp.exp(e) * qa, _rot_z(psi + y)[:2, :2].T)
         Da = bev_raster(xy, a.weights, n, c)
         C = jnp.fft.irfft2(FD * jnp.conj(jnp.fft.rfft2(Da)), s=(n, n)).reshape(-1)
         N = jnp.sum(Da)

@@ -45,6 +45,7 @@ from jaxtyping import ArrayLike, Float, Real
 
 from swiftjax import align, sim3
 from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
+from swiftjax._select import nanmedian
 from swiftjax.loops.cross_chunk import _ALIGN, _dense_consistency, _normalised, _traced_args, traced_specs
 from swiftjax.loops.options import VerificationConfig
 
@@ -116,7 +117,7 @@ def _null_jit(side_i, side_j, Z, K_ref, conf_ratio, depth_tolerance, offsets, st
 
     def candidate(fi, fj, z):
         d = _normalised(fj, K_ref, conf_ratio)[:, ::stride, ::stride]
-        nulls = null_edges(z, fj.extrinsic, jnp.nanmedian(d), offsets)
+        nulls = null_edges(z, fj.extrinsic, nanmedian(d), offsets)
         return NullCheck(*jax.vmap(edge, in_axes=(None, None, 0))(fi, fj, nulls))
 
     return jax.vmap(candidate)(side_i, side_j, Z)

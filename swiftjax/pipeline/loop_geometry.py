@@ -124,19 +124,23 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
     :func:`~swiftjax.loops.geometric.chunk_descriptors` are not needed by the co-visible search)."""
     T = ctx.schedule.num_chunks
     parts, ids = [], []
-    stack: align.ChunkFrames | None = None
+    stack: list[np.ndarray] = []
     for b0 in range(0, T, BATCH):
         loaded = [_frames(ctx, min(c, T - 1), options, dtype=None) for c in range(b0, b0 + BATCH)]
-        # One float32 batch buffer, filled (and converted) in place: a fresh ~40 MB array per
-        # batch, or a float32 copy per chunk, costs its page faults every time (np.stack: 0.85 s
-        # per batch of 8 KITTI chunks against 0.01 s reused)
-        if stack is None:
-            stack = align.ChunkFrames(*(np.empty((BATCH, *np.shape(x)), np.float32) for x in loaded[0][0]))
-        for k, (frames, _) in enumerate(loaded):
-            for buf, x in zip(stack, frames):
-                buf[k] = x
+        # One batch buffer per field, in the dtype the store keeps (float16 depth and confidence),
+        # filled in place; chunk_frame converts to float32 on the device (exact).  A fresh ~40 MB
+        # array per batch costs its page faults every time (np.stack: 0.85 s per batch of 8 KITTI
+        # chunks against 0.01 s reused); NumPy's float16 -> float32 copy, 0.3 s on KITTI 00.
+        for f, field in enumerate(zip(*(frames for frames, _ in loaded))):
+            dtype = np.result_type(*field, *stack[f : f + 1])  # float32 once a chunk stores it so
+            if len(stack) <= f:
+                stack.append(np.empty((BATCH, *np.shape(field[0])), dtype))
+            elif stack[f].dtype != dtype:
+                stack[f] = stack[f].astype(dtype)
+            for k, x in enumerate(field):
+                stack[f][k] = x
         n = min(BATCH, T - b0)
-        out = _geometry(stack, np.asarray(K_ref, np.float32), options)
+        out = _geometry(align.ChunkFrames(*stack), np.asarray(K_ref, np.float32), options)
         # host arrays, sliced and joined by NumPy (before the refill): an eager jnp slice or
         # concatenate compiles a program per shape (13 on KITTI 00, 0.3 s of a cold run)
         parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out))
@@ -261,7 +265,7 @@ def compile_ahead(
     chunk's frames here, on the caller's thread (for their shapes); the thread only traces and
     compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
-    frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.float32) for x in side))
+    frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in side))
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
     T = _padded_chunks(ctx.schedule.num_chunks)
     per_chunk = jax.eval_shape(lambda f, k: _geometry(f, k, options), frames, K)
