@@ -10,8 +10,8 @@ from the top::
 
 ``#{key < v} <= k`` holds exactly for ``v <= key₍ₖ₎`` (the ``k``-th smallest key, 0-based), so
 the search ends at ``key₍ₖ₎``: 32 vectorised compare-and-count passes, fused by XLA, instead of a
-sort (synthetic KITTI 00: a chunk's ``nanmedian`` of 25,350 heights, 8 chunks at once, 30 ms
-sorted against 4 ms counted; docs/performance/reverse-revisits.md, seventh pass).
+sort (a chunk's ``nanmedian`` of 25,350 heights, 8 chunks at once: 18 ms sorted against
+5–7 ms counted; docs/performance/reverse-revisits.md, seventh pass).
 
 :func:`nanmedian` takes the order statistics that ``jnp.nanmedian`` interpolates between and
 combines them with its own float32 arithmetic (``q = (n − 1)/2``, ``lo (1 − (q − ⌊q⌋)) + hi (q −
