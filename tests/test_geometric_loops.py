@@ -1142,3 +1142,50 @@ def test_run_batched_on_threads_is_the_same_in_order():
         np.testing.assert_array_equal(got[0], np.asarray(whole[0]))
         np.testing.assert_array_equal(got[1], 2 * b + 1)
     assert names and all(n.startswith("test-pool") for n in names)
+
+
+def test_geometries_keep_the_stored_dtype_until_the_device(small_loop_run, tmp_path):
+    """``geometries`` fills its batch buffers in the store's dtype (float16 depth and confidence,
+    float32 for a chunk that had to keep it) and converts on the device: bitwise the geometry
+    of float32 batches converted on the host, with the last chunk stored float32 (its batch's
+    buffers widened after a float16 batch)."""
+    import shutil
+
+    from swiftjax import align, pipeline
+    from swiftjax.pipeline import loop_geometry, rundir
+    from swiftjax.pipeline.executors import LocalExecutor
+    from swiftjax.synthetic import demo
+    from swiftjax.synthetic.routes import loop_route
+    from tests.conftest import SMALL_RUN_CONFIG
+
+    src, _ = small_loop_run
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    poses = loop_route(width=60.0, length=40.0, corner_radius=10.0, laps=1.3)
+    run = demo.trajectory_run(poses, seed=3, image_hw=(42, 140))
+    config = pipeline.PipelineConfig(**SMALL_RUN_CONFIG, loop_geometry=True)
+    ctx = rundir.open_run(
+        run.predictor, out, config, LocalExecutor(), overwrite=False, progress=False, log=lambda _: None
+    )
+    try:
+        store, o = ctx.store, G.GeometryOptions()
+        last = ctx.schedule.num_chunks - 1  # in the second batch: its buffers widen to float32
+        assert last >= loop_geometry.BATCH
+        store.save("chunk", last, store.load("chunk", last), extra=store.load_extra("chunk", last), half=False)
+        dtypes = [loop_geometry._frames(ctx, c, o, dtype=None)[0].depth.dtype for c in (0, last)]
+        assert dtypes == [np.float16, np.float32]
+        K = np.asarray(loop_geometry._frames(ctx, 0, o)[0].intrinsic[0], np.float32)
+        got, ids = loop_geometry.geometries(ctx, K, o)
+        T = len(ids)
+        want = []
+        for b0 in range(0, T, loop_geometry.BATCH):
+            chunks = [min(c, T - 1) for c in range(b0, b0 + loop_geometry.BATCH)]
+            frames = [loop_geometry._frames(ctx, c, o, dtype=np.float32)[0] for c in chunks]
+            batch = align.ChunkFrames(*(np.stack(x) for x in zip(*frames)))
+            part = loop_geometry._geometry(batch, K, o)
+            want.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: min(loop_geometry.BATCH, T - b0)], part))
+        want = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *want)
+    finally:
+        ctx.close()
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(a, b)
