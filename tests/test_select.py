@@ -73,3 +73,18 @@ def test_other_dtypes():
         assert got.dtype == jnp.float64 and float(got) == 2.5
         with pytest.raises(TypeError, match="x must be float32, got float64"):
             kth_smallest(jnp.asarray(x, jnp.float64), 0)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_nanmedian_random_arrays(x64):
+    """Seeded random float32 arrays (two lengths, odd and even: few compiles; random NaN, so
+    every count of values) over six decades, with and without ``jax_enable_x64``: bitwise
+    ``jnp.nanmedian``."""
+    rng = np.random.default_rng(11)
+    with jax.enable_x64(x64):
+        f, g = jax.jit(nanmedian), jax.jit(jnp.nanmedian)
+        for _ in range(60):
+            x = (rng.normal(size=17 + _ % 2) * 10.0 ** int(rng.integers(-3, 4))).astype(np.float32)
+            x[rng.random(len(x)) < 0.2] = np.nan
+            got, want = np.asarray(f(jnp.asarray(x))), np.asarray(g(jnp.asarray(x)))
+            assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), x
