@@ -3,10 +3,9 @@
 A basis, rotation or direction applied to many points (``x [..., k] @ M [k, m]`` with
 ``k <= 4``) is, as ``@`` or ``einsum``, a separate dot kernel on XLA:CPU that no elementwise
 work fuses with; written out as a sum of scaled columns it is one fused, vectorised pass with
-the work around it.  Measured: the cross-chunk dense test's step ``y Rᵀ + t`` is 3x slower
-as a dot; on synthetic KITTI 00 the path weights of 112 chunks' 25,350 points against 5
-anchors take 0.32 s as a dot and 0.006 s written out (docs/performance/reverse-revisits.md,
-seventh pass).
+the work around it: ``path_weights``' product (16 chunks' 25,350 points against 5 anchors
+onto 2 axes) 5.1x faster than ``@`` (``python bench/bench_kernels.py``, same run, bitwise
+equal; docs/performance/reverse-revisits.md, seventh pass).
 
 :func:`small_matmul` sums the products in order, ``((x₀ M₀ + x₁ M₁) + x₂ M₂) + …``, and passes
 each product through ``where(isfinite(p), p, NaN)``, the identity on a finite product, which

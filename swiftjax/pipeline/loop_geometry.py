@@ -135,8 +135,8 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
             dtype = np.result_type(*field, *stack[f : f + 1])  # float32 once a chunk stores it so
             if len(stack) <= f:
                 stack.append(np.empty((BATCH, *np.shape(field[0])), dtype))
-            elif stack[f].dtype != dtype:
-                stack[f] = stack[f].astype(dtype)
+            elif stack[f].dtype != dtype:  # (every row is written below: nothing to copy)
+                stack[f] = np.empty(stack[f].shape, dtype)
             for k, x in enumerate(field):
                 stack[f][k] = x
         n = min(BATCH, T - b0)
