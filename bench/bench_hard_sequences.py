@@ -33,7 +33,10 @@ in full as the stage's: the most the stage can have cost.
 The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIASING``) checks that the
 geometric source costs nothing where every revisit is driven the same way.
 
-    python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick]
+    python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick] [--neighbours K]
+
+``--neighbours 1``: the geometric source's joint registration (each chunk's structure merged with
+its neighbours', ``loop_geometry_neighbours``); the JSON records it under ``neighbours``.
 """
 
 from __future__ import annotations
@@ -139,7 +142,7 @@ def regions_found(chosen: list[dict], ok: list[bool], pairs: np.ndarray, labels:
     return len(found)
 
 
-def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
+def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path, neighbours: int = 0) -> dict:
     from swiftjax import chunks, evaluation, pipeline
     from swiftjax.io.trajectory import read_kitti
     from swiftjax.pipeline import loop_geometry
@@ -154,7 +157,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path) -> dict:
             poses = poses[:frames]
         aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
         run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
-    config = pipeline.PipelineConfig(loop_geometry=True)
+    config = pipeline.PipelineConfig(loop_geometry=True, loop_geometry_neighbours=neighbours)
     load = os.getloadavg()
     ahead: list = []  # the stage's compile-ahead thread, for its seconds (loop_geometry.compile_ahead)
     start_ahead = loop_geometry.compile_ahead
@@ -320,6 +323,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=SEQUENCES)
     parser.add_argument("--frames", type=int, default=None, help="first N frames of each sequence (default: all)")
     parser.add_argument("--quick", action="store_true", help="smoke test: KITTI 08's first 500 frames, no JSON")
+    parser.add_argument(
+        "--neighbours",
+        type=int,
+        default=0,
+        help="loop_geometry_neighbours: the joint registration's chunks merged on each side (default 0)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.sequences, args.frames = ["08"], args.frames or 500
@@ -331,7 +340,7 @@ def main(argv: list[str] | None = None) -> dict:
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         for seq in args.sequences:
-            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq)
+            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours)
             records.append(rec)
             print(
                 f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
@@ -340,7 +349,7 @@ def main(argv: list[str] | None = None) -> dict:
             )
     text = table(records)
     print(text)
-    payload = {"records": records, "table": text, "quick": bool(args.quick)}
+    payload = {"records": records, "table": text, "quick": bool(args.quick), "neighbours": args.neighbours}
     if not args.quick:
         print(f"wrote {write_results('hard_sequences', payload)}")
     return payload

@@ -989,13 +989,15 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
         assert all("Z" in r for r in geometric)
 
 
-def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
+@pytest.mark.parametrize("k", [0, 1])
+def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     """The geometric stage's fixed-shape programs are traced on the compile-ahead thread
     (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`) with the argument shapes the stage then
     passes: none is traced again when the placement, the refinement, the spreads and the dense
     test run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
     fewer reliable points than the registration's subsample, padded with zero-weight rows.)
-    The chunks padded to their size bucket give the real chunks' clouds bitwise."""
+    The chunks padded to their size bucket give the real chunks' clouds bitwise.  ``k``: the
+    joint registration's neighbours (its clouds are the single ones merged)."""
     import threading
 
     from swiftjax import pipeline
@@ -1020,22 +1022,31 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path):
         chain = temporal.run(ctx, export.ChunkExport(ctx))
         with jax_log(r"Finished tracing (\S+) for jit") as traced:  # (thread, program)
             jax.clear_caches()  # (the same shapes compiled by an earlier test would not be traced at all)
-            ahead = loop_geometry.compile_ahead(ctx, chain.K_ref)
+            o = G.GeometryOptions(neighbours=k)
+            poses = chain_poses(chain.relative)
+            ahead = loop_geometry.compile_ahead(ctx, chain.K_ref, o)
             records = loop_geometry.candidates(
-                ctx, chain.K_ref, set(), config.verification, chain=chain_poses(chain.relative), ahead=ahead
+                ctx, chain.K_ref, set(), config.verification, o, chain=poses, ahead=ahead
             )
             ahead.cancel()
             stage = [name for thread, name in traced if thread != "swiftjax-geometry-compile"]
             compiled_ahead = [name for thread, name in traced if thread == "swiftjax-geometry-compile"]
             # the chunks padded to their size bucket: the real chunks' clouds are bitwise the
             # unpadded ones (the subsample keys are prefix-stable)
-            o = G.GeometryOptions()
             g, ids = loop_geometry.geometries(ctx, chain.K_ref, o)
             T = len(ids)
-            exact = loop_geometry._clouds(g, o)
-            padded = loop_geometry._clouds(loop_geometry._pad_chunks(g, loop_geometry._padded_chunks(T + 1)), o)
+            exact = loop_geometry._clouds(g, *loop_geometry._neighbour_edges(poses, T, k), o)
+            size = loop_geometry._padded_chunks(T + 1)
+            padded = loop_geometry._pad_chunks(g, size)
+            padded = loop_geometry._clouds(padded, *loop_geometry._neighbour_edges(poses, size, k), o)
             for a, b in zip(jax.tree_util.tree_leaves(exact), jax.tree_util.tree_leaves(padded)):
                 np.testing.assert_array_equal(np.asarray(b)[:T], np.asarray(a))
+            if k:  # the joint clouds are the single ones merged (merge_neighbours)
+                single = loop_geometry._clouds(g, *loop_geometry._neighbour_edges(poses, T, 0), o.replace(neighbours=0))
+                merged = G.merge_neighbours(single[0], *loop_geometry._neighbour_edges(poses, T, k))
+                got, want = np.asarray(exact[0].points), np.asarray(merged.points)  # (one fused program: ulps)
+                np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
+                np.testing.assert_array_equal(np.asarray(exact[0].weights), np.asarray(merged.weights))
     finally:
         ctx.close()
     assert ahead.errors == []
@@ -1189,3 +1200,78 @@ def test_geometries_keep_the_stored_dtype_until_the_device(small_loop_run, tmp_p
         ctx.close()
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
         np.testing.assert_array_equal(a, b)
+
+
+def _rt_matrix(R, t, s):
+    """The 4 x 4 matrix of ``x -> s R x + t`` (float64)."""
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = s * np.asarray(R, np.float64), np.asarray(t, np.float64)
+    return M
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_merge_neighbours_against_numpy_loop(k):
+    """Joint registration's clouds (:func:`swiftjax.loops.geometric.merge_neighbours` with the
+    pipeline's :func:`~swiftjax.pipeline.loop_geometry._neighbour_edges`): chunk ``c``'s merged
+    cloud is its own rows interleaved with each neighbour's mapped by ``G_c⁻¹ G_n`` (4 x 4
+    matrices in float64, a NumPy loop), weights zero for a neighbour outside the sequence and
+    for the padded chunks; origin, basis and height stay the chunk's own; the first
+    ``rows(n)`` rows hold ``n`` rows of every chunk."""
+    from swiftjax.pipeline import loop_geometry as lg
+
+    rng = np.random.default_rng(7)
+    T, Q, size = 5, 6, 7  # two padded chunks
+    mats = []
+    chain = np.zeros((T, 8))
+    for c in range(T):
+        R = np.asarray(jax.scipy.linalg.expm(jnp.asarray(np.cross(np.eye(3), rng.normal(size=3) * 0.5))))
+        t, s = rng.normal(size=3) * 20, float(np.exp(rng.normal() * 0.3))
+        mats.append(_rt_matrix(R, t, s))
+        with jax.enable_x64(True):
+            chain[c] = np.asarray(sim3.from_rst(jnp.asarray(R), jnp.asarray(t), s))
+    clouds = G.ChunkCloud(
+        rng.normal(size=(size, Q, 3)).astype(np.float32) * 5,
+        (rng.random((size, Q)) > 0.2).astype(np.float32),
+        rng.normal(size=(size, 3)).astype(np.float32),
+        np.tile(np.eye(3, dtype=np.float32), (size, 1, 1)),
+        rng.random(size).astype(np.float32) + 1,
+    )
+    edges, valid = lg._neighbour_edges(chain, size, k)
+    merged = G.merge_neighbours(clouds, edges, valid)
+    offsets = [*range(-k, 0), *range(1, k + 1)]
+    assert merged.points.shape == (size, (2 * k + 1) * Q, 3)
+    for c in range(size):
+        groups_p, groups_w = [clouds.points[c].astype(np.float64)], [clouds.weights[c]]
+        for d in offsets:
+            n = c + d
+            if c < T and 0 <= n < T:
+                M = np.linalg.inv(mats[c]) @ mats[n]
+                groups_p.append(clouds.points[n] @ M[:3, :3].T + M[:3, 3])
+                groups_w.append(clouds.weights[n])
+            else:  # the chunk's own rows under the identity, weight 0
+                groups_p.append(clouds.points[c].astype(np.float64))
+                groups_w.append(np.zeros(Q, np.float32))
+        want_w = np.stack(groups_w, 1).reshape(-1)
+        np.testing.assert_array_equal(np.asarray(merged.weights[c]), want_w)
+        got = np.asarray(merged.points[c]).reshape(Q, 2 * k + 1, 3)
+        for m, p in enumerate(groups_p):
+            scale = 1.0 + np.abs(p).max()
+            np.testing.assert_allclose(got[:, m], p, atol=2e-5 * scale, err_msg=f"chunk {c}, group {m}")
+        assert valid[c].tolist() == [c < T and 0 <= c + d < T for d in offsets]
+    for field in ("origin", "basis", "height"):
+        np.testing.assert_array_equal(np.asarray(getattr(merged, field)), getattr(clouds, field))
+    o = G.GeometryOptions(neighbours=k)
+    first = np.asarray(merged.points[2, : o.rows(2)]).reshape(2, 2 * k + 1, 3)[:, 0]
+    np.testing.assert_array_equal(first, clouds.points[2, :2])  # the chunk's own first rows lead
+
+
+def test_neighbours_option_range_and_rows():
+    """``neighbours`` below 0 is refused naming the field; ``rows(n) = n (2k + 1)``; the
+    pipeline config feeds it (``loop_geometry_neighbours``)."""
+    from swiftjax import options, pipeline
+
+    with pytest.raises(options.OptionError, match="neighbours"):
+        G.GeometryOptions(neighbours=-1)
+    assert G.GeometryOptions().rows(256) == 256 and G.GeometryOptions(neighbours=2).rows(256) == 1280
+    assert pipeline.PipelineConfig(loop_geometry_neighbours=1).geometry.neighbours == 1
+    assert pipeline.PipelineConfig().geometry == G.GeometryOptions()

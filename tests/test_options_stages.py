@@ -16,9 +16,9 @@ from swiftjax.options import OptionError
 from swiftjax.pipeline import PipelineConfig
 from swiftjax.posegraph.options import PIPELINE
 
-STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig)
-#: Every option class on the schema: the stage classes and those no PipelineConfig field feeds.
-SCHEMA_CLASSES = (*STAGE_CLASSES, GeometryOptions)
+STAGE_CLASSES = (align.AlignOptions, posegraph.GraphOptions, loops.LoopOptions, VerificationConfig, GeometryOptions)
+#: Every option class on the schema.
+SCHEMA_CLASSES = STAGE_CLASSES
 
 
 def _bad_values(s: options.Spec) -> list[object]:
@@ -158,7 +158,8 @@ def test_every_mapped_config_field_arrives_in_its_stage_options():
     assert mapped["loop_pcm"] == (VerificationConfig, "pcm")
     assert mapped["robust_loops"] == (posegraph.GraphOptions, "kernel")
     assert mapped["max_lm_steps"] == (posegraph.GraphOptions, "max_steps")
-    assert len(mapped) == 23
+    assert mapped["loop_geometry_neighbours"] == (GeometryOptions, "neighbours")
+    assert len(mapped) == 24
     default = PipelineConfig()
     changes = {}
     for name, (cls, field) in mapped.items():
@@ -243,14 +244,16 @@ def test_config_accessors_are_the_built_stage_objects():
 
 def test_default_stage_options_are_the_recorded_ones():
     """The run directory fingerprints each stage by these values: a changed default would make
-    every existing run redo its stages (hash of the default config of 151f7dd)."""
+    every existing run redo its stages (hash of the default config of 151f7dd; since issue 28's
+    ``loop_geometry_neighbours``, a run directory made before it redoes its loop stage once,
+    saying so, and keeps its chunks)."""
     import hashlib
     import json
 
     config = PipelineConfig()
     stages = {s: config.stage_options(s) for s in options.STAGES}
     digest = hashlib.sha256(json.dumps(stages, sort_keys=True).encode()).hexdigest()
-    assert digest == "0cf20edff6ff63d54fef47822c624b86130ff1bb02d6bb710b51cefb97b1d3f2", stages
+    assert digest == "b0a6f84132767a5689c4872be4ee9fcc739c0aeb39382636e9d39e899e0af8a4", stages
 
 
 def test_no_override_keywords_on_the_stage_entry_points():

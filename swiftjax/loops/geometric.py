@@ -129,6 +129,7 @@ __all__ = [
     "register_hypotheses",
     "ChunkCloud",
     "structure_cloud",
+    "merge_neighbours",
     "edge_prior",
     "bev_raster",
     "bev_spectrum",
@@ -794,6 +795,36 @@ def structure_cloud(
     return ChunkCloud(pts, ws, o, g.basis, g.height)
 
 
+def merge_neighbours(clouds: ChunkCloud, edges: Float[ArrayLike, "T M 8"], valid: Bool[ArrayLike, "T M"]) -> ChunkCloud:
+    """Every chunk's structure cloud joined with ``M = 2k`` neighbours' (the joint registration
+    of :attr:`GeometryOptions.neighbours` ``= k``): neighbour ``m`` of chunk ``c`` is placed in
+    ``c``'s coordinates by ``edges[c, m] = G_c⁻¹ G_n`` (the odometry chain's relative Sim(3),
+    ``n`` the neighbour); where ``valid[c, m]`` is False (no such chunk) the rows are chunk
+    ``c``'s own under ``edges[c, m]`` (the identity) with zero weights, whatever the other
+    chunks (padding included)::
+
+        X'_c[(M + 1) q + 0] = X_c[q],   X'_c[(M + 1) q + 1 + m] = E_{c,m}(X_{n(c,m)}[q]),
+
+    rows ``q < Q`` interleaved, so that the first ``(M + 1) n`` rows hold the first ``n`` rows of
+    every chunk (the subsamples' order, :func:`subsample`: :meth:`GeometryOptions.rows`).  The
+    origin, gravity basis and camera height stay chunk ``c``'s own, so a placement of the merged
+    cloud is an edge between the two middle chunks.  ``clouds``: ``[T, Q, ...]``, neighbour
+    ``c + d`` for ``d = −k … −1, 1 … k`` in that order (``M = 2k``; ``valid`` marks the ones
+    inside the sequence).  Pure; ``[T, (M + 1) Q, 3]`` out, one compile per shape."""
+    T = clouds.points.shape[0]
+    k = jnp.asarray(edges).shape[1] // 2
+    offsets = jnp.asarray([*range(-k, 0), *range(1, k + 1)], jnp.int32)
+    valid = jnp.asarray(valid, bool)
+    nb = jnp.where(valid, (jnp.arange(T)[:, None] + offsets[None, :]) % T, jnp.arange(T)[:, None])  # [T, M]
+    moved = sim3.act(jnp.asarray(edges, jnp.float32)[:, :, None, :], clouds.points[nb])  # [T, M, Q, 3]
+    w = clouds.weights[nb] * valid.astype(clouds.weights.dtype)[..., None]  # [T, M, Q]
+    points = jnp.concatenate([clouds.points[:, None], moved], 1)  # [T, M + 1, Q, 3]
+    weights = jnp.concatenate([clouds.weights[:, None], w], 1)
+    return clouds._replace(
+        points=jnp.swapaxes(points, 1, 2).reshape(T, -1, 3), weights=jnp.swapaxes(weights, 1, 2).reshape(T, -1)
+    )
+
+
 def edge_prior(
     Z: Float[ArrayLike, "8"], a: ChunkCloud, b: ChunkCloud
 ) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, "2"]]:
@@ -987,7 +1018,7 @@ def peak_icp(
     o = options
     up = b.basis[:, 2]
     ground = up @ b.origin - b.height
-    ps, pd = o.peak_src_points, o.peak_dst_points
+    ps, pd = o.rows(o.peak_src_points), o.rows(o.peak_dst_points)
 
     def refine(s0):
         return register(
@@ -1160,8 +1191,8 @@ def refine_placement(
     ground = up @ b.origin - b.height
     if o.refine_scale_steps > 1:
         S, _ = scale_sweep(
-            a.points[: o.src_points],
-            a.weights[: o.src_points],
+            a.points[: o.rows(o.src_points)],
+            a.weights[: o.rows(o.src_points)],
             b.points,
             b.weights,
             S,
@@ -1170,8 +1201,8 @@ def refine_placement(
             o.refine_scale_steps,
         )
     reg = register(
-        a.points[: o.src_points],
-        a.weights[: o.src_points],
+        a.points[: o.rows(o.src_points)],
+        a.weights[: o.rows(o.src_points)],
         b.points,
         b.weights,
         S,

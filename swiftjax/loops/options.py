@@ -296,6 +296,12 @@ class GeometryOptions:
             the registration subsamples, its iterations and its Tukey radii.  The target keeps
             all ``dst_points`` rows by default: with a sparser target the structure-inlier score
             cannot tell a street's half turn from the truth (tests: the corner scene).
+        neighbours: the co-visible search's joint registration: each chunk's structure cloud
+            merged with those of the ``neighbours`` chunks on each side, placed by the odometry
+            chain (:func:`swiftjax.loops.geometric.merge_neighbours`); the placement, the null
+            and the refinement then run on ``2 neighbours + 1`` times the rows
+            (:meth:`rows`), so their time grows about ``(2 neighbours + 1)²``-fold.  0: each
+            chunk alone.
     """
 
     frame_stride: int = option(5, "every k-th frame of a chunk is read", low=1)
@@ -349,6 +355,13 @@ class GeometryOptions:
     null_false_alarm: float = option(
         1e-2, "verdict: false-alarm rate of the registration null", low=0.0, high=1.0, low_open=True, high_open=True
     )
+    neighbours: int = option(
+        0,
+        "co-visible search: chunks merged on each side of both chunks of a pair, a joint registration "
+        "(1: three chunks each; 4-8x the stage's time)",
+        low=0,
+        high=4,
+    )
 
     def __post_init__(self) -> None:
         options.validate(self)
@@ -367,6 +380,11 @@ class GeometryOptions:
                 )
         if self.refine_scale_steps % 2 == 0:
             raise options.invalid("GeometryOptions.refine_scale_steps", self.refine_scale_steps, "an odd integer")
+
+    def rows(self, n: int) -> int:
+        """Rows of a merged structure cloud that hold ``n`` rows of each of its ``2 neighbours + 1``
+        chunks (:func:`swiftjax.loops.geometric.merge_neighbours` interleaves them)."""
+        return n * (2 * self.neighbours + 1)
 
     @property
     def pixel_stride(self) -> tuple[int, int]:

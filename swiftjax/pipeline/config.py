@@ -3,7 +3,7 @@
 Every field is declared with :func:`swiftjax.options.option`: type, range, choices, help and
 the stage it belongs to; a field that feeds a stage's options names it (``target=``) and takes
 its schema from it, and ``config.align`` / ``config.loops`` / ``config.verification`` /
-``config.graph`` are the stage options objects (:func:`swiftjax.options.build`).  The CLI flags, the TOML keys, validation and the run directory's
+``config.geometry`` / ``config.graph`` are the stage options objects (:func:`swiftjax.options.build`).  The CLI flags, the TOML keys, validation and the run directory's
 per-stage fingerprints all derive from these declarations.  To add an option, add one field
 in the same style (its flag ``--name-with-dashes`` appears by itself).
 """
@@ -15,7 +15,7 @@ from typing import Any
 
 from swiftjax import options
 from swiftjax.align import AlignOptions
-from swiftjax.loops.options import LoopOptions, VerificationConfig
+from swiftjax.loops.options import GeometryOptions, LoopOptions, VerificationConfig
 from swiftjax.metric_scale import METRIC_COMBINE
 from swiftjax.options import option
 from swiftjax.posegraph.options import PIPELINE as _GRAPH
@@ -44,7 +44,8 @@ class PipelineConfig:
     A field that feeds a stage option (``target=(StageClass, "field")``) is declared by that
     stage field: its default, help, range and choices are written once, in the stage class.
     The stage objects of a config: ``config.align``, ``config.loops``, ``config.verification``
-    (``= config.loops.verification_config``), ``config.graph`` (:func:`swiftjax.options.build`).
+    (``= config.loops.verification_config``), ``config.geometry`` (the geometric loop source's
+    :class:`~swiftjax.loops.options.GeometryOptions`), ``config.graph`` (:func:`swiftjax.options.build`).
     """
 
     model: str = option(
@@ -96,6 +97,7 @@ class PipelineConfig:
         "edges by point-cloud registration (swiftjax.loops.geometric)",
         stage="loops",
     )
+    loop_geometry_neighbours: int = option(target=(GeometryOptions, "neighbours"), stage="loops")
     # The pipeline's own pose-graph defaults (GNC at the chi-squared 0.99 threshold, posegraph.PIPELINE).
     robust_loops: str | None = option(_GRAPH.kernel, target=(GraphOptions, "kernel"), stage="graph")
     robust_scale: float = option(_GRAPH.scale, target=(GraphOptions, "kernel_scale"), optional=False, stage="graph")
@@ -248,6 +250,7 @@ class PipelineConfig:
     align = options.built(AlignOptions)
     loops = options.built(LoopOptions)
     verification = options.built(VerificationConfig)  # = loops.verification_config
+    geometry = options.built(GeometryOptions)  # the geometric loop source (loop_geometry)
     graph = options.built(GraphOptions)  # the pipeline's GNC defaults (posegraph.PIPELINE)
 
     def to_dict(self) -> dict[str, Any]:

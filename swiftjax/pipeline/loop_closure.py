@@ -69,7 +69,7 @@ def run(ctx: RunContext, temporal: TemporalResult, candidates: CandidateSource |
     if not (config.loop_closure and ctx.schedule.num_chunks > 2):
         return LoopResult([], [])
     # the geometric source's programs compile on a thread while the token candidates are worked on
-    ahead = loop_geometry.compile_ahead(ctx, temporal.K_ref) if config.loop_geometry else None
+    ahead = loop_geometry.compile_ahead(ctx, temporal.K_ref, config.geometry) if config.loop_geometry else None
     try:
         return _run(ctx, temporal, candidates, ahead)
     finally:
@@ -191,7 +191,7 @@ def _decide_with_geometry(
     chain = chain_poses(temporal.relative)
     with ctx.timer("loop geometry"):
         geometric = loop_geometry.candidates(
-            ctx, temporal.K_ref, taken, config.verification, chain=chain, closed=closed, ahead=ahead
+            ctx, temporal.K_ref, taken, config.verification, config.geometry, chain=chain, closed=closed, ahead=ahead
         )
     pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
     decide(ctx, temporal.relative, tokens + pool)
@@ -207,7 +207,7 @@ def _decide_with_geometry(
         ctx.log(f"loop geometry: {len(reopen)} pair(s) left unregistered beside a token loop the decision rejects")
         with ctx.timer("loop geometry"):
             more = loop_geometry.candidates(
-                ctx, temporal.K_ref, taken, config.verification, chain=chain, only=reopen, ahead=ahead
+                ctx, temporal.K_ref, taken, config.verification, config.geometry, chain=chain, only=reopen, ahead=ahead
             )
         new = {loop_geometry.chunk_pair(r): r for r in more}
         geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
