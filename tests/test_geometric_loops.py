@@ -1275,3 +1275,68 @@ def test_neighbours_option_range_and_rows():
     assert G.GeometryOptions().rows(256) == 256 and G.GeometryOptions(neighbours=2).rows(256) == 1280
     assert pipeline.PipelineConfig(loop_geometry_neighbours=1).geometry.neighbours == 1
     assert pipeline.PipelineConfig().geometry == G.GeometryOptions()
+
+
+def test_joint_registration_recovers_a_known_sim3_through_the_chain():
+    """Three chunks of one street (poles every 6 h on both sides, a building at one end), each
+    in its own gauge (yaw ±0.1 rad, scale 0.9 / 1.2, 30 h apart), merged by the chain
+    (:func:`~swiftjax.loops.geometric.merge_neighbours`), registered onto the street seen from
+    its other end (180 degrees, scale 2; the prior one pole spacing off along the street): the
+    true Sim(3) (closed form), with about three times the single chunk's structure inliers.  With
+    the neighbours placed by wrong edges (identities) the score falls: the merge is what places
+    them."""
+    from swiftjax.pipeline import loop_geometry as lg
+
+    rng = np.random.default_rng(3)
+    pts = []
+    for k in range(-9, 10):
+        for side in (-5.0, 5.0):
+            n = 40
+            pts.append(np.c_[k * 6.0 + rng.normal(0, 0.15, n), side + rng.normal(0, 0.15, n), rng.uniform(0, 4, n)])
+    t = rng.uniform(0, 1, 400)
+    pts.append(np.c_[24 + 12 * t, np.full(400, -8.0) + rng.normal(0, 0.1, 400), rng.uniform(0, 5, 400)])
+    W = rng.permutation(np.concatenate(pts).astype(np.float32))
+
+    def rigid(yaw, t, s):
+        R = jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), yaw), jnp.float32)
+        return np.asarray(sim3.from_rst(R, jnp.asarray(t, jnp.float32), s))
+
+    chain = np.stack([rigid(0.1, [-30, 0, 0], 0.9), rigid(0.0, [0, 0, 0], 1.0), rigid(-0.1, [30, 0, 0], 1.2)])
+    Q = 1024
+    points, weights = np.zeros((3, Q, 3), np.float32), np.zeros((3, Q), np.float32)
+    for c, (lo, hi) in enumerate([(-45, -15), (-15, 15), (15, 45)]):
+        seen = W[(W[:, 0] >= lo) & (W[:, 0] < hi)][:Q]
+        points[c, : len(seen)] = np.asarray(sim3.act(sim3.inverse(jnp.asarray(chain[c])), seen))
+        weights[c, : len(seen)] = 1.0
+    clouds = G.ChunkCloud(
+        points,
+        weights,
+        np.tile(np.float32([0, 0, 1]), (3, 1)),
+        np.tile(np.eye(3, dtype=np.float32), (3, 1, 1)),
+        np.ones(3, np.float32),
+    )
+    S_true = rigid(np.pi, [4.0, -3.0, 0.0], 2.0)
+    dst = np.asarray(sim3.act(jnp.asarray(S_true), W[np.abs(W[:, 0]) < 50][: 3 * Q]))
+    b = G.ChunkCloud(
+        jnp.asarray(dst),
+        jnp.ones(len(dst)),
+        sim3.act(jnp.asarray(S_true), jnp.float32([0, 0, 1])),
+        jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), np.pi), jnp.float32),
+        jnp.float32(2.0),
+    )
+    prior = sim3.compose(jnp.asarray(rigid(0.0, [-12.0, 0.0, 0.0], 1.0)), jnp.asarray(S_true))
+    single = jax.tree_util.tree_map(lambda x: x[1], clouds)
+    edges, valid = lg._neighbour_edges(chain.astype(np.float64), 3, 1)
+    joint = jax.tree_util.tree_map(lambda x: x[1], G.merge_neighbours(clouds, edges, valid))
+    wrong = jax.tree_util.tree_map(
+        lambda x: x[1], G.merge_neighbours(clouds, np.zeros_like(edges) + sim3.identity(), valid)
+    )
+    o = G.GeometryOptions(neighbours=1)
+    run = lambda a, opts: G.register_covisible(a, b, *G.edge_prior(prior, a, b), 12.0, opts)
+    got, one, bad = run(joint, o), run(single, G.GeometryOptions()), run(wrong, o)
+    M, M_true = np.asarray(sim3.as_matrix(got.registration.S)), np.asarray(sim3.as_matrix(jnp.asarray(S_true)))
+    assert bool(got.registration.valid)
+    np.testing.assert_allclose(M[:3, 3], M_true[:3, 3], atol=0.05)
+    assert float(sim3.scale(got.registration.S)) == pytest.approx(2.0, rel=1e-3)
+    assert float(got.scores.max()) > 2.5 * float(one.scores.max())
+    assert float(bad.scores.max()) < 0.6 * float(got.scores.max())
