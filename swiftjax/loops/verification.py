@@ -42,7 +42,14 @@ from swiftjax.loops.cross_chunk import (
     cross_chunk_consistency,
     dense_consistency,
 )
-from swiftjax.loops.null import NullCheck, chance_corrected, compile_null, null_consistency, null_threshold
+from swiftjax.loops.null import (
+    NullCheck,
+    chance_corrected,
+    compile_null,
+    null_consistency,
+    null_threshold,
+    sided_null_threshold,
+)
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.loops.pcm import loop_covariance, max_consistent_set, odometry_covariance, pairwise_consistency
 
@@ -54,6 +61,7 @@ __all__ = [
     "NullCheck",
     "null_consistency",
     "null_threshold",
+    "sided_null_threshold",
     "chance_corrected",
     "LoopQuality",
     "loop_chunk_quality",
@@ -138,9 +146,11 @@ def candidate_numbers(
     Keys: ``dense_agreement``, ``dense_overlap`` (the smaller direction's), ``dense_i_to_j``
     and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
     ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``; with
-    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, NaN when fewer
-    than three null edges see the other chunk), ``null_mean``, ``null_std``, ``null_samples``
-    (``K'``) and ``null_kappa`` (the chance-corrected agreement; :mod:`swiftjax.loops.null`).
+    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, the larger of the
+    two shift directions' bounds, :func:`~swiftjax.loops.null.sided_null_threshold`; NaN when
+    fewer than three null edges see the other chunk), ``null_mean`` (the larger side's),
+    ``null_std``, ``null_samples`` (``K'``) and ``null_kappa`` (the chance-corrected agreement;
+    :mod:`swiftjax.loops.null`).
     With ``null_when_needed`` the null (``K`` times the candidate's own test) runs only when it
     can change the verdict (:func:`null_needed`); otherwise ``null_skipped = True`` stands in
     for its keys and :func:`verify_candidates` rejects the candidate on its own numbers.
@@ -162,7 +172,7 @@ def candidate_numbers(
     elif config.agreement_rule == "null":
         nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
         score, null_overlap, seen = (np.asarray(a)[0] for a in nc)
-        th = null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap)
+        th = sided_null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap)
         null = {
             "null_threshold": th.threshold,
             "null_mean": th.mean,
