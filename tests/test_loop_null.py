@@ -152,11 +152,16 @@ def test_sided_null_threshold_bounds_each_shift_direction():
     flat = 0.2 + 0.03 * rng.standard_normal(16)
     one = N.sided_null_threshold(flat, overlap, seen, 0.01, 0.2)
     assert one.threshold == pytest.approx(max(bound(flat[:8]), bound(flat[8:])), abs=2e-4)
-    # a side mostly out of view: the other side decides
+    # a side mostly out of view (two samples left): its largest sample and its mean still bound
     part = overlap.copy()
     part[8:14] = 0.0
     only = N.sided_null_threshold(score, part, seen, 0.01, 0.2)
     assert only.threshold == pytest.approx(bound(plus), abs=2e-4) and only.samples == 10
+    high = score.copy()
+    high[14] = 0.9  # one of the two in view agreed 0.9
+    one_high = N.sided_null_threshold(high, part, seen, 0.01, 0.2)
+    assert one_high.threshold == 0.9
+    assert one_high.mean == pytest.approx(max(np.mean(plus), (0.9 + minus[7]) / 2))
     # neither side has three in view: the sides pooled (four samples here)
     few = np.zeros(16)
     few[[0, 1, 8, 9]] = 0.8

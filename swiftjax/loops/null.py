@@ -215,19 +215,25 @@ def sided_null_threshold(
     ``+δ``, :func:`null_offsets`) and over the last ``K/2`` (``−δ``); the candidate must beat
     both, so ``threshold = max(τ₊, τ₋)`` and ``mean = max(m₊, m₋)`` (κ's ``m``: the larger, the
     conservative one); ``std`` is the side's whose bound is the larger, ``samples`` ``K'`` both
-    sides' together.  A side with fewer than three samples in view has no bound and the other
-    side decides; with neither, the two sides pooled (:func:`null_threshold`, NaN below three)."""
+    sides' together.  A side with only one or two samples in view has no t bound: it bounds by
+    its largest sample and its mean (a wrong edge of that family agreed that much).  With no
+    side of three, the two sides pooled (:func:`null_threshold`, NaN below three in all)."""
     score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
     half = len(score) // 2
-    sides = [
-        null_threshold(score[p], overlap[p], seen[p], false_alarm, min_overlap)
-        for p in (slice(None, half), slice(half, None))
-    ]
-    bounded = [t for t in sides if math.isfinite(t.threshold)]
-    if not bounded:
+    parts = (slice(None, half), slice(half, None))
+    sides = [null_threshold(score[p], overlap[p], seen[p], false_alarm, min_overlap) for p in parts]
+    if not any(math.isfinite(t.threshold) for t in sides):
         return null_threshold(score, overlap, seen, false_alarm, min_overlap)
-    top = max(bounded, key=lambda t: t.threshold)
-    return NullThreshold(top.threshold, max(t.mean for t in bounded), top.std, sum(t.samples for t in sides))
+    bounds = []
+    for t, p in zip(sides, parts):
+        if math.isfinite(t.threshold):
+            bounds.append(t)
+        elif t.samples:  # one or two in view: their largest and their mean
+            use = np.isfinite(score[p]) & (overlap[p] >= min_overlap) & (seen[p] > 0)
+            x = score[p][use]
+            bounds.append(NullThreshold(float(x.max()), float(x.mean()), math.nan, t.samples))
+    top = max(bounds, key=lambda t: t.threshold)
+    return NullThreshold(top.threshold, max(t.mean for t in bounds), top.std, sum(t.samples for t in sides))
 
 
 def chance_corrected(agreement: float, null_mean: float) -> float:
