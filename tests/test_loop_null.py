@@ -128,8 +128,8 @@ def test_null_threshold_is_the_t_prediction_bound():
     assert flat.std == pytest.approx(math.sqrt(0.3 * 0.7 / 400))
 
 
-def test_sided_null_threshold_bounds_each_shift_direction():
-    """Two nulls, one per shift direction (:func:`swiftjax.loops.null.sided_null_threshold`):
+def test_sided_null_bounds_each_shift_direction():
+    """Two nulls, one per shift direction (:func:`swiftjax.loops.null.null_threshold` with ``sided``):
     the bound is the larger of the two sides' t prediction bounds (8 samples each: Student's
     ``t_7``), the mean the larger mean; a bimodal sample (one side keeps the road's agreement at
     every shift, synthetic KITTI 06's true candidate 20/2) no longer inflates ``s`` past the
@@ -140,7 +140,7 @@ def test_sided_null_threshold_bounds_each_shift_direction():
     score, overlap, seen = np.concatenate([plus, minus]), np.full(16, 0.8), np.full(16, 10**6)
     t_7_099 = 2.9980  # Student's t, 7 degrees of freedom, upper 1 % (tables)
     bound = lambda x: np.mean(x) + t_7_099 * np.std(x, ddof=1) * math.sqrt(1 + 1 / 8)
-    got = N.sided_null_threshold(score, overlap, seen, 0.01, 0.2)
+    got = N.null_threshold(score, overlap, seen, 0.01, 0.2, sided=True)
     assert got.threshold == pytest.approx(max(bound(plus), bound(minus)), abs=2e-4)
     assert got.mean == pytest.approx(np.mean(plus)) and got.std == pytest.approx(np.std(plus, ddof=1))
     assert got.samples == 16
@@ -150,22 +150,22 @@ def test_sided_null_threshold_bounds_each_shift_direction():
     # a unimodal null: each side's bound, the larger, is at least the pooled one's mean
     rng = np.random.default_rng(1)
     flat = 0.2 + 0.03 * rng.standard_normal(16)
-    one = N.sided_null_threshold(flat, overlap, seen, 0.01, 0.2)
+    one = N.null_threshold(flat, overlap, seen, 0.01, 0.2, sided=True)
     assert one.threshold == pytest.approx(max(bound(flat[:8]), bound(flat[8:])), abs=2e-4)
     # a side mostly out of view (two samples left): its largest sample and its mean still bound
     part = overlap.copy()
     part[8:14] = 0.0
-    only = N.sided_null_threshold(score, part, seen, 0.01, 0.2)
+    only = N.null_threshold(score, part, seen, 0.01, 0.2, sided=True)
     assert only.threshold == pytest.approx(bound(plus), abs=2e-4) and only.samples == 10
     high = score.copy()
     high[14] = 0.9  # one of the two in view agreed 0.9
-    one_high = N.sided_null_threshold(high, part, seen, 0.01, 0.2)
+    one_high = N.null_threshold(high, part, seen, 0.01, 0.2, sided=True)
     assert one_high.threshold == 0.9
     assert one_high.mean == pytest.approx(max(np.mean(plus), (0.9 + minus[7]) / 2))
     # neither side has three in view: the sides pooled (four samples here)
     few = np.zeros(16)
     few[[0, 1, 8, 9]] = 0.8
-    pooled4 = N.sided_null_threshold(score, few, seen, 0.01, 0.2)
+    pooled4 = N.null_threshold(score, few, seen, 0.01, 0.2, sided=True)
     assert pooled4 == N.null_threshold(score, few, seen, 0.01, 0.2) and pooled4.samples == 4
 
 
@@ -218,7 +218,9 @@ def test_candidate_numbers_carry_the_null():
     out = V.candidate_numbers(src, dst, S, K, half, half, cfg)
     one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))
     nc = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
-    th = N.sided_null_threshold(nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap)
+    th = N.null_threshold(
+        nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap, sided=True
+    )
     assert out["null_samples"] == th.samples and out["null_mean"] == pytest.approx(th.mean)
     assert out["null_kappa"] == pytest.approx(N.chance_corrected(out["dense_agreement"], th.mean))
     assert out["null_threshold"] == pytest.approx(th.threshold) and out["null_std"] == pytest.approx(th.std)

@@ -29,13 +29,13 @@ sample), the candidate is accepted when both hold::
 ``K = 16``, ``τ = m + 2.68 s``); ``κ`` is Cohen's chance-corrected agreement
 (``κ_min = 0.2``).
 
-**Two sides** (:func:`sided_null_threshold`, what the verification uses).  The shifts toward
-either side of the street are two nulls, not one: where one side is open (a square, a
-junction, a row of parked cars) a shift toward it keeps the road's agreement at every ``δ``
-while a shift the other way walks the façades off theirs (synthetic KITTI 06, a true
-candidate: ``0.45 … 0.48`` against ``0.20 … 0.04``).  Pooled, such a sample is no normal
-draw: its ``s`` measures the gap between the sides (0.19 there) and puts ``τ`` above the
-true candidate (0.795 against 0.682).  Each side is bounded on its own (``K/2`` samples,
+**Two sides** (:func:`null_threshold` with ``sided = True``, what the verification uses). The
+shifts toward either side of the street are two nulls, not one: where one side is open (a
+square, a junction, a row of parked cars) a shift toward it keeps the road's agreement at every
+``δ`` while a shift the other way walks the façades off theirs (synthetic KITTI 06, a true
+candidate: ``0.45 … 0.48`` against ``0.20 … 0.04``). Pooled, such a sample is no normal draw:
+its ``s`` measures the gap between the sides (0.19 there) and puts ``τ`` above the true
+candidate (0.795 against 0.682). Each side is bounded on its own (``K/2`` samples,
 ``t_{K/2−1}``) and the candidate must beat both, ``τ = max(τ₊, τ₋)``, ``m = max(m₊, m₋)``: a
 wrong edge like either family passes with probability at most ``α``.
 
@@ -67,7 +67,6 @@ __all__ = [
     "compile_null",
     "NullThreshold",
     "null_threshold",
-    "sided_null_threshold",
     "chance_corrected",
 ]
 
@@ -180,20 +179,39 @@ class NullThreshold(NamedTuple):
     samples: int
 
 
+def _in_view(score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, min_overlap: float) -> np.ndarray:
+    """The null samples that say something about chance agreement: finite, ``overlap >=
+    min_overlap`` and some pair in view."""
+    return np.isfinite(score) & (overlap >= min_overlap) & (seen > 0)
+
+
 def null_threshold(
     score: Float[ArrayLike, " K"],
     overlap: Float[ArrayLike, " K"],
     pairs_seen: Real[ArrayLike, " K"],
     false_alarm: float,
     min_overlap: float,
+    *,
+    sided: bool = False,
 ) -> NullThreshold:
     """``τ = m + t_{K'−1}(1 − α) s sqrt(1 + 1/K')`` over the null samples in view (host level;
     module docstring).  ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the
-    fewest pairs in view among them."""
+    fewest pairs in view among them.
+
+    ``sided`` (what the verification uses; module docstring, "Two sides"): each shift direction
+    a null of its own, the bound above over the first ``K/2`` samples (shifts ``+δ``,
+    :func:`null_offsets`) and over the last ``K/2`` (``−δ``); the candidate must beat both, so
+    ``threshold = max(τ₊, τ₋)`` and ``mean = max(m₊, m₋)`` (κ's ``m``: the larger, the
+    conservative one); ``std`` is the side's whose bound is the larger, ``samples`` ``K'`` both
+    sides' together.  A side with only one or two samples in view has no t bound: it bounds by
+    its largest sample and its mean (a wrong edge of that family agreed that much).  With no
+    side of three, the two sides pooled (NaN below three in all)."""
     from scipy import stats
 
     score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
-    use = np.isfinite(score) & (overlap >= min_overlap) & (seen > 0)
+    if sided:
+        return _sided(score, overlap, seen, false_alarm, min_overlap)
+    use = _in_view(score, overlap, seen, min_overlap)
     k = int(use.sum())
     if k < 3:
         return NullThreshold(math.nan, math.nan, math.nan, k)
@@ -203,22 +221,10 @@ def null_threshold(
     return NullThreshold(m + t * s * math.sqrt(1.0 + 1.0 / k), m, s, k)
 
 
-def sided_null_threshold(
-    score: Float[ArrayLike, " K"],
-    overlap: Float[ArrayLike, " K"],
-    pairs_seen: Real[ArrayLike, " K"],
-    false_alarm: float,
-    min_overlap: float,
+def _sided(
+    score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, false_alarm: float, min_overlap: float
 ) -> NullThreshold:
-    """The null's bound with each shift direction a null of its own (host level; module
-    docstring, "Two sides"): :func:`null_threshold` over the first ``K/2`` samples (shifts
-    ``+δ``, :func:`null_offsets`) and over the last ``K/2`` (``−δ``); the candidate must beat
-    both, so ``threshold = max(τ₊, τ₋)`` and ``mean = max(m₊, m₋)`` (κ's ``m``: the larger, the
-    conservative one); ``std`` is the side's whose bound is the larger, ``samples`` ``K'`` both
-    sides' together.  A side with only one or two samples in view has no t bound: it bounds by
-    its largest sample and its mean (a wrong edge of that family agreed that much).  With no
-    side of three, the two sides pooled (:func:`null_threshold`, NaN below three in all)."""
-    score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
+    """:func:`null_threshold` with ``sided = True`` (its docstring)."""
     half = len(score) // 2
     parts = (slice(None, half), slice(half, None))
     sides = [null_threshold(score[p], overlap[p], seen[p], false_alarm, min_overlap) for p in parts]
@@ -229,8 +235,7 @@ def sided_null_threshold(
         if math.isfinite(t.threshold):
             bounds.append(t)
         elif t.samples:  # one or two in view: their largest and their mean
-            use = np.isfinite(score[p]) & (overlap[p] >= min_overlap) & (seen[p] > 0)
-            x = score[p][use]
+            x = score[p][_in_view(score[p], overlap[p], seen[p], min_overlap)]
             bounds.append(NullThreshold(float(x.max()), float(x.mean()), math.nan, t.samples))
     top = max(bounds, key=lambda t: t.threshold)
     return NullThreshold(top.threshold, max(t.mean for t in bounds), top.std, sum(t.samples for t in sides))

@@ -48,7 +48,6 @@ from swiftjax.loops.null import (
     compile_null,
     null_consistency,
     null_threshold,
-    sided_null_threshold,
 )
 from swiftjax.loops.options import VerificationConfig
 from swiftjax.loops.pcm import loop_covariance, max_consistent_set, odometry_covariance, pairwise_consistency
@@ -61,7 +60,6 @@ __all__ = [
     "NullCheck",
     "null_consistency",
     "null_threshold",
-    "sided_null_threshold",
     "chance_corrected",
     "LoopQuality",
     "loop_chunk_quality",
@@ -147,7 +145,7 @@ def candidate_numbers(
     and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
     ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``; with
     ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, the larger of the
-    two shift directions' bounds, :func:`~swiftjax.loops.null.sided_null_threshold`; NaN when
+    two shift directions' bounds, :func:`~swiftjax.loops.null.null_threshold`, ``sided``; NaN when
     fewer than three null edges see the other chunk), ``null_mean`` (the larger side's),
     ``null_std``, ``null_samples`` (``K'``) and ``null_kappa`` (the chance-corrected agreement;
     :mod:`swiftjax.loops.null`).
@@ -172,7 +170,7 @@ def candidate_numbers(
     elif config.agreement_rule == "null":
         nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
         score, null_overlap, seen = (np.asarray(a)[0] for a in nc)
-        th = sided_null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap)
+        th = null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap, sided=True)
         null = {
             "null_threshold": th.threshold,
             "null_mean": th.mean,
