@@ -19,9 +19,8 @@ Those three files are compared to 1 % relative (:data:`_STATISTICS`).  Left out 
 the records' CRC32 columns and the pose graph's ``status``, which names the LM stopping test
 that fired first (``relative cost decrease`` or ``gradient``).  Re-recorded on the Xeon (commit
 2c8b1b4); the EPYC recording agreed with it under these rules.  Re-recorded for issue 28 when
-the manifest gained ``loop_geometry_neighbours`` (two more numbers, 0) and the dense test's null
-became one per shift direction (the loop's ``null_threshold`` 0.709 → 0.677, its mean and
-spread); every pose, point, image, chunk file and verdict equal to the previous recording.
+the manifest gained ``loop_geometry_neighbours`` (0) and ``loop_null_sided`` (false); every other number equal
+to the previous recording.
 """
 
 from __future__ import annotations

@@ -211,19 +211,23 @@ def test_fixed_rule_gives_the_former_verdicts(x64):
     assert got[1].reason == "depths disagree across the loop: agreement 0.540 < 0.55"
 
 
-def test_candidate_numbers_carry_the_null():
+@pytest.mark.parametrize("sided", [False, True])
+def test_candidate_numbers_carry_the_null(sided):
     src, dst, S = scene(seed=7)
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
-    cfg = V.VerificationConfig(null_samples=8)
+    cfg = V.VerificationConfig(null_samples=8, null_sided=sided)
     out = V.candidate_numbers(src, dst, S, K, half, half, cfg)
     one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))
     nc = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
     th = N.null_threshold(
-        nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap, sided=True
+        nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap, sided=sided
     )
     assert out["null_samples"] == th.samples and out["null_mean"] == pytest.approx(th.mean)
     assert out["null_kappa"] == pytest.approx(N.chance_corrected(out["dense_agreement"], th.mean))
     assert out["null_threshold"] == pytest.approx(th.threshold) and out["null_std"] == pytest.approx(th.std)
+    if not sided:  # the default pools both shift directions
+        pooled = N.null_threshold(nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap)
+        assert out["null_threshold"] == pytest.approx(pooled.threshold)
     fixed = V.candidate_numbers(src, dst, S, K, half, half, V.VerificationConfig(agreement_rule="fixed"))
     assert not any(k.startswith("null_") for k in fixed)
 

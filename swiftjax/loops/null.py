@@ -29,7 +29,7 @@ sample), the candidate is accepted when both hold::
 ``K = 16``, ``τ = m + 2.68 s``); ``κ`` is Cohen's chance-corrected agreement
 (``κ_min = 0.2``).
 
-**Two sides** (:func:`null_threshold` with ``sided = True``, what the verification uses). The
+**Two sides** (:func:`null_threshold` with ``sided = True``; ``VerificationConfig.null_sided``). The
 shifts toward either side of the street are two nulls, not one: where one side is open (a
 square, a junction, a row of parked cars) a shift toward it keeps the road's agreement at every
 ``δ`` while a shift the other way walks the façades off theirs (synthetic KITTI 06, a true
@@ -37,7 +37,11 @@ candidate: ``0.45 … 0.48`` against ``0.20 … 0.04``). Pooled, such a sample i
 its ``s`` measures the gap between the sides (0.19 there) and puts ``τ`` above the true
 candidate (0.795 against 0.682). Each side is bounded on its own (``K/2`` samples,
 ``t_{K/2−1}``) and the candidate must beat both, ``τ = max(τ₊, τ₋)``, ``m = max(m₊, m₋)``: a
-wrong edge like either family passes with probability at most ``α``.
+wrong edge like either family passes with probability at most ``α``.  It is not the default:
+with half the samples the t factor grows (``t₇`` against ``t₁₅``), and a side whose agreement
+falls steadily with ``δ`` (the nearer shifts still half-align its façades) then bounds above a
+true candidate that the pooled null passes (the test route of ``tests/test_pipeline_stages.py``:
+agreement 0.828 against 0.875; pooled 0.780).
 
 Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batched with
 ``vmap`` over the ``K`` null edges and the ``M`` candidates; fixed shapes.
@@ -198,7 +202,7 @@ def null_threshold(
     module docstring).  ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the
     fewest pairs in view among them.
 
-    ``sided`` (what the verification uses; module docstring, "Two sides"): each shift direction
+    ``sided`` (``VerificationConfig.null_sided``; module docstring, "Two sides"): each shift direction
     a null of its own, the bound above over the first ``K/2`` samples (shifts ``+δ``,
     :func:`null_offsets`) and over the last ``K/2`` (``−δ``); the candidate must beat both, so
     ``threshold = max(τ₊, τ₋)`` and ``mean = max(m₊, m₋)`` (κ's ``m``: the larger, the

@@ -96,6 +96,10 @@ class VerificationConfig:
             ``(a − m) / (1 − m)`` (Landis and Koch's "fair").
         null_min_shift, null_max_shift: the null edges' sideways offsets, fractions of the
             target chunk's median depth.
+        null_sided: each shift direction a null of its own, bounded on its ``K/2`` samples,
+            the candidate beating both (:func:`swiftjax.loops.null.null_threshold`, ``sided``;
+            docs/performance/loops.md: it accepts a true candidate whose two sides differ, and
+            rejects one whose side spreads, so it is off by default).
         min_overlap: the smaller direction's ``overlap`` (reliable points seen at all).
         depth_tolerance: relative depth agreement ``τ``.
         stride: source pixel subsampling of the dense test.
@@ -125,6 +129,9 @@ class VerificationConfig:
     null_min_kappa: float = option(0.2, "least chance-corrected agreement", low=0.0, high=1.0, high_open=True)
     null_min_shift: float = option(0.15, "smallest null offset (of the median depth)", low=0.0, low_open=True)
     null_max_shift: float = option(0.4, "largest null offset (of the median depth)", low=0.0, low_open=True)
+    null_sided: bool = option(
+        False, "bound each shift direction's null on its own (the candidate must beat both) instead of pooling them"
+    )
     min_overlap: float = option(0.2, "least fraction of reliable points seen", low=0.0, high=1.0)
     depth_tolerance: float = option(0.05, "relative depth agreement", low=0.0, low_open=True)
     stride: int = option(4, "source pixel subsampling of the dense test", low=1)

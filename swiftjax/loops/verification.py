@@ -144,9 +144,10 @@ def candidate_numbers(
     Keys: ``dense_agreement``, ``dense_overlap`` (the smaller direction's), ``dense_i_to_j``
     and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
     ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``; with
-    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ, the larger of the
-    two shift directions' bounds, :func:`~swiftjax.loops.null.null_threshold`, ``sided``; NaN when
-    fewer than three null edges see the other chunk), ``null_mean`` (the larger side's),
+    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ; with
+    ``config.null_sided`` the larger of the two shift directions' bounds,
+    :func:`~swiftjax.loops.null.null_threshold`; NaN when fewer than three null edges see the
+    other chunk), ``null_mean`` (with ``null_sided`` the larger side's),
     ``null_std``, ``null_samples`` (``K'``) and ``null_kappa`` (the chance-corrected agreement;
     :mod:`swiftjax.loops.null`).
     With ``null_when_needed`` the null (``K`` times the candidate's own test) runs only when it
@@ -170,7 +171,9 @@ def candidate_numbers(
     elif config.agreement_rule == "null":
         nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
         score, null_overlap, seen = (np.asarray(a)[0] for a in nc)
-        th = null_threshold(score, null_overlap, seen, config.null_false_alarm, config.min_overlap, sided=True)
+        th = null_threshold(
+            score, null_overlap, seen, config.null_false_alarm, config.min_overlap, sided=config.null_sided
+        )
         null = {
             "null_threshold": th.threshold,
             "null_mean": th.mean,
