@@ -25,7 +25,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
-from common import best_of, markdown_table, write_results
+from common import best_of, report_kernels
 from jax import lax
 
 from swiftjax import align, camera, sim3
@@ -166,12 +166,7 @@ def main() -> None:
         row, record = _time(name, shape, new, former, inputs, args.repeat)
         rows.append(row)
         records.append(record)
-    print(markdown_table(["kernel", "shape", "new ms", "former ms", "speed-up", "same"], rows))
-    print(f"load average before: {load[0]:.2f}, after: {os.getloadavg()[0]:.2f}")
-    path = write_results(
-        "kernels", {"records": records, "load_average_before": load, "load_average_after": os.getloadavg()}
-    )
-    print(f"wrote {path}")
+    report_kernels("kernels", ["kernel", "shape", "new ms", "former ms", "speed-up", "same"], rows, records, load)
 
 
 if __name__ == "__main__":

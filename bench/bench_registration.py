@@ -23,7 +23,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from common import best_of, markdown_table, write_results
+from common import best_of, report_kernels
 
 from swiftjax import sim3
 from swiftjax.loops import geometric
@@ -127,16 +127,8 @@ def main() -> None:
                 "bitwise_equal": same,
             }
         )
-    print(
-        markdown_table(
-            ["batch", "registrations x P x Q x passes", "block ms", "former ms", "speed-up", "CPU ratio", "same"], rows
-        )
-    )
-    print(f"load average before: {load[0]:.2f}, after: {os.getloadavg()[0]:.2f}")
-    path = write_results(
-        "registration", {"records": records, "load_average_before": load, "load_average_after": os.getloadavg()}
-    )
-    print(f"wrote {path}")
+    header = ["batch", "registrations x P x Q x passes", "block ms", "former ms", "speed-up", "CPU ratio", "same"]
+    report_kernels("registration", header, rows, records, load)
 
 
 if __name__ == "__main__":

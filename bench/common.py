@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from swiftjax.io.tables import markdown_table  # noqa: F401  (re-exported for the bench scripts)
+from swiftjax.io.tables import markdown_table  # (re-exported for the bench scripts too)
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
@@ -87,4 +87,16 @@ def write_results(name: str, payload: dict[str, Any]) -> pathlib.Path:
     body = {"benchmark": name, "timestamp": stamp, "machine": machine_info(), **payload}
     tmp.write_text(json.dumps(body, indent=2, default=float))
     os.replace(tmp, path)
+    return path
+
+
+def report_kernels(name: str, header: list[str], rows: list[list[str]], records: list[dict], load: Any) -> pathlib.Path:
+    """The tail of a kernel benchmark: its table, the load average before (``load``, taken when
+    it started) and now, and ``{"records", "load_average_before", "load_average_after"}``
+    written as ``name`` (:func:`write_results`); returns the JSON's path."""
+    print(markdown_table(header, rows))
+    after = os.getloadavg()
+    print(f"load average before: {load[0]:.2f}, after: {after[0]:.2f}")
+    path = write_results(name, {"records": records, "load_average_before": load, "load_average_after": after})
+    print(f"wrote {path}")
     return path
