@@ -138,6 +138,7 @@ __all__ = [
     "register_hypotheses",
     "ChunkCloud",
     "structure_cloud",
+    "neighbour_offsets",
     "merge_neighbours",
     "edge_prior",
     "bev_raster",
@@ -804,6 +805,12 @@ def structure_cloud(
     return ChunkCloud(pts, ws, o, g.basis, g.height)
 
 
+def neighbour_offsets(k: int) -> tuple[int, ...]:
+    """The chunk offsets ``d = −k … −1, 1 … k`` of a chunk's ``2k`` neighbours, in the order of
+    :func:`merge_neighbours`' ``edges`` and ``valid`` columns."""
+    return (*range(-k, 0), *range(1, k + 1))
+
+
 def merge_neighbours(clouds: ChunkCloud, edges: Float[ArrayLike, "T M 8"], valid: Bool[ArrayLike, "T M"]) -> ChunkCloud:
     """Every chunk's structure cloud joined with ``M = 2k`` neighbours' (the joint registration
     of :attr:`GeometryOptions.neighbours` ``= k``): neighbour ``m`` of chunk ``c`` is placed in
@@ -818,11 +825,11 @@ def merge_neighbours(clouds: ChunkCloud, edges: Float[ArrayLike, "T M 8"], valid
     every chunk (the subsamples' order, :func:`subsample`: :meth:`GeometryOptions.rows`).  The
     origin, gravity basis and camera height stay chunk ``c``'s own, so a placement of the merged
     cloud is an edge between the two middle chunks.  ``clouds``: ``[T, Q, ...]``, neighbour
-    ``c + d`` for ``d = −k … −1, 1 … k`` in that order (``M = 2k``; ``valid`` marks the ones
+    ``c + d`` for ``d`` in :func:`neighbour_offsets` (``M = 2k``; ``valid`` marks the ones
     inside the sequence).  Pure; ``[T, (M + 1) Q, 3]`` out, one compile per shape."""
     T = clouds.points.shape[0]
     k = jnp.asarray(edges).shape[1] // 2
-    offsets = jnp.asarray([*range(-k, 0), *range(1, k + 1)], jnp.int32)
+    offsets = jnp.asarray(neighbour_offsets(k), jnp.int32)
     valid = jnp.asarray(valid, bool)
     nb = jnp.where(valid, (jnp.arange(T)[:, None] + offsets[None, :]) % T, jnp.arange(T)[:, None])  # [T, M]
     moved = sim3.act(jnp.asarray(edges, jnp.float32)[:, :, None, :], clouds.points[nb])  # [T, M, Q, 3]

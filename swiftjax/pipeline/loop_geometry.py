@@ -731,34 +731,28 @@ def _clouds(geometry: geo.ChunkGeometry, edges: jax.Array, valid: jax.Array, opt
     ``c``'s subsample drawn with the ``c``-th of ``T`` keys split from ``PRNGKey(0)``), :data:`BATCH`
     chunks at a time (``lax.map``): vmapped over all of KITTI 00's 112 (padded) chunks at once
     the program held a 381 MB temporary (every chunk's points against its anchors), 30 MB this
-    way, bitwise the same clouds and 0.1 s faster.  With ``options.neighbours = k > 0`` each
+    way, bitwise the same clouds and 0.1 s faster (clouds and spectra in one map or two: bitwise
+    the same and as fast on KITTI 00).  With ``options.neighbours = k > 0`` each
     cloud is joined with its ``2k`` neighbours' (``edges [T, 2k, 8]``, ``valid [T, 2k]``:
     :func:`_neighbour_edges`; :func:`swiftjax.loops.geometric.merge_neighbours`) before its
     spectrum."""
     keys = jax.random.split(jax.random.PRNGKey(0), geometry.height.shape[0])
-    spectrum = lambda cloud: geo.bev_spectrum(cloud, options)
-
-    if options.neighbours == 0:
-
-        def one(chunk: tuple[geo.ChunkGeometry, jax.Array]) -> tuple[geo.ChunkCloud, jax.Array]:
-            cloud = geo.structure_cloud(*chunk, options)
-            return cloud, spectrum(cloud)
-
-        return jax.lax.map(one, (geometry, keys), batch_size=BATCH)
     clouds = jax.lax.map(lambda chunk: geo.structure_cloud(*chunk, options), (geometry, keys), batch_size=BATCH)
-    clouds = geo.merge_neighbours(clouds, edges, valid)
-    return clouds, jax.lax.map(spectrum, clouds, batch_size=BATCH)
+    if options.neighbours:
+        clouds = geo.merge_neighbours(clouds, edges, valid)
+    return clouds, jax.lax.map(lambda cloud: geo.bev_spectrum(cloud, options), clouds, batch_size=BATCH)
 
 
 def _neighbour_edges(chain: np.ndarray, size: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     """``(edges [size, 2k, 8] float32, valid [size, 2k])`` of
-    :func:`swiftjax.loops.geometric.merge_neighbours`: ``G_c⁻¹ G_{c+d}`` for ``d = −k … −1,
-    1 … k`` from the chain ``[T, 8]`` (composed in float64), the identity and False where
-    ``c + d`` or ``c`` lies outside the ``T`` chunks (``size >= T``: the padded chunk count)."""
+    :func:`swiftjax.loops.geometric.merge_neighbours`: ``G_c⁻¹ G_{c+d}`` for ``d`` in
+    :func:`~swiftjax.loops.geometric.neighbour_offsets` from the chain ``[T, 8]`` (composed in
+    float64), the identity and False where ``c + d`` or ``c`` lies outside the ``T`` chunks
+    (``size >= T``: the padded chunk count)."""
     from swiftjax import sim3
 
     T = len(chain)
-    offsets = [*range(-k, 0), *range(1, k + 1)]
+    offsets = geo.neighbour_offsets(k)
     c = np.arange(size)[:, None]
     n = c + np.asarray(offsets, np.int64)[None, :]
     valid = (c < T) & (n >= 0) & (n < T)
