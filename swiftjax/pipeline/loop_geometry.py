@@ -474,7 +474,6 @@ def candidates(
     test only for the candidates above their null.  ``ahead``: the programs being compiled
     (:func:`compile_ahead`): each group waited for before its first call, the rest cancelled
     once it will not run."""
-    from swiftjax import sim3
     from swiftjax.loops.null import null_threshold
 
     if chain is None:
@@ -509,8 +508,7 @@ def candidates(
         return unregistered
     ci_, cj_ = np.asarray([p[0] for p in pairs]), np.asarray([p[1] for p in pairs])
     win = np.asarray([p[2] for p in pairs], np.float32)
-    with jax.enable_x64(True):
-        Zc = np.asarray(sim3.compose(sim3.inverse(chain[cj_]), chain[ci_]), np.float32)
+    Zc = _between(chain, cj_, ci_).astype(np.float32)
     ahead.wait(_PLACEMENT)
     psi, sigma, tau = _run_batched(
         lambda *a: _priors(clouds, *a), JOB_BATCH, (Zc, ci_.astype(np.int32), cj_.astype(np.int32))
@@ -743,6 +741,15 @@ def _clouds(geometry: geo.ChunkGeometry, edges: jax.Array, valid: jax.Array, opt
     return clouds, jax.lax.map(lambda cloud: geo.bev_spectrum(cloud, options), clouds, batch_size=BATCH)
 
 
+def _between(chain: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``G_a⁻¹ G_b [..., 8]``, float64: chunk ``b`` into chunk ``a``'s coordinates by the chain
+    ``G [T, 8]`` (chunk to world), composed in float64 (``a``, ``b``: index arrays)."""
+    from swiftjax import sim3
+
+    with jax.enable_x64(True):
+        return np.asarray(sim3.compose(sim3.inverse(chain[a]), chain[b]), np.float64)
+
+
 def _neighbour_edges(chain: np.ndarray, size: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     """``(edges [size, 2k, 8] float32, valid [size, 2k])`` of
     :func:`swiftjax.loops.geometric.merge_neighbours`: ``G_c⁻¹ G_{c+d}`` for ``d`` in
@@ -756,9 +763,7 @@ def _neighbour_edges(chain: np.ndarray, size: int, k: int) -> tuple[np.ndarray, 
     c = np.arange(size)[:, None]
     n = c + np.asarray(offsets, np.int64)[None, :]
     valid = (c < T) & (n >= 0) & (n < T)
-    with jax.enable_x64(True):
-        G = np.asarray(chain, np.float64)
-        rel = np.asarray(sim3.compose(sim3.inverse(G[np.minimum(c, T - 1)]), G[np.clip(n, 0, T - 1)]))
+    rel = _between(np.asarray(chain, np.float64), np.minimum(c, T - 1), np.clip(n, 0, T - 1))
     edges = np.where(valid[..., None], rel, np.asarray(sim3.identity(), np.float64)).astype(np.float32)
     return edges.reshape(size, len(offsets), 8), valid
 
