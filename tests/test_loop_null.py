@@ -305,3 +305,84 @@ def test_candidate_numbers_null_when_needed():
     for k in full:
         if not k.startswith("null_"):
             np.testing.assert_equal(lazy[k], full[k])
+
+
+@pytest.mark.parametrize("samples", [4, 6, 16])
+def test_null_rounds_split_each_side(samples):
+    """Two disjoint rounds that together are every edge; each takes every other offset of each
+    side, so both sides (first +delta, then -delta) and the range of delta are in the first."""
+    first, second = N.null_rounds(samples)
+    assert sorted([*first, *second]) == list(range(samples))
+    offsets = N.null_offsets(samples, 0.15, 0.4)
+    half = samples // 2
+    want = [l for l in range(half) if l % 2 == 0]
+    np.testing.assert_array_equal(first, want + [half + l for l in want])
+    assert offsets[first].min() < 0 < offsets[first].max()
+    assert np.all(offsets[first][: len(want)] > 0) and np.all(offsets[first][len(want) :] < 0)
+    assert abs(offsets[first][0]) == pytest.approx(0.15)
+
+
+def test_kappa_settled_is_exact(x64):
+    """Whenever the first round settles a candidate, every completion of the null (values in
+    [0, 1], in view or not, both rules) rejects it, and so do the first round's own numbers;
+    where it does not, the completion that agrees nowhere gives kappa >= kappa_min (the bound
+    is tight)."""
+    rel, X, nodes, Z = chain_problem(4)
+    p, q = (int(v) for v in nodes[0])
+    rng = np.random.default_rng(0)
+    cfg = V.VerificationConfig(pcm=False)
+    first, second = N.null_rounds(16)
+    settled = open_ = 0
+
+    def verdict(a, score, overlap, seen, sided):
+        th = N.null_threshold(score, overlap, seen, cfg.null_false_alarm, cfg.min_overlap, sided=sided)
+        r = record(q, p, Z[0], agreement=a)
+        r.update(null_threshold=th.threshold, null_mean=th.mean, null_std=th.std, null_samples=th.samples)
+        return V.verify_candidates([r], X, rel, cfg)[0].accepted
+
+    for _ in range(300):
+        a = float(rng.uniform(0.2, 0.6))
+        s1 = rng.uniform(0, 0.4, 8) * rng.uniform(0.2, 1.0)
+        o1 = np.where(rng.uniform(size=8) < 0.85, 0.5, 0.01)  # some drawn samples out of view
+        n1 = np.full(8, 500.0)
+        stop = N.kappa_settled(a, s1, o1, n1, 8, cfg.null_min_kappa, cfg.min_overlap)
+        if stop:
+            settled += 1
+            for sided in (False, True):
+                assert not verdict(a, s1, o1, n1, sided)  # the first round's numbers
+                for completion in range(6):
+                    s2 = [np.zeros(8), np.ones(8), rng.uniform(0, 1, 8)][completion % 3]
+                    o2 = np.full(8, 0.5 if completion < 3 else 0.01)  # all in view / none
+                    s, o = np.empty(16), np.empty(16)
+                    s[first], s[second], o[first], o[second] = s1, s2, o1, o2
+                    assert not verdict(a, s, o, np.full(16, 500.0), sided), (a, s1, completion)
+        elif (o1 >= cfg.min_overlap).sum() >= 3:
+            open_ += 1
+            k = int((o1 >= cfg.min_overlap).sum())
+            m_low = s1[o1 >= cfg.min_overlap].sum() / (k + 8)
+            assert N.chance_corrected(a, m_low) >= cfg.null_min_kappa
+    assert settled > 30 and open_ > 30
+
+
+def test_candidate_numbers_null_in_rounds():
+    """Where the first round settles the verdict the second is not drawn: the first round's
+    numbers (K/2 samples), null_stopped, and the complete null's verdict."""
+    src, dst, S = scene(seed=7)
+    half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
+    rel, X, nodes, Z = chain_problem(4)
+    for kappa, stops in ((0.2, False), (0.5, True)):  # agreement 0.54, null mean 0.26: kappa 0.37
+        cfg = V.VerificationConfig(null_samples=8, null_min_kappa=kappa, pcm=False)
+        full = V.candidate_numbers(src, dst, S, K, half, half, cfg)
+        lazy = V.candidate_numbers(src, dst, S, K, half, half, cfg, null_when_needed=True)
+        assert lazy.get("null_stopped", False) is stops and "null_stopped" not in full
+        assert lazy["null_samples"] == (4 if stops else full["null_samples"])
+        if not stops:
+            for k in full:
+                np.testing.assert_equal(lazy[k], full[k])
+        verdicts = [
+            V.verify_candidates(
+                [{**record(1, 8, Z[0]), **{k: v for k, v in r.items() if k.startswith(("dense", "null"))}}], X, rel, cfg
+            )[0]
+            for r in (full, lazy)
+        ]
+        assert verdicts[0].accepted == verdicts[1].accepted == (not stops)

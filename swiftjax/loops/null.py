@@ -55,7 +55,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float, Real
+from jaxtyping import ArrayLike, Float, Int, Real
 
 from swiftjax import align, sim3
 from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
@@ -66,12 +66,14 @@ from swiftjax.loops.options import VerificationConfig
 __all__ = [
     "null_offsets",
     "null_edges",
+    "null_rounds",
     "NullCheck",
     "null_consistency",
     "compile_null",
     "NullThreshold",
     "null_threshold",
     "chance_corrected",
+    "kappa_settled",
 ]
 
 
@@ -145,16 +147,20 @@ def null_consistency(
     config: VerificationConfig | None = None,
     *,
     conf_ratio: float = _ALIGN.conf_ratio,
+    edges: Int[ArrayLike, " E"] | None = None,
 ) -> NullCheck:
     """The dense test of :func:`~swiftjax.loops.cross_chunk.cross_chunk_consistency` under the
-    ``K = config.null_samples`` null edges of each of ``M`` candidates (arguments as there).
+    ``K = config.null_samples`` null edges of each of ``M`` candidates (arguments as there);
+    ``edges``: only these of the ``K`` (indices into :func:`null_offsets`, e.g. a round of
+    :func:`null_rounds`; ``E = K`` when None).
 
-    Returns :class:`NullCheck` with ``[M, K]`` fields.  Recompiles per ``(M, F, H, W)``,
-    dtype, ``K``, ``stride`` and ``neighbours``.  Cost: ``K`` times the candidate's own test.
+    Returns :class:`NullCheck` with ``[M, E]`` fields.  Recompiles per ``(M, F, H, W)``,
+    dtype, ``E``, ``stride`` and ``neighbours``.  Cost: ``E`` times the candidate's own test.
     """
     config = VerificationConfig() if config is None else config
     args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
-    return _null_jit(*args[:6], to_device(_offsets(config), args[0].depth.dtype), *args[6:])
+    offsets = _offsets(config) if edges is None else _offsets(config)[np.asarray(edges)]
+    return _null_jit(*args[:6], to_device(offsets, args[0].depth.dtype), *args[6:])
 
 
 def _offsets(config: VerificationConfig) -> Float[np.ndarray, " K"]:
@@ -163,14 +169,34 @@ def _offsets(config: VerificationConfig) -> Float[np.ndarray, " K"]:
 
 
 def compile_null(
-    side_i, side_j, Z, K_ref, config: VerificationConfig | None = None, *, conf_ratio: float = _ALIGN.conf_ratio
+    side_i,
+    side_j,
+    Z,
+    K_ref,
+    config: VerificationConfig | None = None,
+    *,
+    conf_ratio: float = _ALIGN.conf_ratio,
+    rounds: bool = False,
 ) -> None:
     """Compile :func:`null_consistency`'s program ahead of time for arguments of these shapes
-    (``jax.ShapeDtypeStruct``s or arrays), as :func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`."""
+    (``jax.ShapeDtypeStruct``s or arrays), as :func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`:
+    for all ``K`` edges at once, or with ``rounds`` for the edges of each of :func:`null_rounds`."""
     config = VerificationConfig() if config is None else config
     args = traced_specs(side_i, side_j, Z, K_ref, conf_ratio, config)
-    offsets = jax.ShapeDtypeStruct(_offsets(config).shape, args[0].depth.dtype)
-    _null_jit.trace(*args[:6], offsets, *args[6:]).lower().compile()
+    counts = {len(r) for r in null_rounds(config.null_samples)} if rounds else {config.null_samples}
+    for E in sorted(counts):
+        offsets = jax.ShapeDtypeStruct((E,), args[0].depth.dtype)
+        _null_jit.trace(*args[:6], offsets, *args[6:]).lower().compile()
+
+
+def null_rounds(samples: int) -> tuple[Int[np.ndarray, " E1"], Int[np.ndarray, " E2"]]:
+    """The ``K = samples`` null edges (indices into :func:`null_offsets`) in two rounds: every
+    other offset of each side, ``l = 0, 2, …`` then ``l = 1, 3, …`` of both ``+δ_l`` and ``−δ_l``,
+    so that the first round already spans both sides and the whole range of ``δ`` (and splits
+    into the same two sides, first ``+δ`` then ``−δ``, for :func:`null_threshold`'s ``sided``)."""
+    half = samples // 2
+    l = np.arange(half)
+    return np.concatenate([l[0::2], half + l[0::2]]), np.concatenate([l[1::2], half + l[1::2]])
 
 
 class NullThreshold(NamedTuple):
@@ -249,3 +275,32 @@ def chance_corrected(agreement: float, null_mean: float) -> float:
     """Cohen's ``κ = (a − m) / (1 − m)``: the fraction of the pairs that do not agree by chance
     (``m``, the null's mean agreement) that agree under the candidate edge (``a``)."""
     return (agreement - null_mean) / max(1.0 - null_mean, 1e-12)
+
+
+def kappa_settled(
+    agreement: float,
+    score: Float[ArrayLike, " E"],
+    overlap: Float[ArrayLike, " E"],
+    pairs_seen: Real[ArrayLike, " E"],
+    remaining: int,
+    min_kappa: float,
+    min_overlap: float,
+) -> bool:
+    """Whether a candidate of ``agreement`` is rejected by the chance-corrected test whatever
+    the ``remaining`` null samples not drawn yet, given the ``E`` drawn (host level; exact).
+
+    With ``k >= 3`` of the drawn samples in view (:func:`null_threshold`'s rule; the complete
+    null then has a finite bound) summing to ``Σ``, the complete null's pooled mean is
+    ``m = (Σ + Σ') / (k + k')`` over the ``k' <= remaining`` further samples in view, each an
+    agreement in ``[0, 1]``, so ``m >= m_low = Σ / (k + remaining)`` (all of them in view and
+    agreeing nowhere); the sided rule's mean, the larger side's, is at least the pooled one.
+    ``κ(m) = (a − m) / (1 − m)`` falls as ``m`` grows (:func:`swiftjax.loops.verification.null_needed`),
+    so ``κ(m_low) < κ_min`` rejects the candidate under every completion.  The drawn samples'
+    own mean ``Σ / k >= m_low`` gives a ``κ`` below ``κ_min`` too: their numbers, recorded in
+    place of the complete null's, give the same verdict."""
+    score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
+    use = _in_view(score, overlap, seen, min_overlap)
+    k = int(use.sum())
+    if k < 3:
+        return False
+    return chance_corrected(agreement, float(score[use].sum()) / (k + remaining)) < min_kappa

@@ -46,7 +46,9 @@ from swiftjax.loops.null import (
     NullCheck,
     chance_corrected,
     compile_null,
+    kappa_settled,
     null_consistency,
+    null_rounds,
     null_threshold,
 )
 from swiftjax.loops.options import VerificationConfig
@@ -111,18 +113,23 @@ def loop_chunk_quality(info_i: Any, info_j: Any) -> LoopQuality:
 
 
 def compile_candidate_numbers(
-    frames: align.ChunkFrames, K_ref: Float[ArrayLike, "3 3"], config: VerificationConfig | None = None
+    frames: align.ChunkFrames,
+    K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig | None = None,
+    *,
+    null_when_needed: bool = False,
 ) -> None:
     """Compile ahead of time the programs :func:`candidate_numbers` runs on two chunks' frames
     of ``frames``' shapes (``[F, H, W]``, ``jax.ShapeDtypeStruct``s or arrays): the
     cross-chunk test and its null (:func:`~swiftjax.loops.cross_chunk.compile_cross_chunk`,
-    :func:`~swiftjax.loops.null.compile_null`)."""
+    :func:`~swiftjax.loops.null.compile_null`; its rounds with ``null_when_needed``, as
+    :func:`candidate_numbers` runs it)."""
     config = config or VerificationConfig()
     one = align.ChunkFrames(*(jax.ShapeDtypeStruct((1, *np.shape(a)), np.float32) for a in frames))
     Z = jax.ShapeDtypeStruct((1, 8), np.float32)
     K = jax.ShapeDtypeStruct(np.shape(K_ref), np.float32)
     compile_cross_chunk(one, one, Z, K, config)
-    compile_null(one, one, Z, K, config)
+    compile_null(one, one, Z, K, config, rounds=null_when_needed)
 
 
 def candidate_numbers(
@@ -152,7 +159,12 @@ def candidate_numbers(
     :mod:`swiftjax.loops.null`).
     With ``null_when_needed`` the null (``K`` times the candidate's own test) runs only when it
     can change the verdict (:func:`null_needed`); otherwise ``null_skipped = True`` stands in
-    for its keys and :func:`verify_candidates` rejects the candidate on its own numbers.
+    for its keys and :func:`verify_candidates` rejects the candidate on its own numbers.  Where
+    it runs, it runs in the two rounds of :func:`~swiftjax.loops.null.null_rounds`, the second
+    only when the first leaves the verdict open (:func:`~swiftjax.loops.null.kappa_settled`):
+    otherwise ``null_stopped = True`` and the null's keys are the first round's numbers, which
+    reject the candidate as the complete null would (the verdict is exact; the numbers are
+    those of ``K/2`` samples).
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))
@@ -169,8 +181,22 @@ def candidate_numbers(
     if config.agreement_rule == "null" and null_when_needed and not null_needed(agreement, overlap, config):
         null = {"null_skipped": True}
     elif config.agreement_rule == "null":
-        nc = null_consistency(one(side_i), one(side_j), Z, K_ref, config)
-        score, null_overlap, seen = (np.asarray(a)[0] for a in nc)
+        if null_when_needed:  # in two rounds, the second only where it can change the verdict
+            first, second = null_rounds(config.null_samples)
+            drawn = [
+                np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=first)
+            ]
+            stop = kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap)
+            if not stop:
+                rest = null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=second)
+                order = np.argsort(np.concatenate([first, second]))
+                drawn = [np.concatenate([a, np.asarray(b)[0]])[order] for a, b in zip(drawn, rest)]
+            score, null_overlap, seen = drawn
+        else:
+            stop = False
+            score, null_overlap, seen = (
+                np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config)
+            )
         th = null_threshold(
             score, null_overlap, seen, config.null_false_alarm, config.min_overlap, sided=config.null_sided
         )
@@ -180,6 +206,7 @@ def candidate_numbers(
             "null_std": th.std,
             "null_samples": th.samples,
             "null_kappa": chance_corrected(agreement, th.mean),
+            **({"null_stopped": True} if stop else {}),
         }
     return {
         "dense_agreement": agreement,
