@@ -129,7 +129,7 @@ def test_null_threshold_is_the_t_prediction_bound():
 
 
 def test_sided_null_bounds_each_shift_direction():
-    """Two nulls, one per shift direction (:func:`swiftjax.loops.null.null_threshold` with ``sided``):
+    """Two nulls, one per shift direction (:func:`swiftjax.loops.null.null_threshold`, model ``sided``):
     the bound is the larger of the two sides' t prediction bounds (8 samples each: Student's
     ``t_7``), the mean the larger mean; a bimodal sample (one side keeps the road's agreement at
     every shift, synthetic KITTI 06's true candidate 20/2) no longer inflates ``s`` past the
@@ -140,7 +140,7 @@ def test_sided_null_bounds_each_shift_direction():
     score, overlap, seen = np.concatenate([plus, minus]), np.full(16, 0.8), np.full(16, 10**6)
     t_7_099 = 2.9980  # Student's t, 7 degrees of freedom, upper 1 % (tables)
     bound = lambda x: np.mean(x) + t_7_099 * np.std(x, ddof=1) * math.sqrt(1 + 1 / 8)
-    got = N.null_threshold(score, overlap, seen, 0.01, 0.2, sided=True)
+    got = N.null_threshold(score, overlap, seen, 0.01, 0.2, model="sided")
     assert got.threshold == pytest.approx(max(bound(plus), bound(minus)), abs=2e-4)
     assert got.mean == pytest.approx(np.mean(plus)) and got.std == pytest.approx(np.std(plus, ddof=1))
     assert got.samples == 16
@@ -150,23 +150,95 @@ def test_sided_null_bounds_each_shift_direction():
     # a unimodal null: each side's bound, the larger, is at least the pooled one's mean
     rng = np.random.default_rng(1)
     flat = 0.2 + 0.03 * rng.standard_normal(16)
-    one = N.null_threshold(flat, overlap, seen, 0.01, 0.2, sided=True)
+    one = N.null_threshold(flat, overlap, seen, 0.01, 0.2, model="sided")
     assert one.threshold == pytest.approx(max(bound(flat[:8]), bound(flat[8:])), abs=2e-4)
     # a side mostly out of view (two samples left): its largest sample and its mean still bound
     part = overlap.copy()
     part[8:14] = 0.0
-    only = N.null_threshold(score, part, seen, 0.01, 0.2, sided=True)
+    only = N.null_threshold(score, part, seen, 0.01, 0.2, model="sided")
     assert only.threshold == pytest.approx(bound(plus), abs=2e-4) and only.samples == 10
     high = score.copy()
     high[14] = 0.9  # one of the two in view agreed 0.9
-    one_high = N.null_threshold(high, part, seen, 0.01, 0.2, sided=True)
+    one_high = N.null_threshold(high, part, seen, 0.01, 0.2, model="sided")
     assert one_high.threshold == 0.9
     assert one_high.mean == pytest.approx(max(np.mean(plus), (0.9 + minus[7]) / 2))
     # neither side has three in view: the sides pooled (four samples here)
     few = np.zeros(16)
     few[[0, 1, 8, 9]] = 0.8
-    pooled4 = N.null_threshold(score, few, seen, 0.01, 0.2, sided=True)
+    pooled4 = N.null_threshold(score, few, seen, 0.01, 0.2, model="sided")
     assert pooled4 == N.null_threshold(score, few, seen, 0.01, 0.2) and pooled4.samples == 4
+
+
+def ref_line_bound(x, y, ends, t):
+    """The upper prediction bound of a straight-line fit at ``ends`` (float64 loops, the textbook
+    formula; Student's ``t`` from tables): ``(bounds, fitted values)``."""
+    n = len(x)
+    xb = sum(x) / n
+    yb = sum(y) / n
+    sxx = sum((v - xb) ** 2 for v in x)
+    b = sum((u - xb) * (v - yb) for u, v in zip(x, y)) / sxx
+    a = yb - b * xb
+    s = math.sqrt(sum((v - a - b * u) ** 2 for u, v in zip(x, y)) / (n - 2))
+    fit = [a + b * e for e in ends]
+    return [f + t * s * math.sqrt(1 + 1 / n + (e - xb) ** 2 / sxx) for f, e in zip(fit, ends)], fit
+
+
+def test_trend_null_bounds_a_line_in_the_shift_per_side():
+    """Model ``trend``: per shift direction the least-squares line in ``|δ|`` and its prediction
+    bound at both ends of the range (Student's ``t_6`` for 8 samples), the larger side's bound
+    and fitted end; the two captured nulls that each other rule gets wrong: the test route's true
+    candidate (agreement 0.828; both sides fall with the shift, the sided bound is 0.875) and
+    KITTI 06's (0.682; one side flat, the other falling, the pooled bound is 0.795)."""
+    off = N.null_offsets(16, 0.15, 0.4)
+    x = list(np.abs(off[:8]))
+    t_6_099 = 3.1427  # Student's t, 6 degrees of freedom, upper 1 % (tables)
+    seen, overlap = np.full(16, 10**6), np.full(16, 0.8)  # the binomial floor is negligible
+    cases = {
+        0.828: ([0.64, 0.61, 0.53, 0.49, 0.45, 0.41, 0.33, 0.28], [0.6, 0.54, 0.51, 0.47, 0.43, 0.36, 0.3, 0.24]),
+        0.682: (
+            [0.451, 0.454, 0.459, 0.46, 0.464, 0.467, 0.472, 0.479],
+            [0.195, 0.158, 0.127, 0.097, 0.076, 0.061, 0.049, 0.039],
+        ),
+    }
+    for a, (plus, minus) in cases.items():
+        score = np.asarray(plus + minus)
+        got = N.null_threshold(score, overlap, seen, 0.01, 0.2, model="trend", offsets=off)
+        sides = [ref_line_bound(x, y, (0.15, 0.4), t_6_099) for y in (plus, minus)]
+        assert got.threshold == pytest.approx(max(max(b) for b, _ in sides), abs=3e-4)
+        assert got.mean == pytest.approx(max(max(f) for _, f in sides), abs=1e-9)
+        assert got.samples == 16
+        assert got.threshold < a and N.chance_corrected(a, got.mean) > 0.2  # accepted
+        other = [N.null_threshold(score, overlap, seen, 0.01, 0.2, model=m) for m in ("pooled", "sided")]
+        assert max(t.threshold for t in other) > a  # rejected by one of them
+    # a side whose agreement RISES with the shift (toward the true place of a wrong edge) is
+    # bounded at its far end
+    rising = np.asarray([0.1, 0.12, 0.15, 0.2, 0.26, 0.33, 0.41, 0.5] + [0.1] * 8)
+    got = N.null_threshold(rising, overlap, seen, 0.01, 0.2, model="trend", offsets=off)
+    bounds, fit = ref_line_bound(x, list(rising[:8]), (0.15, 0.4), t_6_099)
+    assert got.threshold == pytest.approx(bounds[1], abs=3e-4) and got.threshold > 0.5
+    assert got.mean == pytest.approx(fit[1])
+    # the samples' own offsets decide the sides (here shuffled) and the range (in view or not)
+    perm = np.random.default_rng(2).permutation(16)
+    shuffled = N.null_threshold(rising[perm], overlap, seen, 0.01, 0.2, model="trend", offsets=off[perm])
+    assert shuffled.threshold == pytest.approx(got.threshold) and shuffled.mean == pytest.approx(got.mean)
+    part = overlap.copy()
+    part[[0, 7]] = 0.0  # both ends out of view: still bounded at 0.15 and 0.4
+    cut = N.null_threshold(rising, part, seen, 0.01, 0.2, model="trend", offsets=off)
+    b6, _ = ref_line_bound(x[1:7], list(rising[1:7]), (0.15, 0.4), 3.7469)  # t_4
+    assert cut.threshold == pytest.approx(b6[1], abs=3e-4) and cut.samples == 14
+    # a side with fewer than four in view: its largest sample and mean; neither side: pooled
+    part = overlap.copy()
+    part[8:13] = 0.0  # three of the minus side in view
+    three = N.null_threshold(rising, part, seen, 0.01, 0.2, model="trend", offsets=off)
+    assert three.threshold == pytest.approx(bounds[1], abs=3e-4) and three.samples == 11
+    few = np.zeros(16)
+    few[[0, 1, 2, 8, 9]] = 0.8
+    pooled = N.null_threshold(rising, few, seen, 0.01, 0.2, model="trend", offsets=off)
+    assert pooled == N.null_threshold(rising, few, seen, 0.01, 0.2) and pooled.samples == 5
+    with pytest.raises(ValueError, match="needs the samples' offsets"):
+        N.null_threshold(rising, overlap, seen, 0.01, 0.2, model="trend")
+    with pytest.raises(ValueError, match="one of trend, pooled, sided"):
+        N.null_threshold(rising, overlap, seen, 0.01, 0.2, model="tuned")
 
 
 def test_chance_corrected_agreement():
@@ -211,23 +283,28 @@ def test_fixed_rule_gives_the_former_verdicts(x64):
     assert got[1].reason == "depths disagree across the loop: agreement 0.540 < 0.55"
 
 
-@pytest.mark.parametrize("sided", [False, True])
-def test_candidate_numbers_carry_the_null(sided):
+@pytest.mark.parametrize("model", ["trend", "pooled", "sided"])
+def test_candidate_numbers_carry_the_null(model):
     src, dst, S = scene(seed=7)
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
-    cfg = V.VerificationConfig(null_samples=8, null_sided=sided)
+    cfg = V.VerificationConfig(null_samples=8, null_model=model)
     out = V.candidate_numbers(src, dst, S, K, half, half, cfg)
     one = lambda f: align.ChunkFrames(*(np.asarray(a)[None] for a in f))
     nc = N.null_consistency(one(src), one(dst), np.asarray(S)[None], K, cfg)
+    offsets = N.null_offsets(8, cfg.null_min_shift, cfg.null_max_shift)
     th = N.null_threshold(
-        nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap, sided=sided
+        nc.score[0],
+        nc.overlap[0],
+        nc.pairs_seen[0],
+        cfg.null_false_alarm,
+        cfg.min_overlap,
+        model=model,
+        offsets=offsets,
     )
     assert out["null_samples"] == th.samples and out["null_mean"] == pytest.approx(th.mean)
     assert out["null_kappa"] == pytest.approx(N.chance_corrected(out["dense_agreement"], th.mean))
     assert out["null_threshold"] == pytest.approx(th.threshold) and out["null_std"] == pytest.approx(th.std)
-    if not sided:  # the default pools both shift directions
-        pooled = N.null_threshold(nc.score[0], nc.overlap[0], nc.pairs_seen[0], cfg.null_false_alarm, cfg.min_overlap)
-        assert out["null_threshold"] == pytest.approx(pooled.threshold)
+    assert V.VerificationConfig().null_model == "trend"  # the default
     fixed = V.candidate_numbers(src, dst, S, K, half, half, V.VerificationConfig(agreement_rule="fixed"))
     assert not any(k.startswith("null_") for k in fixed)
 
@@ -334,8 +411,10 @@ def test_kappa_settled_is_exact(x64):
     first, second = N.null_rounds(16)
     settled = open_ = 0
 
-    def verdict(a, score, overlap, seen, sided):
-        th = N.null_threshold(score, overlap, seen, cfg.null_false_alarm, cfg.min_overlap, sided=sided)
+    off = N.null_offsets(16, cfg.null_min_shift, cfg.null_max_shift)
+
+    def verdict(a, score, overlap, seen, model, offsets):
+        th = N.null_threshold(score, overlap, seen, cfg.null_false_alarm, cfg.min_overlap, model=model, offsets=offsets)
         r = record(q, p, Z[0], agreement=a)
         r.update(null_threshold=th.threshold, null_mean=th.mean, null_std=th.std, null_samples=th.samples)
         return V.verify_candidates([r], X, rel, cfg)[0].accepted
@@ -348,14 +427,14 @@ def test_kappa_settled_is_exact(x64):
         stop = N.kappa_settled(a, s1, o1, n1, 8, cfg.null_min_kappa, cfg.min_overlap)
         if stop:
             settled += 1
-            for sided in (False, True):
-                assert not verdict(a, s1, o1, n1, sided)  # the first round's numbers
+            for model in ("trend", "pooled", "sided"):
+                assert not verdict(a, s1, o1, n1, model, off[first])  # the first round's numbers
                 for completion in range(6):
                     s2 = [np.zeros(8), np.ones(8), rng.uniform(0, 1, 8)][completion % 3]
                     o2 = np.full(8, 0.5 if completion < 3 else 0.01)  # all in view / none
                     s, o = np.empty(16), np.empty(16)
                     s[first], s[second], o[first], o[second] = s1, s2, o1, o2
-                    assert not verdict(a, s, o, np.full(16, 500.0), sided), (a, s1, completion)
+                    assert not verdict(a, s, o, np.full(16, 500.0), model, off), (a, s1, completion)
         elif (o1 >= cfg.min_overlap).sum() >= 3:
             open_ += 1
             k = int((o1 >= cfg.min_overlap).sum())
@@ -371,7 +450,7 @@ def test_candidate_numbers_null_in_rounds():
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
     rel, X, nodes, Z = chain_problem(4)
     for kappa, stops in ((0.2, False), (0.5, True)):  # agreement 0.54, null mean 0.26: kappa 0.37
-        cfg = V.VerificationConfig(null_samples=8, null_min_kappa=kappa, pcm=False)
+        cfg = V.VerificationConfig(null_samples=8, null_min_kappa=kappa, null_model="pooled", pcm=False)
         full = V.candidate_numbers(src, dst, S, K, half, half, cfg)
         lazy = V.candidate_numbers(src, dst, S, K, half, half, cfg, null_when_needed=True)
         assert lazy.get("null_stopped", False) is stops and "null_stopped" not in full

@@ -48,6 +48,7 @@ from swiftjax.loops.options import (
     AUTHORS_THRESHOLD,
     DEFAULT_FALSE_ALARMS,
     DEFAULT_THRESHOLD,
+    NULL_MODELS,
     THRESHOLD_RULES,
     VERIFICATION_RULES,
     LoopOptions,
@@ -56,6 +57,7 @@ from swiftjax.loops.options import (
 __all__ = [
     "LoopOptions",
     "AGREEMENT_RULES",
+    "NULL_MODELS",
     "frame_descriptor",
     "power_normalize",
     "Whitening",

@@ -27,21 +27,33 @@ sample), the candidate is accepted when both hold::
 
 ``τ`` is the one-sided upper prediction bound of one more null draw (``α = 0.01``; with
 ``K = 16``, ``τ = m + 2.68 s``); ``κ`` is Cohen's chance-corrected agreement
-(``κ_min = 0.2``).
+(``κ_min = 0.2``).  That is the ``pooled`` model; the default, ``trend``, bounds ``τ`` and ``m``
+per shift direction along a line in the shift (below).
 
-**Two sides** (:func:`null_threshold` with ``sided = True``; ``VerificationConfig.null_sided``). The
-shifts toward either side of the street are two nulls, not one: where one side is open (a
-square, a junction, a row of parked cars) a shift toward it keeps the road's agreement at every
-``δ`` while a shift the other way walks the façades off theirs (synthetic KITTI 06, a true
-candidate: ``0.45 … 0.48`` against ``0.20 … 0.04``). Pooled, such a sample is no normal draw:
-its ``s`` measures the gap between the sides (0.19 there) and puts ``τ`` above the true
-candidate (0.795 against 0.682). Each side is bounded on its own (``K/2`` samples,
-``t_{K/2−1}``) and the candidate must beat both, ``τ = max(τ₊, τ₋)``, ``m = max(m₊, m₋)``: a
-wrong edge like either family passes with probability at most ``α``.  It is not the default:
-with half the samples the t factor grows (``t₇`` against ``t₁₅``), and a side whose agreement
-falls steadily with ``δ`` (the nearer shifts still half-align its façades) then bounds above a
-true candidate that the pooled null passes (the test route of ``tests/test_pipeline_stages.py``:
-agreement 0.828 against 0.875; pooled 0.780).
+**Two sides, a line in the shift** (:func:`null_threshold`'s ``model``,
+``VerificationConfig.null_model``; the default ``trend``).  The samples are no ``K`` draws of
+one distribution: each is a smooth function of its shift.  The shifts toward either side of
+the street are two families (where one side is open, a square, a junction, a row of parked
+cars, a shift toward it keeps the road's agreement at every ``δ`` while a shift the other way
+walks the façades off theirs: synthetic KITTI 06, a true candidate, ``0.45 … 0.48`` against
+``0.20 … 0.04``), and within a family the agreement falls (or rises) steadily with ``|δ|``
+(the nearer shifts still half-align the façades: ``0.64 → 0.28`` on the test route of
+``tests/test_pipeline_stages.py``).  Pooled (``pooled``, the rule before), the sample
+deviation ``s`` measures the gap between the sides and the trend, not the noise, and puts
+``τ`` above a true candidate (06: 0.795 against 0.682); bounded per side as draws of their
+own (``sided``), the trend alone does (the test route: 0.875 against 0.828).  ``trend`` fits
+per side the least-squares line ``a(x) = â + b̂ (x − x̄)`` in ``x = |δ|`` over the ``n`` samples
+in view and bounds a wrong edge of that family anywhere in the shifts' range by the line's
+one-sided prediction bound, largest at an end ``e`` of the range::
+
+    τ_side = max_e  â + b̂ (e − x̄) + t_{n−2}(1 − α) s sqrt(1 + 1/n + (e − x̄)² / S_xx)
+
+(``s``: the residual deviation, floored as above; ``S_xx = Σ (x − x̄)²``); the candidate must
+beat both sides, ``τ = max(τ₊, τ₋)``, and ``κ``'s ``m`` is the larger fitted end (at least the
+side's mean): a wrong edge of either family passes with probability at most ``α`` at every
+shift in the range.  On the captured nulls of five routes at three aliasing levels
+(docs/performance/loops.md) it accepts every true candidate's dense test (the pooled rule
+loses one on KITTI 06, the sided one one on the test route) and rejects every false one.
 
 Pure and jit-compiled (:func:`null_consistency`): the existing dense test, batched with
 ``vmap`` over the ``K`` null edges and the ``M`` candidates; fixed shapes.
@@ -193,7 +205,8 @@ def null_rounds(samples: int) -> tuple[Int[np.ndarray, " E1"], Int[np.ndarray, "
     """The ``K = samples`` null edges (indices into :func:`null_offsets`) in two rounds: every
     other offset of each side, ``l = 0, 2, …`` then ``l = 1, 3, …`` of both ``+δ_l`` and ``−δ_l``,
     so that the first round already spans both sides and the whole range of ``δ`` (and splits
-    into the same two sides, first ``+δ`` then ``−δ``, for :func:`null_threshold`'s ``sided``)."""
+    into the same two sides, first ``+δ`` then ``−δ``, for :func:`null_threshold`'s ``sided``
+    model)."""
     half = samples // 2
     l = np.arange(half)
     return np.concatenate([l[0::2], half + l[0::2]]), np.concatenate([l[1::2], half + l[1::2]])
@@ -222,25 +235,61 @@ def null_threshold(
     false_alarm: float,
     min_overlap: float,
     *,
-    sided: bool = False,
+    model: str = "pooled",
+    offsets: Float[ArrayLike, " K"] | None = None,
 ) -> NullThreshold:
-    """``τ = m + t_{K'−1}(1 − α) s sqrt(1 + 1/K')`` over the null samples in view (host level;
-    module docstring).  ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the
-    fewest pairs in view among them.
+    """The null's bound ``τ`` on a wrong edge's agreement, from its samples in view (host
+    level; ``model``: :data:`~swiftjax.loops.options.NULL_MODELS`, module docstring).
 
-    ``sided`` (``VerificationConfig.null_sided``; module docstring, "Two sides"): each shift direction
-    a null of its own, the bound above over the first ``K/2`` samples (shifts ``+δ``,
-    :func:`null_offsets`) and over the last ``K/2`` (``−δ``); the candidate must beat both, so
-    ``threshold = max(τ₊, τ₋)`` and ``mean = max(m₊, m₋)`` (κ's ``m``: the larger, the
-    conservative one); ``std`` is the side's whose bound is the larger, ``samples`` ``K'`` both
-    sides' together.  A side with only one or two samples in view has no t bound: it bounds by
-    its largest sample and its mean (a wrong edge of that family agreed that much).  With no
-    side of three, the two sides pooled (NaN below three in all)."""
+    ``pooled``: ``τ = m + t_{K'−1}(1 − α) s sqrt(1 + 1/K')`` over the samples in view,
+    ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the fewest pairs in view
+    among them.
+
+    ``sided`` ("Two sides"): the pooled bound over the first ``K/2`` samples (shifts ``+δ``,
+    :func:`null_offsets`) and over the last ``K/2`` (``−δ``).  ``trend`` ("A line in the
+    shift"; needs ``offsets [K]``, the samples' ``δ``): per shift direction the least-squares
+    line in ``|δ|`` and its prediction bound at both ends of the direction's range.  With
+    either, the candidate must beat both directions, so ``threshold`` and ``mean`` (κ's ``m``)
+    are the larger direction's (the conservative one), ``std`` the direction's whose bound is
+    the larger, ``samples`` ``K'`` both together.  A direction with too few samples in view
+    for its bound (``sided``: 1–2, ``trend``: 1–3) bounds by its largest sample and its mean (a
+    wrong edge of that family agreed that much); with no direction of its own bound, the
+    samples pooled (NaN below three in all)."""
+    score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
+    if model == "pooled":
+        return _pooled(score, overlap, seen, false_alarm, min_overlap)
+    if model == "sided":
+        half = len(score) // 2
+        parts = [np.arange(len(score)) < half, np.arange(len(score)) >= half]
+        bound = lambda p: _pooled(score[p], overlap[p], seen[p], false_alarm, min_overlap)
+    elif model == "trend":
+        if offsets is None:
+            raise ValueError("null_threshold: model 'trend' needs the samples' offsets")
+        delta = np.asarray(offsets, np.float64).reshape(-1)
+        parts = [delta > 0, delta < 0]
+        bound = lambda p: _line(np.abs(delta[p]), score[p], overlap[p], seen[p], false_alarm, min_overlap)
+    else:
+        raise ValueError(f"null_threshold: model must be one of trend, pooled, sided; got {model!r}")
+    bounds = []
+    for p in parts:
+        t = bound(p)
+        if math.isfinite(t.threshold):
+            bounds.append(t)
+        elif t.samples:  # too few in view for a bound: their largest and their mean
+            x = score[p][_in_view(score[p], overlap[p], seen[p], min_overlap)]
+            bounds.append(NullThreshold(float(x.max()), float(x.mean()), math.nan, t.samples))
+    if not any(math.isfinite(t.std) for t in bounds):
+        return _pooled(score, overlap, seen, false_alarm, min_overlap)
+    top = max(bounds, key=lambda t: t.threshold)
+    return NullThreshold(top.threshold, max(t.mean for t in bounds), top.std, sum(t.samples for t in bounds))
+
+
+def _pooled(
+    score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, false_alarm: float, min_overlap: float
+) -> NullThreshold:
+    """:func:`null_threshold` with ``model = "pooled"`` (its docstring)."""
     from scipy import stats
 
-    score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
-    if sided:
-        return _sided(score, overlap, seen, false_alarm, min_overlap)
     use = _in_view(score, overlap, seen, min_overlap)
     k = int(use.sum())
     if k < 3:
@@ -251,24 +300,36 @@ def null_threshold(
     return NullThreshold(m + t * s * math.sqrt(1.0 + 1.0 / k), m, s, k)
 
 
-def _sided(
-    score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, false_alarm: float, min_overlap: float
+def _line(
+    x: np.ndarray, score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, false_alarm: float, min_overlap: float
 ) -> NullThreshold:
-    """:func:`null_threshold` with ``sided = True`` (its docstring)."""
-    half = len(score) // 2
-    parts = (slice(None, half), slice(half, None))
-    sides = [null_threshold(score[p], overlap[p], seen[p], false_alarm, min_overlap) for p in parts]
-    if not any(math.isfinite(t.threshold) for t in sides):
-        return null_threshold(score, overlap, seen, false_alarm, min_overlap)
-    bounds = []
-    for t, p in zip(sides, parts):
-        if math.isfinite(t.threshold):
-            bounds.append(t)
-        elif t.samples:  # one or two in view: their largest and their mean
-            x = score[p][_in_view(score[p], overlap[p], seen[p], min_overlap)]
-            bounds.append(NullThreshold(float(x.max()), float(x.mean()), math.nan, t.samples))
-    top = max(bounds, key=lambda t: t.threshold)
-    return NullThreshold(top.threshold, max(t.mean for t in bounds), top.std, sum(t.samples for t in sides))
+    """One shift direction's bound under ``model = "trend"`` (module docstring, "A line in the
+    shift"): the line ``â + b̂ (x − x̄)`` fitted to the ``n >= 4`` samples in view at shifts
+    ``x = |δ|``, ``s = max(residual std on n − 2 degrees of freedom, sqrt(ȳ (1 − ȳ) / n_min))``,
+    and the larger of its upper prediction bounds at the ends ``e`` of ``x``'s range (all of
+    ``x``, in view or not)::
+
+        τ = max_e  â + b̂ (e − x̄) + t_{n−2}(1 − α) s sqrt(1 + 1/n + (e − x̄)² / S_xx)
+
+    ``mean``: the larger fitted end, clipped to ``[0, 1]`` (at least ``ȳ``: the line passes
+    through ``(x̄, ȳ)``).  NaN threshold (and std) below four samples in view."""
+    from scipy import stats
+
+    use = _in_view(score, overlap, seen, min_overlap)
+    n = int(use.sum())
+    xs, y = x[use], score[use]
+    sxx = float(np.sum((xs - xs.mean()) ** 2)) if n else 0.0
+    if n < 4 or sxx <= 0.0:
+        return NullThreshold(math.nan, math.nan, math.nan, n)
+    xb, yb = float(xs.mean()), float(y.mean())
+    slope = float(np.sum((xs - xb) * (y - yb))) / sxx
+    residual = y - (yb + slope * (xs - xb))
+    s = max(math.sqrt(float(np.sum(residual**2)) / (n - 2)), math.sqrt(yb * (1 - yb) / float(seen[use].min())))
+    t = float(stats.t.ppf(1.0 - false_alarm, n - 2))
+    ends = np.array([x.min(), x.max()])
+    fit = yb + slope * (ends - xb)
+    tau = fit + t * s * np.sqrt(1.0 + 1.0 / n + (ends - xb) ** 2 / sxx)
+    return NullThreshold(float(tau.max()), float(np.clip(fit.max(), 0.0, 1.0)), s, n)
 
 
 def chance_corrected(agreement: float, null_mean: float) -> float:
@@ -293,7 +354,8 @@ def kappa_settled(
     null then has a finite bound) summing to ``Σ``, the complete null's pooled mean is
     ``m = (Σ + Σ') / (k + k')`` over the ``k' <= remaining`` further samples in view, each an
     agreement in ``[0, 1]``, so ``m >= m_low = Σ / (k + remaining)`` (all of them in view and
-    agreeing nowhere); the sided rule's mean, the larger side's, is at least the pooled one.
+    agreeing nowhere); the ``sided`` and ``trend`` models' mean, the larger side's (its mean or
+    its larger fitted end, at least its mean), is at least the pooled one.
     ``κ(m) = (a − m) / (1 − m)`` falls as ``m`` grows (:func:`swiftjax.loops.verification.null_needed`),
     so ``κ(m_low) < κ_min`` rejects the candidate under every completion.  The drawn samples'
     own mean ``Σ / k >= m_low`` gives a ``κ`` below ``κ_min`` too: their numbers, recorded in

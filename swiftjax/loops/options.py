@@ -31,6 +31,7 @@ __all__ = [
     "NMS_RULES",
     "VERIFICATION_RULES",
     "AGREEMENT_RULES",
+    "NULL_MODELS",
 ]
 
 #: Cosine threshold on *whitened* descriptors ẑ (d′ = 512) for ``rule="fixed"``.  The
@@ -65,6 +66,10 @@ VERIFICATION_RULES = ("geometric", "none")
 #: two chunks give under clearly wrong edges (:mod:`swiftjax.loops.null`, no tuned constant);
 #: ``"fixed"``: against ``min_agreement`` (0.55, read off KITTI 00 and the demo).
 AGREEMENT_RULES = ("null", "fixed")
+#: How the dense test's null samples bound a wrong edge's agreement
+#: (:func:`swiftjax.loops.null.null_threshold`): a line in the shift per side, both sides pooled,
+#: or each side's samples as draws of their own.
+NULL_MODELS = ("trend", "pooled", "sided")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,10 +101,12 @@ class VerificationConfig:
             ``(a − m) / (1 − m)`` (Landis and Koch's "fair").
         null_min_shift, null_max_shift: the null edges' sideways offsets, fractions of the
             target chunk's median depth.
-        null_sided: each shift direction a null of its own, bounded on its ``K/2`` samples,
-            the candidate beating both (:func:`swiftjax.loops.null.null_threshold`, ``sided``;
-            docs/performance/loops.md: it accepts a true candidate whose two sides differ, and
-            rejects one whose side spreads, so it is off by default).
+        null_model: :data:`NULL_MODELS`, how the null samples bound a wrong edge's agreement
+            (:func:`swiftjax.loops.null.null_threshold`): ``trend`` (each shift direction's
+            agreement a line in the shift, the candidate above both lines' prediction bounds
+            over the shifts' range), ``pooled`` (both directions' samples one normal sample,
+            the rule before it) or ``sided`` (each direction's samples their own normal
+            sample); docs/performance/loops.md for what each does on which route.
         min_overlap: the smaller direction's ``overlap`` (reliable points seen at all).
         depth_tolerance: relative depth agreement ``τ``.
         stride: source pixel subsampling of the dense test.
@@ -129,8 +136,11 @@ class VerificationConfig:
     null_min_kappa: float = option(0.2, "least chance-corrected agreement", low=0.0, high=1.0, high_open=True)
     null_min_shift: float = option(0.15, "smallest null offset (of the median depth)", low=0.0, low_open=True)
     null_max_shift: float = option(0.4, "largest null offset (of the median depth)", low=0.0, low_open=True)
-    null_sided: bool = option(
-        False, "bound each shift direction's null on its own (the candidate must beat both) instead of pooling them"
+    null_model: str = option(
+        "trend",
+        "how the null samples bound a wrong edge's agreement: a line in the shift per shift direction, "
+        "one normal sample, or one per direction",
+        choices=NULL_MODELS,
     )
     min_overlap: float = option(0.2, "least fraction of reliable points seen", low=0.0, high=1.0)
     depth_tolerance: float = option(0.05, "relative depth agreement", low=0.0, low_open=True)

@@ -48,6 +48,7 @@ from swiftjax.loops.null import (
     compile_null,
     kappa_settled,
     null_consistency,
+    null_offsets,
     null_rounds,
     null_threshold,
 )
@@ -151,11 +152,11 @@ def candidate_numbers(
     Keys: ``dense_agreement``, ``dense_overlap`` (the smaller direction's), ``dense_i_to_j``
     and ``dense_j_to_i`` (every :class:`ConsistencyInfo` field), ``quality_valid``,
     ``quality_min_points``, ``quality_min_fraction``, ``quality_max_rms``; with
-    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ; with
-    ``config.null_sided`` the larger of the two shift directions' bounds,
-    :func:`~swiftjax.loops.null.null_threshold`; NaN when fewer than three null edges see the
-    other chunk), ``null_mean`` (with ``null_sided`` the larger side's),
-    ``null_std``, ``null_samples`` (``K'``) and ``null_kappa`` (the chance-corrected agreement;
+    ``config.agreement_rule = "null"`` also the null's ``null_threshold`` (τ under
+    ``config.null_model``, :func:`~swiftjax.loops.null.null_threshold`: with ``trend`` and
+    ``sided`` the larger of the two shift directions' bounds; NaN when fewer than three null
+    edges see the other chunk), ``null_mean`` (κ's ``m``; with ``trend`` and ``sided`` the
+    larger direction's), ``null_std``, ``null_samples`` (``K'``) and ``null_kappa`` (the chance-corrected agreement;
     :mod:`swiftjax.loops.null`).
     With ``null_when_needed`` the null (``K`` times the candidate's own test) runs only when it
     can change the verdict (:func:`null_needed`); otherwise ``null_skipped = True`` stands in
@@ -181,24 +182,33 @@ def candidate_numbers(
     if config.agreement_rule == "null" and null_when_needed and not null_needed(agreement, overlap, config):
         null = {"null_skipped": True}
     elif config.agreement_rule == "null":
+        edges, stop = np.arange(config.null_samples), False
         if null_when_needed:  # in two rounds, the second only where it can change the verdict
             first, second = null_rounds(config.null_samples)
             drawn = [
                 np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=first)
             ]
             stop = kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap)
-            if not stop:
+            if stop:
+                edges = first
+            else:
                 rest = null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=second)
                 order = np.argsort(np.concatenate([first, second]))
                 drawn = [np.concatenate([a, np.asarray(b)[0]])[order] for a, b in zip(drawn, rest)]
             score, null_overlap, seen = drawn
         else:
-            stop = False
             score, null_overlap, seen = (
                 np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config)
             )
+        offsets = null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)[edges]
         th = null_threshold(
-            score, null_overlap, seen, config.null_false_alarm, config.min_overlap, sided=config.null_sided
+            score,
+            null_overlap,
+            seen,
+            config.null_false_alarm,
+            config.min_overlap,
+            model=config.null_model,
+            offsets=offsets,
         )
         null = {
             "null_threshold": th.threshold,

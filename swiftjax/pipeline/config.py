@@ -91,7 +91,7 @@ class PipelineConfig:
     loop_min_agreement: float = option(target=(VerificationConfig, "min_agreement"), stage="loops")
     loop_agreement: str = option(target=(VerificationConfig, "agreement_rule"), stage="loops")
     loop_pcm: bool = option(target=(VerificationConfig, "pcm"), stage="loops")
-    loop_null_sided: bool = option(target=(VerificationConfig, "null_sided"), stage="loops")
+    loop_null_model: str = option(target=(VerificationConfig, "null_model"), stage="loops")
     loop_geometry: bool = option(
         False,
         "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "

@@ -161,26 +161,25 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
 class CompileAhead:
     """The stage's fixed-shape programs traced and compiled on a background thread
     (:func:`compile_ahead`), in groups the stage needs one after the other (the clouds, the
-    placement, the refinement and dense test).  The first group starts at once (it runs beside
-    the token candidates' work); a later one when the stage says it will be needed
-    (:meth:`start`: the placement's when the stage begins, beside the clouds' work; the
-    refinement's once there are placement jobs, beside them), so that a run whose stage
-    registers nothing does not compile what it never runs.  :meth:`wait` for a group before
-    its first call; :meth:`cancel` once the rest will not run.  A compile that fails is recorded
-    in ``errors`` and left to the stage (the same call then compiles there, and raises there if
-    it must).  ``seconds``: the thread's busy time (not in the run's stage timer, whose seconds
-    each count once; the benchmark adds it to the stage's cost)."""
+    placement, the refinement and dense test), all of them one after the other from the loop
+    stage's start, beside the token candidates' work that comes before the stage (on synthetic
+    KITTI 00 they are compiled by the time it begins: the stage 6.3 s instead of 8.4–8.6 with
+    the placement's and the refinement's groups compiled beside the stage's own work, in the
+    same A/B of ``bench/bench_hard_sequences.py``).  :meth:`wait` for a group before its first
+    call; :meth:`cancel` once the rest will not run (a run whose stage registers nothing, such
+    as the demo's, compiles them for nothing on this thread, beside its token work: about 3 s of
+    it, the run's wall time within its noise).  A compile that fails is recorded in ``errors``
+    and left to the stage (the same call then compiles there, and raises there if it must).
+    ``seconds``: the thread's busy time (not in the run's stage timer, whose seconds each count
+    once; the benchmark adds it to the stage's cost)."""
 
     def __init__(self, groups: list[list[Callable[[], Any]]]) -> None:
         import threading
 
         self.errors: list[str] = []
         self.seconds = 0.0
-        self._go = [threading.Event() for _ in groups]
         self._done = [threading.Event() for _ in groups]
         self._stop = threading.Event()
-        if groups:
-            self._go[0].set()
         self._thread = threading.Thread(target=self._run, args=(groups,), name="swiftjax-geometry-compile", daemon=True)
         self._thread.start()
 
@@ -194,8 +193,7 @@ class CompileAhead:
         with contextlib.suppress(OSError, AttributeError):
             os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), _NICENESS)
         try:
-            for go, done, plans in zip(self._go, self._done, groups):
-                go.wait()
+            for done, plans in zip(self._done, groups):
                 start = time.perf_counter()
                 for plan in plans:
                     if self._stop.is_set():
@@ -210,22 +208,14 @@ class CompileAhead:
             for done in self._done:
                 done.set()
 
-    def start(self, group: int) -> None:
-        """Let group ``group`` compile once the ones before it have."""
-        if group < len(self._go):
-            self._go[group].set()
-
     def wait(self, group: int) -> None:
-        """Start group ``group`` (:meth:`start`) and block until it is compiled (or failed)."""
+        """Block until group ``group`` is compiled (or failed)."""
         if group < len(self._done):
-            self.start(group)
             self._done[group].wait()
 
     def cancel(self) -> None:
         """Start no further compile and wait for the one under way (the thread then ends)."""
         self._stop.set()
-        for go in self._go:
-            go.set()
         self._thread.join()
 
 
@@ -256,24 +246,22 @@ def compile_ahead(
     ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions = geo.GeometryOptions()
 ) -> CompileAhead:
     """Start compiling, on a background thread, the programs :func:`candidates` runs for this run's
-    chunk count, in three groups (:class:`CompileAhead`): the clouds (:func:`_geometry`,
-    :func:`_clouds`), at once; the placement (one batch each of :func:`_priors`,
-    :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch`),
-    when the stage begins; the refinement (one batch each of
-    :func:`~swiftjax.loops.geometric.refine_batch` and the placements' spread, and the dense test
-    with its null, :func:`swiftjax.loops.verification.compile_candidate_numbers`), once there are
-    placement jobs.  Each is ``jit(f).trace(...).lower().compile()`` on the argument shapes the
-    stage passes, so that the stage's calls find it compiled (``tests/test_geometric_loops.py``
-    checks that none is traced again).
+    chunk count, in three groups one after the other (:class:`CompileAhead`): the clouds
+    (:func:`_geometry`, :func:`_clouds`); the placement (one batch each of :func:`_priors`,
+    :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch`);
+    the refinement (one batch each of :func:`~swiftjax.loops.geometric.refine_batch` and the
+    placements' spread, and the dense test with its null,
+    :func:`swiftjax.loops.verification.compile_candidate_numbers`).  Each is
+    ``jit(f).trace(...).lower().compile()`` on the argument shapes the stage passes, so that the
+    stage's calls find it compiled (``tests/test_geometric_loops.py`` checks that none is traced
+    again).
 
     Tracing them is about 1.5 s of Python on KITTI 00 and lowering and compiling (or loading
     from the persistent cache) as much again, paid by every process, and 10 s to compile them
-    on an empty cache; each group is compiled beside the work before it (the token candidates',
-    the clouds', the placement's), and a group the stage will not run is cancelled (the demo,
-    whose gated pairs all lie beside token loops, cancels the placement's once its pairs are
-    known and never starts the refinement's).  Reads one
-    chunk's frames here, on the caller's thread (for their shapes); the thread only traces and
-    compiles."""
+    on an empty cache; all of it beside the token candidates' work, and what the stage will not
+    run is cancelled (the demo, whose gated pairs all lie beside token loops, cancels once its
+    pairs are known).  Reads one chunk's frames here, on the caller's thread (for their
+    shapes); the thread only traces and compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
     frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in side))
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
@@ -489,7 +477,6 @@ def candidates(
     o = options
     if ahead is None:
         ahead = CompileAhead([])  # (nothing to wait for)
-    ahead.start(_PLACEMENT)  # (beside the clouds' work)
     with ctx.timer("loop geometry: clouds"):
         ahead.wait(_CLOUDS)
         g, ids = geometries(ctx, K_ref, o)
@@ -539,7 +526,6 @@ def candidates(
         ahead.cancel()
         return in_order(unregistered)
     ci_, cj_, win, psi, sigma, tau = (x[reach] for x in (ci_, cj_, win, psi, sigma, tau))
-    ahead.start(_REFINEMENT)  # (beside the placement jobs)
     P = len(ci_)
     # the null: per source chunk, null_chunks unrelated chunks from (ψ = kπ, σ = 1, τ = 0) within
     # the largest window of its candidates (streets laid along streets, both ways)
