@@ -182,25 +182,9 @@ def candidate_numbers(
     if config.agreement_rule == "null" and null_when_needed and not null_needed(agreement, overlap, config):
         null = {"null_skipped": True}
     elif config.agreement_rule == "null":
-        edges, stop = np.arange(config.null_samples), False
-        if null_when_needed:  # in two rounds, the second only where it can change the verdict
-            first, second = null_rounds(config.null_samples)
-            drawn = [
-                np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=first)
-            ]
-            stop = kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap)
-            if stop:
-                edges = first
-            else:
-                rest = null_consistency(one(side_i), one(side_j), Z, K_ref, config, edges=second)
-                order = np.argsort(np.concatenate([first, second]))
-                drawn = [np.concatenate([a, np.asarray(b)[0]])[order] for a, b in zip(drawn, rest)]
-            score, null_overlap, seen = drawn
-        else:
-            score, null_overlap, seen = (
-                np.asarray(a)[0] for a in null_consistency(one(side_i), one(side_j), Z, K_ref, config)
-            )
-        offsets = null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)[edges]
+        score, null_overlap, seen, offsets, stop = _null_samples(
+            one(side_i), one(side_j), Z, K_ref, config, agreement, in_rounds=null_when_needed
+        )
         th = null_threshold(
             score,
             null_overlap,
@@ -229,6 +213,33 @@ def candidate_numbers(
         "quality_max_rms": float(q.max_rms),
         **null,
     }
+
+
+def _null_samples(
+    side_i: align.ChunkFrames,
+    side_j: align.ChunkFrames,
+    Z: np.ndarray,
+    K_ref: Float[ArrayLike, "3 3"],
+    config: VerificationConfig,
+    agreement: float,
+    *,
+    in_rounds: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+    """One candidate's null samples (``[1, ...]`` frames and ``Z [1, 8]``): ``(score, overlap,
+    pairs_seen, offsets, stopped)``, each ``[E]`` with the samples' shifts ``δ``.  All ``K`` at
+    once, or ``in_rounds`` (:func:`~swiftjax.loops.null.null_rounds`) with the second round
+    drawn only when the first leaves the verdict open (:func:`~swiftjax.loops.null.kappa_settled`;
+    ``stopped``: it did not, ``E = K/2``)."""
+    offsets = null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)
+    draw = lambda edges: [np.asarray(a)[0] for a in null_consistency(side_i, side_j, Z, K_ref, config, edges=edges)]
+    if not in_rounds:
+        return *draw(None), offsets, False
+    first, second = null_rounds(config.null_samples)
+    drawn = draw(first)
+    if kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap):
+        return *drawn, offsets[first], True
+    order = np.argsort(np.concatenate([first, second]))
+    return *(np.concatenate([a, b])[order] for a, b in zip(drawn, draw(second))), offsets, False
 
 
 def null_needed(agreement: float, overlap: float, config: VerificationConfig) -> bool:
