@@ -20,7 +20,7 @@ two chunks' point clouds (:mod:`swiftjax.pipeline.loop_geometry`); records carry
 (``tokens`` or ``geometry``).  A gated pair beside an accepted token candidate is recorded but not
 registered (:func:`redundant_geometry` would reject it; :func:`_decide_with_geometry`).  Its
 programs compile on a background thread (:func:`swiftjax.pipeline.loop_geometry.compile_ahead`),
-the first of them beside the token candidates' work.
+all of them beside the token candidates' work.
 """
 
 from __future__ import annotations
