@@ -77,6 +77,7 @@ from swiftjax.loops.options import VerificationConfig
 
 __all__ = [
     "null_offsets",
+    "config_offsets",
     "null_edges",
     "null_rounds",
     "NullCheck",
@@ -171,12 +172,15 @@ def null_consistency(
     """
     config = VerificationConfig() if config is None else config
     args = _traced_args(side_i, side_j, Z, K_ref, conf_ratio, config)
-    offsets = _offsets(config) if edges is None else _offsets(config)[np.asarray(edges)]
+    offsets = config_offsets(config)
+    if edges is not None:
+        offsets = offsets[np.asarray(edges)]
     return _null_jit(*args[:6], to_device(offsets, args[0].depth.dtype), *args[6:])
 
 
-def _offsets(config: VerificationConfig) -> Float[np.ndarray, " K"]:
-    """``config``'s null offsets (:func:`null_offsets`), on the host."""
+def config_offsets(config: VerificationConfig) -> Float[np.ndarray, " K"]:
+    """``config``'s null offsets ``δ_k [K]`` (:func:`null_offsets` of ``null_samples``,
+    ``null_min_shift``, ``null_max_shift``), on the host."""
     return null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)
 
 

@@ -46,9 +46,9 @@ from swiftjax.loops.null import (
     NullCheck,
     chance_corrected,
     compile_null,
+    config_offsets,
     kappa_settled,
     null_consistency,
-    null_offsets,
     null_rounds,
     null_threshold,
 )
@@ -230,7 +230,7 @@ def _null_samples(
     once, or ``in_rounds`` (:func:`~swiftjax.loops.null.null_rounds`) with the second round
     drawn only when the first leaves the verdict open (:func:`~swiftjax.loops.null.kappa_settled`;
     ``stopped``: it did not, ``E = K/2``)."""
-    offsets = null_offsets(config.null_samples, config.null_min_shift, config.null_max_shift)
+    offsets = config_offsets(config)
     draw = lambda edges: [np.asarray(a)[0] for a in null_consistency(side_i, side_j, Z, K_ref, config, edges=edges)]
     if not in_rounds:
         return *draw(None), offsets, False
