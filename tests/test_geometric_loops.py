@@ -667,6 +667,49 @@ def test_null_early_stop_is_exact():
             assert th >= x.max() - 1e-9
 
 
+def test_registered_null_stops_exactly():
+    """``RegisteredNull.numbers`` tests its samples one at a time and stops at the first in
+    view at or above the candidate's agreement; the verdict (``a > registered_null_threshold``)
+    is the complete bound's (``null_threshold`` over every sample) on random samples, some out
+    of view, for agreements around them, and its tests are never more than the samples."""
+    from types import SimpleNamespace
+
+    from swiftjax.loops.null import null_threshold
+    from swiftjax.loops.options import VerificationConfig
+    from swiftjax.pipeline.loop_geometry import RegisteredNull
+    from swiftjax.pipeline.rundir import StageTimer
+
+    rng = np.random.default_rng(11)
+    v = VerificationConfig()
+    stopped = 0
+    for trial in range(300):
+        n = int(rng.integers(0, 9))
+        samples = np.c_[
+            rng.beta(2, 12, n), rng.choice([0.05, 0.9], n, p=[0.2, 0.8]), rng.integers(1, 2000, n)
+        ]  # pairs seen (1: a refinement that fails)
+        tested = []
+
+        class Fed(RegisteredNull):
+            def _refine(self, k0, k1):
+                return [(k, np.zeros(8)) for k in range(k0, k1) if samples[k, 2] > 300]  # some refinements fail
+
+            def _test(self, target, S):
+                tested.append(target)
+                return tuple(samples[target])
+
+        null = Fed(SimpleNamespace(timer=StageTimer()), 0, np.arange(n), np.zeros((n, 8)), None, None, None, v)
+        valid = samples[samples[:, 2] > 300]
+        full = null_threshold(valid[:, 0], valid[:, 1], valid[:, 2], v.null_false_alarm, v.min_overlap)
+        for a in rng.uniform(0.0, 0.5, 3):
+            got = null.numbers(float(a))
+            assert (a > got["registered_null_threshold"]) == (a > full.threshold), (trial, a)
+            if not got.get("registered_null_stopped"):
+                assert got["registered_null_threshold"] == pytest.approx(full.threshold, nan_ok=True)
+        assert len(tested) == len(set(tested)) <= len(valid)
+        stopped += len(tested) < len(valid)
+    assert stopped > 10
+
+
 def test_bev_starts_z_score_against_numpy_loop():
     """``bev_starts`` against a NumPy loop: ``a``'s raster per (yaw, scale), the circular
     overlap count ``C(m) = Σ_x D_b[x + m] D_a[x]`` by direct sums, ``z = (C − N p)/sqrt(N p (1 −

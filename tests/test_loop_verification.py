@@ -393,6 +393,109 @@ def test_verify_candidates_rules_and_pcm(x64):
     assert all(d.accepted for d in off)
 
 
+def null_record(ci, cj, Z, agreement, mean=0.05, tau=0.1, registered=None, **extra):
+    """A record judged by the null rule: ``κ = (a − mean)/(1 − mean)``; ``registered``: the
+    registered null's bound (a registration edge, :mod:`swiftjax.pipeline.loop_geometry`)."""
+    r = record(ci, cj, Z, agreement=agreement) | {"null_threshold": tau, "null_mean": mean, "null_std": 0.01}
+    if registered is not None:
+        r["registered_null_threshold"] = registered
+    return r | extra
+
+
+@pytest.mark.parametrize(
+    ("numbers", "expected"),
+    [
+        ({"null_threshold": 0.1, "null_mean": 0.05}, True),  # significant, κ = 0.179 < 0.2
+        ({"null_threshold": 0.3, "null_mean": 0.05}, False),  # not significant
+        ({"null_threshold": 0.1, "null_mean": 0.0}, False),  # κ = 0.22: verified without it
+        ({"null_stopped": True, "null_threshold": 0.1, "null_mean": 0.05}, True),  # significance open
+        ({"null_skipped": True}, False),  # a < κ_min: rejected whatever the null
+        ({"null_threshold": 0.1, "null_mean": 0.05, "dense_overlap": 0.1}, False),  # not in view
+        ({"null_threshold": float("nan"), "null_mean": float("nan")}, False),  # no null: the fixed bound
+    ],
+)
+def test_may_follow_only_below_the_kappa_floor(numbers, expected):
+    r = {"dense_agreement": 0.22, "dense_overlap": 0.9} | numbers
+    assert V.may_follow(r, V.VerificationConfig()) is expected
+    assert not V.may_follow(r, V.VerificationConfig(followers=False))
+    assert not V.may_follow(r, V.VerificationConfig(agreement_rule="fixed"))
+
+
+def test_followers_join_only_verified_loops_they_are_consistent_with(x64):
+    rel, X, nodes, Z = chain_problem(4)
+    strong = [null_record(int(q), int(p), z, 0.5) for (p, q), z in zip(nodes[:2], Z[:2])]
+    weak = [null_record(int(q), int(p), z, 0.22, registered=0.15) for (p, q), z in zip(nodes[2:], Z[2:])]
+    far = np.asarray(sim3.compose(jnp.asarray(Z[3]), sim3.exp(jnp.asarray([4.0, 1, 0, 0, 0.3, 0, 0]))))
+    liar = null_record(int(nodes[3, 1]), int(nodes[3, 0]), far, 0.21, registered=0.15)  # a follower, wrong edge
+    below = null_record(int(nodes[2, 1]), int(nodes[2, 0]), Z[2], 0.22, registered=0.25)  # not above its null
+    out = V.verify_candidates([*strong, *weak, liar, below], X, rel)
+    assert [d.accepted for d in out] == [True, True, True, True, False, False]
+    assert all(d.reason.startswith("verified;") for d in out[:2])
+    assert all(d.reason.startswith("follower;") for d in out[2:4])
+    assert "pairwise inconsistent" in out[4].reason
+    assert "no more than registrations on unrelated chunks: 0.220 <= 0.250" in out[5].reason
+    # followers never make a set of their own, whatever their number
+    alone = V.verify_candidates([*weak, liar], X, rel)
+    assert not any(d.accepted for d in alone)
+    assert all("no verified loop" in d.reason for d in alone)
+    off = V.verify_candidates([*strong, *weak], X, rel, V.VerificationConfig(pcm=False))
+    assert [d.accepted for d in off] == [True, True, False, False]
+    # without followers the floor rejects them as before
+    plain = V.verify_candidates([*strong, *weak], X, rel, V.VerificationConfig(followers=False))
+    assert [d.accepted for d in plain] == [True, True, False, False]
+    assert "chance-corrected agreement 0.179 < 0.2" in plain[2].reason
+
+
+def test_followers_nulls_computed_only_when_accepted(x64):
+    """``settle_followers``: a pending follower is accepted provisionally, its registered null
+    computed only then, and the records decided again; the verdicts equal those with every
+    null computed first, and PCM's rejects never compute theirs."""
+    from swiftjax.pipeline.loop_geometry import settle_followers
+
+    rel, X, nodes, Z = chain_problem(4)
+    far = np.asarray(sim3.compose(jnp.asarray(Z[3]), sim3.exp(jnp.asarray([4.0, 1, 0, 0, 0.3, 0, 0]))))
+    bounds = [None, None, 0.15, 0.25, 0.15]  # the registered nulls: the fourth is not beaten
+    edges = [*zip(nodes, Z), (nodes[3], far)]
+    calls = []
+
+    def records(pending):
+        out = []
+        for k, ((p, q), z) in enumerate(edges):
+            r = null_record(int(q), int(p), z, 0.5 if bounds[k] is None else 0.21)
+            if bounds[k] is not None and pending:
+                r |= {
+                    "registered_null_pending": True,
+                    "_registered": lambda k=k: calls.append(k) or {"registered_null_threshold": bounds[k]},
+                }
+            elif bounds[k] is not None:
+                r["registered_null_threshold"] = bounds[k]
+            out.append(r)
+        return out
+
+    def decide(recs):
+        for r, d in zip(recs, V.verify_candidates(recs, X, rel)):
+            r.update(accepted=d.accepted, reason=d.reason)
+
+    lazy, eager = records(True), records(False)
+    settle_followers(decide, lazy)
+    decide(eager)
+    assert [r["accepted"] for r in lazy] == [r["accepted"] for r in eager] == [True, True, True, False, False]
+    assert [r["reason"] for r in lazy] == [r["reason"] for r in eager]
+    assert sorted(calls) == [2, 3]  # the liar (4) is rejected by PCM: its null never computed
+    assert lazy[4]["registered_null_pending"] and "registered_null_pending" not in lazy[2]
+    # a null stopped after its first round (κ settled, a > τ open): provisionally a follower
+    # even where the first round's τ is above a; judged on the complete null once computed
+    (p, q), z = edges[2]
+    for tau, accepted in ((0.25, False), (0.1, True)):
+        stopped = null_record(int(q), int(p), z, 0.21, tau=0.3, null_stopped=True)
+        full = {"null_threshold": tau, "null_stopped": False, "registered_null_threshold": 0.15}
+        stopped |= {"registered_null_pending": True, "_registered": lambda full=full: full}
+        recs = [*records(False)[:2], stopped]
+        settle_followers(decide, recs)
+        assert recs[2]["accepted"] is accepted, recs[2]["reason"]
+        assert accepted or "no better than under wrong edges: agreement 0.210 <= 0.250" in recs[2]["reason"]
+
+
 def test_candidate_numbers_from_record_dicts():
     src, dst, S = scene(seed=7)
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}

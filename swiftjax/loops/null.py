@@ -85,6 +85,7 @@ __all__ = [
     "compile_null",
     "NullThreshold",
     "null_threshold",
+    "in_view",
     "chance_corrected",
     "kappa_settled",
 ]
@@ -226,7 +227,7 @@ class NullThreshold(NamedTuple):
     samples: int
 
 
-def _in_view(score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, min_overlap: float) -> np.ndarray:
+def in_view(score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, min_overlap: float) -> np.ndarray:
     """The null samples that say something about chance agreement: finite, ``overlap >=
     min_overlap`` and some pair in view."""
     return np.isfinite(score) & (overlap >= min_overlap) & (seen > 0)
@@ -280,7 +281,7 @@ def null_threshold(
         if math.isfinite(t.threshold):
             bounds.append(t)
         elif t.samples:  # too few in view for a bound: their largest and their mean
-            x = score[p][_in_view(score[p], overlap[p], seen[p], min_overlap)]
+            x = score[p][in_view(score[p], overlap[p], seen[p], min_overlap)]
             bounds.append(NullThreshold(float(x.max()), float(x.mean()), math.nan, t.samples))
     if not any(math.isfinite(t.std) for t in bounds):
         return _pooled(score, overlap, seen, false_alarm, min_overlap)
@@ -294,7 +295,7 @@ def _pooled(
     """:func:`null_threshold` with ``model = "pooled"`` (its docstring)."""
     from scipy import stats
 
-    use = _in_view(score, overlap, seen, min_overlap)
+    use = in_view(score, overlap, seen, min_overlap)
     k = int(use.sum())
     if k < 3:
         return NullThreshold(math.nan, math.nan, math.nan, k)
@@ -319,7 +320,7 @@ def _line(
     through ``(x̄, ȳ)``).  NaN threshold (and std) below four samples in view."""
     from scipy import stats
 
-    use = _in_view(score, overlap, seen, min_overlap)
+    use = in_view(score, overlap, seen, min_overlap)
     n = int(use.sum())
     xs, y = x[use], score[use]
     sxx = float(np.sum((xs - xs.mean()) ** 2)) if n else 0.0
@@ -365,7 +366,7 @@ def kappa_settled(
     own mean ``Σ / k >= m_low`` gives a ``κ`` below ``κ_min`` too: their numbers, recorded in
     place of the complete null's, give the same verdict."""
     score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
-    use = _in_view(score, overlap, seen, min_overlap)
+    use = in_view(score, overlap, seen, min_overlap)
     k = int(use.sum())
     if k < 3:
         return False

@@ -113,6 +113,11 @@ class VerificationConfig:
         neighbours: nearest target frames each source frame is compared with.
         min_fraction: each half alignment's ``fraction_used`` must reach this.
         pcm: run the pairwise test (with two or more candidates left).
+        followers: a registration edge of the geometric source that passes the null's
+            significance test but not ``null_min_kappa`` may still be accepted when it beats
+            the agreement its source's registrations reach on unrelated chunks
+            (``registered_null_threshold``), only beside verified loops it is consistent with
+            (:mod:`swiftjax.loops.verification`, "Followers").
         pcm_threshold: whitened cycle residual bound, ``sqrt(χ²_7(0.999)) = 4.93``.
         odo_sigma_rot, odo_sigma_trans, odo_sigma_scale: drift model of a temporal edge
             (:func:`~swiftjax.loops.verification.odometry_covariance`).
@@ -148,6 +153,11 @@ class VerificationConfig:
     neighbours: int = option(3, "nearest target frames per source frame (0: every frame)", low=0)
     min_fraction: float = option(0.05, "least fraction_used of each half alignment", low=0.0, high=1.0)
     pcm: bool = option(True, "loop verification: the pairwise consistency test")
+    followers: bool = option(
+        True,
+        "loop verification: a registration edge below the least chance-corrected agreement that beats its "
+        "source's registrations on unrelated chunks joins the verified loops it is consistent with",
+    )
     pcm_threshold: float = option(4.93, "whitened cycle residual bound", low=0.0, low_open=True)
     odo_sigma_rot: float = option(0.01, "temporal-edge drift: rotation sigma", low=0.0, low_open=True)
     odo_sigma_trans: float = option(0.05, "temporal-edge drift: translation sigma", low=0.0, low_open=True)

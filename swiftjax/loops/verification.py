@@ -17,6 +17,19 @@ reconstruction, so ``Z`` alone proves nothing.  Three tests that do not trust th
 3. **Pairwise consistency** (PCM, :mod:`swiftjax.loops.pcm`): two loop edges and the
    odometry between their ends must close a cycle, within the odometry's drift.
 
+**Followers** (``followers``; registration edges of :mod:`swiftjax.pipeline.loop_geometry`
+only).  A reverse revisit's two chunks face away from each other: even the TRUE edge's depths
+agree little (synthetic KITTI 08's reverse pairs under the oracle's true chunk gauges: κ
+0.05-0.13), so the floor ``κ >= κ_min`` of test 1 rejects most of them whatever their edge.
+A registration edge whose agreement is significant under its shifted null (``a > τ``) and at
+least ``κ_min`` in itself (``a >= κ_min``, :func:`null_needed`), but below the chance-corrected
+floor, is judged against what a registration reaches where it is WRONG instead: the source
+chunk's own best placements on unrelated chunks, refined and dense-tested like the candidate
+(``registered_null_threshold``, the bound at ``null_false_alarm`` over those in view).  Beating
+it makes the candidate a follower: weaker evidence than a verified loop, so it is accepted only
+when it is pairwise consistent with every loop of the maximum consistent set of the verified
+ones (and with the followers accepted before it, by decreasing agreement), never on its own.
+
 This module holds the decision rule (:func:`verify_candidates`, thresholds in
 :class:`VerificationConfig`) and re-exports the tests' functions.  The fixed thresholds were
 chosen from measured distributions of true and false candidates (docs/performance/loops.md);
@@ -258,6 +271,36 @@ def null_needed(agreement: float, overlap: float, config: VerificationConfig) ->
     return bool(agreement >= min(config.null_min_kappa, config.min_agreement))
 
 
+def may_follow(numbers: dict[str, Any], config: VerificationConfig) -> bool:
+    """Whether a registration edge with :func:`candidate_numbers`' ``numbers`` is rejected by
+    the chance-corrected floor alone, so that beating its registered null would make it a
+    follower (module docstring; host level): ``followers`` on, the null rule, in view, ``a >=
+    min(null_min_kappa, min_agreement)`` (the null was run, :func:`null_needed`), and ``κ <
+    null_min_kappa`` either settled after the null's first round (``null_stopped``; whether
+    ``a > τ`` is then open) or with ``a > τ``."""
+    a, ov = float(numbers.get("dense_agreement", math.nan)), float(numbers.get("dense_overlap", math.nan))
+    if not (config.followers and config.agreement_rule == "null" and math.isfinite(a) and math.isfinite(ov)):
+        return False
+    if ov < config.min_overlap or numbers.get("null_skipped"):
+        return False
+    if numbers.get("null_stopped"):
+        return True
+    tau = float(numbers.get("null_threshold", math.nan))
+    return math.isfinite(tau) and a > tau and chance_corrected(a, float(numbers["null_mean"])) < config.null_min_kappa
+
+
+def _follows(r: dict[str, Any], config: VerificationConfig) -> bool:
+    """Whether record ``r`` passes the dense test only as a follower: :func:`may_follow` with
+    the complete null (not stopped) and ``a > registered_null_threshold``, or, provisionally,
+    with those still to be computed (``registered_null_pending``)."""
+    if not may_follow(r, config):
+        return False
+    if r.get("registered_null_pending"):
+        return True
+    registered = float(r.get("registered_null_threshold", math.nan))
+    return not r.get("null_stopped") and float(r["dense_agreement"]) > registered
+
+
 # ----------------------------------------------------------------------- decisions
 
 
@@ -285,6 +328,8 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
     if overlap < config.min_overlap:
         return f"the temporal chunks do not see each other under the edge: overlap {overlap:.3f} < {config.min_overlap}"
     if config.agreement_rule == "null":
+        if r.get("registered_null_pending") and _follows(r, config):  # provisionally (verify_candidates)
+            return None
         if r.get("null_skipped"):  # null_needed: rejected whatever the null
             return (
                 f"depths agree little whatever the null: agreement {agreement:.3f} < "
@@ -300,10 +345,16 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
                     f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g})"
                 )
             kappa = chance_corrected(agreement, float(r["null_mean"]))
-            if kappa < config.null_min_kappa:
+            if kappa < config.null_min_kappa and not _follows(r, config):
+                registered = float(r.get("registered_null_threshold", math.nan))
                 return (
                     f"depths agree little more than under wrong edges: chance-corrected agreement "
                     f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null})"
+                    + (
+                        f", and no more than registrations on unrelated chunks: {agreement:.3f} <= {registered:.3f}"
+                        if "registered_null_threshold" in r
+                        else ""
+                    )
                 )
             return None
         if agreement < config.min_agreement:  # the null is not computable: the fixed bound
@@ -336,7 +387,14 @@ def verify_candidates(
     ``null_min_kappa``; ``"fixed"``: ``< min_agreement``) reject the
     candidate; the
     survivors (two or more) go through PCM and only a maximum consistent set is kept (ties:
-    larger total ``dense_agreement``).
+    larger total ``dense_agreement``).  Followers (``followers``, module docstring: a
+    registration edge below ``null_min_kappa`` that beats ``registered_null_threshold``) take
+    no part in that set: each, by decreasing ``dense_agreement``, is accepted when it is
+    pairwise consistent with every loop of the set and every follower accepted before it, and
+    rejected when the set is empty or PCM is off.  A follower whose registered null is still
+    to be computed (``registered_null_pending``) is judged as if it beat it: the caller
+    computes the null of each one accepted so and decides again
+    (:func:`swiftjax.pipeline.loop_geometry.settle_followers`).
 
     Args:
         records: the candidates (not modified).
@@ -364,9 +422,14 @@ def verify_candidates(
             out[k] = Decision(False, why)
         else:
             alive.append(k)
+    follows = [_follows(records[k], config) for k in alive]
     if not (config.pcm and len(alive) >= 2):
-        for k in alive:
-            out[k] = Decision(True, "verified")
+        for k, weak in zip(alive, follows):
+            out[k] = (
+                Decision(False, "a follower with no verified loop to be consistent with (PCM off or no other loop)")
+                if weak
+                else Decision(True, "verified")
+            )
         return out
     nodes, Zs = [], []
     for k in alive:  # each loop as the edge p -> q with p < q, Z ~ S_p^-1 S_q
@@ -394,11 +457,25 @@ def verify_candidates(
         m = np.asarray(
             pairwise_consistency(jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc)
         )[:n, :n]
-    clique = set(max_consistent_set(m <= config.pcm_threshold, [float(records[k]["dense_agreement"]) for k in alive]))
+    agreement = [float(records[k]["dense_agreement"]) for k in alive]
+    strong = [a for a in range(n) if not follows[a]]
+    ok = m <= config.pcm_threshold
+    clique = {strong[a] for a in max_consistent_set(ok[np.ix_(strong, strong)], [agreement[a] for a in strong])}
+    verified = len(clique)
+    for a in sorted((a for a in range(n) if follows[a]), key=lambda a: -agreement[a]):
+        if verified and all(ok[a, b] for b in clique):
+            clique.add(a)
     for a, k in enumerate(alive):
         worst = float(np.max(m[a])) if len(alive) > 1 else 0.0
         if a in clique:
-            out[k] = Decision(True, f"verified; pairwise consistent with {len(clique) - 1} other loop(s)", worst)
+            out[k] = Decision(
+                True,
+                ("follower" if follows[a] else "verified")
+                + f"; pairwise consistent with {len(clique) - 1} other loop(s)",
+                worst,
+            )
+        elif follows[a] and not verified:
+            out[k] = Decision(False, "a follower with no verified loop to be consistent with", worst)
         else:
             bad = max(float(m[a, b]) for b in clique) if clique else math.inf
             out[k] = Decision(

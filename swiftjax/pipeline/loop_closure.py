@@ -26,6 +26,7 @@ all of them beside the token candidates' work.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -138,6 +139,7 @@ def _run(
     for r in geometric:
         r.pop("_stats", None)
         r.pop("_closed_by", None)
+        r.pop("_registered", None)
     loop_records += [
         {
             "i": lp.i,
@@ -194,7 +196,8 @@ def _decide_with_geometry(
             ctx, temporal.K_ref, taken, config.verification, config.geometry, chain=chain, closed=closed, ahead=ahead
         )
     pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
-    decide(ctx, temporal.relative, tokens + pool)
+    settle = functools.partial(decide, ctx, temporal.relative)  # followers' nulls when accepted
+    loop_geometry.settle_followers(settle, tokens + pool)
     while True:
         accepted = [loop_geometry.chunk_pair(r) for r in tokens if r["accepted"]]
         reopen = {
@@ -212,7 +215,7 @@ def _decide_with_geometry(
         new = {loop_geometry.chunk_pair(r): r for r in more}
         geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
         pool += [r for r in more if "accepted" not in r]
-        decide(ctx, temporal.relative, tokens + pool)
+        loop_geometry.settle_followers(settle, tokens + pool)
 
 
 def loop_record(ctx: RunContext, lp: loops.Loop, pred: ChunkPrediction, K_ref: np.ndarray) -> dict[str, Any]:

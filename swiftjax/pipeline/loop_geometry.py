@@ -90,6 +90,7 @@ __all__ = [
     "compile_ahead",
     "edge_information",
     "geometries",
+    "settle_followers",
     "split_closed",
 ]
 
@@ -613,6 +614,16 @@ def candidates(
         )
     records: list[dict[str, Any]] = []
     survivors = []
+    registered: dict[int, RegisteredNull] = {}  # each source's, built when a candidate needs it
+
+    def registered_null(c: int) -> RegisteredNull:
+        if c not in registered:
+            ran = null_of[c][done[null_of[c]] & (pl.scores[null_of[c]].max(-1) >= 0)]
+            registered[c] = RegisteredNull(
+                ctx, c, arrays[1][ran], pl.S[ran, np.argmax(pl.scores[ran], -1)], clouds, K_ref, o, verification
+            )
+        return registered[c]
+
     for k in range(P):
         ci, cj = int(ci_[k]), int(cj_[k])
         th, null_mean, null_samples = thresholds[ci]
@@ -697,7 +708,9 @@ def candidates(
                 record.update(accepted=False, reason=why)
             else:
                 with ctx.timer("loop geometry: verification"):
-                    record.update(_dense(ctx, ci, cj, record["Z"], K_ref, o, verification))
+                    record.update(
+                        _dense(ctx, ci, cj, record["Z"], K_ref, o, verification, functools.partial(registered_null, ci))
+                    )
     return in_order(records + unregistered)
 
 
@@ -790,21 +803,159 @@ def _dense(
     K_ref: np.ndarray,
     options: geo.GeometryOptions,
     verification: lv.VerificationConfig,
+    registered: Callable[[], RegisteredNull],
 ) -> dict[str, Any]:
     """The cross-chunk dense test of the two chunks' loaded frames, every frame pair compared;
-    its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`)."""
+    its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`).
+    Where the chance-corrected floor alone may reject it (:func:`swiftjax.loops.verification.may_follow`),
+    the rest deferred: ``registered_null_pending = True`` and ``_registered``, a call made only
+    when the decision accepts the candidate provisionally (:func:`settle_followers`) that
+    returns its source's registered null's keys (``registered()``, :class:`RegisteredNull`)
+    and, where the null's first round stopped and the registered null is beaten, the complete
+    null's (is ``a > τ``?)."""
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
     info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
-    return lv.candidate_numbers(
-        side_i,
-        side_j,
-        np.asarray(Z),
-        K_ref,
-        info,
-        info,
-        _dense_config(verification),
-        null_when_needed=True,
+    numbers = functools.partial(
+        lv.candidate_numbers, side_i, side_j, np.asarray(Z), K_ref, info, info, _dense_config(verification)
     )
+    num = numbers(null_when_needed=True)
+    if not lv.may_follow(num, verification):
+        return num
+    a = num["dense_agreement"]
+
+    def settle() -> dict[str, Any]:
+        out = registered().numbers(a)
+        if num.get("null_stopped") and a > out["registered_null_threshold"]:  # a > τ? the complete null
+            out |= numbers(null_when_needed=False) | {"null_stopped": False}
+        return out
+
+    return num | {"registered_null_pending": True, "_registered": settle}
+
+
+class RegisteredNull:
+    """The dense agreement a registration reaches where it is WRONG, for source chunk ``c``
+    (:mod:`swiftjax.loops.verification`, "Followers"): ``c``'s best placements on its null's
+    unrelated chunks ``targets [n]`` (``starts [n, 8]``, from the placement step), refined as a
+    candidate's (:func:`~swiftjax.loops.geometric.refine_batch`, the prior scale ``h_t / h_c``;
+    the refinements that fail dropped) and dense-tested as a candidate is (:func:`_dense_config`).
+    The bound is :func:`swiftjax.loops.null.null_threshold` (pooled) at ``null_false_alarm`` over
+    the samples in view.
+
+    Lazy and shared by the source's candidates: :data:`REFINE_BATCH` refinements at a time and
+    each sample's dense test only when a candidate needs it.  :meth:`numbers` stops at the first
+    sample in view at or above the candidate's agreement: exact, since the bound over ``k >= 3``
+    samples is at least their largest (:func:`_null_settled`, checked for every ``k``), and below
+    three in view there is no bound (the candidate is no follower either way).
+    """
+
+    def __init__(
+        self,
+        ctx: RunContext,
+        c: int,
+        targets: np.ndarray,
+        starts: np.ndarray,
+        clouds: geo.ChunkCloud,
+        K_ref: np.ndarray,
+        options: geo.GeometryOptions,
+        verification: lv.VerificationConfig,
+    ) -> None:
+        self._ctx, self._c, self._clouds, self._K_ref, self._options = ctx, c, clouds, K_ref, options
+        self._targets, self._starts = np.asarray(targets, np.int64), np.asarray(starts, np.float32)
+        self._verification = verification
+        self._config = dataclasses.replace(_dense_config(verification), agreement_rule="fixed")
+        n = len(self._targets)
+        self._exact = all(_null_settled(verification.null_false_alarm, k) for k in range(3, n + 1))
+        self._samples: list[tuple[float, float, float]] = []  # (score, overlap, pairs seen) per tested target
+        self._ready: list[tuple[int, np.ndarray]] = []  # (target, refined edge), refined, not yet tested
+        self._refined = 0  # targets refined so far
+        self._source: align.ChunkFrames | None = None
+
+    def _refine(self, k0: int, k1: int) -> list[tuple[int, np.ndarray]]:
+        """``(target, refined edge)`` of ``targets[k0:k1]`` whose refinement is valid."""
+        h = np.asarray(self._clouds.height)
+        c, t = self._c, self._targets[k0:k1]
+        with self._ctx.timer("loop geometry: refinement"):
+            regs = _run_batched(
+                lambda *a: geo.refine_batch(self._clouds, *a, self._options),
+                REFINE_BATCH,
+                (
+                    np.full(len(t), c, np.int32),
+                    t.astype(np.int32),
+                    self._starts[k0:k1],
+                    (h[t] / h[c]).astype(np.float32),
+                ),
+            )
+        return [(int(t[k]), np.asarray(regs.S[k], np.float64)) for k in range(len(t)) if bool(regs.valid[k])]
+
+    def _test(self, target: int, S: np.ndarray) -> tuple[float, float, float]:
+        """``(agreement, overlap, pairs seen)`` of the source on ``target`` under ``S``."""
+        if self._source is None:
+            self._source = _frames(self._ctx, self._c, self._options)[0]
+        side_i, (side_j, _) = self._source, _frames(self._ctx, target, self._options)
+        info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
+        num = lv.candidate_numbers(side_i, side_j, S, self._K_ref, info, info, self._config)
+        seen = min(num["dense_i_to_j"]["pairs_seen"], num["dense_j_to_i"]["pairs_seen"])
+        return num["dense_agreement"], num["dense_overlap"], float(seen)
+
+    def _next(self) -> bool:
+        """Test one more sample (refining the next batch first when none is ready); False when
+        every sample is tested."""
+        while not self._ready and self._refined < len(self._targets):
+            k0, self._refined = self._refined, min(self._refined + REFINE_BATCH, len(self._targets))
+            self._ready = self._refine(k0, self._refined)
+        if not self._ready:
+            return False
+        with self._ctx.timer("loop geometry: registered null"):
+            self._samples.append(self._test(*self._ready.pop(0)))
+        return True
+
+    def numbers(self, agreement: float) -> dict[str, Any]:
+        """The registered null's keys for a candidate whose agreement is ``agreement``:
+        ``registered_null_threshold`` (NaN below three samples in view), ``_mean``, ``_std``,
+        ``_samples`` (those in view), and ``registered_null_stopped`` when a sample in view
+        reached ``agreement`` before all were tested (then ``_threshold`` is that sample:
+        the candidate is rejected as by the complete bound)."""
+        from swiftjax.loops.null import in_view, null_threshold
+
+        v = self._verification
+        while True:
+            x = np.asarray(self._samples, np.float64).reshape(-1, 3)
+            use = in_view(x[:, 0], x[:, 1], x[:, 2], v.min_overlap)
+            top = float(x[use, 0].max(initial=-math.inf))
+            if self._exact and top >= agreement:
+                return {
+                    "registered_null_threshold": top,
+                    "registered_null_mean": float(x[use, 0].mean()),
+                    "registered_null_std": math.nan,
+                    "registered_null_samples": int(use.sum()),
+                    "registered_null_stopped": True,
+                }
+            if not self._next():
+                break
+        th = null_threshold(x[:, 0], x[:, 1], x[:, 2], v.null_false_alarm, v.min_overlap)
+        return {
+            "registered_null_threshold": th.threshold,
+            "registered_null_mean": th.mean,
+            "registered_null_std": th.std,
+            "registered_null_samples": th.samples,
+        }
+
+
+def settle_followers(decide: Callable[[list[dict[str, Any]]], None], records: list[dict[str, Any]]) -> None:
+    """``decide(records)`` (in place), until no accepted record's registered null is pending:
+    each provisionally accepted follower's null is computed (its ``_registered`` call) and the
+    records decided again.  A follower takes no part in the verified loops' consistent set, so
+    the verdicts are those that every null computed first would give; the nulls of the followers
+    that PCM (or the redundancy rule) rejects are never computed (they keep
+    ``registered_null_pending``)."""
+    while True:
+        decide(records)
+        pending = [r for r in records if r.get("accepted") and r.get("registered_null_pending")]
+        if not pending:
+            return
+        for r in pending:
+            r.update(r.pop("_registered")())
+            del r["registered_null_pending"]
 
 
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
