@@ -160,7 +160,8 @@ def test_every_mapped_config_field_arrives_in_its_stage_options():
     assert mapped["max_lm_steps"] == (posegraph.GraphOptions, "max_steps")
     assert mapped["loop_geometry_neighbours"] == (GeometryOptions, "neighbours")
     assert mapped["loop_null_model"] == (VerificationConfig, "null_model")
-    assert len(mapped) == 25
+    assert mapped["loop_followers"] == (VerificationConfig, "followers")
+    assert len(mapped) == 26
     default = PipelineConfig()
     changes = {}
     for name, (cls, field) in mapped.items():
@@ -246,16 +247,16 @@ def test_config_accessors_are_the_built_stage_objects():
 def test_default_stage_options_are_the_recorded_ones():
     """The run directory fingerprints each stage by these values: a changed default would make
     every existing run redo its stages (hash of the default config of 151f7dd; since issue 28's
-    ``loop_geometry_neighbours`` and ``loop_null_model`` (whose default ``trend`` replaced the
-    pooled null), a run directory made before them redoes its loop stage once, saying so, and
-    keeps its chunks)."""
+    ``loop_geometry_neighbours``, ``loop_null_model`` (whose default ``trend`` replaced the
+    pooled null) and ``loop_followers``, a run directory made before them redoes its loop stage
+    once, saying so, and keeps its chunks)."""
     import hashlib
     import json
 
     config = PipelineConfig()
     stages = {s: config.stage_options(s) for s in options.STAGES}
     digest = hashlib.sha256(json.dumps(stages, sort_keys=True).encode()).hexdigest()
-    assert digest == "fd3d072bd65560a748302d73992aec749f85d086432044d0edc2f49c005f3b36", stages
+    assert digest == "23430621103feb6cbaa1ec583dd069cb1b5fe70e5dd53950cc4dbcab9d9da4ac", stages
 
 
 def test_no_override_keywords_on_the_stage_entry_points():

@@ -339,22 +339,22 @@ def _dense_reason(r: dict[str, Any], config: VerificationConfig) -> str | None:
         tau = float(r.get("null_threshold", math.nan))
         if math.isfinite(tau):
             null = f"null {float(r['null_mean']):.3f} +- {float(r['null_std']):.3f}"
+            registered = (  # a follower candidate's second null (module docstring)
+                f", and no more than registrations on unrelated chunks: {agreement:.3f} <= "
+                f"{float(r['registered_null_threshold']):.3f}"
+                if "registered_null_threshold" in r
+                else ""
+            )
             if agreement <= tau:
                 return (
                     f"depths agree no better than under wrong edges: agreement {agreement:.3f} <= "
-                    f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g})"
+                    f"{tau:.3f} ({null}, false-alarm rate {config.null_false_alarm:g}){registered}"
                 )
             kappa = chance_corrected(agreement, float(r["null_mean"]))
             if kappa < config.null_min_kappa and not _follows(r, config):
-                registered = float(r.get("registered_null_threshold", math.nan))
                 return (
                     f"depths agree little more than under wrong edges: chance-corrected agreement "
-                    f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null})"
-                    + (
-                        f", and no more than registrations on unrelated chunks: {agreement:.3f} <= {registered:.3f}"
-                        if "registered_null_threshold" in r
-                        else ""
-                    )
+                    f"{kappa:.3f} < {config.null_min_kappa} (agreement {agreement:.3f}, {null}){registered}"
                 )
             return None
         if agreement < config.min_agreement:  # the null is not computable: the fixed bound
