@@ -49,7 +49,12 @@ Survivors go through the cross-chunk dense test over every pair of the two chunk
 candidates.  The dense test's null (``null_samples`` times the candidate's own test) runs only
 where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`: an agreement
 below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
-No loop-centric chunk is predicted.
+A survivor rejected by the null's chance-corrected floor alone may still be a follower
+(:mod:`swiftjax.loops.verification`, "Followers"): judged against its source's registered null
+(:class:`RegisteredNull`: the dense agreement of the structure null's own placements, refined),
+computed only when the decision accepts it provisionally (:func:`settle_followers`), and
+accepted only beside the verified loops it is consistent with.  No loop-centric chunk is
+predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
