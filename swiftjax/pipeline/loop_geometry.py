@@ -794,6 +794,11 @@ def _plain(v: Any) -> Any:
     return bool(a) if a.dtype == bool else (int(a) if a.dtype.kind in "iu" else float(a))
 
 
+#: The loop-chunk halves' diagnostics that :func:`swiftjax.loops.verification.candidate_numbers`
+#: takes: a registration edge has no loop chunk, so they pass.
+_NO_HALVES = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
+
+
 def _dense_config(verification: lv.VerificationConfig) -> lv.VerificationConfig:
     """The dense test of a geometric candidate (:func:`_dense`, compiled ahead by
     :func:`compile_ahead`): every frame pair of the two chunks' loaded frames."""
@@ -819,9 +824,8 @@ def _dense(
     and, where the null's first round stopped and the registered null is beaten, the complete
     null's (is ``a > τ``?)."""
     (side_i, _), (side_j, _) = _frames(ctx, ci, options), _frames(ctx, cj, options)
-    info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
     numbers = functools.partial(
-        lv.candidate_numbers, side_i, side_j, np.asarray(Z), K_ref, info, info, _dense_config(verification)
+        lv.candidate_numbers, side_i, side_j, np.asarray(Z), K_ref, _NO_HALVES, _NO_HALVES, _dense_config(verification)
     )
     num = numbers(null_when_needed=True)
     if not lv.may_follow(num, verification):
@@ -897,8 +901,7 @@ class RegisteredNull:
         if self._source is None:
             self._source = _frames(self._ctx, self._c, self._options)[0]
         side_i, (side_j, _) = self._source, _frames(self._ctx, target, self._options)
-        info = {"num_points": 1000, "fraction_used": 1.0, "rms": 0.0, "valid": True, "pose_fallback": False}
-        num = lv.candidate_numbers(side_i, side_j, S, self._K_ref, info, info, self._config)
+        num = lv.candidate_numbers(side_i, side_j, S, self._K_ref, _NO_HALVES, _NO_HALVES, self._config)
         seen = min(num["dense_i_to_j"]["pairs_seen"], num["dense_j_to_i"]["pairs_seen"])
         return num["dense_agreement"], num["dense_overlap"], float(seen)
 
