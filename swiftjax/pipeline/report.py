@@ -175,6 +175,10 @@ def _candidate(r: dict[str, Any]) -> dict[str, Any]:
         "quality_max_rms",
         "pcm_residual",
         "registration",
+        "registered_null_threshold",
+        "registered_null_mean",
+        "registered_null_samples",
+        "registered_null_pending",
     )
     finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v
     return {k: finite(r[k]) for k in keys if k in r}
