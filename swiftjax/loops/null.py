@@ -67,7 +67,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Float, Int, Real
+from jaxtyping import ArrayLike, Bool, Float, Int, Real
 
 from swiftjax import align, sim3
 from swiftjax._compile import LIGHT_COMPILE, quick_jit, to_device
@@ -227,10 +227,12 @@ class NullThreshold(NamedTuple):
     samples: int
 
 
-def in_view(score: np.ndarray, overlap: np.ndarray, seen: np.ndarray, min_overlap: float) -> np.ndarray:
+def in_view(
+    score: Float[ArrayLike, " K"], overlap: Float[ArrayLike, " K"], seen: Real[ArrayLike, " K"], min_overlap: float
+) -> Bool[np.ndarray, " K"]:
     """The null samples that say something about chance agreement: finite, ``overlap >=
-    min_overlap`` and some pair in view."""
-    return np.isfinite(score) & (overlap >= min_overlap) & (seen > 0)
+    min_overlap`` and some pair in view (host level)."""
+    return np.isfinite(score) & (np.asarray(overlap) >= min_overlap) & (np.asarray(seen) > 0)
 
 
 def null_threshold(
