@@ -930,7 +930,8 @@ class RegisteredNull:
             x = np.asarray(self._samples, np.float64).reshape(-1, 3)
             use = in_view(x[:, 0], x[:, 1], x[:, 2], v.min_overlap)
             top = float(x[use, 0].max(initial=-math.inf))
-            if self._exact and top >= agreement:
+            untested = bool(self._ready) or self._refined < len(self._targets)
+            if self._exact and top >= agreement and untested:
                 return {
                     "registered_null_threshold": top,
                     "registered_null_mean": float(x[use, 0].mean()),
