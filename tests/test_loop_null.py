@@ -144,6 +144,12 @@ def test_sided_null_bounds_each_shift_direction():
     assert got.threshold == pytest.approx(max(bound(plus), bound(minus)), abs=2e-4)
     assert got.mean == pytest.approx(np.mean(plus)) and got.std == pytest.approx(np.std(plus, ddof=1))
     assert got.samples == 16
+    # with the shifts given, the sides are their signs, in whatever order the samples come
+    delta = N.null_offsets(16, 0.15, 0.4)
+    order = np.random.default_rng(3).permutation(16)
+    assert N.null_threshold(score, overlap, seen, 0.01, 0.2, model="sided", offsets=delta) == got
+    shuffled = N.null_threshold(score[order], overlap, seen, 0.01, 0.2, model="sided", offsets=delta[order])
+    assert shuffled.threshold == pytest.approx(got.threshold) and shuffled.mean == pytest.approx(got.mean)
     pooled = N.null_threshold(score, overlap, seen, 0.01, 0.2)
     assert got.threshold < 0.682 < pooled.threshold  # the true candidate's agreement
     assert N.chance_corrected(0.682, got.mean) > 0.2

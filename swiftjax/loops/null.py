@@ -252,9 +252,10 @@ def null_threshold(
     ``s = max(sample std, sqrt(m (1 − m) / n_min))`` with ``n_min`` the fewest pairs in view
     among them.
 
-    ``sided`` ("Two sides"): the pooled bound over the first ``K/2`` samples (shifts ``+δ``,
-    :func:`null_offsets`) and over the last ``K/2`` (``−δ``).  ``trend`` ("A line in the
-    shift"; needs ``offsets [K]``, the samples' ``δ``): per shift direction the least-squares
+    ``sided`` ("Two sides"): the pooled bound over the samples of each shift direction, by the
+    sign of ``offsets [K]`` (the samples' ``δ``) or, without them, the first ``K/2`` samples
+    (``+δ``, :func:`null_offsets`' order) and the last ``K/2`` (``−δ``).  ``trend`` ("A line
+    in the shift"; needs ``offsets``): per shift direction the least-squares
     line in ``|δ|`` and its prediction bound at both ends of the direction's range.  With
     either, the candidate must beat both directions, so ``threshold`` and ``mean`` (κ's ``m``)
     are the larger direction's (the conservative one), ``std`` the direction's whose bound is
@@ -263,20 +264,21 @@ def null_threshold(
     wrong edge of that family agreed that much); with no direction of its own bound, the
     samples pooled (NaN below three in all)."""
     score, overlap, seen = (np.asarray(x, np.float64).reshape(-1) for x in (score, overlap, pairs_seen))
+    if model not in ("trend", "pooled", "sided"):
+        raise ValueError(f"null_threshold: model must be one of trend, pooled, sided; got {model!r}")
     if model == "pooled":
         return _pooled(score, overlap, seen, false_alarm, min_overlap)
-    if model == "sided":
-        half = len(score) // 2
-        parts = [np.arange(len(score)) < half, np.arange(len(score)) >= half]
-        bound = lambda p: _pooled(score[p], overlap[p], seen[p], false_alarm, min_overlap)
-    elif model == "trend":
-        if offsets is None:
-            raise ValueError("null_threshold: model 'trend' needs the samples' offsets")
-        delta = np.asarray(offsets, np.float64).reshape(-1)
-        parts = [delta > 0, delta < 0]
-        bound = lambda p: _line(np.abs(delta[p]), score[p], overlap[p], seen[p], false_alarm, min_overlap)
+    if offsets is None and model == "trend":
+        raise ValueError("null_threshold: model 'trend' needs the samples' offsets")
+    if offsets is None:  # sided without the shifts: null_offsets' order, +δ first
+        delta = np.where(np.arange(len(score)) < len(score) // 2, 1.0, -1.0)
     else:
-        raise ValueError(f"null_threshold: model must be one of trend, pooled, sided; got {model!r}")
+        delta = np.asarray(offsets, np.float64).reshape(-1)
+    parts = [delta > 0, delta < 0]
+    if model == "sided":
+        bound = lambda p: _pooled(score[p], overlap[p], seen[p], false_alarm, min_overlap)
+    else:
+        bound = lambda p: _line(np.abs(delta[p]), score[p], overlap[p], seen[p], false_alarm, min_overlap)
     bounds = []
     for p in parts:
         t = bound(p)
