@@ -905,6 +905,10 @@ class RegisteredNull:
         seen = min(num["dense_i_to_j"]["pairs_seen"], num["dense_j_to_i"]["pairs_seen"])
         return num["dense_agreement"], num["dense_overlap"], float(seen)
 
+    def _untested(self) -> bool:
+        """Whether some target is still to be refined or tested."""
+        return bool(self._ready) or self._refined < len(self._targets)
+
     def _next(self) -> bool:
         """Test one more sample (refining the next batch first when none is ready); False when
         every sample is tested."""
@@ -930,8 +934,7 @@ class RegisteredNull:
             x = np.asarray(self._samples, np.float64).reshape(-1, 3)
             use = in_view(x[:, 0], x[:, 1], x[:, 2], v.min_overlap)
             top = float(x[use, 0].max(initial=-math.inf))
-            untested = bool(self._ready) or self._refined < len(self._targets)
-            if self._exact and top >= agreement and untested:
+            if self._exact and top >= agreement and self._untested():
                 return {
                     "registered_null_threshold": top,
                     "registered_null_mean": float(x[use, 0].mean()),
