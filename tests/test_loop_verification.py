@@ -447,10 +447,10 @@ def test_followers_join_only_verified_loops_they_are_consistent_with(x64):
 
 
 def test_followers_nulls_computed_only_when_accepted(x64):
-    """``settle_followers``: a pending follower is accepted provisionally, its registered null
+    """``settle_deferred``: a pending follower is accepted provisionally, its registered null
     computed only then, and the records decided again; the verdicts equal those with every
     null computed first, and PCM's rejects never compute theirs."""
-    from swiftjax.pipeline.loop_geometry import settle_followers
+    from swiftjax.pipeline.loop_geometry import settle_deferred
 
     rel, X, nodes, Z = chain_problem(4)
     far = np.asarray(sim3.compose(jnp.asarray(Z[3]), sim3.exp(jnp.asarray([4.0, 1, 0, 0, 0.3, 0, 0]))))
@@ -477,7 +477,7 @@ def test_followers_nulls_computed_only_when_accepted(x64):
             r.update(accepted=d.accepted, reason=d.reason)
 
     lazy, eager = records(True), records(False)
-    settle_followers(decide, lazy)
+    settle_deferred(decide, lazy)
     decide(eager)
     assert [r["accepted"] for r in lazy] == [r["accepted"] for r in eager] == [True, True, True, False, False]
     assert [r["reason"] for r in lazy] == [r["reason"] for r in eager]
@@ -491,7 +491,7 @@ def test_followers_nulls_computed_only_when_accepted(x64):
         full = {"null_threshold": tau, "null_stopped": False, "registered_null_threshold": 0.15}
         stopped |= {"registered_null_pending": True, "_registered": lambda full=full: full}
         recs = [*records(False)[:2], stopped]
-        settle_followers(decide, recs)
+        settle_deferred(decide, recs)
         assert recs[2]["accepted"] is accepted, recs[2]["reason"]
         assert accepted or "no better than under wrong edges: agreement 0.210 <= 0.250" in recs[2]["reason"]
 
@@ -595,3 +595,104 @@ def test_loops_txt_and_plot_with_rejected_candidates(tmp_path):
     assert (tmp_path / "t.png").stat().st_size > 1000
     with pytest.raises(ValueError, match="rejected"):
         plot.plot_trajectory(tmp_path / "u.png", est, rejected=[[260, 30]])
+
+
+def _edge(X, p, q, wrong=False):
+    """Loop edge chunk ``q`` into chunk ``p`` from the chain ``X``: exactly consistent, or far off."""
+    Z = sim3.compose(sim3.inverse(jnp.asarray(X[p])), jnp.asarray(X[q]))
+    if wrong:
+        Z = sim3.compose(Z, sim3.exp(jnp.asarray([4.0, 1, 0, 0, 0.3, 0, 0])))
+    return np.asarray(Z)
+
+
+def geo_record(X, p, q, agreement=0.5, wrong=False, **extra):
+    """A registration edge ``q -> p`` (``p < q``) judged by the null rule (:func:`null_record`)."""
+    return null_record(q, p, _edge(X, p, q, wrong), agreement) | {"source": "geometry"} | extra
+
+
+SKIPPED = {"null_skipped": True}  # a < κ_min: the dense test's evidence alone rejects it
+FLOOR = (
+    "agreement 0.090 < 0.2 (the chance-corrected agreement (a - m)/(1 - m) <= a for every null mean m; null not run)"
+)
+STRUCTURE = "no more structure inliers than against unrelated chunks: 33 <= 43 (false-alarm rate 0.01)"
+
+
+def test_siblings_join_a_loop_of_their_revisit_only(x64):
+    """A registration edge rejected by its evidence alone is accepted beside a verified loop of
+    the same revisit (each chunk within one chunk of the loop's) when consistent with every
+    accepted loop; a wrong one, one beside no loop, one beside a sibling only, one not in view
+    and a token candidate keep the verdicts they get without siblings."""
+    rel, X, _, _ = chain_problem(4)
+    loops = [geo_record(X, 1, 8), geo_record(X, 2, 10), geo_record(X, 0, 11)]
+    weak = [
+        geo_record(X, 3, 10, 0.09, **SKIPPED),  # beside 2/10: the dense test's floor alone
+        geo_record(X, 2, 9, 0.3, evidence_reason=STRUCTURE),  # beside 1/8 and 2/10: the structure null
+        geo_record(X, 1, 11, 0.09, wrong=True, **SKIPPED),  # beside 0/11 and 2/10, its edge wrong
+        geo_record(X, 5, 7, 0.09, **SKIPPED),  # beside no loop
+        geo_record(X, 4, 10, 0.09, **SKIPPED),  # beside the sibling 3/10 only
+        geo_record(X, 3, 10, 0.09, **SKIPPED) | {"dense_overlap": 0.05},  # not in view
+        {k: v for k, v in geo_record(X, 3, 9, 0.09, **SKIPPED).items() if k != "source"},  # a token candidate
+    ]
+    out = V.verify_candidates([*loops, *weak], X, rel)
+    assert [d.accepted for d in out] == [True] * 5 + [False] * 5, [d.reason for d in out]
+    assert all(d.reason.startswith("verified; pairwise consistent with 4 other loop(s)") for d in out[:3])
+    assert (
+        out[3].reason
+        == f"sibling of the loop of chunks 2 and 10 (the same revisit); pairwise consistent with 4 other loop(s); alone: depths agree little whatever the null: {FLOOR}"
+    )
+    assert out[4].reason.startswith("sibling of the loop of chunks 1 and 8 (the same revisit)")
+    assert out[4].reason.endswith("alone: " + STRUCTURE)
+    assert out[3].pcm_residual < 1e-3 and out[4].pcm_residual < 1e-3  # exactly consistent
+    off = V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(siblings=False))
+    assert [d.accepted for d in off] == [True] * 3 + [False] * 7
+    assert off[4].reason == STRUCTURE and off[3].reason.endswith(FLOOR)
+    assert [d.reason for d in out[5:]] == [d.reason for d in off[5:]]
+    assert [d.accepted for d in V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(pcm=False))] == [
+        True
+    ] * 3 + [False] * 7
+    # siblings never make a revisit of their own: beside a follower-less, verified-less set, all rejected
+    assert not any(d.accepted for d in V.verify_candidates(weak, X, rel))
+    # one verified loop is enough (no PCM between loops, but the sibling's short cycle is tested)
+    one = V.verify_candidates([loops[1], weak[0], weak[2]], X, rel)
+    assert [d.accepted for d in one] == [True, True, False]
+
+
+def test_siblings_registered_only_when_their_placement_is_accepted(x64):
+    """``settle_deferred``: a sibling below the structure null is judged on its placement, its
+    refinement and view computed only when accepted so, and decided again on the refined edge
+    (or rejected with its refinement's reason)."""
+    from swiftjax.pipeline.loop_geometry import settle_deferred
+
+    rel, X, _, _ = chain_problem(4)
+    loops = [geo_record(X, 1, 8), geo_record(X, 2, 10), geo_record(X, 0, 11)]
+    calls = []
+    near = np.asarray(sim3.compose(jnp.asarray(_edge(X, 3, 10)), sim3.exp(jnp.asarray([0.02, 0, 0, 0, 0.002, 0, 0]))))
+
+    def pending(p, q, Z, result):
+        r = geo_record(X, p, q, evidence_reason=STRUCTURE, registration_pending=True)
+        for key in ("dense_agreement", "dense_overlap", "null_threshold", "null_mean", "null_std"):
+            del r[key]
+        return r | {"Z": list(map(float, Z)), "_register": lambda: calls.append((q, p)) or result}
+
+    refined = {"Z": list(map(float, _edge(X, 3, 10))), "dense_agreement": 0.12, "dense_overlap": 0.8}
+    scale = "registration scale 0.70 x the odometry's, outside [0.77, 1.30]"
+    recs = [
+        *loops,
+        pending(3, 10, near, refined),  # its placement near the truth: registered, accepted on the refined edge
+        pending(2, 9, _edge(X, 2, 9, wrong=True), {}),  # its placement wrong: never registered
+        pending(1, 11, _edge(X, 1, 11), {"quality_valid": False, "quality_reason": scale}),  # refinement fails
+    ]
+
+    def decide(rs):
+        for r, d in zip(rs, V.verify_candidates(rs, X, rel)):
+            r.update(accepted=d.accepted, reason=d.reason)
+
+    settle_deferred(decide, recs)
+    assert [r["accepted"] for r in recs] == [True] * 4 + [False] * 2, [r["reason"] for r in recs]
+    assert sorted(calls) == [(10, 3), (11, 1)]
+    assert recs[3]["Z"] == refined["Z"] and "registration_pending" not in recs[3] and "_register" not in recs[3]
+    assert recs[3]["reason"].startswith("sibling of the loop of chunks 2 and 10") and recs[3]["reason"].endswith(
+        STRUCTURE
+    )
+    assert recs[4]["reason"] == STRUCTURE and recs[4]["registration_pending"]
+    assert recs[5]["reason"] == scale

@@ -161,7 +161,8 @@ def test_every_mapped_config_field_arrives_in_its_stage_options():
     assert mapped["loop_geometry_neighbours"] == (GeometryOptions, "neighbours")
     assert mapped["loop_null_model"] == (VerificationConfig, "null_model")
     assert mapped["loop_followers"] == (VerificationConfig, "followers")
-    assert len(mapped) == 26
+    assert mapped["loop_siblings"] == (VerificationConfig, "siblings")
+    assert len(mapped) == 27
     default = PipelineConfig()
     changes = {}
     for name, (cls, field) in mapped.items():
@@ -248,7 +249,7 @@ def test_default_stage_options_are_the_recorded_ones():
     """The run directory fingerprints each stage by these values: a changed default would make
     every existing run redo its stages (hash of the default config of 151f7dd; since issue 28's
     ``loop_geometry_neighbours``, ``loop_null_model`` (whose default ``trend`` replaced the
-    pooled null) and ``loop_followers``, a run directory made before them redoes its loop stage
+    pooled null), ``loop_followers`` and ``loop_siblings``, a run directory made before them redoes its loop stage
     once, saying so, and keeps its chunks)."""
     import hashlib
     import json
@@ -256,7 +257,7 @@ def test_default_stage_options_are_the_recorded_ones():
     config = PipelineConfig()
     stages = {s: config.stage_options(s) for s in options.STAGES}
     digest = hashlib.sha256(json.dumps(stages, sort_keys=True).encode()).hexdigest()
-    assert digest == "23430621103feb6cbaa1ec583dd069cb1b5fe70e5dd53950cc4dbcab9d9da4ac", stages
+    assert digest == "2b1a5165e5e416ff555f0eef8d039c56d52df86e5d5623dd7a1fcda7d4b38af2", stages
 
 
 def test_no_override_keywords_on_the_stage_entry_points():

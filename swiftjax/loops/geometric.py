@@ -1333,7 +1333,7 @@ def register_covisible(
     return Covisible(reg, amb, pl.scores, pl.S)
 
 
-def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
+def covisible_reason(reg: dict, options: GeometryOptions, *, structure_null: bool = True) -> str | None:
     """Why a co-visible registration's numbers reject the candidate, in one line, or ``None``.
 
     ``reg`` (plain floats): ``peak_score``, the best placement's structure inliers
@@ -1342,10 +1342,13 @@ def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
     when the candidate passed those two tests, the refined :class:`Registration`'s numbers
     (``valid``, ``scale_ratio``, ``num_structure``, ``spread``, ``rms``).  A second plausible
     placement does not reject the candidate: it widens the edge's covariance
-    (:func:`placement_spread`).
+    (:func:`placement_spread`).  ``structure_null = False``: every test but the null's (a
+    sibling's registration, :mod:`swiftjax.loops.verification`, whose evidence is judged apart).
     """
     if not reg["peak_score"] >= 0:
         return "registration failed (no valid placement: every peak's Umeyama solve degenerate or not finite)"
+    if not structure_null:
+        return None if "valid" not in reg else _refined_reason(reg, options)
     th = reg.get("null_threshold")
     if th is None or not math.isfinite(th):
         return "registration null not computable (fewer than three unrelated chunks)"
@@ -1356,6 +1359,11 @@ def covisible_reason(reg: dict, options: GeometryOptions) -> str | None:
         )
     if "valid" not in reg:
         return None
+    return _refined_reason(reg, options)
+
+
+def _refined_reason(reg: dict, options: GeometryOptions) -> str | None:
+    """The refined registration's tests of :func:`covisible_reason`: valid, scale, residual."""
     why = _placement_reason(
         reg, options, "the refinement's Umeyama solve degenerate or not finite", scale_of="the odometry's"
     )

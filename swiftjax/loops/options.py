@@ -118,6 +118,10 @@ class VerificationConfig:
             the agreement its source's registrations reach on unrelated chunks
             (``registered_null_threshold``), only beside verified loops it is consistent with
             (:mod:`swiftjax.loops.verification`, "Followers").
+        siblings: a registration edge of the geometric source whose own evidence does not
+            beat its nulls may still be accepted beside an accepted loop of the same revisit
+            (each chunk within one chunk of the loop's), when consistent with every accepted
+            loop (:mod:`swiftjax.loops.verification`, "Siblings").
         pcm_threshold: whitened cycle residual bound, ``sqrt(χ²_7(0.999)) = 4.93``.
         odo_sigma_rot, odo_sigma_trans, odo_sigma_scale: drift model of a temporal edge
             (:func:`~swiftjax.loops.verification.odometry_covariance`).
@@ -157,6 +161,11 @@ class VerificationConfig:
         True,
         "loop verification: a registration edge below the least chance-corrected agreement that beats its "
         "source's registrations on unrelated chunks joins the verified loops it is consistent with",
+    )
+    siblings: bool = option(
+        True,
+        "loop verification: a registration edge whose own evidence does not beat its nulls joins an accepted "
+        "loop of the same revisit (each chunk within one of its own) when consistent with every accepted loop",
     )
     pcm_threshold: float = option(4.93, "whitened cycle residual bound", low=0.0, low_open=True)
     odo_sigma_rot: float = option(0.01, "temporal-edge drift: rotation sigma", low=0.0, low_open=True)

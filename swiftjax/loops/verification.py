@@ -30,6 +30,23 @@ it makes the candidate a follower: weaker evidence than a verified loop, so it i
 when it is pairwise consistent with every loop of the maximum consistent set of the verified
 ones (and with the followers accepted before it, by decreasing agreement), never on its own.
 
+**Siblings** (``siblings``; registration edges only).  A revisit spans several chunk pairs,
+and some of its true ones carry no evidence of their own above their nulls: on synthetic KITTI
+08, 36/3 has fewer structure inliers than chunk 36 placed on unrelated chunks (33 <= 43) and,
+refined, agrees no more than those placements do; 32/14 agrees at 0.091 (0.075 under the
+oracle's true edge).  Nothing in the two chunks tells them from the same source's wrong
+placements (32/16, 39 m off: 0.107).  What does is an accepted loop of the SAME revisit: a
+loop whose chunks each lie within one chunk of the candidate's (:func:`same_revisit`;
+neighbouring chunks share their overlap frames, the same place) closes a cycle with it over at
+most one temporal edge per side, so the cycle's whitened residual (PCM) tests the candidate's
+edge against that loop's within the loop edges' own noise, not a route's drift.  A
+registration edge whose registration is valid, in view under its edge (``dense_overlap >=
+min_overlap``) and rejected by its evidence alone (the structure null, ``evidence_reason``, or
+the dense test's nulls) is a sibling of the first verified loop or follower of its revisit
+when it is pairwise consistent with every accepted loop and every sibling accepted before it.
+Siblings never support one another (no chain along a street), never enter the maximum
+consistent set, and keep their evidence's line in their reason.
+
 This module holds the decision rule (:func:`verify_candidates`, thresholds in
 :class:`VerificationConfig`) and re-exports the tests' functions.  The fixed thresholds were
 chosen from measured distributions of true and false candidates (docs/performance/loops.md);
@@ -39,7 +56,7 @@ the dense agreement's bound is calibrated per candidate by default.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -88,6 +105,8 @@ __all__ = [
     "max_consistent_set",
     "VerificationConfig",
     "Decision",
+    "may_sibling",
+    "same_revisit",
     "verify_candidates",
 ]
 
@@ -301,6 +320,32 @@ def _follows(r: dict[str, Any], config: VerificationConfig) -> bool:
     return not r.get("null_stopped") and float(r["dense_agreement"]) > registered
 
 
+def same_revisit(pair: tuple[int, int], loops: Iterable[tuple[int, int]]) -> tuple[int, int] | None:
+    """The first of ``loops`` (chunk pairs ``(larger, smaller)``) whose chunks each lie within one
+    chunk of ``pair``'s (``(larger, smaller)``), or None: a loop of the same revisit.  Neighbouring
+    chunks share their overlap frames, so their places are the same place (host level)."""
+    a, b = pair
+    return next(((x, y) for x, y in loops if abs(x - a) <= 1 and abs(y - b) <= 1), None)
+
+
+def may_sibling(r: dict[str, Any], config: VerificationConfig) -> bool:
+    """Whether record ``r``, once its evidence rejects it, may still be a sibling (module
+    docstring; host level): ``siblings`` and ``pcm`` on, a registration edge (``source =
+    "geometry"``) and in view under its edge (``dense_overlap >= min_overlap``), or with its
+    refinement and dense test still to be computed (``registration_pending``)."""
+    if not (config.siblings and config.pcm and r.get("source") == "geometry"):
+        return False
+    if r.get("registration_pending"):
+        return True
+    ov = float(r.get("dense_overlap", math.nan))
+    return math.isfinite(float(r.get("dense_agreement", math.nan))) and math.isfinite(ov) and ov >= config.min_overlap
+
+
+def _pair(r: dict[str, Any]) -> tuple[int, int]:
+    """Record ``r``'s chunks ``(larger, smaller)``."""
+    return max(int(r["chunk_i"]), int(r["chunk_j"])), min(int(r["chunk_i"]), int(r["chunk_j"]))
+
+
 # ----------------------------------------------------------------------- decisions
 
 
@@ -394,7 +439,15 @@ def verify_candidates(
     rejected when the set is empty or PCM is off.  A follower whose registered null is still
     to be computed (``registered_null_pending``) is judged as if it beat it: the caller
     computes the null of each one accepted so and decides again
-    (:func:`swiftjax.pipeline.loop_geometry.settle_followers`).
+    (:func:`swiftjax.pipeline.loop_geometry.settle_deferred`).  Siblings (``siblings``, module
+    docstring: a registration edge rejected by its evidence alone, :func:`may_sibling`; a
+    record's ``evidence_reason`` is such a rejection, its registration's structure null) are
+    tested last, by decreasing ``dense_agreement``: each is accepted beside the first loop of
+    the set or follower of its revisit (:func:`same_revisit`) when pairwise consistent with
+    every loop accepted so far, its reason ending with its evidence's line; one whose
+    refinement and dense test are still to be computed (``registration_pending``) is judged on
+    its placement, and computed and decided again when accepted so.  A record's
+    ``quality_reason`` replaces the loop chunk's line when ``quality_valid`` is false.
 
     Args:
         records: the candidates (not modified).
@@ -407,23 +460,28 @@ def verify_candidates(
     """
     out: list[Decision] = [Decision(False, "")] * len(records)
     alive: list[int] = []
+    hopeful: list[int] = []  # rejected by their evidence alone: siblings if their revisit is closed
     for k, r in enumerate(records):
         Z = np.asarray(r["Z"], np.float64)
         fraction = float(r.get("quality_min_fraction", 0.0))
         if Z.shape != (8,) or not np.all(np.isfinite(Z)):
             out[k] = Decision(False, "loop edge is not finite")
         elif not r.get("quality_valid", False):
-            out[k] = Decision(False, "loop chunk alignment invalid (pose fallback)")
+            out[k] = Decision(False, r.get("quality_reason", "loop chunk alignment invalid (pose fallback)"))
         elif not fraction >= config.min_fraction:
             out[k] = Decision(
                 False, f"loop chunk alignment thin: {fraction:.3f} of the overlap reliable < {config.min_fraction}"
             )
-        elif (why := _dense_reason(r, config)) is not None:
+        elif (why := r.get("evidence_reason") or _dense_reason(r, config)) is not None:
             out[k] = Decision(False, why)
+            if may_sibling(r, config):
+                hopeful.append(k)
         else:
             alive.append(k)
     follows = [_follows(records[k], config) for k in alive]
-    if not (config.pcm and len(alive) >= 2):
+    homes = [_pair(records[k]) for k in alive]
+    hopeful = [k for k in hopeful if same_revisit(_pair(records[k]), homes) is not None]
+    if not (config.pcm and len(alive) >= 2) and not (alive and hopeful):
         for k, weak in zip(alive, follows):
             out[k] = (
                 Decision(False, "a follower with no verified loop to be consistent with (PCM off or no other loop)")
@@ -431,8 +489,9 @@ def verify_candidates(
                 else Decision(True, "verified")
             )
         return out
+    tested = alive + hopeful
     nodes, Zs = [], []
-    for k in alive:  # each loop as the edge p -> q with p < q, Z ~ S_p^-1 S_q
+    for k in tested:  # each loop as the edge p -> q with p < q, Z ~ S_p^-1 S_q
         ci, cj = int(records[k]["chunk_i"]), int(records[k]["chunk_j"])
         Z = np.asarray(records[k]["Z"], np.float64)  # maps c_i into c_j: edge c_j -> c_i
         if cj > ci:
@@ -441,7 +500,7 @@ def verify_candidates(
         nodes.append((min(ci, cj), max(ci, cj)))
         Zs.append(Z)
     # padded to a power of two (>= 8) so that one compile serves many candidate counts
-    n = len(alive)
+    n, na = len(tested), len(alive)
     size = max(8, 1 << (n - 1).bit_length())
     nodes += [(0, 1)] * (size - n)
     Zs += [np.array([0, 0, 0, 0, 0, 0, 1, 1.0])] * (size - n)
@@ -457,21 +516,37 @@ def verify_candidates(
         m = np.asarray(
             pairwise_consistency(jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc)
         )[:n, :n]
-    agreement = [float(records[k]["dense_agreement"]) for k in alive]
-    strong = [a for a in range(n) if not follows[a]]
+    agreement = [float(records[k].get("dense_agreement", math.nan)) for k in tested]
+    strong = [a for a in range(na) if not follows[a]]
     ok = m <= config.pcm_threshold
     clique = {strong[a] for a in max_consistent_set(ok[np.ix_(strong, strong)], [agreement[a] for a in strong])}
     verified = len(clique)
-    for a in sorted((a for a in range(n) if follows[a]), key=lambda a: -agreement[a]):
+    for a in sorted((a for a in range(na) if follows[a]), key=lambda a: -agreement[a]):
         if verified and all(ok[a, b] for b in clique):
             clique.add(a)
+    accepted, sibling_of = set(clique), {}  # siblings: beside the clique's loops, never each other's
+    loops = [_pair(records[tested[b]]) for b in sorted(clique)]
+    by_agreement = lambda a: (-agreement[a] if math.isfinite(agreement[a]) else math.inf, a)
+    for a in sorted(range(na, n), key=by_agreement):
+        home = same_revisit(_pair(records[tested[a]]), loops)
+        if verified and home is not None and all(ok[a, b] for b in accepted):
+            accepted.add(a)
+            sibling_of[a] = home
+    for a in sibling_of:
+        k, (x, y) = tested[a], sibling_of[a]
+        out[k] = Decision(
+            True,
+            f"sibling of the loop of chunks {y} and {x} (the same revisit); pairwise consistent with "
+            f"{len(accepted) - 1} other loop(s); alone: {out[k].reason}",
+            float(np.max(m[a, sorted(accepted)])),
+        )
     for a, k in enumerate(alive):
-        worst = float(np.max(m[a])) if len(alive) > 1 else 0.0
+        worst = float(np.max(m[a, :na])) if na > 1 else 0.0
         if a in clique:
             out[k] = Decision(
                 True,
                 ("follower" if follows[a] else "verified")
-                + f"; pairwise consistent with {len(clique) - 1} other loop(s)",
+                + f"; pairwise consistent with {len(accepted) - 1} other loop(s)",
                 worst,
             )
         elif follows[a] and not verified:

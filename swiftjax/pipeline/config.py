@@ -93,6 +93,7 @@ class PipelineConfig:
     loop_pcm: bool = option(target=(VerificationConfig, "pcm"), stage="loops")
     loop_null_model: str = option(target=(VerificationConfig, "null_model"), stage="loops")
     loop_followers: bool = option(target=(VerificationConfig, "followers"), stage="loops")
+    loop_siblings: bool = option(target=(VerificationConfig, "siblings"), stage="loops")
     loop_geometry: bool = option(
         False,
         "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "

@@ -140,6 +140,7 @@ def _run(
         r.pop("_stats", None)
         r.pop("_closed_by", None)
         r.pop("_registered", None)
+        r.pop("_register", None)
     loop_records += [
         {
             "i": lp.i,
@@ -196,8 +197,8 @@ def _decide_with_geometry(
             ctx, temporal.K_ref, taken, config.verification, config.geometry, chain=chain, closed=closed, ahead=ahead
         )
     pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
-    settle = functools.partial(decide, ctx, temporal.relative)  # followers' nulls when accepted
-    loop_geometry.settle_followers(settle, tokens + pool)
+    settle = functools.partial(decide, ctx, temporal.relative)  # deferred work when accepted
+    loop_geometry.settle_deferred(settle, tokens + pool)
     while True:
         accepted = [loop_geometry.chunk_pair(r) for r in tokens if r["accepted"]]
         reopen = {
@@ -215,7 +216,7 @@ def _decide_with_geometry(
         new = {loop_geometry.chunk_pair(r): r for r in more}
         geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
         pool += [r for r in more if "accepted" not in r]
-        loop_geometry.settle_followers(settle, tokens + pool)
+        loop_geometry.settle_deferred(settle, tokens + pool)
 
 
 def loop_record(ctx: RunContext, lp: loops.Loop, pred: ChunkPrediction, K_ref: np.ndarray) -> dict[str, Any]:

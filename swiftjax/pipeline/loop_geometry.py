@@ -52,7 +52,7 @@ below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every 
 A survivor rejected by the null's chance-corrected floor alone may still be a follower
 (:mod:`swiftjax.loops.verification`, "Followers"): judged against its source's registered null
 (:class:`RegisteredNull`: the dense agreement of the structure null's own placements, refined),
-computed only when the decision accepts it provisionally (:func:`settle_followers`), and
+computed only when the decision accepts it provisionally (:func:`settle_deferred`), and
 accepted only beside the verified loops it is consistent with.  No loop-centric chunk is
 predicted.
 
@@ -95,7 +95,7 @@ __all__ = [
     "compile_ahead",
     "edge_information",
     "geometries",
-    "settle_followers",
+    "settle_deferred",
     "split_closed",
 ]
 
@@ -343,8 +343,7 @@ def closing(pair: tuple[int, int], tokens: Iterable[tuple[int, int]]) -> tuple[i
     token loop edge that closes the revisit ``pair`` would close.  The one rule behind
     :func:`swiftjax.pipeline.loop_closure.redundant_geometry` (which explains why such a
     geometric edge is rejected) and the pairs :func:`candidates` does not register (``closed``)."""
-    a, b = pair
-    return next(((x, y) for x, y in tokens if abs(x - a) <= 1 and abs(y - b) <= 1), None)
+    return lv.same_revisit(pair, tokens)
 
 
 def _without_edge(ci: int, cj: int, ids: np.ndarray, reason: str) -> dict[str, Any]:
@@ -629,6 +628,74 @@ def candidates(
             )
         return registered[c]
 
+    def refine(items: list[tuple[int, int, np.ndarray]]) -> list[str | None]:
+        """Refine the best placements of ``items`` (record, best peak, plausible peaks) on all
+        points: each record's ``Z``, ``score``, registration numbers and ``_stats`` set, and
+        its refined registration's reason (:func:`swiftjax.loops.geometric.covisible_reason`
+        without the structure null, which the placement's score was tested against) returned."""
+        sk = np.asarray([k for k, _, _ in items])
+        start = np.stack([pl.S[k, kb] for k, kb, _ in items]).astype(np.float32)
+        prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
+            np.float32
+        )
+        with ctx.timer("loop geometry: refinement"):
+            regs = _run_batched(
+                lambda *a: geo.refine_batch(clouds, *a, o),
+                REFINE_BATCH,
+                (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
+            )
+            spreads = _run_batched(
+                _spreads,
+                REFINE_BATCH,
+                (pl.S[sk], np.stack([p for _, _, p in items]), np.asarray([kb for _, kb, _ in items], np.int32)),
+            )
+        reasons = []
+        for n, (k, _, _) in enumerate(items):
+            record = records[k]
+            reg0 = jax.tree_util.tree_map(lambda x: x[n], regs)
+            ci, cj = int(ci_[k]), int(cj_[k])
+            record["Z"] = np.asarray(reg0.S, np.float64).tolist()
+            record["score"] = float(reg0.num_structure / max(int(reg0.num_points), 1))
+            record["registration"].update(
+                {
+                    key: _plain(getattr(reg0, key))
+                    for key in (
+                        "inlier_ratio",
+                        "rms",
+                        "scale_ratio",
+                        "spread",
+                        "num_inliers",
+                        "num_structure",
+                        "num_points",
+                        "valid",
+                    )
+                }
+            )
+            ev = np.linalg.eigvalsh(spreads[n][:3, :3])
+            record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
+            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n])
+            reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
+        return reasons
+
+    def register_later(k: int, kb: int, plausible: np.ndarray) -> dict[str, Any]:
+        """A sibling's deferred work (``_register``): the refinement, then, where it holds, the
+        dense test without its null (the structure null rejects the record alone: only its
+        view, ``dense_overlap``, is tested)."""
+        (why,) = refine([(k, kb, plausible)])
+        if why is not None:
+            return {"quality_valid": False, "quality_reason": why}
+        (side_i, _), (side_j, _) = _frames(ctx, int(ci_[k]), o), _frames(ctx, int(cj_[k]), o)
+        with ctx.timer("loop geometry: verification"):
+            return lv.candidate_numbers(
+                side_i,
+                side_j,
+                np.asarray(records[k]["Z"]),
+                K_ref,
+                _NO_HALVES,
+                _NO_HALVES,
+                _plain_dense_config(verification),
+            )
+
     for k in range(P):
         ci, cj = int(ci_[k]), int(cj_[k])
         th, null_mean, null_samples = thresholds[ci]
@@ -655,59 +722,27 @@ def candidates(
         }
         records.append(record)
         why = geo.covisible_reason(record["registration"], o)
-        if why is not None:
-            record.update(accepted=False, reason=why, quality_valid=False, quality_min_fraction=1.0)
-        else:
+        if why is None:
             survivors.append((k, kb, plausible))
+        elif geo.covisible_reason(record["registration"], o, structure_null=False) is None and lv.may_sibling(
+            record | {"registration_pending": True}, verification
+        ):  # below the structure null alone: a sibling's refinement and dense test when accepted
+            record.update(
+                evidence_reason=why,
+                registration_pending=True,
+                quality_valid=True,
+                quality_min_fraction=1.0,
+                _register=functools.partial(register_later, k, kb, plausible),
+            )
+        else:
+            record.update(accepted=False, reason=why, quality_valid=False, quality_min_fraction=1.0)
+
     if not survivors:
         ahead.cancel()
     else:
         ahead.wait(_REFINEMENT)
-        sk = np.asarray([k for k, _, _ in survivors])
-        start = np.stack([pl.S[k, kb] for k, kb, _ in survivors]).astype(np.float32)
-        prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
-            np.float32
-        )
-        with ctx.timer("loop geometry: refinement"):
-            regs = _run_batched(
-                lambda *a: geo.refine_batch(clouds, *a, o),
-                REFINE_BATCH,
-                (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
-            )
-            spreads = _run_batched(
-                _spreads,
-                REFINE_BATCH,
-                (
-                    pl.S[sk],
-                    np.stack([p for _, _, p in survivors]),
-                    np.asarray([kb for _, kb, _ in survivors], np.int32),
-                ),
-            )
-        for n, (k, _, _) in enumerate(survivors):
-            record = records[k]
-            reg0 = jax.tree_util.tree_map(lambda x: x[n], regs)
-            ci, cj = int(ci_[k]), int(cj_[k])
-            record["Z"] = np.asarray(reg0.S, np.float64).tolist()
-            record["score"] = float(reg0.num_structure / max(int(reg0.num_points), 1))
-            record["registration"].update(
-                {
-                    key: _plain(getattr(reg0, key))
-                    for key in (
-                        "inlier_ratio",
-                        "rms",
-                        "scale_ratio",
-                        "spread",
-                        "num_inliers",
-                        "num_structure",
-                        "num_points",
-                        "valid",
-                    )
-                }
-            )
-            ev = np.linalg.eigvalsh(spreads[n][:3, :3])
-            record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
-            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n])
-            why = geo.covisible_reason(record["registration"], o)
+        for (k, _, _), why in zip(survivors, refine(survivors)):
+            record, ci, cj = records[k], int(ci_[k]), int(cj_[k])
             record.update(quality_valid=why is None, quality_min_fraction=1.0)
             if why is not None:
                 record.update(accepted=False, reason=why)
@@ -805,6 +840,13 @@ def _dense_config(verification: lv.VerificationConfig) -> lv.VerificationConfig:
     return dataclasses.replace(verification, neighbours=0)
 
 
+def _plain_dense_config(verification: lv.VerificationConfig) -> lv.VerificationConfig:
+    """:func:`_dense_config` without the null (``agreement_rule = "fixed"``): the agreement and
+    view of an edge whose verdict the null does not decide (:class:`RegisteredNull`'s samples,
+    a sibling's registration)."""
+    return dataclasses.replace(_dense_config(verification), agreement_rule="fixed")
+
+
 def _dense(
     ctx: RunContext,
     ci: int,
@@ -819,7 +861,7 @@ def _dense(
     its null only where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`).
     Where the chance-corrected floor alone may reject it (:func:`swiftjax.loops.verification.may_follow`),
     the rest deferred: ``registered_null_pending = True`` and ``_registered``, a call made only
-    when the decision accepts the candidate provisionally (:func:`settle_followers`) that
+    when the decision accepts the candidate provisionally (:func:`settle_deferred`) that
     returns its source's registered null's keys (``registered()``, :class:`RegisteredNull`)
     and, where the null's first round stopped and the registered null is beaten, the complete
     null's (is ``a > τ``?)."""
@@ -871,7 +913,7 @@ class RegisteredNull:
         self._ctx, self._c, self._clouds, self._K_ref, self._options = ctx, c, clouds, K_ref, options
         self._targets, self._starts = np.asarray(targets, np.int64), np.asarray(starts, np.float32)
         self._verification = verification
-        self._config = dataclasses.replace(_dense_config(verification), agreement_rule="fixed")
+        self._config = _plain_dense_config(verification)
         n = len(self._targets)
         self._exact = all(_null_settled(verification.null_false_alarm, k) for k in range(3, n + 1))
         self._samples: list[tuple[float, float, float]] = []  # (score, overlap, pairs seen) per tested target
@@ -953,21 +995,29 @@ class RegisteredNull:
         }
 
 
-def settle_followers(decide: Callable[[list[dict[str, Any]]], None], records: list[dict[str, Any]]) -> None:
-    """``decide(records)`` (in place), until no accepted record's registered null is pending:
-    each provisionally accepted follower's null is computed (its ``_registered`` call) and the
-    records decided again.  A follower takes no part in the verified loops' consistent set, so
-    the verdicts are those that every null computed first would give; the nulls of the followers
-    that PCM (or the redundancy rule) rejects are never computed (they keep
-    ``registered_null_pending``)."""
+def settle_deferred(decide: Callable[[list[dict[str, Any]]], None], records: list[dict[str, Any]]) -> None:
+    """``decide(records)`` (in place), until no accepted record has work deferred: each
+    provisionally accepted follower's registered null (``registered_null_pending``, its
+    ``_registered`` call) and sibling's refinement and dense test (``registration_pending``,
+    its ``_register`` call) computed, and the records decided again.  Neither takes part in the
+    verified loops' consistent set, so a follower's verdict is the one every null computed first
+    would give; the nulls of the followers that PCM (or the redundancy rule) rejects are never
+    computed (they keep ``registered_null_pending``), nor the registrations of the siblings
+    whose placements are inconsistent with their revisit's loops (a screen on the placement,
+    which the refinement moves by a fraction of a camera height)."""
     while True:
         decide(records)
-        pending = [r for r in records if r.get("accepted") and r.get("registered_null_pending")]
+        pending = [r for r in records if r.get("accepted") and any(r.get(flag) for flag in _DEFERRED)]
         if not pending:
             return
         for r in pending:
-            r.update(r.pop("_registered")())
-            del r["registered_null_pending"]
+            flag = next(flag for flag in _DEFERRED if r.get(flag))
+            r.update(r.pop(_DEFERRED[flag])())
+            del r[flag]
+
+
+#: A record's deferred work: its flag and the key of the call that computes it (:func:`settle_deferred`).
+_DEFERRED = {"registered_null_pending": "_registered", "registration_pending": "_register"}
 
 
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
