@@ -982,8 +982,9 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
     never registered, and the verdicts equal those of the unpruned path (every gated pair
     registered, one joint decision).  ``"rejected jointly"``: the lone token candidate is
     accepted alone but pairwise inconsistent with two geometric edges, so the joint decision
-    rejects it; the pair left unregistered beside it is then registered and accepted, as
-    without the prune."""
+    rejects it; the pairs left unregistered beside it are then registered and accepted, as
+    without the prune (21/5 verified, 20/6, rejected by its dense test alone, a sibling of
+    21/5: :mod:`swiftjax.loops.verification`, "Siblings")."""
     from types import SimpleNamespace
 
     from swiftjax.pipeline import loop_closure, loop_geometry
@@ -1029,7 +1030,8 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
             r = by_pair[pair]
             assert not r["accepted"] and "Z" not in r and r["reason"].startswith("not registered")
     else:
-        assert want == {("geometry", (21, 5)), ("geometry", (40, 10)), ("geometry", (42, 12))}
+        assert want == {("geometry", (21, 5)), ("geometry", (20, 6)), ("geometry", (40, 10)), ("geometry", (42, 12))}
+        assert by_pair[20, 6]["reason"].startswith("sibling of the loop of chunks 5 and 21")
         assert registered == [[(40, 10), (42, 12)], [(21, 5), (20, 6)]]
         assert all("Z" in r for r in geometric)
 

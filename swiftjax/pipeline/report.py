@@ -179,6 +179,7 @@ def _candidate(r: dict[str, Any]) -> dict[str, Any]:
         "registered_null_mean",
         "registered_null_samples",
         "registered_null_pending",
+        "registration_pending",
     )
     finite = lambda v: None if isinstance(v, float) and not np.isfinite(v) else v
     return {k: finite(r[k]) for k in keys if k in r}
