@@ -3,6 +3,7 @@ NumPy loops, closed forms and the invariances the module docstring claims."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -1094,6 +1095,27 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
                 got, want = np.asarray(exact[0].points), np.asarray(merged.points)  # (one fused program: ulps)
                 np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
                 np.testing.assert_array_equal(np.asarray(exact[0].weights), np.asarray(merged.weights))
+        if not k:  # a sibling's deferred registration (settle_deferred calls it once accepted)
+            from swiftjax.loops import verification as V
+
+            pending = [r for r in records if r.get("registration_pending")]
+            branches = set()
+            for r in pending:
+                placement = list(r["Z"])
+                assert r["evidence_reason"].startswith("no more structure inliers") and "accepted" not in r
+                got = r.pop("_register")()
+                assert r["Z"] != placement
+                branches.add(got.get("quality_valid", True))
+                if got.get("quality_valid") is False:  # the refinement's own reason
+                    assert got["quality_reason"] == G.covisible_reason(r["registration"], o, structure_null=False)
+                    continue
+                # the refined edge's dense test, without its null (its view is what is tested)
+                (side_i, _), (side_j, _) = (loop_geometry._frames(ctx, c, o) for c in (r["chunk_i"], r["chunk_j"]))
+                plain = dataclasses.replace(config.verification, neighbours=0, agreement_rule="fixed")
+                no_halves = loop_geometry._NO_HALVES
+                want = V.candidate_numbers(side_i, side_j, np.asarray(r["Z"]), chain.K_ref, no_halves, no_halves, plain)
+                assert got == want and "null_threshold" not in got
+            assert branches == {True, False}, len(pending)  # both kinds on this route
     finally:
         ctx.close()
     assert ahead.errors == []
