@@ -1045,7 +1045,10 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     test run; no compile failed and the thread is gone after ``wait``.  (42 x 140 frames:
     fewer reliable points than the registration's subsample, padded with zero-weight rows.)
     The chunks padded to their size bucket give the real chunks' clouds bitwise.  ``k``: the
-    joint registration's neighbours (its clouds are the single ones merged)."""
+    joint registration's neighbours (its clouds are the single ones merged).  With ``k = 0``
+    every structure-null reject's deferred registration (a sibling's ``_register``) is run: its
+    refined edge with the refinement's reason, or its dense test without the null, equal to an
+    independent recompute."""
     import threading
 
     from swiftjax import pipeline
