@@ -39,7 +39,9 @@ placements (32/16, 39 m off: 0.107).  What does is an accepted loop of the SAME 
 loop whose chunks each lie within one chunk of the candidate's (:func:`same_revisit`;
 neighbouring chunks share their overlap frames, the same place) closes a cycle with it over at
 most one temporal edge per side, so the cycle's whitened residual (PCM) tests the candidate's
-edge against that loop's within the loop edges' own noise, not a route's drift.  A
+edge against that loop's within one temporal edge's drift per side and the two loop edges'
+noise, not the drift of the tens of edges between far chunks (which let almost any far pair
+through: on 08, 36 of the 46 registration edges of chunks 84-89, 12-141 m off).  A
 registration edge whose registration is valid, in view under its edge (``dense_overlap >=
 min_overlap``) and rejected by its evidence alone (the structure null, ``evidence_reason``, or
 the dense test's nulls) is a sibling of the first verified loop or follower of its revisit
