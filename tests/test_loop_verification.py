@@ -620,8 +620,8 @@ STRUCTURE = "no more structure inliers than against unrelated chunks: 33 <= 43 (
 def test_siblings_join_a_loop_of_their_revisit_only(x64):
     """A registration edge rejected by its evidence alone is accepted beside a verified loop of
     the same revisit (each chunk within one chunk of the loop's) when consistent with every
-    accepted loop; a wrong one, one beside no loop, one beside a sibling only, one not in view
-    and a token candidate keep the verdicts they get without siblings."""
+    accepted loop; a wrong one, one beside no loop, one beside a sibling only, one not in view,
+    a token candidate and a joint registration keep the verdicts they get without siblings."""
     rel, X, _, _ = chain_problem(4)
     loops = [geo_record(X, 1, 8), geo_record(X, 2, 10), geo_record(X, 0, 11)]
     weak = [
@@ -632,9 +632,10 @@ def test_siblings_join_a_loop_of_their_revisit_only(x64):
         geo_record(X, 4, 10, 0.09, **SKIPPED),  # beside the sibling 3/10 only
         geo_record(X, 3, 10, 0.09, **SKIPPED) | {"dense_overlap": 0.05},  # not in view
         {k: v for k, v in geo_record(X, 3, 9, 0.09, **SKIPPED).items() if k != "source"},  # a token candidate
+        geo_record(X, 2, 11, 0.09, registration={"neighbours": 1}, **SKIPPED),  # a joint registration
     ]
     out = V.verify_candidates([*loops, *weak], X, rel)
-    assert [d.accepted for d in out] == [True] * 5 + [False] * 5, [d.reason for d in out]
+    assert [d.accepted for d in out] == [True] * 5 + [False] * 6, [d.reason for d in out]
     assert all(d.reason.startswith("verified; pairwise consistent with 4 other loop(s)") for d in out[:3])
     assert (
         out[3].reason
@@ -644,12 +645,12 @@ def test_siblings_join_a_loop_of_their_revisit_only(x64):
     assert out[4].reason.endswith("alone: " + STRUCTURE)
     assert out[3].pcm_residual < 1e-3 and out[4].pcm_residual < 1e-3  # exactly consistent
     off = V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(siblings=False))
-    assert [d.accepted for d in off] == [True] * 3 + [False] * 7
+    assert [d.accepted for d in off] == [True] * 3 + [False] * 8
     assert off[4].reason == STRUCTURE and off[3].reason.endswith(FLOOR)
     assert [d.reason for d in out[5:]] == [d.reason for d in off[5:]]
     assert [d.accepted for d in V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(pcm=False))] == [
         True
-    ] * 3 + [False] * 7
+    ] * 3 + [False] * 8
     # siblings never make a revisit of their own: beside a follower-less, verified-less set, all rejected
     assert not any(d.accepted for d in V.verify_candidates(weak, X, rel))
     # one verified loop is enough (no PCM between loops, but the sibling's short cycle is tested)

@@ -47,7 +47,8 @@ min_overlap``) and rejected by its evidence alone (the structure null, ``evidenc
 the dense test's nulls) is a sibling of the first verified loop or follower of its revisit
 when it is pairwise consistent with every accepted loop and every sibling accepted before it.
 Siblings never support one another (no chain along a street), never enter the maximum
-consistent set, and keep their evidence's line in their reason.
+consistent set, and keep their evidence's line in their reason.  They are registrations of
+single chunks only (:func:`may_sibling` says why joint registrations are not).
 
 This module holds the decision rule (:func:`verify_candidates`, thresholds in
 :class:`VerificationConfig`) and re-exports the tests' functions.  The fixed thresholds were
@@ -333,9 +334,18 @@ def same_revisit(pair: tuple[int, int], loops: Iterable[tuple[int, int]]) -> tup
 def may_sibling(r: dict[str, Any], config: VerificationConfig) -> bool:
     """Whether record ``r``, once its evidence rejects it, may still be a sibling (module
     docstring; host level): ``siblings`` and ``pcm`` on, a registration edge (``source =
-    "geometry"``) and in view under its edge (``dense_overlap >= min_overlap``), or with its
-    refinement and dense test still to be computed (``registration_pending``)."""
+    "geometry"``) of single chunks (``registration.neighbours`` 0 or absent) and in view under
+    its edge (``dense_overlap >= min_overlap``), or with its refinement and dense test still to
+    be computed (``registration_pending``).
+
+    Single chunks: a joint registration (``neighbours = k > 0``) registers each chunk merged
+    with its ``k`` neighbours on each side, so two pairs of a revisit one chunk apart share
+    ``2k`` of the ``2k + 1`` chunks of each cloud: their agreement is one registration agreeing
+    with itself, not evidence (synthetic KITTI 08 with ``k = 1``: 38/2, 12.6 m off, consistent
+    with the verified 38/3)."""
     if not (config.siblings and config.pcm and r.get("source") == "geometry"):
+        return False
+    if (r.get("registration") or {}).get("neighbours", 0):
         return False
     if r.get("registration_pending"):
         return True

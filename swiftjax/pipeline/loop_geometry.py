@@ -719,6 +719,7 @@ def candidates(
             "null_threshold": th,
             "null_samples": null_samples,
             "yaw_deg": float(np.degrees(psi[k])),
+            "neighbours": o.neighbours,
         }
         records.append(record)
         why = geo.covisible_reason(record["registration"], o)
