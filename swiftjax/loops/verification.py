@@ -108,6 +108,7 @@ __all__ = [
     "max_consistent_set",
     "VerificationConfig",
     "Decision",
+    "chunk_pair",
     "may_sibling",
     "same_revisit",
     "verify_candidates",
@@ -353,9 +354,9 @@ def may_sibling(r: dict[str, Any], config: VerificationConfig) -> bool:
     return math.isfinite(float(r.get("dense_agreement", math.nan))) and math.isfinite(ov) and ov >= config.min_overlap
 
 
-def _pair(r: dict[str, Any]) -> tuple[int, int]:
-    """Record ``r``'s chunks ``(larger, smaller)``."""
-    return max(int(r["chunk_i"]), int(r["chunk_j"])), min(int(r["chunk_i"]), int(r["chunk_j"]))
+def chunk_pair(record: dict[str, Any]) -> tuple[int, int]:
+    """A candidate record's chunks ``(larger, smaller)`` (the pairs :func:`same_revisit` compares)."""
+    return max(int(record["chunk_i"]), int(record["chunk_j"])), min(int(record["chunk_i"]), int(record["chunk_j"]))
 
 
 # ----------------------------------------------------------------------- decisions
@@ -491,8 +492,8 @@ def verify_candidates(
         else:
             alive.append(k)
     follows = [_follows(records[k], config) for k in alive]
-    homes = [_pair(records[k]) for k in alive]
-    hopeful = [k for k in hopeful if same_revisit(_pair(records[k]), homes) is not None]
+    homes = [chunk_pair(records[k]) for k in alive]
+    hopeful = [k for k in hopeful if same_revisit(chunk_pair(records[k]), homes) is not None]
     if not (config.pcm and len(alive) >= 2) and not (alive and hopeful):
         for k, weak in zip(alive, follows):
             out[k] = (
@@ -537,10 +538,10 @@ def verify_candidates(
         if verified and all(ok[a, b] for b in clique):
             clique.add(a)
     accepted, sibling_of = set(clique), {}  # siblings: beside the clique's loops, never each other's
-    loops = [_pair(records[tested[b]]) for b in sorted(clique)]
+    loops = [chunk_pair(records[tested[b]]) for b in sorted(clique)]
     by_agreement = lambda a: (-agreement[a] if math.isfinite(agreement[a]) else math.inf, a)
     for a in sorted(range(na, n), key=by_agreement):
-        home = same_revisit(_pair(records[tested[a]]), loops)
+        home = same_revisit(chunk_pair(records[tested[a]]), loops)
         if verified and home is not None and all(ok[a, b] for b in accepted):
             accepted.add(a)
             sibling_of[a] = home

@@ -333,8 +333,8 @@ def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int,
 
 
 def chunk_pair(record: dict[str, Any]) -> tuple[int, int]:
-    """A candidate's chunks ``(larger, smaller)``."""
-    return max(int(record["chunk_i"]), int(record["chunk_j"])), min(int(record["chunk_i"]), int(record["chunk_j"]))
+    """A candidate's chunks ``(larger, smaller)`` (:func:`swiftjax.loops.verification.chunk_pair`)."""
+    return lv.chunk_pair(record)
 
 
 def closing(pair: tuple[int, int], tokens: Iterable[tuple[int, int]]) -> tuple[int, int] | None:
