@@ -1086,15 +1086,20 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
             # unpadded ones (the subsample keys are prefix-stable)
             g, ids = loop_geometry.geometries(ctx, chain.K_ref, o)
             T = len(ids)
-            exact = loop_geometry._clouds(g, *loop_geometry._neighbour_edges(poses, T, k), o)
+            relative = loop_geometry._relative_poses(poses, T)
+            exact = loop_geometry._clouds(g, *loop_geometry._neighbour_edges(relative, T, k), o)
             size = loop_geometry._padded_chunks(T + 1)
             padded = loop_geometry._pad_chunks(g, size)
-            padded = loop_geometry._clouds(padded, *loop_geometry._neighbour_edges(poses, size, k), o)
+            padded = loop_geometry._clouds(
+                padded, *loop_geometry._neighbour_edges(loop_geometry._relative_poses(poses, size), T, k), o
+            )
             for a, b in zip(jax.tree_util.tree_leaves(exact), jax.tree_util.tree_leaves(padded)):
                 np.testing.assert_array_equal(np.asarray(b)[:T], np.asarray(a))
             if k:  # the joint clouds are the single ones merged (merge_neighbours)
-                single = loop_geometry._clouds(g, *loop_geometry._neighbour_edges(poses, T, 0), o.replace(neighbours=0))
-                merged = G.merge_neighbours(single[0], *loop_geometry._neighbour_edges(poses, T, k))
+                single = loop_geometry._clouds(
+                    g, *loop_geometry._neighbour_edges(relative, T, 0), o.replace(neighbours=0)
+                )
+                merged = G.merge_neighbours(single[0], *loop_geometry._neighbour_edges(relative, T, k))
                 got, want = np.asarray(exact[0].points), np.asarray(merged.points)  # (one fused program: ulps)
                 np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
                 np.testing.assert_array_equal(np.asarray(exact[0].weights), np.asarray(merged.weights))
@@ -1127,7 +1132,7 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
     assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
     # (starts_batch, _geometry and _clouds are first traced inside compile_ahead's eval_shape)
-    programs = ["_priors", "peaks_batch", "refine_batch", "placement_spread", "_cross_jit", "_null_jit"]
+    programs = ["_relative", "_priors", "peaks_batch", "refine_batch", "placement_spread", "_cross_jit", "_null_jit"]
     assert set(programs) <= set(compiled_ahead), compiled_ahead  # (the dense test's null too)
     assert "act" in stage  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
     assert [p for p in [*programs, "starts_batch"] if p in stage] == [], stage
@@ -1306,7 +1311,7 @@ def test_merge_neighbours_against_numpy_loop(k):
         np.tile(np.eye(3, dtype=np.float32), (size, 1, 1)),
         rng.random(size).astype(np.float32) + 1,
     )
-    edges, valid = lg._neighbour_edges(chain, size, k)
+    edges, valid = lg._neighbour_edges(lg._relative_poses(chain, size), T, k)
     merged = G.merge_neighbours(clouds, edges, valid)
     offsets = [*range(-k, 0), *range(1, k + 1)]
     assert merged.points.shape == (size, (2 * k + 1) * Q, 3)
@@ -1396,7 +1401,7 @@ def test_joint_registration_recovers_a_known_sim3_through_the_chain():
     )
     prior = sim3.compose(jnp.asarray(rigid(0.0, [-12.0, 0.0, 0.0], 1.0)), jnp.asarray(S_true))
     single = jax.tree_util.tree_map(lambda x: x[1], clouds)
-    edges, valid = lg._neighbour_edges(chain.astype(np.float64), 3, 1)
+    edges, valid = lg._neighbour_edges(lg._relative_poses(chain, 3), 3, 1)
     joint = jax.tree_util.tree_map(lambda x: x[1], G.merge_neighbours(clouds, edges, valid))
     wrong = jax.tree_util.tree_map(
         lambda x: x[1], G.merge_neighbours(clouds, np.zeros_like(edges) + sim3.identity(), valid)
