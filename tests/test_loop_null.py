@@ -451,7 +451,8 @@ def test_kappa_settled_is_exact(x64):
 
 def test_candidate_numbers_null_in_rounds():
     """Where the first round settles the verdict the second is not drawn: the first round's
-    numbers (K/2 samples), null_stopped, and the complete null's verdict."""
+    numbers (K/2 samples), null_stopped, and the complete null's verdict.  ``complete`` draws
+    both rounds whatever the first gives: the complete null's numbers, equal to all ``K`` at once."""
     src, dst, S = scene(seed=7)
     half = {"num_points": 900, "fraction_used": 0.4, "rms": 0.02, "valid": True, "pose_fallback": False}
     rel, X, nodes, Z = chain_problem(4)
@@ -461,8 +462,11 @@ def test_candidate_numbers_null_in_rounds():
         lazy = V.candidate_numbers(src, dst, S, K, half, half, cfg, null_when_needed=True)
         assert lazy.get("null_stopped", False) is stops and "null_stopped" not in full
         assert lazy["null_samples"] == (4 if stops else full["null_samples"])
-        if not stops:
-            for k in full:
+        complete = V.candidate_numbers(src, dst, S, K, half, half, cfg, null_when_needed=True, complete=True)
+        assert complete.keys() == full.keys()
+        for k in full:
+            np.testing.assert_equal(complete[k], full[k])
+            if not stops:
                 np.testing.assert_equal(lazy[k], full[k])
         verdicts = [
             V.verify_candidates(

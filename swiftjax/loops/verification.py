@@ -179,6 +179,7 @@ def candidate_numbers(
     config: VerificationConfig | None = None,
     *,
     null_when_needed: bool = False,
+    complete: bool = False,
 ) -> dict[str, Any]:
     """The verification numbers of one candidate as a plain dict (host level, for records).
 
@@ -201,7 +202,9 @@ def candidate_numbers(
     only when the first leaves the verdict open (:func:`~swiftjax.loops.null.kappa_settled`):
     otherwise ``null_stopped = True`` and the null's keys are the first round's numbers, which
     reject the candidate as the complete null would (the verdict is exact; the numbers are
-    those of ``K/2`` samples).
+    those of ``K/2`` samples).  ``complete`` (with ``null_when_needed``): both rounds drawn
+    whatever the first gives, the complete null in the programs the rounds compile (all ``K``
+    at once is another shape: a compile, 1.3 s on KITTI 00).
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))
@@ -219,7 +222,7 @@ def candidate_numbers(
         null = {"null_skipped": True}
     elif config.agreement_rule == "null":
         score, null_overlap, seen, offsets, stop = _null_samples(
-            one(side_i), one(side_j), Z, K_ref, config, agreement, in_rounds=null_when_needed
+            one(side_i), one(side_j), Z, K_ref, config, agreement, in_rounds=null_when_needed, stop=not complete
         )
         th = null_threshold(
             score,
@@ -260,19 +263,20 @@ def _null_samples(
     agreement: float,
     *,
     in_rounds: bool,
+    stop: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
     """One candidate's null samples (``[1, ...]`` frames and ``Z [1, 8]``): ``(score, overlap,
     pairs_seen, offsets, stopped)``, each ``[E]`` with the samples' shifts ``δ``.  All ``K`` at
     once, or ``in_rounds`` (:func:`~swiftjax.loops.null.null_rounds`) with the second round
     drawn only when the first leaves the verdict open (:func:`~swiftjax.loops.null.kappa_settled`;
-    ``stopped``: it did not, ``E = K/2``)."""
+    ``stopped``: it did not, ``E = K/2``; ``stop = False``: the second round drawn always)."""
     offsets = config_offsets(config)
     draw = lambda edges: [np.asarray(a)[0] for a in null_consistency(side_i, side_j, Z, K_ref, config, edges=edges)]
     if not in_rounds:
         return *draw(None), offsets, False
     first, second = null_rounds(config.null_samples)
     drawn = draw(first)
-    if kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap):
+    if stop and kappa_settled(agreement, *drawn, len(second), config.null_min_kappa, config.min_overlap):
         return *drawn, offsets[first], True
     order = np.argsort(np.concatenate([first, second]))
     return *(np.concatenate([a, b])[order] for a, b in zip(drawn, draw(second))), offsets, False

@@ -198,7 +198,8 @@ def _decide_with_geometry(
         )
     pool = [r for r in geometric if "accepted" not in r]  # the ones the decision decides
     settle = functools.partial(decide, ctx, temporal.relative)  # deferred work when accepted
-    loop_geometry.settle_deferred(settle, tokens + pool)
+    with ctx.timer("loop geometry"):  # (the decisions book their own time: "loop verification")
+        loop_geometry.settle_deferred(settle, tokens + pool)
     while True:
         accepted = [loop_geometry.chunk_pair(r) for r in tokens if r["accepted"]]
         reopen = {
@@ -216,7 +217,8 @@ def _decide_with_geometry(
         new = {loop_geometry.chunk_pair(r): r for r in more}
         geometric = [new.get(loop_geometry.chunk_pair(r), r) for r in geometric]
         pool += [r for r in more if "accepted" not in r]
-        loop_geometry.settle_deferred(settle, tokens + pool)
+        with ctx.timer("loop geometry"):
+            loop_geometry.settle_deferred(settle, tokens + pool)
 
 
 def loop_record(ctx: RunContext, lp: loops.Loop, pred: ChunkPrediction, K_ref: np.ndarray) -> dict[str, Any]:

@@ -893,7 +893,7 @@ def _dense(
     def settle() -> dict[str, Any]:
         out = registered().numbers(a)
         if num.get("null_stopped") and a > out["registered_null_threshold"]:  # a > τ? the complete null
-            out |= numbers(null_when_needed=False) | {"null_stopped": False}
+            out |= numbers(null_when_needed=True, complete=True) | {"null_stopped": False}
         return out
 
     return num | {"registered_null_pending": True, "_registered": settle}
