@@ -378,7 +378,7 @@ class GeometryOptions:
     yaw_steps: int = option(5, "co-visible search: yaws tried", low=1)
     scale_search: float = option(0.18, "co-visible search: log-scale around the chain's", low=0.0)
     scale_steps: int = option(3, "co-visible search: scales tried", low=1)
-    peaks: int = option(4, "co-visible search: correlation peaks refined", low=1)
+    peaks: int = option(3, "co-visible search: correlation peaks refined", low=1)
     peak_separation: float = option(4.0, "co-visible search: distinct placements (camera heights)", low=0.0)
     max_window: float = option(40.0, "co-visible search: largest translation window (camera heights)", low=1.0)
     peak_src_points: int = option(256, "co-visible search: source points refined per peak", low=1)
