@@ -204,7 +204,7 @@ def candidate_numbers(
     reject the candidate as the complete null would (the verdict is exact; the numbers are
     those of ``K/2`` samples).  ``complete`` (with ``null_when_needed``): both rounds drawn
     whatever the first gives, the complete null in the programs the rounds compile (all ``K``
-    at once is another shape: a compile, 1.3 s on KITTI 00).
+    at once is another program, not compiled ahead: 1.33 s on KITTI 00 against 0.16 s).
     """
     config = config or VerificationConfig()
     one = lambda f: align.ChunkFrames(*(np.asarray(a, np.float32)[None] for a in f))
