@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from swiftjax import _faults, align, loops
+from swiftjax import _faults, align, loops, sim3
 from swiftjax.loops import verification as lv
 from swiftjax.pipeline import loop_geometry
 from swiftjax.pipeline.alignment import align_pair, both
@@ -315,7 +315,7 @@ def decide(ctx: RunContext, relative: np.ndarray, records: list[dict[str, Any]],
         return
     if rows is not None:
         relative = np.asarray(relative, np.float64).reshape(-1, 8)
-        identity = np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float64)
+        identity = np.asarray(sim3.identity(), np.float64)
         relative = np.concatenate([relative, np.tile(identity, (max(rows - len(relative), 0), 1))])
     with ctx.timer("loop verification"):
         decisions = lv.verify_candidates(records, chain_poses(relative), relative, ctx.config.verification)

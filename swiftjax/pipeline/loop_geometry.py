@@ -77,7 +77,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from swiftjax import align
+from swiftjax import align, sim3
 from swiftjax.align import covariance
 from swiftjax.loops import geometric as geo
 from swiftjax.loops import verification as lv
@@ -318,8 +318,6 @@ def _pairs(chain: np.ndarray, clouds: geo.ChunkCloud, ids: np.ndarray, sep: int,
     path)`` of each other (centres), and that window in ``c_j``'s camera heights (at most
     ``max_window``)."""
     with jax.enable_x64(True):
-        from swiftjax import sim3
-
         centre = np.asarray(sim3.act(chain, np.asarray(clouds.origin, np.float64)))
     cam = chain[:, :3]
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(cam, axis=0), axis=1))])
@@ -795,8 +793,6 @@ def _relative(chain: jax.Array) -> jax.Array:
     """``R [T, T, 8]``, ``R[a, b] = G_a⁻¹ G_b``: chunk ``b`` into chunk ``a``'s coordinates by the
     chain ``G [T, 8]`` (chunk to world).  Run under ``jax.enable_x64`` on float64 ``G``
     (:func:`_relative_poses`); one compile per ``T``."""
-    from swiftjax import sim3
-
     return sim3.compose(sim3.inverse(chain)[:, None], chain[None, :])
 
 
@@ -822,12 +818,8 @@ def _neighbour_edges(relative: np.ndarray, T: int, k: int) -> tuple[np.ndarray, 
     n = c + np.asarray(offsets, np.int64)[None, :]
     valid = (c < T) & (n >= 0) & (n < T)
     rel = relative[np.minimum(c, T - 1), np.clip(n, 0, T - 1)]
-    edges = np.where(valid[..., None], rel, _IDENTITY).astype(np.float32)
+    edges = np.where(valid[..., None], rel, np.asarray(sim3.identity(), np.float64)).astype(np.float32)
     return edges.reshape(size, len(offsets), 8), valid
-
-
-#: The Sim(3) identity ``[8]`` (swiftjax.sim3's layout: translation, quaternion xyzw, scale).
-_IDENTITY = np.array([0, 0, 0, 0, 0, 0, 1, 1], np.float64)
 
 
 @jax.jit
