@@ -130,24 +130,30 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
     (ctx, temporal, loops)``: per accepted loop edge, its error against the truth edge
     ``δ = log(Z_true⁻¹ Z)`` (the oracle's true gauges) whitened by the covariance the graph
     gives it, ``m² = δᵀ Σ⁻¹ δ`` (``χ²`` with 7 degrees of freedom, mean 7, 95 % below 14.07,
-    when ``Σ`` is right), and per geometric edge the ATE (metres) of the same graph solved
+    when ``Σ`` is right; the temporal edges' too, against ``G_t⁻¹ G_{t+1}``), and per geometric edge the ATE (metres) of the same graph solved
     without it (what that one edge costs or gains).  Runs after the timed run."""
     from swiftjax import evaluation, sim3
     from swiftjax.pipeline import graph
 
     ctx, temporal, loops = solved
-    cov = graph._data_covariance(ctx, temporal, loops)[len(temporal.relative) :]
+    cov = graph._data_covariance(ctx, temporal, loops)
+    T1 = len(temporal.relative)
+
+    def whitened(a: int, b: int, Z: np.ndarray, C: np.ndarray) -> float:
+        with jax.enable_x64(True):
+            truth = sim3.compose(sim3.inverse(jnp.asarray(truth_gauges(a))), jnp.asarray(truth_gauges(b)))
+            d = np.asarray(sim3.log(sim3.compose(sim3.inverse(truth), jnp.asarray(Z, jnp.float64))))
+        return float(d @ np.linalg.solve(C, d))
+
+    odometry = [whitened(t, t + 1, temporal.relative[t], cov[t]) for t in range(T1)]
     accepted = [r for r in loops.records if r.get("accepted", True) and "Z" in r]
     edges = []
-    for n, (e, C, r) in enumerate(zip(loops.edges, cov, accepted)):
-        with jax.enable_x64(True):
-            truth = sim3.compose(sim3.inverse(jnp.asarray(truth_gauges(e.chunk_a))), jnp.asarray(truth_gauges(e.chunk_b)))
-            d = np.asarray(sim3.log(sim3.compose(sim3.inverse(truth), jnp.asarray(e.Z, jnp.float64))))
+    for n, (e, C, r) in enumerate(zip(loops.edges, cov[T1:], accepted)):
         row = {
             "chunk_i": e.chunk_b,
             "chunk_j": e.chunk_a,
             "source": r.get("source", "tokens"),
-            "whitened_error_sq": float(d @ np.linalg.solve(C, d)),
+            "whitened_error_sq": whitened(e.chunk_a, e.chunk_b, e.Z, C),
         }
         if row["source"] == "geometry":
             without = loops._replace(
@@ -159,8 +165,8 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
         edges.append(row)
     summary = {
         s: {"edges": len(m), "mean_whitened_error_sq": float(np.mean(m)) if m else None}
-        for s in ("tokens", "geometry")
-        for m in [[x["whitened_error_sq"] for x in edges if x["source"] == s]]
+        for s in ("temporal", "tokens", "geometry")
+        for m in [odometry if s == "temporal" else [x["whitened_error_sq"] for x in edges if x["source"] == s]]
     }
     return {"edges": edges, "by_source": summary, "degrees_of_freedom": 7}
 
@@ -203,8 +209,8 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path, neighbours
     solved: list = []  # the pose graph's inputs (edge_calibration)
     start_ahead, start_graph = loop_geometry.compile_ahead, graph.run
     loop_geometry.compile_ahead = lambda *a, **k: ahead.append(start_ahead(*a, **k)) or ahead[-1]
-    graph.run = lambda ctx, temporal, loops, *a, **k: solved.append((ctx, temporal, loops)) or start_graph(
-        ctx, temporal, loops, *a, **k
+    graph.run = lambda ctx, temporal, loops, *a, **k: (
+        solved.append((ctx, temporal, loops)) or start_graph(ctx, temporal, loops, *a, **k)
     )
     t0 = time.perf_counter()
     try:

@@ -621,12 +621,14 @@ def test_placement_spread_closed_form():
 
 def test_edge_information_widened_along_the_slide(x64):
     """A registration edge with plausible placements along the street: its information is
-    ``(Ω_reg⁻¹ + Σ_P)⁻¹`` — the direction across the street and yaw keep (nearly) all their
-    information, the slide direction keeps little."""
+    ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` — the direction across the street and yaw keep the information
+    of the residuals and the chunks' model error, the slide direction keeps little."""
+    from swiftjax.align.covariance import umeyama_information
+    from swiftjax.loops.verification import VerificationConfig
     from swiftjax.pipeline.loop_geometry import edge_information
 
     reg = G.Registration(
-        S=jnp.array([0, 0, 0, 0, 0, 0, 1, 1.0]),
+        S=jnp.array([0, 0, 0, 0, 0, 0, 1, 1.25]),
         rms=jnp.float32(0.1),
         inlier_ratio=jnp.float32(0.6),
         num_inliers=jnp.int32(800),
@@ -640,12 +642,34 @@ def test_edge_information_widened_along_the_slide(x64):
     )
     slide = np.zeros((7, 7))
     slide[0, 0] = 16.0  # 4 units along x
-    plain = edge_information({"_stats": (reg, 1.0, np.zeros((7, 7)))}, 1.0)
-    wide = edge_information({"_stats": (reg, 1.0, slide)}, 1.0)
-    np.testing.assert_allclose(wide, np.linalg.inv(np.linalg.inv(plain) + slide), rtol=1e-9)
-    cov_p, cov_w = np.linalg.inv(plain), np.linalg.inv(wide)
+    extents = np.array([3.0, 5.0])
+    plain = np.asarray(  # Ω_reg: the registration's residuals alone
+        umeyama_information(1.25, 800.0, 0.1, reg.src_mean, reg.src_covariance, pixels_per_sample=1.0).information
+    )
+    warped = edge_information({"_stats": (reg, 1.0, np.zeros((7, 7)), extents)}, 1.0)
+    wide = edge_information({"_stats": (reg, 1.0, slide, extents)}, 1.0)
+    d = VerificationConfig()
+    # Σ_W in closed form: chunk a's extent in its units, chunk b's divided by the scale
+    warp = np.diag(
+        [d.odo_sigma_trans**2 * (3.0**2 + (5.0 / 1.25) ** 2)] * 3
+        + [2 * d.odo_sigma_rot**2] * 3
+        + [2 * d.odo_sigma_scale**2]
+    )
+    np.testing.assert_allclose(np.linalg.inv(warped), np.linalg.inv(plain) + warp, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.inv(wide), np.linalg.inv(plain) + warp + slide, rtol=1e-9, atol=1e-12)
+    cov_p, cov_w = np.linalg.inv(warped), np.linalg.inv(wide)
     assert cov_w[0, 0] == pytest.approx(cov_p[0, 0] + 16.0)
     np.testing.assert_allclose(cov_w[1:, 1:], cov_p[1:, 1:], rtol=1e-9)
+
+
+def test_warp_covariance_is_the_drift_model_over_each_chunk():
+    """``Σ_W``: the temporal drift model (``pcm.odometry_covariance``) of two straight paths as
+    long as the chunks, chunk ``b``'s in chunk ``a``'s units; float32 inputs give float64
+    (x64 off: float32) values equal to the closed form."""
+    got = np.asarray(G.warp_covariance(2.0, 6.0, 0.5, 0.01, 0.05, 0.04))
+    want = np.diag([0.05**2 * (4.0 + 144.0)] * 3 + [2e-4] * 3 + [2 * 0.04**2])
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert np.allclose(np.asarray(G.warp_covariance(0.0, 0.0, 1.0, 0.01, 0.05, 0.04))[:3, :3], 0.0, atol=1e-20)
 
 
 def test_null_early_stop_is_exact():

@@ -60,8 +60,8 @@ Each candidate is a record marked ``source = "geometry"`` with its registration'
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
 bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
 spread, the slide in camera heights); the accepted edge's information comes from the
-registration's own residuals widened by the plausible placements' spread
-(:func:`edge_information`).  The records are recomputed on every run (nothing is cached in the
+registration's own residuals widened by the plausible placements' spread and by both chunks'
+model error over their extents (:func:`edge_information`).  The records are recomputed on every run (nothing is cached in the
 manifest).
 """
 
@@ -485,6 +485,7 @@ def candidates(
         ahead.wait(_CLOUDS)
         g, ids = geometries(ctx, K_ref, o)
         T = len(ids)
+        extent = _extents(np.asarray(g.anchors))
         # the device programs take the clouds of a bucket of chunk counts (_padded_chunks)
         size = _padded_chunks(T)
         relative = _relative_poses(chain, size)
@@ -673,7 +674,7 @@ def candidates(
             )
             ev = np.linalg.eigvalsh(spreads[n][:3, :3])
             record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
-            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n])
+            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n], extent[[ci, cj]])
             reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
         return reasons
 
@@ -1028,15 +1029,26 @@ def settle_deferred(decide: Callable[[list[dict[str, Any]]], None], records: lis
 _DEFERRED = {"registered_null_pending": "_registered", "registration_pending": "_register"}
 
 
+def _extents(anchors: np.ndarray) -> np.ndarray:
+    """``[T]`` each chunk's extent: the largest distance between two of its anchors ``[T, A, 3]``
+    (camera centres spread over its loaded frames; chunk units)."""
+    return np.max(np.linalg.norm(anchors[:, :, None] - anchors[:, None], axis=-1), axis=(1, 2))
+
+
 def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
-    """Information ``[7, 7]`` of a registration edge, or None: ``Ω = (Ω_reg⁻¹ + Σ_P)⁻¹`` with
-    ``Ω_reg`` from its own inliers' residuals (:func:`swiftjax.align.covariance.umeyama_information`)
-    and ``Σ_P`` its plausible placements' spread (:func:`swiftjax.loops.geometric.placement_spread`;
-    ``Ω_reg`` alone when only one placement is plausible)."""
+    """Information ``[7, 7]`` of a registration edge, or None: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``
+    with ``Ω_reg`` from its own inliers' residuals
+    (:func:`swiftjax.align.covariance.umeyama_information`), ``Σ_P`` its plausible placements'
+    spread (:func:`swiftjax.loops.geometric.placement_spread`; zero when only one is plausible)
+    and ``Σ_W`` the two chunks' model error over their extents
+    (:func:`swiftjax.loops.geometric.warp_covariance`, the drift model of
+    :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose graph's
+    own drift terms)."""
     stats = record.get("_stats")
     if stats is None:
         return None
-    reg, unit, slide = stats
+    reg, unit, slide, (extent_i, extent_j) = stats
+    drift = lv.VerificationConfig()
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
             np.float64(np.asarray(reg.S)[7]),
@@ -1046,8 +1058,16 @@ def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.nda
             np.asarray(reg.src_covariance, np.float64),
             pixels_per_sample=pixels_per_sample,
         )
-        info = np.asarray(out.information, np.float64)
-    if bool(out.valid) and np.any(slide != 0):  # Ω = (Ω_reg⁻¹ + Σ_P)⁻¹ (geometric.placement_spread)
-        info = np.linalg.inv(np.linalg.inv(info) + np.asarray(slide, np.float64))
-        info = 0.5 * (info + info.T)
-    return info if bool(out.valid) and np.all(np.isfinite(info)) and not math.isnan(info[0, 0]) else None
+        warp = geo.warp_covariance(
+            extent_i,
+            extent_j,
+            np.float64(np.asarray(reg.S)[7]),
+            drift.odo_sigma_rot,
+            drift.odo_sigma_trans,
+            drift.odo_sigma_scale,
+        )
+        if not bool(out.valid):
+            return None
+        info = np.linalg.inv(np.linalg.inv(np.asarray(out.information, np.float64)) + slide + np.asarray(warp))
+    info = 0.5 * (info + info.T)
+    return info if np.all(np.isfinite(info)) else None
