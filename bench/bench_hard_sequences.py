@@ -30,6 +30,11 @@ sequence: ATE without loops, the new stage's time (``loop geometry``) against th
 compile-ahead thread (``loop_geometry.compile_ahead``, which runs beside the token stages) counted
 in full as the stage's: the most the stage can have cost.
 
+Per sequence, after the timed run, how well the run's own pose graph weighs its edges
+(:func:`edge_calibration`): every temporal and accepted loop edge's error against the truth,
+whitened by the covariance the graph gives it (``χ²₇`` when that covariance is right), and each
+geometric edge's leave-one-out ATE.
+
 The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIASING``) checks that the
 geometric source costs nothing where every revisit is driven the same way.
 
@@ -293,7 +298,7 @@ def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path, neighbours
         "accepted": sum(bool(r["accepted"]) for r in cands),
         "ate_rmse": float(res.metrics["ate_rmse"]),
         "note": "the run's own pose graph: each edge's information (a geometric edge's widened by its "
-        "plausible placements' spread) and the robust back end",
+        "plausible placements' spread and both chunks' model error) and the robust back end",
     }
     out["edge_calibration"] = edge_calibration(solved[-1], res, schedule, truth_gauges, gt) if solved else None
     out["candidate_records"] = [
