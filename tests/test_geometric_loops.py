@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -664,9 +665,12 @@ def test_edge_information_widened_along_the_slide(x64):
 
 def test_warp_covariance_is_the_drift_model_over_each_chunk():
     """``Σ_W``: the temporal drift model (``pcm.odometry_covariance``) of two straight paths as
-    long as the chunks, chunk ``b``'s in chunk ``a``'s units; float32 inputs give float64
-    (x64 off: float32) values equal to the closed form."""
-    got = np.asarray(G.warp_covariance(2.0, 6.0, 0.5, 0.01, 0.05, 0.04))
+    long as the chunks, chunk ``b``'s in chunk ``a``'s units, equal to the closed form (float32
+    here, without a dtype warning)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = np.asarray(G.warp_covariance(2.0, 6.0, 0.5, 0.01, 0.05, 0.04))
+    assert got.dtype == np.float32
     want = np.diag([0.05**2 * (4.0 + 144.0)] * 3 + [2e-4] * 3 + [2 * 0.04**2])
     np.testing.assert_allclose(got, want, rtol=1e-6)
     assert np.allclose(np.asarray(G.warp_covariance(0.0, 0.0, 1.0, 0.01, 0.05, 0.04))[:3, :3], 0.0, atol=1e-20)
