@@ -1288,22 +1288,22 @@ def warp_covariance(
     sigma_scale: float | Float[ArrayLike, ""],
 ) -> Float[Array, "7 7"]:
     """The two chunks' own model error as a covariance ``[7, 7]`` of their registration edge
-        ``Z`` (chunk ``a`` into chunk ``b``; tangent ``(ρ, ω, σ)``, right perturbation, ``ρ`` in
-        chunk ``a``'s units)::
+    ``Z`` (chunk ``a`` into chunk ``b``; tangent ``(ρ, ω, σ)``, right perturbation, ``ρ`` in
+    chunk ``a``'s units)::
 
-            Σ_W = Σ_odo(L_a) + Σ_odo(L_b / s),   Σ_odo(L) = diag(σ_t² L² I₃, σ_r² I₃, σ_s²)
+        Σ_W = Σ_odo(L_a) + Σ_odo(L_b / s),   Σ_odo(L) = diag(σ_t² L² I₃, σ_r² I₃, σ_s²)
 
-        ``L_c``: chunk ``c``'s extent (the largest distance between two of its anchors, in its own
-        units); ``s``: the edge's scale (a length of chunk ``b`` is ``1/s`` of it in ``a``'s
-        units).  ``Σ_odo`` is the drift model of a temporal edge
-        (:func:`swiftjax.loops.pcm.odometry_covariance`) over a path as long as the chunk: VGGT's
-        model error across one chunk's whole extent.  A token loop edge measures the revisit in
-        one loop-centric chunk that sees both places; a registration ties two chunks reconstructed
-        apart, each warped over its whole extent, and its optimum lies where those warps put it.
-        Its residuals cannot see that (each chunk is fitted to itself): on synthetic KITTI 08 the
-        registration edges' errors against the truth, whitened by ``Ω_reg⁻¹ + Σ_P`` and the loop
-        drift, averaged ``m² = 58`` (``χ²₇``: 7); with ``Σ_W`` 5, beside the token edges' 3–7 and
-        the temporal edges' 4 (``bench/bench_hard_sequences.py``, ``edge_calibration``).  Pure;
+    ``L_c``: chunk ``c``'s extent (the largest distance between two of its anchors, in its own
+    units); ``s``: the edge's scale (a length of chunk ``b`` is ``1/s`` of it in ``a``'s
+    units).  ``Σ_odo`` is the drift model of a temporal edge
+    (:func:`swiftjax.loops.pcm.odometry_covariance`) over a path as long as the chunk: VGGT's
+    model error across one chunk's whole extent.  A token loop edge measures the revisit in
+    one loop-centric chunk that sees both places; a registration ties two chunks reconstructed
+    apart, each warped over its whole extent, and its optimum lies where those warps put it.
+    Its residuals cannot see that (each chunk is fitted to itself): on synthetic KITTI 08 the
+    registration edges' errors against the truth, whitened by ``Ω_reg⁻¹ + Σ_P`` and the loop
+    drift, averaged ``m² = 58`` (``χ²₇``: 7); with ``Σ_W`` 5, beside the token edges' 3–7 and
+    the temporal edges' 4 (``bench/bench_hard_sequences.py``, ``edge_calibration``).  Pure;
     float64 under ``jax_enable_x64`` (as the pipeline calls it), else float32."""
     from swiftjax.loops.pcm import odometry_covariance
 
