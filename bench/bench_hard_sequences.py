@@ -39,6 +39,10 @@ The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIA
 geometric source costs nothing where every revisit is driven the same way.
 
     python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick] [--neighbours K]
+        [--aliasing A]
+
+``--aliasing 0.3``: look-alike token candidates planted on every route
+(:func:`~swiftjax.synthetic.places.plant_aliasing`; by default only 00 and the demo carry them).
 
 ``--neighbours 1``: the geometric source's joint registration (each chunk's structure merged with
 its neighbours', ``loop_geometry_neighbours``); the JSON records it under ``neighbours``.
@@ -193,20 +197,23 @@ def regions_found(chosen: list[dict], ok: list[bool], pairs: np.ndarray, labels:
     return len(found)
 
 
-def run_sequence(seq: str, frames: int | None, out_dir: pathlib.Path, neighbours: int = 0) -> dict:
+def run_sequence(
+    seq: str, frames: int | None, out_dir: pathlib.Path, neighbours: int = 0, aliasing: float | None = None
+) -> dict:
     from swiftjax import chunks, evaluation, pipeline
     from swiftjax.io.trajectory import read_kitti
     from swiftjax.pipeline import graph, loop_geometry
     from swiftjax.synthetic import demo, places
 
     if seq == "demo":  # the demo route, with its look-alike candidates (swiftjax demo)
-        aliasing = demo.DEMO_ALIASING
+        aliasing = demo.DEMO_ALIASING if aliasing is None else aliasing
         run = demo.loop_route_run(frames, aliasing=aliasing)
     else:
         poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
         if frames:
             poses = poses[:frames]
-        aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
+        if aliasing is None:
+            aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
         run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
     config = pipeline.PipelineConfig(loop_geometry=True, loop_geometry_neighbours=neighbours)
     load = os.getloadavg()
@@ -405,6 +412,13 @@ def main(argv: list[str] | None = None) -> dict:
         default=0,
         help="loop_geometry_neighbours: the joint registration's chunks merged on each side (default 0)",
     )
+    parser.add_argument(
+        "--aliasing",
+        type=float,
+        default=None,
+        help="look-alike token candidates planted per true loop chunk pair on every route "
+        "(default: 0.3 on 00 and the demo, none on 08, 05, 06)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.sequences, args.frames = ["08"], args.frames or 500
@@ -416,7 +430,7 @@ def main(argv: list[str] | None = None) -> dict:
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         for seq in args.sequences:
-            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours)
+            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours, args.aliasing)
             records.append(rec)
             print(
                 f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
@@ -425,7 +439,13 @@ def main(argv: list[str] | None = None) -> dict:
             )
     text = table(records)
     print(text)
-    payload = {"records": records, "table": text, "quick": bool(args.quick), "neighbours": args.neighbours}
+    payload = {
+        "records": records,
+        "table": text,
+        "quick": bool(args.quick),
+        "neighbours": args.neighbours,
+        "aliasing": args.aliasing,
+    }
     if not args.quick:
         print(f"wrote {write_results('hard_sequences', payload)}")
     return payload
