@@ -602,34 +602,40 @@ def test_batched_placements_equal_one_pair_at_a_time():
         np.testing.assert_allclose(np.asarray(corr[k]), np.asarray(want.correlation), atol=1e-3)
 
 
-def test_placement_spread_closed_form():
-    """Placements ``S_k = S_best exp(δ_k)`` with known ``δ_k`` (a street slid along x): the
-    spread is the NumPy second moment ``Σ_{k ∈ P} δ_k δ_kᵀ / |P|`` over the plausible ones only,
-    rank one along the slide."""
+def test_placement_moments_closed_form():
+    """Placements ``S_k = S_best exp(δ_k)`` with known ``δ_k`` (a street slid along x): the mean
+    offset and covariance are NumPy's mean and (biased) covariance of the plausible ``δ_k``
+    only, the covariance rank one along the slide."""
     S_best = sim3.from_rst(
         jnp.asarray(_rodrigues(np.array([0.0, 0, 1]), 2.5), jnp.float32), jnp.array([4.0, -2, 1]), 1.7
     )
     deltas = np.zeros((4, 7), np.float32)
-    deltas[1, 0], deltas[2, 0], deltas[3, :] = 3.0, -5.0, [1, 2, 3, 0.1, 0.2, 0.3, 0.05]
+    deltas[1, 0], deltas[2, 0], deltas[3, :] = 3.0, -6.0, [1, 2, 3, 0.1, 0.2, 0.3, 0.05]
     S = sim3.compose(S_best[None], sim3.exp(jnp.asarray(deltas)))
     plausible = np.array([True, True, True, False])
-    got = np.asarray(G.placement_spread(S, jnp.asarray(plausible), 0))
-    want = deltas[plausible].T.astype(np.float64) @ deltas[plausible] / plausible.sum()
-    np.testing.assert_allclose(got, want, atol=2e-4)
-    assert got[0, 0] == pytest.approx((9 + 25) / 3, rel=1e-4) and np.linalg.matrix_rank(got, tol=1e-3) == 1
-    assert np.all(np.asarray(G.placement_spread(S, jnp.array([True, False, False, False]), 0)) == 0)
+    mean, cov = (np.asarray(x) for x in G.placement_moments(S, jnp.asarray(plausible), 0))
+    d = deltas[plausible].astype(np.float64)
+    np.testing.assert_allclose(mean, d.mean(0), atol=2e-5)
+    np.testing.assert_allclose(cov, np.cov(d.T, bias=True), atol=2e-4)
+    assert mean[0] == pytest.approx(-1.0, rel=1e-4) and cov[0, 0] == pytest.approx((1 + 16 + 25) / 3, rel=1e-4)
+    assert np.linalg.matrix_rank(cov, tol=1e-3) == 1
+    alone = G.placement_moments(S, jnp.array([True, False, False, False]), 0)
+    assert all(np.all(np.asarray(x) == 0) for x in alone)
 
 
-def test_edge_information_widened_along_the_slide(x64):
-    """A registration edge with plausible placements along the street: its information is
-    ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` — the direction across the street and yaw keep the information
-    of the residuals and the chunks' model error, the slide direction keeps little."""
+def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
+    """A registration edge with plausible placements along the street: the graph's edge is
+    ``S exp(δ̄)``, its information ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` — the direction across the
+    street and yaw keep the information of the residuals and the chunks' model error, the
+    slide direction keeps little.  Against NumPy / closed forms: ``Ω_reg`` from the core
+    function, ``Σ_W`` diagonal."""
     from swiftjax.align.covariance import umeyama_information
     from swiftjax.loops.verification import VerificationConfig
-    from swiftjax.pipeline.loop_geometry import edge_information
+    from swiftjax.pipeline.loop_geometry import _EdgeStats, graph_edge
 
+    S = np.array([1.0, -2, 0.5, 0, 0, np.sin(0.3), np.cos(0.3), 1.25])
     reg = G.Registration(
-        S=jnp.array([0, 0, 0, 0, 0, 0, 1, 1.25]),
+        S=jnp.asarray(S),
         rms=jnp.float32(0.1),
         inlier_ratio=jnp.float32(0.6),
         num_inliers=jnp.int32(800),
@@ -643,12 +649,13 @@ def test_edge_information_widened_along_the_slide(x64):
     )
     slide = np.zeros((7, 7))
     slide[0, 0] = 16.0  # 4 units along x
+    offset = np.array([-2.0, 0, 0, 0, 0, 0, 0])
     extents = np.array([3.0, 5.0])
     plain = np.asarray(  # Ω_reg: the registration's residuals alone
         umeyama_information(1.25, 800.0, 0.1, reg.src_mean, reg.src_covariance, pixels_per_sample=1.0).information
     )
-    warped = edge_information({"_stats": (reg, 1.0, np.zeros((7, 7)), extents)}, 1.0)
-    wide = edge_information({"_stats": (reg, 1.0, slide, extents)}, 1.0)
+    Z0, warped = graph_edge({"_stats": _EdgeStats(reg, 1.0, np.zeros(7), np.zeros((7, 7)), extents)}, 1.0)
+    Z, wide = graph_edge({"_stats": _EdgeStats(reg, 1.0, offset, slide, extents)}, 1.0)
     d = VerificationConfig()
     # Σ_W in closed form: chunk a's extent in its units, chunk b's divided by the scale
     warp = np.diag(
@@ -661,6 +668,11 @@ def test_edge_information_widened_along_the_slide(x64):
     cov_p, cov_w = np.linalg.inv(warped), np.linalg.inv(wide)
     assert cov_w[0, 0] == pytest.approx(cov_p[0, 0] + 16.0)
     np.testing.assert_allclose(cov_w[1:, 1:], cov_p[1:, 1:], rtol=1e-9)
+    # the edge: S itself without an offset; S exp(δ̄) = S moved by -2 along its own x (rotated, scaled)
+    np.testing.assert_allclose(Z0, S, atol=1e-12)
+    R = np.array([[np.cos(0.6), -np.sin(0.6), 0], [np.sin(0.6), np.cos(0.6), 0], [0, 0, 1]])
+    np.testing.assert_allclose(Z[:3], S[:3] + 1.25 * R @ np.array([-2.0, 0, 0]), atol=1e-9)
+    np.testing.assert_allclose(Z[3:], S[3:], atol=1e-12)
 
 
 def test_warp_covariance_is_the_drift_model_over_each_chunk():
@@ -1160,7 +1172,7 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
     assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
     # (starts_batch, _geometry and _clouds are first traced inside compile_ahead's eval_shape)
-    programs = ["_relative", "_priors", "peaks_batch", "refine_batch", "placement_spread", "_cross_jit", "_null_jit"]
+    programs = ["_relative", "_priors", "peaks_batch", "refine_batch", "placement_moments", "_cross_jit", "_null_jit"]
     assert set(programs) <= set(compiled_ahead), compiled_ahead  # (the dense test's null too)
     assert "act" in stage  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
     assert [p for p in [*programs, "starts_batch"] if p in stage] == [], stage

@@ -59,9 +59,11 @@ placement refined on all points (:func:`refine_placement`): scale ratio, structu
 
 **A street slid along itself** is a 1-D degeneracy, not a wrong answer: several placements
 ``P = {k : n_k > θ}`` (each explained by no unrelated chunk) lie along the street.  Instead
-of rejecting the edge, its covariance gets their spread (:func:`placement_spread`)::
+of rejecting the edge, the pose graph gets their mean and spread (:func:`placement_moments`,
+the Gaussian closest to "any plausible placement alike")::
 
-    δ_k = log(S_best⁻¹ S_k),   Σ_P = Σ_{k ∈ P} δ_k δ_kᵀ / |P|,   Ω = (Ω_reg⁻¹ + Σ_P)⁻¹
+    δ_k = log(S_best⁻¹ S_k),   δ̄ = mean_{k ∈ P} δ_k,   Σ_P = mean_{k ∈ P} (δ_k − δ̄)(δ_k − δ̄)ᵀ,
+    Z = S_best exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P)⁻¹
 
 (``Ω_reg``: the registration's own information from its residuals,
 :func:`swiftjax.align.covariance.umeyama_information`).  ``Σ_P`` is large along the slide and
@@ -155,7 +157,7 @@ __all__ = [
     "scale_sweep",
     "refine_placement",
     "refine_batch",
-    "placement_spread",
+    "placement_moments",
     "warp_covariance",
     "Covisible",
     "register_covisible",
@@ -1256,27 +1258,33 @@ def refine_batch(
     return _over_pairs(lambda a, b, s, p: refine_placement(a, b, s, p, options), clouds, src, dst, S, prior_scale)
 
 
-def placement_spread(
+def placement_moments(
     S: Float[ArrayLike, "K 8"], plausible: Bool[ArrayLike, " K"], best: Int[ArrayLike, ""]
-) -> Float[Array, "7 7"]:
-    """The covariance ``[7, 7]`` of the edge over its plausible placements (tangent order
-    ``(ρ, ω, σ)``, right perturbation of ``S[best]`` as in :mod:`swiftjax.align.covariance`)::
+) -> tuple[Float[Array, " 7"], Float[Array, "7 7"]]:
+    """The edge's mean offset ``[7]`` and covariance ``[7, 7]`` over its plausible placements
+    (tangent order ``(ρ, ω, σ)``, right perturbation of ``S[best]`` as in
+    :mod:`swiftjax.align.covariance`)::
 
-        δ_k = log(S_best⁻¹ S_k),   Σ_P = Σ_{k ∈ P} δ_k δ_kᵀ / |P|
+        δ_k = log(S_best⁻¹ S_k),   δ̄ = Σ_{k ∈ P} δ_k / |P|,   Σ_P = Σ_{k ∈ P} (δ_k − δ̄)(δ_k − δ̄)ᵀ / |P|
 
     ``P``: the placements whose structure inliers exceed what the source reaches on unrelated
     chunks (the null's bound), the best among them.  With the true edge equally likely to be
-    any plausible placement, ``Σ_P`` is its second moment about the chosen one.  A street slid
-    along itself gives placements on a line: ``Σ_P`` has rank one, large along the street and
-    zero across it, in yaw and in scale; the registration's own covariance (its residuals) is
-    added to it (:func:`swiftjax.pipeline.loop_geometry.edge_information`).  Zeros when only
-    the best is plausible.  Pure."""
+    any plausible placement, ``S_best exp(δ̄)`` and ``Σ_P`` are the mean and covariance of that
+    mixture: the Gaussian closest to it (moment matching), the pose graph's edge
+    (:func:`swiftjax.pipeline.loop_geometry.graph_edge`).  A street slid along itself gives
+    placements on a line: ``Σ_P`` has rank one, large along the street and zero across it, in
+    yaw and in scale; the registration's own covariance and the chunks' model error are added
+    to it.  Zeros when only the best is plausible.  Pure."""
     S = jnp.asarray(S, jnp.float32)
     d = sim3.log(sim3.compose(sim3.inverse(S[best])[None], S))  # [K, 7]
     d = d.at[best].set(0.0)  # δ_best = 0 exactly (not log's rounding)
     w = jnp.asarray(plausible).astype(jnp.float32)
-    d = jnp.where((w > 0)[:, None] & jnp.all(jnp.isfinite(d), -1, keepdims=True), d, 0.0)
-    return jnp.einsum("k,ki,kj->ij", w, d, d) / jnp.maximum(jnp.sum(w), 1.0)
+    w = jnp.where(jnp.all(jnp.isfinite(d), -1), w, 0.0)
+    d = jnp.where((w > 0)[:, None], d, 0.0)
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.einsum("k,ki->i", w, d) / n
+    c = d - mean
+    return mean, jnp.einsum("k,ki,kj->ij", w, c, c) / n
 
 
 def warp_covariance(
@@ -1383,7 +1391,7 @@ def covisible_reason(reg: dict, options: GeometryOptions, *, structure_null: boo
     when the candidate passed those two tests, the refined :class:`Registration`'s numbers
     (``valid``, ``scale_ratio``, ``num_structure``, ``spread``, ``rms``).  A second plausible
     placement does not reject the candidate: it widens the edge's covariance
-    (:func:`placement_spread`).  ``structure_null = False``: every test but the null's (a
+    (:func:`placement_moments`).  ``structure_null = False``: every test but the null's (a
     sibling's registration, :mod:`swiftjax.loops.verification`, whose evidence is judged apart).
     """
     if not reg["peak_score"] >= 0:

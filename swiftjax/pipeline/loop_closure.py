@@ -131,11 +131,11 @@ def _run(
     loop_records += geometric
     for r in loop_records:
         if r["accepted"]:
-            # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge).
-            info = (
-                loop_geometry.edge_information(r, config.edge_pixels_per_sample) if r["source"] == "geometry" else None
-            )
-            loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"]), info))
+            # Edge (c_j, c_i): Z maps chunk c_i coordinates into chunk c_j (loops.loop_edge);
+            # a registration's is its plausible placements' mean (loop_geometry.graph_edge).
+            edge = loop_geometry.graph_edge(r, config.edge_pixels_per_sample) if r["source"] == "geometry" else None
+            Z, info = edge if edge is not None else (np.asarray(r["Z"]), None)
+            loop_edges.append(LoopEdge(r["chunk_j"], r["chunk_i"], Z, info))
     for r in geometric:
         r.pop("_stats", None)
         r.pop("_closed_by", None)

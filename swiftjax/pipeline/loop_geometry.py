@@ -34,9 +34,10 @@ bucket of chunk counts and options):
 3. for the candidates above it, the best placement refined on all points
    (:func:`~swiftjax.loops.geometric.refine_batch`); the scale must agree with the chain's and
    the structure must not be degenerate (:func:`swiftjax.loops.geometric.covisible_reason`,
-   one-line reasons).  Every placement above the bound is plausible; their spread widens the
-   edge's covariance (:func:`~swiftjax.loops.geometric.placement_spread`) instead of rejecting
-   an edge along a straight street.
+   one-line reasons).  Every placement above the bound is plausible; the pose graph's edge is
+   their mean and their spread widens its covariance
+   (:func:`~swiftjax.loops.geometric.placement_moments`, :func:`graph_edge`) instead of
+   rejecting an edge along a straight street.
 
 Every one of these programs has a fixed shape for a run (the chunk count, the batch sizes, the
 frames' size): :func:`compile_ahead` traces and compiles them on a background thread, each
@@ -59,10 +60,11 @@ predicted.
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
 bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
-spread, the slide in camera heights); the accepted edge's information comes from the
-registration's own residuals widened by the plausible placements' spread and by both chunks'
-model error over their extents (:func:`edge_information`).  The records are recomputed on every run (nothing is cached in the
-manifest).
+spread, the slide in camera heights).  The pose graph's edge (:func:`graph_edge`) is the
+plausible placements' mean, its information the registration's own residuals' widened by the
+placements' spread and by both chunks' model error over their extents; ``Z`` in the record
+stays the verified registration.  The records are recomputed on every run (nothing is cached
+in the manifest).
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ import functools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Executor, ThreadPoolExecutor
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -93,7 +95,7 @@ __all__ = [
     "chunk_pair",
     "closing",
     "compile_ahead",
-    "edge_information",
+    "graph_edge",
     "geometries",
     "settle_deferred",
     "split_closed",
@@ -283,7 +285,7 @@ def compile_ahead(
     peaks = (clouds, *ij(PEAK_BATCH), job(PEAK_BATCH, *S0.shape[1:]), job(PEAK_BATCH, *corr.shape[1:]))
     refine = (clouds, *ij(REFINE_BATCH), job(REFINE_BATCH, 8), job(REFINE_BATCH))
     K_peaks = S0.shape[1]
-    spreads = (
+    moments = (
         job(REFINE_BATCH, K_peaks, 8),
         job(REFINE_BATCH, K_peaks, dtype=np.bool_),
         job(REFINE_BATCH, dtype=np.int32),
@@ -305,7 +307,7 @@ def compile_ahead(
             ],  # PLACEMENT
             [
                 ahead(geo.refine_batch, *refine, options),
-                ahead(_spreads, *spreads),
+                ahead(_moments, *moments),
                 functools.partial(lv.compile_candidate_numbers, side, K_ref, dense, null_when_needed=True),
             ],  # REFINEMENT
         ]
@@ -631,7 +633,8 @@ def candidates(
 
     def refine(items: list[tuple[int, int, np.ndarray]]) -> list[str | None]:
         """Refine the best placements of ``items`` (record, best peak, plausible peaks) on all
-        points: each record's ``Z``, ``score``, registration numbers and ``_stats`` set, and
+        points: each record's ``Z``, ``score``, registration numbers and ``_stats``
+        (:class:`_EdgeStats`) set, and
         its refined registration's reason (:func:`swiftjax.loops.geometric.covisible_reason`
         without the structure null, which the placement's score was tested against) returned."""
         sk = np.asarray([k for k, _, _ in items])
@@ -645,8 +648,8 @@ def candidates(
                 REFINE_BATCH,
                 (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
             )
-            spreads = _run_batched(
-                _spreads,
+            offsets, spreads = _run_batched(
+                _moments,
                 REFINE_BATCH,
                 (pl.S[sk], np.stack([p for _, _, p in items]), np.asarray([kb for _, kb, _ in items], np.int32)),
             )
@@ -674,7 +677,9 @@ def candidates(
             )
             ev = np.linalg.eigvalsh(spreads[n][:3, :3])
             record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
-            record["_stats"] = (reg0, float(np.asarray(clouds.height)[cj]), spreads[n], extent[[ci, cj]])
+            record["_stats"] = _EdgeStats(
+                reg0, float(np.asarray(clouds.height)[cj]), offsets[n], spreads[n], extent[[ci, cj]]
+            )
             reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
         return reasons
 
@@ -830,7 +835,7 @@ def _priors(clouds: geo.ChunkCloud, Z: jax.Array, ci: jax.Array, cj: jax.Array):
     return jax.vmap(lambda z, a, b: geo.edge_prior(z, take(a), take(b)))(Z, ci, cj)
 
 
-_spreads = jax.jit(jax.vmap(geo.placement_spread))
+_moments = jax.jit(jax.vmap(geo.placement_moments))
 
 
 def _plain(v: Any) -> Any:
@@ -1035,39 +1040,56 @@ def _extents(anchors: np.ndarray) -> np.ndarray:
     return np.max(np.linalg.norm(anchors[:, :, None] - anchors[:, None], axis=-1), axis=(1, 2))
 
 
-def edge_information(record: dict[str, Any], pixels_per_sample: float) -> np.ndarray | None:
-    """Information ``[7, 7]`` of a registration edge, or None: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``
-    with ``Ω_reg`` from its own inliers' residuals
-    (:func:`swiftjax.align.covariance.umeyama_information`), ``Σ_P`` its plausible placements'
-    spread (:func:`swiftjax.loops.geometric.placement_spread`; zero when only one is plausible)
-    and ``Σ_W`` the two chunks' model error over their extents
-    (:func:`swiftjax.loops.geometric.warp_covariance`, the drift model of
-    :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose graph's
-    own drift terms)."""
-    stats = record.get("_stats")
+class _EdgeStats(NamedTuple):
+    """What :func:`graph_edge` needs of a refined registration (a record's ``_stats``)."""
+
+    registration: geo.Registration  # the best placement, refined
+    unit: float  # chunk ``c_j``'s camera height (the residuals' unit)
+    offset: np.ndarray  # [7] δ̄, the plausible placements' mean about the best
+    spread: np.ndarray  # [7, 7] Σ_P, their covariance
+    extents: np.ndarray  # [2] chunks c_i, c_j's extents
+
+
+def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose graph's edge of an accepted registration record: ``(Z [8], information [7, 7])``,
+    or None (no usable statistics: the record's ``Z`` with the drift model alone)::
+
+        Z = S exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹
+
+    ``S``: the refined best placement (the record's ``Z``, the verified one); ``δ̄``, ``Σ_P``:
+    the plausible placements' mean offset and covariance about it
+    (:func:`swiftjax.loops.geometric.placement_moments`: the edge is the Gaussian closest to
+    "any plausible placement alike"; ``δ̄ = 0``, ``Σ_P = 0`` when only the best is plausible);
+    ``Ω_reg`` from the registration's own inliers' residuals
+    (:func:`swiftjax.align.covariance.umeyama_information`); ``Σ_W`` the two chunks' model
+    error over their extents (:func:`swiftjax.loops.geometric.warp_covariance`, the drift
+    model of :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose
+    graph's own drift terms)."""
+    stats: _EdgeStats | None = record.get("_stats")
     if stats is None:
         return None
-    reg, unit, slide, (extent_i, extent_j) = stats
+    reg = stats.registration
     drift = lv.VerificationConfig()
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
             np.float64(np.asarray(reg.S)[7]),
             np.float64(reg.num_inliers),
-            np.float64(reg.rms) * unit,
+            np.float64(reg.rms) * stats.unit,
             np.asarray(reg.src_mean, np.float64),
             np.asarray(reg.src_covariance, np.float64),
             pixels_per_sample=pixels_per_sample,
         )
+        if not bool(out.valid):
+            return None
         warp = geo.warp_covariance(
-            extent_i,
-            extent_j,
+            *stats.extents,
             np.float64(np.asarray(reg.S)[7]),
             drift.odo_sigma_rot,
             drift.odo_sigma_trans,
             drift.odo_sigma_scale,
         )
-        if not bool(out.valid):
-            return None
-        info = np.linalg.inv(np.linalg.inv(np.asarray(out.information, np.float64)) + slide + np.asarray(warp))
+        cov = np.linalg.inv(np.asarray(out.information, np.float64)) + stats.spread + np.asarray(warp)
+        Z = np.asarray(sim3.compose(np.asarray(reg.S, np.float64), sim3.exp(np.asarray(stats.offset, np.float64))))
+    info = np.linalg.inv(cov)
     info = 0.5 * (info + info.T)
-    return info if np.all(np.isfinite(info)) else None
+    return (Z, info) if np.all(np.isfinite(info)) and np.all(np.isfinite(Z)) else None
