@@ -70,7 +70,8 @@ the Gaussian closest to "any plausible placement alike")::
 zero across it, in yaw and in scale: the loop edge constrains only the well-determined
 directions.  Every registration edge also carries both chunks' own model error over their
 extents, ``Σ_W`` (:func:`warp_covariance`, the temporal edges' drift model over a chunk's
-length), which its residuals cannot see: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``.  Nothing is read off a route: ``θ`` comes from the null at ``null_false_alarm``.
+length), which its residuals cannot see: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``.  Nothing is read
+off a route: ``θ`` comes from the null at ``null_false_alarm``, ``Σ_W`` from the drift model.
 
 **Joint registration** (``GeometryOptions.neighbours = k``, :func:`merge_neighbours`): each
 chunk's cloud joined with its ``k`` neighbours' on each side, placed by the odometry chain's
@@ -1312,8 +1313,8 @@ def warp_covariance(
     registration edges' errors against the truth, whitened by ``Ω_reg⁻¹ + Σ_P`` and the loop
     drift, averaged ``m² = 58`` (``χ²₇``: 7); with ``Σ_W`` 5, beside 08's temporal edges' 3.6
     (3.5–7.8 on the five routes of ``bench/bench_hard_sequences.py``, ``edge_calibration``)
-    and the token edges' 3.2–6.5.  Pure;
-    float64 under ``jax_enable_x64`` (as the pipeline calls it), else float32."""
+    and the token edges' 3.2–6.5.  Pure; float64 under ``jax_enable_x64`` (as the pipeline
+    calls it), else float32."""
     from swiftjax.loops.pcm import odometry_covariance
 
     dtype = jnp.result_type(float)  # float64 under jax_enable_x64, else float32

@@ -634,9 +634,9 @@ def candidates(
     def refine(items: list[tuple[int, int, np.ndarray]]) -> list[str | None]:
         """Refine the best placements of ``items`` (record, best peak, plausible peaks) on all
         points: each record's ``Z``, ``score``, registration numbers and ``_stats``
-        (:class:`_EdgeStats`) set, and
-        its refined registration's reason (:func:`swiftjax.loops.geometric.covisible_reason`
-        without the structure null, which the placement's score was tested against) returned."""
+        (:class:`_EdgeStats`) set, and its refined registration's reason
+        (:func:`swiftjax.loops.geometric.covisible_reason` without the structure null, which the
+        placement's score was tested against) returned."""
         sk = np.asarray([k for k, _, _ in items])
         start = np.stack([pl.S[k, kb] for k, kb, _ in items]).astype(np.float32)
         prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
