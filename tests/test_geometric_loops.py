@@ -276,6 +276,10 @@ def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
         if c["source"] == "geometry" and c["registration"] is not None:
             assert all(np.isfinite(v) for v in c["registration"].values() if isinstance(v, float))
     assert "truth edges" in out["table"]
+    # every temporal edge's error against the truth, whitened by the run's own covariance
+    cal = rec["edge_calibration"]["by_source"]
+    assert cal["temporal"]["edges"] == rec["chunks"] - 1 and cal["tokens"]["edges"] == cal["geometry"]["edges"] == 0
+    assert 0 < cal["temporal"]["mean_whitened_error_sq"] < np.inf
 
 
 def test_geometric_records_in_loops_txt_and_metrics(tmp_path):
