@@ -51,6 +51,7 @@ its neighbours', ``loop_geometry_neighbours``); the JSON records it under ``neig
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import pathlib
 import tempfile
@@ -66,26 +67,23 @@ from common import markdown_table, reconstruct, write_results
 SEQUENCES = ("08", "05", "06", "00", "demo")
 
 
-def truth_edges(oracle, schedule, poses: np.ndarray, min_separation: int) -> list[tuple[int, int, np.ndarray]]:
-    """``(c_j, c_i, Z)`` per true revisit chunk pair (``c_i - c_j >= 2``), ``Z`` maps chunk ``c_i``
-    into ``c_j`` from the oracle's true gauges."""
+def truth_edge(truth_gauge, a: int, b: int) -> np.ndarray:
+    """``Z = G_a⁻¹ G_b`` ``[8]`` float64: chunk ``b`` into chunk ``a`` by the oracle's true
+    gauges ``truth_gauge(c)``."""
     from swiftjax import sim3
+
+    with jax.enable_x64(True):
+        return np.asarray(sim3.compose(sim3.inverse(jnp.asarray(truth_gauge(a))), jnp.asarray(truth_gauge(b))))
+
+
+def truth_edges(truth_gauge, schedule, poses: np.ndarray, min_separation: int) -> list[tuple[int, int, np.ndarray]]:
+    """``(c_j, c_i, Z)`` per true revisit chunk pair (``c_i - c_j >= 2``), ``Z`` maps chunk ``c_i``
+    into ``c_j`` from the oracle's true gauges (:func:`truth_edge`)."""
     from swiftjax.synthetic import places
 
     pairs = places.ground_truth_loops(poses, min_separation=min_separation, direction="any")
     chunk_pairs = sorted({(int(schedule.chunk_of(i)), int(schedule.chunk_of(j))) for i, j in pairs})
-    gauges = {}
-    out = []
-    for ci, cj in chunk_pairs:
-        if ci - cj < 2:
-            continue
-        for c in (ci, cj):
-            if c not in gauges:
-                gauges[c] = oracle.true_chunk_gauge(schedule.frames(c))
-        with jax.enable_x64(True):
-            Z = np.asarray(sim3.compose(sim3.inverse(jnp.asarray(gauges[cj])), jnp.asarray(gauges[ci])))
-        out.append((cj, ci, Z))
-    return out
+    return [(cj, ci, truth_edge(truth_gauge, cj, ci)) for ci, cj in chunk_pairs if ci - cj >= 2]
 
 
 def _centres_local(result, schedule) -> list[np.ndarray]:
@@ -149,8 +147,8 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
     T1 = len(temporal.relative)
 
     def whitened(a: int, b: int, Z: np.ndarray, C: np.ndarray) -> float:
+        truth = truth_edge(truth_gauges, a, b)
         with jax.enable_x64(True):
-            truth = sim3.compose(sim3.inverse(jnp.asarray(truth_gauges(a))), jnp.asarray(truth_gauges(b)))
             d = np.asarray(sim3.log(sim3.compose(sim3.inverse(truth), jnp.asarray(Z, jnp.float64))))
         return float(d @ np.linalg.solve(C, d))
 
@@ -238,7 +236,8 @@ def run_sequence(
     relative = _relative(out_dir, schedule.num_chunks)
     cands = res.loop_candidates
     pair = lambda rs: np.asarray([(r["i"], r["j"]) for r in rs], np.int64).reshape(-1, 2)
-    truth_gauges = lambda c: run.predictor.oracle.true_chunk_gauge(schedule.frames(c))
+    # each chunk's true gauge once (the edge errors, the calibration and the truth edges share them)
+    truth_gauges = functools.cache(lambda c: run.predictor.oracle.true_chunk_gauge(schedule.frames(c)))
     centres = _centres_local(res, schedule)
     correct = np.asarray(places.evaluate_loops(pair(cands), anyp, tolerance=25).correct, bool)
     for k, r in enumerate(cands):
@@ -282,7 +281,7 @@ def run_sequence(
         "arms": {},
     }
     edges_of = lambda rs: [(r["chunk_j"], r["chunk_i"], np.asarray(r["Z"])) for r in rs]
-    truth = truth_edges(run.predictor.oracle, schedule, run.ground_truth, sep)
+    truth = truth_edges(truth_gauges, schedule, run.ground_truth, sep)
     for name, chosen in [*arms.items(), ("truth edges", None)]:
         edges = truth if chosen is None else edges_of(chosen)
         poses_arm, converged = graph_poses(relative, edges, config.max_lm_steps, throw=False)

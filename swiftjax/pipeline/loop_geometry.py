@@ -1069,10 +1069,11 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
     if stats is None:
         return None
     reg = stats.registration
+    S = np.asarray(reg.S, np.float64)
     drift = lv.VerificationConfig()
     with jax.enable_x64(True):
         out = covariance.umeyama_information(
-            np.float64(np.asarray(reg.S)[7]),
+            S[7],
             np.float64(reg.num_inliers),
             np.float64(reg.rms) * stats.unit,
             np.asarray(reg.src_mean, np.float64),
@@ -1083,13 +1084,13 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
             return None
         warp = geo.warp_covariance(
             *stats.extents,
-            np.float64(np.asarray(reg.S)[7]),
+            S[7],
             drift.odo_sigma_rot,
             drift.odo_sigma_trans,
             drift.odo_sigma_scale,
         )
         cov = np.linalg.inv(np.asarray(out.information, np.float64)) + stats.spread + np.asarray(warp)
-        Z = np.asarray(sim3.compose(np.asarray(reg.S, np.float64), sim3.exp(np.asarray(stats.offset, np.float64))))
+        Z = np.asarray(sim3.compose(S, sim3.exp(np.asarray(stats.offset, np.float64))))
     info = np.linalg.inv(cov)
     info = 0.5 * (info + info.T)
     return (Z, info) if np.all(np.isfinite(info)) and np.all(np.isfinite(Z)) else None
