@@ -32,17 +32,21 @@ in full as the stage's: the most the stage can have cost.
 
 Per sequence, after the timed run, how well the run's own pose graph weighs its edges
 (:func:`edge_calibration`): every temporal and accepted loop edge's error against the truth,
-whitened by the covariance the graph gives it (``χ²₇`` when that covariance is right), and each
-geometric edge's leave-one-out ATE.
+whitened by the covariance the graph gives it (``χ²₇`` when that covariance is right), each
+tangent component's share of it per source (which of translation, rotation and scale a source's
+covariance gets wrong), and each geometric edge's leave-one-out ATE.
 
 The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIASING``) checks that the
 geometric source costs nothing where every revisit is driven the same way.
 
     python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick] [--neighbours K]
-        [--aliasing A]
+        [--aliasing A] [--seed S]
 
 ``--aliasing 0.3``: look-alike token candidates planted on every route
 (:func:`~swiftjax.synthetic.places.plant_aliasing`; by default only 00 and the demo carry them).
+
+``--seed S``: another synthetic world along the same routes (its own streets, model error and
+look-alikes; the routes' thresholds were not tuned on it); the JSON records it under ``seed``.
 
 ``--neighbours 1``: the geometric source's joint registration (each chunk's structure merged with
 its neighbours', ``loop_geometry_neighbours``); the JSON records it under ``neighbours``.
@@ -65,6 +69,7 @@ from bench_pipeline import _shared
 from common import markdown_table, reconstruct, write_results
 
 SEQUENCES = ("08", "05", "06", "00", "demo")
+COMPONENTS = ("rho_x", "rho_y", "rho_z", "omega_x", "omega_y", "omega_z", "sigma")  # the tangent's order
 
 
 def truth_edge(truth_gauge, a: int, b: int) -> np.ndarray:
@@ -137,8 +142,11 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
     (ctx, temporal, loops)``: per accepted loop edge, its error against the truth edge
     ``δ = log(Z_true⁻¹ Z)`` (the oracle's true gauges) whitened by the covariance the graph
     gives it, ``m² = δᵀ Σ⁻¹ δ`` (``χ²`` with 7 degrees of freedom, mean 7, 95 % below 14.07,
-    when ``Σ`` is right; the temporal edges' too, against ``G_t⁻¹ G_{t+1}``), and per geometric edge the ATE (metres) of the same graph solved
-    without it (what that one edge costs or gains).  Runs after the timed run."""
+    when ``Σ`` is right; the temporal edges' too, against ``G_t⁻¹ G_{t+1}``); per source, the
+    mean of each tangent component's marginal ``δ_k² / Σ_kk`` (1 where that component's
+    variance is right; :data:`COMPONENTS` names them); and per geometric edge the ATE (metres)
+    of the same graph solved without it (what that one edge costs or gains).  Runs after the
+    timed run."""
     from swiftjax import evaluation, sim3
     from swiftjax.pipeline import graph
 
@@ -146,13 +154,16 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
     cov = graph._data_covariance(ctx, temporal, loops)
     T1 = len(temporal.relative)
 
-    def whitened(a: int, b: int, Z: np.ndarray, C: np.ndarray) -> float:
+    marginals: dict[str, list[np.ndarray]] = {"temporal": [], "tokens": [], "geometry": []}
+
+    def whitened(a: int, b: int, Z: np.ndarray, C: np.ndarray, source: str) -> float:
         truth = truth_edge(truth_gauges, a, b)
         with jax.enable_x64(True):
             d = np.asarray(sim3.log(sim3.compose(sim3.inverse(truth), jnp.asarray(Z, jnp.float64))))
+        marginals[source].append(d**2 / np.diag(C))
         return float(d @ np.linalg.solve(C, d))
 
-    odometry = [whitened(t, t + 1, temporal.relative[t], cov[t]) for t in range(T1)]
+    odometry = [whitened(t, t + 1, temporal.relative[t], cov[t], "temporal") for t in range(T1)]
     accepted = [r for r in loops.records if r.get("accepted", True) and "Z" in r]
     edges = []
     for n, (e, C, r) in enumerate(zip(loops.edges, cov[T1:], accepted)):
@@ -160,8 +171,8 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
             "chunk_i": e.chunk_b,
             "chunk_j": e.chunk_a,
             "source": r.get("source", "tokens"),
-            "whitened_error_sq": whitened(e.chunk_a, e.chunk_b, e.Z, C),
         }
+        row["whitened_error_sq"] = whitened(e.chunk_a, e.chunk_b, e.Z, C, row["source"])
         if row["source"] == "geometry":
             without = loops._replace(
                 edges=loops.edges[:n] + loops.edges[n + 1 :],
@@ -171,11 +182,15 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
             row["ate_without_m"] = float(evaluation.ate(_centres(res, schedule, poses), gt).rmse)
         edges.append(row)
     summary = {
-        s: {"edges": len(m), "mean_whitened_error_sq": float(np.mean(m)) if m else None}
+        s: {
+            "edges": len(m),
+            "mean_whitened_error_sq": float(np.mean(m)) if m else None,
+            "mean_marginal_by_component": np.mean(marginals[s], 0).tolist() if m else None,
+        }
         for s in ("temporal", "tokens", "geometry")
         for m in [odometry if s == "temporal" else [x["whitened_error_sq"] for x in edges if x["source"] == s]]
     }
-    return {"edges": edges, "by_source": summary, "degrees_of_freedom": 7}
+    return {"edges": edges, "by_source": summary, "degrees_of_freedom": 7, "components": COMPONENTS}
 
 
 def regions_found(chosen: list[dict], ok: list[bool], pairs: np.ndarray, labels: np.ndarray, schedule) -> int:
@@ -196,8 +211,16 @@ def regions_found(chosen: list[dict], ok: list[bool], pairs: np.ndarray, labels:
 
 
 def run_sequence(
-    seq: str, frames: int | None, out_dir: pathlib.Path, neighbours: int = 0, aliasing: float | None = None
+    seq: str,
+    frames: int | None,
+    out_dir: pathlib.Path,
+    neighbours: int = 0,
+    aliasing: float | None = None,
+    seed: int = 0,
 ) -> dict:
+    """One route's record (every arm, the candidates, the stage's time, the calibration).
+    ``seed``: the synthetic world's and the oracle's (another world along the same route, with
+    its own model error and look-alikes)."""
     from swiftjax import chunks, evaluation, pipeline
     from swiftjax.io.trajectory import read_kitti
     from swiftjax.pipeline import graph, loop_geometry
@@ -205,14 +228,14 @@ def run_sequence(
 
     if seq == "demo":  # the demo route, with its look-alike candidates (swiftjax demo)
         aliasing = demo.DEMO_ALIASING if aliasing is None else aliasing
-        run = demo.loop_route_run(frames, aliasing=aliasing)
+        run = demo.loop_route_run(frames, aliasing=aliasing, seed=seed)
     else:
         poses = read_kitti(_shared() / "data" / "trajectories" / f"KITTI_{seq}_gt.txt")
         if frames:
             poses = poses[:frames]
         if aliasing is None:
             aliasing = demo.KITTI00_ALIASING if seq == "00" else 0.0
-        run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing)
+        run = demo.trajectory_run(poses, name=f"kitti{seq}", aliasing=aliasing, seed=seed)
     config = pipeline.PipelineConfig(loop_geometry=True, loop_geometry_neighbours=neighbours)
     load = os.getloadavg()
     ahead: list = []  # the stage's compile-ahead thread, for its seconds (loop_geometry.compile_ahead)
@@ -262,6 +285,7 @@ def run_sequence(
         "frames": res.num_frames,
         "chunks": res.num_chunks,
         "aliasing": aliasing,
+        "seed": seed,
         "wall_seconds": wall,
         "load_average_before": load,
         "loop_geometry_seconds": new,
@@ -418,6 +442,12 @@ def main(argv: list[str] | None = None) -> dict:
         help="look-alike token candidates planted per true loop chunk pair on every route "
         "(default: 0.3 on 00 and the demo, none on 08, 05, 06)",
     )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="the synthetic world's and oracle's seed: another world and model error along the same routes (default 0)",
+    )
     args = parser.parse_args(argv)
     if args.quick:
         args.sequences, args.frames = ["08"], args.frames or 500
@@ -429,7 +459,7 @@ def main(argv: list[str] | None = None) -> dict:
     records = []
     with tempfile.TemporaryDirectory() as tmp:
         for seq in args.sequences:
-            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours, args.aliasing)
+            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours, args.aliasing, args.seed)
             records.append(rec)
             print(
                 f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
@@ -444,6 +474,7 @@ def main(argv: list[str] | None = None) -> dict:
         "quick": bool(args.quick),
         "neighbours": args.neighbours,
         "aliasing": args.aliasing,
+        "seed": args.seed,
     }
     if not args.quick:
         print(f"wrote {write_results('hard_sequences', payload)}")

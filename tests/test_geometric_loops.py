@@ -280,6 +280,9 @@ def test_bench_hard_sequences_quick(shared_dir, monkeypatch, tmp_path):
     cal = rec["edge_calibration"]["by_source"]
     assert cal["temporal"]["edges"] == rec["chunks"] - 1 and cal["tokens"]["edges"] == cal["geometry"]["edges"] == 0
     assert 0 < cal["temporal"]["mean_whitened_error_sq"] < np.inf
+    per_component = np.asarray(cal["temporal"]["mean_marginal_by_component"])  # rho, omega, sigma
+    assert per_component.shape == (7,) and np.all(per_component > 0) and np.all(np.isfinite(per_component))
+    assert cal["tokens"]["mean_marginal_by_component"] is None
 
 
 def test_geometric_records_in_loops_txt_and_metrics(tmp_path):
