@@ -40,13 +40,14 @@ The demo route (``swiftjax demo``'s, with its look-alike candidates, ``DEMO_ALIA
 geometric source costs nothing where every revisit is driven the same way.
 
     python bench/bench_hard_sequences.py [--sequences 08 05 06 00 demo] [--frames N] [--quick] [--neighbours K]
-        [--aliasing A] [--seed S]
+        [--aliasing A] [--seeds S ...]
 
 ``--aliasing 0.3``: look-alike token candidates planted on every route
 (:func:`~swiftjax.synthetic.places.plant_aliasing`; by default only 00 and the demo carry them).
 
-``--seed S``: another synthetic world along the same routes (its own streets, model error and
-look-alikes; the routes' thresholds were not tuned on it); the JSON records it under ``seed``.
+``--seeds 0 1 2 3``: each route in several synthetic worlds (each seed its own streets, model
+error and look-alikes; seed 0 is the world every earlier run used, the others were not looked at
+while the method was built); each record carries its ``seed``, the table's rows name it.
 
 ``--neighbours 1``: the geometric source's joint registration (each chunk's structure merged with
 its neighbours', ``loop_geometry_neighbours``); the JSON records it under ``neighbours``.
@@ -374,7 +375,7 @@ def table(records: list[dict]) -> str:
             rec = lambda d: "-" if a.get(f"recall_{d}") is None else f"{a[f'regions_found_{d}']}/{r['regions'][d]}"
             rows.append(
                 [
-                    r["sequence"],
+                    r["sequence"] if r.get("seed", 0) == 0 else f"{r['sequence']} (seed {r['seed']})",
                     r["frames"],
                     name,
                     f"{r['candidates']['tokens']}/{r['candidates']['geometry']}" if name != "truth edges" else "-",
@@ -443,10 +444,11 @@ def main(argv: list[str] | None = None) -> dict:
         "(default: 0.3 on 00 and the demo, none on 08, 05, 06)",
     )
     parser.add_argument(
-        "--seed",
+        "--seeds",
         type=int,
-        default=0,
-        help="the synthetic world's and oracle's seed: another world and model error along the same routes (default 0)",
+        nargs="+",
+        default=[0],
+        help="the synthetic worlds' (and oracle's) seeds: each route in each world (default: 0)",
     )
     args = parser.parse_args(argv)
     if args.quick:
@@ -458,14 +460,16 @@ def main(argv: list[str] | None = None) -> dict:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     records = []
     with tempfile.TemporaryDirectory() as tmp:
-        for seq in args.sequences:
-            rec = run_sequence(seq, args.frames, pathlib.Path(tmp) / seq, args.neighbours, args.aliasing, args.seed)
-            records.append(rec)
-            print(
-                f"KITTI {seq}: {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
-                f"(load {rec['load_average_before'][0]:.1f}); {calibration_line(rec['edge_calibration'])}",
-                flush=True,
-            )
+        for seed in args.seeds:
+            for seq in args.sequences:
+                out = pathlib.Path(tmp) / f"{seq}-{seed}"
+                rec = run_sequence(seq, args.frames, out, args.neighbours, args.aliasing, seed)
+                records.append(rec)
+                print(
+                    f"KITTI {seq} (seed {seed}): {rec['frames']} frames, {rec['wall_seconds']:.0f} s "
+                    f"(load {rec['load_average_before'][0]:.1f}); {calibration_line(rec['edge_calibration'])}",
+                    flush=True,
+                )
     text = table(records)
     print(text)
     payload = {
@@ -474,7 +478,7 @@ def main(argv: list[str] | None = None) -> dict:
         "quick": bool(args.quick),
         "neighbours": args.neighbours,
         "aliasing": args.aliasing,
-        "seed": args.seed,
+        "seeds": args.seeds,
     }
     if not args.quick:
         print(f"wrote {write_results('hard_sequences', payload)}")

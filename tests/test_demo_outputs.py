@@ -22,7 +22,9 @@ that fired first (``relative cost decrease`` or ``gradient``).  Re-recorded on t
 the manifest gained ``loop_geometry_neighbours`` (0) and ``loop_null_sided`` (false); every other number equal
 to the previous recording.  Re-recorded when ``loop_null_sided`` became ``loop_null_model``
 (default ``trend``): the one loop's null numbers changed (bound 0.422 → 0.327, mean 0.183 →
-0.287, κ 0.709 → 0.667; still accepted), every other number equal.
+0.287, κ 0.709 → 0.667; still accepted), every other number equal.  The manifest's skeleton
+re-hashed when ``loop_siblings`` became false by default (issue 28, fourteenth pass): its text
+only, every number equal.
 """
 
 from __future__ import annotations

@@ -634,7 +634,8 @@ def test_siblings_join_a_loop_of_their_revisit_only(x64):
         {k: v for k, v in geo_record(X, 3, 9, 0.09, **SKIPPED).items() if k != "source"},  # a token candidate
         geo_record(X, 2, 11, 0.09, registration={"neighbours": 1}, **SKIPPED),  # a joint registration
     ]
-    out = V.verify_candidates([*loops, *weak], X, rel)
+    on = V.VerificationConfig(siblings=True)
+    out = V.verify_candidates([*loops, *weak], X, rel, on)
     assert [d.accepted for d in out] == [True] * 5 + [False] * 6, [d.reason for d in out]
     assert all(d.reason.startswith("verified; pairwise consistent with 4 other loop(s)") for d in out[:3])
     assert (
@@ -644,17 +645,17 @@ def test_siblings_join_a_loop_of_their_revisit_only(x64):
     assert out[4].reason.startswith("sibling of the loop of chunks 1 and 8 (the same revisit)")
     assert out[4].reason.endswith("alone: " + STRUCTURE)
     assert out[3].pcm_residual < 1e-3 and out[4].pcm_residual < 1e-3  # exactly consistent
-    off = V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(siblings=False))
+    off = V.verify_candidates([*loops, *weak], X, rel)  # the default: siblings off (module docstring)
+    assert not V.VerificationConfig().siblings
     assert [d.accepted for d in off] == [True] * 3 + [False] * 8
     assert off[4].reason == STRUCTURE and off[3].reason.endswith(FLOOR)
     assert [d.reason for d in out[5:]] == [d.reason for d in off[5:]]
-    assert [d.accepted for d in V.verify_candidates([*loops, *weak], X, rel, V.VerificationConfig(pcm=False))] == [
-        True
-    ] * 3 + [False] * 8
+    no_pcm = V.VerificationConfig(siblings=True, pcm=False)
+    assert [d.accepted for d in V.verify_candidates([*loops, *weak], X, rel, no_pcm)] == [True] * 3 + [False] * 8
     # siblings never make a revisit of their own: beside a follower-less, verified-less set, all rejected
-    assert not any(d.accepted for d in V.verify_candidates(weak, X, rel))
+    assert not any(d.accepted for d in V.verify_candidates(weak, X, rel, on))
     # one verified loop is enough (no PCM between loops, but the sibling's short cycle is tested)
-    one = V.verify_candidates([loops[1], weak[0], weak[2]], X, rel)
+    one = V.verify_candidates([loops[1], weak[0], weak[2]], X, rel, on)
     assert [d.accepted for d in one] == [True, True, False]
 
 
@@ -685,7 +686,7 @@ def test_siblings_registered_only_when_their_placement_is_accepted(x64):
     ]
 
     def decide(rs):
-        for r, d in zip(rs, V.verify_candidates(rs, X, rel)):
+        for r, d in zip(rs, V.verify_candidates(rs, X, rel, V.VerificationConfig(siblings=True))):
             r.update(accepted=d.accepted, reason=d.reason)
 
     settle_deferred(decide, recs)

@@ -249,15 +249,15 @@ def test_default_stage_options_are_the_recorded_ones():
     """The run directory fingerprints each stage by these values: a changed default would make
     every existing run redo its stages (hash of the default config of 151f7dd; since issue 28's
     ``loop_geometry_neighbours``, ``loop_null_model`` (whose default ``trend`` replaced the
-    pooled null), ``loop_followers`` and ``loop_siblings``, a run directory made before them redoes its loop stage
-    once, saying so, and keeps its chunks)."""
+    pooled null), ``loop_followers`` and ``loop_siblings`` (now off by default), a run directory made before them
+    redoes its loop stage once, saying so, and keeps its chunks)."""
     import hashlib
     import json
 
     config = PipelineConfig()
     stages = {s: config.stage_options(s) for s in options.STAGES}
     digest = hashlib.sha256(json.dumps(stages, sort_keys=True).encode()).hexdigest()
-    assert digest == "2b1a5165e5e416ff555f0eef8d039c56d52df86e5d5623dd7a1fcda7d4b38af2", stages
+    assert digest == "eb9af25cb273e60faf6a67f2e889b01d7a9d227b1cc8f7c352beea3f1817a8a7", stages
 
 
 def test_no_override_keywords_on_the_stage_entry_points():

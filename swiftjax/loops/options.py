@@ -163,7 +163,7 @@ class VerificationConfig:
         "source's registrations on unrelated chunks joins the verified loops it is consistent with",
     )
     siblings: bool = option(
-        True,
+        False,
         "loop verification: a registration edge whose own evidence does not beat its nulls joins an accepted "
         "loop of the same revisit (each chunk within one of its own) when consistent with every accepted loop",
     )

@@ -50,6 +50,14 @@ Siblings never support one another (no chain along a street), never enter the ma
 consistent set, and keep their evidence's line in their reason.  They are registrations of
 single chunks only (:func:`may_sibling` says why joint registrations are not).
 
+Siblings are OFF by default.  The rule was built on one synthetic world (seed 0, where its two
+edges on 08 were 2.1 and 4.4 m off and moved ATE by 0.05 m).  In three other worlds along the
+same route (``bench/bench_hard_sequences.py --seeds 1 2 3``) it added four edges, three of them
+6.5–9.7 m off (beside a verified loop that was itself 9.9 m off, or beside a right one), and ATE
+got worse in both worlds where it added any (16.94 → 17.43 m, 20.18 → 20.31 m).  By
+construction it never closes a revisit of its own, and a consistency test against one loop
+cannot be more accurate than that loop's edge.
+
 This module holds the decision rule (:func:`verify_candidates`, thresholds in
 :class:`VerificationConfig`) and re-exports the tests' functions.  The fixed thresholds were
 chosen from measured distributions of true and false candidates (docs/performance/loops.md);
