@@ -586,6 +586,30 @@ def test_register_covisible_bad_input_rejected_not_nan():
     assert why is not None and "\n" not in why
 
 
+def test_peak_icp_drops_a_placement_whose_scale_left_the_verdicts_range():
+    """A peak whose ICP moved the scale out of ``[1 / max_scale_ratio, max_scale_ratio]`` of
+    its start's is no placement (−1), every other peak as without the rule: against a NumPy
+    recomputation of ``s / s₀`` from the unrestricted placements, with the bound put between
+    the peaks' own scale changes."""
+    rng = np.random.default_rng(12)
+    S_true, _, src, dst, aa, ab, Ba, Bb = _reverse_pass(rng, 2.0, 0.7, 2.5)
+    a, b = _clouds(src, dst[:4096], aa, ab, Ba, Bb, 2.0)
+    off = sim3.from_rst(jnp.eye(3), jnp.asarray(Bb[:, 0] * 4.0, jnp.float32), 1.15)
+    psi, sigma, tau = G.edge_prior(sim3.compose(off, S_true), a, b)
+    free = G.GeometryOptions(max_scale_ratio=100.0)
+    S0, corr = G.bev_starts(a, b, psi, sigma, tau, 12.0, free)
+    loose = G.peak_icp(a, b, S0, corr, free)
+    change = np.abs(np.log(np.asarray(sim3.scale(loose.S), np.float64) / np.asarray(sim3.scale(S0), np.float64)))
+    placed = np.asarray(loose.scores) >= 0
+    assert placed.sum() >= 2 and np.ptp(change[placed]) > 1e-4, change  # two peaks whose changes differ
+    bound = float(np.exp(np.mean(np.sort(change[placed])[-2:])))  # between the two largest changes
+    tight = G.peak_icp(a, b, S0, corr, dataclasses.replace(free, max_scale_ratio=bound))
+    want = np.where(change <= np.log(bound), np.asarray(loose.scores), -1)
+    np.testing.assert_array_equal(np.asarray(tight.scores), want)
+    assert (np.asarray(tight.scores) == -1).sum() == (~placed).sum() + 1
+    np.testing.assert_array_equal(np.asarray(tight.S), np.asarray(loose.S))  # the same ICP, only scored
+
+
 def test_batched_placements_equal_one_pair_at_a_time():
     """``starts_batch`` + ``peaks_batch`` (chunks gathered from stacked clouds, the target's
     spectrum computed once by ``bev_spectrum``) give each job's ``place_covisible`` result."""

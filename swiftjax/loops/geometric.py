@@ -1035,8 +1035,14 @@ def peak_icp(
     robust Sim(3) ICP (:func:`register`, ``coarse_iterations``, ``τ: tau_start → tau_end``) on
     the first ``peak_src_points`` / ``peak_dst_points`` rows and scored by its structure
     inliers ``n_k``; a peak that overlaps no cell (``correlation < 1/2``: the correlation
-    counts overlapping cells) is no placement (−1).  Cost: ``peaks x coarse_iterations``
-    brute-force nearest-neighbour passes of ``peak_src_points x peak_dst_points``.  Pure."""
+    counts overlapping cells) is no placement (−1), nor is one whose ICP moved the scale out
+    of the range the verdict allows, ``s / s₀ ∉ [1 / max_scale_ratio, max_scale_ratio]``
+    against its start ``s₀``: a source shrunk onto a speck of the target, where every point
+    is an inlier (synthetic KITTI 08, world 2: chunk 32 placed on the unrelated chunk 89 ended
+    at 0.9 % of its start's scale with 255 of 256 points inliers, and as a null sample that
+    raised the bound its true revisit 15 had to beat from about 15 to 317).  Cost: ``peaks x
+    coarse_iterations`` brute-force nearest-neighbour passes of ``peak_src_points x
+    peak_dst_points``.  Pure."""
     o = options
     up = b.basis[:, 2]
     ground = up @ b.origin - b.height
@@ -1060,7 +1066,9 @@ def peak_icp(
 
     corr = jnp.asarray(correlation)
     regs = jax.vmap(refine)(jnp.asarray(S0))
-    ok = regs.valid & (corr >= 0.5) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
+    log_ratio = jnp.abs(jnp.log(sim3.scale(regs.S) / sim3.scale(jnp.asarray(S0))))
+    in_range = log_ratio <= jnp.log(o.max_scale_ratio)
+    ok = regs.valid & in_range & (corr >= 0.5) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
     return Placements(regs.S, jnp.where(ok, regs.num_structure, -1).astype(jnp.int32), corr)
 
 
