@@ -1083,7 +1083,8 @@ def test_decide_with_geometry_equals_the_unpruned_decision(case, monkeypatch):
         return [dict(table[ci, cj]) for ci, cj, _ in pairs] + unregistered
 
     monkeypatch.setattr(loop_geometry, "candidates", candidates)
-    ctx = SimpleNamespace(config=PipelineConfig(loop_geometry=True), timer=StageTimer(), log=lambda s: None)
+    config = PipelineConfig(loop_geometry=True, loop_siblings=True)  # siblings (off by default) through both paths
+    ctx = SimpleNamespace(config=config, timer=StageTimer(), log=lambda s: None)
     relative = np.tile([0, 0, 0, 0, 0, 0, 1, 1.0], (T - 1, 1))
     temporal = SimpleNamespace(relative=relative, K_ref=None)
     unpruned = [dict(r) for r in tokens] + [dict(r) for r in table.values()]
@@ -1136,7 +1137,7 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     pipeline.reconstruct(
         run.predictor, out, pipeline.PipelineConfig(**SMALL_RUN_CONFIG), progress=False, log=lambda _: None
     )
-    config = pipeline.PipelineConfig(**SMALL_RUN_CONFIG, loop_geometry=True)
+    config = pipeline.PipelineConfig(**SMALL_RUN_CONFIG, loop_geometry=True, loop_siblings=True)  # deferred work
     ctx = rundir.open_run(
         run.predictor, out, config, LocalExecutor(), overwrite=False, progress=False, log=lambda _: None
     )
