@@ -96,8 +96,8 @@ class PipelineConfig:
     loop_siblings: bool = option(target=(VerificationConfig, "siblings"), stage="loops")
     loop_geometry: bool = option(
         False,
-        "a second loop candidate source: chunk pairs whose dense geometry matches (any driving direction), "
-        "edges by point-cloud registration (swiftjax.loops.geometric)",
+        "experimental: a second loop candidate source: chunk pairs whose dense geometry matches (any driving "
+        "direction), edges by point-cloud registration (swiftjax.loops.geometric)",
         stage="loops",
     )
     loop_geometry_neighbours: int = option(target=(GeometryOptions, "neighbours"), stage="loops")
