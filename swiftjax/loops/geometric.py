@@ -1040,7 +1040,7 @@ def peak_icp(
     against its start ``s₀``: a source shrunk onto a speck of the target, where every point
     is an inlier (synthetic KITTI 08, world 2: chunk 32 placed on the unrelated chunk 89 ended
     at 0.9 % of its start's scale with 255 of 256 points inliers, and as a null sample that
-    raised the bound its true revisit 15 had to beat from about 15 to 317).  Cost: ``peaks x
+    raised the bound its true revisit 15 had to beat from 24 to 317).  Cost: ``peaks x
     coarse_iterations`` brute-force nearest-neighbour passes of ``peak_src_points x
     peak_dst_points``.  Pure."""
     o = options
