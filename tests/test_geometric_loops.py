@@ -603,7 +603,7 @@ def test_peak_icp_drops_a_placement_whose_scale_left_the_verdicts_range():
     placed = np.asarray(loose.scores) >= 0
     assert placed.sum() >= 2 and np.ptp(change[placed]) > 1e-4, change  # two peaks whose changes differ
     bound = float(np.exp(np.mean(np.sort(change[placed])[-2:])))  # between the two largest changes
-    tight = G.peak_icp(a, b, S0, corr, dataclasses.replace(free, max_scale_ratio=bound))
+    tight = G.peak_icp(a, b, S0, corr, free.replace(max_scale_ratio=bound))
     want = np.where(change <= np.log(bound), np.asarray(loose.scores), -1)
     np.testing.assert_array_equal(np.asarray(tight.scores), want)
     assert (np.asarray(tight.scores) == -1).sum() == (~placed).sum() + 1
