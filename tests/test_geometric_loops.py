@@ -214,6 +214,95 @@ def test_degenerate_registration_is_rejected_and_finite():
     assert not bool(reg.valid) and np.all(np.isfinite(np.asarray(reg.S)))
 
 
+def test_register_straight_structure_axis_against_numpy():
+    """A straight street (road and one straight facade): the registration's structure
+    statistics (the inlying structure's centroid, principal horizontal axis and its variance
+    ``λ₁``, ``spread = λ₂ / λ₁``) against NumPy on the same placement; the spread is below
+    ``min_spread`` (a line), the axis along the facade."""
+    rng = np.random.default_rng(21)
+    road = np.c_[rng.uniform(-20, 20, 400), rng.uniform(-4, 4, 400), np.zeros(400)]
+    wall = np.c_[rng.uniform(-20, 20, 600), 6 + rng.normal(0, 0.05, 600), rng.uniform(0.5, 4, 600)]
+    src = np.concatenate([road, wall]).astype(np.float32)
+    S_true = _sim3(rng, 1.3)
+    dst = np.asarray(sim3.act(S_true, src)) + rng.normal(0, 0.01, src.shape).astype(np.float32)
+    up = np.asarray(sim3.act(S_true, np.float32([0, 0, 1])) - sim3.act(S_true, np.zeros(3, np.float32)))
+    up = up / np.linalg.norm(up)
+    ground = float(up @ np.asarray(sim3.act(S_true, np.zeros(3, np.float32))))
+    w = np.ones(len(src), np.float32)
+    reg = G.register(src, w, dst, w, S_true, 1.3, up, ground, 0.5, 0.2, 0.3, iterations=4)
+    # NumPy: the same inliers and structure, from the registration's own placement
+    M = np.asarray(sim3.as_matrix(reg.S), np.float64)
+    y = src.astype(np.float64) @ M[:3, :3].T + M[:3, 3]
+    r = np.array([np.min(np.linalg.norm(dst - p, axis=1)) for p in y])
+    struct = (r < 0.2 * 1.3) & ((y @ up - ground) / 1.3 >= 0.3)
+    ys = y[struct]
+    ms = ys.mean(0)
+    P = np.eye(3) - np.outer(up, up)
+    h = (ys - ms) @ P
+    ev, evec = np.linalg.eigh(h.T @ h / len(ys))
+    assert int(reg.num_structure) == int(struct.sum())
+    np.testing.assert_allclose(np.asarray(reg.structure_mean), ms, atol=1e-3)
+    assert float(reg.axis_variance) == pytest.approx(ev[2], rel=1e-3)
+    assert abs(float(np.asarray(reg.axis) @ evec[:, 2])) == pytest.approx(1.0, abs=1e-5)
+    assert float(reg.spread) == pytest.approx(ev[1] / ev[2], rel=1e-2, abs=1e-5)
+    assert float(reg.spread) < G.GeometryOptions().min_spread
+    wall_axis = np.asarray(sim3.act(S_true, np.float32([1, 0, 0])) - sim3.act(S_true, np.zeros(3, np.float32)))
+    assert abs(float(np.asarray(reg.axis) @ wall_axis / np.linalg.norm(wall_axis))) > 0.999
+
+
+def _line_points_stay_on_line(S, xi, x_a, m, d):
+    """The largest distance of ``S exp(ξ) x_a`` from the line ``m + t d`` (float64)."""
+    y = np.asarray(sim3.act(sim3.compose(S, sim3.exp(xi)), x_a))
+    rel = y - m
+    return np.max(np.linalg.norm(rel - np.outer(rel @ d, d), axis=1))
+
+
+def test_straight_covariance_frees_exactly_what_a_line_cannot_see(x64):
+    """``Σ_L`` of an edge onto a line: rank two, its range exactly the first-order motions
+    that keep the line's points on the line (a slide along it and a scaling about a point of
+    it; a perturbation in its range moves them off the line only at second order, one outside
+    it at first order), and its two variances in closed form (``λ₁ / s²`` along the slide,
+    ``scale_variance`` along the scaling, projected on the unit slide and scale directions)."""
+    rng = np.random.default_rng(22)
+    S = jnp.asarray(np.asarray(_sim3(rng, 1.7), np.float64))
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    m = rng.normal(size=3) * 3
+    lam = 40.0
+    x_a = np.asarray(sim3.act(sim3.inverse(S), m + np.outer(np.linspace(-10, 10, 21), d)))
+    cov = np.asarray(G.straight_covariance(S, d, lam, m, 0.01))
+    assert cov.dtype == np.float64
+    np.testing.assert_allclose(cov, cov.T, atol=1e-12)
+    ev, vec = np.linalg.eigh(cov)
+    assert np.all(ev[:5] < 1e-10 * ev[-1]) and ev[5] > 1e-6
+    eps = 1e-4
+    for k in (5, 6):  # in the range: off the line at second order only
+        assert _line_points_stay_on_line(S, eps * vec[:, k], x_a, m, d) < 1e-6 * eps
+    for k in range(5):  # outside it: off the line at first order
+        off = vec[:, k] - vec[:, 5:] @ (vec[:, 5:].T @ vec[:, k])
+        assert _line_points_stay_on_line(S, eps * off / np.linalg.norm(off), x_a, m, d) > 1e-3 * eps
+    # closed form: the slide u = (Rᵀ d, 0, 0), the scaling v = (−S⁻¹ m, 0, 1)
+    s = float(np.asarray(S)[7])  # 1.7 in float32
+    R = np.asarray(sim3.as_matrix(S))[:3, :3] / s
+    u = np.r_[R.T @ d, np.zeros(4)]
+    v = np.r_[-np.asarray(sim3.act(sim3.inverse(S), m)), np.zeros(3), 1.0]
+    np.testing.assert_allclose(cov, lam / s**2 * np.outer(u, u) + 0.01 * np.outer(v, v), rtol=1e-9, atol=1e-12)
+
+
+def test_straight_registration_is_kept_by_the_covisible_verdict_not_the_plain_one():
+    """Straight structure (``spread < min_spread``) rejects a plain registration (no covariance
+    to leave the slide to the graph) but not a co-visible one (its edge gets ``Σ_L``); too few
+    structure inliers reject both, in one line."""
+    o = G.GeometryOptions()
+    reg = dict(valid=True, scale_ratio=1.0, num_structure=400, spread=0.5 * o.min_spread, rms=0.1, inlier_ratio=0.8)
+    reg.update(peak_score=90, null_threshold=40.0)
+    assert "degenerate" in G.registration_reason(reg, o)
+    assert G.covisible_reason(reg, o) is None and G.covisible_reason(reg, o, structure_null=False) is None
+    few = {**reg, "num_structure": o.min_structure - 1}
+    for why in (G.registration_reason(few, o), G.covisible_reason(few, o)):
+        assert why is not None and "degenerate" in why and "\n" not in why
+
+
 def test_chunk_descriptors_reverse_pass_matches(shared_dir):
     """Two oracle chunks of synthetic KITTI 08 driving one street in opposite directions:
     their signatures are closer than those of chunks of other streets, the Scan Context yaw
@@ -677,6 +766,9 @@ def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
         src_mean=jnp.array([0.0, 0.0, 5.0]),
         src_covariance=jnp.diag(jnp.array([100.0, 9.0, 4.0])),
         num_points=jnp.int32(1024),
+        axis=jnp.array([1.0, 0.0, 0.0]),
+        axis_variance=jnp.float32(25.0),
+        structure_mean=jnp.zeros(3),
     )
     slide = np.zeros((7, 7))
     slide[0, 0] = 16.0  # 4 units along x
@@ -685,8 +777,11 @@ def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
     plain = np.asarray(  # Ω_reg: the registration's residuals alone
         umeyama_information(1.25, 800.0, 0.1, reg.src_mean, reg.src_covariance, pixels_per_sample=1.0).information
     )
-    Z0, warped = graph_edge({"_stats": _EdgeStats(reg, 1.0, np.zeros(7), np.zeros((7, 7)), extents)}, 1.0)
-    Z, wide = graph_edge({"_stats": _EdgeStats(reg, 1.0, offset, slide, extents)}, 1.0)
+    none = np.zeros((7, 7))
+    Z0, warped = graph_edge({"_stats": _EdgeStats(reg, 1.0, np.zeros(7), none, extents, none)}, 1.0)
+    Z, wide = graph_edge({"_stats": _EdgeStats(reg, 1.0, offset, slide, extents, none)}, 1.0)
+    line = np.asarray(G.straight_covariance(S, reg.axis, reg.axis_variance, reg.structure_mean, 0.01))
+    _, straight = graph_edge({"_stats": _EdgeStats(reg, 1.0, np.zeros(7), none, extents, line)}, 1.0)
     d = VerificationConfig()
     # Σ_W in closed form: chunk a's extent in its units, chunk b's divided by the scale
     warp = np.diag(
@@ -698,6 +793,8 @@ def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
     np.testing.assert_allclose(np.linalg.inv(wide), np.linalg.inv(plain) + warp + slide, rtol=1e-9, atol=1e-12)
     cov_p, cov_w = np.linalg.inv(warped), np.linalg.inv(wide)
     assert cov_w[0, 0] == pytest.approx(cov_p[0, 0] + 16.0)
+    # straight structure: Σ_L added to the same covariance (the slide and the scale left free)
+    np.testing.assert_allclose(np.linalg.inv(straight), np.linalg.inv(plain) + warp + line, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(cov_w[1:, 1:], cov_p[1:, 1:], rtol=1e-9)
     # the edge: S itself without an offset; S exp(δ̄) = S moved by -2 along its own x (rotated, scaled)
     np.testing.assert_allclose(Z0, S, atol=1e-12)

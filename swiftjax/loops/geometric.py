@@ -66,7 +66,12 @@ the Gaussian closest to "any plausible placement alike")::
     Z = S_best exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P)⁻¹
 
 (``Ω_reg``: the registration's own information from its residuals,
-:func:`swiftjax.align.covariance.umeyama_information`).  ``Σ_P`` is large along the slide and
+:func:`swiftjax.align.covariance.umeyama_information`).  **Structure on one line** (a straight
+street: ``spread = λ₂ / λ₁ < min_spread``) maps onto itself under a slide along the line and a
+scaling about a point of it, which point-to-point residuals cannot see; such an edge is kept,
+its covariance widened by ``Σ_L`` over those two directions (:func:`straight_covariance`: the
+slide over the structure's own length, the scale over the searched range), the other five
+kept.  ``Σ_P`` is large along the slide and
 zero across it, in yaw and in scale: the loop edge constrains only the well-determined
 directions.  Every registration edge also carries both chunks' own model error over their
 extents, ``Σ_W`` (:func:`warp_covariance`, the temporal edges' drift model over a chunk's
@@ -160,6 +165,7 @@ __all__ = [
     "refine_batch",
     "placement_moments",
     "warp_covariance",
+    "straight_covariance",
     "Covisible",
     "register_covisible",
     "covisible_reason",
@@ -423,6 +429,11 @@ class Registration(NamedTuple):
         src_mean, src_covariance: ``[..., 3]``, ``[..., 3, 3]`` of the inliers (source units),
             the statistics of :func:`swiftjax.align.covariance.umeyama_information`.
         num_points: int32 source points used.
+        axis: ``[..., 3]`` the principal horizontal direction of the inlying structure (unit,
+            ``b``'s frame): the street's direction where ``spread`` is small.
+        axis_variance: ``λ₁``, the inlying structure's horizontal variance along ``axis``
+            (``b``'s units²).
+        structure_mean: ``[..., 3]`` the inlying structure's centroid (``b``'s frame).
     """
 
     S: Array
@@ -436,6 +447,9 @@ class Registration(NamedTuple):
     src_mean: Array
     src_covariance: Array
     num_points: Array
+    axis: Array
+    axis_variance: Array
+    structure_mean: Array
 
 
 def _block_size(Q: int) -> int:
@@ -595,7 +609,7 @@ def register(
     ms = jnp.sum(ys, 0) / jnp.maximum(ns, 1)
     P = jnp.eye(3) - jnp.outer(up, up)
     hs = jnp.where(inl_s[:, None], (y - ms) @ P, 0.0)
-    ev = jnp.linalg.eigvalsh(hs.T @ hs / jnp.maximum(ns, 1))  # ascending; [0] ≈ 0 (the up axis)
+    ev, evec = jnp.linalg.eigh(hs.T @ hs / jnp.maximum(ns, 1))  # ascending; [0] ≈ 0 (the up axis)
     spread = ev[1] / jnp.maximum(ev[2], 1e-30)
     s0 = sim3.scale(S0)
     finite = jnp.all(jnp.isfinite(S)) & jnp.isfinite(rms)
@@ -611,20 +625,27 @@ def register(
         src_mean=mean,
         src_covariance=cov,
         num_points=jnp.sum(used).astype(jnp.int32),
+        axis=evec[:, 2],
+        axis_variance=ev[2],
+        structure_mean=ms,
     )
 
 
-def _placement_reason(reg: dict, options: GeometryOptions, failed: str, *, scale_of: str) -> str | None:
+def _placement_reason(
+    reg: dict, options: GeometryOptions, failed: str, *, scale_of: str, straight_ok: bool = False
+) -> str | None:
     """The checks every registration verdict starts with (:func:`registration_reason`,
     :func:`covisible_reason`): a failed solve (``failed`` says how), a scale outside
     ``[1 / max_scale_ratio, max_scale_ratio]`` times the prior's (``scale_of`` names it), or too
-    little or too straight structure; ``None`` when all pass."""
+    little structure, or (unless ``straight_ok``: the edge then leaves what a straight street
+    cannot fix to the odometry, :func:`straight_covariance`) too straight; ``None`` when all
+    pass."""
     if not reg["valid"]:
         return f"registration failed ({failed})"
     r = options.max_scale_ratio
     if not (1.0 / r <= reg["scale_ratio"] <= r):
         return f"registration scale {reg['scale_ratio']:.2f} x {scale_of}, outside [{1 / r:.2f}, {r:.2f}]"
-    if reg["num_structure"] < options.min_structure or reg["spread"] < options.min_spread:
+    if reg["num_structure"] < options.min_structure or (not straight_ok and reg["spread"] < options.min_spread):
         return (
             f"degenerate registration: {reg['num_structure']} structure inliers, spread "
             f"{reg['spread']:.3f} (a featureless or straight road leaves the edge free)"
@@ -1334,6 +1355,51 @@ def warp_covariance(
     return jnp.sum(odometry_covariance(path, sigma_rot, sigma_trans, sigma_scale), 0)
 
 
+def straight_covariance(
+    S: Float[ArrayLike, "8"],
+    axis: Float[ArrayLike, "3"],
+    axis_variance: Float[ArrayLike, ""],
+    structure_mean: Float[ArrayLike, "3"],
+    scale_variance: float | Float[ArrayLike, ""],
+) -> Float[Array, "7 7"]:
+    """What a registration on straight structure cannot fix, as a covariance ``[7, 7]`` of its
+    edge ``S`` (chunk ``a`` into chunk ``b``; tangent ``(ρ, ω, σ)``, right perturbation
+    ``S exp(ξ)``, ``ρ`` in ``a``'s units).
+
+    Structure on a line (a straight street's facades and kerbs: ``spread = λ₂ / λ₁`` small)
+    maps onto itself under a slide along the line and under a scaling about a point of it, so
+    the nearest-neighbour residuals, which :func:`swiftjax.align.covariance.umeyama_information`
+    turns into an information as if every correspondence were right, cannot see either (the
+    degenerate directions of Zhang, Kaess & Singh 2016, "On degeneracy of optimization-based
+    state estimation problems", left to the other edges of the graph).  To first order
+    ``S exp(ξ) x ≈ S(x + ρ + ω × x + σ x)``, so a slide by ``ℓ`` along ``b``'s axis ``d``
+    and a scaling by ``e^δ`` about the structure's centroid ``m`` (``d``, ``m`` in ``b``'s
+    frame; ``d_a = Rᵀ d``, ``m_a = S⁻¹ m``) are::
+
+        ξ_slide = (ℓ d_a / s, 0, 0),   ξ_scale = δ (−m_a, 0, 1)
+
+    Each is modelled as uniform over what the data allows: the slide over the structure's own
+    length (variance ``λ₁``, the structure's variance along its axis, ``b``'s units²), the
+    scale over the range the placement searched (``scale_variance``, :func:`bev_starts`'
+    ``±scale_search``: ``scale_search² / 3``)::
+
+        Σ_L = (λ₁ / s²) u uᵀ + scale_variance · v vᵀ,   u = (d_a, 0, 0),   v = (−m_a, 0, 1)
+
+    rank two; the other five directions (across the street, height, the three rotations) keep
+    the residuals' information.  Pure; float64 under ``jax_enable_x64``, else float32."""
+    dtype = jnp.result_type(float)
+    S = jnp.asarray(S, dtype)
+    s = sim3.scale(S)
+    d_a = so3.act(so3.inverse(sim3.quaternion(S)), jnp.asarray(axis, dtype))  # Rᵀ d
+    m_a = sim3.act(sim3.inverse(S), jnp.asarray(structure_mean, dtype))
+    zero = jnp.zeros(3, dtype)
+    u = jnp.concatenate([d_a, zero, jnp.zeros(1, dtype)])
+    v = jnp.concatenate([-m_a, zero, jnp.ones(1, dtype)])
+    return jnp.asarray(axis_variance, dtype) / s**2 * jnp.outer(u, u) + jnp.asarray(scale_variance, dtype) * jnp.outer(
+        v, v
+    )
+
+
 def _ambiguity(pl: Placements, best: Array, separation: Array, probe: Array, w_probe: Array) -> Array:
     """The structure inliers of the best placement more than ``separation`` (chunk-``b`` units,
     RMS over the probe points) away from ``S[best]``, over the best's."""
@@ -1421,9 +1487,14 @@ def covisible_reason(reg: dict, options: GeometryOptions, *, structure_null: boo
 
 
 def _refined_reason(reg: dict, options: GeometryOptions) -> str | None:
-    """The refined registration's tests of :func:`covisible_reason`: valid, scale, residual."""
+    """The refined registration's tests of :func:`covisible_reason`: valid, scale, structure,
+    residual.  Straight structure does not reject (:func:`straight_covariance`)."""
     why = _placement_reason(
-        reg, options, "the refinement's Umeyama solve degenerate or not finite", scale_of="the odometry's"
+        reg,
+        options,
+        "the refinement's Umeyama solve degenerate or not finite",
+        scale_of="the odometry's",
+        straight_ok=True,
     )
     if why is not None:
         return why

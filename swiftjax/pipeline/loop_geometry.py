@@ -33,11 +33,14 @@ bucket of chunk counts and options):
    ``null_false_alarm`` on the best placements' structure inliers;
 3. for the candidates above it, the best placement refined on all points
    (:func:`~swiftjax.loops.geometric.refine_batch`); the scale must agree with the chain's and
-   the structure must not be degenerate (:func:`swiftjax.loops.geometric.covisible_reason`,
-   one-line reasons).  Every placement above the bound is plausible; the pose graph's edge is
-   their mean and their spread widens its covariance
+   the structure must be enough (:func:`swiftjax.loops.geometric.covisible_reason`, one-line
+   reasons).  Every placement above the bound is plausible; the pose graph's edge is their
+   mean and their spread widens its covariance
    (:func:`~swiftjax.loops.geometric.placement_moments`, :func:`graph_edge`) instead of
-   rejecting an edge along a straight street.
+   rejecting an edge along a street slid along itself.  Structure on one line
+   (``spread < min_spread``, recorded ``registration.straight``) does not reject the edge
+   either: its covariance leaves the slide along the line and the scale to the other edges of
+   the graph (:func:`~swiftjax.loops.geometric.straight_covariance`).
 
 Every one of these programs has a fixed shape for a run (the chunk count, the batch sizes, the
 frames' size): :func:`compile_ahead` traces and compiles them on a background thread, each
@@ -60,7 +63,7 @@ predicted.
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
 bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
-spread, the slide in camera heights).  The pose graph's edge (:func:`graph_edge`) is the
+spread, whether it is straight, the slide in camera heights).  The pose graph's edge (:func:`graph_edge`) is the
 plausible placements' mean, its information the registration's own residuals' widened by the
 placements' spread and by both chunks' model error over their extents; ``Z`` in the record
 stays the verified registration.  The records are recomputed on every run (nothing is cached
@@ -677,8 +680,15 @@ def candidates(
             )
             ev = np.linalg.eigvalsh(spreads[n][:3, :3])
             record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
+            straight = bool(reg0.spread < o.min_spread)
+            record["registration"]["straight"] = straight
             record["_stats"] = _EdgeStats(
-                reg0, float(np.asarray(clouds.height)[cj]), offsets[n], spreads[n], extent[[ci, cj]]
+                reg0,
+                float(np.asarray(clouds.height)[cj]),
+                offsets[n],
+                spreads[n],
+                extent[[ci, cj]],
+                _straight(reg0, o) if straight else np.zeros((7, 7)),
             )
             reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
         return reasons
@@ -1048,13 +1058,30 @@ class _EdgeStats(NamedTuple):
     offset: np.ndarray  # [7] δ̄, the plausible placements' mean about the best
     spread: np.ndarray  # [7, 7] Σ_P, their covariance
     extents: np.ndarray  # [2] chunks c_i, c_j's extents
+    straight: np.ndarray  # [7, 7] Σ_L, what straight structure leaves free (zeros when not straight)
+
+
+def _straight(reg: geo.Registration, options: geo.GeometryOptions) -> np.ndarray:
+    """``Σ_L`` ``[7, 7]`` float64 of a refined registration on straight structure
+    (:func:`swiftjax.loops.geometric.straight_covariance`): the slide over the structure's own
+    length, the scale uniform over the placement's searched range ``±scale_search``."""
+    with jax.enable_x64(True):
+        return np.asarray(
+            geo.straight_covariance(
+                np.asarray(reg.S, np.float64),
+                np.asarray(reg.axis, np.float64),
+                np.float64(reg.axis_variance),
+                np.asarray(reg.structure_mean, np.float64),
+                options.scale_search**2 / 3.0,
+            )
+        )
 
 
 def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray] | None:
     """The pose graph's edge of an accepted registration record: ``(Z [8], information [7, 7])``,
     or None (no usable statistics: the record's ``Z`` with the drift model alone)::
 
-        Z = S exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹
+        Z = S exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P + Σ_W + Σ_L)⁻¹
 
     ``S``: the refined best placement (the record's ``Z``, the verified one); ``δ̄``, ``Σ_P``:
     the plausible placements' mean offset and covariance about it
@@ -1064,7 +1091,9 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
     (:func:`swiftjax.align.covariance.umeyama_information`); ``Σ_W`` the two chunks' model
     error over their extents (:func:`swiftjax.loops.geometric.warp_covariance`, the drift
     model of :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose
-    graph's own drift terms)."""
+    graph's own drift terms); ``Σ_L`` what straight structure leaves free, zero unless the
+    registration's ``spread < min_spread`` (:func:`swiftjax.loops.geometric.straight_covariance`:
+    the slide along the street and the scale, left to the other edges of the graph)."""
     stats: _EdgeStats | None = record.get("_stats")
     if stats is None:
         return None
@@ -1089,7 +1118,7 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
             drift.odo_sigma_trans,
             drift.odo_sigma_scale,
         )
-        cov = np.linalg.inv(np.asarray(out.information, np.float64)) + stats.spread + np.asarray(warp)
+        cov = np.linalg.inv(np.asarray(out.information, np.float64)) + stats.spread + np.asarray(warp) + stats.straight
         Z = np.asarray(sim3.compose(S, sim3.exp(np.asarray(stats.offset, np.float64))))
     info = np.linalg.inv(cov)
     info = 0.5 * (info + info.T)
