@@ -332,15 +332,16 @@ def _memory_now() -> dict[str, float | None]:
 
 def _memory_growth(steps: list[dict[str, Any]]) -> dict[str, Any]:
     """The driver's memory over the live steps (:func:`_memory_now`'s kinds): at the step a
-    quarter of the way through and at the last, and the growth between them (``rss_*``,
-    ``jax_live_*``, ``py_heap_*``).  What the resident memory adds beyond the data is compiled
+    quarter of the way through (the first when there are fewer than four: a slow machine
+    poses several chunks per step) and at the last, and the growth between them (``rss_*``,
+    ``jax_live_*``, ``py_heap_*``; None only for a kind never measured).  What the resident memory adds beyond the data is compiled
     programs (a new size bucket of the loop decision or the pose graph at each doubling of the
     chunks, the detector's at each doubling of the frames: ``O(log N)`` steps) and the
     allocator's free lists."""
     out: dict[str, Any] = {}
     for kind in ("rss", "jax_live", "py_heap"):
         rows = [s[f"{kind}_mb"] for s in steps if s.get(f"{kind}_mb") is not None]
-        m0, m1 = (rows[len(rows) // 4], rows[-1]) if len(rows) >= 4 else (None, None)
+        m0, m1 = (rows[len(rows) // 4], rows[-1]) if rows else (None, None)
         out |= {f"{kind}_quarter_mb": m0, f"{kind}_last_mb": m1, f"{kind}_growth_mb": None if m0 is None else m1 - m0}
     return out
 

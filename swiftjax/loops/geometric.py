@@ -1395,9 +1395,8 @@ def straight_covariance(
     zero = jnp.zeros(3, dtype)
     u = jnp.concatenate([d_a, zero, jnp.zeros(1, dtype)])
     v = jnp.concatenate([-m_a, zero, jnp.ones(1, dtype)])
-    return jnp.asarray(axis_variance, dtype) / s**2 * jnp.outer(u, u) + jnp.asarray(scale_variance, dtype) * jnp.outer(
-        v, v
-    )
+    slide = jnp.asarray(axis_variance, dtype) / s**2
+    return slide * jnp.outer(u, u) + jnp.asarray(scale_variance, dtype) * jnp.outer(v, v)
 
 
 def _ambiguity(pl: Placements, best: Array, separation: Array, probe: Array, w_probe: Array) -> Array:
