@@ -334,10 +334,10 @@ def _memory_growth(steps: list[dict[str, Any]]) -> dict[str, Any]:
     """The driver's memory over the live steps (:func:`_memory_now`'s kinds): at the step a
     quarter of the way through (the first when there are fewer than four: a slow machine
     poses several chunks per step) and at the last, and the growth between them (``rss_*``,
-    ``jax_live_*``, ``py_heap_*``; None only for a kind never measured).  What the resident memory adds beyond the data is compiled
-    programs (a new size bucket of the loop decision or the pose graph at each doubling of the
-    chunks, the detector's at each doubling of the frames: ``O(log N)`` steps) and the
-    allocator's free lists."""
+    ``jax_live_*``, ``py_heap_*``; None only for a kind never measured).  What the resident
+    memory adds beyond the data is compiled programs (a new size bucket of the loop decision
+    or the pose graph at each doubling of the chunks, the detector's at each doubling of the
+    frames: ``O(log N)`` steps) and the allocator's free lists."""
     out: dict[str, Any] = {}
     for kind in ("rss", "jax_live", "py_heap"):
         rows = [s[f"{kind}_mb"] for s in steps if s.get(f"{kind}_mb") is not None]

@@ -66,17 +66,18 @@ the Gaussian closest to "any plausible placement alike")::
     Z = S_best exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P)⁻¹
 
 (``Ω_reg``: the registration's own information from its residuals,
-:func:`swiftjax.align.covariance.umeyama_information`).  **Structure on one line** (a straight
-street: ``spread = λ₂ / λ₁ < min_spread``) maps onto itself under a slide along the line and a
-scaling about a point of it, which point-to-point residuals cannot see; such an edge is kept,
-its covariance widened by ``Σ_L`` over those two directions (:func:`straight_covariance`: the
-slide over the structure's own length, the scale over the searched range), the other five
-kept.  ``Σ_P`` is large along the slide and
+:func:`swiftjax.align.covariance.umeyama_information`).  ``Σ_P`` is large along the slide and
 zero across it, in yaw and in scale: the loop edge constrains only the well-determined
 directions.  Every registration edge also carries both chunks' own model error over their
 extents, ``Σ_W`` (:func:`warp_covariance`, the temporal edges' drift model over a chunk's
-length), which its residuals cannot see: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``.  Nothing is read
-off a route: ``θ`` comes from the null at ``null_false_alarm``, ``Σ_W`` from the drift model.
+length), which its residuals cannot see: ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹``.  **Structure on
+one line** (a straight street: ``spread = λ₂ / λ₁ < min_spread``) maps onto itself under a
+slide along the line and a scaling about a point of it, which point-to-point residuals cannot
+see either; such an edge is kept, its covariance widened by ``Σ_L`` over those two directions
+(:func:`straight_covariance`: the slide over the structure's own length, the scale over the
+searched range), ``Ω = (Ω_reg⁻¹ + Σ_P + Σ_W + Σ_L)⁻¹``, the other five directions kept.
+Nothing is read off a route: ``θ`` comes from the null at ``null_false_alarm``, ``Σ_W`` from
+the drift model, ``Σ_L`` from the structure and the search range.
 
 **Joint registration** (``GeometryOptions.neighbours = k``, :func:`merge_neighbours`): each
 chunk's cloud joined with its ``k`` neighbours' on each side, placed by the odometry chain's

@@ -63,9 +63,10 @@ predicted.
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
 bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
-spread, whether it is straight, the slide in camera heights).  The pose graph's edge (:func:`graph_edge`) is the
-plausible placements' mean, its information the registration's own residuals' widened by the
-placements' spread and by both chunks' model error over their extents; ``Z`` in the record
+spread, whether it is straight, the slide in camera heights).  The pose graph's edge
+(:func:`graph_edge`) is the plausible placements' mean, its information the registration's
+own residuals' widened by the placements' spread, by both chunks' model error over their
+extents and, on straight structure, along the slide and the scale; ``Z`` in the record
 stays the verified registration.  The records are recomputed on every run (nothing is cached
 in the manifest).
 """
