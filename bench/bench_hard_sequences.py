@@ -332,6 +332,10 @@ def run_sequence(
         "plausible placements' spread and both chunks' model error) and the robust back end",
     }
     out["edge_calibration"] = edge_calibration(solved[-1], res, schedule, truth_gauges, gt) if solved else None
+    errors = {(r["chunk_i"], r["chunk_j"]): r["edge_error_m"] for r in cands if r["accepted"] and "edge_error_m" in r}
+    for e in (out["edge_calibration"] or {}).get("edges", []):  # a geometric edge's error beside its m²
+        if (e["chunk_i"], e["chunk_j"]) in errors:
+            e["edge_error_m"] = errors[(e["chunk_i"], e["chunk_j"])]
     out["candidate_records"] = [
         {
             "i": r["i"],
@@ -420,7 +424,10 @@ def calibration_line(calibration: dict | None) -> str:
         if v["edges"]
     ]
     without = [
-        f"{e['chunk_i']}/{e['chunk_j']} {e['ate_without_m']:.3f}" for e in calibration["edges"] if "ate_without_m" in e
+        f"{e['chunk_i']}/{e['chunk_j']} {e['ate_without_m']:.3f}"
+        + (f" ({e['edge_error_m']:.1f} m off, m² {e['whitened_error_sq']:.1f})" if "edge_error_m" in e else "")
+        for e in calibration["edges"]
+        if "ate_without_m" in e
     ]
     return ", ".join(parts) + (f"; ATE without each geometric edge (m): {', '.join(without)}" if without else "")
 

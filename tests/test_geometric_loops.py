@@ -143,8 +143,9 @@ def test_register_recovers_a_known_sim3():
     )
 
 
-def _register_numpy(src, w_src, dst, w_dst, S0, unit, taus):
-    """Reference ICP in float64 NumPy: nearest neighbour by a loop, Tukey weights, weighted Umeyama."""
+def _register_numpy(src, w_src, dst, w_dst, S0, unit, taus, colours=None, tol=np.inf):
+    """Reference ICP in float64 NumPy: nearest neighbour by a loop, Tukey weights (zero for a
+    pair whose ``colours`` differ by more than ``tol`` in a channel), weighted Umeyama."""
     S = np.asarray(sim3.as_matrix(S0), np.float64)
     for tau in taus * unit:
         y = src @ S[:3, :3].T + S[:3, 3]
@@ -155,6 +156,8 @@ def _register_numpy(src, w_src, dst, w_dst, S0, unit, taus):
             nn[p] = np.argmin(d)
             r[p] = d[nn[p]]
         w = w_src * np.where(r < tau, (1 - (r / tau) ** 2) ** 2, 0.0)
+        if colours is not None:
+            w = w * (np.max(np.abs(colours[0] - colours[1][nn]), 1) <= tol)
         x, z = src, dst[nn]
         W = w.sum()
         mx, mz = (w[:, None] * x).sum(0) / W, (w[:, None] * z).sum(0) / W
@@ -183,6 +186,87 @@ def test_register_against_numpy_reference():
     up = np.array([0, 0, 1.0])
     reg = G.register(src, w_src, dst, w_dst, S0, 0.7, up, 0.0, 1.0, 0.1, 0.3, iterations=6)
     np.testing.assert_allclose(np.asarray(sim3.as_matrix(reg.S)), ref, atol=2e-3)
+
+
+def _painted_street(rng, n_road=400, n_wall=800, block=8.0, half=24.0):
+    """A straight street: road and one straight facade at ``y = 6`` painted in blocks of
+    ``block`` metres (the four facade paints of the synthetic oracle, in turn), grey road."""
+    paints = np.array([[184, 158, 133], [204, 199, 179], [153, 115, 97], [140, 148, 158]], np.uint8)
+    road = np.c_[rng.uniform(-half, half, n_road), rng.uniform(-4, 4, n_road), np.zeros(n_road)]
+    x = rng.uniform(-half, half, n_wall)
+    wall = np.c_[x, 6 + rng.normal(0, 0.03, n_wall), rng.uniform(0.5, 4, n_wall)]
+    rgb = np.concatenate([np.full((n_road, 3), 90, np.uint8), paints[np.floor(x / block).astype(int) % 4]])
+    return np.concatenate([road, wall]).astype(np.float32), rgb
+
+
+def test_chromaticity_closed_form():
+    """``(rgb + 1) / (r + g + b + 3)``: rows sum to 1, grey is ``1/3``, and halving the
+    brightness (distance shading) moves a paint by less than the smallest difference between
+    two of the oracle's facade paints, 0.033."""
+    rgb = np.array([[184, 158, 133], [92, 79, 66], [90, 90, 90], [0, 0, 0]], np.uint8)
+    c = np.asarray(G.chromaticity(rgb))
+    np.testing.assert_allclose(c, (rgb + 1.0) / (rgb.sum(1, keepdims=True) + 3.0), rtol=1e-6)
+    np.testing.assert_allclose(c.sum(1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(c[2:], 1.0 / 3.0, rtol=1e-6)
+    assert np.max(np.abs(c[0] - c[1])) < 0.002
+
+
+def test_register_colour_test_against_numpy_reference():
+    """The colour test inside the ICP (a pair of different paint is no match) against the float64
+    NumPy loop with the same test, from a start slid along the painted street."""
+    rng = np.random.default_rng(8)
+    src, rgb = _painted_street(rng, 150, 250)
+    S_true = _sim3(rng, 0.9)
+    dst = np.asarray(sim3.act(S_true, src)) + rng.normal(0, 0.01, src.shape).astype(np.float32)
+    c = np.asarray(G.chromaticity(rgb), np.float64)
+    w = np.ones(len(src))
+    S0 = sim3.compose(S_true, sim3.from_rst(jnp.eye(3), jnp.asarray([1.5, 0.2, 0.0]), 1.0))
+    taus = 2.0 * (0.2 / 2.0) ** (np.arange(6) / 5)
+    ref = _register_numpy(src.astype(np.float64), w, dst.astype(np.float64), w, S0, 0.9, taus, (c, c), 0.03)
+    up = np.asarray(sim3.act(S_true, np.float32([0, 0, 1])) - sim3.act(S_true, np.zeros(3, np.float32)))
+    reg = G.register(
+        src,
+        w,
+        dst,
+        w,
+        S0,
+        0.9,
+        up / np.linalg.norm(up),
+        0.0,
+        2.0,
+        0.2,
+        0.3,
+        iterations=6,
+        colours=(c, c),
+        colour_tolerance=0.03,
+    )
+    np.testing.assert_allclose(np.asarray(sim3.as_matrix(reg.S)), ref, atol=2e-3)
+
+
+def test_colour_test_scores_a_street_slid_along_itself():
+    """A straight facade maps onto itself under a slide along it: 5 m along the street the plain
+    ICP finds as many structure inliers as at the truth (the slide is invisible to the
+    geometry, ``straight_covariance``'s free direction).  With the colour test the painted
+    blocks tell them apart: the slid placement keeps only the points whose block did not
+    change paint, the truth keeps them all (the structure score of the co-visible search and
+    of its null, :func:`~swiftjax.loops.geometric.peak_icp`)."""
+    rng = np.random.default_rng(9)
+    src, rgb = _painted_street(rng)
+    dst, rgb_dst = _painted_street(np.random.default_rng(10), 500, 1000, half=30.0)  # the same street, longer
+    c, c_dst = np.asarray(G.chromaticity(rgb)), np.asarray(G.chromaticity(rgb_dst))
+    w, w_dst = np.ones(len(src), np.float32), np.ones(len(dst), np.float32)
+    up = np.float32([0, 0, 1])
+    slid = sim3.from_rst(jnp.eye(3), jnp.asarray([5.0, 0.0, 0.0]), 1.0)
+    score = lambda S0, **k: int(
+        G.register(src, w, dst, w_dst, S0, 1.0, up, 0.0, 0.25, 0.25, 0.35, iterations=1, **k).num_structure
+    )
+    coloured = dict(colours=(c, c_dst), colour_tolerance=0.03)
+    plain_truth, plain_slid = score(sim3.identity()), score(slid)
+    assert abs(plain_truth - plain_slid) < 0.1 * plain_truth
+    truth, slide = score(sim3.identity(), **coloured), score(slid, **coloured)
+    assert truth > 0.9 * plain_truth  # nothing lost where the paint matches
+    # 5 m of every 8 m block moves onto the next paint: about 3/8 of the facade still agrees
+    assert slide < 0.55 * truth
 
 
 def test_degenerate_registration_is_rejected_and_finite():
@@ -1437,13 +1521,57 @@ def test_geometries_keep_the_stored_dtype_until_the_device(small_loop_run, tmp_p
             chunks = [min(c, T - 1) for c in range(b0, b0 + loop_geometry.BATCH)]
             frames = [loop_geometry._frames(ctx, c, o, dtype=np.float32)[0] for c in chunks]
             batch = align.ChunkFrames(*(np.stack(x) for x in zip(*frames)))
-            part = loop_geometry._geometry(batch, K, o)
+            images = np.stack([loop_geometry._images(ctx, c, o, f.depth.shape) for c, f in zip(chunks, frames)])
+            part = loop_geometry._geometry(batch, images, K, o)
             want.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: min(loop_geometry.BATCH, T - b0)], part))
         want = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *want)
     finally:
         ctx.close()
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_stored_images_are_the_geometry_pixels_and_read_back(tmp_path):
+    """What the temporal stage stores for the colour test (``stored_images``) is the images at
+    the geometric source's frames (``local_frames``) and pixel grid; ``_images`` reads it back,
+    and ``chunk_frame`` gives each reliable point the chromaticity of its own pixel (the full
+    images and the stored ones alike).  A store without them, or the colour test off
+    (``colour_tolerance = 1``), gives mid grey: every pair agrees."""
+    import types
+
+    from swiftjax import align
+    from swiftjax.io.chunk_store import ChunkStore
+    from swiftjax.pipeline import loop_geometry
+    from swiftjax.prediction import ChunkPrediction
+
+    rng = np.random.default_rng(3)
+    S, H, W, chunk = 23, 30, 50, 25
+    o = G.GeometryOptions()
+    images = rng.integers(0, 256, (S, H, W, 3), dtype=np.uint8)
+    depth = rng.uniform(2.0, 9.0, (S, H, W)).astype(np.float32)
+    K = np.array([[40.0, 0, 25], [0, 40.0, 15], [0, 0, 1]], np.float32)
+    extrinsic = np.tile(np.eye(3, 4, dtype=np.float32), (S, 1, 1))
+    pred = ChunkPrediction(depth, np.full((S, H, W), 2.0, np.float32), extrinsic, np.tile(K, (S, 1, 1)))
+    local = loop_geometry.local_frames(S, chunk, o)
+    np.testing.assert_array_equal(local, np.unique(np.round(np.linspace(0, S - 1, -(-chunk // o.frame_stride)))))
+    extra = loop_geometry.stored_images(images, chunk, o)
+    want = images[local][:, :: o.row_stride, :: o.column_stride]
+    np.testing.assert_array_equal(extra[loop_geometry.IMAGES], want)
+    store = ChunkStore(tmp_path)
+    store.save("chunk", 0, pred, extra=extra)
+    store.save("chunk", 1, pred)
+    ctx = types.SimpleNamespace(store=store)
+    shape = (len(local), H, W)
+    np.testing.assert_array_equal(loop_geometry._images(ctx, 0, o, shape), want)
+    assert np.all(loop_geometry._images(ctx, 1, o, shape) == 128)
+    assert np.all(loop_geometry._images(ctx, 0, o.replace(colour_tolerance=1.0), shape) == 128)
+    assert loop_geometry.stored_images(images, chunk, o.replace(colour_tolerance=1.0)) == {}
+    frames = align.ChunkFrames(depth[local], pred.conf[local], pred.intrinsic[local], extrinsic[local])
+    g_full = G.chunk_frame(frames, K, o, images[local])
+    g_stored = G.chunk_frame(frames, K, o, want)
+    np.testing.assert_array_equal(np.asarray(g_full.colours), np.asarray(g_stored.colours))
+    rgb = want.reshape(-1, 3).astype(np.float64)
+    np.testing.assert_allclose(np.asarray(g_stored.colours), (rgb + 1) / (rgb.sum(1, keepdims=True) + 3), rtol=1e-6)
 
 
 def _rt_matrix(R, t, s):

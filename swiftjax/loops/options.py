@@ -332,6 +332,12 @@ class GeometryOptions:
             the registration subsamples, its iterations and its Tukey radii.  The target keeps
             all ``dst_points`` rows by default: with a sparser target the structure-inlier score
             cannot tell a street's half turn from the truth (tests: the corner scene).
+        colour_tolerance: the co-visible search's colour test: a nearest-neighbour pair whose
+            chromaticities (:func:`swiftjax.loops.geometric.chromaticity`) differ by more than
+            this in some channel is no match (:func:`swiftjax.loops.geometric.register`);
+            1: colour unused (chromaticities differ by less).  It must lie between one surface's chromaticity noise
+            (the same paint seen twice: shading and exposure scale all channels alike) and the
+            difference between paints.
         neighbours: the co-visible search's joint registration: each chunk's structure cloud
             merged with those of the ``neighbours`` chunks on each side, placed by the odometry
             chain (:func:`swiftjax.loops.geometric.merge_neighbours`); the placement, the null
@@ -390,6 +396,13 @@ class GeometryOptions:
     null_chunks: int = option(8, "verdict: unrelated chunks the source is also registered against", low=3)
     null_false_alarm: float = option(
         1e-2, "verdict: false-alarm rate of the registration null", low=0.0, high=1.0, low_open=True, high_open=True
+    )
+    colour_tolerance: float = option(
+        0.03,
+        "co-visible search: largest chromaticity difference of a match (1: colour unused)",
+        low=0.0,
+        high=1.0,
+        low_open=True,
     )
     neighbours: int = option(
         0,

@@ -109,15 +109,54 @@ __all__ = [
 BATCH = 8
 
 
+def local_frames(num_frames: int, chunk_size: int, options: geo.GeometryOptions) -> np.ndarray:
+    """Positions of the ``ceil(chunk_size / frame_stride)`` frames the geometric source reads
+    among a chunk's ``num_frames``, evenly spread (fixed count: the last repeated in a short
+    chunk)."""
+    count = -(-chunk_size // options.frame_stride)
+    local = np.unique(np.round(np.linspace(0, num_frames - 1, count)).astype(np.int64))
+    return np.concatenate([local, np.repeat(local[-1:], count - len(local))])
+
+
+def _local(ctx: RunContext, c: int, options: geo.GeometryOptions) -> np.ndarray:
+    return local_frames(len(ctx.schedule.frames(c)), ctx.config.chunk_size, options)
+
+
+#: The chunk store's ``extra`` array of the geometric source's colours (:func:`stored_images`).
+IMAGES = "loop_geometry_images"
+
+
+def stored_images(images: np.ndarray | None, chunk_size: int, options: geo.GeometryOptions) -> dict[str, np.ndarray]:
+    """What the temporal stage stores of a chunk's ``images [S, H, W, 3]`` uint8 for the colour
+    test (:func:`swiftjax.loops.geometric.register`): :func:`local_frames` at the pixel grid of
+    :func:`~swiftjax.loops.geometric.chunk_frame` (``[F, ⌈H / row_stride⌉, ⌈W / column_stride⌉,
+    3]``, about 60 kB a KITTI chunk, where the full images would be 14 MB); nothing without
+    images or with the colour test off."""
+    if images is None or options.colour_tolerance >= 1.0:
+        return {}
+    sv, su = options.pixel_stride
+    return {IMAGES: np.asarray(images)[local_frames(len(images), chunk_size, options), ::sv, ::su]}
+
+
+def _images(ctx: RunContext, c: int, options: geo.GeometryOptions, shape: tuple[int, ...]) -> np.ndarray:
+    """``[F, h, w, 3]`` uint8 colours of chunk ``c`` at :func:`_local`'s frames and the sampled
+    pixels of ``depth [F, H, W]`` (``shape``) (:func:`stored_images`); mid grey, which every
+    colour test passes, when the store holds none of that size or the colour test is off."""
+    sv, su = options.pixel_stride
+    want = (shape[0], -(-shape[1] // sv), -(-shape[2] // su), 3)
+    images = ctx.store.load_extra("chunk", c, (IMAGES,)).get(IMAGES) if options.colour_tolerance < 1.0 else None
+    if images is None or images.shape != want:
+        return np.full(want, 128, np.uint8)
+    return np.asarray(images, np.uint8)
+
+
 def _frames(
     ctx: RunContext, c: int, options: geo.GeometryOptions, dtype: Any = np.float32
 ) -> tuple[align.ChunkFrames, np.ndarray]:
-    """``ceil(chunk_size / frame_stride)`` frames of chunk ``c``, evenly spread (fixed count), and
-    their global frame ids; depth and confidence as ``dtype`` (None: as stored)."""
+    """:func:`_local`'s frames of chunk ``c`` and their global frame ids; depth and confidence
+    as ``dtype`` (None: as stored)."""
     frames = ctx.schedule.frames(c)
-    count = -(-ctx.config.chunk_size // options.frame_stride)
-    local = np.unique(np.round(np.linspace(0, len(frames) - 1, count)).astype(np.int64))
-    local = np.concatenate([local, np.repeat(local[-1:], count - len(local))])
+    local = _local(ctx, c, options)
     side = align.ChunkFrames.from_prediction(ctx.store.load("chunk", c, frames=local, fields=(), as_stored=True))
     if ctx.camera is not None:  # masked pixels (user / sky) count as missing depth
         keep = ctx.camera.keep(frames[local], side.depth, side.conf)
@@ -129,8 +168,10 @@ def _frames(
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def _geometry(frames: align.ChunkFrames, K_ref: jax.Array, options: geo.GeometryOptions) -> geo.ChunkGeometry:
-    return jax.vmap(lambda f: geo.chunk_frame(f, K_ref, options))(frames)
+def _geometry(
+    frames: align.ChunkFrames, images: jax.Array, K_ref: jax.Array, options: geo.GeometryOptions
+) -> geo.ChunkGeometry:
+    return jax.vmap(lambda f, i: geo.chunk_frame(f, K_ref, options, i))(frames, images)
 
 
 def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions):
@@ -140,7 +181,14 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
     T = ctx.schedule.num_chunks
     parts, ids = [], []
     stack: list[np.ndarray] = []
-    load = lambda b0: [_frames(ctx, min(c, T - 1), options, dtype=None) for c in range(b0, b0 + BATCH)]
+
+    def load(b0: int) -> list[tuple[align.ChunkFrames, np.ndarray, np.ndarray]]:
+        out = []
+        for c in range(b0, b0 + BATCH):
+            side, ids = _frames(ctx, min(c, T - 1), options, dtype=None)
+            out.append((side, ids, _images(ctx, min(c, T - 1), options, np.shape(side.depth))))
+        return out
+
     # the next batch is read (memory-map copies and CRC32s, which release the GIL) while this
     # one's geometry is computed (0.8 s instead of 1.0 on KITTI 00)
     with ThreadPoolExecutor(1, thread_name_prefix="swiftjax-frames") as reader:
@@ -153,7 +201,8 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
             # filled in place; chunk_frame converts to float32 on the device (exact).  A fresh ~40 MB
             # array per batch costs its page faults every time (np.stack: 0.85 s per batch of 8 KITTI
             # chunks against 0.01 s reused); NumPy's float16 -> float32 copy, 0.3 s on KITTI 00.
-            for f, field in enumerate(zip(*(frames for frames, _ in loaded))):
+            fields = [*zip(*(frames for frames, _, _ in loaded)), tuple(im for _, _, im in loaded)]
+            for f, field in enumerate(fields):
                 dtype = np.result_type(*field, *stack[f : f + 1])  # float32 once a chunk stores it so
                 if len(stack) <= f:
                     stack.append(np.empty((BATCH, *np.shape(field[0])), dtype))
@@ -162,11 +211,11 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
                 for k, x in enumerate(field):
                     stack[f][k] = x
             n = min(BATCH, T - b0)
-            out = _geometry(align.ChunkFrames(*stack), np.asarray(K_ref, np.float32), options)
+            out = _geometry(align.ChunkFrames(*stack[:-1]), stack[-1], np.asarray(K_ref, np.float32), options)
             # host arrays, sliced and joined by NumPy (before the refill): an eager jnp slice or
             # concatenate compiles a program per shape (13 on KITTI 00, 0.3 s of a cold run)
             parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out))
-            ids += [f for _, f in loaded[:n]]
+            ids += [f for _, f, _ in loaded[:n]]
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
 
 
@@ -276,9 +325,12 @@ def compile_ahead(
     shapes); the thread only traces and compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
     frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in side))
+    sv, su = options.pixel_stride
+    F, H, W = np.shape(side.depth)
+    images = jax.ShapeDtypeStruct((BATCH, F, -(-H // sv), -(-W // su), 3), np.uint8)
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
     T = _padded_chunks(ctx.schedule.num_chunks)
-    per_chunk = jax.eval_shape(lambda f, k: _geometry(f, k, options), frames, K)
+    per_chunk = jax.eval_shape(lambda f, i, k: _geometry(f, i, k, options), frames, images, K)
     geometry = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct((T, *x.shape[1:]), x.dtype), per_chunk)
     job = lambda size, *shape, dtype=np.float32: jax.ShapeDtypeStruct((size, *shape), dtype)
     edges = (job(T, 2 * options.neighbours, 8), job(T, 2 * options.neighbours, dtype=np.bool_))
@@ -303,7 +355,11 @@ def compile_ahead(
     dense = _dense_config(ctx.config.verification)
     return CompileAhead(
         [
-            [relative, ahead(_geometry, frames, K, options), ahead(_clouds, geometry, *edges, options)],  # CLOUDS
+            [
+                relative,
+                ahead(_geometry, frames, images, K, options),
+                ahead(_clouds, geometry, *edges, options),
+            ],  # CLOUDS
             [
                 ahead(_priors, clouds, job(JOB_BATCH, 8), *ij(JOB_BATCH)),
                 ahead(geo.starts_batch, *starts, options),

@@ -41,6 +41,7 @@ import numpy as np
 from swiftjax import _faults, align, metric_scale
 from swiftjax.io.chunk_store import ChunkCorruptError, ChunkStore, half_if_fits
 from swiftjax.loops.descriptors import chunk_descriptors
+from swiftjax.pipeline import loop_geometry
 from swiftjax.pipeline.alignment import align_pair, both
 from swiftjax.pipeline.results import ChunkEdge, TemporalChunk, TemporalResult
 from swiftjax.pipeline.rundir import ChunkRecords, RunContext, check_binding, chunk_binding, forget_chunk
@@ -202,6 +203,8 @@ class TemporalStage:
                     )
                     height = float(gh.height)
                     points["ground_height"] = np.asarray(height)
+            if config.loop_geometry:  # the geometric loop source's colours (its colour test)
+                points.update(loop_geometry.stored_images(pred.images, config.chunk_size, config.geometry))
 
             with timer("chunk store"):
                 depth, conf = (
