@@ -5,7 +5,9 @@ Beside the DINO-token candidates (:mod:`swiftjax.pipeline.loop_closure`), with
 back from the chunk store, memory-mapped) become its gravity frame and reliable points
 (:func:`geometries`, fixed batches of :data:`BATCH` chunks), a structure cloud
 (:func:`swiftjax.loops.geometric.structure_cloud`) and a bird's-eye spectrum
-(:func:`swiftjax.loops.geometric.bev_spectrum`), once per chunk; with ``loop_geometry_neighbours =
+(:func:`swiftjax.loops.geometric.bev_spectrum`), once per chunk; each point carries its pixel's
+chromaticity (the sampled pixels the temporal stage stored, :func:`stored_images`) for the ICP's
+colour test (``GeometryOptions.colour_tolerance``); with ``loop_geometry_neighbours =
 k > 0`` the structure cloud is joined with its ``k`` neighbours' on each side, placed by the chain
 (:func:`swiftjax.loops.geometric.merge_neighbours`, :func:`_neighbour_edges`: a joint
 registration, ``(2k + 1)²`` times the ICP's work).  The candidates are the chunk
