@@ -1521,7 +1521,7 @@ def test_geometries_keep_the_stored_dtype_until_the_device(small_loop_run, tmp_p
             chunks = [min(c, T - 1) for c in range(b0, b0 + loop_geometry.BATCH)]
             frames = [loop_geometry._frames(ctx, c, o, dtype=np.float32)[0] for c in chunks]
             batch = align.ChunkFrames(*(np.stack(x) for x in zip(*frames)))
-            images = np.stack([loop_geometry._images(ctx, c, o, f.depth.shape) for c, f in zip(chunks, frames)])
+            images = np.stack([loop_geometry._images(ctx, c, o, f.depth.shape)[0] for c, f in zip(chunks, frames)])
             part = loop_geometry._geometry(batch, images, K, o)
             want.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[: min(loop_geometry.BATCH, T - b0)], part))
         want = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *want)
@@ -1562,9 +1562,13 @@ def test_stored_images_are_the_geometry_pixels_and_read_back(tmp_path):
     store.save("chunk", 1, pred)
     ctx = types.SimpleNamespace(store=store)
     shape = (len(local), H, W)
-    np.testing.assert_array_equal(loop_geometry._images(ctx, 0, o, shape), want)
-    assert np.all(loop_geometry._images(ctx, 1, o, shape) == 128)
-    assert np.all(loop_geometry._images(ctx, 0, o.replace(colour_tolerance=1.0), shape) == 128)
+    got, stored = loop_geometry._images(ctx, 0, o, shape)
+    np.testing.assert_array_equal(got, want)
+    assert stored
+    got, stored = loop_geometry._images(ctx, 1, o, shape)
+    assert np.all(got == 128) and not stored
+    got, stored = loop_geometry._images(ctx, 0, o.replace(colour_tolerance=1.0), shape)
+    assert np.all(got == 128) and not stored
     assert loop_geometry.stored_images(images, chunk, o.replace(colour_tolerance=1.0)) == {}
     frames = align.ChunkFrames(depth[local], pred.conf[local], pred.intrinsic[local], extrinsic[local])
     g_full = G.chunk_frame(frames, K, o, images[local])

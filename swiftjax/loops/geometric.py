@@ -222,7 +222,8 @@ def chunk_frame(
     Depths are normalised to ``K_ref`` (eq. 1) and unprojected through each frame's pose; a
     pixel is reliable when its depth is finite and positive and its confidence exceeds
     ``conf_ratio`` times its frame's mean.  ``images`` (the frames' RGB ``[F, H, W, 3]``, or
-    already at the sampled pixels): each point's :func:`chromaticity`.  Pure; jit it (or use :func:`chunk_descriptors`).
+    already at the sampled pixels): each point's :func:`chromaticity`.  Pure; jit it (or use
+    :func:`chunk_descriptors`).
     """
     depth = jnp.asarray(frames.depth, jnp.float32)
     conf = jnp.asarray(frames.conf, jnp.float32)

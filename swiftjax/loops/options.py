@@ -335,9 +335,9 @@ class GeometryOptions:
         colour_tolerance: the co-visible search's colour test: a nearest-neighbour pair whose
             chromaticities (:func:`swiftjax.loops.geometric.chromaticity`) differ by more than
             this in some channel is no match (:func:`swiftjax.loops.geometric.register`);
-            1: colour unused (chromaticities differ by less).  It must lie between one surface's chromaticity noise
-            (the same paint seen twice: shading and exposure scale all channels alike) and the
-            difference between paints.
+            1: colour unused (chromaticities differ by less).  It must lie between one
+            surface's chromaticity noise (the same paint seen twice: shading and exposure scale
+            all channels alike) and the difference between paints.
         neighbours: the co-visible search's joint registration: each chunk's structure cloud
             merged with those of the ``neighbours`` chunks on each side, placed by the odometry
             chain (:func:`swiftjax.loops.geometric.merge_neighbours`); the placement, the null

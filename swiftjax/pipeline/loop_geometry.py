@@ -140,16 +140,23 @@ def stored_images(images: np.ndarray | None, chunk_size: int, options: geo.Geome
     return {IMAGES: np.asarray(images)[local_frames(len(images), chunk_size, options), ::sv, ::su]}
 
 
-def _images(ctx: RunContext, c: int, options: geo.GeometryOptions, shape: tuple[int, ...]) -> np.ndarray:
-    """``[F, h, w, 3]`` uint8 colours of chunk ``c`` at :func:`_local`'s frames and the sampled
-    pixels of ``depth [F, H, W]`` (``shape``) (:func:`stored_images`); mid grey, which every
-    colour test passes, when the store holds none of that size or the colour test is off."""
+def _sampled_images_shape(shape: tuple[int, ...], options: geo.GeometryOptions) -> tuple[int, int, int, int]:
+    """``[F, ⌈H / row_stride⌉, ⌈W / column_stride⌉, 3]``: the images of ``depth [F, H, W]``
+    (``shape``) at :func:`~swiftjax.loops.geometric.chunk_frame`'s pixel grid."""
     sv, su = options.pixel_stride
-    want = (shape[0], -(-shape[1] // sv), -(-shape[2] // su), 3)
+    return (shape[0], -(-shape[1] // sv), -(-shape[2] // su), 3)
+
+
+def _images(ctx: RunContext, c: int, options: geo.GeometryOptions, shape: tuple[int, ...]) -> tuple[np.ndarray, bool]:
+    """``([F, h, w, 3] uint8 colours, stored)`` of chunk ``c`` at :func:`_local`'s frames and the
+    sampled pixels of ``depth [F, H, W]`` (``shape``) (:func:`stored_images`); mid grey, which
+    every colour test passes, and ``stored = False`` when the store holds none of that size or
+    the colour test is off."""
+    want = _sampled_images_shape(shape, options)
     images = ctx.store.load_extra("chunk", c, (IMAGES,)).get(IMAGES) if options.colour_tolerance < 1.0 else None
     if images is None or images.shape != want:
-        return np.full(want, 128, np.uint8)
-    return np.asarray(images, np.uint8)
+        return np.full(want, 128, np.uint8), False
+    return np.asarray(images, np.uint8), True
 
 
 def _frames(
@@ -184,11 +191,16 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
     parts, ids = [], []
     stack: list[np.ndarray] = []
 
+    grey: set[int] = set()  # chunks without stored colours (recorded below)
+
     def load(b0: int) -> list[tuple[align.ChunkFrames, np.ndarray, np.ndarray]]:
         out = []
         for c in range(b0, b0 + BATCH):
-            side, ids = _frames(ctx, min(c, T - 1), options, dtype=None)
-            out.append((side, ids, _images(ctx, min(c, T - 1), options, np.shape(side.depth))))
+            side, frame_ids = _frames(ctx, min(c, T - 1), options, dtype=None)
+            images, stored = _images(ctx, min(c, T - 1), options, np.shape(side.depth))
+            if not stored:
+                grey.add(min(c, T - 1))
+            out.append((side, frame_ids, images))
         return out
 
     # the next batch is read (memory-map copies and CRC32s, which release the GIL) while this
@@ -218,6 +230,12 @@ def geometries(ctx: RunContext, K_ref: np.ndarray, options: geo.GeometryOptions)
             # concatenate compiles a program per shape (13 on KITTI 00, 0.3 s of a cold run)
             parts.append(jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], out))
             ids += [f for _, f, _ in loaded[:n]]
+    if grey and options.colour_tolerance < 1.0:
+        ctx.log(
+            f"loop geometry: {len(grey)} of {T} chunk(s) stored without colours (a run resumed with "
+            "loop_geometry newly on, or a predictor without images): their matches are judged by "
+            "the geometry alone"
+        )
     return jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts), np.stack(ids)
 
 
@@ -327,9 +345,7 @@ def compile_ahead(
     shapes); the thread only traces and compiles."""
     side, _ = _frames(ctx, 0, options, dtype=None)
     frames = align.ChunkFrames(*(jax.ShapeDtypeStruct((BATCH, *np.shape(x)), np.asarray(x).dtype) for x in side))
-    sv, su = options.pixel_stride
-    F, H, W = np.shape(side.depth)
-    images = jax.ShapeDtypeStruct((BATCH, F, -(-H // sv), -(-W // su), 3), np.uint8)
+    images = jax.ShapeDtypeStruct((BATCH, *_sampled_images_shape(np.shape(side.depth), options)), np.uint8)
     K = jax.ShapeDtypeStruct((3, 3), np.float32)
     T = _padded_chunks(ctx.schedule.num_chunks)
     per_chunk = jax.eval_shape(lambda f, i, k: _geometry(f, i, k, options), frames, images, K)
