@@ -829,13 +829,14 @@ def test_placement_moments_closed_form():
 
 def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
     """A registration edge with plausible placements along the street: the graph's edge is
-    ``S exp(δ̄)``, its information ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` — the direction across the
+    ``S exp(δ̄)``, its information ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` (PCM's covariance about ``S``: that plus
+    ``δ̄ δ̄ᵀ``) — the direction across the
     street and yaw keep the information of the residuals and the chunks' model error, the
     slide direction keeps little.  Against NumPy / closed forms: ``Ω_reg`` from the core
     function, ``Σ_W`` diagonal."""
     from swiftjax.align.covariance import umeyama_information
     from swiftjax.loops.verification import VerificationConfig
-    from swiftjax.pipeline.loop_geometry import _EdgeStats, graph_edge
+    from swiftjax.pipeline.loop_geometry import _EdgeStats, edge_covariance, graph_edge
 
     S = np.array([1.0, -2, 0.5, 0, 0, np.sin(0.3), np.cos(0.3), 1.25])
     reg = G.Registration(
@@ -885,6 +886,11 @@ def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
     R = np.array([[np.cos(0.6), -np.sin(0.6), 0], [np.sin(0.6), np.cos(0.6), 0], [0, 0, 1]])
     np.testing.assert_allclose(Z[:3], S[:3] + 1.25 * R @ np.array([-2.0, 0, 0]), atol=1e-9)
     np.testing.assert_allclose(Z[3:], S[3:], atol=1e-12)
+    # PCM's covariance about the verified S: the graph's plus the mean's offset, Σ + δ̄ δ̄ᵀ
+    about_S = edge_covariance(_EdgeStats(reg, 1.0, offset, slide, extents, none), 1.0)
+    want = np.linalg.inv(plain) + warp + slide
+    want[0, 0] += 4.0
+    np.testing.assert_allclose(about_S, want, rtol=1e-9, atol=1e-12)
 
 
 def test_warp_covariance_is_the_drift_model_over_each_chunk():

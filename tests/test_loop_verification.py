@@ -393,6 +393,38 @@ def test_verify_candidates_rules_and_pcm(x64):
     assert all(d.accepted for d in off)
 
 
+def test_pcm_whitens_a_record_by_its_own_covariance(x64):
+    """A record's ``_covariance`` (a registration edge's own,
+    :func:`swiftjax.pipeline.loop_geometry.edge_covariance`) replaces the drift model's loop
+    covariance in its cycles: the drift model's own matrix gives the same residuals; one wide
+    along the edge's error accepts it; a record stored the other way round (``Z⁻¹`` with
+    ``Ad(Z) Σ Ad(Z)ᵀ``, the covariance of the inverse's right perturbation) is the same edge."""
+    rel, X, nodes, Z = chain_problem(4)
+    c = V.VerificationConfig()
+    recs = [record(int(q), int(p), z) for (p, q), z in zip(nodes, Z)]
+    delta = np.array([1.0, 0.3, 0.0, 0.0, 0.05, 0.0, 0.0])  # 20 loop sigmas along x
+    far = np.asarray(sim3.compose(jnp.asarray(Z[0]), sim3.exp(jnp.asarray(delta))))
+    p0, q0 = int(nodes[0, 0]), int(nodes[0, 1])
+    liar = record(q0, p0, far)
+    base = V.verify_candidates([*recs, liar], X, rel)
+    assert [d.accepted for d in base] == [True] * 4 + [False]
+    drift = np.asarray(V.loop_covariance(jnp.asarray(far), c.loop_sigma_rot, c.loop_sigma_trans, c.loop_sigma_scale))
+    same = V.verify_candidates([*recs, liar | {"_covariance": drift}], X, rel)
+    assert [d.pcm_residual for d in same] == pytest.approx([d.pcm_residual for d in base], rel=1e-9)
+    wide = drift + np.outer(delta, delta)  # its error lies within it: δᵀ (Σ + δ δᵀ)⁻¹ δ < 1
+    own = V.verify_candidates([*recs, liar | {"_covariance": wide}], X, rel)
+    assert [d.accepted for d in own] == [True] * 5
+    assert own[4].pcm_residual < 1.5 < 5 < base[4].pcm_residual
+    Ad = np.asarray(sim3.adjoint(jnp.asarray(far)))
+    step = 1e-6 * delta  # (Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ), checked to first order
+    moved = sim3.compose(jnp.asarray(far), sim3.inverse(sim3.compose(jnp.asarray(far), sim3.exp(jnp.asarray(step)))))
+    assert np.asarray(sim3.log(moved)) == pytest.approx(-Ad @ step, abs=1e-11)
+    flipped = record(p0, q0, np.asarray(sim3.inverse(jnp.asarray(far)))) | {"_covariance": Ad @ wide @ Ad.T}
+    back = V.verify_candidates([*recs, flipped], X, rel)
+    assert [d.accepted for d in back] == [True] * 5
+    assert [d.pcm_residual for d in back] == pytest.approx([d.pcm_residual for d in own], rel=1e-6)
+
+
 def null_record(ci, cj, Z, agreement, mean=0.05, tau=0.1, registered=None, **extra):
     """A record judged by the null rule: ``κ = (a − mean)/(1 − mean)``; ``registered``: the
     registered null's bound (a registration edge, :mod:`swiftjax.pipeline.loop_geometry`)."""

@@ -454,10 +454,12 @@ def verify_candidates(
     to ``min_agreement``).  The rule, in order: a non-finite ``Z``, an invalid or thin
     loop-chunk alignment, no overlap or depths that agree no better than under wrong edges
     (``dense_agreement <= null_threshold`` or a chance-corrected agreement below
-    ``null_min_kappa``; ``"fixed"``: ``< min_agreement``) reject the
-    candidate; the
-    survivors (two or more) go through PCM and only a maximum consistent set is kept (ties:
-    larger total ``dense_agreement``).  Followers (``followers``, module docstring: a
+    ``null_min_kappa``; ``"fixed"``: ``< min_agreement``) reject the candidate; the survivors
+    (two or more) go through PCM and only a maximum consistent set is kept (ties: larger total
+    ``dense_agreement``).  Each cycle is whitened by its loop edges' covariances: a record's
+    ``_covariance`` (``[7, 7]``, of the right perturbation of its ``Z``: a registration edge's
+    own, :func:`swiftjax.pipeline.loop_geometry.edge_covariance`, the one the pose graph gives
+    it) where it has one, else the drift model's (:func:`loop_covariance`).  Followers (``followers``, module docstring: a
     registration edge below ``null_min_kappa`` that beats ``registered_null_threshold``) take
     no part in that set: each, by decreasing ``dense_agreement``, is accepted when it is
     pairwise consistent with every loop of the set and every follower accepted before it, and
@@ -515,12 +517,16 @@ def verify_candidates(
             )
         return out
     tested = alive + hopeful
-    nodes, Zs = [], []
-    for k in tested:  # each loop as the edge p -> q with p < q, Z ~ S_p^-1 S_q
+    nodes, Zs, own = [], [], {}
+    for a, k in enumerate(tested):  # each loop as the edge p -> q with p < q, Z ~ S_p^-1 S_q
         ci, cj = int(records[k]["chunk_i"]), int(records[k]["chunk_j"])
         Z = np.asarray(records[k]["Z"], np.float64)  # maps c_i into c_j: edge c_j -> c_i
-        if cj > ci:
-            with jax.enable_x64(True):
+        C = records[k].get("_covariance")
+        with jax.enable_x64(True):
+            if C is not None:  # (Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ): Σ of the inverse is Ad(Z) Σ Ad(Z)ᵀ
+                A = np.asarray(sim3.adjoint(jnp.asarray(Z))) if cj > ci else np.eye(7)
+                own[a] = A @ np.asarray(C, np.float64) @ A.T
+            if cj > ci:
                 Z = np.asarray(sim3.inverse(jnp.asarray(Z)))
         nodes.append((min(ci, cj), max(ci, cj)))
         Zs.append(Z)
@@ -537,7 +543,10 @@ def verify_candidates(
             config.odo_sigma_trans,
             config.odo_sigma_scale,
         )
-        lc = loop_covariance(Zj, config.loop_sigma_rot, config.loop_sigma_trans, config.loop_sigma_scale)
+        lc = np.array(loop_covariance(Zj, config.loop_sigma_rot, config.loop_sigma_trans, config.loop_sigma_scale))
+        for a, C in own.items():
+            lc[a] = C
+        lc = jnp.asarray(lc)
         m = np.asarray(
             pairwise_consistency(jnp.asarray(chain_poses, jnp.float64), odo, jnp.asarray(nodes, jnp.int32), Zj, lc)
         )[:n, :n]

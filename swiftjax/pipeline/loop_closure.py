@@ -140,6 +140,7 @@ def _run(
         r.pop("_stats", None)
         r.pop("_closed_by", None)
         r.pop("_registered", None)
+        r.pop("_covariance", None)
         r.pop("_register", None)
     loop_records += [
         {

@@ -52,7 +52,11 @@ slice or a concatenate compiles a small program per shape).
 
 Survivors go through the cross-chunk dense test over every pair of the two chunks' loaded frames
 (``neighbours = 0``) and pairwise consistency with every other candidate, like the token
-candidates.  The dense test's null (``null_samples`` times the candidate's own test) runs only
+candidates; PCM whitens a registration edge's cycles by its own covariance
+(:func:`edge_covariance`, the graph's about the verified placement), not by the drift model's
+loop covariance: two placements of one revisit slid apart along a street (synthetic KITTI 08,
+world 2: 35/4 and 36/4, 5 m apart) are consistent within the slide their covariances allow,
+where the drift model's 0.05 chunk units made them exclude each other.  The dense test's null (``null_samples`` times the candidate's own test) runs only
 where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`: an agreement
 below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
 A survivor rejected by the null's chance-corrected floor alone may still be a follower
@@ -101,6 +105,7 @@ __all__ = [
     "chunk_pair",
     "closing",
     "compile_ahead",
+    "edge_covariance",
     "graph_edge",
     "geometries",
     "settle_deferred",
@@ -765,6 +770,11 @@ def candidates(
                 extent[[ci, cj]],
                 _straight(reg0, o) if straight else np.zeros((7, 7)),
             )
+            cov = edge_covariance(record["_stats"], ctx.config.edge_pixels_per_sample)
+            if cov is not None:
+                record["_covariance"] = cov
+            else:
+                record.pop("_covariance", None)
             reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
         return reasons
 
@@ -1152,26 +1162,10 @@ def _straight(reg: geo.Registration, options: geo.GeometryOptions) -> np.ndarray
         )
 
 
-def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pose graph's edge of an accepted registration record: ``(Z [8], information [7, 7])``,
-    or None (no usable statistics: the record's ``Z`` with the drift model alone)::
-
-        Z = S exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P + Σ_W + Σ_L)⁻¹
-
-    ``S``: the refined best placement (the record's ``Z``, the verified one); ``δ̄``, ``Σ_P``:
-    the plausible placements' mean offset and covariance about it
-    (:func:`swiftjax.loops.geometric.placement_moments`: the edge is the Gaussian closest to
-    "any plausible placement alike"; ``δ̄ = 0``, ``Σ_P = 0`` when only the best is plausible);
-    ``Ω_reg`` from the registration's own inliers' residuals
-    (:func:`swiftjax.align.covariance.umeyama_information`); ``Σ_W`` the two chunks' model
-    error over their extents (:func:`swiftjax.loops.geometric.warp_covariance`, the drift
-    model of :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose
-    graph's own drift terms); ``Σ_L`` what straight structure leaves free, zero unless the
-    registration's ``spread < min_spread`` (:func:`swiftjax.loops.geometric.straight_covariance`:
-    the slide along the street and the scale, left to the other edges of the graph)."""
-    stats: _EdgeStats | None = record.get("_stats")
-    if stats is None:
-        return None
+def _edge_moments(stats: _EdgeStats, pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(δ̄ [7], Σ [7, 7])`` of a refined registration (:func:`graph_edge`'s terms): the
+    plausible placements' mean offset about the best and the edge's covariance about that
+    mean, ``Σ = Ω_reg⁻¹ + Σ_P + Σ_W + Σ_L``; None without usable statistics."""
     reg = stats.registration
     S = np.asarray(reg.S, np.float64)
     drift = lv.VerificationConfig()
@@ -1194,7 +1188,48 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
             drift.odo_sigma_scale,
         )
         cov = np.linalg.inv(np.asarray(out.information, np.float64)) + stats.spread + np.asarray(warp) + stats.straight
-        Z = np.asarray(sim3.compose(S, sim3.exp(np.asarray(stats.offset, np.float64))))
+    offset = np.asarray(stats.offset, np.float64)
+    return (offset, cov) if np.all(np.isfinite(cov)) and np.all(np.isfinite(offset)) else None
+
+
+def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pose graph's edge of an accepted registration record: ``(Z [8], information [7, 7])``,
+    or None (no usable statistics: the record's ``Z`` with the drift model alone)::
+
+        Z = S exp(δ̄),   Ω = (Ω_reg⁻¹ + Σ_P + Σ_W + Σ_L)⁻¹
+
+    ``S``: the refined best placement (the record's ``Z``, the verified one); ``δ̄``, ``Σ_P``:
+    the plausible placements' mean offset and covariance about it
+    (:func:`swiftjax.loops.geometric.placement_moments`: the edge is the Gaussian closest to
+    "any plausible placement alike"; ``δ̄ = 0``, ``Σ_P = 0`` when only the best is plausible);
+    ``Ω_reg`` from the registration's own inliers' residuals
+    (:func:`swiftjax.align.covariance.umeyama_information`); ``Σ_W`` the two chunks' model
+    error over their extents (:func:`swiftjax.loops.geometric.warp_covariance`, the drift
+    model of :class:`~swiftjax.loops.verification.VerificationConfig`'s defaults, as the pose
+    graph's own drift terms); ``Σ_L`` what straight structure leaves free, zero unless the
+    registration's ``spread < min_spread`` (:func:`swiftjax.loops.geometric.straight_covariance`:
+    the slide along the street and the scale, left to the other edges of the graph)."""
+    stats: _EdgeStats | None = record.get("_stats")
+    moments = None if stats is None else _edge_moments(stats, pixels_per_sample)
+    if moments is None:
+        return None
+    offset, cov = moments
+    with jax.enable_x64(True):
+        Z = np.asarray(sim3.compose(np.asarray(stats.registration.S, np.float64), sim3.exp(offset)))
     info = np.linalg.inv(cov)
     info = 0.5 * (info + info.T)
     return (Z, info) if np.all(np.isfinite(info)) and np.all(np.isfinite(Z)) else None
+
+
+def edge_covariance(stats: _EdgeStats, pixels_per_sample: float) -> np.ndarray | None:
+    """``[7, 7]`` the covariance of a refined registration's edge about its BEST placement
+    (the record's ``Z``, the one verified), for pairwise consistency
+    (:func:`swiftjax.loops.verification.verify_candidates`, a record's ``covariance``): the
+    graph's covariance (:func:`graph_edge`) widened by its mean's offset, the second moment
+    ``Σ + δ̄ δ̄ᵀ`` about ``S``, so that PCM judges the placement verified with the uncertainty the
+    graph will give the edge; None without usable statistics."""
+    moments = _edge_moments(stats, pixels_per_sample)
+    if moments is None:
+        return None
+    offset, cov = moments
+    return cov + np.outer(offset, offset)
