@@ -829,10 +829,9 @@ def test_placement_moments_closed_form():
 
 def test_graph_edge_is_the_placements_mean_widened_along_the_slide(x64):
     """A registration edge with plausible placements along the street: the graph's edge is
-    ``S exp(δ̄)``, its information ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` (PCM's covariance about ``S``: that plus
-    ``δ̄ δ̄ᵀ``) — the direction across the
-    street and yaw keep the information of the residuals and the chunks' model error, the
-    slide direction keeps little.  Against NumPy / closed forms: ``Ω_reg`` from the core
+    ``S exp(δ̄)``, its information ``(Ω_reg⁻¹ + Σ_P + Σ_W)⁻¹`` (PCM's covariance about ``S``:
+    that plus ``δ̄ δ̄ᵀ``) — the direction across the street and yaw keep the information of the
+    residuals and the chunks' model error, the slide direction keeps little.  Against NumPy / closed forms: ``Ω_reg`` from the core
     function, ``Σ_W`` diagonal."""
     from swiftjax.align.covariance import umeyama_information
     from swiftjax.loops.verification import VerificationConfig

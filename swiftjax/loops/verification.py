@@ -459,8 +459,8 @@ def verify_candidates(
     ``dense_agreement``).  Each cycle is whitened by its loop edges' covariances: a record's
     ``_covariance`` (``[7, 7]``, of the right perturbation of its ``Z``: a registration edge's
     own, :func:`swiftjax.pipeline.loop_geometry.edge_covariance`, the one the pose graph gives
-    it) where it has one, else the drift model's (:func:`loop_covariance`).  Followers (``followers``, module docstring: a
-    registration edge below ``null_min_kappa`` that beats ``registered_null_threshold``) take
+    it) where it has one, else the drift model's (:func:`loop_covariance`).  Followers
+    (``followers``, module docstring: a registration edge below ``null_min_kappa`` that beats ``registered_null_threshold``) take
     no part in that set: each, by decreasing ``dense_agreement``, is accepted when it is
     pairwise consistent with every loop of the set and every follower accepted before it, and
     rejected when the set is empty or PCM is off.  A follower whose registered null is still
@@ -522,12 +522,14 @@ def verify_candidates(
         ci, cj = int(records[k]["chunk_i"]), int(records[k]["chunk_j"])
         Z = np.asarray(records[k]["Z"], np.float64)  # maps c_i into c_j: edge c_j -> c_i
         C = records[k].get("_covariance")
-        with jax.enable_x64(True):
-            if C is not None:  # (Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ): Σ of the inverse is Ad(Z) Σ Ad(Z)ᵀ
-                A = np.asarray(sim3.adjoint(jnp.asarray(Z))) if cj > ci else np.eye(7)
-                own[a] = A @ np.asarray(C, np.float64) @ A.T
-            if cj > ci:
+        if cj > ci:
+            with jax.enable_x64(True):
+                if C is not None:  # (Z exp δ)⁻¹ = Z⁻¹ exp(−Ad(Z) δ): Σ of the inverse is Ad(Z) Σ Ad(Z)ᵀ
+                    A = np.asarray(sim3.adjoint(jnp.asarray(Z)))
+                    C = A @ np.asarray(C, np.float64) @ A.T
                 Z = np.asarray(sim3.inverse(jnp.asarray(Z)))
+        if C is not None:
+            own[a] = np.asarray(C, np.float64)
         nodes.append((min(ci, cj), max(ci, cj)))
         Zs.append(Z)
     # padded to a power of two (>= 8) so that one compile serves many candidate counts

@@ -56,9 +56,10 @@ candidates; PCM whitens a registration edge's cycles by its own covariance
 (:func:`edge_covariance`, the graph's about the verified placement), not by the drift model's
 loop covariance: two placements of one revisit slid apart along a street (synthetic KITTI 08,
 world 2: 35/4 and 36/4, 5 m apart) are consistent within the slide their covariances allow,
-where the drift model's 0.05 chunk units made them exclude each other.  The dense test's null (``null_samples`` times the candidate's own test) runs only
-where it can change the verdict (:func:`swiftjax.loops.verification.null_needed`: an agreement
-below ``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
+where the drift model's 0.05 chunk units made them exclude each other.  The dense test's null
+(``null_samples`` times the candidate's own test) runs only where it can change the verdict
+(:func:`swiftjax.loops.verification.null_needed`: an agreement below
+``min(null_min_kappa, min_agreement)`` or no overlap is rejected by every null; exact).
 A survivor rejected by the null's chance-corrected floor alone may still be a follower
 (:mod:`swiftjax.loops.verification`, "Followers"): judged against its source's registered null
 (:class:`RegisteredNull`: the dense agreement of the structure null's own placements, refined),
@@ -771,10 +772,8 @@ def candidates(
                 _straight(reg0, o) if straight else np.zeros((7, 7)),
             )
             cov = edge_covariance(record["_stats"], ctx.config.edge_pixels_per_sample)
-            if cov is not None:
+            if cov is not None:  # (none: PCM uses the drift model's loop covariance)
                 record["_covariance"] = cov
-            else:
-                record.pop("_covariance", None)
             reasons.append(geo.covisible_reason(record["registration"], o, structure_null=False))
         return reasons
 
@@ -1224,7 +1223,7 @@ def graph_edge(record: dict[str, Any], pixels_per_sample: float) -> tuple[np.nda
 def edge_covariance(stats: _EdgeStats, pixels_per_sample: float) -> np.ndarray | None:
     """``[7, 7]`` the covariance of a refined registration's edge about its BEST placement
     (the record's ``Z``, the one verified), for pairwise consistency
-    (:func:`swiftjax.loops.verification.verify_candidates`, a record's ``covariance``): the
+    (:func:`swiftjax.loops.verification.verify_candidates`, a record's ``_covariance``): the
     graph's covariance (:func:`graph_edge`) widened by its mean's offset, the second moment
     ``Σ + δ̄ δ̄ᵀ`` about ``S``, so that PCM judges the placement verified with the uncertainty the
     graph will give the edge; None without usable statistics."""
