@@ -138,7 +138,7 @@ def edge_log_scales(record: dict, truth_gauges, chain: np.ndarray) -> dict[str, 
     }
 
 
-def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dict:
+def edge_calibration(solved, res, schedule, truth_gauges, centres: list[np.ndarray], gt: np.ndarray) -> dict:
     """How well the run's own pose graph weighs its loop edges, from its last solve ``solved =
     (ctx, temporal, loops)``: per accepted loop edge, its error against the truth edge
     ``δ = log(Z_true⁻¹ Z)`` (the oracle's true gauges) whitened by the covariance the graph
@@ -146,8 +146,10 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
     when ``Σ`` is right; the temporal edges' too, against ``G_t⁻¹ G_{t+1}``); per source, the
     mean of each tangent component's marginal ``δ_k² / Σ_kk`` (1 where that component's
     variance is right; :data:`COMPONENTS` names them); and per geometric edge the ATE (metres)
-    of the same graph solved without it (what that one edge costs or gains).  Runs after the
-    timed run."""
+    of the same graph solved without it (what that one edge costs or gains) and the RMS error
+    (metres, :func:`edge_error`) of the edge the graph solves with, ``graph_edge_error_m`` (a
+    registration edge's placements' mean, not the verified placement the record keeps).  Runs
+    after the timed run."""
     from swiftjax import evaluation, sim3
     from swiftjax.pipeline import graph
 
@@ -175,6 +177,9 @@ def edge_calibration(solved, res, schedule, truth_gauges, gt: np.ndarray) -> dic
         }
         row["whitened_error_sq"] = whitened(e.chunk_a, e.chunk_b, e.Z, C, row["source"])
         if row["source"] == "geometry":
+            row["graph_edge_error_m"] = edge_error(
+                {"chunk_i": e.chunk_b, "chunk_j": e.chunk_a, "Z": e.Z}, truth_gauges, centres, schedule
+            )
             without = loops._replace(
                 edges=loops.edges[:n] + loops.edges[n + 1 :],
                 records=[dict(x, accepted=False) if x is r else x for x in loops.records],
@@ -331,7 +336,7 @@ def run_sequence(
         "note": "the run's own pose graph: each edge's information (a geometric edge's widened by its "
         "plausible placements' spread and both chunks' model error) and the robust back end",
     }
-    out["edge_calibration"] = edge_calibration(solved[-1], res, schedule, truth_gauges, gt) if solved else None
+    out["edge_calibration"] = edge_calibration(solved[-1], res, schedule, truth_gauges, centres, gt) if solved else None
     errors = {(r["chunk_i"], r["chunk_j"]): r["edge_error_m"] for r in cands if r["accepted"] and "edge_error_m" in r}
     for e in (out["edge_calibration"] or {}).get("edges", []):  # a geometric edge's error beside its m²
         if (e["chunk_i"], e["chunk_j"]) in errors:

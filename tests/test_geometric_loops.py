@@ -269,6 +269,70 @@ def test_colour_test_scores_a_street_slid_along_itself():
     assert slide < 0.55 * truth
 
 
+def test_slide_starts_closed_form():
+    """``slide_starts``: the placement translated along the target's heading ``e₁`` (the first
+    column of its basis) by ``(−1, +1, −2, +2, …) peak_separation / 2`` camera heights, as
+    4 x 4 matrices ``T(t) S``; ``slide_batch`` gives the same per job."""
+    rng = np.random.default_rng(21)
+    S = _sim3(rng, 1.3)
+    B, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    h = 1.7
+    b = G.ChunkCloud(jnp.zeros((4, 3)), jnp.ones(4), jnp.zeros(3), jnp.asarray(B, jnp.float32), jnp.float32(h))
+    o = G.GeometryOptions(slide_steps=2, peak_separation=3.0)
+    got = np.asarray(sim3.as_matrix(G.slide_starts(S, b, o)), np.float64)
+    want = []
+    for d in (-1.5, 1.5, -3.0, 3.0):
+        T = np.eye(4)
+        T[:3, 3] = d * h * B[:, 0]
+        want.append(T @ np.asarray(sim3.as_matrix(S), np.float64))
+    np.testing.assert_allclose(got, np.stack(want), atol=2e-5)
+    stack = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), b)
+    batched = G.slide_batch(stack, jnp.asarray([1, 0]), jnp.stack([S, S]), o)
+    np.testing.assert_allclose(np.asarray(batched[1]), np.asarray(G.slide_starts(S, b, o)), atol=1e-6)
+
+
+def test_slide_search_finds_the_placement_between_two_peaks():
+    """A painted street whose best bird's-eye peak landed 5 m along it and whose other peaks are
+    off the street: the peak ICP from starts ``±2, ±4, ±6`` m along the heading reaches the
+    truth (its paint agrees everywhere, the slid placement's on 3/8 of each block), which then
+    replaces the weakest peak; the slid placement stays a placement.  From the truth nothing
+    scores more and nothing changes."""
+    from swiftjax.pipeline import loop_geometry
+
+    rng = np.random.default_rng(12)
+    src, rgb = _painted_street(rng, 300, 700)
+    dst, rgb_dst = _painted_street(np.random.default_rng(13), 500, 1000, half=30.0)
+    n = len(dst)
+    order = rng.permutation(len(src)), rng.permutation(n)
+    pad = lambda x: np.concatenate([x, np.zeros((n - len(x), *x.shape[1:]), x.dtype)])
+    points = np.stack([pad(src[order[0]]), dst[order[1]]]).astype(np.float32)
+    weights = np.stack([pad(np.ones(len(src), np.float32)), np.ones(n, np.float32)])
+    colours = np.stack([pad(np.asarray(G.chromaticity(rgb))[order[0]]), np.asarray(G.chromaticity(rgb_dst))[order[1]]])
+    origin = np.float32([[0, 0, 1], [0, 0, 1]])  # cameras one height above the road
+    clouds = G.ChunkCloud(*(jnp.asarray(x) for x in (points, weights, origin, np.stack([np.eye(3)] * 2), np.ones(2))))
+    clouds = clouds._replace(colours=jnp.asarray(colours, jnp.float32))
+    o = G.GeometryOptions(slide_steps=3, peak_separation=4.0)
+    shift = lambda x: np.asarray(sim3.from_rst(jnp.eye(3), jnp.asarray([x, 0.0, 0.0]), 1.0), np.float32)
+    far = lambda y: np.asarray(sim3.from_rst(jnp.eye(3), jnp.asarray([0.0, y, 0.0]), 1.0), np.float32)
+    S0 = np.stack([far(40.0), shift(5.0), far(-40.0)])[None]
+    peaks = G.peaks_batch(clouds, jnp.asarray([0]), jnp.asarray([1]), jnp.asarray(S0), jnp.ones((1, 3)), o)
+    pl = G.Placements(np.array(peaks.S), np.array(peaks.scores), np.ones((1, 3), np.float32))
+    slid = pl.scores[0, 1]
+    assert np.argmax(pl.scores[0]) == 1 and abs(pl.S[0, 1, 0] - 5.0) < 0.5, pl.scores
+    src_i, dst_i = np.asarray([0], np.int32), np.asarray([1], np.int32)
+    top, replaced = loop_geometry._slide_search(pl, np.asarray([0]), src_i, dst_i, clouds, o)
+    best = int(np.argmax(pl.scores[0]))
+    assert top[0] == pl.scores[0, best] > slid and replaced[0] == 1
+    # the truth's basin: across the street and in height to a few centimetres; along it within
+    # the nearest start's metre (the ICP has no pull along a facade: colour only removes matches)
+    assert abs(pl.S[0, best, 0]) <= 1.05 and np.abs(pl.S[0, best, 1:3]).max() < 0.1, pl.S[0, best]
+    assert pl.scores[0, 1] == slid and best in (0, 2)  # the weakest replaced, the slid one kept
+    before = (pl.S.copy(), pl.scores.copy())
+    assert loop_geometry._slide_search(pl, np.asarray([0]), src_i, dst_i, clouds, o)[1][0] == -1
+    np.testing.assert_array_equal(pl.S, before[0])
+    np.testing.assert_array_equal(pl.scores, before[1])
+
+
 def test_degenerate_registration_is_rejected_and_finite():
     """A flat featureless road: no structure, the candidate is rejected with a reason; the
     edge is finite."""
@@ -1390,7 +1454,10 @@ def test_compile_ahead_compiles_every_program_the_stage_runs(tmp_path, k):
     assert {"loop geometry: placement", "loop geometry: refinement"} <= ran, ran  # the stage ran them
     assert any(r.get("accepted") is not False for r in records)  # some survived to the refinement
     # (starts_batch, _geometry and _clouds are first traced inside compile_ahead's eval_shape)
-    programs = ["_relative", "_priors", "peaks_batch", "refine_batch", "placement_moments", "_cross_jit", "_null_jit"]
+    programs = [
+        *("_relative", "_priors", "peaks_batch", "slide_batch", "refine_batch", "placement_moments"),
+        *("_cross_jit", "_null_jit"),
+    ]
     assert set(programs) <= set(compiled_ahead), compiled_ahead  # (the dense test's null too)
     assert "act" in stage  # (the chain's x64 sim3.act is not compiled ahead: the log sees the stage's traces)
     assert [p for p in [*programs, "starts_batch"] if p in stage] == [], stage

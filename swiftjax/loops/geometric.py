@@ -56,6 +56,15 @@ translations within ``window`` of ``τ`` (:func:`bev_starts`) are refined by the
 (:func:`covisible_reason`): the best ``n`` above the null's bound ``θ`` (the same source
 registered onto unrelated chunks, :func:`swiftjax.loops.null.null_threshold`), then the best
 placement refined on all points (:func:`refine_placement`): scale ratio, structure, residual.
+Between the two, a candidate above ``θ`` is also searched along the street
+(:func:`slide_starts`, ``slide_steps``): the bird's-eye correlation of a street seen from its
+two ends peaks where the most structure overlaps, not where it belongs, and its peaks are kept
+``peak_separation`` apart, so the true placement can lie between two peaks, in the basin of
+neither.  The peak ICP runs again from the best placement shifted along the target's heading
+by ``±k peak_separation / 2`` (``k = 1 … slide_steps``); a start that scores more than the best
+peak replaces the weakest peak.  (Synthetic KITTI 08, world 2: 36/4 and 37/3 placed 7.4 and
+9.9 m off the truth by their best peaks, 45 and 44 structure inliers; from the truth the same
+ICP scores 50 and 48, refined 411 and 412 against the slid placements' 296 and 312.)
 
 **Colour** (``GeometryOptions.colour_tolerance``).  Each point carries its pixel's
 chromaticity ``c = (rgb + 1) / (r + g + b + 3)`` (:func:`chromaticity`: brightness, so distance
@@ -1162,6 +1171,39 @@ def peak_icp(
     in_range = log_ratio <= jnp.log(o.max_scale_ratio)
     ok = regs.valid & in_range & (corr >= 0.5) & jnp.isfinite(a.height) & jnp.isfinite(b.height)
     return Placements(regs.S, jnp.where(ok, regs.num_structure, -1).astype(jnp.int32), corr)
+
+
+def slide_starts(
+    S: Float[ArrayLike, "8"], b: ChunkCloud, options: GeometryOptions = GeometryOptions()
+) -> Float[Array, "N 8"]:
+    """``[2 slide_steps, 8]`` starts along the target's street: the placement ``S`` (``a`` into
+    ``b``) shifted in ``b`` along its heading ``e₁`` (the first column of ``b.basis``)::
+
+        S_k = T(d_k h_b e₁) ∘ S,   d_k = ±j peak_separation / 2,   j = 1 … slide_steps
+
+    ordered ``(−1, +1, −2, +2, …)`` steps; ``T(t)`` the pure translation.  Half the peaks'
+    separation: a truth between two peaks kept ``peak_separation`` apart lies within a quarter
+    of it of some start (the peak ICP's first Tukey radius, ``tau_start``, is 3 camera heights
+    at the defaults).  Pure."""
+    o = options
+    j = np.repeat(np.arange(1, o.slide_steps + 1), 2) * np.tile([-1.0, 1.0], o.slide_steps)
+    d = jnp.asarray(j * o.peak_separation / 2.0, jnp.float32) * b.height
+    t = d[:, None] * b.basis[:, 0][None, :]
+    shift = sim3.from_rst(jnp.broadcast_to(jnp.eye(3), (len(j), 3, 3)), t, jnp.ones(len(j)))
+    return sim3.compose(shift, jnp.asarray(S, jnp.float32)[None])
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def slide_batch(
+    clouds: ChunkCloud,
+    dst: Int[ArrayLike, " B"],
+    S: Float[ArrayLike, "B 8"],
+    options: GeometryOptions = GeometryOptions(),
+) -> Float[Array, "B N 8"]:
+    """:func:`slide_starts` of ``B`` placements onto the chunks ``dst`` of the stacked
+    ``clouds [T, ...]``.  One compile per ``(T, B, options)``."""
+    take = lambda c: jax.tree_util.tree_map(lambda x: x[c], clouds)
+    return jax.vmap(lambda c, s: slide_starts(s, take(c), options))(jnp.asarray(dst), S)
 
 
 def place_covisible(

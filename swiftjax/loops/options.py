@@ -338,6 +338,10 @@ class GeometryOptions:
             1: colour unused (chromaticities differ by less).  It must lie between one
             surface's chromaticity noise (the same paint seen twice: shading and exposure scale
             all channels alike) and the difference between paints.
+        slide_steps: the co-visible search along the street: a candidate above the null is
+            also ICP'd from its best placement shifted ``±k peak_separation / 2`` along the
+            target's heading, ``k = 1 … slide_steps``
+            (:func:`swiftjax.loops.geometric.slide_starts`); 0: the bird's-eye peaks only.
         neighbours: the co-visible search's joint registration: each chunk's structure cloud
             merged with those of the ``neighbours`` chunks on each side, placed by the odometry
             chain (:func:`swiftjax.loops.geometric.merge_neighbours`); the placement, the null
@@ -387,6 +391,9 @@ class GeometryOptions:
     peaks: int = option(3, "co-visible search: correlation peaks refined", low=1)
     peak_separation: float = option(4.0, "co-visible search: distinct placements (camera heights)", low=0.0)
     max_window: float = option(40.0, "co-visible search: largest translation window (camera heights)", low=1.0)
+    slide_steps: int = option(
+        3, "co-visible search: starts on each side of the best placement along the street (0: none)", low=0
+    )
     peak_src_points: int = option(256, "co-visible search: source points refined per peak", low=1)
     peak_dst_points: int = option(1024, "co-visible search: target points refined per peak", low=1)
     refine_iterations: int = option(6, "co-visible search: ICP iterations of the best placement on all rows", low=1)

@@ -335,7 +335,8 @@ def compile_ahead(
     """Start compiling, on a background thread, the programs :func:`candidates` runs for this run's
     chunk count, in three groups one after the other (:class:`CompileAhead`): the clouds
     (:func:`_relative`, :func:`_geometry`, :func:`_clouds`); the placement (one batch each of :func:`_priors`,
-    :func:`swiftjax.loops.geometric.starts_batch` and :func:`~swiftjax.loops.geometric.peaks_batch`);
+    :func:`swiftjax.loops.geometric.starts_batch`, :func:`~swiftjax.loops.geometric.peaks_batch` and
+    :func:`~swiftjax.loops.geometric.slide_batch`);
     the refinement (one batch each of :func:`~swiftjax.loops.geometric.refine_batch` and the
     placements' spread, and the dense test with its null,
     :func:`swiftjax.loops.verification.compile_candidate_numbers`).  Each is
@@ -388,6 +389,7 @@ def compile_ahead(
                 ahead(_priors, clouds, job(JOB_BATCH, 8), *ij(JOB_BATCH)),
                 ahead(geo.starts_batch, *starts, options),
                 ahead(geo.peaks_batch, *peaks, options),
+                ahead(geo.slide_batch, clouds, job(PEAK_BATCH, dtype=np.int32), job(PEAK_BATCH, 8), options),
             ],  # PLACEMENT
             [
                 ahead(geo.refine_batch, *refine, options),
@@ -703,6 +705,17 @@ def candidates(
             float(np.mean(nb)) if len(nb) else None,
             len(nb),
         )
+    slide_score = np.full(P, -1, np.int64)
+    rival = np.full(P, -1, np.int64)  # the best placement the search along the street replaced
+    if o.slide_steps:
+        th_of = np.asarray([np.inf if thresholds[c][0] is None else thresholds[c][0] for c in ci_.tolist()])
+        above = np.flatnonzero(pl.scores[:P].max(-1) > th_of)
+        if len(above):
+            with (
+                ctx.timer("loop geometry: placement"),
+                ThreadPoolExecutor(PLACEMENT_WORKERS, thread_name_prefix="swiftjax-placement") as pool,
+            ):
+                slide_score[above], rival[above] = _slide_search(pl, above, arrays[0], arrays[1], clouds, o, pool)
     records: list[dict[str, Any]] = []
     survivors = []
     registered: dict[int, RegisteredNull] = {}  # each source's, built when a candidate needs it
@@ -721,25 +734,36 @@ def candidates(
         (:class:`_EdgeStats`) set, and its refined registration's reason
         (:func:`swiftjax.loops.geometric.covisible_reason` without the structure null, which the
         placement's score was tested against) returned."""
-        sk = np.asarray([k for k, _, _ in items])
-        start = np.stack([pl.S[k, kb] for k, kb, _ in items]).astype(np.float32)
+        # each item's best placement, then the placement the search along the street replaced
+        # where it did: both refined, the one with more structure inliers kept
+        rows = [(n, k, kb) for n, (k, kb, _) in enumerate(items)]
+        rows += [(n, k, int(rival[k])) for n, (k, _, _) in enumerate(items) if rival[k] >= 0]
+        item, sk, kbs = (np.asarray(x) for x in zip(*rows))
+        start = pl.S[sk, kbs].astype(np.float32)
         prior_scale = (sigma[sk] * np.asarray(clouds.height)[cj_[sk]] / np.asarray(clouds.height)[ci_[sk]]).astype(
             np.float32
         )
         with ctx.timer("loop geometry: refinement"):
-            regs = _run_batched(
+            refined = _run_batched(
                 lambda *a: geo.refine_batch(clouds, *a, o),
                 REFINE_BATCH,
                 (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
             )
+            pick = np.arange(len(items))
+            for m in range(len(items), len(rows)):
+                if refined.num_structure[m] > refined.num_structure[pick[item[m]]]:
+                    pick[item[m]] = m
+            regs = jax.tree_util.tree_map(lambda x: x[pick], refined)
             offsets, spreads = _run_batched(
                 _moments,
                 REFINE_BATCH,
-                (pl.S[sk], np.stack([p for _, _, p in items]), np.asarray([kb for _, kb, _ in items], np.int32)),
+                (pl.S[sk[pick]], np.stack([p for _, _, p in items]), kbs[pick].astype(np.int32)),
             )
         reasons = []
         for n, (k, _, _) in enumerate(items):
             record = records[k]
+            if rival[k] >= 0:
+                record["registration"]["slide_kept"] = bool(pick[n] == n)
             reg0 = jax.tree_util.tree_map(lambda x: x[n], regs)
             ci, cj = int(ci_[k]), int(cj_[k])
             record["Z"] = np.asarray(reg0.S, np.float64).tolist()
@@ -820,6 +844,7 @@ def candidates(
             "null_samples": null_samples,
             "yaw_deg": float(np.degrees(psi[k])),
             "neighbours": o.neighbours,
+            "slide_score": int(slide_score[k]),
         }
         records.append(record)
         why = geo.covisible_reason(record["registration"], o)
@@ -853,6 +878,47 @@ def candidates(
                         _dense(ctx, ci, cj, record["Z"], K_ref, o, verification, functools.partial(registered_null, ci))
                     )
     return in_order(records + unregistered)
+
+
+def _slide_search(
+    pl: geo.Placements,
+    jobs: np.ndarray,
+    src: np.ndarray,
+    dst: np.ndarray,
+    clouds: geo.ChunkCloud,
+    options: geo.GeometryOptions,
+    pool: Executor | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The search along the street (module docstring of :mod:`swiftjax.loops.geometric`) of the
+    placement jobs ``jobs [n]``: the peak ICP from :func:`~swiftjax.loops.geometric.slide_starts`
+    of each job's best placement, run as :func:`~swiftjax.loops.geometric.peaks_batch` jobs of
+    ``peaks`` starts (the compiled program; the starts padded with the best itself).  Where a
+    start scores more than the best, it replaces the job's weakest placement in ``pl`` (in
+    place; the others stay, as placements the pose graph's spread keeps).  Returns each job's
+    best score among its starts and the slot of the best it replaced (−1: none), ``[n]`` each:
+    the refinement refines both and keeps the one with more structure inliers (on 4x the
+    points, a far less noisy count than the peak ICP's)."""
+    K = pl.S.shape[1]
+    best = pl.S[jobs, np.argmax(pl.scores[jobs], -1)]
+    starts = _run_batched(lambda *a: geo.slide_batch(clouds, *a, options), PEAK_BATCH, (dst[jobs], best))
+    n, N = starts.shape[:2]
+    rep = -(-N // K)
+    starts = np.concatenate([starts, np.repeat(best[:, None], rep * K - N, 1)], 1).reshape(n * rep, K, 8)
+    got = _run_batched(
+        lambda *a: geo.peaks_batch(clouds, *a, options),
+        PEAK_BATCH,
+        (np.repeat(src[jobs], rep), np.repeat(dst[jobs], rep), starts, np.ones((n * rep, K), np.float32)),
+        pool,
+    )
+    S, scores = got.S.reshape(n, rep * K, 8), got.scores.reshape(n, rep * K)
+    top = np.argmax(scores, -1)
+    top_score = scores[np.arange(n), top]
+    replaced = np.full(n, -1, np.int64)
+    for m in np.flatnonzero(top_score > pl.scores[jobs].max(-1)):
+        replaced[m] = int(np.argmax(pl.scores[jobs[m]]))
+        weakest = int(np.argmin(pl.scores[jobs[m]]))
+        pl.S[jobs[m], weakest], pl.scores[jobs[m], weakest] = S[m, top[m]], top_score[m]
+    return top_score, replaced
 
 
 def _null_settled(false_alarm: float, k: int) -> bool:
