@@ -33,8 +33,11 @@ bucket of chunk counts and options):
    and stopped once every candidate of the source is at or below a null sample (exact,
    :func:`_null_settled`); the bound is :func:`swiftjax.loops.null.null_threshold` at
    ``null_false_alarm`` on the best placements' structure inliers;
-3. for the candidates above it, the best placement refined on all points
-   (:func:`~swiftjax.loops.geometric.refine_batch`); the scale must agree with the chain's and
+3. for the candidates above it, the search along the street (:func:`_slide_search`: the peak
+   ICP from the best placement shifted along the target's heading,
+   :func:`~swiftjax.loops.geometric.slide_batch`), then the best placement refined on all
+   points (:func:`~swiftjax.loops.geometric.refine_batch`; where the search replaced the best,
+   both, and the one with more structure inliers kept); the scale must agree with the chain's and
    the structure must be enough (:func:`swiftjax.loops.geometric.covisible_reason`, one-line
    reasons).  Every placement above the bound is plausible; the pose graph's edge is their
    mean and their spread widens its covariance
@@ -69,8 +72,10 @@ predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
-bound and samples, and after the refinement inlier ratio, RMS in camera heights, scale ratio,
-spread, whether it is straight, the slide in camera heights).  The pose graph's edge
+bound and samples, the search along the street's best score, ``slide_score``, −1 where it did
+not run, and ``slide_kept`` where its placement replaced the best and both were refined, and
+after the refinement inlier ratio, RMS in camera heights, scale ratio, spread, whether it is
+straight, the slide in camera heights).  The pose graph's edge
 (:func:`graph_edge`) is the plausible placements' mean, its information the registration's
 own residuals' widened by the placements' spread, by both chunks' model error over their
 extents and, on straight structure, along the slide and the scale; ``Z`` in the record
