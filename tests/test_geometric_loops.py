@@ -331,6 +331,10 @@ def test_slide_search_finds_the_placement_between_two_peaks():
     assert loop_geometry._slide_search(pl, np.asarray([0]), src_i, dst_i, clouds, o)[1][0] == -1
     np.testing.assert_array_equal(pl.S, before[0])
     np.testing.assert_array_equal(pl.scores, before[1])
+    # one peak: the search's placement takes the slid best's only slot, nothing left to refine beside it
+    one = G.Placements(np.array(peaks.S[:, 1:2]), np.array(peaks.scores[:, 1:2]), np.ones((1, 1), np.float32))
+    top, replaced = loop_geometry._slide_search(one, np.asarray([0]), src_i, dst_i, clouds, o.replace(peaks=1))
+    assert replaced[0] == -1 and one.scores[0, 0] == top[0] > slid and abs(one.S[0, 0, 0]) <= 1.05
 
 
 def test_degenerate_registration_is_rejected_and_finite():

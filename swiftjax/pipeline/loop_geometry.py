@@ -900,7 +900,8 @@ def _slide_search(
     ``peaks`` starts (the compiled program; the starts padded with the best itself).  Where a
     start scores more than the best, it replaces the job's weakest placement in ``pl`` (in
     place; the others stay, as placements the pose graph's spread keeps).  Returns each job's
-    best score among its starts and the slot of the best it replaced (−1: none), ``[n]`` each:
+    best score among its starts and the slot of the best it replaced (−1: none, or ``peaks = 1``,
+    where the search's placement takes the best's only slot), ``[n]`` each:
     the refinement refines both and keeps the one with more structure inliers (on 4x the
     points, a far less noisy count than the peak ICP's)."""
     K = pl.S.shape[1]
@@ -920,8 +921,8 @@ def _slide_search(
     top_score = scores[np.arange(n), top]
     replaced = np.full(n, -1, np.int64)
     for m in np.flatnonzero(top_score > pl.scores[jobs].max(-1)):
-        replaced[m] = int(np.argmax(pl.scores[jobs[m]]))
-        weakest = int(np.argmin(pl.scores[jobs[m]]))
+        best_slot, weakest = int(np.argmax(pl.scores[jobs[m]])), int(np.argmin(pl.scores[jobs[m]]))
+        replaced[m] = best_slot if weakest != best_slot else -1  # (one peak: the best itself goes)
         pl.S[jobs[m], weakest], pl.scores[jobs[m], weakest] = S[m, top[m]], top_score[m]
     return top_score, replaced
 
