@@ -320,21 +320,51 @@ def test_slide_search_finds_the_placement_between_two_peaks():
     slid = pl.scores[0, 1]
     assert np.argmax(pl.scores[0]) == 1 and abs(pl.S[0, 1, 0] - 5.0) < 0.5, pl.scores
     src_i, dst_i = np.asarray([0], np.int32), np.asarray([1], np.int32)
-    top, replaced = loop_geometry._slide_search(pl, np.asarray([0]), src_i, dst_i, clouds, o)
+    search = lambda pl, o=o, bound=0.0: loop_geometry._slide_search(
+        pl, np.asarray([0]), src_i, dst_i, np.asarray([bound]), clouds, o
+    )
+    boosted = G.Placements(pl.S.copy(), pl.scores.copy(), pl.correlation.copy())
+    top, searched, rival = search(pl)
     best = int(np.argmax(pl.scores[0]))
-    assert top[0] == pl.scores[0, best] > slid and replaced[0] == 1
+    assert top[0] == pl.scores[0, best] > slid and searched[0] == best and rival[0] == 1
     # the truth's basin: across the street and in height to a few centimetres; along it within
     # the nearest start's metre (the ICP has no pull along a facade: colour only removes matches)
     assert abs(pl.S[0, best, 0]) <= 1.05 and np.abs(pl.S[0, best, 1:3]).max() < 0.1, pl.S[0, best]
     assert pl.scores[0, 1] == slid and best in (0, 2)  # the weakest replaced, the slid one kept
     before = (pl.S.copy(), pl.scores.copy())
-    assert loop_geometry._slide_search(pl, np.asarray([0]), src_i, dst_i, clouds, o)[1][0] == -1
+    # from the truth: whatever basin the search finds scores less and the best stays; with a
+    # bound above it nothing is plausible and nothing changes
+    again = G.Placements(pl.S.copy(), pl.scores.copy(), pl.correlation)
+    top, _, _ = search(again)
+    assert top[0] < again.scores[0, best] and np.argmax(again.scores[0]) == best
+    np.testing.assert_array_equal(again.S[0, best], before[0][0, best])
+    assert search(pl, bound=float(top[0]))[2][0] == -1
     np.testing.assert_array_equal(pl.S, before[0])
     np.testing.assert_array_equal(pl.scores, before[1])
+    # the slid peak scored above everything the search finds: the truth's basin, plausible and
+    # 5 heights away, is the best's rival in the weakest slot, the best untouched
+    boosted.scores[0, 1] = 10 * slid
+    weakest = int(np.argmin(boosted.scores[0]))
+    top, searched, rival = search(boosted)
+    assert searched[0] == rival[0] == weakest and boosted.scores[0, weakest] == top[0]
+    assert abs(boosted.S[0, weakest, 0]) <= 1.05 and np.argmax(boosted.scores[0]) == 1
     # one peak: the search's placement takes the slid best's only slot, nothing left to refine beside it
     one = G.Placements(np.array(peaks.S[:, 1:2]), np.array(peaks.scores[:, 1:2]), np.ones((1, 1), np.float32))
-    top, replaced = loop_geometry._slide_search(one, np.asarray([0]), src_i, dst_i, clouds, o.replace(peaks=1))
-    assert replaced[0] == -1 and one.scores[0, 0] == top[0] > slid and abs(one.S[0, 0, 0]) <= 1.05
+    top, searched, rival = search(one, o.replace(peaks=1))
+    assert rival[0] == -1 and searched[0] == 0 and one.scores[0, 0] == top[0] > slid and abs(one.S[0, 0, 0]) <= 1.05
+
+
+def test_host_act_is_sim3_act():
+    """``loop_geometry._act`` (float64 NumPy, no compile per batch) against ``sim3.act``."""
+    from swiftjax.pipeline import loop_geometry
+
+    rng = np.random.default_rng(5)
+    S = np.stack([np.asarray(_sim3(rng, s), np.float64) for s in (0.3, 1.0, 4.0)])
+    x = rng.normal(size=(3, 3)) * 20
+    with jax.enable_x64(True):
+        want = np.asarray(sim3.act(jnp.asarray(S), jnp.asarray(x)))
+    # (float32 quaternions, unit to about 1e-7: the two formulas differ by that)
+    np.testing.assert_allclose(loop_geometry._act(S, x), want, rtol=2e-6, atol=2e-5)
 
 
 def test_degenerate_registration_is_rejected_and_finite():
