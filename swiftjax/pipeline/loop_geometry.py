@@ -36,8 +36,8 @@ bucket of chunk counts and options):
 3. for the candidates above it, the search along the street (:func:`_slide_search`: the peak
    ICP from the best placement shifted along the target's heading,
    :func:`~swiftjax.loops.geometric.slide_batch`), then the best placement refined on all
-   points (:func:`~swiftjax.loops.geometric.refine_batch`; where the search replaced the best,
-   both, and the one with more structure inliers kept); the scale must agree with the chain's and
+   points (:func:`~swiftjax.loops.geometric.refine_batch`; where the search found a rival, both,
+   and the one with more structure inliers kept); the scale must agree with the chain's and
    the structure must be enough (:func:`swiftjax.loops.geometric.covisible_reason`, one-line
    reasons).  Every placement above the bound is plausible; the pose graph's edge is their
    mean and their spread widens its covariance
