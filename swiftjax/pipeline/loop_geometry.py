@@ -72,11 +72,10 @@ predicted.
 
 Each candidate is a record marked ``source = "geometry"`` with its registration's numbers
 (``registration.*``: the placements' structure inliers, plausible placements, the null's mean,
-bound and samples, the search along the street's best score, ``slide_score``, −1 where it did
-not run, and ``slide_kept`` where its placement and the best were both refined, whether its
-was kept, and
-after the refinement inlier ratio, RMS in camera heights, scale ratio, spread, whether it is
-straight, the slide in camera heights).  The pose graph's edge
+bound and samples, the search along the street's best score ``slide_score`` (−1 where it did
+not run) and, where its placement and the best were both refined, whether its was kept,
+``slide_kept``; after the refinement inlier ratio, RMS in camera heights, scale ratio, spread,
+whether it is straight, the slide in camera heights).  The pose graph's edge
 (:func:`graph_edge`) is the plausible placements' mean, its information the registration's
 own residuals' widened by the placements' spread, by both chunks' model error over their
 extents and, on straight structure, along the slide and the scale; ``Z`` in the record
@@ -940,12 +939,12 @@ def _slide_search(
     for m in range(n):
         sc = pl.scores[jobs[m]]
         best_slot, weakest = int(np.argmax(sc)), int(np.argmin(sc))
-        if top_score[m] > sc[best_slot]:
+        if top_score[m] > sc[best_slot]:  # the new best; the displaced best its rival
             rival[m] = best_slot if weakest != best_slot else -1  # (one peak: the best itself goes)
-        elif not (weakest != best_slot and top_score[m] > max(bound[m], sc[weakest]) and apart[m]):
-            continue
+        elif weakest != best_slot and top_score[m] > max(bound[m], sc[weakest]) and apart[m]:
+            rival[m] = weakest  # plausible, in a basin of its own: the best's rival
         else:
-            rival[m] = weakest
+            continue
         searched[m] = weakest
         pl.S[jobs[m], weakest], pl.scores[jobs[m], weakest] = top_S[m], top_score[m]
     return top_score, searched, rival
