@@ -348,6 +348,13 @@ def test_slide_search_finds_the_placement_between_two_peaks():
     top, searched, rival = search(boosted)
     assert searched[0] == rival[0] == weakest and boosted.scores[0, weakest] == top[0]
     assert abs(boosted.S[0, weakest, 0]) <= 1.05 and np.argmax(boosted.scores[0]) == 1
+    # a slot without a placement (score −1; its S all zeros maps every point to the origin, a
+    # height from where the truth puts the source's camera) is no basin: the rival still goes in
+    empty = G.Placements(pl.S.copy(), pl.scores.copy(), pl.correlation.copy())
+    empty.scores[0, 1] = 10 * slid
+    empty.S[0, weakest], empty.scores[0, weakest] = 0.0, -1
+    top, searched, rival = search(empty)
+    assert searched[0] == rival[0] == weakest and empty.scores[0, weakest] == top[0] > 0
     # one peak: the search's placement takes the slid best's only slot, nothing left to refine beside it
     one = G.Placements(np.array(peaks.S[:, 1:2]), np.array(peaks.scores[:, 1:2]), np.ones((1, 1), np.float32))
     top, searched, rival = search(one, o.replace(peaks=1))

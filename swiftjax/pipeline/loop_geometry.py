@@ -908,7 +908,8 @@ def _slide_search(
     * ``n*`` exceeds the best's score: it is the new best, and the best it displaced its rival;
     * or ``n*`` exceeds the null's bound and the weakest's score, and ``S*`` places the source's
       origin more than ``peak_separation / 2`` camera heights from where every placement does (a
-      basin none of them is in, at the starts' own spacing): it is the best's rival.
+      basin none of them is in, at the starts' own spacing; a slot without a placement, score
+      −1, holds none): it is the best's rival.
 
     The refinement refines the best and its rival and keeps the one with more structure inliers,
     a count on four times the points: the peak ICP's counts are too noisy to rank two plausible
@@ -934,7 +935,8 @@ def _slide_search(
     top_S, top_score = S[np.arange(n), top], scores[np.arange(n), top]
     origin = np.asarray(clouds.origin, np.float64)[src[jobs]]  # where each puts the source's origin
     gap = np.linalg.norm(_act(top_S[:, None], origin[:, None]) - _act(pl.S[jobs], origin[:, None]), axis=-1)
-    apart = np.all(gap / np.asarray(clouds.height)[dst[jobs], None] > options.peak_separation / 2.0, -1)  # [n]
+    far = gap / np.asarray(clouds.height)[dst[jobs], None] > options.peak_separation / 2.0
+    apart = np.all(far | (pl.scores[jobs] < 0), -1)  # [n] (a slot without a placement scores −1)
     searched, rival = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
     for m in range(n):
         sc = pl.scores[jobs[m]]
