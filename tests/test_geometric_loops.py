@@ -374,6 +374,47 @@ def test_host_act_is_sim3_act():
     np.testing.assert_allclose(loop_geometry._act(S, x), want, rtol=2e-6, atol=2e-5)
 
 
+def test_refined_rival_outranks_the_best_only_when_it_passes():
+    """``loop_geometry._outranks``: of the best's and the rival's refinements, one that passes the
+    refined tests (valid, scale within ``max_scale_ratio`` of the odometry's, ``min_structure``,
+    ``max_rms``) is kept before one that fails them, whatever their counts; between two that
+    both pass or both fail, more structure inliers (a tie keeps the best)."""
+    from swiftjax.pipeline import loop_geometry
+
+    o = G.GeometryOptions()
+    ok = dict(valid=True, scale_ratio=1.05, num_structure=300, spread=0.3, rms=0.1, inlier_ratio=0.8)
+    more = dict(ok, num_structure=400)
+    failing = {
+        "shrunk": dict(more, scale_ratio=0.51, num_structure=531),  # 00, world 1: 72/9's rival
+        "grown": dict(more, scale_ratio=1.4),
+        "invalid": dict(more, valid=False),
+        "rough": dict(more, rms=0.3),
+        "bare": dict(ok, num_structure=o.min_structure - 1),
+    }
+    outranks = lambda rival, best: loop_geometry._outranks(rival, best, o)
+    assert outranks(more, ok) and not outranks(ok, more) and not outranks(dict(ok), ok)
+    for name, bad in failing.items():
+        assert G.covisible_reason({"peak_score": 0, **bad}, o, structure_null=False) is not None, name
+        assert not outranks(bad, ok) and outranks(ok, bad), name
+    assert outranks(failing["shrunk"], failing["invalid"]) and not outranks(failing["bare"], failing["rough"])
+    # the numbers of a real registration, as plain values
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(200, 3)).astype(np.float32) * 5
+    reg = G.register(
+        pts,
+        np.ones(200, np.float32),
+        pts,
+        np.ones(200, np.float32),
+        sim3.identity(),
+        1.0,
+        jnp.asarray([0.0, 0.0, 1.0]),
+        -10.0,
+    )
+    numbers = loop_geometry._registration_numbers(reg)
+    assert numbers["valid"] is True and numbers["num_points"] == 200 and isinstance(numbers["num_structure"], int)
+    assert numbers["rms"] == pytest.approx(float(reg.rms)) and numbers["scale_ratio"] == pytest.approx(1.0, abs=1e-4)
+
+
 def test_degenerate_registration_is_rejected_and_finite():
     """A flat featureless road: no structure, the candidate is rejected with a reason; the
     edge is finite."""

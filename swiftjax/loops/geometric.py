@@ -64,7 +64,9 @@ neither.  The peak ICP runs again from the best placement shifted along the targ
 by ``±k peak_separation / 2`` (``k = 1 … slide_steps``); the starts' best placement replaces
 the weakest peak when it scores more than the best peak, or when it is plausible and lands in a
 basin none of the placements is in, and the refinement keeps whichever of it and the best has
-more structure inliers on all points (:func:`swiftjax.pipeline.loop_geometry._slide_search`).
+more structure inliers on all points, a refinement that passes the refined tests (scale,
+structure, residual) before one that fails them
+(:func:`swiftjax.pipeline.loop_geometry._slide_search`, ``_outranks``).
 (Synthetic KITTI 08, world 2: 36/4 and 37/3 placed 7.4 and 9.9 m off the truth by their best
 peaks, 45 and 44 structure inliers; from the truth the same ICP scores 50 and 48, refined 411
 and 412 against the slid placements' 296 and 312.)

@@ -37,7 +37,8 @@ bucket of chunk counts and options):
    ICP from the best placement shifted along the target's heading,
    :func:`~swiftjax.loops.geometric.slide_batch`), then the best placement refined on all
    points (:func:`~swiftjax.loops.geometric.refine_batch`; where the search found a rival, both,
-   and the one with more structure inliers kept); the scale must agree with the chain's and
+   and the one with more structure inliers kept of those that pass the refined tests,
+   :func:`_outranks`); the scale must agree with the chain's and
    the structure must be enough (:func:`swiftjax.loops.geometric.covisible_reason`, one-line
    reasons).  Every placement above the bound is plausible; the pose graph's edge is their
    mean and their spread widens its covariance
@@ -743,7 +744,7 @@ def candidates(
         (:func:`swiftjax.loops.geometric.covisible_reason` without the structure null, which the
         placement's score was tested against) returned."""
         # each item's best placement, then its rival from the search along the street where it
-        # has one: both refined, the one with more structure inliers kept
+        # has one: both refined, the better one kept (_outranks)
         rows = [(n, k, kb) for n, (k, kb, _) in enumerate(items)]
         rows += [(n, k, int(rival[k])) for n, (k, _, _) in enumerate(items) if rival[k] >= 0]
         item, sk, kbs = (np.asarray(x) for x in zip(*rows))
@@ -758,8 +759,9 @@ def candidates(
                 (ci_[sk].astype(np.int32), cj_[sk].astype(np.int32), start, prior_scale),
             )
             pick = np.arange(len(items))
+            numbers = [_registration_numbers(jax.tree_util.tree_map(lambda x: x[m], refined)) for m in range(len(rows))]
             for m in range(len(items), len(rows)):
-                if refined.num_structure[m] > refined.num_structure[pick[item[m]]]:
+                if _outranks(numbers[m], numbers[pick[item[m]]], o):
                     pick[item[m]] = m
             regs = jax.tree_util.tree_map(lambda x: x[pick], refined)
             offsets, spreads = _run_batched(
@@ -776,21 +778,7 @@ def candidates(
             ci, cj = int(ci_[k]), int(cj_[k])
             record["Z"] = np.asarray(reg0.S, np.float64).tolist()
             record["score"] = float(reg0.num_structure / max(int(reg0.num_points), 1))
-            record["registration"].update(
-                {
-                    key: _plain(getattr(reg0, key))
-                    for key in (
-                        "inlier_ratio",
-                        "rms",
-                        "scale_ratio",
-                        "spread",
-                        "num_inliers",
-                        "num_structure",
-                        "num_points",
-                        "valid",
-                    )
-                }
-            )
+            record["registration"].update(numbers[pick[n]])
             ev = np.linalg.eigvalsh(spreads[n][:3, :3])
             record["registration"]["slide"] = float(np.sqrt(max(ev[-1], 0.0)) / float(np.asarray(clouds.height)[ci]))
             straight = bool(reg0.spread < o.min_spread)
@@ -911,8 +899,9 @@ def _slide_search(
       basin none of them is in, at the starts' own spacing; a slot without a placement, score
       −1, holds none): it is the best's rival.
 
-    The refinement refines the best and its rival and keeps the one with more structure inliers,
-    a count on four times the points: the peak ICP's counts are too noisy to rank two plausible
+    The refinement refines the best and its rival and keeps the one with more structure inliers
+    (of those that pass the refined tests, :func:`_outranks`), a count on four times the
+    points: the peak ICP's counts are too noisy to rank two plausible
     placements (synthetic KITTI 08, world 2: 37/3's search reached the truth's basin at the
     best's own peak score, 44, and refined it scores 412 against the best's 312).  With one
     peak the search's placement takes the best's only slot when it scores more and has no
@@ -950,6 +939,26 @@ def _slide_search(
         searched[m] = weakest
         pl.S[jobs[m], weakest], pl.scores[jobs[m], weakest] = top_S[m], top_score[m]
     return top_score, searched, rival
+
+
+def _registration_numbers(reg: geo.Registration) -> dict[str, Any]:
+    """A refined registration's numbers as plain values (a record's ``registration`` keys, the
+    ones :func:`swiftjax.loops.geometric.covisible_reason` tests)."""
+    keys = ("inlier_ratio", "rms", "scale_ratio", "spread", "num_inliers", "num_structure", "num_points", "valid")
+    return {key: _plain(getattr(reg, key)) for key in keys}
+
+
+def _outranks(rival: dict[str, Any], best: dict[str, Any], options: geo.GeometryOptions) -> bool:
+    """Whether the refined ``rival`` (:func:`_registration_numbers`) replaces the refined
+    ``best`` of the same candidate: a refinement that passes the refined tests of
+    :func:`swiftjax.loops.geometric.covisible_reason` (valid, scale within the odometry's
+    range, structure, residual) outranks one that fails them; between two that both pass or
+    both fail, more structure inliers.  The count alone would prefer a placement shrunk onto
+    part of the target (a smaller scale brings more of the source within the Tukey radius:
+    synthetic KITTI 00, world 1, a rival at 0.51 x the odometry's scale with 531 inliers) and
+    so reject a candidate whose best placement passes."""
+    passes = lambda reg: geo.covisible_reason({"peak_score": 0, **reg}, options, structure_null=False) is None
+    return (passes(rival), rival["num_structure"]) > (passes(best), best["num_structure"])
 
 
 def _act(S: np.ndarray, x: np.ndarray) -> np.ndarray:
